@@ -1,0 +1,100 @@
+"""Keypoint conventions (names, index maps from MHR70) and bone lists for drawing."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _hand(side: str) -> list[str]:
+    # SAM 3D Body orders each hand finger by finger, tip first, then the wrist.
+    return [f"{side}_{finger}_{part}" for finger in ("thumb", "index", "middle", "ring", "pinky")
+            for part in ("tip", "first_joint", "second_joint", "third_joint")] + [f"{side}_wrist"]
+
+
+MHR70_NAMES: tuple[str, ...] = tuple(
+    ["nose", "left_eye", "right_eye", "left_ear", "right_ear",
+     "left_shoulder", "right_shoulder", "left_elbow", "right_elbow",
+     "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+     "left_big_toe_tip", "left_small_toe_tip", "left_heel",
+     "right_big_toe_tip", "right_small_toe_tip", "right_heel"]
+    + _hand("right") + _hand("left")
+    + ["left_olecranon", "right_olecranon", "left_cubital_fossa", "right_cubital_fossa",
+       "left_acromion", "right_acromion", "neck"])
+assert len(MHR70_NAMES) == 70
+
+
+def _bones(names: tuple[str, ...], pairs: list[tuple[str, str]]) -> tuple[tuple[int, int], ...]:
+    idx = {n: i for i, n in enumerate(names)}
+    return tuple((idx[a], idx[b]) for a, b in pairs if a in idx and b in idx)
+
+
+_BODY_BONES = [
+    ("nose", "left_eye"), ("nose", "right_eye"), ("left_eye", "left_ear"), ("right_eye", "right_ear"),
+    ("nose", "neck"), ("neck", "left_shoulder"), ("neck", "right_shoulder"),
+    ("left_shoulder", "right_shoulder"),
+    ("left_shoulder", "left_elbow"), ("left_elbow", "left_wrist"),
+    ("right_shoulder", "right_elbow"), ("right_elbow", "right_wrist"),
+    ("left_shoulder", "left_hip"), ("right_shoulder", "right_hip"), ("left_hip", "right_hip"),
+    ("left_hip", "left_knee"), ("left_knee", "left_ankle"),
+    ("right_hip", "right_knee"), ("right_knee", "right_ankle"),
+    ("left_ankle", "left_heel"), ("left_ankle", "left_big_toe_tip"), ("left_ankle", "left_small_toe_tip"),
+    ("right_ankle", "right_heel"), ("right_ankle", "right_big_toe_tip"),
+    ("right_ankle", "right_small_toe_tip"),
+]
+_HAND_BONES = [(f"{s}_wrist", f"{s}_{f}_third_joint") for s in ("left", "right")
+               for f in ("thumb", "index", "middle", "ring", "pinky")] + [
+    (f"{s}_{f}_{a}", f"{s}_{f}_{b}") for s in ("left", "right")
+    for f in ("thumb", "index", "middle", "ring", "pinky")
+    for a, b in (("third_joint", "second_joint"), ("second_joint", "first_joint"), ("first_joint", "tip"))]
+
+
+@dataclass(frozen=True)
+class KeypointConvention:
+    """A keypoint set: names, the MHR70 index of each, bones as index pairs."""
+
+    name: str
+    names: tuple[str, ...]
+    from_mhr70: tuple[int, ...]
+    bones: tuple[tuple[int, int], ...]
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.names)
+
+    def select(self, mhr70: np.ndarray, axis: int = -2) -> np.ndarray:
+        """Pick this convention's joints out of an MHR70 array along ``axis`` (default: (...,70,D))."""
+        if mhr70.shape[axis] != 70:
+            raise ValueError(f"keypoints: expected 70 MHR70 joints on axis {axis}, got {mhr70.shape[axis]}")
+        return np.take(mhr70, self.from_mhr70, axis=axis)
+
+
+SPORTCENTER_13_FROM_MHR70 = (0, 5, 6, 7, 8, 62, 41, 9, 10, 11, 12, 13, 14)
+
+MHR70 = KeypointConvention("mhr70", MHR70_NAMES, tuple(range(70)),
+                           _bones(MHR70_NAMES, _BODY_BONES + _HAND_BONES))
+_SC13_NAMES = tuple(MHR70_NAMES[i] for i in SPORTCENTER_13_FROM_MHR70)
+SPORTCENTER_13 = KeypointConvention("sportcenter_13", _SC13_NAMES, SPORTCENTER_13_FROM_MHR70,
+                                    _bones(_SC13_NAMES, _BODY_BONES + [("nose", "left_shoulder"),
+                                                                       ("nose", "right_shoulder")]))
+_COCO17_FROM_MHR70 = (0, 1, 2, 3, 4, 5, 6, 7, 8, 62, 41, 9, 10, 11, 12, 13, 14)
+_COCO17_NAMES = tuple(MHR70_NAMES[i] for i in _COCO17_FROM_MHR70)
+COCO_17 = KeypointConvention("coco_17", _COCO17_NAMES, _COCO17_FROM_MHR70,
+                             _bones(_COCO17_NAMES, _BODY_BONES))
+
+CONVENTIONS: dict[str, KeypointConvention] = {c.name: c for c in (MHR70, SPORTCENTER_13, COCO_17)}
+
+
+def get_convention(name: str) -> KeypointConvention:
+    try:
+        return CONVENTIONS[name]
+    except KeyError:
+        raise ValueError(f"keypoint convention: unknown {name!r}, expected one of {sorted(CONVENTIONS)}") from None
+
+
+def convention_for(num_joints: int) -> KeypointConvention:
+    """The convention with this many joints (for drawing data whose convention is implicit)."""
+    for conv in CONVENTIONS.values():
+        if conv.num_joints == num_joints:
+            return conv
+    raise ValueError(f"keypoint convention: none has {num_joints} joints")
