@@ -1,0 +1,166 @@
+"""Association node: every camera's detections -> synchronised frame sets -> MAEM clusters.
+
+    ros2 run maem_ros association --ros-args --params-file config/sportcenter.yaml
+    maem-association --ros-args --params-file config/demo.yaml
+
+Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10), groups them with
+core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer polls every
+``poll_period`` so a silent camera never stalls the graph; stamps going backwards reset the queues),
+runs core.association.associate with the paper's thresholds and publishes ``/maem/clusters``
+(PointCloud2, one point per (cluster, member view), see wire.py; an empty cloud for a frame set
+without clusters, so downstream still sees every frame).
+"""
+from __future__ import annotations
+
+import sys
+from functools import partial
+from typing import Any
+
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+
+from maem_ros.ros import wire
+from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, ConfigError, Diagnostics,
+                                 ParamSpec, Stopwatch, declare_params, load_rig_param, run_node)
+
+NODE_NAME = "association"
+
+#: core.association.AssociationResult.stats keys reported as cumulative counts in /diagnostics
+GATE_COUNTS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
+               "matched_pairs", "conflicts_removed", "clusters_below_k_min")
+#: ... and as per-stage times (ms)
+STAGE_TIMES = ("t_reproj_ms", "t_epipolar_ms", "t_cost_ms", "t_match_ms", "t_cluster_ms")
+
+PARAMS = (
+    DIAGNOSTICS_PERIOD,
+    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
+    ParamSpec("cameras", [], "cameras to subscribe (default: every rig camera)"),
+    ParamSpec("frame_id", "world", "header.frame_id of /maem/clusters (the rig's world frame)"),
+    ParamSpec("clusters_topic", "/maem/clusters", "output topic"),
+    ParamSpec("tau_det", 0.9, "detection score threshold", minimum=0.0, maximum=1.0),
+    ParamSpec("tau_reproj_bbox", 10.0, "px, bbox-centre reprojection gate", minimum=0.0,
+              exclusive_minimum=True),
+    ParamSpec("tau_mesh", 8.0, "px, dense-mesh epipolar gate", minimum=0.0, exclusive_minimum=True),
+    ParamSpec("k_min", 4, "minimum views per cluster", minimum=2),
+    ParamSpec("reproj_gate", True, "apply the bbox-centre reprojection gate"),
+    ParamSpec("reproj_reduce", "mean", "reprojection error of the pair", choices=("mean", "max")),
+    ParamSpec("epipolar_gate", "mesh", "epipolar gate", choices=("mesh", "sparse", "none")),
+    ParamSpec("epipolar_distance", "symmetric", "point-to-line distance direction",
+              choices=("symmetric", "forward")),
+    ParamSpec("vertex_stride", 1, "use every n-th mesh vertex", minimum=1),
+    ParamSpec("vertex_count", 0, "use at most this many vertices (0 = all)", minimum=0),
+    ParamSpec("early_exit", True, "stop the mesh distance early once a pair cannot pass"),
+    ParamSpec("backend", "auto", "epipolar kernel (auto = numba when installed, else numpy)",
+              choices=("auto", "numba", "numpy")),
+    ParamSpec("slop", 0.02, "s, stamps within this of the reference belong to one frame set",
+              minimum=0.0),
+    ParamSpec("max_wait", 0.15, "s, emit a partial frame set after waiting this long",
+              minimum=0.0, exclusive_minimum=True),
+    ParamSpec("min_cameras", 2, "cameras needed for a partial frame set", minimum=2),
+    ParamSpec("poll_period", 0.01, "s, synchroniser poll timer", minimum=0.0,
+              exclusive_minimum=True),
+)
+
+
+class AssociationNode(Node):
+    """detections of N cameras -> ApproximateTimeSync -> associate -> /maem/clusters."""
+
+    def __init__(self, **kwargs: Any):
+        super().__init__(NODE_NAME, **kwargs)
+        p = declare_params(self, PARAMS)
+        self.rig = load_rig_param(p["rig"])
+        cams = p["cameras"] or self.rig.names
+        unknown = [c for c in cams if c not in self.rig]
+        if unknown:
+            raise ConfigError(f"parameter 'cameras': {unknown} not in rig {p['rig']!r} "
+                              f"({self.rig.names})")
+        if p["min_cameras"] > len(cams):
+            raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
+        from maem_ros.core.association import AssociationParams, associate
+        from maem_ros.core.sync import ApproximateTimeSync
+        try:
+            self.params = AssociationParams.from_mapping(p)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        self._associate = associate
+        self.cameras = list(cams)
+        self.frame_id = p["frame_id"]
+        self.sync = ApproximateTimeSync(self.cameras, int(round(p["slop"] * 1e9)),
+                                        int(round(p["max_wait"] * 1e9)), p["min_cameras"])
+        self._sync_seen: dict[str, int] = {}
+        self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
+        self.subs = []
+        for cam in self.cameras:
+            topic = self.resolve_topic_name(f"{cam}/detections")
+            self.subs.append(self.create_subscription(
+                PointCloud2, topic, partial(self.on_detections, cam, topic), DATA_QOS))
+        self.timer = self.create_timer(p["poll_period"], self.on_timer)
+        self.get_logger().info(f"{len(self.cameras)} cameras {self.cameras} -> "
+                               f"{self.pub.topic_name}")
+
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
+
+    def on_detections(self, cam: str, topic: str, msg: PointCloud2) -> None:
+        self.diag.input(topic)
+        try:
+            with Stopwatch(self.diag, "decode"):
+                dets = wire.msg_to_detections(msg, topic, self.rig.names, expected_camera=cam)
+        except wire.WireError as e:
+            self.diag.reject(e.reason, str(e))
+            return
+        self._handle(self.sync.add(cam, dets.stamp_ns, dets, self._now_ns()))
+
+    def on_timer(self) -> None:
+        self._handle(self.sync.poll(self._now_ns()))
+
+    def _handle(self, sets) -> None:
+        self._sync_counters()
+        for fs in sets:
+            self.process(fs)
+
+    def _sync_counters(self) -> None:
+        """Report the synchroniser's drop/reset counters (cumulative) as dropped frames."""
+        for key, value in self.sync.counters.items():
+            new = int(value) - self._sync_seen.get(key, 0)
+            if new > 0:
+                self._sync_seen[key] = int(value)
+                if key.startswith("dropped"):
+                    self.diag.reject(f"sync_{key[len('dropped_'):] or key}",
+                                     f"synchroniser: {key} +{new} (total {value})")
+                else:
+                    self.diag.count(f"sync_{key}", new)
+
+    def process(self, fs) -> None:
+        """Associate one frame set and publish its clusters."""
+        if fs.missing:
+            self.diag.camera_missing(fs.missing)
+            self.diag.set("missing_cameras_last", ",".join(fs.missing))
+        else:
+            self.diag.set("missing_cameras_last", "")
+        try:
+            with Stopwatch(self.diag, "associate"):
+                result = self._associate(self.rig, fs.items, self.params)
+            with Stopwatch(self.diag, "encode"):
+                out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, fs.items,
+                                           result.clusters)
+        except ValueError as e:
+            self.diag.reject("association_error", f"frame set {fs.stamp_ns}: {e}")
+            return
+        self.pub.publish(out)
+        self.diag.ok()
+        self.diag.add_counts(result.stats, GATE_COUNTS)
+        for key in STAGE_TIMES:
+            if key in result.stats:
+                self.diag.time(key[2:-3], float(result.stats[key]))
+        self.diag.set("last_clusters", len(result.clusters))
+        self.diag.set("last_cameras", len(fs.items))
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: AssociationNode(), args, NODE_NAME)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

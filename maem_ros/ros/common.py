@@ -1,0 +1,371 @@
+"""Shared node plumbing: QoS profiles, validated parameters, /diagnostics, the main() runner.
+
+QoS (chosen deliberately, see README):
+  * images: sensor data (best effort, keep last 2): a slow frontend drops stale frames instead of
+    queueing them, and best-effort subscribers also accept reliable camera drivers.
+  * detections / clusters / poses: reliable, keep last 10, volatile: every processed frame reaches
+    the next stage while a short burst is buffered; no history for late joiners.
+  * markers: reliable, keep last 10 (RViz default subscription QoS).
+  * /diagnostics: reliable, keep last 10 (what diagnostic_aggregator expects).
+"""
+from __future__ import annotations
+
+import math
+import sys
+import threading
+import time
+from collections import defaultdict, deque
+from dataclasses import dataclass, field
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
+                              ParameterException)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+
+#: camera images: best effort, keep last 2
+IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
+                       reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE)
+#: detections, clusters, poses: reliable, keep last 10
+DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: MarkerArray for RViz: reliable, keep last 10
+MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                        reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: /diagnostics: reliable, keep last 10
+DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                             reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE)
+
+#: exit code of a node whose parameters are invalid
+EXIT_CONFIG_ERROR = 2
+
+
+class ConfigError(ValueError):
+    """A parameter value the node cannot start with (reported as one line, exit code 2)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# parameters
+# ---------------------------------------------------------------------------------------------
+_PTYPE = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+          list: ParameterType.PARAMETER_STRING_ARRAY}
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One read-only start-up parameter: name, default (its type is the parameter type), checks.
+
+    ``minimum``/``maximum`` bound numbers (inclusive unless ``exclusive_minimum``), ``choices``
+    restricts strings. ``list`` defaults are string arrays.
+    """
+
+    name: str
+    default: Any
+    description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    exclusive_minimum: bool = False
+    choices: tuple[str, ...] | None = None
+
+    @property
+    def ptype(self) -> type:
+        return type(self.default) if not isinstance(self.default, (list, tuple)) else list
+
+    def constraints(self) -> str:
+        parts = []
+        if self.minimum is not None:
+            parts.append(f"{'>' if self.exclusive_minimum else '>='} {self.minimum:g}")
+        if self.maximum is not None:
+            parts.append(f"<= {self.maximum:g}")
+        if self.choices:
+            parts.append("one of " + "|".join(self.choices))
+        return ", ".join(parts)
+
+    def check(self, value: Any) -> Any:
+        """The validated value (ints accepted for doubles); ConfigError naming the parameter."""
+        where = f"parameter '{self.name}'"
+        t = self.ptype
+        if t is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if t is list:
+            value = [str(v) for v in value]
+        elif not isinstance(value, t) or (t is int and isinstance(value, bool)):
+            raise ConfigError(f"{where}: expected {t.__name__}, got {value!r}")
+        if t in (int, float):
+            if not math.isfinite(value):
+                raise ConfigError(f"{where}: {value!r} is not finite")
+            if self.minimum is not None and (value <= self.minimum if self.exclusive_minimum
+                                             else value < self.minimum):
+                raise ConfigError(f"{where}: {value!r} must be {self.constraints()}")
+            if self.maximum is not None and value > self.maximum:
+                raise ConfigError(f"{where}: {value!r} must be {self.constraints()}")
+        if self.choices is not None and value not in self.choices:
+            raise ConfigError(f"{where}: unknown value {value!r}, expected one of {list(self.choices)}")
+        return value
+
+
+#: every node: /diagnostics period
+DIAGNOSTICS_PERIOD = ParamSpec("diagnostics_period", 1.0, "s, /diagnostics publish period",
+                               minimum=0.0, exclusive_minimum=True)
+
+
+def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
+    """Declare read-only parameters with descriptors; return {name: validated value}.
+
+    An integer given for a double parameter (``tau_mesh: 8``) is accepted. Any bad value raises
+    ConfigError with one line naming the parameter.
+    """
+    overrides = getattr(node, "_parameter_overrides", {})
+    out: dict[str, Any] = {}
+    for spec in specs:
+        ov = overrides.get(spec.name)
+        if (ov is not None and spec.ptype is float and ov.type_ == Parameter.Type.INTEGER):
+            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(ov.value))
+        desc = ParameterDescriptor(name=spec.name, type=_PTYPE[spec.ptype],
+                                   description=spec.description,
+                                   additional_constraints=spec.constraints(), read_only=True)
+        default = list(spec.default) if spec.ptype is list else spec.default
+        try:
+            if spec.ptype is list and not default:
+                value = node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, desc).value
+                value = [] if value is None else value
+            else:
+                value = node.declare_parameter(spec.name, default, desc).value
+        except InvalidParameterTypeException as e:
+            raise ConfigError(f"parameter '{spec.name}': expected {spec.ptype.__name__} "
+                              f"({_short(e)})") from None
+        except (InvalidParameterValueException, ParameterException) as e:
+            raise ConfigError(f"parameter '{spec.name}': {_short(e)}") from None
+        out[spec.name] = spec.check(value)
+    return out
+
+
+def _short(e: Exception) -> str:
+    return " ".join(str(e).split())[:200]
+
+
+def default_camera_name(node: Node) -> str:
+    """The last component of the node's namespace ('' at the root namespace)."""
+    return node.get_namespace().rstrip("/").rsplit("/", 1)[-1]
+
+
+# ---------------------------------------------------------------------------------------------
+# diagnostics
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class _Stage:
+    samples: deque = field(default_factory=lambda: deque(maxlen=200))
+
+    def summary(self) -> tuple[float, float]:
+        s = sorted(self.samples)
+        if not s:
+            return math.nan, math.nan
+        return s[len(s) // 2], s[min(len(s) - 1, int(math.ceil(0.99 * len(s))) - 1)]
+
+
+class Diagnostics:
+    """Counters and timings of one node, published as a DiagnosticArray every ``period`` s.
+
+    Values (KeyValue, all strings): ``rate_hz/<topic>`` input rate over the last period,
+    ``frames_processed``, ``frames_dropped``, ``dropped/<reason>`` cumulative counts,
+    ``time_ms/<stage>/median`` and ``/p99`` over the last 200 samples, ``count/<name>``
+    cumulative counters (gate rejections ...), ``missing/<camera>`` frame sets without it,
+    plus free-form ``set(key, value)`` entries. Level: WARN when frames were dropped or cameras
+    missing during the last period, else OK. Thread-safe.
+    """
+
+    def __init__(self, node: Node, period_s: float = 1.0, hardware_id: str = "maem_ros"):
+        self._node = node
+        self._lock = threading.Lock()
+        self._hardware_id = hardware_id
+        self._inputs: dict[str, int] = defaultdict(int)
+        self._inputs_total: dict[str, int] = defaultdict(int)
+        self.processed = 0
+        self.dropped: dict[str, int] = defaultdict(int)
+        self.counts: dict[str, float] = defaultdict(float)
+        self.missing: dict[str, int] = defaultdict(int)
+        self._stages: dict[str, _Stage] = defaultdict(_Stage)
+        self._values: dict[str, str] = {}
+        self._last_pub = time.monotonic()
+        self._warn_dropped = 0
+        self._warn_missing = 0
+        self._last_log: dict[str, float] = {}
+        self._suppressed: dict[str, int] = defaultdict(int)
+        self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
+        self._timer = node.create_timer(period_s, self.publish)
+
+    # -- recording --------------------------------------------------------------------------
+    def input(self, topic: str) -> None:
+        with self._lock:
+            self._inputs[topic] += 1
+            self._inputs_total[topic] += 1
+
+    def ok(self, n: int = 1) -> None:
+        with self._lock:
+            self.processed += n
+
+    def drop(self, reason: str, n: int = 1) -> None:
+        with self._lock:
+            self.dropped[reason] += n
+            self._warn_dropped += n
+
+    def reject(self, reason: str, text: str, log_period_s: float = 1.0) -> None:
+        """Count a dropped frame under ``reason`` and log ``text`` as one warning line (at most
+        one line per reason per ``log_period_s``; the next line says how many were suppressed)."""
+        self.drop(reason)
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last_log.get(reason, -math.inf) < log_period_s:
+                self._suppressed[reason] += 1
+                return
+            self._last_log[reason] = now
+            skipped = self._suppressed.pop(reason, 0)
+        more = f" (+{skipped} more '{reason}' drops)" if skipped else ""
+        self._node.get_logger().warning(f"dropped [{reason}] {text}{more}")
+
+    def count(self, name: str, n: float = 1) -> None:
+        with self._lock:
+            self.counts[name] += n
+
+    def add_counts(self, stats: Mapping[str, float], names: Iterable[str]) -> None:
+        with self._lock:
+            for k in names:
+                if k in stats:
+                    self.counts[k] += float(stats[k])
+
+    def camera_missing(self, cameras: Iterable[str]) -> None:
+        with self._lock:
+            for c in cameras:
+                self.missing[c] += 1
+                self._warn_missing += 1
+
+    def time(self, stage: str, ms: float) -> None:
+        with self._lock:
+            self._stages[stage].samples.append(float(ms))
+
+    def set(self, key: str, value: Any) -> None:
+        with self._lock:
+            self._values[key] = str(value)
+
+    @property
+    def total_dropped(self) -> int:
+        with self._lock:
+            return sum(self.dropped.values())
+
+    # -- publishing ---------------------------------------------------------------------------
+    def snapshot(self) -> dict[str, str]:
+        """Current key/value pairs (what the next DiagnosticStatus will hold)."""
+        now = time.monotonic()
+        with self._lock:
+            dt = max(now - self._last_pub, 1e-6)
+            kv: dict[str, str] = {}
+            for topic in sorted(self._inputs_total):
+                kv[f"rate_hz/{topic}"] = f"{self._inputs[topic] / dt:.2f}"
+                kv[f"received/{topic}"] = str(self._inputs_total[topic])
+            kv["frames_processed"] = str(self.processed)
+            kv["frames_dropped"] = str(sum(self.dropped.values()))
+            for reason in sorted(self.dropped):
+                kv[f"dropped/{reason}"] = str(self.dropped[reason])
+            for name in sorted(self.counts):
+                v = self.counts[name]
+                kv[f"count/{name}"] = str(int(v)) if float(v).is_integer() else f"{v:.3f}"
+            for cam in sorted(self.missing):
+                kv[f"missing/{cam}"] = str(self.missing[cam])
+            for stage in sorted(self._stages):
+                med, p99 = self._stages[stage].summary()
+                kv[f"time_ms/{stage}/median"] = f"{med:.3f}"
+                kv[f"time_ms/{stage}/p99"] = f"{p99:.3f}"
+            kv.update(self._values)
+        return kv
+
+    def publish(self) -> None:
+        kv = self.snapshot()
+        with self._lock:
+            dropped, missing = self._warn_dropped, self._warn_missing
+            self._warn_dropped = self._warn_missing = 0
+            self._inputs.clear()
+            self._last_pub = time.monotonic()
+        level, message = DiagnosticStatus.OK, f"{kv['frames_processed']} frames processed"
+        if dropped or missing:
+            level = DiagnosticStatus.WARN
+            message += f"; last period: {dropped} dropped, {missing} missing camera slots"
+        status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
+                                  message=message, hardware_id=self._hardware_id,
+                                  values=[KeyValue(key=k, value=v) for k, v in kv.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        try:
+            self._pub.publish(msg)
+        except Exception:  # noqa: BLE001 - publishing during shutdown: context already invalid
+            pass
+
+
+class Stopwatch:
+    """``with Stopwatch(diag, "stage"):`` records the block's wall time in ms."""
+
+    def __init__(self, diag: Diagnostics, stage: str):
+        self._diag, self._stage = diag, stage
+
+    def __enter__(self) -> "Stopwatch":
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.ms = (time.perf_counter() - self._t0) * 1e3
+        self._diag.time(self._stage, self.ms)
+
+
+# ---------------------------------------------------------------------------------------------
+# main()
+# ---------------------------------------------------------------------------------------------
+def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str) -> int:
+    """rclpy.init, build the node, spin until SIGINT/shutdown; exit code 0, or 2 on bad params."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = make_node()
+        except ConfigError as e:
+            print(f"[{name}] invalid configuration: {e}", file=sys.stderr, flush=True)
+            return EXIT_CONFIG_ERROR
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        try:
+            executor.spin()
+        finally:
+            executor.shutdown(timeout_sec=1.0)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+def load_rig_param(value: str, name: str = "rig"):
+    """The Rig named by a ``rig`` parameter (file, folder or shipped name); ConfigError if not."""
+    from maem_ros.core.camera import Rig
+    from maem_ros.params import resolve_rig_path
+
+    if not value:
+        raise ConfigError(f"parameter '{name}': required (rig YAML, camera-JSON folder or shipped "
+                          f"rig name)")
+    try:
+        return Rig.load(resolve_rig_path(value))
+    except (ValueError, OSError) as e:
+        try:  # a synthetic rig whose YAML was not written to config/rigs/
+            from maem_ros.sim.rigs import RIG_NAMES, build_rig
+            if value in RIG_NAMES:
+                return build_rig(value)
+        except ImportError:
+            pass
+        raise ConfigError(f"parameter '{name}': {e}") from None

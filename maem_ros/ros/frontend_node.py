@@ -1,0 +1,154 @@
+"""Frontend node: one camera's images -> /<camera>/detections (PointCloud2, one point per detection).
+
+Run one per camera, in the camera's namespace::
+
+    ros2 run maem_ros frontend --ros-args --params-file config/demo.yaml -r __ns:=/camera_0
+    maem-frontend --ros-args -p rig:=sportcenter6 -p backend:=synthetic -r __ns:=/camera_0
+
+Subscribes ``image_raw`` (sensor_msgs/Image) or ``image_raw/compressed`` (CompressedImage), best
+effort; publishes ``detections`` (reliable, keep last 10) stamped with the image stamp, and with
+``publish_overlay`` ``detections/overlay`` (Image bgr8, the rectified image with the detections).
+The image is decoded (and rectified) only when the backend or the overlay needs it.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+from rclpy.node import Node
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
+
+from maem_ros.ros import wire
+from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, IMAGE_QOS, ConfigError,
+                                 Diagnostics, ParamSpec, Stopwatch, declare_params,
+                                 default_camera_name, load_rig_param, run_node)
+
+NODE_NAME = "frontend"
+
+PARAMS = (
+    DIAGNOSTICS_PERIOD,
+    ParamSpec("camera", "", "camera name = rig key = frame_id (default: last namespace component)"),
+    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
+    ParamSpec("backend", "synthetic", "estimator backend", choices=("synthetic", "npz", "sam3d_body")),
+    ParamSpec("image_transport", "raw", "subscribe image_raw (raw) or image_raw/compressed",
+              choices=("raw", "compressed")),
+    ParamSpec("publish_overlay", False, "also publish detections/overlay (rectified image + drawing)"),
+    ParamSpec("vertex_stride", 1, "keep every n-th mesh vertex in verts2d", minimum=1),
+    # synthetic backend (sentinels -1 / 0 / '' = the scene's default)
+    ParamSpec("scene_dict", "", "synthetic: SceneConfig as JSON (as recorded in bags)"),
+    ParamSpec("scene_rig", "", "synthetic: sim rig name (default: the rig parameter)"),
+    ParamSpec("seed", -1, "synthetic: scene seed (-1 = scene default)", minimum=-1),
+    ParamSpec("difficulty", "", "synthetic: detection noise level",
+              choices=("", "none", "easy", "medium", "hard")),
+    ParamSpec("frames", 0, "synthetic: scene length in frames (0 = scene default)", minimum=0),
+    ParamSpec("num_vertices", 0, "synthetic: mesh vertices per person (0 = scene default)",
+              minimum=0),
+    # synthetic and npz
+    ParamSpec("fps", 0.0, "frame rate, Hz (0 = scene / scene.json default)", minimum=0.0),
+    ParamSpec("start_stamp_ns", -1, "stamp of frame 0, ns (-1 = scene / scene.json default)",
+              minimum=-1),
+    # npz backend
+    ParamSpec("dets_dir", "", "npz: folder with <camera>/<frame>.npz (or a scene folder)"),
+)
+
+
+def backend_options(p: dict[str, Any]) -> dict[str, Any]:
+    """Estimator options from the node parameters (sentinel values left out)."""
+    opts: dict[str, Any] = {"vertex_stride": p["vertex_stride"]}
+    if p["scene_dict"]:
+        opts["scene_dict"] = p["scene_dict"]
+    opts["rig"] = p["scene_rig"] or p["rig"]
+    for key, unset in (("seed", -1), ("difficulty", ""), ("frames", 0), ("num_vertices", 0),
+                       ("fps", 0.0), ("start_stamp_ns", -1), ("dets_dir", "")):
+        if p[key] != unset:
+            opts[key] = p[key]
+    if p["backend"] != "synthetic":
+        opts.pop("rig")
+    return opts
+
+
+class FrontendNode(Node):
+    """image -> estimator backend -> detections, for one camera."""
+
+    def __init__(self, **kwargs: Any):
+        super().__init__(NODE_NAME, **kwargs)
+        p = declare_params(self, PARAMS)
+        self.camera_name = p["camera"] or default_camera_name(self)
+        if not self.camera_name:
+            raise ConfigError("parameter 'camera': empty and the node runs in the root namespace; "
+                              "set camera:=<name> or -r __ns:=/<camera>")
+        rig = load_rig_param(p["rig"])
+        if self.camera_name not in rig:
+            raise ConfigError(f"parameter 'camera': {self.camera_name!r} is not in rig "
+                              f"{p['rig']!r} ({rig.names})")
+        self.camera = rig[self.camera_name]
+        from maem_ros.frontend.base import make_estimator
+        try:
+            self.estimator = make_estimator(p["backend"], backend_options(p), rig)
+        except (ValueError, ImportError) as e:
+            raise ConfigError(f"backend {p['backend']!r}: {e}") from None
+        self.publish_overlay = p["publish_overlay"]
+        self._rectifier = None
+        if self.estimator.needs_image or self.publish_overlay:
+            from maem_ros.frontend.rectify import Rectifier
+            self._rectifier = Rectifier(self.camera)
+        prefix = "" if default_camera_name(self) == self.camera_name else f"{self.camera_name}/"
+        self.diag = Diagnostics(self, p["diagnostics_period"], hardware_id=self.camera_name)
+        self.diag.set("backend", p["backend"])
+        self.pub = self.create_publisher(PointCloud2, f"{prefix}detections", DATA_QOS)
+        self.overlay_pub = (self.create_publisher(Image, f"{prefix}detections/overlay", DATA_QOS)
+                            if self.publish_overlay else None)
+        compressed = p["image_transport"] == "compressed"
+        self.image_topic = self.resolve_topic_name(
+            f"{prefix}image_raw/compressed" if compressed else f"{prefix}image_raw")
+        self.sub = self.create_subscription(CompressedImage if compressed else Image,
+                                            self.image_topic, self.on_image, IMAGE_QOS)
+        self.get_logger().info(f"camera {self.camera_name!r}: {self.image_topic} -> "
+                               f"{self.pub.topic_name} (backend {p['backend']})")
+
+    def _decode(self, msg) -> Any:
+        if isinstance(msg, CompressedImage):
+            return wire.compressed_to_bgr(msg, self.image_topic)
+        return wire.image_to_bgr(msg, self.image_topic)
+
+    def on_image(self, msg) -> None:
+        self.diag.input(self.image_topic)
+        stamp_ns = wire.stamp_to_ns(msg.header.stamp)
+        try:
+            with Stopwatch(self.diag, "total"):
+                rect = None
+                if self._rectifier is not None:
+                    with Stopwatch(self.diag, "decode"):
+                        rect = self._rectifier.rectify(self._decode(msg))
+                with Stopwatch(self.diag, "estimate"):
+                    dets = self.estimator.estimate(self.camera, stamp_ns,
+                                                   rect if self.estimator.needs_image else None)
+                with Stopwatch(self.diag, "encode"):
+                    out = wire.detections_to_msg(dets)
+                self.pub.publish(out)
+                if self.overlay_pub is not None:
+                    self._publish_overlay(rect, dets, stamp_ns)
+        except wire.WireError as e:
+            self.diag.reject(e.reason, str(e))
+            return
+        except ValueError as e:
+            reason = "no_data" if type(e).__name__ == "MissingDataError" else "estimator"
+            self.diag.reject(reason, f"{self.image_topic}: estimator: {e}")
+            return
+        self.diag.ok()
+        self.diag.set("last_detections", dets.n)
+
+    def _publish_overlay(self, rect, dets, stamp_ns: int) -> None:
+        from maem_ros.frontend.overlay import draw_detections
+        with Stopwatch(self.diag, "overlay"):
+            self.overlay_pub.publish(wire.bgr_to_image(draw_detections(rect, dets), stamp_ns,
+                                                       self.camera_name))
+
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: FrontendNode(), args, NODE_NAME)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

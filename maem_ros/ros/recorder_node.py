@@ -1,0 +1,193 @@
+"""maem-record: record live topics into a rosbag2 (MCAP) bag, closed cleanly on SIGINT/SIGTERM.
+
+Subscriptions take the serialized CDR bytes (raw=True) and write them unchanged; log time is the
+receive time on the node clock (as rosbag2 does). Topic types come from the ROS graph, polled
+until every requested topic is found (late publishers are picked up). The subscription QoS
+follows the publishers: best effort if any publisher is, transient local if all are.
+"""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+from maem_ros.tools import bagio
+
+_HIDDEN = ("/rosout", "/parameter_events")
+
+
+@dataclass
+class RecordOptions:
+    out: str
+    topics: list[str]
+    all_maem: bool = False
+    all_topics: bool = False
+    duration_s: float = 0.0
+    discovery_timeout_s: float = 10.0
+    poll_s: float = 0.5
+    compress: bool = False
+
+
+def parse_args(argv: Sequence[str]) -> RecordOptions:
+    p = argparse.ArgumentParser(
+        prog="maem-record", description="Record live topics into an MCAP rosbag2 bag "
+        "(serialized bytes; closed cleanly on SIGINT/SIGTERM).")
+    p.add_argument("out", help="output bag folder (must not exist)")
+    p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="topics to record")
+    p.add_argument("--all-maem", action="store_true", help="every /maem/* topic")
+    p.add_argument("--all", dest="all_topics", action="store_true",
+                   help="every topic except /rosout and /parameter_events")
+    p.add_argument("--duration", type=float, default=0.0, metavar="S",
+                   help="stop after S seconds (default: until SIGINT)")
+    p.add_argument("--discovery-timeout", type=float, default=10.0, metavar="S",
+                   help="warn about requested topics not seen after S seconds (polling goes on)")
+    p.add_argument("--compress", action="store_true", help="zstd MCAP chunk compression")
+    a = p.parse_args(list(argv))
+    if not (a.topics or a.all_maem or a.all_topics):
+        p.error("nothing to record: give --topics, --all-maem or --all")
+    for t in a.topics:
+        if not t.startswith("/"):
+            p.error(f"--topics: {t!r} must be an absolute topic name (start with '/')")
+    return RecordOptions(out=a.out, topics=list(dict.fromkeys(a.topics)), all_maem=a.all_maem,
+                         all_topics=a.all_topics, duration_s=max(0.0, a.duration),
+                         discovery_timeout_s=a.discovery_timeout, compress=a.compress)
+
+
+def wanted(topic: str, opts: RecordOptions) -> bool:
+    if topic in opts.topics:
+        return True
+    if opts.all_maem and topic.startswith("/maem/"):
+        return True
+    return opts.all_topics and topic not in _HIDDEN
+
+
+def subscription_qos(publishers) -> "QoSProfile":  # noqa: F821 - rclpy imported lazily
+    """Match the publishers: best effort if any is, transient local if all are; keep last 100."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    best_effort = any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+                      for p in publishers)
+    latched = bool(publishers) and all(
+        p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort
+                      else ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                      else DurabilityPolicy.VOLATILE)
+
+
+class Recorder:
+    """Graph polling + raw subscriptions writing into a BagWriter (single-threaded executor)."""
+
+    def __init__(self, node, opts: RecordOptions, writer: bagio.BagWriter):
+        self.node, self.opts, self.writer = node, opts, writer
+        self.subs: dict[str, object] = {}
+        self.rejected: dict[str, str] = {}
+        self.received = 0
+        self.t_start = time.monotonic()
+        self.warned_missing = False
+
+    def poll_graph(self) -> None:
+        """Subscribe to newly visible wanted topics (first advertised type)."""
+        from maem_ros.ros.player_node import message_class
+        for topic, types in self.node.get_topic_names_and_types():
+            if topic in self.subs or topic in self.rejected or not wanted(topic, self.opts):
+                continue
+            msgtype = types[0]
+            try:
+                if not bagio.known_type(msgtype):
+                    raise ValueError(f"type {msgtype!r} is not in the ROS 2 Jazzy typestore")
+                cls = message_class(msgtype)
+                self.writer.add_topic(topic, msgtype, _bag_qos(self.node, topic))
+            except ValueError as e:
+                self.rejected[topic] = str(e)
+                self.node.get_logger().error(f"topic {topic!r} not recorded: {e}")
+                continue
+            qos = subscription_qos(self.node.get_publishers_info_by_topic(topic))
+            self.subs[topic] = self.node.create_subscription(
+                cls, topic, self._callback(topic, msgtype), qos, raw=True)
+            self.node.get_logger().info(f"recording {topic} [{msgtype}]")
+        self._warn_missing()
+
+    def _warn_missing(self) -> None:
+        missing = [t for t in self.opts.topics if t not in self.subs and t not in self.rejected]
+        if (missing and not self.warned_missing
+                and time.monotonic() - self.t_start > self.opts.discovery_timeout_s):
+            self.warned_missing = True
+            self.node.get_logger().warning(
+                f"no publisher yet after {self.opts.discovery_timeout_s:.0f} s for {missing}; "
+                "still waiting")
+
+    def _callback(self, topic: str, msgtype: str):
+        def on_message(data: bytes) -> None:
+            self.writer.write_raw(topic, msgtype, data, self.node.get_clock().now().nanoseconds)
+            self.received += 1
+        return on_message
+
+
+def _bag_qos(node, topic: str):
+    """Offered QoS recorded in the bag metadata: latched if all publishers are transient local."""
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+    pubs = node.get_publishers_info_by_topic(topic)
+    if pubs and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs):
+        return bagio.QOS_LATCHED
+    if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in pubs):
+        return bagio.QOS_SENSOR
+    return bagio.QOS_RELIABLE
+
+
+def _drain(executor, recorder: Recorder, max_s: float = 2.0) -> None:
+    """Process callbacks already queued (until idle for 0.1 s or max_s)."""
+    deadline = time.monotonic() + max_s
+    idle_since = time.monotonic()
+    while time.monotonic() < deadline and time.monotonic() - idle_since < 0.1:
+        before = recorder.received
+        executor.spin_once(timeout_sec=0.02)
+        if recorder.received != before:
+            idle_since = time.monotonic()
+
+
+def main(args: Sequence[str] | None = None) -> int:
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from maem_ros.ros.player_node import split_ros_args
+    ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-record", *args])
+    opts = parse_args(ours)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        writer = bagio.BagWriter(opts.out, compress=opts.compress)
+    except Exception as e:  # noqa: BLE001 - rosbags WriterError / OSError: report, exit non-zero
+        print(f"maem-record: output bag {opts.out!r}: {e}", file=sys.stderr)
+        return 2
+    rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("maem_recorder")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    rec = Recorder(node, opts, writer)
+    try:
+        rec.poll_graph()
+        node.create_timer(opts.poll_s, rec.poll_graph)
+        deadline = time.monotonic() + opts.duration_s if opts.duration_s else None
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            executor.spin_once(timeout_sec=0.1)
+        _drain(executor, rec)
+    finally:
+        writer.close()
+        executor.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    per_topic = ", ".join(f"{t}: {n}" for t, n in writer.counts.items()) or "no topics"
+    print(f"maem-record: wrote {writer.message_count} messages to {opts.out} ({per_topic})"
+          f"{f'; not recorded: {sorted(rec.rejected)}' if rec.rejected else ''}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

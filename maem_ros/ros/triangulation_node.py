@@ -1,0 +1,140 @@
+"""Triangulation node: /maem/clusters -> per-keypoint RANSAC triangulation -> tracked 3D poses.
+
+    ros2 run maem_ros triangulation --ros-args --params-file config/sportcenter.yaml
+    maem-triangulation --ros-args --params-file config/demo.yaml
+
+Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2, one point per
+person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and ``/maem/skeletons``
+(MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
+frontends) to ``output_convention`` (default sportcenter_13). Ids come from core.tracking.Tracker
+on the converted joints; a person whose track is not confirmed yet has id 4294967295 in poses
+(dropped unless ``publish_tentative``) and no markers. Stamps going backwards reset the tracker.
+"""
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import MarkerArray
+
+from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
+from maem_ros.ros import wire
+from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, MARKER_QOS, ConfigError,
+                                 Diagnostics, ParamSpec, Stopwatch, declare_params, load_rig_param,
+                                 run_node)
+
+NODE_NAME = "triangulation"
+
+PARAMS = (
+    DIAGNOSTICS_PERIOD,
+    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
+    ParamSpec("clusters_topic", "/maem/clusters", "input topic"),
+    ParamSpec("poses_topic", "/maem/poses", "output topic (PointCloud2)"),
+    ParamSpec("skeletons_topic", "/maem/skeletons", "output topic (MarkerArray)"),
+    ParamSpec("frame_id", "world", "header.frame_id of poses and markers"),
+    ParamSpec("tau_kps", 20.0, "px, keypoint inlier threshold", minimum=0.0, exclusive_minimum=True),
+    ParamSpec("min_views", 2, "inlier views needed per keypoint", minimum=2),
+    ParamSpec("output_convention", "sportcenter_13", "joints published",
+              choices=tuple(sorted(CONVENTIONS))),
+    ParamSpec("track_gate", 0.5, "m, mean joint distance gate for track assignment",
+              minimum=0.0, exclusive_minimum=True),
+    ParamSpec("track_min_hits", 3, "frames before a track gets an id", minimum=1),
+    ParamSpec("track_timeout", 1.0, "s, a track unseen this long dies", minimum=0.0,
+              exclusive_minimum=True),
+    ParamSpec("publish_tentative", True, "publish unconfirmed persons with id 4294967295"),
+    ParamSpec("marker_lifetime", 0.5, "s, marker lifetime", minimum=0.0, exclusive_minimum=True),
+)
+
+
+class TriangulationNode(Node):
+    """clusters -> triangulate -> convert -> track -> poses + skeleton markers."""
+
+    def __init__(self, **kwargs: Any):
+        super().__init__(NODE_NAME, **kwargs)
+        p = declare_params(self, PARAMS)
+        self.rig = load_rig_param(p["rig"])
+        from maem_ros.core.tracking import Tracker
+        from maem_ros.core.triangulation import TriangulationParams, triangulate
+        try:
+            self.params = TriangulationParams.from_mapping(p)
+            self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
+                                   timeout_s=p["track_timeout"])
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        self._triangulate = triangulate
+        self.output = get_convention(p["output_convention"])
+        self.frame_id = p["frame_id"]
+        self.publish_tentative = p["publish_tentative"]
+        self.marker_lifetime = p["marker_lifetime"]
+        self._last_stamp: int | None = None
+        self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.pose_pub = self.create_publisher(PointCloud2, p["poses_topic"], DATA_QOS)
+        self.marker_pub = self.create_publisher(MarkerArray, p["skeletons_topic"], MARKER_QOS)
+        self.topic = self.resolve_topic_name(p["clusters_topic"])
+        self.sub = self.create_subscription(PointCloud2, self.topic, self.on_clusters, DATA_QOS)
+        self.get_logger().info(f"{self.topic} -> {self.pose_pub.topic_name}, "
+                               f"{self.marker_pub.topic_name} ({self.output.name})")
+
+    def convert(self, joints: np.ndarray) -> np.ndarray:
+        """(P,J,3) joints in the clusters' convention -> (P,J_out,3) in output_convention."""
+        j = joints.shape[1]
+        if j == self.output.num_joints:
+            return joints
+        source: KeypointConvention = convention_for(j)  # ValueError when no convention has J
+        if source.name != "mhr70":
+            raise ValueError(f"joints: cannot convert {source.name} to {self.output.name}")
+        return self.output.select(joints)
+
+    def on_clusters(self, msg: PointCloud2) -> None:
+        self.diag.input(self.topic)
+        try:
+            with Stopwatch(self.diag, "decode"):
+                cf = wire.msg_to_clusters(msg, self.topic, len(self.rig))
+        except wire.WireError as e:
+            self.diag.reject(e.reason, str(e))
+            return
+        try:
+            with Stopwatch(self.diag, "triangulate"):
+                frames, clusters = cf.to_core(self.rig)
+                poses = self._triangulate(self.rig, frames, clusters, self.params)
+            joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
+                len(clusters), cf.num_joints, 3))
+        except ValueError as e:
+            self.diag.reject("triangulation_error", f"{self.topic}: {e}")
+            return
+        if self._last_stamp is not None and cf.stamp_ns < self._last_stamp:
+            self.tracker.reset()
+            self.diag.count("tracker_resets")
+            self.get_logger().warning(f"{self.topic}: stamp went back by "
+                                      f"{(self._last_stamp - cf.stamp_ns) / 1e9:.3f} s; "
+                                      f"tracker reset")
+        self._last_stamp = cf.stamp_ns
+        with Stopwatch(self.diag, "track"):
+            ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
+        self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views), np.asarray(poses.scores))
+        self.diag.ok()
+
+    def publish(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, views: np.ndarray,
+                scores: np.ndarray) -> None:
+        keep = np.ones(len(ids), bool) if self.publish_tentative else ids >= 0
+        with Stopwatch(self.diag, "encode"):
+            poses_msg = wire.poses_to_msg(stamp_ns, self.frame_id, ids[keep], joints[keep],
+                                          views[keep], scores[keep])
+            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
+                                            self.output.bones, self.marker_lifetime)
+        self.pose_pub.publish(poses_msg)
+        self.marker_pub.publish(markers)
+        self.diag.set("last_persons", int(len(ids)))
+        self.diag.set("last_tracked", int((ids >= 0).sum()))
+        self.diag.set("last_stamp_ns", stamp_ns)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(lambda: TriangulationNode(), args, NODE_NAME)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,526 @@
+"""core <-> ROS messages: the only module that knows the wire layouts (DESIGN.md §4).
+
+PointCloud2 layouts (one point per row, little-endian, packed, height 1):
+
+* detections (``/<cam>/detections``), one point per detection, all float32:
+  ``bbox``(4: x1 y1 x2 y2 rectified px) ``score``(1) ``kpts2d``(2J rectified px, u v per joint)
+  ``kpts3d``(3J m, camera-relative) ``verts2d``(2V rectified px). header.frame_id = camera name,
+  header.stamp = image capture stamp. J and V come from the counts.
+* clusters (``/maem/clusters``), one point per (cluster, member view): ``cluster``(uint32, index in
+  the frame) ``camera``(uint16, index in the rig's camera order) ``detection``(uint16, index in
+  that camera's detections message) ``score``(f32) ``cost``(f32, mean PA-MPJPE m to the rest of
+  the cluster, NaN if alone) ``kpts2d``(f32 x 2J rectified px). header.stamp = frame-set stamp.
+* poses (``/maem/poses``), one point per person: ``id``(uint32 track id, 4294967295 = not yet
+  confirmed) ``joints``(f32 x 3J world m, NaN = missing) ``views``(uint16) ``score``(f32).
+
+Decoders build one numpy structured dtype from msg.fields and view msg.data with np.frombuffer
+(no copy of the payload). Any problem raises :class:`WireError` (a ValueError) naming topic,
+field and problem, with a short ``reason`` code for /diagnostics.
+"""
+from __future__ import annotations
+
+import array
+import colorsys
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+from builtin_interfaces.msg import Duration, Time
+from geometry_msgs.msg import Point
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from maem_ros.core.camera import Rig
+from maem_ros.core.detections import FrameDetections
+
+#: poses ``id`` of a person whose track is not confirmed yet
+UNTRACKED_ID = 0xFFFFFFFF
+#: marker namespaces; marker id = track id in each
+NS_JOINTS, NS_BONES, NS_LABELS = "skeleton/joints", "skeleton/bones", "skeleton/ids"
+
+_NP_OF_PF = {PointField.INT8: "i1", PointField.UINT8: "u1", PointField.INT16: "i2",
+             PointField.UINT16: "u2", PointField.INT32: "i4", PointField.UINT32: "u4",
+             PointField.FLOAT32: "f4", PointField.FLOAT64: "f8"}
+_PF_NAME = {PointField.INT8: "INT8", PointField.UINT8: "UINT8", PointField.INT16: "INT16",
+            PointField.UINT16: "UINT16", PointField.INT32: "INT32", PointField.UINT32: "UINT32",
+            PointField.FLOAT32: "FLOAT32", PointField.FLOAT64: "FLOAT64"}
+
+F32, U32, U16 = PointField.FLOAT32, PointField.UINT32, PointField.UINT16
+DETECTION_TYPES = {"bbox": F32, "score": F32, "kpts2d": F32, "kpts3d": F32, "verts2d": F32}
+CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, "cost": F32,
+                 "kpts2d": F32}
+POSE_TYPES = {"id": U32, "joints": F32, "views": U16, "score": F32}
+
+
+class WireError(ValueError):
+    """A message that cannot be decoded: ``topic: field: problem`` plus a diagnostics reason."""
+
+    def __init__(self, topic: str, field: str, problem: str, reason: str):
+        super().__init__(f"{topic}: {field}: {problem}")
+        self.topic, self.field, self.problem, self.reason = topic, field, problem, reason
+
+
+# ---------------------------------------------------------------------------------------------
+# stamps
+# ---------------------------------------------------------------------------------------------
+def stamp_to_ns(stamp: Time) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int) -> Time:
+    """Integer nanoseconds -> builtin_interfaces/Time."""
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nsec)
+
+
+def make_header(stamp_ns: int, frame_id: str) -> Header:
+    return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+
+
+# ---------------------------------------------------------------------------------------------
+# generic PointCloud2 <-> structured array
+# ---------------------------------------------------------------------------------------------
+def _packed_dtype(fields: Sequence[tuple[str, int, int]]) -> np.dtype:
+    """Packed little-endian structured dtype for [(name, PointField datatype, count)]."""
+    names, formats, offsets, off = [], [], [], 0
+    for name, dt, count in fields:
+        base = np.dtype("<" + _NP_OF_PF[dt])
+        names.append(name)
+        formats.append(base if count == 1 else (base, (count,)))
+        offsets.append(off)
+        off += base.itemsize * count
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": off})
+
+
+def _new_cloud(stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, int, int]],
+               n: int) -> tuple[PointCloud2, np.ndarray]:
+    """An n-point PointCloud2 without data and a writable structured (n,) array; fill the array,
+    then :func:`_set_data` (the generated setter copies array.array data when field checks are
+    off, so the data is attached after filling)."""
+    dtype = _packed_dtype(fields)
+    msg = PointCloud2(header=make_header(stamp_ns, frame_id), height=1, width=n,
+                      is_bigendian=False, point_step=dtype.itemsize, row_step=n * dtype.itemsize,
+                      is_dense=True)
+    msg.fields = [PointField(name=name, offset=dtype.fields[name][1], datatype=dt, count=count)
+                  for name, dt, count in fields]
+    buf = array.array("B", bytes(n * dtype.itemsize))
+    return msg, np.frombuffer(buf, dtype=dtype, count=n)
+
+
+def _set_data(msg: PointCloud2, rec: np.ndarray) -> PointCloud2:
+    """Attach the filled structured array from :func:`_new_cloud` as msg.data (one memcpy)."""
+    base = rec.base.obj if isinstance(rec.base, memoryview) else rec.base
+    msg.data = base if isinstance(base, array.array) else array.array("B", rec.tobytes())
+    return msg
+
+
+def _view_cloud(msg: PointCloud2, topic: str, expected: Mapping[str, int]) -> np.ndarray:
+    """Validate layout and return a structured (N,) view of msg.data (zero-copy).
+
+    ``expected`` maps every required field name to its PointField datatype; any other field is
+    an error. Each field's count is returned as the subarray length (count 1 -> shape (N,1)).
+    """
+    seen: dict[str, PointField] = {}
+    for f in msg.fields:
+        label = f.name or "''"
+        if f.name in seen:
+            raise WireError(topic, label, "field listed twice", "duplicate_field")
+        if f.name not in expected:
+            raise WireError(topic, label, f"unknown field (expected {sorted(expected)})",
+                            "unknown_field")
+        seen[f.name] = f
+    missing = [k for k in expected if k not in seen]
+    if missing:
+        raise WireError(topic, missing[0], f"missing field (got {sorted(seen)})", "missing_field")
+    endian = ">" if msg.is_bigendian else "<"
+    names, formats, offsets, spans = [], [], [], []
+    step = int(msg.point_step)
+    for name, dt in expected.items():
+        f = seen[name]
+        if f.datatype != dt:
+            raise WireError(topic, name, f"datatype {_PF_NAME.get(f.datatype, f.datatype)}, "
+                            f"expected {_PF_NAME[dt]}", "bad_datatype")
+        base = np.dtype(endian + _NP_OF_PF[dt])
+        size = base.itemsize * int(f.count)
+        if f.offset + size > step:
+            raise WireError(topic, name, f"offset {f.offset} + {size} bytes exceeds point_step "
+                            f"{step}", "bad_layout")
+        names.append(name)
+        formats.append((base, (int(f.count),)))
+        offsets.append(int(f.offset))
+        spans.append((int(f.offset), int(f.offset) + size, name))
+    spans.sort()
+    for (a0, a1, an), (b0, _, bn) in zip(spans, spans[1:]):
+        if b0 < a1:
+            raise WireError(topic, bn, f"overlaps field {an!r}", "bad_layout")
+    n = int(msg.width) * int(msg.height)
+    if n and step <= 0:
+        raise WireError(topic, "point_step", f"{step} with {n} points", "bad_size")
+    if int(msg.height) > 1 and int(msg.row_step) != int(msg.width) * step:
+        raise WireError(topic, "row_step", f"{msg.row_step} != width {msg.width} x point_step "
+                        f"{step}", "bad_size")
+    if int(msg.height) <= 1 and n and int(msg.row_step) != n * step:
+        raise WireError(topic, "row_step", f"{msg.row_step} != width {msg.width} x point_step "
+                        f"{step}", "bad_size")
+    if len(msg.data) != n * step:
+        raise WireError(topic, "data", f"{len(msg.data)} bytes, expected {n} points x "
+                        f"{step} bytes", "bad_size")
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                      "itemsize": max(step, 1)})
+    if n == 0:
+        return np.zeros(0, dtype=dtype)
+    return np.frombuffer(msg.data, dtype=dtype, count=n)
+
+
+def _field(rec: np.ndarray, name: str) -> np.ndarray:
+    """(N, count) view of one field in native byte order (copy only for big-endian data)."""
+    arr = rec[name]
+    return arr if arr.dtype.isnative else arr.astype(arr.dtype.newbyteorder("="))
+
+
+def _count(msg: PointCloud2, name: str) -> int:
+    return next(int(f.count) for f in msg.fields if f.name == name)
+
+
+def _check_finite(topic: str, name: str, arr: np.ndarray, what: str = "detection",
+                  allow_nan: bool = False) -> None:
+    bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
+    if bad.any():
+        row = int(np.argwhere(bad.reshape(len(arr), -1).any(axis=1))[0][0])
+        raise WireError(topic, name, f"{'inf' if allow_nan else 'NaN or inf'} in {what} {row}",
+                        "nonfinite")
+
+
+def _check_score(topic: str, scores: np.ndarray, what: str) -> None:
+    bad = (scores < 0) | (scores > 1)
+    if bad.any():
+        raise WireError(topic, "score", f"{float(scores[np.argmax(bad)]):g} outside [0, 1] in "
+                        f"{what} {int(np.argmax(bad))}", "bad_score")
+
+
+# ---------------------------------------------------------------------------------------------
+# detections
+# ---------------------------------------------------------------------------------------------
+def detections_to_msg(dets: FrameDetections) -> PointCloud2:
+    """FrameDetections -> PointCloud2 (frame_id = camera, stamp = image stamp)."""
+    n, j, v = dets.n, dets.num_joints, dets.num_vertices
+    fields = [("bbox", F32, 4), ("score", F32, 1), ("kpts2d", F32, 2 * j),
+              ("kpts3d", F32, 3 * j), ("verts2d", F32, 2 * v)]
+    msg, rec = _new_cloud(dets.stamp_ns, dets.camera, fields, n)
+    if n:
+        rec["bbox"] = dets.bboxes
+        rec["score"] = dets.scores
+        rec["kpts2d"] = dets.kpts2d.reshape(n, 2 * j)
+        rec["kpts3d"] = dets.kpts3d.reshape(n, 3 * j)
+        rec["verts2d"] = dets.verts2d.reshape(n, 2 * v)
+    return _set_data(msg, rec)
+
+
+def msg_to_detections(msg: PointCloud2, topic: str,
+                      known_cameras: Sequence[str] | None = None,
+                      expected_camera: str | None = None) -> FrameDetections:
+    """PointCloud2 -> FrameDetections, validated; verts2d is a view of msg.data.
+
+    ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
+    (the camera whose topic this came from).
+    """
+    cam = msg.header.frame_id
+    if known_cameras is not None and cam not in known_cameras:
+        raise WireError(topic, "header.frame_id", f"unknown camera {cam!r} (rig has "
+                        f"{list(known_cameras)})", "unknown_camera")
+    if expected_camera is not None and cam != expected_camera:
+        raise WireError(topic, "header.frame_id", f"camera {cam!r} on the topic of camera "
+                        f"{expected_camera!r}", "camera_mismatch")
+    rec = _view_cloud(msg, topic, DETECTION_TYPES)
+    counts = {name: _count(msg, name) for name in DETECTION_TYPES}
+    if counts["bbox"] != 4:
+        raise WireError(topic, "bbox", f"count {counts['bbox']}, expected 4", "bad_count")
+    if counts["score"] != 1:
+        raise WireError(topic, "score", f"count {counts['score']}, expected 1", "bad_count")
+    if counts["kpts2d"] % 2 or counts["kpts2d"] == 0:
+        raise WireError(topic, "kpts2d", f"count {counts['kpts2d']}, expected 2J (J >= 1)",
+                        "bad_count")
+    j = counts["kpts2d"] // 2
+    if counts["kpts3d"] != 3 * j:
+        raise WireError(topic, "kpts3d", f"count {counts['kpts3d']}, expected 3J = {3 * j} "
+                        f"(J={j} from kpts2d)", "bad_count")
+    if counts["verts2d"] % 2:
+        raise WireError(topic, "verts2d", f"count {counts['verts2d']}, expected 2V", "bad_count")
+    n = len(rec)
+    fields = {name: _field(rec, name) for name in DETECTION_TYPES}
+    for name, arr in fields.items():
+        _check_finite(topic, name, arr)
+    bbox = fields["bbox"]
+    inverted = (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1])
+    if inverted.any():
+        raise WireError(topic, "bbox", f"inverted box (x2<x1 or y2<y1) in detection "
+                        f"{int(np.argmax(inverted))}", "inverted_bbox")
+    _check_score(topic, fields["score"][:, 0], "detection")
+    return FrameDetections(
+        camera=cam, stamp_ns=stamp_to_ns(msg.header.stamp), bboxes=bbox,
+        scores=fields["score"][:, 0], kpts2d=fields["kpts2d"].reshape(n, j, 2),
+        kpts3d=fields["kpts3d"].reshape(n, j, 3),
+        verts2d=fields["verts2d"].reshape(n, counts["verts2d"] // 2, 2))
+
+
+# ---------------------------------------------------------------------------------------------
+# clusters
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class ClusterFrame:
+    """Decoded /maem/clusters: M member rows (cluster, camera index, detection, score, cost, kpts2d).
+
+    kpts2d (M,J,2) rectified px; cost (M,) metres (NaN = member alone).
+    """
+
+    stamp_ns: int
+    frame_id: str
+    cluster: np.ndarray
+    camera: np.ndarray
+    detection: np.ndarray
+    score: np.ndarray
+    cost: np.ndarray
+    kpts2d: np.ndarray
+
+    @property
+    def num_joints(self) -> int:
+        return int(self.kpts2d.shape[1])
+
+    def to_core(self, rig: Rig):
+        """(frames by camera name, clusters) for core.triangulation.triangulate.
+
+        Each camera's FrameDetections holds only its cluster members, in row order (bbox = the
+        keypoints' bounding box, kpts3d NaN and verts2d empty: not on the wire); Cluster.members
+        index into those.
+        """
+        from maem_ros.core.association import Cluster  # local: wire stays importable alone
+
+        j = self.num_joints
+        frames: dict[str, FrameDetections] = {}
+        local = np.zeros(len(self.camera), dtype=np.int64)
+        for ci in np.unique(self.camera):
+            rows = np.flatnonzero(self.camera == ci)
+            local[rows] = np.arange(len(rows))
+            k = self.kpts2d[rows]
+            frames[rig.names[int(ci)]] = FrameDetections(
+                camera=rig.names[int(ci)], stamp_ns=self.stamp_ns,
+                bboxes=np.concatenate([k.min(axis=1), k.max(axis=1)], axis=1),
+                scores=self.score[rows], kpts2d=k,
+                kpts3d=np.full((len(rows), j, 3), np.nan), verts2d=np.zeros((len(rows), 0, 2)))
+        clusters = []
+        _, first = np.unique(self.cluster, return_index=True)
+        for cid in self.cluster[np.sort(first)]:
+            rows = np.flatnonzero(self.cluster == cid)
+            members = np.stack([self.camera[rows].astype(np.int64), local[rows]], axis=1)
+            clusters.append(Cluster(members=members, costs=self.cost[rows].astype(np.float64)))
+        return frames, clusters
+
+
+def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
+                    frames: Mapping[str, FrameDetections], clusters: Sequence) -> PointCloud2:
+    """core Clusters (members = (camera index, detection index)) -> PointCloud2.
+
+    ``frames`` are the FrameDetections the clusters index into, keyed by camera name; J is
+    taken from them (0 points and J of any frame when there are no clusters).
+    """
+    j = next((f.num_joints for f in frames.values()), 0)
+    rows = [(k, int(c), int(d), float(cost)) for k, cl in enumerate(clusters)
+            for (c, d), cost in zip(np.asarray(cl.members), np.asarray(cl.costs))]
+    fields = [("cluster", U32, 1), ("camera", U16, 1), ("detection", U16, 1), ("score", F32, 1),
+              ("cost", F32, 1), ("kpts2d", F32, 2 * j)]
+    msg, rec = _new_cloud(stamp_ns, frame_id, fields, len(rows))
+    names = rig.names
+    for i, (k, c, d, cost) in enumerate(rows):
+        f = frames[names[c]]
+        rec["cluster"][i] = k
+        rec["camera"][i] = c
+        rec["detection"][i] = d
+        rec["score"][i] = f.scores[d]
+        rec["cost"][i] = cost
+        rec["kpts2d"][i] = f.kpts2d[d].reshape(-1)
+    return _set_data(msg, rec)
+
+
+def msg_to_clusters(msg: PointCloud2, topic: str, num_cameras: int) -> ClusterFrame:
+    """PointCloud2 -> ClusterFrame, validated (camera index < num_cameras, unique members)."""
+    rec = _view_cloud(msg, topic, CLUSTER_TYPES)
+    for name in ("cluster", "camera", "detection", "score", "cost"):
+        if _count(msg, name) != 1:
+            raise WireError(topic, name, f"count {_count(msg, name)}, expected 1", "bad_count")
+    c2 = _count(msg, "kpts2d")
+    if c2 % 2 or c2 == 0:
+        raise WireError(topic, "kpts2d", f"count {c2}, expected 2J (J >= 1)", "bad_count")
+    n = len(rec)
+    f = {name: _field(rec, name) for name in CLUSTER_TYPES}
+    camera = f["camera"][:, 0].astype(np.int64)
+    if n and camera.max() >= num_cameras:
+        raise WireError(topic, "camera", f"index {int(camera.max())} but the rig has "
+                        f"{num_cameras} cameras", "unknown_camera")
+    pairs = camera * 65536 + f["detection"][:, 0]
+    if len(np.unique(pairs)) != n:
+        raise WireError(topic, "detection", "a (camera, detection) pair appears twice",
+                        "duplicate_member")
+    _check_finite(topic, "kpts2d", f["kpts2d"], "member")
+    _check_finite(topic, "score", f["score"], "member")
+    _check_finite(topic, "cost", f["cost"], "member", allow_nan=True)
+    _check_score(topic, f["score"][:, 0], "member")
+    return ClusterFrame(stamp_ns=stamp_to_ns(msg.header.stamp), frame_id=msg.header.frame_id,
+                        cluster=f["cluster"][:, 0].astype(np.int64), camera=camera,
+                        detection=f["detection"][:, 0].astype(np.int64),
+                        score=f["score"][:, 0].astype(np.float64),
+                        cost=f["cost"][:, 0].astype(np.float64),
+                        kpts2d=f["kpts2d"].reshape(n, c2 // 2, 2).astype(np.float64))
+
+
+# ---------------------------------------------------------------------------------------------
+# poses
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class PoseFrame:
+    """Decoded /maem/poses: ids (P,) int64, joints (P,J,3) world m (NaN = missing), views, scores."""
+
+    stamp_ns: int
+    frame_id: str
+    ids: np.ndarray
+    joints: np.ndarray
+    views: np.ndarray
+    scores: np.ndarray
+
+
+def poses_to_msg(stamp_ns: int, frame_id: str, ids: np.ndarray, joints: np.ndarray,
+                 views: np.ndarray, scores: np.ndarray) -> PointCloud2:
+    """Persons -> PointCloud2; ids < 0 (tentative tracks) are sent as UNTRACKED_ID."""
+    joints = np.asarray(joints, dtype=np.float64)
+    p = int(joints.shape[0])
+    j = int(joints.shape[1]) if joints.ndim == 3 else 0
+    msg, rec = _new_cloud(stamp_ns, frame_id, [("id", U32, 1), ("joints", F32, 3 * j),
+                                               ("views", U16, 1), ("score", F32, 1)], p)
+    if p:
+        ids = np.asarray(ids, dtype=np.int64)
+        rec["id"] = np.where(ids < 0, UNTRACKED_ID, ids).astype(np.uint32)
+        rec["joints"] = joints.reshape(p, 3 * j)
+        rec["views"] = np.clip(np.asarray(views), 0, 65535).astype(np.uint16)
+        rec["score"] = np.asarray(scores, dtype=np.float32)
+    return _set_data(msg, rec)
+
+
+def msg_to_poses(msg: PointCloud2, topic: str) -> PoseFrame:
+    """PointCloud2 -> PoseFrame (NaN joints allowed, inf not)."""
+    rec = _view_cloud(msg, topic, POSE_TYPES)
+    for name in ("id", "views", "score"):
+        if _count(msg, name) != 1:
+            raise WireError(topic, name, f"count {_count(msg, name)}, expected 1", "bad_count")
+    c3 = _count(msg, "joints")
+    if c3 % 3:
+        raise WireError(topic, "joints", f"count {c3}, expected 3J", "bad_count")
+    f = {name: _field(rec, name) for name in POSE_TYPES}
+    _check_finite(topic, "joints", f["joints"], "person", allow_nan=True)
+    _check_finite(topic, "score", f["score"], "person")
+    n = len(rec)
+    return PoseFrame(stamp_ns=stamp_to_ns(msg.header.stamp), frame_id=msg.header.frame_id,
+                     ids=f["id"][:, 0].astype(np.int64),
+                     joints=f["joints"].reshape(n, c3 // 3, 3).astype(np.float64),
+                     views=f["views"][:, 0].astype(np.int64),
+                     scores=f["score"][:, 0].astype(np.float64))
+
+
+# ---------------------------------------------------------------------------------------------
+# skeleton markers
+# ---------------------------------------------------------------------------------------------
+def id_color(track_id: int, alpha: float = 1.0) -> ColorRGBA:
+    """A stable, well-spread colour per id (golden-ratio hue steps)."""
+    r, g, b = colorsys.hsv_to_rgb((int(track_id) * 0.618033988749895) % 1.0, 0.85, 0.95)
+    return ColorRGBA(r=r, g=g, b=b, a=float(alpha))
+
+
+def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int], joints: np.ndarray,
+                     bones: Sequence[tuple[int, int]], lifetime_s: float = 0.5,
+                     joint_diameter: float = 0.06, bone_width: float = 0.03) -> MarkerArray:
+    """Per person: SPHERE_LIST joints (ns skeleton/joints), LINE_LIST bones (ns skeleton/bones,
+    bones with a NaN end skipped), TEXT_VIEW_FACING id 0.3 m above the highest joint
+    (ns skeleton/ids). Marker id = track id in each ns; persons with id < 0 or no finite joint
+    are skipped. Markers expire after ``lifetime_s`` (> 0) so vanished persons disappear.
+    """
+    header = make_header(stamp_ns, frame_id)
+    sec, nsec = divmod(int(round(lifetime_s * 1e9)), 1_000_000_000)
+    life = Duration(sec=sec, nanosec=nsec)
+    out = MarkerArray()
+    for pid, pj in zip(ids, np.asarray(joints, dtype=np.float64)):
+        finite = np.all(np.isfinite(pj), axis=1)
+        if pid < 0 or not finite.any():
+            continue
+        color = id_color(pid)
+        pts = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in pj[finite]]
+        joint_m = Marker(header=header, ns=NS_JOINTS, id=int(pid), type=Marker.SPHERE_LIST,
+                         action=Marker.ADD, lifetime=life, points=pts, color=color)
+        joint_m.pose.orientation.w = 1.0
+        joint_m.scale.x = joint_m.scale.y = joint_m.scale.z = joint_diameter
+        seg = [Point(x=float(x), y=float(y), z=float(z))
+               for a, b in bones if finite[a] and finite[b] for x, y, z in (pj[a], pj[b])]
+        bone_m = Marker(header=header, ns=NS_BONES, id=int(pid), type=Marker.LINE_LIST,
+                        action=Marker.ADD, lifetime=life, points=seg, color=color)
+        bone_m.pose.orientation.w = 1.0
+        bone_m.scale.x = bone_width
+        top = pj[finite][np.argmax(pj[finite][:, 2])]
+        text_m = Marker(header=header, ns=NS_LABELS, id=int(pid), type=Marker.TEXT_VIEW_FACING,
+                        action=Marker.ADD, lifetime=life, text=str(int(pid)), color=color)
+        text_m.pose.position = Point(x=float(top[0]), y=float(top[1]), z=float(top[2]) + 0.3)
+        text_m.pose.orientation.w = 1.0
+        text_m.scale.z = 0.25
+        out.markers.extend([joint_m, bone_m, text_m])
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# images
+# ---------------------------------------------------------------------------------------------
+_IMAGE_CHANNELS = {"bgr8": 3, "rgb8": 3, "mono8": 1, "8UC1": 1, "8UC3": 3, "bgra8": 4,
+                   "rgba8": 4}
+
+
+def image_to_bgr(msg: Image, topic: str) -> np.ndarray:
+    """sensor_msgs/Image (bgr8, rgb8, bgra8, rgba8, mono8) -> BGR uint8 (H,W,3)."""
+    import cv2
+
+    ch = _IMAGE_CHANNELS.get(msg.encoding)
+    if ch is None:
+        raise WireError(topic, "encoding", f"unsupported {msg.encoding!r}, expected one of "
+                        f"{sorted(_IMAGE_CHANNELS)}", "bad_encoding")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h == 0 or w == 0:
+        raise WireError(topic, "height/width", f"empty image {w}x{h}", "bad_size")
+    if step < w * ch or len(msg.data) != h * step:
+        raise WireError(topic, "data", f"{len(msg.data)} bytes for {w}x{h}x{ch} with step "
+                        f"{step}", "bad_size")
+    rows = np.frombuffer(msg.data, dtype=np.uint8).reshape(h, step)
+    img = rows[:, :w * ch].reshape(h, w, ch)
+    if ch == 1:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if msg.encoding in ("rgb8", "rgba8"):
+        return cv2.cvtColor(img, cv2.COLOR_RGB2BGR if ch == 3 else cv2.COLOR_RGBA2BGR)
+    return img[:, :, :3] if ch == 4 else img
+
+
+def compressed_to_bgr(msg: CompressedImage, topic: str) -> np.ndarray:
+    """sensor_msgs/CompressedImage (jpeg, png, ...) -> BGR uint8 (H,W,3) via cv2.imdecode."""
+    import cv2
+
+    if len(msg.data) == 0:
+        raise WireError(topic, "data", "empty", "bad_size")
+    img = cv2.imdecode(np.frombuffer(msg.data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise WireError(topic, "data", f"cannot decode {len(msg.data)} bytes (format "
+                        f"{msg.format!r})", "bad_encoding")
+    return img
+
+
+def bgr_to_image(image: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
+    """BGR uint8 (H,W,3) -> sensor_msgs/Image bgr8."""
+    image = np.ascontiguousarray(image, dtype=np.uint8)
+    h, w = image.shape[:2]
+    msg = Image(header=make_header(stamp_ns, frame_id), height=h, width=w, encoding="bgr8",
+                is_bigendian=0, step=w * 3)
+    msg.data = image.tobytes()
+    return msg

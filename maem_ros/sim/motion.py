@@ -1,0 +1,180 @@
+"""Player and bystander motion on the court (world: origin at the centre, z up, metres).
+
+A steering simulation at the scene fps, vectorised over persons (one Python step per frame):
+each player seeks a target with an arrival slow-down (running, then stopping), limited
+acceleration and turn rate, and separation from the others. Plays alternate between the two
+baskets; within each play a rebound event sends 5-7 players under the basket (crowding, arms
+up); between events players re-target (cuts, jogs, stops). Referees/bystanders walk along the
+sidelines following the play. One second of warm-up is simulated and dropped so frame 0 is
+already in motion. Deterministic per seed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rigs import BASKETS, COURT_LENGTH, COURT_WIDTH
+
+ACCEL_MAX = 7.0  # m/s^2
+TURN_RATE = 7.0  # rad/s
+SEPARATION = 0.9  # m, players closer than this push apart
+
+
+@dataclass
+class Motion:
+    """Per-frame state, arrays (F,P): pos (F,P,2) m, speed m/s, heading rad, phase rad,
+    crouch 0..1, arm_raise 0..1, head_yaw rad; height (P,) m, width (P,) scale, team (P,) int
+    (0/1 players, 2 bystanders)."""
+
+    pos: np.ndarray
+    speed: np.ndarray
+    heading: np.ndarray
+    phase: np.ndarray
+    crouch: np.ndarray
+    arm_raise: np.ndarray
+    head_yaw: np.ndarray
+    height: np.ndarray
+    width: np.ndarray
+    team: np.ndarray
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def simulate_motion(num_frames: int, fps: float, players: int, bystanders: int, seed: int) -> Motion:
+    """Simulate ``players`` + ``bystanders`` persons for ``num_frames`` frames at ``fps``."""
+    if num_frames < 1 or fps <= 0 or players < 0 or bystanders < 0 or players + bystanders < 1:
+        raise ValueError(f"motion: need frames >= 1, fps > 0 and at least one person "
+                         f"(frames={num_frames}, fps={fps}, players={players}, bystanders={bystanders})")
+    rng = np.random.default_rng([int(seed), 7001])
+    P = players + bystanders
+    is_player = np.arange(P) < players
+    team = np.where(is_player, np.arange(P) % 2, 2)
+    height = np.where(is_player, rng.uniform(1.78, 2.08, P), rng.uniform(1.62, 1.86, P))
+    width = np.where(is_player, rng.uniform(0.9, 1.15, P), rng.uniform(0.92, 1.12, P))
+    vmax = np.where(is_player, rng.uniform(5.0, 7.0, P), rng.uniform(2.5, 3.5, P))
+    hx, hy = COURT_LENGTH / 2, COURT_WIDTH / 2
+    side_y = np.where(np.arange(P) % 2 == 0, -1.0, 1.0) * (hy + rng.uniform(0.8, 1.5, P))
+
+    pos = np.stack([rng.uniform(-hx + 2, hx - 2, P), rng.uniform(-hy + 1.5, hy - 1.5, P)], axis=1)
+    pos[~is_player, 1] = side_y[~is_player]
+    pos[~is_player, 0] = rng.uniform(-8, 8, (~is_player).sum())
+    vel = np.zeros((P, 2))
+    heading = rng.uniform(-np.pi, np.pi, P)
+    phase = rng.uniform(0, 2 * np.pi, P)
+    crouch, arm = np.zeros(P), np.zeros(P)
+    target = pos.copy()
+    retarget_at = rng.uniform(0.0, 0.6, P)
+    hold_until = np.zeros(P)
+    yaw_freq, yaw_phase = rng.uniform(0.2, 0.6, P), rng.uniform(0, 2 * np.pi, P)
+
+    dt = 1.0 / fps
+    warm = int(round(fps))
+    play_side = int(rng.integers(0, 2)) * 2 - 1  # +1: attacking the +x basket
+    play_end = rng.uniform(3.0, 4.5)
+    rebound_at = warm * dt + rng.uniform(0.5, 1.3)  # crowding shows even in 3 s scenes
+    rebound_set = np.zeros(P, bool)
+    raise_until = np.zeros(P)
+    out = {k: np.zeros((num_frames, P)) for k in ("speed", "heading", "phase", "crouch", "arm", "yaw")}
+    out_pos = np.zeros((num_frames, P, 2))
+
+    for step in range(warm + num_frames):
+        t = step * dt
+        if t >= play_end:  # transition: attack the other basket
+            play_side = -play_side
+            play_end = t + rng.uniform(4.0, 6.5)
+            rebound_at = t + rng.uniform(2.0, 3.5)
+            retarget_at[:] = t
+        if t >= rebound_at:
+            basket = BASKETS[0 if play_side < 0 else 1, :2]
+            cand = np.flatnonzero(is_player)
+            n = min(len(cand), int(rng.integers(5, 8)))
+            far = np.argsort(np.linalg.norm(pos[cand] - basket, axis=1))[:n]
+            rebound_set[:] = False
+            rebound_set[cand[far]] = True
+            ang = rng.uniform(-np.pi / 2, np.pi / 2, n) + (np.pi if play_side > 0 else 0.0)
+            rad = rng.uniform(0.6, 2.3, n)
+            target[cand[far]] = basket + np.stack([np.cos(ang), np.sin(ang)], 1) * rad[:, None]
+            retarget_at[cand[far]] = t + rng.uniform(1.6, 2.4, n)
+            raise_until[cand[far]] = t + rng.uniform(1.2, 1.8, n)
+            rebound_at = np.inf
+        due = (t >= retarget_at) & (t >= hold_until)
+        if due.any():
+            _retarget(rng, due, is_player, pos, target, play_side, hold_until, retarget_at, t, side_y)
+        # follow the play with the referees
+        mean_x = pos[is_player, 0].mean() if is_player.any() else 0.0
+        ref = ~is_player
+        target[ref, 0] = np.clip(mean_x + np.where(np.arange(P)[ref] % 2 == 0, -3.0, 3.0), -hx + 1, hx - 1)
+        target[ref, 1] = side_y[ref]
+
+        vel = _steer(pos, vel, target, vmax, dt)
+        pos = _resolve_contacts(pos + vel * dt)
+        pos[is_player] = np.clip(pos[is_player], [-hx - 0.8, -hy - 0.8], [hx + 0.8, hy + 0.8])
+        speed = np.linalg.norm(vel, axis=1)
+        basket = BASKETS[0 if play_side < 0 else 1, :2]
+        look = np.where(is_player[:, None], basket - pos, np.stack([mean_x - pos[:, 0], -pos[:, 1]], 1))
+        want = np.where(speed > 1.0, np.arctan2(vel[:, 1], vel[:, 0]), np.arctan2(look[:, 1], look[:, 0]))
+        heading = _wrap(heading + np.clip(_wrap(want - heading), -TURN_RATE * dt, TURN_RATE * dt))
+        cadence = np.where(speed > 0.2, 0.85 + 0.12 * speed, 0.0)  # strides per second
+        phase = (phase + 2 * np.pi * cadence * dt) % (2 * np.pi)
+        k = 1.0 - np.exp(-dt / 0.25)
+        crouch += k * (np.where(is_player & (speed < 1.5), 0.35, 0.0) - crouch)
+        arm += k * ((t < raise_until).astype(float) - arm)
+        if step >= warm:
+            f = step - warm
+            out_pos[f] = pos
+            out["speed"][f], out["heading"][f], out["phase"][f] = speed, heading, phase
+            out["crouch"][f], out["arm"][f] = crouch, arm
+            out["yaw"][f] = 0.45 * np.sin(2 * np.pi * yaw_freq * t + yaw_phase)
+    return Motion(pos=out_pos, speed=out["speed"], heading=out["heading"], phase=out["phase"],
+                  crouch=out["crouch"], arm_raise=out["arm"], head_yaw=out["yaw"],
+                  height=height, width=width, team=team)
+
+
+def _retarget(rng, due, is_player, pos, target, play_side, hold_until, retarget_at, t, side_y) -> None:
+    hx, hy = COURT_LENGTH / 2, COURT_WIDTH / 2
+    idx = np.flatnonzero(due & is_player)
+    n = len(idx)
+    if n:
+        kind = rng.choice(3, size=n, p=[0.55, 0.25, 0.2])  # cut/run, short jog, stop
+        x = play_side * rng.uniform(1.0, hx - 0.5, n)
+        y = rng.uniform(-hy + 0.7, hy - 0.7, n)
+        jog = pos[idx] + rng.normal(0.0, 2.0, (n, 2))
+        new = np.where((kind == 0)[:, None], np.stack([x, y], 1), jog)
+        new = np.where((kind == 2)[:, None], pos[idx], new)
+        target[idx] = np.clip(new, [-hx + 0.3, -hy + 0.3], [hx - 0.3, hy - 0.3])
+        hold_until[idx] = t + np.where(kind == 2, rng.uniform(0.4, 1.2, n), 0.0)
+        retarget_at[idx] = t + rng.uniform(0.7, 1.8, n)
+    retarget_at[due & ~is_player] = t + 1.0
+
+
+def _steer(pos, vel, target, vmax, dt) -> np.ndarray:
+    d = target - pos
+    dist = np.linalg.norm(d, axis=1, keepdims=True)
+    want_speed = np.minimum(vmax[:, None], 1.6 * dist)  # arrival: decelerate near the target
+    desired = np.where(dist > 1e-6, d / np.maximum(dist, 1e-6) * want_speed, 0.0)
+    for ahead, gain in ((0.0, 25.0), (0.4, 12.0)):  # now, and where everyone will be: players dodge
+        p = pos + ahead * vel
+        diff = p[:, None, :] - p[None, :, :]
+        gap = np.linalg.norm(diff, axis=2) + np.eye(len(pos)) * 1e3
+        push = np.where((gap < SEPARATION)[..., None], diff / gap[..., None] * (SEPARATION - gap)[..., None], 0.0)
+        desired = desired + gain * push.sum(axis=1)
+    dv = desired - vel
+    n = np.linalg.norm(dv, axis=1, keepdims=True)
+    dv = dv * np.minimum(1.0, ACCEL_MAX * dt / np.maximum(n, 1e-9))
+    return vel + dv
+
+
+def _resolve_contacts(pos: np.ndarray, min_gap: float = 0.5, iterations: int = 3) -> np.ndarray:
+    """Push apart persons closer than ``min_gap`` m (bodies never interpenetrate)."""
+    for _ in range(iterations):
+        diff = pos[:, None, :] - pos[None, :, :]
+        gap = np.linalg.norm(diff, axis=2) + np.eye(len(pos)) * 1e3
+        deficit = np.clip(min_gap - gap, 0.0, None)
+        if not deficit.any():
+            break
+        unit = diff / np.maximum(gap, 1e-6)[..., None]
+        pos = pos + 0.5 * (unit * deficit[..., None]).sum(axis=1)
+    return pos

@@ -1,0 +1,367 @@
+"""maem-eval: run MAEM association + triangulation offline on a scene folder and score it.
+
+    maem-eval SCENE_DIR --params config/sportcenter.yaml [--json OUT.json] [--plots DIR]
+              [--ablation] [--pred OUT.npz] [--frames N]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from ..core.detections import FrameDetections
+from ..core.interchange import MissingDataError, SceneFolder
+from ..core.skeleton import SPORTCENTER_13, get_convention
+from ..params import load_node_params
+
+METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
+               "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames")
+
+#: the paper's ablation rows: association-parameter overrides on top of the params file
+ABLATION: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("reproj only", {"reproj_gate": True, "epipolar_gate": "none"}),
+    ("mesh only", {"reproj_gate": False, "epipolar_gate": "mesh"}),
+    ("reproj + sparse kpts", {"reproj_gate": True, "epipolar_gate": "sparse"}),
+    ("full (reproj + mesh)", {"reproj_gate": True, "epipolar_gate": "mesh"}),
+)
+
+EPILOG = """\
+Metrics (VoxelPose / Panoptic form, as in the MAEM paper), over the evaluated frames, in the
+sportcenter_13 joints (estimated MHR70 poses are mapped with [0,5,6,7,8,62,41,9,10,11,12,13,14]):
+  GT person      a person of gt.npz with at least one joint whose mask is 1 in that frame;
+                 joints with mask 0 are excluded from every error below.
+  MPJPE          mean over a person's GT-masked joints of the Euclidean distance between the
+                 estimated and GT joint (world metres, reported in mm); untriangulated (NaN)
+                 joints of a prediction are ignored.
+  PA-MPJPE       MPJPE after aligning the prediction to the GT with the least-squares
+                 similarity (rotation, translation, uniform scale; Umeyama); a matched
+                 pair with fewer than 3 common joints has none and is left out of PA-MPJPE.
+  matching       per frame, Hungarian assignment of predictions to GT persons on MPJPE; only
+                 pairs with MPJPE < 500 mm count as matched. MPJPE / PA-MPJPE mean and median
+                 are taken over all matched pairs of the sequence.
+  Recall@500     matched GT persons / all GT persons.
+  AP@d           d = 75, 100, 125, 150 mm: all predictions of the sequence sorted by score
+                 (descending, stable); each is a true positive when its closest not-yet-taken
+                 GT person of its frame has MPJPE < d (that person is then taken), else a
+                 false positive. After each prediction i: recall_i = TP_i / #GT persons,
+                 precision_i = TP_i / (TP_i + FP_i); precision is replaced by its monotone
+                 envelope max_{k>=i} precision_k; with recall padded by 0 in front and 1
+                 behind and precision by 0 on both ends, AP = sum over the i where recall
+                 changes of (r_{i+1} - r_i) * p_{i+1} (VoxelPose / Panoptic area under PR).
+  assoc ms       wall-clock time of the association stage per frame (median), this machine.
+In --json, recall and AP are fractions (0..1), errors in mm; the table shows percentages.
+
+Input handling (never a crash mid-sequence; every case is counted and reported at the end):
+  a camera with no dets/<view>/ folder is left out of every frame; a missing or corrupt
+  (unreadable, mis-shaped, NaN) npz leaves that view out of that frame; a frame with no
+  readable view at all, or beyond the end of gt.npz, is not evaluated; a frame on which
+  association/triangulation raises is evaluated with no predictions (its people are missed).
+--pred writes pose (F,K,13,3) world metres in sportcenter_13 (NaN = joint not triangulated),
+valid (F,K) bool, score (F,K); F = scene frames considered, K = most people in one frame.
+"""
+
+
+# ---- skip accounting --------------------------------------------------------------------------
+#: skip kind (key in --json "skips") -> what happened to the input
+SKIP_KINDS = {
+    "view_without_dets": "camera has no dets/<view>/ npz: left out of every frame",
+    "dets_view_without_camera": "dets/<view>/ without cameras/<view>.json: ignored",
+    "missing_npz": "no npz for this view and frame: view left out of the frame",
+    "corrupt_npz": "unreadable / mis-shaped / NaN npz: view left out of the frame",
+    "frame_without_detections": "no readable npz in any view: frame not evaluated",
+    "frame_without_gt": "frame beyond the end of gt.npz: not evaluated",
+    "pipeline_error": "association/triangulation raised: frame scored with no predictions",
+    "gt_masked_joints": "GT joints with mask 0 among present people: excluded from errors",
+}
+
+@dataclass
+class SkipLog:
+    """Counts of skipped inputs, with the first few messages of each kind."""
+
+    counts: Counter = field(default_factory=Counter)
+    examples: dict[str, list[str]] = field(default_factory=dict)
+    max_examples: int = 3
+
+    def add(self, kind: str, message: str, n: int = 1) -> None:
+        self.counts[kind] += n
+        ex = self.examples.setdefault(kind, [])
+        if len(ex) < self.max_examples:
+            ex.append(message)
+
+    def lines(self) -> list[str]:
+        out = []
+        for kind in sorted(self.counts):
+            out.append(f"  {kind}: {self.counts[kind]}  ({SKIP_KINDS.get(kind, '')})")
+            out.extend(f"    e.g. {m}" for m in self.examples.get(kind, []))
+        return out
+
+
+# ---- per-configuration results ----------------------------------------------------------------
+@dataclass
+class Run:
+    """Predictions of one association configuration over the evaluated frames."""
+
+    name: str
+    assoc: Any
+    preds: list[np.ndarray] = field(default_factory=list)   # per evaluated frame (K,13,3)
+    scores: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,)
+    assoc_ms: list[float] = field(default_factory=list)
+    metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
+    """(...,J,3) keypoints in ``convention`` (default: inferred from J: 70 = mhr70) -> (...,13,3)."""
+    j = joints.shape[-2]
+    if convention is None:
+        convention = "mhr70" if j == 70 else SPORTCENTER_13.name if j == SPORTCENTER_13.num_joints else ""
+    if convention == SPORTCENTER_13.name and j == SPORTCENTER_13.num_joints:
+        return joints
+    if convention == "mhr70" and j == 70:
+        return SPORTCENTER_13.select(joints)
+    raise ValueError(f"keypoints: cannot map {j} joints (convention {convention or 'unknown'!r}) "
+                     f"to sportcenter_13")
+
+
+def load_gt(folder: SceneFolder) -> tuple[np.ndarray, np.ndarray] | None:
+    """(F,P,13,3) world metres (NaN = masked), (F,P,13) mask; None when the folder has no gt.npz."""
+    if not folder.has_gt:
+        return None
+    pose, mask, convention = folder.gt()
+    get_convention(convention)  # unknown convention -> ValueError naming it
+    xyz = to_sportcenter13(pose[..., :3], convention)
+    if convention == "mhr70":
+        mask = np.take(mask, SPORTCENTER_13.from_mhr70, axis=-1)
+    return xyz, mask
+
+
+def load_frame(folder: SceneFolder, views: Sequence[str], frame: int, skips: SkipLog
+               ) -> dict[str, FrameDetections]:
+    """Readable detections of one frame by view; missing / corrupt files are logged and left out.
+
+    A frame with no readable view at all is logged once as frame_without_detections (plus any
+    corrupt files), not once per missing view.
+    """
+    out, missing = {}, []
+    for view in views:
+        try:
+            out[view] = folder.detections(view, frame)
+        except MissingDataError as e:
+            missing.append(str(e))
+        except ValueError as e:
+            skips.add("corrupt_npz", str(e))
+    if not out:
+        skips.add("frame_without_detections", f"frame {frame}: no readable npz in any view")
+    else:
+        for message in missing:
+            skips.add("missing_npz", message)
+    return out
+
+
+def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, skips: SkipLog,
+              frame: int) -> None:
+    """Associate + triangulate one frame for one configuration; append its predictions."""
+    from ..core.association import associate
+    from ..core.triangulation import triangulate
+    try:
+        t0 = time.perf_counter()
+        result = associate(rig, frames, run.assoc)
+        run.assoc_ms.append(1e3 * (time.perf_counter() - t0))
+        poses = triangulate(rig, frames, result.clusters, tri_params)
+        joints = np.asarray(poses.joints, dtype=np.float64)
+        joints = (to_sportcenter13(joints) if len(joints)
+                  else np.zeros((0, SPORTCENTER_13.num_joints, 3)))
+        valid = np.isfinite(joints).all(-1).any(-1)
+        run.preds.append(joints[valid])
+        run.scores.append(np.asarray(poses.scores, dtype=np.float64)[valid])
+    except ValueError as e:
+        skips.add("pipeline_error", f"{run.name}, frame {frame}: {e}")
+        run.preds.append(np.zeros((0, SPORTCENTER_13.num_joints, 3)))
+        run.scores.append(np.zeros(0))
+
+
+def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray]) -> dict[str, Any]:
+    from ..core.metrics import evaluate_sequence
+    m = dict(evaluate_sequence(run.preds, run.scores, gts, gt_masks))
+    m["association_ms_median"] = float(np.median(run.assoc_ms)) if run.assoc_ms else float("nan")
+    m["frames"] = len(run.preds)
+    return m
+
+
+# ---- output -----------------------------------------------------------------------------------
+def _fmt(x: Any, scale: float = 1.0, digits: int = 1) -> str:
+    try:
+        v = float(x) * scale
+    except (TypeError, ValueError):
+        return "-"
+    return "nan" if not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def format_table(rows: Sequence[tuple[str, Mapping[str, Any]]]) -> str:
+    """Plain-text table: one row per configuration (Recall / AP in %, errors in mm)."""
+    head = ["config", "frames", "Recall%", "MPJPE mean", "MPJPE med", "PA mean", "PA med",
+            "AP75", "AP100", "AP125", "AP150", "assoc ms"]
+    body = [[name, str(m.get("frames", "-")), _fmt(m.get("recall"), 100),
+             _fmt(m.get("mpjpe_mean")), _fmt(m.get("mpjpe_median")),
+             _fmt(m.get("pa_mpjpe_mean")), _fmt(m.get("pa_mpjpe_median")),
+             _fmt(m.get("ap75"), 100), _fmt(m.get("ap100"), 100), _fmt(m.get("ap125"), 100),
+             _fmt(m.get("ap150"), 100), _fmt(m.get("association_ms_median"), 1, 2)] for name, m in rows]
+    widths = [max(len(r[i]) for r in [head] + body) for i in range(len(head))]
+    fmt_row = lambda r: "  ".join(c.ljust(w) if i == 0 else c.rjust(w)  # noqa: E731
+                                  for i, (c, w) in enumerate(zip(r, widths)))
+    return "\n".join([fmt_row(head), "  ".join("-" * w for w in widths)] + [fmt_row(r) for r in body])
+
+
+def write_pred(path: Path, run: Run, frame_ids: Sequence[int], num_frames: int) -> None:
+    """pose (F,K,13,3) world m (NaN = missing), valid (F,K), score (F,K); F = frames considered."""
+    k = max([len(p) for p in run.preds], default=0)
+    pose = np.full((num_frames, k, SPORTCENTER_13.num_joints, 3), np.nan)
+    valid = np.zeros((num_frames, k), bool)
+    score = np.zeros((num_frames, k))
+    for f, p, s in zip(frame_ids, run.preds, run.scores):
+        pose[f, :len(p)] = p
+        valid[f, :len(p)] = True
+        score[f, :len(p)] = s
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, pose=pose, valid=valid, score=score,
+                            convention=np.array(SPORTCENTER_13.name))
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    return x
+
+
+# ---- CLI --------------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="maem-eval", description=__doc__.splitlines()[0], epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", type=Path, help="scene folder (cameras/, dets/, gt.npz)")
+    p.add_argument("--params", default="config/sportcenter.yaml",
+                   help="ROS params file the nodes use (sections 'association', 'triangulation')")
+    p.add_argument("--json", type=Path, help="write the metrics (and ablation rows, skips) as JSON")
+    p.add_argument("--plots", type=Path, help="write PNG plots to this folder")
+    p.add_argument("--plot-frame", type=int, default=None,
+                   help="scene frame for the top-down court plot (default: middle evaluated frame)")
+    p.add_argument("--ablation", action="store_true",
+                   help="also run the paper's ablation rows (reproj only; mesh only; reproj + sparse; full)")
+    p.add_argument("--pred", type=Path, help="write predictions (full configuration) to this npz")
+    p.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def load_params(path: str):
+    from ..core.association import AssociationParams
+    from ..core.triangulation import TriangulationParams
+    assoc = AssociationParams.from_mapping(load_node_params(path, "association"))
+    tri = TriangulationParams.from_mapping(load_node_params(path, "triangulation"))
+    return assoc, tri
+
+
+def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
+    """Run the evaluation described by parsed CLI args; returns the JSON report dict."""
+    assoc, tri = load_params(args.params)
+    folder = SceneFolder(args.scene)
+    rig = folder.rig
+    skips = SkipLog()
+    gt = load_gt(folder)
+    views = []
+    for view in folder.views:
+        if folder.frame_files(view):
+            views.append(view)
+        else:
+            skips.add("view_without_dets", f"view {view!r}: no npz in dets/{view}/")
+    for stray in folder.unknown_det_views():
+        skips.add("dets_view_without_camera", f"dets/{stray}/ has no cameras/{stray}.json")
+    n = folder.num_frames if args.frames is None else min(args.frames, folder.num_frames)
+    configs = ([(name, dataclasses.replace(assoc, **o)) for name, o in ABLATION] if args.ablation
+               else [("full", assoc)])
+    runs = [Run(name, a) for name, a in configs]
+    frame_ids, gts, gt_masks = [], [], []
+    for f in tqdm(range(n), desc="maem-eval", unit="frame", disable=args.quiet, file=sys.stderr):
+        if gt is not None and f >= gt[0].shape[0]:
+            skips.add("frame_without_gt", f"frame {f} >= {gt[0].shape[0]} GT frames")
+            continue
+        frames = load_frame(folder, views, f, skips)
+        if not frames:
+            continue
+        for run in runs:
+            run_frame(run, rig, frames, tri, skips, f)
+        frame_ids.append(f)
+        if gt is not None:
+            present = gt[1][f].any(-1)
+            gts.append(gt[0][f, present])
+            gt_masks.append(gt[1][f, present])
+            masked = int((~gt[1][f, present]).sum())
+            if masked:
+                skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
+    report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
+                              "association_params": dataclasses.asdict(assoc),
+                              "triangulation_params": dataclasses.asdict(tri),
+                              "evaluated_frames": frame_ids, "frames_considered": n}
+    if gt is None:
+        log("maem-eval: scene has no gt.npz: predictions only, no metrics")
+        report["frames"] = len(frame_ids)
+    else:
+        for run in runs:
+            run.metrics = score_run(run, gts, gt_masks)
+        main_run = runs[-1]
+        report.update({k: main_run.metrics.get(k) for k in METRIC_KEYS})
+        report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
+        if args.ablation:
+            report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}} for r in runs]
+        log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
+            f"{len(frame_ids)}/{n} frames evaluated, params {args.params}")
+        log(format_table([(r.name, r.metrics) for r in runs]))
+    report["skips"] = dict(skips.counts)
+    report["skip_examples"] = skips.examples
+    log("skipped / excluded inputs:" if skips.counts else "skipped / excluded inputs: none")
+    for line in skips.lines():
+        log(line)
+    if args.pred:
+        write_pred(args.pred, runs[-1], frame_ids, n)
+        log(f"predictions -> {str(args.pred)!r}")
+    if args.plots and gt is not None:
+        from .plots import write_plots
+        written = write_plots(args.plots, runs, frame_ids, gts, gt_masks, rig, args.plot_frame)
+        log(f"plots -> {', '.join(str(p) for p in written)}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(_jsonable(report), indent=2))
+    return report
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.frames is not None and args.frames < 1:
+        print("maem-eval: --frames must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        evaluate_scene(args)
+    except ValueError as e:  # bad params file, scene folder, rig or GT: nothing to evaluate
+        print(f"maem-eval: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

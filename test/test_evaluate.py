@@ -1,0 +1,145 @@
+"""maem-sim / maem-eval end to end: exact scenes score perfectly, bad inputs are counted skips."""
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from maem_ros.core.interchange import SceneFolder
+from maem_ros.core.skeleton import SPORTCENTER_13
+from maem_ros.tools import evaluate
+
+CONFIG = Path(__file__).resolve().parents[1] / "config"
+HAVE_PIPELINE = all(importlib.util.find_spec(m) is not None for m in
+                    ("maem_ros.core.association", "maem_ros.core.triangulation", "maem_ros.core.metrics"))
+HAVE_SIM = importlib.util.find_spec("maem_ros.sim.scene") is not None
+needs_pipeline = pytest.mark.skipif(not HAVE_PIPELINE, reason="core association/triangulation/metrics missing")
+
+
+def exact_scene(root: Path, frames: int = 4, people: int = 3, vertices: int = 300) -> SceneFolder:
+    """A hand-built zero-noise scene on the humanm3_4 rig: distinct random bodies walking slowly."""
+    from maem_ros.sim.rigs import build_rig
+    rig = build_rig("humanm3_4")
+    rng = np.random.default_rng(0)
+    box = np.array([0.5, 0.35, 1.8])
+    bodies = [rng.uniform(-0.5, 0.5, (70 + vertices, 3)) * box + [0, 0, 0.9] for _ in range(people)]
+    starts = np.array([[-6.0, 1.0, 0.0], [2.0, 4.0, 0.0], [5.0, -4.0, 0.0], [-2.0, -5.0, 0.0]])[:people]
+    folder = SceneFolder.create(root, rig, {"fps": 30.0, "start_stamp_ns": 0, "num_frames": frames})
+    gt = np.zeros((frames, people, 13, 3))
+    for f in range(frames):
+        world = [b + s + [0.05 * f, 0.02 * f, 0] for b, s in zip(bodies, starts)]
+        gt[f] = SPORTCENTER_13.select(np.stack([w[:70] for w in world]))
+        for cam in rig:
+            outputs = []
+            for w in world:
+                raw = cam.project(w)
+                outputs.append({"bbox": np.concatenate([raw[70:].min(0), raw[70:].max(0)]), "bbox_score": 0.95,
+                                "pred_keypoints_3d": cam.world_to_camera(w[:70]),
+                                "pred_keypoints_2d": raw[:70], "pred_keypoints_2d_verts": raw[70:]})
+            folder.write_outputs(cam.name, f, outputs)
+    folder.write_gt(gt, np.ones(gt.shape[:3], bool))
+    return folder
+
+
+def run_eval(scene: Path, tmp_path: Path, params: str, *extra: str) -> dict:
+    out = tmp_path / "report.json"
+    assert evaluate.main([str(scene), "--params", str(CONFIG / params), "--json", str(out), "--quiet",
+                          *extra]) == 0
+    return json.loads(out.read_text())
+
+
+@needs_pipeline
+def test_exact_scene_scores_perfectly_with_pred_and_plots(tmp_path):
+    folder = exact_scene(tmp_path / "scene")
+    pred = tmp_path / "pred.npz"
+    rep = run_eval(folder.root, tmp_path, "humanm3.yaml", "--pred", str(pred), "--plots", str(tmp_path / "plots"),
+                   "--plot-frame", "2")
+    assert set(evaluate.METRIC_KEYS) <= set(rep)
+    assert rep["frames"] == 4 and rep["recall"] == 1.0 and rep["ap75"] == 1.0
+    assert rep["mpjpe_mean"] < 1.0 and rep["pa_mpjpe_mean"] < 1.0
+    assert rep["association_ms_median"] > 0
+    assert rep["skips"] == {}
+    with np.load(pred) as z:
+        assert z["pose"].shape == (4, 3, 13, 3) and z["valid"].all() and z["score"].shape == (4, 3)
+        gt = SceneFolder(folder.root).gt()[0][..., :3]
+        # predictions come in cluster order: match each to its GT person
+        for f in range(4):
+            d = np.linalg.norm(z["pose"][f][:, None] - gt[f][None], axis=-1).mean(-1)
+            assert np.all(d.min(1) < 1e-3)
+    names = sorted(p.name for p in (tmp_path / "plots").iterdir())
+    assert names == ["ap_vs_threshold.png", "court_frame_000002.png", "per_frame_mpjpe.png"]
+    assert all((tmp_path / "plots" / n).stat().st_size > 5000 for n in names)
+
+
+@needs_pipeline
+def test_bad_inputs_are_counted_skips_not_crashes(tmp_path, capsys):
+    folder = exact_scene(tmp_path / "scene", frames=5)
+    root, views = folder.root, folder.views
+    (root / "dets" / views[0] / "000001.npz").write_bytes(b"PK\x03\x04 corrupt")           # corrupt npz
+    np.savez(root / "dets" / views[1] / "000000.npz", outputs=np.zeros((3, 4)))          # mis-shaped npz
+    (root / "dets" / views[1] / "000002.npz").unlink()                                    # missing file
+    for v in views[:3]:
+        (root / "dets" / v / "000003.npz").unlink()                                       # missing frame 3
+    for p in (root / "dets" / views[3]).iterdir():                                        # missing view
+        p.unlink()
+    pose, mask, conv = SceneFolder(root).gt()
+    mask[0, 1, [3, 4]] = False                                                             # masked GT joints
+    mask[4] = False                                                                        # nobody in frame 4
+    SceneFolder(root).write_gt(pose[:, :, :, :3], mask, conv)
+    rep = run_eval(root, tmp_path, "humanm3.yaml", "--frames", "5")
+    assert rep["skips"] == {"corrupt_npz": 2, "missing_npz": 1, "view_without_dets": 1,
+                            "frame_without_detections": 1, "gt_masked_joints": 2}
+    assert rep["evaluated_frames"] == [0, 1, 2, 4] and rep["frames"] == 4
+    assert rep["recall"] == 1.0 and rep["mpjpe_mean"] < 1.0
+    assert any("000001.npz" in m for m in rep["skip_examples"]["corrupt_npz"])
+    err = capsys.readouterr().out
+    assert "corrupt_npz: 2" in err and "view_without_dets: 1" in err
+
+
+@needs_pipeline
+def test_frames_beyond_gt_and_bad_files_exit_cleanly(tmp_path, capsys):
+    folder = exact_scene(tmp_path / "scene", frames=3, people=2)
+    pose, mask, conv = folder.gt()
+    folder.write_gt(pose[:2, ..., :3], mask[:2], conv)
+    rep = run_eval(folder.root, tmp_path, "humanm3.yaml")
+    assert rep["skips"] == {"frame_without_gt": 1} and rep["frames"] == 2
+    assert evaluate.main([str(tmp_path / "nowhere"), "--params", str(CONFIG / "humanm3.yaml")]) == 2
+    assert "no such folder" in capsys.readouterr().err
+    (folder.root / "gt.npz").write_bytes(b"junk")
+    assert evaluate.main([str(folder.root), "--params", str(CONFIG / "humanm3.yaml"), "--quiet"]) == 2
+    assert "gt.npz" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("association:\n  ros__parameters:\n    tau_det: banana\n")
+    assert evaluate.main([str(folder.root), "--params", str(bad)]) == 2
+    assert "tau_det" in capsys.readouterr().err
+
+
+@needs_pipeline
+def test_ablation_rows(tmp_path, capsys):
+    folder = exact_scene(tmp_path / "scene", frames=2, people=2, vertices=100)
+    rep = run_eval(folder.root, tmp_path, "humanm3.yaml", "--ablation")
+    assert [r["name"] for r in rep["ablation"]] == [name for name, _ in evaluate.ABLATION]
+    assert all(r["recall"] == 1.0 for r in rep["ablation"])
+    assert rep["recall"] == rep["ablation"][-1]["recall"]
+    out = capsys.readouterr().out
+    assert all(name in out for name, _ in evaluate.ABLATION)
+
+
+@pytest.mark.skipif(not (HAVE_PIPELINE and HAVE_SIM), reason="sim scene or core pipeline missing")
+@pytest.mark.timeout(120)
+def test_zero_noise_sim_scene_through_maem_eval(tmp_path):
+    from maem_ros.tools import simulate
+    scene = tmp_path / "sim"
+    assert simulate.main([str(scene), "--rig", "sportcenter6", "--frames", "3", "--difficulty", "none",
+                          "--seed", "0", "--vertices", "2000", "--quiet"]) == 0
+    folder = SceneFolder(scene)
+    assert folder.num_frames == 3 and len(folder.views) == 6 and folder.info["scene_config"]["seed"] == 0
+    pose, mask, conv = folder.gt()
+    assert conv == "sportcenter_13" and pose.shape[0] == 3 and mask.all()
+    rep = run_eval(scene, tmp_path, "sportcenter.yaml")
+    assert rep["frames"] == 3 and rep["skips"] == {}
+    assert rep["recall"] == 1.0
+    assert rep["mpjpe_mean"] < 1.0 and rep["mpjpe_median"] < 1.0

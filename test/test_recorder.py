@@ -1,0 +1,111 @@
+"""maem-record: every message it received is in the bag after SIGINT/SIGTERM; latched and late
+topics; graph-discovered types; QoS adaptation."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo
+from std_msgs.msg import String
+
+from maem_ros.ros.recorder_node import parse_args, wanted
+from maem_ros.tools import bagio
+
+N = 60
+RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    node = rclpy.create_node("recorder_test")
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    try:
+        yield node, ex
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def wait_for(cond, timeout: float, ex=None) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        if ex is not None:
+            ex.spin_once(timeout_sec=0.02)
+        else:
+            time.sleep(0.02)
+    return cond()
+
+
+def test_parse_args_and_topic_selection():
+    o = parse_args(["out", "--topics", "/a", "/b", "--all-maem"])
+    assert o.topics == ["/a", "/b"] and o.all_maem
+    assert wanted("/a", o) and wanted("/maem/poses", o) and not wanted("/c", o)
+    assert wanted("/c", parse_args(["out", "--all"])) and not wanted("/rosout", parse_args(["out", "--all"]))
+    with pytest.raises(SystemExit):
+        parse_args(["out"])
+    with pytest.raises(SystemExit):
+        parse_args(["out", "--topics", "relative"])
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_everything_received_is_in_the_bag(tmp_path: Path, ros, sig):
+    node, ex = ros
+    out = tmp_path / "rec"
+    latched = node.create_publisher(String, "/maem/scene_test", LATCHED)
+    latched.publish(String(data="latched before the recorder started"))
+    pub = node.create_publisher(String, "/rec_a", RELIABLE)
+    proc = subprocess.Popen([sys.executable, "-m", "maem_ros.ros.recorder_node", str(out),
+                             "--topics", "/rec_a", "/rec_info", "--all-maem"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=dict(os.environ))
+    try:
+        assert wait_for(lambda: pub.get_subscription_count() > 0, 20.0, ex), "recorder never subscribed"
+        late = node.create_publisher(CameraInfo, "/rec_info", RELIABLE)  # appears after start
+        assert wait_for(lambda: late.get_subscription_count() > 0, 10.0, ex), "late topic missed"
+        for i in range(N):
+            pub.publish(String(data=f"msg {i}"))
+        info = CameraInfo(width=640, height=480, distortion_model="plumb_bob")
+        info.header.frame_id = "cam"
+        late.publish(info)
+        time.sleep(0.5)  # reliable delivery on localhost; then stop it
+        proc.send_signal(sig)
+        text, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert proc.returncode == 0, text
+    bag_info = bagio.bag_info(out)
+    assert bag_info.topics == {"/rec_a": bagio.STRING, "/rec_info": bagio.CAMERA_INFO,
+                               "/maem/scene_test": bagio.STRING}
+    got = [m.decode().data for m in bagio.read_messages(out, ["/rec_a"])]
+    assert got == [f"msg {i}" for i in range(N)]
+    assert [m.decode().data for m in bagio.read_messages(out, ["/maem/scene_test"])] == [
+        "latched before the recorder started"]
+    assert bag_info.qos["/maem/scene_test"][0].durability == bagio.QosDurability.TRANSIENT_LOCAL
+    (ci,) = [m.decode() for m in bagio.read_messages(out, ["/rec_info"])]
+    assert (ci.width, ci.height, ci.header.frame_id) == (640, 480, "cam")
+    assert f"wrote {N + 2} messages" in text
+
+
+def test_existing_output_is_refused(tmp_path: Path):
+    (tmp_path / "rec").mkdir()
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.recorder_node", str(tmp_path / "rec"),
+                           "--topics", "/x"], capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2
+    assert "exists already" in proc.stderr

@@ -1,0 +1,290 @@
+"""In-process node graph: association + triangulation on a private rclpy Context.
+
+A test publisher plays a synthetic scene's detections for 6 cameras; /maem/poses must match the
+scene's ground truth, ids must stay constant per player, /maem/skeletons must be well formed.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from visualization_msgs.msg import Marker, MarkerArray
+
+from maem_ros.core.skeleton import SPORTCENTER_13
+from maem_ros.ros import wire
+from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, MARKER_QOS
+
+pytestmark = pytest.mark.timeout(150)
+
+#: the synthetic scene of these tests (6 cameras, reduced mesh for speed)
+SCENE = dict(rig="sportcenter6", frames=10, seed=3, difficulty="easy", num_vertices=2000)
+
+
+class Graph:
+    """Nodes on a private Context, spun by one executor in a background thread."""
+
+    def __init__(self) -> None:
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.nodes: list[Any] = []
+        self._stop = threading.Event()
+        self._error: BaseException | None = None
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        try:
+            while not self._stop.is_set() and self.context.ok():
+                self.executor.spin_once(timeout_sec=0.02)
+        except BaseException as e:  # noqa: BLE001 - reported by check()
+            self._error = e
+
+    def add(self, cls: Callable[..., Any], params: dict[str, Any], **kwargs: Any):
+        """Create a node of ``cls`` with parameter overrides and add it to the executor."""
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        node = cls(context=self.context, parameter_overrides=overrides, **kwargs)
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def client(self, name: str = "test_client"):
+        node = rclpy.create_node(name, context=self.context)
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def check(self) -> None:
+        assert self._error is None, f"executor thread died: {self._error!r}"
+        assert self.thread.is_alive()
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(timeout=10)
+        for node in self.nodes:
+            self.executor.remove_node(node)
+            node.destroy_node()
+        self.executor.shutdown(timeout_sec=2.0)
+        rclpy.shutdown(context=self.context)
+        assert not self.thread.is_alive(), "executor thread did not stop"
+
+
+def wait_for(pred: Callable[[], bool], timeout: float, graph: Graph | None = None,
+             step: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if graph is not None:
+            graph.check()
+        if pred():
+            return True
+        time.sleep(step)
+    return pred()
+
+
+class Recorder:
+    """Collects messages of a topic (decoded by ``decode``) keyed by header stamp."""
+
+    def __init__(self, node, msg_type, topic: str, qos, decode: Callable[[Any], Any] = lambda m: m):
+        self.lock = threading.Lock()
+        self.by_stamp: dict[int, Any] = {}
+        self.all: list[Any] = []
+        self.decode = decode
+        self.sub = node.create_subscription(msg_type, topic, self._cb, qos)
+
+    def _cb(self, msg) -> None:
+        item = self.decode(msg)
+        with self.lock:
+            self.all.append(item)
+            if hasattr(msg, "header"):
+                self.by_stamp[wire.stamp_to_ns(msg.header.stamp)] = item
+
+    def has(self, stamp_ns: int) -> bool:
+        with self.lock:
+            return stamp_ns in self.by_stamp
+
+    def count(self) -> int:
+        with self.lock:
+            return len(self.all)
+
+
+class DiagnosticsReader:
+    """Latest /diagnostics values per node (status name = fully qualified node name)."""
+
+    def __init__(self, node):
+        self.lock = threading.Lock()
+        self.latest: dict[str, dict[str, str]] = {}
+        self.sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._cb,
+                                            DIAGNOSTICS_QOS)
+
+    def _cb(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            for st in msg.status:
+                self.latest[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def get(self, node_name: str) -> dict[str, str]:
+        with self.lock:
+            return dict(self.latest.get(node_name, {}))
+
+    def value(self, node_name: str, key: str, default: float = 0.0) -> float:
+        return float(self.get(node_name).get(key, default))
+
+    def wait_value(self, node_name: str, key: str, pred: Callable[[float], bool],
+                   timeout: float = 10.0, graph: Graph | None = None) -> float:
+        ok = wait_for(lambda: pred(self.value(node_name, key, float("nan"))), timeout, graph)
+        assert ok, f"{node_name} {key}: {self.get(node_name)}"
+        return self.value(node_name, key)
+
+
+class DetectionPlayer:
+    """Publishes FrameDetections as /<cam>/detections PointCloud2 messages."""
+
+    def __init__(self, node, cameras):
+        self.pubs = {c: node.create_publisher(PointCloud2, f"/{c}/detections", DATA_QOS)
+                     for c in cameras}
+
+    def wait_matched(self, timeout: float = 20.0) -> bool:
+        return wait_for(lambda: all(p.get_subscription_count() > 0 for p in self.pubs.values()),
+                        timeout)
+
+    def publish(self, dets) -> None:
+        self.pubs[dets.camera].publish(wire.detections_to_msg(dets))
+
+    def publish_msg(self, camera: str, msg: PointCloud2) -> None:
+        self.pubs[camera].publish(msg)
+
+
+@pytest.fixture
+def graph():
+    g = Graph()
+    yield g
+    g.close()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    sim = pytest.importorskip("maem_ros.sim.scene")
+    return sim.Scene(sim.SceneConfig(**SCENE))
+
+
+def pipeline_params(**extra: Any) -> tuple[dict[str, Any], dict[str, Any]]:
+    assoc = dict(rig="sportcenter6", tau_det=0.9, tau_reproj_bbox=10.0, tau_mesh=8.0, k_min=4,
+                 slop=0.005, max_wait=0.5, min_cameras=2, diagnostics_period=0.2)
+    tri = dict(rig="sportcenter6", tau_kps=20.0, output_convention="sportcenter_13",
+               track_min_hits=3, marker_lifetime=0.5, diagnostics_period=0.2)
+    assoc.update(extra.get("association", {}))
+    tri.update(extra.get("triangulation", {}))
+    return assoc, tri
+
+
+def start_pipeline(graph: Graph, **extra: Any):
+    from maem_ros.ros.association_node import AssociationNode
+    from maem_ros.ros.triangulation_node import TriangulationNode
+
+    assoc_p, tri_p = pipeline_params(**extra)
+    assoc = graph.add(AssociationNode, assoc_p)
+    tri = graph.add(TriangulationNode, tri_p)
+    client = graph.client()
+    player = DetectionPlayer(client, assoc.rig.names)
+    clusters = Recorder(client, PointCloud2, "/maem/clusters", DATA_QOS,
+                        lambda m: wire.msg_to_clusters(m, "/maem/clusters", len(assoc.rig)))
+    poses = Recorder(client, PointCloud2, "/maem/poses", DATA_QOS,
+                     lambda m: wire.msg_to_poses(m, "/maem/poses"))
+    markers = Recorder(client, MarkerArray, "/maem/skeletons", MARKER_QOS)
+    diags = DiagnosticsReader(client)
+    assert player.wait_matched(), "association did not subscribe to every camera"
+    assert wait_for(lambda: poses.sub.get_publisher_count() > 0 and
+                    clusters.sub.get_publisher_count() > 0, 20.0)
+    return dict(assoc=assoc, tri=tri, client=client, player=player, clusters=clusters,
+                poses=poses, markers=markers, diags=diags)
+
+
+def match_players(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hungarian on MPJPE (m), pairs < 0.5 m: (pred index, gt index, mpjpe)."""
+    from scipy.optimize import linear_sum_assignment
+    if len(pred) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    d = np.linalg.norm(pred[:, None] - gt[None], axis=-1)
+    with np.errstate(invalid="ignore"):
+        cost = np.nanmean(d, axis=-1)
+    cost = np.where(np.isfinite(cost), cost, 1e9)
+    r, c = linear_sum_assignment(cost)
+    keep = cost[r, c] < 0.5
+    return r[keep], c[keep], cost[r, c][keep]
+
+
+def test_poses_match_ground_truth_with_stable_ids(graph, scene):
+    g = start_pipeline(graph)
+    cams = g["assoc"].rig.names
+    stamps = []
+    for f in range(scene.num_frames):
+        stamp = scene.stamp_ns(f)
+        stamps.append(stamp)
+        for cam in cams:
+            g["player"].publish(scene.detections(cam, f))
+        assert wait_for(lambda: g["poses"].has(stamp), 20.0, graph), f"no poses for frame {f}"
+    assert wait_for(lambda: all(g["markers"].has(s) for s in stamps[2:]), 10.0, graph)
+
+    errors, ids_per_player, tracked = [], {}, 0
+    players = np.flatnonzero(scene.is_player)
+    for f, stamp in enumerate(stamps):
+        pf = g["poses"].by_stamp[stamp]
+        assert pf.joints.shape[1:] == (SPORTCENTER_13.num_joints, 3) and pf.frame_id == "world"
+        gt = SPORTCENTER_13.select(scene.gt_keypoints(f))[players]
+        r, c, e = match_players(pf.joints, gt)
+        assert len(r) >= 0.8 * len(players), f"frame {f}: {len(r)}/{len(players)} players found"
+        errors.extend(e)
+        for ri, ci in zip(r, c):
+            if f >= 2:  # track_min_hits = 3 -> confirmed from the third frame
+                assert pf.ids[ri] != wire.UNTRACKED_ID, f"frame {f}: player {ci} untracked"
+                ids_per_player.setdefault(int(ci), set()).add(int(pf.ids[ri]))
+                tracked += 1
+        tracked_ids = pf.ids[pf.ids != wire.UNTRACKED_ID]
+        assert len(set(tracked_ids.tolist())) == len(tracked_ids), "duplicate ids in a frame"
+    mpjpe_mm = 1e3 * float(np.mean(errors))
+    # "easy" sim noise: ~1-2 px keypoint noise over 6 views -> a few cm; 60 mm leaves margin
+    assert mpjpe_mm < 60.0, mpjpe_mm
+    assert tracked > 0
+    unstable = {p: ids for p, ids in ids_per_player.items() if len(ids) != 1}
+    assert not unstable, f"ids changed over frames: {unstable}"
+
+    # markers: per confirmed person joints + bones + id text, consistent with the poses
+    for f, stamp in enumerate(stamps[2:], start=2):
+        arr = g["markers"].by_stamp[stamp]
+        pf = g["poses"].by_stamp[stamp]
+        confirmed = {int(i) for i in pf.ids if i != wire.UNTRACKED_ID}
+        by_ns: dict[str, dict[int, Marker]] = {}
+        for m in arr.markers:
+            by_ns.setdefault(m.ns, {})[m.id] = m
+            assert m.header.frame_id == "world" and wire.stamp_to_ns(m.header.stamp) == stamp
+            assert m.lifetime.sec + m.lifetime.nanosec * 1e-9 == pytest.approx(0.5)
+            assert m.action == Marker.ADD and m.color.a > 0
+        assert set(by_ns) == {wire.NS_JOINTS, wire.NS_BONES, wire.NS_LABELS}
+        for ns in by_ns:
+            assert set(by_ns[ns]) == confirmed
+        for i in confirmed:
+            row = int(np.flatnonzero(pf.ids == i)[0])
+            finite = np.isfinite(pf.joints[row]).all(-1)
+            assert by_ns[wire.NS_JOINTS][i].type == Marker.SPHERE_LIST
+            assert len(by_ns[wire.NS_JOINTS][i].points) == int(finite.sum())
+            assert by_ns[wire.NS_BONES][i].type == Marker.LINE_LIST
+            assert len(by_ns[wire.NS_BONES][i].points) % 2 == 0
+            assert by_ns[wire.NS_LABELS][i].text == str(i)
+
+    # diagnostics: every frame processed, nothing dropped, gate counts and stage times reported
+    d = g["diags"]
+    n = len(stamps)
+    d.wait_value("/association", "frames_processed", lambda v: v == n, graph=graph)
+    d.wait_value("/triangulation", "frames_processed", lambda v: v == n, graph=graph)
+    a = d.get("/association")
+    assert a["frames_dropped"] == "0" and float(a["count/rejected_reproj"]) >= 0
+    assert float(a["count/pairs_considered"]) > 0 and "time_ms/associate/median" in a
+    assert float(a["rate_hz//camera_0/detections"]) >= 0
+    assert d.get("/triangulation")["frames_dropped"] == "0"

@@ -1,0 +1,123 @@
+"""Persistent ids (core/tracking.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from maem_ros.core.tracking import Tracker
+
+J = 5
+SHAPE = np.random.default_rng(0).normal(scale=0.2, size=(J, 3))
+DT_NS = 33_333_333  # 30 fps
+T0 = 1_700_000_000_000_000_000
+
+
+def at(*xy: tuple[float, float]) -> np.ndarray:
+    """(P,J,3) people standing at the given (x, y) metres."""
+    return np.stack([SHAPE + [x, y, 1.0] for x, y in xy])
+
+
+def stamp(k: int) -> int:
+    return T0 + k * DT_NS
+
+
+def test_birth_after_min_hits_then_stable_ids() -> None:
+    tr = Tracker(gate_m=0.5, min_hits=3, timeout_s=1.0)
+    assert tr.update(stamp(0), at((0, 0), (3, 0))).tolist() == [-1, -1]
+    assert tr.update(stamp(1), at((0.02, 0), (3, 0.02))).tolist() == [-1, -1]
+    ids = tr.update(stamp(2), at((0.04, 0), (3, 0.04)))
+    assert sorted(ids.tolist()) == [0, 1]
+    # poses arrive in a different order: ids follow the people, not the index
+    swapped = tr.update(stamp(3), at((3, 0.06), (0.06, 0)))
+    assert swapped.tolist() == ids[::-1].tolist()
+
+
+def test_players_crossing_keep_ids() -> None:
+    """Two players run through each other at 9 m/s; constant velocity keeps them apart."""
+    tr = Tracker(gate_m=0.5, min_hits=2, timeout_s=1.0)
+    speed = 9.0 / 30  # m per frame: more than their 0.1 m lateral separation
+    history = []
+    for k in range(40):
+        xa = -4 + speed * k
+        xb = 4 - speed * k
+        # at the crossing each is nearer the other's last position than its own
+        poses = at((xa, 0.05), (xb, -0.05))
+        order = [1, 0] if k % 3 == 0 else [0, 1]  # shuffle the output order
+        ids = tr.update(stamp(k), poses[order])
+        history.append(dict(zip(order, ids.tolist())))
+    confirmed = history[2:]
+    assert all(h == confirmed[0] for h in confirmed)
+    assert sorted(confirmed[0].values()) == [0, 1]
+
+
+def test_gate_rejects_far_pose() -> None:
+    tr = Tracker(gate_m=0.5, min_hits=1, timeout_s=1.0)
+    first = tr.update(stamp(0), at((0, 0)))
+    jumped = tr.update(stamp(1), at((0.8, 0)))  # 0.8 m in one frame: a different person
+    assert first.tolist() == [0] and jumped.tolist() == [1]
+
+
+def test_timeout_and_no_reuse() -> None:
+    tr = Tracker(gate_m=0.5, min_hits=1, timeout_s=0.5)
+    assert tr.update(stamp(0), at((0, 0))).tolist() == [0]
+    assert tr.update(stamp(1), at((5, 5))).tolist() == [1]  # person 0 unseen for 1 frame
+    assert tr.update(stamp(10), at((0, 0))).tolist() == [0]  # 0.33 s gap < timeout: same id
+    assert tr.update(stamp(40), at((0, 0))).tolist() == [2]  # 1 s gap > timeout: new id
+    assert tr.num_tracks == 1  # person 1 and the old track 0 died
+
+
+def test_stamp_backwards_resets_without_reusing_ids() -> None:
+    tr = Tracker(gate_m=0.5, min_hits=1, timeout_s=1.0)
+    assert tr.update(stamp(5), at((0, 0), (2, 0))).tolist() == [0, 1]
+    ids = tr.update(stamp(0), at((0, 0), (2, 0)))  # bag loop
+    assert ids.tolist() == [2, 3] and tr.resets == 1
+    tr.reset()
+    assert tr.update(stamp(1), at((0, 0))).tolist() == [4]
+
+
+def test_nan_aware_distance_and_untrackable_pose() -> None:
+    tr = Tracker(gate_m=0.3, min_hits=1, timeout_s=1.0)
+    p = at((0, 0))
+    tr.update(stamp(0), p)
+    partial = p.copy()
+    partial[0, :3] = np.nan  # only two joints triangulated
+    partial[0, 3:] += 0.05
+    empty = np.full((1, J, 3), np.nan)
+    ids = tr.update(stamp(1), np.concatenate([empty, partial]))
+    assert ids.tolist() == [-1, 0]
+    assert tr.num_tracks == 1  # the all-NaN pose started nothing
+    # joints missing in the last update keep their position for the next match
+    assert tr.update(stamp(2), p).tolist() == [0]
+
+
+def test_constant_velocity_prediction() -> None:
+    """A fast player (9 m/s, 0.3 m per frame) skipping two frames is still matched."""
+    tr = Tracker(gate_m=0.35, min_hits=1, timeout_s=1.0)
+    for k in range(4):
+        assert tr.update(stamp(k), at((0.3 * k, 0))).tolist() == [0]
+    # frames 4, 5 missing: 0.9 m from the last position, ~0 from the prediction
+    assert tr.update(stamp(6), at((1.8, 0))).tolist() == [0]
+
+
+def test_equal_stamps_and_empty_frames() -> None:
+    tr = Tracker(min_hits=1)
+    assert tr.update(stamp(0), np.zeros((0, J, 3))).shape == (0,)
+    assert tr.update(stamp(0), at((0, 0))).tolist() == [0]
+    assert tr.update(stamp(0), at((0, 0))).tolist() == [0]
+
+
+def test_bad_input() -> None:
+    with pytest.raises(ValueError, match="gate_m"):
+        Tracker(gate_m=0)
+    with pytest.raises(ValueError, match="min_hits"):
+        Tracker(min_hits=0)
+    with pytest.raises(ValueError, match="timeout_s"):
+        Tracker(timeout_s=-1)
+    tr = Tracker()
+    with pytest.raises(ValueError, match="joints"):
+        tr.update(0, np.zeros((2, J)))
+    with pytest.raises(ValueError, match="joints"):
+        tr.update(0, np.full((1, J, 3), np.inf))
+    tr.update(0, at((0, 0)))
+    with pytest.raises(ValueError, match="joints"):
+        tr.update(1, np.zeros((1, J + 1, 3)))

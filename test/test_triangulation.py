@@ -1,0 +1,289 @@
+"""MAEM stage 3 (core/triangulation.py) against exact geometric answers."""
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.triangulation import Poses, TriangulationParams, dlt, triangulate
+
+
+def look_at(centre, target=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """world->camera R, t of a camera at ``centre`` looking at ``target`` (z up world)."""
+    centre = np.asarray(centre, float)
+    z = np.asarray(target, float) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return R, -R @ centre
+
+
+def ring_rig(n: int = 6, radius: float = 12.0, height: float = 5.0, phase: float = 0.0) -> Rig:
+    cams = []
+    for k in range(n):
+        a = phase + 2 * np.pi * k / n
+        R, t = look_at([radius * np.cos(a), 0.8 * radius * np.sin(a), height])
+        cams.append(Camera(f"cam{k}", K=[[1000, 0, 960], [0, 1000, 540], [0, 0, 1]], R=R, t=t,
+                           width=1920, height=1080))
+    return Rig(cams)
+
+
+def make_frames(rig: Rig, people: np.ndarray, scores: float | np.ndarray = 0.95,
+                noise_px: float = 0.0, seed: int = 0) -> dict[str, FrameDetections]:
+    """Every camera sees every person (detection index = person index)."""
+    rng = np.random.default_rng(seed)
+    P, J = people.shape[:2]
+    sc = np.broadcast_to(np.asarray(scores, float), (P,)).copy()
+    frames = {}
+    for cam in rig:
+        uv = cam.project_rectified(people) + rng.normal(scale=noise_px, size=(P, J, 2))
+        lo, hi = uv.min(1), uv.max(1)
+        frames[cam.name] = FrameDetections(cam.name, 0, np.concatenate([lo, hi], 1), sc.copy(), uv,
+                                           np.zeros((P, J, 3)), np.zeros((P, 0, 2)))
+    return frames
+
+
+def cluster(*members: tuple[int, int]) -> SimpleNamespace:
+    return SimpleNamespace(members=np.array(members, dtype=np.int64).reshape(-1, 2))
+
+
+def people(n: int, joints: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-4, -3, 0.2], [4, 3, 1.8], (n, 1, 3)) + rng.normal(scale=0.3, size=(n, joints, 3))
+
+
+# ---------------------------------------------------------------------------------------- dlt
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), views=st.integers(2, 6))
+def test_dlt_recovers_noiseless_points(seed: int, views: int) -> None:
+    rng = np.random.default_rng(seed)
+    rig = ring_rig(views, phase=rng.uniform(0, 2 * np.pi))
+    X = rng.uniform([-5, -4, 0], [5, 4, 2.5], (7, 3))
+    P = np.stack([c.P for c in rig])  # (M,3,4)
+    uv = np.stack([c.project_rectified(X) for c in rig], axis=1)  # (7,M,2)
+    out = dlt(P, uv)  # P broadcasts over the batch of points
+    assert out.shape == (7, 3)
+    np.testing.assert_allclose(out, X, atol=1e-6)
+
+
+def test_dlt_broadcasts_batch_dims() -> None:
+    rig = ring_rig(3)
+    X = people(2, 5).reshape(2, 5, 3)
+    P = np.stack([c.P for c in rig])
+    uv = np.stack([c.project_rectified(X) for c in rig], axis=-2)  # (2,5,3,2)
+    out = dlt(P[None, None], uv, np.ones((2, 5, 3)))
+    np.testing.assert_allclose(out, X, atol=1e-6)
+
+
+def test_dlt_nan_with_fewer_than_two_usable_views() -> None:
+    rig = ring_rig(3)
+    X = np.array([0.5, 0.2, 1.0])
+    P = np.stack([c.P for c in rig])
+    uv = np.stack([c.project_rectified(X) for c in rig])
+    one_finite = uv.copy()
+    one_finite[1:] = np.nan
+    assert np.isnan(dlt(P, one_finite)).all()
+    assert np.isnan(dlt(P, uv, np.array([1.0, 0.0, 0.0]))).all()
+    # two views left after dropping a NaN one still triangulate exactly
+    two = uv.copy()
+    two[0] = [np.nan, 3.0]
+    np.testing.assert_allclose(dlt(P, two), X, atol=1e-6)
+
+
+def test_dlt_same_ray_twice_is_nan() -> None:
+    cam = ring_rig(1)[0]
+    X = np.array([0.3, 0.1, 1.2])
+    uv = cam.project_rectified(X)
+    assert np.isnan(dlt(np.stack([cam.P, cam.P]), np.stack([uv, uv]))).all()
+
+
+def test_dlt_weights() -> None:
+    rig = ring_rig(3)
+    X = np.array([1.0, -0.5, 1.1])
+    P = np.stack([c.P for c in rig])
+    uv = np.stack([c.project_rectified(X) for c in rig])
+    uv_bad = uv.copy()
+    uv_bad[2] += [40.0, -25.0]  # one view disagrees
+    equal = dlt(P, uv_bad, np.ones(3))
+    down = dlt(P, uv_bad, np.array([1.0, 1.0, 0.05]))
+    assert np.linalg.norm(down - X) < 0.2 * np.linalg.norm(equal - X)
+    # a common scale of all weights changes nothing; weight 0 == view absent
+    np.testing.assert_allclose(dlt(P, uv_bad, np.full(3, 7.0)), equal, atol=1e-9)
+    np.testing.assert_allclose(dlt(P, uv_bad, np.array([1.0, 1.0, 0.0])), X, atol=1e-6)
+    np.testing.assert_allclose(dlt(P, uv_bad, None), equal, atol=1e-12)
+
+
+def test_dlt_rejects_bad_shapes() -> None:
+    with pytest.raises(ValueError, match="P"):
+        dlt(np.zeros((2, 3, 3)), np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="uv"):
+        dlt(np.zeros((2, 3, 4)), np.zeros((2, 3)))
+
+
+# -------------------------------------------------------------------------------- triangulate
+def test_noiseless_clusters_exact() -> None:
+    rig = ring_rig(6)
+    X = people(4, 70)
+    frames = make_frames(rig, X)
+    clusters = [cluster(*[(c, p) for c in range(6)]) for p in range(4)]
+    out = triangulate(rig, frames, clusters, TriangulationParams())
+    assert isinstance(out, Poses) and out.joints.shape == (4, 70, 3)
+    np.testing.assert_allclose(out.joints, X, atol=1e-6)
+    assert (out.views == 6).all() and (out.inliers == 6).all()
+    np.testing.assert_allclose(out.scores, 0.95)
+
+
+def test_cluster_order_and_subsets_of_views() -> None:
+    rig = ring_rig(5)
+    X = people(3, 13, seed=3)
+    frames = make_frames(rig, X)
+    # clusters of different sizes and member order, detection index != cluster index
+    clusters = [cluster((4, 2), (0, 2)), cluster((1, 0), (3, 0), (2, 0)), cluster((2, 1), (0, 1), (3, 1), (4, 1))]
+    out = triangulate(rig, frames, clusters)
+    np.testing.assert_allclose(out.joints, X[[2, 0, 1]], atol=1e-6)
+    assert out.views.tolist() == [2, 3, 4]
+    assert out.inliers.tolist() == [[2] * 13, [3] * 13, [4] * 13]
+
+
+def test_ransac_rejects_outlier_view() -> None:
+    rig = ring_rig(5)
+    X = people(1, 70, seed=5)
+    frames = make_frames(rig, X)
+    kp = frames["cam3"].kpts2d
+    kp[0, :, :] += [60.0, -45.0]  # view 3 is wrong on every joint by 75 px
+    out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(5)])], TriangulationParams(tau_kps=20.0))
+    np.testing.assert_allclose(out.joints[0], X[0], atol=1e-6)
+    assert (out.inliers == 4).all()
+    # with a threshold above the outlier's offset nothing is rejected and the fit is pulled off
+    loose = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(5)])], TriangulationParams(tau_kps=1e4))
+    assert (loose.inliers == 5).all()
+    assert np.linalg.norm(loose.joints[0] - X[0], axis=-1).mean() > 1e-3
+
+
+def test_nan_where_fewer_than_two_views() -> None:
+    rig = ring_rig(3)
+    X = people(1, 6, seed=7)
+    frames = make_frames(rig, X)
+    frames["cam0"].kpts2d[0, 0] = np.nan  # joint 0: only cam1, cam2 left -> still fine
+    frames["cam1"].kpts2d[0, 1] = np.nan  # joint 1: cam0, cam2
+    frames["cam2"].kpts2d[0, 1] = np.nan  # joint 1: now only cam0 -> NaN
+    frames["cam0"].kpts2d[0, 2] = [np.inf, 5.0]
+    frames["cam1"].kpts2d[0, 2] = np.nan  # joint 2: only cam2 -> NaN
+    out = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0))])
+    assert np.isnan(out.joints[0, 1]).all() and np.isnan(out.joints[0, 2]).all()
+    assert out.inliers[0, 1] == 0 and out.inliers[0, 2] == 0
+    np.testing.assert_allclose(out.joints[0, [0, 3, 4, 5]], X[0, [0, 3, 4, 5]], atol=1e-6)
+    assert out.inliers[0, 0] == 2
+    single = triangulate(rig, frames, [cluster((1, 0))])
+    assert np.isnan(single.joints).all() and (single.inliers == 0).all() and single.views[0] == 1
+
+
+def test_no_agreeing_pair_is_nan() -> None:
+    rig = ring_rig(3)
+    X = people(1, 4, seed=8)
+    frames = make_frames(rig, X)
+    frames["cam1"].kpts2d[0, 0] += 200.0
+    frames["cam2"].kpts2d[0, 0] -= 300.0
+    out = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0))], TriangulationParams(tau_kps=5.0))
+    # three mutually inconsistent views: no hypothesis has two inliers -> NaN
+    assert np.isnan(out.joints[0, 0]).all() and out.inliers[0, 0] == 0
+    np.testing.assert_allclose(out.joints[0, 1:], X[0, 1:], atol=1e-6)
+
+
+def test_tie_on_inliers_prefers_lower_error() -> None:
+    rig = ring_rig(4)
+    truth = np.array([[[0.2, 0.1, 1.0]]])
+    other = truth + [0.0, 0.0, 0.8]  # a second candidate point, far in every view
+    frames = make_frames(rig, truth)
+    for k, name in enumerate(["cam0", "cam1"]):  # views 0,1 agree on `other`, slightly noisy
+        frames[name].kpts2d[0, 0] = rig[name].project_rectified(other[0, 0]) + [1.5 * (-1) ** k, 1.0]
+    # views 2,3 agree exactly on `truth`: both hypotheses have 2 inliers, truth has 0 error
+    out = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0), (3, 0))], TriangulationParams(tau_kps=10.0))
+    assert out.inliers[0, 0] == 2
+    np.testing.assert_allclose(out.joints[0, 0], truth[0, 0], atol=1e-6)
+
+
+def test_score_weighted_refit_matches_weighted_dlt() -> None:
+    rig = ring_rig(4)
+    X = people(1, 10, seed=11)
+    frames = make_frames(rig, X, noise_px=3.0, seed=2)
+    for k, cam in enumerate(rig):
+        frames[cam.name].scores[:] = [0.3, 0.9, 0.6, 1.0][k]
+    out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(4)])], TriangulationParams(tau_kps=50.0))
+    assert (out.inliers == 4).all()
+    P = np.stack([c.P for c in rig])
+    uv = np.stack([frames[c.name].kpts2d[0] for c in rig], axis=1)  # (J,4,2)
+    expected = dlt(P, uv, np.array([0.3, 0.9, 0.6, 1.0]))
+    np.testing.assert_allclose(out.joints[0], expected, atol=1e-9)
+    unweighted = dlt(P, uv)
+    assert not np.allclose(expected, unweighted, atol=1e-6)
+    np.testing.assert_allclose(out.scores, [0.7])
+
+
+def test_empty_inputs() -> None:
+    rig = ring_rig(3)
+    frames = make_frames(rig, people(2, 13))
+    out = triangulate(rig, frames, [])
+    assert out.joints.shape == (0, 13, 3) and out.views.shape == (0,) and len(out) == 0
+
+
+def test_bad_cluster_members() -> None:
+    rig = ring_rig(3)
+    frames = make_frames(rig, people(2, 5))
+    with pytest.raises(ValueError, match="detection 5 out of range"):
+        triangulate(rig, frames, [cluster((0, 0), (1, 5))])
+    with pytest.raises(ValueError, match="camera index"):
+        triangulate(rig, frames, [cluster((0, 0), (7, 0))])
+    del frames["cam2"]
+    with pytest.raises(ValueError, match="'cam2' has no detections"):
+        triangulate(rig, frames, [cluster((0, 0), (2, 0))])
+
+
+def test_params_validation() -> None:
+    p = TriangulationParams.from_mapping({"tau_kps": 12, "frame_id": "world", "min_views": 3})
+    assert p.tau_kps == 12.0 and p.min_views == 3
+    with pytest.raises(ValueError, match="tau_kps"):
+        TriangulationParams(tau_kps=-1)
+    with pytest.raises(ValueError, match="min_views"):
+        TriangulationParams(min_views=1)
+    with pytest.raises(ValueError, match="tau_kps"):
+        TriangulationParams.from_mapping({"tau_kps": "20"})
+
+
+def test_min_views_parameter() -> None:
+    rig = ring_rig(4)
+    X = people(1, 5)
+    frames = make_frames(rig, X)
+    frames["cam3"].kpts2d[0, 0] = np.nan
+    out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(4)])], TriangulationParams(min_views=4))
+    assert np.isnan(out.joints[0, 0]).all()
+    np.testing.assert_allclose(out.joints[0, 1:], X[0, 1:], atol=1e-6)
+
+
+def test_real_cluster_type_if_available() -> None:
+    association = pytest.importorskip("maem_ros.core.association")
+    rig = ring_rig(3)
+    X = people(1, 5)
+    frames = make_frames(rig, X)
+    cl = association.Cluster(members=np.array([[0, 0], [1, 0], [2, 0]]), costs=np.zeros(3))
+    np.testing.assert_allclose(triangulate(rig, frames, [cl]).joints[0], X[0], atol=1e-6)
+
+
+def test_speed_ten_people_six_views() -> None:
+    """Loose regression bound (the target, <= 2 ms on one thread, is measured by maem-bench)."""
+    rig = ring_rig(6)
+    frames = make_frames(rig, people(10, 70), noise_px=2.0)
+    clusters = [cluster(*[(c, p) for c in range(6)]) for p in range(10)]
+    triangulate(rig, frames, clusters)
+    times = []
+    for _ in range(10):
+        t0 = time.perf_counter()
+        triangulate(rig, frames, clusters)
+        times.append(time.perf_counter() - t0)
+    assert np.median(times) < 0.05

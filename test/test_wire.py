@@ -1,0 +1,368 @@
+"""wire.py: PointCloud2 / MarkerArray / Image layouts, round trips, validation, garbage input."""
+from __future__ import annotations
+
+import array
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
+from visualization_msgs.msg import Marker
+
+from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.skeleton import SPORTCENTER_13
+from maem_ros.ros import wire
+
+TOPIC = "/camera_0/detections"
+FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def make_dets(n: int, j: int, v: int, seed: int = 0, camera: str = "camera_0",
+              stamp_ns: int = 1_700_000_000_123_456_789) -> FrameDetections:
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 1000, (n, 2))
+    wh = rng.uniform(0, 300, (n, 2))
+    return FrameDetections(camera, stamp_ns, np.concatenate([xy, xy + wh], 1), rng.uniform(0, 1, n),
+                           rng.uniform(-50, 1500, (n, j, 2)), rng.normal(0, 1, (n, j, 3)),
+                           rng.uniform(-50, 1500, (n, v, 2)))
+
+
+def assert_dets_equal(a: FrameDetections, b: FrameDetections) -> None:
+    assert (a.camera, a.stamp_ns, a.n, a.num_joints, a.num_vertices) == \
+        (b.camera, b.stamp_ns, b.n, b.num_joints, b.num_vertices)
+    for name in ("bboxes", "scores", "kpts2d", "kpts3d", "verts2d"):
+        np.testing.assert_array_equal(getattr(a, name).astype(np.float32),
+                                      getattr(b, name).astype(np.float32), err_msg=name)
+
+
+def roundtrip(msg):
+    return deserialize_message(serialize_message(msg), type(msg))
+
+
+# ---------------------------------------------------------------------------------------------
+# round trips
+# ---------------------------------------------------------------------------------------------
+@FAST
+@given(n=st.integers(0, 6), j=st.integers(1, 20), v=st.integers(0, 40), seed=st.integers(0, 2**16),
+       stamp=st.integers(0, 2**62))
+def test_detections_roundtrip(n, j, v, seed, stamp):
+    dets = make_dets(n, j, v, seed, stamp_ns=stamp)
+    msg = wire.detections_to_msg(dets)
+    assert msg.header.frame_id == "camera_0" and msg.width == n and msg.height == 1
+    assert {f.name: f.count for f in msg.fields} == {"bbox": 4, "score": 1, "kpts2d": 2 * j,
+                                                     "kpts3d": 3 * j, "verts2d": 2 * v}
+    assert len(msg.data) == msg.row_step == n * msg.point_step
+    back = wire.msg_to_detections(roundtrip(msg), TOPIC, ["camera_0"], expected_camera="camera_0")
+    assert_dets_equal(dets, back)
+
+
+def test_detections_decode_is_zero_copy_and_fast():
+    dets = make_dets(12, 70, 18439)
+    t0 = time.perf_counter()
+    for _ in range(5):
+        msg = wire.detections_to_msg(dets)
+    enc_ms = (time.perf_counter() - t0) / 5 * 1e3
+    msg = roundtrip(msg)
+    t0 = time.perf_counter()
+    for _ in range(5):
+        back = wire.msg_to_detections(msg, TOPIC)
+    dec_ms = (time.perf_counter() - t0) / 5 * 1e3
+    assert np.shares_memory(back.verts2d, np.frombuffer(msg.data, np.uint8))
+    assert_dets_equal(dets, back)
+    assert len(msg.data) == 12 * 4 * (5 + 5 * 70 + 2 * 18439)
+    # generous bounds for a loaded 2-core machine; typically ~0.5 ms and ~0.2 ms
+    assert enc_ms < 100 and dec_ms < 50, (enc_ms, dec_ms)
+
+
+@dataclass
+class FakeCluster:
+    members: np.ndarray
+    costs: np.ndarray
+
+
+def small_rig(n: int = 3) -> Rig:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        eye = np.array([10 * np.cos(a), 10 * np.sin(a), 3.0])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross(z, [0, 0, 1.0])
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        cams.append(Camera(f"camera_{i}", [[800, 0, 640], [0, 800, 360], [0, 0, 1]], R, -R @ eye,
+                           1280, 720))
+    return Rig(cams)
+
+
+@FAST
+@given(sizes=st.lists(st.integers(1, 3), min_size=0, max_size=4), j=st.integers(1, 15),
+       seed=st.integers(0, 1000))
+def test_clusters_roundtrip(sizes, j, seed):
+    rig = small_rig(3)
+    rng = np.random.default_rng(seed)
+    frames = {c: make_dets(4, j, 5, seed + i, camera=c) for i, c in enumerate(rig.names)}
+    clusters, used = [], set()
+    for k, size in enumerate(sizes):
+        members = []
+        for c in rng.permutation(3)[:size]:
+            d = int(rng.integers(4))
+            if (c, d) not in used:
+                used.add((c, d))
+                members.append((int(c), d))
+        if members:
+            clusters.append(FakeCluster(np.array(members), rng.uniform(0, 0.3, len(members))))
+    msg = wire.clusters_to_msg(123, "world", rig, frames, clusters)
+    cf = wire.msg_to_clusters(roundtrip(msg), "/maem/clusters", len(rig))
+    assert cf.stamp_ns == 123 and cf.frame_id == "world" and cf.num_joints == j
+    rows = [(k, c, d) for k, cl in enumerate(clusters) for c, d in cl.members]
+    assert list(zip(cf.cluster, cf.camera, cf.detection)) == rows
+    for i, (k, c, d) in enumerate(rows):
+        f = frames[rig.names[c]]
+        np.testing.assert_allclose(cf.kpts2d[i], f.kpts2d[d], rtol=1e-6, atol=1e-3)
+        assert cf.score[i] == pytest.approx(f.scores[d], abs=1e-6)
+
+
+def test_clusters_to_core_rebuilds_members():
+    pytest.importorskip("maem_ros.core.association")
+    rig = small_rig(3)
+    frames = {c: make_dets(3, 4, 2, i, camera=c) for i, c in enumerate(rig.names)}
+    clusters = [FakeCluster(np.array([[0, 2], [2, 1]]), np.array([0.1, 0.2])),
+                FakeCluster(np.array([[1, 0], [2, 0], [0, 0]]), np.array([0.1, 0.2, np.nan]))]
+    cf = wire.msg_to_clusters(wire.clusters_to_msg(5, "world", rig, frames, clusters), "t", 3)
+    core_frames, core_clusters = cf.to_core(rig)
+    assert len(core_clusters) == 2
+    for orig, got in zip(clusters, core_clusters):
+        for (c, d), (c2, local) in zip(orig.members, got.members):
+            assert c == c2
+            f2 = core_frames[rig.names[c2]]
+            np.testing.assert_allclose(f2.kpts2d[local], frames[rig.names[c]].kpts2d[d], atol=1e-3)
+            assert f2.scores[local] == pytest.approx(frames[rig.names[c]].scores[d], abs=1e-6)
+        np.testing.assert_allclose(got.costs, orig.costs, rtol=1e-6)
+
+
+@FAST
+@given(p=st.integers(0, 5), j=st.integers(1, 20), seed=st.integers(0, 1000))
+def test_poses_roundtrip_keeps_nan_and_untracked(p, j, seed):
+    rng = np.random.default_rng(seed)
+    joints = rng.normal(0, 5, (p, j, 3))
+    joints[rng.uniform(size=(p, j)) < 0.2] = np.nan
+    ids = rng.integers(-1, 50, p)
+    views = rng.integers(2, 7, p)
+    scores = rng.uniform(0, 1, p)
+    pf = wire.msg_to_poses(roundtrip(wire.poses_to_msg(9, "world", ids, joints, views, scores)),
+                           "/maem/poses")
+    np.testing.assert_array_equal(pf.ids, np.where(ids < 0, wire.UNTRACKED_ID, ids))
+    np.testing.assert_array_equal(np.isnan(pf.joints), np.isnan(joints))
+    np.testing.assert_allclose(pf.joints, joints, rtol=1e-6, atol=1e-5)
+    np.testing.assert_array_equal(pf.views, views)
+    np.testing.assert_allclose(pf.scores, scores, rtol=1e-6)
+    assert pf.joints.shape == (p, j, 3)
+
+
+# ---------------------------------------------------------------------------------------------
+# validation: one WireError naming topic, field, problem
+# ---------------------------------------------------------------------------------------------
+def _mutate(msg: PointCloud2, name: str, **kw) -> PointCloud2:
+    msg.fields = [PointField(name=kw.get("rename", f.name), offset=f.offset,
+                             datatype=kw.get("datatype", f.datatype), count=kw.get("count", f.count))
+                  if f.name == name else f for f in msg.fields]
+    return msg
+
+
+def _with_value(field: str, index, value) -> PointCloud2:
+    dets = make_dets(3, 5, 4)
+    getattr(dets, field)[index] = value
+    return wire.detections_to_msg(dets)
+
+
+BAD = {
+    "missing_field": (lambda m: setattr(m, "fields", [f for f in m.fields if f.name != "kpts3d"])
+                      or m, "kpts3d", "missing_field"),
+    "unknown_field": (lambda m: _mutate(m, "score", rename="confidence"), "confidence",
+                      "unknown_field"),
+    "bad_count": (lambda m: _mutate(m, "kpts3d", count=14), "kpts3d", "bad_count"),
+    "odd_kpts2d": (lambda m: _mutate(m, "kpts2d", count=9), "kpts2d", "bad_count"),
+    "bbox_count": (lambda m: _mutate(m, "bbox", count=3), "bbox", "bad_count"),
+    "bad_datatype": (lambda m: _mutate(m, "score", datatype=PointField.FLOAT64), "score",
+                     "bad_datatype"),
+    "short_data": (lambda m: setattr(m, "data", m.data[:-4]) or m, "data", "bad_size"),
+    "zero_size_data": (lambda m: setattr(m, "data", array.array("B")) or m, "data", "bad_size"),
+    "row_step": (lambda m: setattr(m, "row_step", m.row_step + 1) or m, "row_step", "bad_size"),
+    "point_step": (lambda m: setattr(m, "point_step", m.point_step - 4) or m, "verts2d",
+                   "bad_layout"),
+    "unknown_camera": (lambda m: setattr(m.header, "frame_id", "camera_9") or m,
+                       "header.frame_id", "unknown_camera"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_detections_decoder_rejects(case):
+    mutate, field, reason = BAD[case]
+    msg = roundtrip(mutate(wire.detections_to_msg(make_dets(3, 5, 4))))
+    with pytest.raises(wire.WireError) as ei:
+        wire.msg_to_detections(msg, TOPIC, ["camera_0", "camera_1"])
+    assert ei.value.reason == reason and ei.value.field == field
+    assert str(ei.value).startswith(f"{TOPIC}: {field}: ")
+
+
+@pytest.mark.parametrize("field,index,value,name,reason", [
+    ("kpts2d", (1, 2, 0), np.nan, "kpts2d", "nonfinite"),
+    ("verts2d", (2, 3, 1), np.inf, "verts2d", "nonfinite"),
+    ("kpts3d", (0, 0, 2), -np.inf, "kpts3d", "nonfinite"),
+    ("bboxes", (1, 2), -5.0, "bbox", "inverted_bbox"),
+    ("scores", 2, 1.5, "score", "bad_score"),
+])
+def test_detections_decoder_rejects_values(field, index, value, name, reason):
+    dets = make_dets(3, 5, 4)
+    dets.bboxes[1] = [10, 10, 20, 20]
+    getattr(dets, field)[index] = value
+    with pytest.raises(wire.WireError) as ei:
+        wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC)
+    assert (ei.value.field, ei.value.reason) == (name, reason)
+    assert "detection" in ei.value.problem
+
+
+def test_camera_mismatch_and_empty_frame():
+    msg = wire.detections_to_msg(FrameDetections.empty("camera_1", 42, 70, 18439))
+    with pytest.raises(wire.WireError, match="camera_mismatch|on the topic of camera") as ei:
+        wire.msg_to_detections(msg, TOPIC, ["camera_0", "camera_1"], expected_camera="camera_0")
+    assert ei.value.reason == "camera_mismatch"
+    empty = wire.msg_to_detections(roundtrip(msg), "/camera_1/detections", ["camera_1"])
+    assert (empty.n, empty.num_joints, empty.num_vertices, empty.stamp_ns) == (0, 70, 18439, 42)
+
+
+def test_big_endian_cloud_decodes():
+    dets = make_dets(2, 3, 2)
+    msg = wire.detections_to_msg(dets)
+    raw = np.frombuffer(msg.data, np.float32).astype(">f4")
+    msg.data = array.array("B", raw.tobytes())
+    msg.is_bigendian = True
+    assert_dets_equal(dets, wire.msg_to_detections(msg, TOPIC))
+
+
+def test_cluster_and_pose_decoders_reject():
+    rig = small_rig(3)
+    frames = {c: make_dets(2, 4, 1, i, camera=c) for i, c in enumerate(rig.names)}
+    msg = wire.clusters_to_msg(1, "world", rig, frames,
+                               [FakeCluster(np.array([[0, 0], [2, 1]]), np.zeros(2))])
+    with pytest.raises(wire.WireError) as ei:
+        wire.msg_to_clusters(msg, "/maem/clusters", 2)
+    assert (ei.value.field, ei.value.reason) == ("camera", "unknown_camera")
+    dup = wire.clusters_to_msg(1, "world", rig, frames,
+                               [FakeCluster(np.array([[0, 0], [2, 1]]), np.zeros(2)),
+                                FakeCluster(np.array([[0, 0], [1, 1]]), np.zeros(2))])
+    with pytest.raises(wire.WireError, match="appears twice"):
+        wire.msg_to_clusters(dup, "/maem/clusters", 3)
+    poses = wire.poses_to_msg(1, "world", [1], np.full((1, 2, 3), np.inf), [2], [0.5])
+    with pytest.raises(wire.WireError) as ei:
+        wire.msg_to_poses(poses, "/maem/poses")
+    assert (ei.value.field, ei.value.reason) == ("joints", "nonfinite")
+
+
+# ---------------------------------------------------------------------------------------------
+# garbage never raises anything but WireError
+# ---------------------------------------------------------------------------------------------
+NAMES = ["bbox", "score", "kpts2d", "kpts3d", "verts2d", "cluster", "camera", "detection", "cost",
+         "id", "joints", "views", "x", ""]
+
+field_st = st.builds(lambda name, off, dt, count: PointField(name=name, offset=off, datatype=dt,
+                                                             count=count),
+                     st.sampled_from(NAMES), st.integers(0, 64), st.integers(0, 9),
+                     st.integers(0, 12))
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(fields=st.lists(field_st, max_size=8), width=st.integers(0, 4), height=st.integers(0, 2),
+       point_step=st.integers(0, 80), row_step=st.integers(0, 400), big=st.booleans(),
+       data=st.binary(max_size=400), frame_id=st.sampled_from(["camera_0", "x", ""]))
+def test_garbage_clouds_raise_only_wire_errors(fields, width, height, point_step, row_step, big,
+                                               data, frame_id):
+    msg = PointCloud2(height=height, width=width, fields=fields, is_bigendian=big,
+                      point_step=point_step, row_step=row_step, data=array.array("B", data))
+    msg.header.frame_id = frame_id
+    for decode in (lambda m: wire.msg_to_detections(m, TOPIC, ["camera_0"]),
+                   lambda m: wire.msg_to_clusters(m, "/maem/clusters", 3),
+                   lambda m: wire.msg_to_poses(m, "/maem/poses")):
+        try:
+            decode(msg)
+        except wire.WireError as e:
+            assert e.topic and e.field and e.problem and e.reason
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), max_size=6),
+       cut=st.integers(0, 8), count_delta=st.integers(-3, 3), which=st.integers(0, 4))
+def test_corrupted_valid_clouds_decode_or_raise_wire_errors(flips, cut, count_delta, which):
+    msg = wire.detections_to_msg(make_dets(3, 4, 3))
+    data = bytearray(msg.data)
+    for pos, val in flips:
+        data[pos % len(data)] = val
+    msg.data = array.array("B", bytes(data[:len(data) - cut]))
+    f = msg.fields[which]
+    f.count = max(0, f.count + count_delta)
+    try:
+        dets = wire.msg_to_detections(msg, TOPIC, ["camera_0"])
+    except wire.WireError:
+        return
+    dets.validate(["camera_0"])  # anything accepted is a valid FrameDetections
+
+
+# ---------------------------------------------------------------------------------------------
+# markers and images
+# ---------------------------------------------------------------------------------------------
+def test_skeleton_markers_well_formed():
+    rng = np.random.default_rng(1)
+    joints = rng.normal(0, 1, (3, 13, 3)) + [0, 0, 1]
+    joints[0, 5] = np.nan  # left_wrist-ish joint missing -> its bones skipped
+    joints[2] = np.nan  # nothing finite -> no markers
+    arr = wire.skeleton_markers(10**9 + 5, "world", [7, -1, 13], joints, SPORTCENTER_13.bones, 0.5)
+    assert len(arr.markers) == 3  # tentative id -1 and all-NaN person 13 are skipped
+    arr = wire.skeleton_markers(10**9 + 5, "world", [7, 12, 13], joints, SPORTCENTER_13.bones, 0.5)
+    assert len(arr.markers) == 6
+    by = {(m.ns, m.id): m for m in arr.markers}
+    assert set(by) == {(ns, i) for ns in (wire.NS_JOINTS, wire.NS_BONES, wire.NS_LABELS)
+                       for i in (7, 12)}
+    for m in arr.markers:
+        assert m.header.frame_id == "world" and m.header.stamp.sec == 1 and m.header.stamp.nanosec == 5
+        assert m.action == Marker.ADD and m.lifetime.nanosec == 500_000_000 and m.lifetime.sec == 0
+        assert m.color.a == 1.0 and m.pose.orientation.w == 1.0
+    j7 = by[(wire.NS_JOINTS, 7)]
+    assert j7.type == Marker.SPHERE_LIST and len(j7.points) == 12 and j7.scale.x > 0
+    b7 = by[(wire.NS_BONES, 7)]
+    assert b7.type == Marker.LINE_LIST and len(b7.points) % 2 == 0 and b7.scale.x > 0
+    n_ok = sum(1 for a, b in SPORTCENTER_13.bones if a != 5 and b != 5)
+    assert len(b7.points) == 2 * n_ok < 2 * len(SPORTCENTER_13.bones)
+    for p in b7.points:
+        assert np.isfinite([p.x, p.y, p.z]).all()
+    t12 = by[(wire.NS_LABELS, 12)]
+    assert t12.type == Marker.TEXT_VIEW_FACING and t12.text == "12"
+    assert t12.pose.position.z == pytest.approx(np.nanmax(joints[1, :, 2]) + 0.3)
+    assert by[(wire.NS_JOINTS, 7)].color != by[(wire.NS_JOINTS, 12)].color
+
+
+def test_image_helpers():
+    import cv2
+    img = np.random.default_rng(0).integers(0, 255, (6, 5, 3), dtype=np.uint8)
+    msg = roundtrip(wire.bgr_to_image(img, 77, "camera_0"))
+    np.testing.assert_array_equal(wire.image_to_bgr(msg, "/camera_0/image_raw"), img)
+    rgb = Image(height=6, width=5, encoding="rgb8", step=16,
+                data=np.pad(img[:, :, ::-1], ((0, 0), (0, 1), (0, 0)))[:, :, :].reshape(6, -1)[:, :16]
+                .tobytes())
+    np.testing.assert_array_equal(wire.image_to_bgr(rgb, "t"), img)
+    ok, jpg = cv2.imencode(".png", img)
+    comp = CompressedImage(format="png", data=jpg.tobytes())
+    np.testing.assert_array_equal(wire.compressed_to_bgr(comp, "t"), img)
+    for bad, reason in ((Image(height=2, width=2, encoding="16UC1", step=4, data=bytes(8)),
+                         "bad_encoding"),
+                        (Image(height=2, width=2, encoding="bgr8", step=6, data=bytes(11)), "bad_size")):
+        with pytest.raises(wire.WireError) as ei:
+            wire.image_to_bgr(bad, "/camera_0/image_raw")
+        assert ei.value.reason == reason
+    with pytest.raises(wire.WireError) as ei:
+        wire.compressed_to_bgr(CompressedImage(format="jpeg", data=b"notajpeg"), "t")
+    assert ei.value.reason == "bad_encoding"
