@@ -61,7 +61,9 @@ def load_node_params(params_file: str | Path, node_name: str) -> dict[str, Any]:
         section = data.get(key)
         if section is None:
             continue
-        if not isinstance(section, dict) or not isinstance(section.get("ros__parameters", {}), dict):
+        # a section without ros__parameters would silently give the node defaults
+        if not isinstance(section, dict) or "ros__parameters" not in section or not isinstance(
+                section["ros__parameters"] or {}, dict):
             raise ValueError(f"params file {str(path)!r}: section {key!r} needs 'ros__parameters:'")
-        out.update(section.get("ros__parameters", {}))
+        out.update(section["ros__parameters"] or {})
     return out

@@ -144,7 +144,8 @@ def test_cluster_order_and_subsets_of_views() -> None:
     X = people(3, 13, seed=3)
     frames = make_frames(rig, X)
     # clusters of different sizes and member order, detection index != cluster index
-    clusters = [cluster((4, 2), (0, 2)), cluster((1, 0), (3, 0), (2, 0)), cluster((2, 1), (0, 1), (3, 1), (4, 1))]
+    clusters = [cluster((4, 2), (0, 2)), cluster((1, 0), (3, 0), (2, 0)),
+                cluster((2, 1), (0, 1), (3, 1), (4, 1))]
     out = triangulate(rig, frames, clusters)
     np.testing.assert_allclose(out.joints, X[[2, 0, 1]], atol=1e-6)
     assert out.views.tolist() == [2, 3, 4]
@@ -204,7 +205,8 @@ def test_tie_on_inliers_prefers_lower_error() -> None:
     for k, name in enumerate(["cam0", "cam1"]):  # views 0,1 agree on `other`, slightly noisy
         frames[name].kpts2d[0, 0] = rig[name].project_rectified(other[0, 0]) + [1.5 * (-1) ** k, 1.0]
     # views 2,3 agree exactly on `truth`: both hypotheses have 2 inliers, truth has 0 error
-    out = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0), (3, 0))], TriangulationParams(tau_kps=10.0))
+    out = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0), (3, 0))],
+                      TriangulationParams(tau_kps=10.0))
     assert out.inliers[0, 0] == 2
     np.testing.assert_allclose(out.joints[0, 0], truth[0, 0], atol=1e-6)
 
@@ -287,3 +289,27 @@ def test_speed_ten_people_six_views() -> None:
         triangulate(rig, frames, clusters)
         times.append(time.perf_counter() - t0)
     assert np.median(times) < 0.05
+
+
+def test_simulated_scene_exact_without_noise() -> None:
+    """Noise-free simulated court: GT-built clusters triangulate to the GT joints."""
+    scene_mod = pytest.importorskip("maem_ros.sim.scene")
+    from maem_ros.core.metrics import evaluate_sequence
+
+    scene = scene_mod.Scene(scene_mod.SceneConfig(frames=2, difficulty="none", num_vertices=50,
+                                                  bystanders=0, players=4))
+    gt = scene.gt_keypoints(1)  # (P,70,3)
+    frames = {cam.name: scene.detections(cam.name, 1) for cam in scene.rig}
+    members = [[] for _ in range(gt.shape[0])]
+    for c, cam in enumerate(scene.rig):
+        proj = cam.project_rectified(gt)  # (P,J,2)
+        d = np.nanmean(np.linalg.norm(frames[cam.name].kpts2d[:, None] - proj[None], axis=-1), axis=-1)
+        for det, person in enumerate(np.argmin(d, axis=1)):
+            if d[det, person] < 1e-3:
+                members[person].append((c, det))
+    clusters = [cluster(*m) for m in members]
+    out = triangulate(scene.rig, frames, clusters)
+    assert all(len(m) >= 2 for m in members)
+    np.testing.assert_allclose(out.joints, gt, atol=1e-6)
+    res = evaluate_sequence([out.joints], [out.scores], [gt], [np.ones(gt.shape[:2], bool)])
+    assert res["recall"] == 1.0 and res["ap75"] == 1.0 and res["mpjpe_mean"] < 1e-3

@@ -70,8 +70,10 @@ class Camera:
         self.D = np.concatenate([d[:n], np.zeros(max(0, n - d.size))])
         if not np.all(np.isfinite(self.D)):
             raise ValueError(f"camera {self.name!r} D: contains NaN or inf")
-        if abs(np.linalg.det(self.R) - 1.0) > 1e-3:
-            raise ValueError(f"camera {self.name!r} R: not a rotation (det={np.linalg.det(self.R):.4f})")
+        ortho_err = np.abs(self.R @ self.R.T - np.eye(3)).max()
+        if ortho_err > 1e-3 or abs(np.linalg.det(self.R) - 1.0) > 1e-3:
+            raise ValueError(f"camera {self.name!r} R: not a rotation (det={np.linalg.det(self.R):.4f}, "
+                             f"max |R R^T - I| = {ortho_err:.2g})")
         self.width, self.height = int(self.width), int(self.height)
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name!r} image size: {self.width}x{self.height} is not positive")

@@ -34,7 +34,7 @@ import numpy as np
 from ..core.camera import Camera
 from .body import ANGLE_KEYS, BodyModel, forward_kinematics, gait_angles
 from .rigs import COURT_LENGTH, COURT_WIDTH
-from .view import fold_radius, inside_image, project_raw
+from .view import distort_points, fold_radius, inside_image, normalised, project_raw
 
 _SAMPLES_PER_PART = 12
 
@@ -44,11 +44,11 @@ class NoiseParams:
     """One difficulty preset (units: rad, m, px, fractions, detections per image)."""
 
     exact: bool = False
-    angle_sigma: float = 0.10
+    angle_sigma: float = 0.075
     heading_sigma: float = 0.05
     shape_sigma: float = 0.03
     kpt3d_sigma: float = 0.012
-    depth_sigma: float = 0.10
+    depth_sigma: float = 0.12
     kpt2d_px: float = 1.0
     vert2d_px: float = 0.5
     bbox_px: float = 2.0
@@ -63,11 +63,11 @@ PRESETS: dict[str, NoiseParams] = {
     "none": NoiseParams(exact=True, angle_sigma=0.0, heading_sigma=0.0, shape_sigma=0.0, kpt3d_sigma=0.0,
                         depth_sigma=0.0, kpt2d_px=0.0, vert2d_px=0.0, bbox_px=0.0, min_visible=0.0,
                         miss_rate=0.0, fp_rate=0.0),
-    "easy": NoiseParams(angle_sigma=0.055, heading_sigma=0.03, shape_sigma=0.02, kpt3d_sigma=0.008,
+    "easy": NoiseParams(angle_sigma=0.04, heading_sigma=0.03, shape_sigma=0.02, kpt3d_sigma=0.008,
                         depth_sigma=0.06, kpt2d_px=0.6, vert2d_px=0.3, bbox_px=1.0, min_visible=0.3,
                         miss_rate=0.005, fp_rate=0.1),
     "medium": NoiseParams(),
-    "hard": NoiseParams(angle_sigma=0.17, heading_sigma=0.09, shape_sigma=0.05, kpt3d_sigma=0.02,
+    "hard": NoiseParams(angle_sigma=0.13, heading_sigma=0.09, shape_sigma=0.05, kpt3d_sigma=0.02,
                         depth_sigma=0.15, kpt2d_px=2.0, vert2d_px=1.0, bbox_px=4.0, min_visible=0.5,
                         miss_rate=0.03, fp_rate=0.8, player_score=(0.92, 0.04), bystander_score=(0.8, 0.08)),
 }
@@ -152,8 +152,7 @@ def simulate(camera: Camera, rng: np.random.Generator, params: NoiseParams, body
     """Detections of one camera: gt_points (P,70+,3) world m (keypoints first), gt_verts (P,V,3)."""
     sample_idx = body.part_vertex_sample(_SAMPLES_PER_PART)
     vis, in_img = visibility(camera, gt_verts[:, sample_idx], body.part_of[sample_idx], len(body.slices))
-    gt_raw_all = project_raw(camera, gt_verts)
-    beyond_fold = np.any(np.isnan(gt_raw_all[..., 0]), axis=1)  # lens fold: no consistent raw px
+    beyond_fold = ~np.all(normalised(camera, gt_verts)[1], axis=1)  # lens fold: no consistent raw px
     occ = np.clip(1.0 - vis / np.maximum(in_img, 1e-9), 0.0, 1.0)
     trunc = 1.0 - in_img
     if params.exact:
@@ -162,7 +161,7 @@ def simulate(camera: Camera, rng: np.random.Generator, params: NoiseParams, body
         u = rng.random(len(vis))
         detected = (vis >= params.min_visible) & ~beyond_fold & (u >= params.miss_rate * (1 + 4 * occ))
     idx = np.flatnonzero(detected)
-    dets = _estimate(camera, rng, params, body, state, idx, gt_points[:, :70], gt_raw_all[idx], occ[idx])
+    dets = _estimate(camera, rng, params, body, state, idx, gt_points[:, :70], project_raw(camera, gt_verts[idx]), occ[idx])
     dets.person = idx
     dets.visible_fraction = vis[idx]
     dets.scores = _scores(rng, params, state.is_player[idx], occ[idx], trunc[idx])
@@ -204,8 +203,8 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     bbox_raw = _silhouette_box(camera, gt_raw_verts, rng, params.bbox_px)
     return SimDetections(
         person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
-        kpts2d_rect=k2, kpts2d_raw=camera.distort_points(k2), verts2d_rect=v2,
-        verts2d_raw=camera.distort_points(v2), kpts3d=kpts3d, verts3d=depth * vc,
+        kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), verts2d_rect=v2,
+        verts2d_raw=distort_points(camera, v2), kpts3d=kpts3d, verts3d=depth * vc,
         cam_t=(depth * kc.mean(axis=1, keepdims=True))[:, 0])
 
 

@@ -48,18 +48,15 @@ def court_polylines(step: float = 0.05) -> list[np.ndarray]:
         ft = sgn * (hx - 5.8)  # free-throw line
         lines.append(np.concatenate([seg((sgn * hx, -2.45), (ft, -2.45)), seg((ft, -2.45), (ft, 2.45)),
                                      seg((ft, 2.45), (sgn * hx, 2.45))]))
-        lines.append(arc((ft, 0), 1.8, -np.pi / 2, np.pi / 2) if sgn > 0 else arc((ft, 0), 1.8, np.pi / 2,
-                                                                                      3 * np.pi / 2))
+        inward = np.pi if sgn > 0 else 0.0  # direction from this basket to the court centre
+        lines.append(arc((ft, 0), 1.8, inward - np.pi / 2, inward + np.pi / 2))
         # three-point line: straight parts 0.9 m in from the sidelines, then the 6.75 m arc
         a = np.arcsin((hy - 0.9) / 6.75)
         xa = bx - sgn * 6.75 * np.cos(a)
-        centre = np.pi if sgn > 0 else 0.0
         lines.append(np.concatenate([seg((sgn * hx, -(hy - 0.9)), (xa, -(hy - 0.9))),
-                                     arc((bx, 0), 6.75, centre + sgn * a if sgn > 0 else -a,
-                                         centre - sgn * a if sgn > 0 else a)[::(-1 if sgn > 0 else 1)],
+                                     arc((bx, 0), 6.75, inward + sgn * a, inward - sgn * a),
                                      seg((xa, hy - 0.9), (sgn * hx, hy - 0.9))]))
-        lines.append(arc((bx, 0), 1.25, np.pi / 2 if sgn > 0 else -np.pi / 2,
-                         3 * np.pi / 2 if sgn > 0 else np.pi / 2))
+        lines.append(arc((bx, 0), 1.25, inward - np.pi / 2, inward + np.pi / 2))
     return lines
 
 

@@ -1,0 +1,189 @@
+"""maem-bench: time MAEM association and triangulation on the standard load, one CPU thread.
+
+Standard load (tools/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob
+distortion), 12 detections per camera (10 players seen by every camera + 2 extra people per
+camera), 70 keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px
+pixel noise, fixed seed. Times the full association (all stages) and the triangulation per
+frame (median, p90), and in the same run a straightforward association written the way the
+method reads (loops over detection pairs, per-pair OpenCV undistortion of the raw vertex
+pixels, per-pair distances), and checks both give identical clusters.
+
+    maem-bench                 # human-readable summary
+    maem-bench --json          # one JSON object
+    maem-bench --vertices 500 --frames 1 --repeats 1 --json   # quick smoke run
+
+Targets (reported, not enforced): association median <= 15 ms/frame, speedup >= 50,
+triangulation median <= 2 ms for 10 people. Timings on a shared machine are noisy.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+#: thread pools pinned to one thread; must be set before numpy/OpenCV/numba load
+_THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+               "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "NUMBA_NUM_THREADS")
+
+TARGETS = {"association_ms_median": 15.0, "speedup": 50.0, "triangulation_ms_median": 2.0}
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="maem-bench", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="Targets (reported only): association median <= 15 ms, "
+                                       "speedup >= 50, triangulation median <= 2 ms.")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--rig", default="sportcenter6", help="rig name or file (default sportcenter6)")
+    p.add_argument("--params", default="sportcenter.yaml",
+                   help="params file for the association/triangulation thresholds")
+    p.add_argument("--vertices", type=int, default=18439, help="mesh vertices per detection")
+    p.add_argument("--keypoints", type=int, default=70, help="keypoints per detection")
+    p.add_argument("--players", type=int, default=10, help="people seen by every camera")
+    p.add_argument("--extras", type=int, default=2, help="extra people per camera (that camera only)")
+    p.add_argument("--frames", type=int, default=5, help="distinct frames in the load")
+    p.add_argument("--repeats", type=int, default=10, help="timed runs per frame (fast paths)")
+    p.add_argument("--straightforward-frames", type=int, default=2,
+                   help="frames the straightforward implementation runs on (slow)")
+    p.add_argument("--backend", default="auto", choices=("auto", "numba", "numpy"),
+                   help="epipolar kernel of the fast path")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def _pin_threads() -> None:
+    for var in _THREAD_ENV:
+        os.environ[var] = "1"
+
+
+def _percentile(values, q: float) -> float:
+    import numpy as np
+    return float(np.percentile(np.asarray(values, dtype=float), q)) if len(values) else float("nan")
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Build the load, time both paths, return the result dict."""
+    import cv2
+    import numpy as np
+    from threadpoolctl import threadpool_limits
+
+    from ..core.association import AssociationParams, associate
+    from ..core.triangulation import TriangulationParams, triangulate
+    from ..params import load_node_params
+    from ..sim.rigs import load_rig
+    from .bench_load import body_template, make_frame, straightforward_associate
+
+    for name in ("vertices", "keypoints", "players", "frames", "repeats"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name}: must be >= 1, got {getattr(args, name)}")
+    if args.extras < 0 or args.straightforward_frames < 0:
+        raise ValueError("--extras/--straightforward-frames: must be >= 0")
+    cv2.setNumThreads(1)
+    with threadpool_limits(limits=1):
+        rig = load_rig(args.rig)
+        aparams = AssociationParams.from_mapping(
+            {**load_node_params(args.params, "association"), "backend": args.backend})
+        tparams = TriangulationParams.from_mapping(load_node_params(args.params, "triangulation"))
+        rng = np.random.default_rng(args.seed)
+        template = body_template(args.vertices, args.keypoints, args.seed)
+        load = [make_frame(rig, template, rng, args.players, args.extras, stamp_ns=k)
+                for k in range(args.frames)]
+        t0 = time.perf_counter()
+        associate(rig, load[0].frames, aparams)  # warm-up: JIT load/compile, caches
+        warmup_ms = (time.perf_counter() - t0) * 1e3
+
+        assoc_ms, tri_ms, stage_ms, results = [], [], {}, []
+        for fr in load:
+            for _ in range(args.repeats):
+                res = associate(rig, fr.frames, aparams)
+                t = time.perf_counter()
+                poses = triangulate(rig, fr.frames, res.clusters, tparams)
+                tri_ms.append((time.perf_counter() - t) * 1e3)
+                assoc_ms.append(res.stats["t_total_ms"])
+                for k, v in res.stats.items():
+                    if k.startswith("t_"):
+                        stage_ms.setdefault(k, []).append(v)
+            results.append((res, poses))
+
+        straight_ms, identical = [], True
+        for fr, (res, _) in zip(load[:args.straightforward_frames], results):
+            t = time.perf_counter()
+            ref = straightforward_associate(rig, fr.raw, aparams)
+            straight_ms.append((time.perf_counter() - t) * 1e3)
+            identical &= _as_sets(ref) == _as_sets([c.members for c in res.clusters])
+
+    recovered = sum(len(set(fr.truth) & set(_as_sets([c.members for c in res.clusters])))
+                    for fr, (res, _) in zip(load, results))
+    assoc_med = _percentile(assoc_ms, 50)
+    straight_med = _percentile(straight_ms, 50)
+    out = {
+        "cameras": len(rig),
+        "detections_per_camera": args.players + args.extras,
+        "vertices": args.vertices,
+        "keypoints": args.keypoints,
+        "people_per_frame": args.players,
+        "frames": args.frames,
+        "repeats": args.repeats,
+        "threads": 1,
+        "backend": args.backend,
+        "rig": args.rig,
+        "seed": args.seed,
+        "association_ms_median": assoc_med,
+        "association_ms_p90": _percentile(assoc_ms, 90),
+        "triangulation_ms_median": _percentile(tri_ms, 50),
+        "triangulation_ms_p90": _percentile(tri_ms, 90),
+        "straightforward_association_ms_median": straight_med,
+        "straightforward_frames": len(straight_ms),
+        "speedup": straight_med / assoc_med if straight_ms else float("nan"),
+        "clusters_identical": bool(identical) if straight_ms else None,
+        "true_clusters_recovered": recovered,
+        "true_clusters": args.players * args.frames,
+        "triangulated_people_median": _percentile([len(p) for _, p in results], 50),
+        "warmup_ms": warmup_ms,
+        "stage_ms_median": {k[2:-3]: _percentile(v, 50) for k, v in stage_ms.items()},
+    }
+    out["targets"] = {k: {"target": v, "met": bool(out[k] >= v if k == "speedup" else out[k] <= v)}
+                      for k, v in TARGETS.items()}
+    return out
+
+
+def _as_sets(clusters) -> list[frozenset]:
+    return [frozenset(map(tuple, m.tolist())) for m in clusters]
+
+
+def _print_human(r: dict) -> None:
+    print(f"load: {r['cameras']} cameras x {r['detections_per_camera']} detections, "
+          f"{r['keypoints']} keypoints, {r['vertices']} vertices; {r['frames']} frames x "
+          f"{r['repeats']} repeats, 1 thread, backend {r['backend']}")
+    print(f"association     median {r['association_ms_median']:8.2f} ms   "
+          f"p90 {r['association_ms_p90']:8.2f} ms")
+    print("  stages (median ms): " + ", ".join(f"{k} {v:.2f}" for k, v in r["stage_ms_median"].items()))
+    print(f"triangulation   median {r['triangulation_ms_median']:8.2f} ms   "
+          f"p90 {r['triangulation_ms_p90']:8.2f} ms")
+    print(f"straightforward median {r['straightforward_association_ms_median']:8.1f} ms "
+          f"({r['straightforward_frames']} frames) -> speedup {r['speedup']:.0f}x, "
+          f"identical clusters: {r['clusters_identical']}")
+    print(f"true clusters recovered: {r['true_clusters_recovered']}/{r['true_clusters']}")
+    for k, t in r["targets"].items():
+        print(f"target {k}: {t['target']} -> {'met' if t['met'] else 'NOT met'}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    _pin_threads()
+    args = _parser().parse_args(argv)
+    try:
+        result = run(args)
+    except ValueError as e:
+        print(f"maem-bench: {e}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(result))
+    else:
+        _print_human(result)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
