@@ -182,8 +182,34 @@ def test_remap_start_offset_clock_and_latched(bag: Path, ros):
     assert T0 + 0.2e9 <= clocks[0] and clocks[-1] <= T0 + int(OFFSETS[-1] * 1e9) + 10_000_000
 
 
-def test_bad_bag_path_exits_with_message(tmp_path: Path):
+def test_large_last_messages_are_delivered_before_exit(tmp_path: Path, ros):
+    node, ex = ros
+    path = tmp_path / "big"
+    payloads = [chr(ord("a") + i) * 3_000_000 for i in range(3)]
+    with bagio.BagWriter(path) as w:
+        for i, text in enumerate(payloads):
+            w.write("/big", bagio.string_msg(text), T0 + i * 1_000_000)
+    got = collect(node, ["/big"], QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+    proc = _play(path)
+    try:
+        spin_until(ex, lambda: proc.poll() is not None, 30.0)
+        spin_until(ex, lambda: len(got["/big"]) == 3, 3.0)
+        out, _ = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert proc.returncode == 0, out
+    assert [m.data[0] + str(len(m.data)) for _, m in got["/big"]] == ["a3000000", "b3000000",
+                                                                       "c3000000"]
+
+
+def test_bad_bag_and_topics_exit_with_message(tmp_path: Path, bag: Path):
     proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.player_node", str(tmp_path / "none")],
                           capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2
     assert "not a rosbag2 folder" in proc.stdout + proc.stderr
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.player_node", str(bag), "--topics",
+                           "/nothing", "--delay", "0"], capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2
+    assert "no topic to play" in proc.stdout + proc.stderr

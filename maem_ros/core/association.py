@@ -109,7 +109,8 @@ def _integer(name: str, v: Any, minimum: int) -> int:
 @dataclass
 class Cluster:
     """One person: members (M,2) int64 (camera index in rig order, detection index in that
-    camera's FrameDetections as given); costs (M,) mean PA-MPJPE (m) of each member to the rest.
+    camera's FrameDetections as given), sorted; costs (M,) mean PA-MPJPE (m) of each member to
+    the rest (each pair aligned lower member onto higher), NaN if alone.
     """
 
     members: np.ndarray
@@ -167,7 +168,7 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
             raise ValueError(f"frames[{name!r}]: expected FrameDetections, got {type(fd).__name__}")
         if fd.camera != name:
             raise ValueError(f"frames[{name!r}]: camera: detections are of camera {fd.camera!r}")
-        _validate(fd)
+        fd.validate()
         if fd.n:
             joints.add(fd.num_joints)
             verts.add(fd.num_vertices)
@@ -182,16 +183,6 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
             raise ValueError("verts2d: epipolar_gate 'mesh' needs mesh vertices, got V=0 "
                              "(use epipolar_gate 'sparse' or 'none')")
     return by_index
-
-
-def _validate(fd: FrameDetections) -> None:
-    """FrameDetections.validate, with the vertex finiteness check done as one float64 sum
-    (a NaN/inf anywhere makes it non-finite); the full check runs only to name the culprit."""
-    v = fd.verts2d
-    if v.ndim == 3 and v.shape[0] == fd.n and np.isfinite(v.sum(dtype=np.float64)):
-        fd = FrameDetections(fd.camera, fd.stamp_ns, fd.bboxes, fd.scores, fd.kpts2d, fd.kpts3d,
-                             v[:, :0])
-    fd.validate()
 
 
 # ---------------------------------------------------------------------------------------
@@ -504,7 +495,7 @@ def _cluster(frames: dict[int, FrameDetections], matches: _Candidates,
             stats["clusters_below_k_min"] += 1
             continue
         out.append(Cluster(members=m[alive], costs=_mean_to_rest(C, alive)[alive]))
-    return out
+    return sorted(out, key=lambda c: tuple(c.members[0].tolist()))
 
 
 def _lap(t: float) -> tuple[float, float]:

@@ -68,11 +68,12 @@ def block_order(n: int) -> np.ndarray:
     return blocks
 
 
-def _chunk_indices(n: int) -> list[np.ndarray]:
+@lru_cache(maxsize=32)
+def _chunk_indices(n: int) -> tuple[np.ndarray, ...]:
     """Point indices of each early-exit chunk (numpy reference path)."""
     blocks = block_order(n)
-    return [np.concatenate([np.arange(s, e) for s, e in blocks[c:c + CHUNK_BLOCKS]])
-            for c in range(0, len(blocks), CHUNK_BLOCKS)]
+    return tuple(np.concatenate([np.arange(s, e) for s, e in blocks[c:c + CHUNK_BLOCKS]])
+            for c in range(0, len(blocks), CHUNK_BLOCKS))
 
 
 def epipolar_sums(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, ia: np.ndarray, jb: np.ndarray,
@@ -108,6 +109,19 @@ def epipolar_sums(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, ia: np.ndarray,
                       np.ascontiguousarray(F, dtype=np.float64).ravel(), ia, jb, block_order(n),
                       CHUNK_BLOCKS, limit, bool(symmetric))
     return _numpy_sums(xa, xb, np.asarray(F, dtype=np.float64), ia, jb, limit, bool(symmetric))
+
+
+def warmup() -> None:
+    """Compile (or load from numba's on-disk cache) the kernels for float32 mesh vertices and
+    float64 keypoints now, so a node's first frame does not pay for it. No-op without numba."""
+    if _numba is None:
+        return
+    F = np.eye(3)[[1, 0, 2]]
+    one = np.zeros(1, dtype=np.int64)
+    for dtype in (np.float32, np.float64):
+        x = np.ones((1, BLOCK, 2), dtype=dtype)
+        for symmetric in (True, False):
+            epipolar_sums(x, x, F, one, one, 1.0, symmetric, True, "numba")
 
 
 def point_distances(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, symmetric: bool) -> np.ndarray:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
+import uuid
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -112,23 +112,34 @@ def read_maem_npz(path: str | Path) -> list[dict]:
     return [dict(d) for d in items]
 
 
-def write_maem_npz(path: str | Path, outputs: Sequence[Mapping], compress: bool = False) -> None:
-    """Write ``outputs`` (list of SAM 3D Body dicts) as the authors do; atomic (tmp file + rename)."""
+def write_maem_npz(path: str | Path, outputs: Sequence[Mapping], compress: bool = False,
+                   float32: bool = False) -> None:
+    """Write ``outputs`` (list of SAM 3D Body dicts) as the authors do; atomic (tmp file + rename).
+
+    ``float32`` stores float arrays as float32, as the model emits them (half the bytes; 1e-4 px
+    resolution at 2000 px).
+    """
     path = Path(path)
     for i, d in enumerate(outputs):
         validate_output(d, f"write {str(path)!r} outputs[{i}]")
     arr = np.empty(len(outputs), dtype=object)
     for i, d in enumerate(outputs):
-        arr[i] = {k: np.asarray(v) for k, v in d.items()}
+        arr[i] = {k: _stored(v, float32) for k, v in d.items()}
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    # a unique sibling opened with the normal umask (mkstemp would leave the file 0600)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "xb") as f:
             (np.savez_compressed if compress else np.savez)(f, outputs=arr)
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
+
+
+def _stored(value: Any, float32: bool) -> np.ndarray:
+    arr = np.asarray(value)
+    return arr.astype(np.float32) if float32 and arr.dtype.kind == "f" else arr
 
 
 def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: int,
@@ -287,9 +298,10 @@ class SceneFolder:
             (root / "scene.json").write_text(json.dumps(dict(info), indent=2))
         return cls(root)
 
-    def write_outputs(self, view: str, frame: int, outputs: Sequence[Mapping]) -> Path:
+    def write_outputs(self, view: str, frame: int, outputs: Sequence[Mapping], float32: bool = True) -> Path:
+        """Write dets/<view>/<frame:06d>.npz (float arrays as float32 by default, like the model)."""
         path = self.root / "dets" / view / f"{int(frame):06d}.npz"
-        write_maem_npz(path, outputs)
+        write_maem_npz(path, outputs, float32=float32)
         self._index.pop(view, None)
         return path
 

@@ -216,6 +216,17 @@ class BagPlayer:
         if self.opts.delay_s:
             self.stop.wait(self.opts.delay_s)
 
+    def wait_delivered(self, timeout_s: float = 3.0) -> bool:
+        """Before exiting: wait (bounded) until subscribers acknowledged every reliable message,
+        so the last large messages are not lost when the process ends."""
+        from rclpy.duration import Duration
+        deadline = time.monotonic() + timeout_s
+        ok = True
+        for pub in self.pubs.values():
+            left = max(0.0, deadline - time.monotonic())
+            ok &= pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+        return ok
+
     def _messages(self, start_ns: int) -> Iterator[bagio.BagMessage]:
         return bagio.read_messages(self.opts.bag, list(self.pubs), start_ns=start_ns)
 
@@ -275,15 +286,19 @@ def main(args: Sequence[str] | None = None) -> int:
     code = 0
     try:
         player = BagPlayer(node, opts, stop)
+        if not player.pubs:
+            raise ValueError(f"{opts.bag}: no topic to play (bag topics: {sorted(player.info.topics)})")
         log.info(f"playing {opts.bag}: {len(player.pubs)} topics, rate {opts.rate}"
                  f"{', loop' if opts.loop else ''}{', /clock' if opts.clock else ''}")
         player.wait_ready()
         t0 = time.monotonic()
         n = player.play()
-        log.info(f"published {n} messages in {time.monotonic() - t0:.2f} s"
+        elapsed = time.monotonic() - t0
+        if not stop.is_set() and not player.wait_delivered():
+            log.warning("some reliable messages were not acknowledged by all subscribers")
+        log.info(f"published {n} messages in {elapsed:.2f} s"
                  f"{' (interrupted)' if stop.is_set() else ''}"
                  f"{f'; skipped topics: {sorted(player.skipped)}' if player.skipped else ''}")
-        code = 0 if player.pubs else 1
     except ValueError as e:
         log.error(str(e))
         code = 2

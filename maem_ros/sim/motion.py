@@ -178,3 +178,29 @@ def _resolve_contacts(pos: np.ndarray, min_gap: float = 0.5, iterations: int = 3
         unit = diff / np.maximum(gap, 1e-6)[..., None]
         pos = pos + 0.5 * (unit * deficit[..., None]).sum(axis=1)
     return pos
+
+
+#: amplitude (rad) of the slow per-person pose variation added to each gait angle: people hold
+#: their arms, torso and head differently, so poses differ between persons (as in real games)
+STYLE_AMPLITUDE = {
+    "sh_flex_l": 0.45, "sh_flex_r": 0.45, "sh_abd_l": 0.3, "sh_abd_r": 0.3, "elbow_l": 0.5, "elbow_r": 0.5,
+    "wrist_l": 0.3, "wrist_r": 0.3, "hip_flex_l": 0.15, "hip_flex_r": 0.15, "hip_abd_l": 0.08,
+    "hip_abd_r": 0.08, "knee_l": 0.2, "knee_r": 0.2, "twist": 0.3, "lean": 0.1, "side_lean": 0.07,
+    "head_pitch": 0.2, "finger_curl": 0.25,
+}
+#: lower bounds that keep joints anatomically plausible after the variation
+ANGLE_FLOOR = {"elbow_l": 0.03, "elbow_r": 0.03, "knee_l": 0.03, "knee_r": 0.03, "sh_abd_l": 0.04,
+               "sh_abd_r": 0.04, "hip_abd_l": 0.0, "hip_abd_r": 0.0, "finger_curl": 0.05}
+
+
+def pose_style(num_frames: int, fps: float, persons: int, seed: int) -> dict[str, np.ndarray]:
+    """Smooth per-person angle offsets (F,P) rad: two random sinusoids (0.1-0.6 Hz) per angle."""
+    rng = np.random.default_rng([int(seed), 7002])
+    t = np.arange(num_frames)[:, None, None] / fps  # (F,1,1)
+    out = {}
+    for key, amp in STYLE_AMPLITUDE.items():
+        freq = rng.uniform(0.1, 0.6, (1, persons, 2))
+        phase = rng.uniform(0, 2 * np.pi, (1, persons, 2))
+        weight = rng.uniform(0.3, 1.0, (1, persons, 2))
+        out[key] = amp * (weight * np.sin(2 * np.pi * freq * t + phase)).sum(-1) / 1.3
+    return out

@@ -15,7 +15,7 @@ viewing ray, invisible in 2D as for a real monocular estimate. 3D keypoints get 
 ``kpt2d_px`` / ``vert2d_px`` (x (1 + 2 * occluded fraction)). Boxes come from the true silhouette
 (raw px, clipped to the image: truncated at borders) plus ``bbox_px`` edge jitter.
 
-Scores: players N(0.935, 0.03), bystanders N(0.84, 0.07), minus 0.25 x occluded fraction and
+Scores: players N(0.95, 0.025), bystanders N(0.84, 0.07), minus 0.15 x occluded fraction and
 0.3 x truncated fraction, clipped to [0.05, 0.995]. False positives: Poisson(``fp_rate``) per
 image, spectator-like bodies off the court with scores U(0.25, 0.85) (8 % U(0.85, 0.93)).
 
@@ -55,7 +55,7 @@ class NoiseParams:
     min_visible: float = 0.4
     miss_rate: float = 0.01
     fp_rate: float = 0.3
-    player_score: tuple[float, float] = (0.935, 0.03)
+    player_score: tuple[float, float] = (0.95, 0.025)
     bystander_score: tuple[float, float] = (0.84, 0.07)
 
 
@@ -69,7 +69,7 @@ PRESETS: dict[str, NoiseParams] = {
     "medium": NoiseParams(),
     "hard": NoiseParams(angle_sigma=0.13, heading_sigma=0.09, shape_sigma=0.05, kpt3d_sigma=0.02,
                         depth_sigma=0.15, kpt2d_px=2.0, vert2d_px=1.0, bbox_px=4.0, min_visible=0.5,
-                        miss_rate=0.03, fp_rate=0.8, player_score=(0.92, 0.04), bystander_score=(0.8, 0.08)),
+                        miss_rate=0.03, fp_rate=0.8, player_score=(0.93, 0.035), bystander_score=(0.8, 0.08)),
 }
 
 
@@ -203,20 +203,19 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     bbox_raw = _silhouette_box(camera, gt_raw_verts, rng, params.bbox_px)
     return SimDetections(
         person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
-        kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), verts2d_rect=v2,
-        verts2d_raw=distort_points(camera, v2), kpts3d=kpts3d, verts3d=depth * vc,
+        kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), verts2d_rect=v2.astype(np.float32),
+        verts2d_raw=distort_points(camera, v2).astype(np.float32), kpts3d=kpts3d,
+        verts3d=(depth * vc).astype(np.float32),
         cam_t=(depth * kc.mean(axis=1, keepdims=True))[:, 0])
 
 
 def _silhouette_box(camera: Camera, raw: np.ndarray, rng, jitter_px: float) -> np.ndarray:
-    """(N,4) raw px boxes of the in-image projected vertices (truncated at borders) + edge jitter."""
-    inside = inside_image(camera, raw)
-    u = np.where(inside, raw[..., 0], np.nan)
-    v = np.where(inside, raw[..., 1], np.nan)
+    """(N,4) raw px boxes of the projected vertices clipped to the image (truncated at borders)."""
     if raw.shape[0] == 0:
         return np.zeros((0, 4))
     with np.errstate(invalid="ignore"):
-        box = np.stack([np.nanmin(u, 1), np.nanmin(v, 1), np.nanmax(u, 1), np.nanmax(v, 1)], axis=1)
+        box = np.stack([np.nanmin(raw[..., 0], 1), np.nanmin(raw[..., 1], 1), np.nanmax(raw[..., 0], 1),
+                        np.nanmax(raw[..., 1], 1)], axis=1)
     if jitter_px > 0:
         box = box + jitter_px * rng.standard_normal(box.shape)
     box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0, camera.width - 1)
@@ -240,7 +239,7 @@ def _scores(rng, params, is_player, occ, trunc) -> np.ndarray:
         return np.full(n, 0.95)
     mean = np.where(is_player, params.player_score[0], params.bystander_score[0])
     sd = np.where(is_player, params.player_score[1], params.bystander_score[1])
-    s = mean + sd * rng.standard_normal(n) - 0.25 * occ - 0.3 * trunc
+    s = mean + sd * rng.standard_normal(n) - 0.15 * occ - 0.3 * trunc
     return np.clip(s, 0.05, 0.995)
 
 

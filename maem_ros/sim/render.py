@@ -152,7 +152,7 @@ def _background(cam: Camera, step: int = 8) -> np.ndarray:
     elev = cv2.resize(rays[:, 2].reshape(gx.shape).astype(np.float32), None, fx=step, fy=step,
                       interpolation=cv2.INTER_LINEAR)[:h, :w]
     hx, hy = COURT_LENGTH / 2, COURT_WIDTH / 2
-    floor = (np.abs(fx) < 200) & (elev < 0)
+    floor = (np.abs(fx) < 45.0) & (np.abs(fy) < 35.0) & (elev < 0)  # the walls stop the floor
     court = floor & (np.abs(fx) <= hx) & (np.abs(fy) <= hy)
     apron = floor & (np.abs(fx) <= hx + 4) & (np.abs(fy) <= hy + 3.5)
     lane = court & (np.abs(fy) <= 2.45) & (np.abs(fx) >= hx - 5.8)
@@ -163,7 +163,7 @@ def _background(cam: Camera, step: int = 8) -> np.ndarray:
     img[apron] = np.array(_FLOOR_OUT) * 1.15
     img[court] = _FLOOR_IN
     img[lane] = _PAINT
-    stripe = 1.0 + 0.06 * np.sin(fx * 2 * np.pi / 0.9) * (np.abs(fx) < 200)
+    stripe = 1.0 + 0.035 * np.sin(fx * 2 * np.pi / 0.9) * apron  # parquet planks
     img *= stripe[..., None]
     out = np.clip(img, 0, 255).astype(np.uint8)
     thick = max(2, int(round(min(w, h) / 400)))

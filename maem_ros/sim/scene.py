@@ -17,7 +17,7 @@ import numpy as np
 from ..core.camera import Camera, Rig
 from ..core.detections import FrameDetections
 from .body import BodyModel, Skeleton, forward_kinematics, gait_angles
-from .motion import Motion, simulate_motion
+from .motion import ANGLE_FLOOR, Motion, pose_style, simulate_motion
 from .noise import PRESETS, PersonState, SimDetections, get_preset, simulate
 from .render import Renderer
 from .rigs import load_rig
@@ -91,6 +91,7 @@ class Scene:
         self.noise = get_preset(config.difficulty)
         self.motion: Motion = simulate_motion(config.frames, config.fps, config.players, config.bystanders,
                                               config.seed)
+        self.style = pose_style(config.frames, config.fps, config.players + config.bystanders, config.seed)
         self.body = BodyModel(config.num_vertices)
         self.is_player = np.arange(config.players + config.bystanders) < config.players
         self.team = self.motion.team
@@ -118,13 +119,16 @@ class Scene:
 
     # ---- ground truth -----------------------------------------------------------------------
     def _cached(self, key: tuple, make):
+        """Memoise per kind (skeletons, meshes, detections) with a small bound: meshes are MBs each."""
         if key in self._cache:
             self._cache.move_to_end(key)
             return self._cache[key]
         value = make()
         self._cache[key] = value
-        while len(self._cache) > 24:
-            self._cache.popitem(last=False)
+        limit = {"skel": 64, "verts": 3, "det": len(self.rig) + 2}[key[0]]
+        same_kind = [k for k in self._cache if k[0] == key[0]]
+        for old in same_kind[:max(0, len(same_kind) - limit)]:
+            del self._cache[old]
         return value
 
     def person_state(self, frame: int) -> PersonState:
@@ -132,6 +136,10 @@ class Scene:
         f = self._check_frame(frame)
         m = self.motion
         angles = gait_angles(m.speed[f], m.phase[f], m.crouch[f], m.arm_raise[f], m.head_yaw[f])
+        for key, offset in self.style.items():
+            angles[key] = angles[key] + offset[f] * (1.0 - 0.7 * m.arm_raise[f] * key.startswith("sh_"))
+        for key, floor in ANGLE_FLOOR.items():
+            angles[key] = np.maximum(angles[key], floor)
         return PersonState(m.height, m.width, m.pos[f], m.heading[f], angles, self.is_player)
 
     def skeleton(self, frame: int) -> Skeleton:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -42,7 +43,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--vertices", type=int, default=18439, help="mesh vertices per detection")
     p.add_argument("--keypoints", type=int, default=70, help="keypoints per detection")
     p.add_argument("--players", type=int, default=10, help="people seen by every camera")
-    p.add_argument("--extras", type=int, default=2, help="extra people per camera (that camera only)")
+    p.add_argument("--extras", type=int, default=2,
+                   help="extra people per camera (seen by that camera only)")
     p.add_argument("--frames", type=int, default=5, help="distinct frames in the load")
     p.add_argument("--repeats", type=int, default=10, help="timed runs per frame (fast paths)")
     p.add_argument("--straightforward-frames", type=int, default=2,
@@ -149,6 +151,15 @@ def run(args: argparse.Namespace) -> dict:
     return out
 
 
+def _finite_or_null(x):
+    """NaN/inf -> null so --json output is strict JSON."""
+    if isinstance(x, dict):
+        return {k: _finite_or_null(v) for k, v in x.items()}
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
 def _as_sets(clusters) -> list[frozenset]:
     return [frozenset(map(tuple, m.tolist())) for m in clusters]
 
@@ -159,7 +170,8 @@ def _print_human(r: dict) -> None:
           f"{r['repeats']} repeats, 1 thread, backend {r['backend']}")
     print(f"association     median {r['association_ms_median']:8.2f} ms   "
           f"p90 {r['association_ms_p90']:8.2f} ms")
-    print("  stages (median ms): " + ", ".join(f"{k} {v:.2f}" for k, v in r["stage_ms_median"].items()))
+    stages = ", ".join(f"{k} {v:.2f}" for k, v in r["stage_ms_median"].items())
+    print(f"  stages (median ms): {stages}")
     print(f"triangulation   median {r['triangulation_ms_median']:8.2f} ms   "
           f"p90 {r['triangulation_ms_p90']:8.2f} ms")
     print(f"straightforward median {r['straightforward_association_ms_median']:8.1f} ms "
@@ -179,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"maem-bench: {e}", file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(result))
+        print(json.dumps(_finite_or_null(result)))
     else:
         _print_human(result)
     return 0

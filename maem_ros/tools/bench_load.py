@@ -91,8 +91,8 @@ def _person(template, rng) -> tuple[np.ndarray, np.ndarray]:
 
 def _in_view(cam: Camera, X: np.ndarray, margin: float = 40.0) -> bool:
     uv = cam.project(X)
-    return bool(np.all(np.isfinite(uv)) and np.all(uv >= margin)
-                and np.all(uv[:, 0] <= cam.width - margin) and np.all(uv[:, 1] <= cam.height - margin))
+    hi = np.array([cam.width, cam.height]) - margin
+    return bool(np.all(np.isfinite(uv)) and np.all(uv >= margin) and np.all(uv <= hi))
 
 
 def _place(rig_cams: list[Camera], rng, taken: list[np.ndarray], min_sep: float = 1.0
@@ -155,7 +155,8 @@ def make_frame(rig: Rig, template, rng: np.random.Generator, players: int = 10, 
             np.array([d[4] for d in dets]), np.array([d[5] for d in dets]),
             np.array([d[3] for d in dets], dtype=np.float32))
         raw[cam.name] = RawDetections(np.array([d[0] for d in dets]), scores,
-                                      np.array([d[2] for d in dets]), np.array([d[5] for d in dets]))
+                                      np.array([d[2] for d in dets]),
+                                      np.array([d[5] for d in dets]))
     return BenchFrame(frames, raw, [frozenset(s) for s in truth.values()])
 
 
@@ -164,8 +165,8 @@ def make_frame(rig: Rig, template, rng: np.random.Generator, players: int = 10, 
 # ---------------------------------------------------------------------------------------
 def _dlt_two(Pa: np.ndarray, Pb: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """Inhomogeneous DLT of one point seen in two views (least squares, X4 = 1)."""
-    rows = [xa[0] * Pa[2] - Pa[0], xa[1] * Pa[2] - Pa[1], xb[0] * Pb[2] - Pb[0], xb[1] * Pb[2] - Pb[1]]
-    A = np.array(rows)
+    A = np.array([xa[0] * Pa[2] - Pa[0], xa[1] * Pa[2] - Pa[1],
+                  xb[0] * Pb[2] - Pb[0], xb[1] * Pb[2] - Pb[1]])
     return np.linalg.lstsq(A[:, :3], -A[:, 3], rcond=None)[0]
 
 

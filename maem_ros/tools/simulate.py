@@ -19,11 +19,12 @@ EPILOG = """\
 Output layout:
   OUT/cameras/<view>.json          MAEM camera JSON per view (world->camera)
   OUT/dets/<view>/<frame:06d>.npz  simulated SAM 3D Body outputs, MAEM authors' npz, RAW (distorted) px
-  OUT/gt.npz                       ground truth, xrmocap keypoints3d, sportcenter_13, players only
+  OUT/gt.npz                       ground truth, xrmocap keypoints3d, sportcenter_13 (see below)
   OUT/images/<view>/<frame:06d>.jpg  raw rendered images (with --images)
   OUT/scene.json                   fps, start_stamp_ns, num_frames, scene_config (regenerates the scene)
-Ground truth holds the players (is_player); referees/bystanders are distractors, so detecting
-them counts as a false positive in AP.
+By default ground truth holds the players (is_player): referees/bystanders are distractors
+(mostly low-score detections), so triangulating one counts as a false positive in AP; with
+--gt-people all they are ground truth too.
 """
 
 
@@ -39,6 +40,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--vertices", type=int, default=None,
                    help="mesh vertices per detection (default: the simulator's, 18439)")
+    p.add_argument("--gt-people", choices=("players", "all"), default="players",
+                   help="who gt.npz holds: players (default; referees/bystanders are distractors) or all")
     p.add_argument("--images", action="store_true", help="also render raw JPEG images")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -53,27 +56,31 @@ def scene_config(args: argparse.Namespace):
     return SceneConfig.from_dict(cfg)
 
 
-def gt_arrays(scene, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """(F,P,13,3) world metres of the players, (F,P,13) mask (all True: the sim sees every joint)."""
-    players = np.asarray(scene.is_player, dtype=bool)
-    pose = np.stack([SPORTCENTER_13.select(np.asarray(scene.gt_keypoints(f))[players]) for f in range(frames)])
+def gt_arrays(scene, frames: int, people: str = "players") -> tuple[np.ndarray, np.ndarray]:
+    """(F,P,13,3) world metres, (F,P,13) mask (all True: the sim knows every joint).
+
+    ``people``: "players" (the is_player persons) or "all" (referees/bystanders too).
+    """
+    keep = np.asarray(scene.is_player, dtype=bool) if people == "players" else slice(None)
+    pose = np.stack([SPORTCENTER_13.select(np.asarray(scene.gt_keypoints(f))[keep]) for f in range(frames)])
     return pose, np.ones(pose.shape[:3], dtype=bool)
 
 
-def write_scene(out: Path, config, images: bool = False, progress: bool = True) -> SceneFolder:
+def write_scene(out: Path, config, images: bool = False, progress: bool = True,
+                gt_people: str = "players") -> SceneFolder:
     """Simulate ``config`` and write the scene folder ``out``."""
     from ..sim.scene import Scene
     scene = Scene(config)
     n = scene.num_frames
     info = {"fps": float(config.fps), "start_stamp_ns": int(scene.stamp_ns(0)), "num_frames": int(n),
-            "scene_config": config.to_dict()}
+            "gt_people": gt_people, "scene_config": config.to_dict()}
     folder = SceneFolder.create(out, scene.rig, info)
     for frame in tqdm(range(n), desc="maem-sim", unit="frame", disable=not progress):
         for cam in scene.rig.names:
             folder.write_outputs(cam, frame, scene.raw_outputs(cam, frame))
             if images:
                 folder.write_image(cam, frame, scene.render(cam, frame))
-    folder.write_gt(*gt_arrays(scene, n), convention=SPORTCENTER_13.name)
+    folder.write_gt(*gt_arrays(scene, n, gt_people), convention=SPORTCENTER_13.name)
     return folder
 
 
@@ -87,7 +94,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         config = scene_config(args)
-        folder = write_scene(args.out, config, images=args.images, progress=not args.quiet)
+        folder = write_scene(args.out, config, images=args.images, progress=not args.quiet,
+                             gt_people=args.gt_people)
     except ValueError as e:
         print(f"maem-sim: {e}", file=sys.stderr)
         return 2

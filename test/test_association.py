@@ -1,0 +1,417 @@
+"""MAEM stage 2 on constructed scenes: exact pinhole cameras, exact 3D bodies, known answers."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from maem_ros.core import epipolar
+from maem_ros.core.association import (AssociationParams, associate, pa_mpjpe_finite,
+                                       reprojection_errors)
+from maem_ros.core.camera import Camera, Rig, fundamental_matrix
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.procrustes import pa_mpjpe
+
+V, J = 400, 24
+BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
+
+
+# ---------------------------------------------------------------------------------------
+# scene construction
+# ---------------------------------------------------------------------------------------
+def look_at(name: str, eye, target=(0.0, 0.0, 1.0), f: float = 1000.0) -> Camera:
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    K = np.array([[f, 0, 640.0], [0, f, 480.0], [0, 0, 1]])
+    return Camera(name=name, K=K, R=R, t=-R @ eye, width=1280, height=960)
+
+
+def ring_rig(n: int = 4, radius: float = 12.0, height: float = 5.0) -> Rig:
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + 0.3
+    return Rig([look_at(f"cam{i}", (radius * np.cos(a), radius * np.sin(a), height))
+                for i, a in enumerate(ang)])
+
+
+class Body:
+    """A person: V surface-ish vertices and J joints (world m), centre = bbox anchor."""
+
+    def __init__(self, position, seed: int):
+        rng = np.random.default_rng(seed)
+        self.centre = np.array([position[0], position[1], 0.9])
+        self.verts = self.centre + rng.uniform(-1, 1, (V, 3)) * [0.25, 0.15, 0.9]
+        self.joints = self.centre + rng.uniform(-1, 1, (J, 3)) * [0.2, 0.12, 0.85]
+
+
+def detection(cam: Camera, body: Body, kpts3d_world: np.ndarray | None = None):
+    """Exact rectified detection: bbox centred on the projected body centre."""
+    uv = cam.project_rectified(body.verts)
+    c = cam.project_rectified(body.centre)
+    half = 0.5 * (uv.max(0) - uv.min(0))
+    kp3d = cam.world_to_camera(body.joints if kpts3d_world is None else kpts3d_world)
+    return np.concatenate([c - half, c + half]), cam.project_rectified(body.joints), kp3d, uv
+
+
+def frames_for(rig: Rig, bodies_per_cam: dict[str, list], scores=None, shuffle_seed=None):
+    """FrameDetections per camera from (body, kpts3d_world|None) lists; returns (frames, ids)
+    with ids[cam] = body index of each detection row."""
+    frames, ids = {}, {}
+    rng = np.random.default_rng(shuffle_seed)
+    for name, items in bodies_per_cam.items():
+        order = rng.permutation(len(items)) if shuffle_seed is not None else np.arange(len(items))
+        dets = [detection(rig[name], *items[o][:2]) for o in order]
+        sc = np.full(len(dets), 0.95) if scores is None or name not in scores else \
+            np.asarray(scores[name], float)[order]
+        if dets:
+            frames[name] = FrameDetections(name, 0, np.array([d[0] for d in dets]), sc,
+                                           np.array([d[1] for d in dets]),
+                                           np.array([d[2] for d in dets]),
+                                           np.array([d[3] for d in dets], np.float32))
+        else:
+            frames[name] = FrameDetections.empty(name, 0, J, V)
+        ids[name] = [items[o][2] if len(items[o]) > 2 else None for o in order]
+    return frames, ids
+
+
+def as_sets(clusters) -> set:
+    return {frozenset(map(tuple, c.members.tolist())) for c in clusters}
+
+
+def scene(n_people: int = 5, n_cams: int = 4, seed: int = 0):
+    rig = ring_rig(n_cams)
+    rng = np.random.default_rng(seed)
+    pos = []
+    while len(pos) < n_people:
+        p = rng.uniform(-4, 4, 2)
+        if all(np.linalg.norm(p - q) > 1.2 for q in pos):
+            pos.append(p)
+    bodies = [Body(p, seed * 100 + k) for k, p in enumerate(pos)]
+    per_cam = {c.name: [(b, None, k) for k, b in enumerate(bodies)] for c in rig}
+    frames, ids = frames_for(rig, per_cam, shuffle_seed=seed + 1)
+    truth = {frozenset((ci, ids[c.name].index(k)) for ci, c in enumerate(rig))
+             for k in range(n_people)}
+    return rig, frames, truth
+
+
+# ---------------------------------------------------------------------------------------
+# the noiseless multi-person multi-camera scene
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("options", [
+    {}, {"epipolar_gate": "sparse"}, {"epipolar_gate": "none"}, {"reproj_gate": False},
+    {"epipolar_distance": "forward"}, {"reproj_reduce": "max"}, {"early_exit": False},
+    {"vertex_stride": 3}, {"vertex_count": 50},
+] + [{"backend": b} for b in BACKENDS])
+def test_noiseless_scene_gives_exactly_the_true_clusters(options):
+    rig, frames, truth = scene(5, 4)
+    res = associate(rig, frames, AssociationParams(k_min=4, **options))
+    assert as_sets(res.clusters) == truth
+    for c in res.clusters:
+        assert np.all(c.costs < 1e-9)  # exact keypoints: PA-MPJPE 0 between true views
+        assert [tuple(m) for m in c.members] == sorted(map(tuple, c.members.tolist()))
+    firsts = [tuple(c.members[0]) for c in res.clusters]
+    assert firsts == sorted(firsts)
+    s = res.stats
+    assert s["pairs_considered"] == 6 * 25 and s["matched_pairs"] == 6 * 5
+    assert s["rejected_score"] == 0 and s["conflicts_removed"] == 0
+    assert s["rejected_reproj"] + s["rejected_epipolar"] <= 150 - 30
+    for k in ("t_reproj_ms", "t_epipolar_ms", "t_cost_ms", "t_match_ms", "t_cluster_ms"):
+        assert 0 <= s[k] <= s["t_total_ms"]
+
+
+def test_many_people_many_cameras_with_numpy_and_numba_agree():
+    rig, frames, truth = scene(8, 6, seed=3)
+    results = [associate(rig, frames, AssociationParams(k_min=6, backend=b)) for b in BACKENDS]
+    for res in results:
+        assert as_sets(res.clusters) == truth
+        assert res.stats == res.stats  # dict of floats, no NaN
+    assert len({tuple(sorted((k, v) for k, v in r.stats.items() if not k.startswith("t_")))
+                for r in results}) == 1
+
+
+# ---------------------------------------------------------------------------------------
+# the gates
+# ---------------------------------------------------------------------------------------
+def two_facing_cameras() -> Rig:
+    return Rig([look_at("a", (-10.0, 0.0, 3.0)), look_at("b", (10.0, 0.0, 3.0))])
+
+
+def test_same_epipolar_line_is_separated_by_the_reprojection_gate():
+    """P2's centre lies exactly on the epipolar line of P1's centre, but the two rays meet
+    behind camera b (a low camera looking slightly up): epipolar geometry cannot see this,
+    the reprojection gate can (no 3D point reprojects into both views)."""
+    rig = Rig([look_at("a", (-10.0, 0.0, 3.0)), look_at("b", (10.0, 0.0, 0.2), (0.0, 0.0, 1.2))])
+    A, B = rig["a"].center, rig["b"].center
+    c1 = np.array([-1.0, 0.8, 1.3])
+    ghost = A + 24.0 / 9.0 * (c1 - A)  # on a's ray through P1, 4 m behind camera b
+    assert rig["b"].world_to_camera(ghost)[2] < 0
+    c2 = B - 0.5 * (ghost - B)  # 2 m in front of b, same pixel in b as the ghost
+    assert rig["b"].world_to_camera(c2)[2] > 0 and rig["a"].world_to_camera(c2)[2] > 0
+    p1, p2 = Body(c1[:2], 1), Body(c2[:2], 2)
+    for p, c in ((p1, c1), (p2, c2)):
+        p.verts += c - p.centre
+        p.joints += c - p.centre
+        p.centre = c
+    F = fundamental_matrix(rig["a"], rig["b"])
+    x1a, x2b = rig["a"].project_rectified(c1), rig["b"].project_rectified(c2)
+    assert epipolar.point_distances(x1a[None], x2b[None], F, True)[0] < 1e-6  # same line
+    Ps = np.stack([rig["a"].P, rig["b"].P])[None]
+    assert np.isinf(reprojection_errors(Ps, np.stack([x1a, x2b])[None]))[0]
+    true_err = reprojection_errors(Ps, np.stack([x1a, rig["b"].project_rectified(c1)])[None])
+    assert true_err[0] < 1e-6
+
+    frames, _ = frames_for(rig, {"a": [(p1, None), (p2, None)], "b": [(p1, None), (p2, None)]})
+    res = associate(rig, frames, AssociationParams(k_min=2, epipolar_gate="none"))
+    assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0)}), frozenset({(0, 1), (1, 1)})}
+    assert res.stats["rejected_reproj"] == 2  # both cross pairs
+    # without the gate (and no epipolar gate) the cross pair is admitted to the matching
+    res = associate(rig, frames, AssociationParams(k_min=2, epipolar_gate="none",
+                                                   reproj_gate=False))
+    assert res.stats["rejected_reproj"] == 0
+
+
+def test_people_close_in_3d_are_separated_by_the_dense_mesh_gate():
+    """P2 stands 0.5 m from P1 inside the epipolar plane of P1's centre: the bbox centres are
+    epipolar-consistent and triangulate in front of both cameras (reprojection gate passes),
+    but vertex k of P2 is a different body spot than vertex k of P1."""
+    rig = two_facing_cameras()
+    p1 = Body((0.0, 1.0), 11)
+    plane_n = np.cross(rig["a"].center - p1.centre, rig["b"].center - p1.centre)
+    step = np.cross(plane_n, [0.0, 0.0, 1.0])
+    p2 = Body((0.0, 0.0), 12)
+    c2 = p1.centre + 0.5 * step / np.linalg.norm(step)
+    p2.verts += c2 - p2.centre
+    p2.joints += c2 - p2.centre
+    p2.centre = c2
+    assert np.linalg.norm(p2.centre - p1.centre) == pytest.approx(0.5)
+    frames, _ = frames_for(rig, {"a": [(p1, None), (p2, None)], "b": [(p1, None), (p2, None)]})
+    cross = reprojection_errors(np.stack([rig["a"].P, rig["b"].P])[None],
+                                np.stack([frames["a"].centers[0], frames["b"].centers[1]])[None])
+    assert cross[0] < 1e-6  # the reprojection gate cannot tell them apart
+    F = fundamental_matrix(rig["a"], rig["b"])
+    d = epipolar.point_distances(frames["a"].verts2d[0], frames["b"].verts2d[1], F, True)
+    assert d.mean() > 8.0
+
+    res = associate(rig, frames, AssociationParams(k_min=2))
+    assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0)}), frozenset({(0, 1), (1, 1)})}
+    assert res.stats["rejected_epipolar"] == 2
+    assert res.stats["rejected_reproj"] == 0
+
+
+# ---------------------------------------------------------------------------------------
+# conflicts, K_min, tau_det, empty input
+# ---------------------------------------------------------------------------------------
+def test_same_camera_conflict_drops_the_member_with_highest_mean_cost():
+    """cam0 sees P twice: d0 exact, d1 with a keypoint deformation that cam1's detection
+    shares. d1 wins the (0,1) matching, d0 wins (0,2) and (0,3); union-find joins both.
+    Mean PA-MPJPE to the rest: d0 -> (delta + delta + 0 + 0)/4, d1 -> (delta + 0 + delta +
+    delta)/4, so d1 is dropped."""
+    rig = ring_rig(4)
+    p = Body((0.5, -0.5), 21)
+    deformed = p.joints + np.random.default_rng(5).normal(0, 0.06, p.joints.shape)
+    frames, _ = frames_for(rig, {"cam0": [(p, None), (p, deformed)], "cam1": [(p, deformed)],
+                                 "cam2": [(p, None)], "cam3": [(p, None)]})
+    res = associate(rig, frames, AssociationParams(k_min=4))
+    assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)})}
+    assert res.stats["conflicts_removed"] == 1
+    exact, bent = (rig["cam0"].world_to_camera(x) for x in (p.joints, deformed))
+    fwd, back = pa_mpjpe(exact, bent), pa_mpjpe(bent, exact)  # PA-MPJPE is not symmetric
+    # remaining costs (member m aligned onto n for m < n): cam0/2/3 exact, cam1 deformed
+    np.testing.assert_allclose(res.clusters[0].costs,
+                               [fwd / 3, (fwd + 2 * back) / 3, back / 3, back / 3], rtol=1e-6)
+
+
+def test_clusters_below_k_min_are_dropped():
+    rig = ring_rig(4)
+    p, q = Body((-2, 0), 31), Body((2, 1), 32)
+    per_cam = {"cam0": [(p, None), (q, None)], "cam1": [(p, None), (q, None)],
+               "cam2": [(p, None)], "cam3": [(p, None)]}
+    frames, _ = frames_for(rig, per_cam)
+    res = associate(rig, frames, AssociationParams(k_min=3))
+    assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)})}
+    assert res.stats["clusters_below_k_min"] == 1
+    res = associate(rig, frames, AssociationParams(k_min=2))
+    assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)}),
+                                     frozenset({(0, 1), (1, 1)})}
+    assert res.stats["clusters_below_k_min"] == 0
+
+
+def test_detections_below_tau_det_are_ignored():
+    rig = ring_rig(4)
+    p, q = Body((-2, 0), 41), Body((2, 1), 42)
+    per_cam = {c.name: [(p, None), (q, None)] for c in rig}
+    frames, _ = frames_for(rig, per_cam, scores={"cam2": [0.5, 0.95]})
+    res = associate(rig, frames, AssociationParams(tau_det=0.9, k_min=3))
+    assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (3, 0)}),
+                                     frozenset({(0, 1), (1, 1), (2, 1), (3, 1)})}
+    assert res.stats["rejected_score"] == 3 * 2  # cam2's detection 0 against 3 cameras x 2
+    res = associate(rig, frames, AssociationParams(tau_det=0.4, k_min=3))
+    assert len(res.clusters) == 2 and all(len(c) == 4 for c in res.clusters)
+
+
+def test_empty_cameras_and_single_camera_frames():
+    rig, frames, truth = scene(3, 4)
+    single = associate(rig, {"cam1": frames["cam1"]}, AssociationParams(k_min=2))
+    assert single.clusters == [] and single.stats["pairs_considered"] == 0
+    none = associate(rig, {}, AssociationParams())
+    assert none.clusters == [] and none.stats["t_total_ms"] >= 0
+    with_empty = dict(frames, cam2=FrameDetections.empty("cam2", 0, J, 0))
+    res = associate(rig, with_empty, AssociationParams(k_min=3))
+    assert as_sets(res.clusters) == {frozenset(m for m in t if m[0] != 2) for t in truth}
+    all_empty = {c.name: FrameDetections.empty(c.name, 0, J, V) for c in rig}
+    assert associate(rig, all_empty, AssociationParams()).clusters == []
+    # a missing camera is simply absent
+    res = associate(rig, {k: v for k, v in frames.items() if k != "cam0"},
+                    AssociationParams(k_min=3))
+    assert as_sets(res.clusters) == {frozenset(m for m in t if m[0] != 0) for t in truth}
+
+
+# ---------------------------------------------------------------------------------------
+# params and input validation
+# ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name,value", [
+    ("tau_det", 1.5), ("tau_det", "0.9"), ("tau_det", float("nan")), ("tau_reproj_bbox", 0.0),
+    ("tau_mesh", -1.0), ("tau_mesh", True), ("k_min", 1), ("k_min", 2.5), ("k_min", "4"),
+    ("reproj_reduce", "median"), ("epipolar_gate", "dense"), ("epipolar_distance", "both"),
+    ("vertex_stride", 0), ("vertex_count", -1), ("early_exit", "yes"), ("reproj_gate", 1),
+    ("backend", "gpu"),
+])
+def test_bad_params_raise_value_error_naming_the_parameter(name, value):
+    with pytest.raises(ValueError, match=f"^{name}:"):
+        AssociationParams.from_mapping({name: value})
+
+
+def test_from_mapping_takes_known_keys_of_the_shipped_params():
+    from maem_ros.params import load_node_params
+    p = AssociationParams.from_mapping(load_node_params("humanm3.yaml", "association"))
+    assert (p.tau_det, p.tau_reproj_bbox, p.tau_mesh, p.k_min) == (0.7, 30.0, 8.0, 2)
+    p = AssociationParams.from_mapping(load_node_params("sportcenter.yaml", "association"))
+    assert (p.tau_det, p.tau_reproj_bbox, p.tau_mesh, p.k_min) == (0.9, 10.0, 8.0, 4)
+
+
+def test_bad_input_raises_value_error_naming_the_field():
+    rig, frames, _ = scene(2, 3)
+    params = AssociationParams(k_min=2)
+    with pytest.raises(ValueError, match="unknown camera 'nope'"):
+        associate(rig, dict(frames, nope=frames["cam0"]), params)
+    with pytest.raises(ValueError, match="camera"):
+        associate(rig, {"cam0": frames["cam1"]}, params)
+    bad = frames["cam0"]
+    verts = bad.verts2d.copy()
+    verts[1, 7, 0] = np.nan
+    with pytest.raises(ValueError, match="verts2d: NaN or inf in detection 1"):
+        associate(rig, dict(frames, cam0=FrameDetections("cam0", 0, bad.bboxes, bad.scores,
+                                                         bad.kpts2d, bad.kpts3d, verts)), params)
+    boxes = bad.bboxes.copy()
+    boxes[0, [0, 2]] = boxes[0, [2, 0]]
+    with pytest.raises(ValueError, match="bbox: inverted"):
+        associate(rig, dict(frames, cam0=FrameDetections("cam0", 0, boxes, bad.scores,
+                                                         bad.kpts2d, bad.kpts3d, bad.verts2d)),
+                  params)
+    with pytest.raises(ValueError, match="kpts2d: cameras disagree"):
+        short = FrameDetections("cam0", 0, bad.bboxes, bad.scores, bad.kpts2d[:, :5],
+                                bad.kpts3d[:, :5], bad.verts2d)
+        associate(rig, dict(frames, cam0=short), params)
+    no_mesh = FrameDetections("cam0", 0, bad.bboxes, bad.scores, bad.kpts2d, bad.kpts3d,
+                              bad.verts2d[:, :0])
+    with pytest.raises(ValueError, match="verts2d: epipolar_gate 'mesh' needs mesh vertices"):
+        associate(rig, {"cam0": no_mesh, "cam1": no_mesh.__class__(
+            "cam1", 0, bad.bboxes, bad.scores, bad.kpts2d, bad.kpts3d, bad.verts2d[:, :0])},
+            params)
+    # ... but the sparse gate works without a mesh
+    associate(rig, {"cam0": no_mesh}, AssociationParams(k_min=2, epipolar_gate="sparse"))
+
+
+# ---------------------------------------------------------------------------------------
+# the epipolar kernel: exact early exit, backends agree, vertex subsets
+# ---------------------------------------------------------------------------------------
+def _pairs_near_threshold(seed: int, n: int, tau: float):
+    """Random correspondences whose mean distance straddles tau (some just below/above)."""
+    rig = two_facing_cameras()
+    F = fundamental_matrix(rig["a"], rig["b"])
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-2, 2, (6, n, 3)) + [0, 0, 1]
+    xa = rig["a"].project_rectified(X)
+    xb = rig["b"].project_rectified(X)
+    # move b's points off their epipolar lines by a per-detection amount around tau
+    lines = np.einsum("ij,dnj->dni", F, np.concatenate([xa, np.ones((6, n, 1))], -1))
+    normal = lines[..., :2] / np.linalg.norm(lines[..., :2], axis=-1, keepdims=True)
+    shift = rng.uniform(0.0, 2.0, (6, n, 1)) * rng.uniform(0.5, 1.5, (6, 1, 1)) * tau
+    xb = xb + normal * shift * rng.choice([-1, 1], (6, n, 1))
+    return F, xa.astype(np.float32), xb.astype(np.float32)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 1500), symmetric=st.booleans(),
+       tau=st.floats(0.5, 20.0))
+def test_early_exit_decisions_equal_the_full_mean(seed, n, symmetric, tau):
+    F, xa, xb = _pairs_near_threshold(seed, n, tau)
+    ia, jb = np.repeat(np.arange(6), 6), np.tile(np.arange(6), 6)
+    full_mean = epipolar.point_distances(xa[ia], xb[jb], F, symmetric).mean(axis=1)
+    reference = full_mean >= tau
+    near_tie = np.abs(full_mean - tau) < 1e-9 * tau
+    for backend in BACKENDS:
+        for early in (True, False):
+            sums, used = epipolar.epipolar_sums(xa, xb, F, ia, jb, tau, symmetric, early, backend)
+            reject = sums >= tau * n
+            assert np.array_equal(reject[~near_tie], reference[~near_tie])
+            assert np.all(used[~reject] == n)  # accepted pairs are always summed in full
+            if not early:
+                np.testing.assert_allclose(sums / n, full_mean, rtol=1e-9)
+
+
+def test_early_exit_stops_wrong_pairs_after_few_points():
+    rig = two_facing_cameras()
+    F = fundamental_matrix(rig["a"], rig["b"])
+    rng = np.random.default_rng(0)
+    xa = rng.uniform(0, 1000, (2, 18439, 2)).astype(np.float32)
+    xb = rng.uniform(0, 1000, (2, 18439, 2)).astype(np.float32)
+    for backend in BACKENDS:
+        sums, used = epipolar.epipolar_sums(xa, xb, F, np.array([0, 1]), np.array([1, 0]), 8.0,
+                                            backend=backend)
+        assert np.all(sums >= 8.0 * 18439) and np.all(used <= 2 * epipolar.BLOCK
+                                                      * epipolar.CHUNK_BLOCKS)
+
+
+def test_point_at_the_epipole_rejects_the_pair():
+    rig = two_facing_cameras()
+    F = fundamental_matrix(rig["a"], rig["b"])
+    epipole_a = rig["a"].project_rectified(rig["b"].center)
+    xa = np.tile(epipole_a, (1, 64, 1)).astype(np.float64)
+    xb = np.full((1, 64, 2), 500.0)
+    for backend in BACKENDS:
+        sums, _ = epipolar.epipolar_sums(xa, xb, F, np.array([0]), np.array([0]), 8.0,
+                                         backend=backend)
+        assert not sums[0] < 8.0 * 64
+
+
+def test_vertex_subset_and_block_order():
+    assert epipolar.vertex_subset(100) is None
+    assert np.array_equal(epipolar.vertex_subset(10, 3), [0, 3, 6, 9])
+    sub = epipolar.vertex_subset(18439, 1, 500)
+    assert sub.size == 500 and sub[0] == 0 and sub[-1] == 18438 and np.all(np.diff(sub) > 0)
+    assert epipolar.vertex_subset(18439, 2, 100000).size == 9220
+    blocks = epipolar.block_order(1000)
+    covered = np.concatenate([np.arange(s, e) for s, e in blocks])
+    assert np.array_equal(np.sort(covered), np.arange(1000))
+    assert not np.array_equal(covered, np.arange(1000))  # shuffled
+    assert np.array_equal(blocks, epipolar.block_order(1000))  # one fixed order
+
+
+# ---------------------------------------------------------------------------------------
+# the cost
+# ---------------------------------------------------------------------------------------
+def test_batched_pa_mpjpe_matches_procrustes_and_is_similarity_invariant():
+    rng = np.random.default_rng(7)
+    X = rng.normal(size=(20, J, 3))
+    Y = rng.normal(size=(20, J, 3))
+    np.testing.assert_allclose(pa_mpjpe_finite(X, Y), pa_mpjpe(X, Y), rtol=1e-10)
+    from scipy.spatial.transform import Rotation
+    R = Rotation.random(20, random_state=3).as_matrix()
+    Z = 2.5 * np.einsum("sij,skj->ski", R, X) + rng.normal(size=(20, 1, 3))
+    np.testing.assert_allclose(pa_mpjpe_finite(Z, X), 0.0, atol=1e-12)
+    np.testing.assert_allclose(pa_mpjpe_finite(X, Z), 0.0, atol=1e-11)
+    mirrored = X * [1, 1, -1]  # a reflection is not a rotation: non-zero cost
+    assert np.all(pa_mpjpe_finite(mirrored, X) > 1e-3)

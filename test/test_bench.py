@@ -1,0 +1,95 @@
+"""maem-bench: a reduced run of the CLI, and the fast vs straightforward association agreeing."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from maem_ros.core.association import AssociationParams, associate
+from maem_ros.sim.rigs import load_rig
+from maem_ros.tools.bench_load import (body_template, make_frame, pa_mpjpe_one,
+                                       straightforward_associate)
+
+KEYS = ("cameras", "detections_per_camera", "vertices", "association_ms_median",
+        "association_ms_p90", "triangulation_ms_median", "straightforward_association_ms_median",
+        "speedup")
+
+
+def _bench(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", *args],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_bench_json_reduced_load():
+    proc = _bench("--vertices", "500", "--frames", "1", "--repeats", "1",
+                  "--straightforward-frames", "1", "--json")
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout, parse_constant=lambda c: pytest.fail(f"non-JSON {c}"))
+    for k in KEYS:
+        assert k in out, k
+    assert (out["cameras"], out["detections_per_camera"], out["vertices"]) == (6, 12, 500)
+    assert out["clusters_identical"] is True
+    assert out["true_clusters_recovered"] == out["true_clusters"] == 10
+    for k in KEYS[3:]:
+        assert np.isfinite(out[k]) and out[k] > 0, k
+    assert out["speedup"] == pytest.approx(out["straightforward_association_ms_median"]
+                                           / out["association_ms_median"])
+    assert set(out["targets"]) == {"association_ms_median", "speedup", "triangulation_ms_median"}
+
+
+def test_bench_rejects_bad_arguments():
+    proc = _bench("--vertices", "0", "--json")
+    assert proc.returncode == 2 and "--vertices" in proc.stderr
+
+
+@pytest.fixture(scope="module")
+def load():
+    rig = load_rig("sportcenter6")
+    rng = np.random.default_rng(1)
+    template = body_template(300, 30, seed=1)
+    return rig, [make_frame(rig, template, rng, players=6, extras=2) for _ in range(2)]
+
+
+@pytest.mark.parametrize("options", [
+    {}, {"reproj_reduce": "max"}, {"epipolar_distance": "forward"}, {"k_min": 2},
+    {"vertex_stride": 4}, {"tau_mesh": 2.0, "k_min": 2}, {"tau_reproj_bbox": 40.0, "k_min": 3},
+    {"backend": "numpy"},
+])
+def test_fast_and_straightforward_give_the_same_clusters(load, options):
+    rig, frames = load
+    params = AssociationParams(**options)
+    for fr in frames:
+        fast = [frozenset(map(tuple, c.members.tolist()))
+                for c in associate(rig, fr.frames, params).clusters]
+        ref = [frozenset(map(tuple, m.tolist()))
+               for m in straightforward_associate(rig, fr.raw, params)]
+        assert fast == ref
+        if not options:
+            assert set(fast) == set(fr.truth)
+
+
+def test_score_threshold_in_both_paths(load):
+    rig, frames = load
+    fr = frames[0]
+    name = rig.names[2]
+    fr.frames[name].scores[:3] = 0.5
+    fr.raw[name].scores[:3] = 0.5
+    params = AssociationParams()
+    fast = associate(rig, fr.frames, params)
+    ref = straightforward_associate(rig, fr.raw, params)
+    assert [frozenset(map(tuple, c.members.tolist())) for c in fast.clusters] == \
+        [frozenset(map(tuple, m.tolist())) for m in ref]
+    assert not any((2, d) in map(tuple, c.members.tolist()) for c in fast.clusters
+                   for d in range(3))
+
+
+def test_reference_pa_mpjpe_is_zero_for_a_similarity():
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(30, 3))
+    c, s = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    assert pa_mpjpe_one(1.7 * X @ R.T + [1, 2, 3], X) < 1e-12
+    assert pa_mpjpe_one(X + rng.normal(0, 0.1, X.shape), X) > 0.01
