@@ -415,3 +415,14 @@ def test_batched_pa_mpjpe_matches_procrustes_and_is_similarity_invariant():
     np.testing.assert_allclose(pa_mpjpe_finite(X, Z), 0.0, atol=1e-11)
     mirrored = X * [1, 1, -1]  # a reflection is not a rotation: non-zero cost
     assert np.all(pa_mpjpe_finite(mirrored, X) > 1e-3)
+
+
+def test_epipolar_sums_rejects_bad_indices_and_shapes():
+    x = np.zeros((2, 64, 2), np.float32)
+    with pytest.raises(ValueError, match="out of range"):
+        epipolar.epipolar_sums(x, x, np.eye(3), np.array([2]), np.array([0]), 8.0)
+    with pytest.raises(ValueError, match="epipolar points"):
+        epipolar.epipolar_sums(x, x[:, :10], np.eye(3), np.array([0]), np.array([0]), 8.0)
+    with pytest.raises(ValueError, match="^backend:"):
+        epipolar.epipolar_sums(x, x, np.eye(3), np.array([0]), np.array([0]), 8.0,
+                               backend="cuda")

@@ -143,3 +143,21 @@ def test_zero_noise_sim_scene_through_maem_eval(tmp_path):
     assert rep["frames"] == 3 and rep["skips"] == {}
     assert rep["recall"] == 1.0
     assert rep["mpjpe_mean"] < 1.0 and rep["mpjpe_median"] < 1.0
+
+
+@pytest.mark.skipif(not HAVE_SIM, reason="sim scene missing")
+def test_maem_sim_images_and_gt_people(tmp_path, capsys):
+    import cv2
+    from maem_ros.tools import simulate
+    out = tmp_path / "sim"
+    assert simulate.main([str(out), "--rig", "humanm3_3", "--frames", "1", "--difficulty", "easy",
+                          "--vertices", "100", "--images", "--gt-people", "all", "--quiet"]) == 0
+    folder = SceneFolder(out)
+    for cam in folder.rig:
+        img = cv2.imread(str(folder.image_path(cam.name, 0)))
+        assert img is not None and img.shape == (cam.height, cam.width, 3) and img.std() > 5
+    pose, mask, _ = folder.gt()
+    assert pose.shape[1] == 12 and folder.info["gt_people"] == "all"  # 10 players + 2 bystanders
+    assert simulate.main([str(tmp_path / "bad"), "--frames", "0"]) == 2
+    assert simulate.main([str(tmp_path / "bad"), "--rig", "no_such_rig", "--frames", "1", "--quiet"]) == 2
+    assert "no_such_rig" in capsys.readouterr().err

@@ -311,6 +311,8 @@ def test_scene_config_roundtrip_and_validation():
     for bad in (dict(frames=0), dict(difficulty="extreme"), dict(fps=-1.0), dict(seed=-2), dict(num_vertices=5)):
         with pytest.raises(ValueError, match=list(bad)[0]):
             SceneConfig(**bad)
+    by_path = Scene(SceneConfig(rig=str(resolve_rig_path("humanm3_3")), frames=2, num_vertices=50))
+    assert by_path.rig.names == ["camera_0", "camera_1", "camera_2"]
     with pytest.raises(ValueError, match="unknown key"):
         SceneConfig.from_dict({"frame": 3})
     with pytest.raises(ValueError, match="rig"):
@@ -330,3 +332,19 @@ def test_stamps_and_frame_lookup(scene_none):
         scene_none.gt_keypoints(12)
     with pytest.raises(ValueError, match="camera"):
         scene_none.detections("camera_9", 0)
+
+
+def test_tiny_far_away_person_is_missed():
+    cam = build_rig("humanm3_4")["camera_0"]
+    bm = body_mod.BodyModel(200)
+    state = _two_people_on_one_ray(cam, (14.0, 300.0))
+    right = cam.R[0, :2] / np.linalg.norm(cam.R[0, :2])
+    state.root_xy[1] += right * 60.0  # not hidden behind person 0
+    skel = body_mod.forward_kinematics(state.height, state.width, state.angles, state.root_xy, state.heading)
+    verts = bm.vertices(skel, state.height, state.width)
+    uv = cam.project(verts[1])
+    assert np.all(inside_image(cam, uv)) and np.ptp(uv[:, 1]) < 12  # in view, but only a few px tall
+    det = simulate(cam, np.random.default_rng(0), get_preset("medium"), bm, state, skel.points, verts)
+    assert 0 in det.person and 1 not in det.person
+    det = simulate(cam, np.random.default_rng(0), get_preset("none"), bm, state, skel.points, verts)
+    assert sorted(det.person) == [0, 1]

@@ -95,8 +95,14 @@ def epipolar_sums(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, ia: np.ndarray,
     jb = np.ascontiguousarray(jb, dtype=np.int64)
     n = xa.shape[1]
     limit = float(tau) * n if early_exit else np.inf
+    if ia.shape != jb.shape or ia.ndim != 1:
+        raise ValueError(f"epipolar pairs: ia, jb must be equal-length 1D, got {ia.shape}, "
+                         f"{jb.shape}")
     if ia.size == 0 or n == 0:
         return np.zeros(ia.size), np.zeros(ia.size, dtype=np.int64)
+    # the kernel runs without bounds checks
+    if ia.min() < 0 or ia.max() >= xa.shape[0] or jb.min() < 0 or jb.max() >= xb.shape[0]:
+        raise ValueError("epipolar pairs: detection index out of range")
     use_numba = backend == "numba" or (backend == "auto" and _numba is not None)
     if use_numba:
         if _numba is None:

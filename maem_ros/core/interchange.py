@@ -268,6 +268,32 @@ def write_gt(path: str | Path, pose: np.ndarray, mask: np.ndarray, convention: s
 _FRAME_RE = re.compile(r"(\d+)$")
 
 
+def frame_stamp_ns(frame: int, start_stamp_ns: int, fps: float) -> int:
+    """Stamp (ns) of frame ``frame`` on a clock starting at ``start_stamp_ns`` with ``fps``."""
+    return int(start_stamp_ns) + int(round(int(frame) * 1e9 / fps))
+
+
+def frame_at_stamp(stamp_ns: int, start_stamp_ns: int, fps: float) -> int | None:
+    """Nearest frame index within half a period of ``stamp_ns`` (ns), None before frame 0."""
+    frame = int(round((int(stamp_ns) - int(start_stamp_ns)) * fps / 1e9))
+    if frame < 0 or abs(frame_stamp_ns(frame, start_stamp_ns, fps) - int(stamp_ns)) > 0.5e9 / fps:
+        return None
+    return frame
+
+
+def index_frame_files(folder: str | Path) -> dict[int, Path]:
+    """frame index -> npz path in one view's folder: any ``*.npz`` whose stem ends in the frame
+    number (``000012.npz``, ``frame_12.npz``); empty when the folder is absent."""
+    folder = Path(folder)
+    index: dict[int, Path] = {}
+    if folder.is_dir():
+        for p in sorted(folder.glob("*.npz")):
+            m = _FRAME_RE.search(p.stem)
+            if m:
+                index.setdefault(int(m.group(1)), p)
+    return index
+
+
 class SceneFolder:
     """A scene folder on disk (layout in the module docstring); views = camera JSON stems."""
 
@@ -349,14 +375,7 @@ class SceneFolder:
     def frame_files(self, view: str) -> dict[int, Path]:
         """frame index -> npz path for one view (empty if dets/<view>/ is absent)."""
         if view not in self._index:
-            folder = self.root / "dets" / view
-            index: dict[int, Path] = {}
-            if folder.is_dir():
-                for p in folder.glob("*.npz"):
-                    m = _FRAME_RE.search(p.stem)
-                    if m:
-                        index.setdefault(int(m.group(1)), p)
-            self._index[view] = index
+            self._index[view] = index_frame_files(self.root / "dets" / view)
         return self._index[view]
 
     @property
@@ -367,15 +386,11 @@ class SceneFolder:
         return max(n, int(self.info.get("num_frames", 0)))
 
     def stamp_ns(self, frame: int) -> int:
-        return self.start_stamp_ns + int(round(frame * 1e9 / self.fps))
+        return frame_stamp_ns(frame, self.start_stamp_ns, self.fps)
 
     def frame_at(self, stamp_ns: int) -> int | None:
         """Nearest frame index within half a period of ``stamp_ns``, else None."""
-        period = 1e9 / self.fps
-        frame = int(round((int(stamp_ns) - self.start_stamp_ns) / period))
-        if frame < 0 or abs(self.stamp_ns(frame) - int(stamp_ns)) > period / 2:
-            return None
-        return frame
+        return frame_at_stamp(stamp_ns, self.start_stamp_ns, self.fps)
 
     def read_outputs(self, view: str, frame: int) -> list[dict]:
         if view not in self.rig:

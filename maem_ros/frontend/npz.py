@@ -11,7 +11,6 @@ files are undistorted here with the rig's camera.
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -19,11 +18,9 @@ import numpy as np
 
 from ..core.camera import Camera, Rig
 from ..core.detections import FrameDetections
-from ..core.interchange import DEFAULT_FPS, MissingDataError, outputs_to_detections, read_maem_npz
+from ..core.interchange import (DEFAULT_FPS, MissingDataError, frame_at_stamp, index_frame_files,
+                                outputs_to_detections, read_maem_npz)
 from .base import Estimator, option_float, option_int
-
-_FRAME_RE = re.compile(r"(\d+)$")
-
 
 class NpzEstimator(Estimator):
     """Reads ``<dets_dir>/<camera>/<frame>.npz`` for the frame nearest the stamp."""
@@ -44,24 +41,12 @@ class NpzEstimator(Estimator):
         self._index: dict[str, dict[int, Path]] = {}
 
     def frame_at(self, stamp_ns: int) -> int | None:
-        """Nearest frame within half a period, or None (before frame 0 / between frames)."""
-        period = 1e9 / self.fps
-        frame = int(round((int(stamp_ns) - self.start_stamp_ns) / period))
-        exact = self.start_stamp_ns + int(round(frame * period))
-        if frame < 0 or abs(exact - int(stamp_ns)) > period / 2:
-            return None
-        return frame
+        """Nearest frame within half a period, or None (before frame 0)."""
+        return frame_at_stamp(stamp_ns, self.start_stamp_ns, self.fps)
 
     def _files(self, camera: str) -> dict[int, Path]:
         if camera not in self._index:
-            folder = self.dets_dir / camera
-            index: dict[int, Path] = {}
-            if folder.is_dir():
-                for p in folder.glob("*.npz"):
-                    m = _FRAME_RE.search(p.stem)
-                    if m:
-                        index.setdefault(int(m.group(1)), p)
-            self._index[camera] = index
+            self._index[camera] = index_frame_files(self.dets_dir / camera)
         return self._index[camera]
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None = None) -> FrameDetections:

@@ -50,7 +50,7 @@ JPEG_QUALITY = 35
 BAG_VERTICES = 256
 #: default playback rate: the synthetic frontends regenerate 18,439-vertex detections for ~12
 #: people per image, ~50 ms per camera frame; 6 of them share this machine's 2 cores
-DEFAULT_RATE = 0.25
+DEFAULT_RATE = 0.1
 RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/diagnostics")
 LATENCY_DEFINITION = (
     "latency = wall time (monotonic clock of the demo's listener node) at which /maem/poses with "
@@ -194,9 +194,12 @@ _SCENE_SENTINELS = {"seed": -1, "difficulty": "", "frames": 0, "num_vertices": 0
                     "start_stamp_ns": -1}
 
 
-def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None) -> Path:
-    """``base`` params file with the bag's rig for every node and, for the frontends, compressed
-    images and the bag's scene description (the synthetic backend regenerates from it)."""
+def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None,
+                 max_wait_s: float = 1.0) -> Path:
+    """``base`` params file with the bag's rig for every node; for the frontends compressed
+    images and the bag's scene description (the synthetic backend regenerates from it); for the
+    association ``max_wait_s`` (s; the six frontends share the CPU, so one frame's detections
+    arrive spread over a few hundred ms)."""
     from maem_ros.params import resolve_config_path
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
     # the frontends run namespaced (/camera_0/frontend): a plain "frontend" key only matches
@@ -219,6 +222,7 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
         fe.update(_SCENE_SENTINELS)
         fe["scene_dict"] = json.dumps(scene_config, sort_keys=True)
         fe["scene_rig"] = str(scene_config.get("rig", ""))
+    data["association"]["ros__parameters"]["max_wait"] = max_wait_s
     out.write_text(yaml.safe_dump(data, sort_keys=False))
     return out
 

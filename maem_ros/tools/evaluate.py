@@ -241,7 +241,9 @@ def _jsonable(x: Any) -> Any:
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
         return [_jsonable(v) for v in x]
-    if isinstance(x, (np.integer,)):
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.integer):
         return int(x)
     if isinstance(x, (float, np.floating)):
         return float(x) if np.isfinite(x) else None
@@ -255,8 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="maem-eval", description=__doc__.splitlines()[0], epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", type=Path, help="scene folder (cameras/, dets/, gt.npz)")
-    p.add_argument("--params", default="config/sportcenter.yaml",
-                   help="ROS params file the nodes use (sections 'association', 'triangulation')")
+    p.add_argument("--params", default="sportcenter.yaml",
+                   help="ROS params file the nodes use (sections 'association', 'triangulation'): a path "
+                        "or a shipped config name, e.g. config/humanm3.yaml (default sportcenter.yaml)")
     p.add_argument("--json", type=Path, help="write the metrics (and ablation rows, skips) as JSON")
     p.add_argument("--plots", type=Path, help="write PNG plots to this folder")
     p.add_argument("--plot-frame", type=int, default=None,
@@ -292,7 +295,8 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             skips.add("view_without_dets", f"view {view!r}: no npz in dets/{view}/")
     for stray in folder.unknown_det_views():
         skips.add("dets_view_without_camera", f"dets/{stray}/ has no cameras/{stray}.json")
-    n = folder.num_frames if args.frames is None else min(args.frames, folder.num_frames)
+    total = max(folder.num_frames, gt[0].shape[0] if gt is not None else 0)
+    n = total if args.frames is None else min(args.frames, total)
     configs = ([(name, dataclasses.replace(assoc, **o)) for name, o in ABLATION] if args.ablation
                else [("full", assoc)])
     runs = [Run(name, a) for name, a in configs]

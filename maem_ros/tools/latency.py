@@ -160,7 +160,14 @@ class ReplayClient:
                 self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
 
     def ready(self) -> bool:
+        """Every edge of the graph discovered: images -> frontends -> association ->
+        triangulation -> us."""
+        n = self.node
         return (all(p.get_subscription_count() > 0 for p in self.image_pubs.values())
+                and all(n.count_publishers(f"/{c}/detections") > 0 and
+                        n.count_subscribers(f"/{c}/detections") > 0 for c in self.cameras)
+                and n.count_publishers("/maem/clusters") > 0
+                and n.count_subscribers("/maem/clusters") > 0
                 and self.poses_sub.get_publisher_count() > 0)
 
     def wait_ready(self, timeout_s: float, alive=lambda: True) -> bool:
