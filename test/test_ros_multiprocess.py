@@ -54,10 +54,15 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
             time.sleep(0.05)
         assert all(s in client.poses for s in stamps), \
             f"poses for {sum(s in client.poses for s in stamps)}/{FRAMES} frames\n{graph.logs()}"
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and not all(
-                n in client.diagnostics for n in ("/association", "/triangulation",
-                                                  "/camera_0/frontend")):
+        want = {"/association": str(FRAMES), "/triangulation": str(FRAMES),
+                "/camera_0/frontend": str(FRAMES)}
+
+        def diag_done() -> bool:
+            with client.lock:
+                return all(client.diagnostics.get(n, {}).get("frames_processed") == v
+                           for n, v in want.items())
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and not diag_done():
             time.sleep(0.1)
     finally:
         codes = graph.stop(timeout_s=30)

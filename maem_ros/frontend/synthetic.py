@@ -9,6 +9,7 @@ The scene is deterministic per config, so the frontend reproduces exactly the de
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from typing import Any, Mapping
 
@@ -63,6 +64,5 @@ class SyntheticEstimator(Estimator):
         if camera.name not in self.scene.rig:
             raise ValueError(f"synthetic backend: camera {camera.name!r} is not in the scene rig "
                              f"{self.scene.rig.names}")
-        dets = self.scene.detections(camera.name, frame)
-        dets.stamp_ns = int(stamp_ns)
-        return dets
+        # the capture stamp asked for, not the frame's nominal one (they differ by < half a period)
+        return dataclasses.replace(self.scene.detections(camera.name, frame), stamp_ns=int(stamp_ns))

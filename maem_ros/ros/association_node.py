@@ -83,6 +83,9 @@ class AssociationNode(Node):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self._associate = associate
+        if self.params.backend != "numpy" and self.params.epipolar_gate != "none":
+            from maem_ros.core import epipolar
+            epipolar.warmup()  # compile/load the numba kernels now, not on the first frame
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]
         self.sync = ApproximateTimeSync(self.cameras, int(round(p["slop"] * 1e9)),
@@ -147,6 +150,9 @@ class AssociationNode(Node):
                                            result.clusters)
         except ValueError as e:
             self.diag.reject("association_error", f"frame set {fs.stamp_ns}: {e}")
+            return
+        except Exception as e:  # noqa: BLE001 - a bug must not stop the live graph; counted
+            self.diag.reject("internal_error", f"frame set {fs.stamp_ns}: {type(e).__name__}: {e}")
             return
         self.pub.publish(out)
         self.diag.ok()

@@ -135,6 +135,9 @@ class FrontendNode(Node):
             reason = "no_data" if type(e).__name__ == "MissingDataError" else "estimator"
             self.diag.reject(reason, f"{self.image_topic}: estimator: {e}")
             return
+        except Exception as e:  # noqa: BLE001 - a bug must not stop the live graph; counted
+            self.diag.reject("internal_error", f"{self.image_topic}: {type(e).__name__}: {e}")
+            return
         self.diag.ok()
         self.diag.set("last_detections", dets.n)
 

@@ -105,6 +105,9 @@ class TriangulationNode(Node):
         except ValueError as e:
             self.diag.reject("triangulation_error", f"{self.topic}: {e}")
             return
+        except Exception as e:  # noqa: BLE001 - a bug must not stop the live graph; counted
+            self.diag.reject("internal_error", f"{self.topic}: {type(e).__name__}: {e}")
+            return
         if self._last_stamp is not None and cf.stamp_ns < self._last_stamp:
             self.tracker.reset()
             self.diag.count("tracker_resets")

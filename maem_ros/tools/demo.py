@@ -48,9 +48,10 @@ DEMO_SCENE = {"rig": "sportcenter6", "frames": 30, "fps": 30.0, "seed": 0, "diff
 #: demo bag size knobs: JPEG quality of the rendered images, mesh vertices kept per detection
 JPEG_QUALITY = 35
 BAG_VERTICES = 256
-#: default playback rate: the synthetic frontends regenerate 18,439-vertex detections for ~12
-#: people per image, ~50 ms per camera frame; 6 of them share this machine's 2 cores
-DEFAULT_RATE = 0.1
+#: default playback rate (1.5 fps): each synthetic frontend regenerates 18,439-vertex
+#: detections of ~12 people per image (~55 ms CPU); all six get a frame at the same moment and
+#: share 2 cores, ~0.4 s per frame on this machine, so faster replays drop frames
+DEFAULT_RATE = 0.05
 RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/diagnostics")
 LATENCY_DEFINITION = (
     "latency = wall time (monotonic clock of the demo's listener node) at which /maem/poses with "
@@ -170,6 +171,26 @@ def load_bag(path: Path) -> DemoBag:
         pf = msg_to_poses(m.decode(), bagio.GT_TOPIC)
         gt[pf.stamp_ns] = to_sportcenter13(pf.joints, convention)
     return DemoBag(path, info, cams, stamps, bagio.read_scene_config(path), rig_yaml, gt)
+
+
+def check_scene(demo: DemoBag, tol_m: float = 1e-3) -> None:
+    """ValueError when the simulator no longer regenerates the bag's ground truth (the bag was
+    made by another simulator version: the synthetic frontends would see other people)."""
+    from maem_ros.core.skeleton import SPORTCENTER_13
+    from maem_ros.sim.scene import Scene, SceneConfig
+    if demo.scene_config is None or not demo.gt:
+        return
+    scene = Scene(SceneConfig.from_dict(demo.scene_config))
+    stamp = min(demo.gt)
+    frame = scene.frame_at(stamp)
+    want = demo.gt[stamp]
+    got = SPORTCENTER_13.select(scene.gt_keypoints(frame)[scene.is_player]) if frame is not None \
+        else np.zeros((0, SPORTCENTER_13.num_joints, 3))
+    ok = got.shape == want.shape and bool(np.nanmax(np.abs(got - want), initial=0.0) < tol_m)
+    if not ok:
+        raise ValueError(f"bag {str(demo.path)!r} was made by another simulator version: its "
+                         f"ground truth differs from the scene its description regenerates; "
+                         f"rebuild it with: maem-demo --make-bag {demo.path} (after removing it)")
 
 
 def trim_bag(src: DemoBag, dst: Path, frames: int) -> Path:
@@ -409,6 +430,7 @@ def _crash_text(proc: Proc, code: int | None) -> str:
 def run_graph(bag: Path, demo: DemoBag, params: Path, out: Path, rate: float, keep_going: bool,
               startup_timeout_s: float = 60.0, drain_s: float = 5.0) -> GraphRun:
     """Start recorder + nodes, wait until wired, play the bag, drain, SIGINT everything."""
+    warm_numba_cache()
     group = ProcessGroup(out / "logs", child_env())
     record = out / "record"
     nodes = [f"frontend_{c}" for c in demo.cameras] + ["association", "triangulation"]
@@ -448,6 +470,17 @@ def run_graph(bag: Path, demo: DemoBag, params: Path, out: Path, rate: float, ke
         if code != 0 and name not in crashed:
             crashed[name] = _crash_text(group.procs[name], code)
     return GraphRun(codes, crashed, image_t, poses_t, wall, record)
+
+
+def warm_numba_cache() -> None:
+    """Compile the epipolar kernels here (numba's on-disk cache) so the association node loads
+    them at its first frame instead of compiling them for seconds while frames queue up."""
+    from maem_ros.core import epipolar
+    t0 = time.monotonic()
+    epipolar.warmup()
+    dt = time.monotonic() - t0
+    if dt > 1.0:
+        log(f"compiled the epipolar kernels in {dt:.1f} s (cached for the nodes)")
 
 
 def _wait_wired(group: ProcessGroup, listener: Listener, timeout_s: float) -> None:
@@ -806,6 +839,7 @@ def run_demo(a: argparse.Namespace, t_start: float) -> int:
         report.update(metrics=metrics, pipeline_ms_median=float(np.median(ms)))
         code = 0
     else:
+        check_scene(demo)
         play_bag = bag if n == len(demo.stamps) else trim_bag(demo, a.out / "input", n)
         params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(),
                               demo.scene_config)
@@ -829,6 +863,8 @@ def run_demo(a: argparse.Namespace, t_start: float) -> int:
               + (f" (rate {a.rate:g}; try a lower --rate)" if dropped else ""))
         for name, d in sorted(dropped_counters(diags).items()):
             print(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(d.items())))
+        print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} "
+              f"(1 min, all users)")
         print(f"replay wall time: {run.wall_s:.1f} s; processes: " + ", ".join(
             f"{k}={'killed' if v is None else v}" for k, v in run.exit_codes.items()))
         report.update(metrics=metrics, timing=[dict(zip(("node", "stage", "median_ms", "p99_ms",

@@ -208,7 +208,8 @@ def write_params(base: str | Path, out: Path, frontend: dict[str, Any] | None = 
     for node, extra in (("frontend", frontend), ("association", association),
                         ("triangulation", triangulation)):
         if extra:
-            data.setdefault(node, {}).setdefault("ros__parameters", {}).update(extra)
+            key = next((k for k in (f"/**/{node}", node, f"/{node}") if k in data), f"/**/{node}")
+            data.setdefault(key, {}).setdefault("ros__parameters", {}).update(extra)
     out.write_text(yaml.safe_dump(data, sort_keys=False))
     return out
 
@@ -295,9 +296,9 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
         "mpjpe_mm_mean": float(np.mean(errors) * 1e3) if errors else None,
         "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
         "exit_codes": codes,
-        "node_drops": {n: {k: v for k, v in d.items() if k.startswith("dropped") or
-                           k == "frames_dropped" or k.startswith("missing/")}
-                       for n, d in diags.items()},
+        "nodes": {n: {k: v for k, v in d.items() if k.startswith(("dropped", "missing/", "frames_"))
+                      or (k.startswith("time_ms/") and k.endswith("/median"))}
+                  for n, d in sorted(diags.items())},
     })
     return report
 
