@@ -1,4 +1,4 @@
-"""maem-demo: the committed demo bag, bag generation, offline and graph runs (reduced), crash report."""
+"""maem-demo: the committed demo bag, its generation, offline and (reduced) graph runs, crashes."""
 from __future__ import annotations
 
 import json
@@ -7,7 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
@@ -65,6 +64,15 @@ def test_make_demo_bag_small(tmp_path):
         demo.make_demo_bag(out, frames=3)
 
 
+def test_ensure_bag_generates_missing_and_rejects_non_bags(tmp_path):
+    bag = demo.ensure_bag(tmp_path / "new", frames=2)
+    assert len(demo.load_bag(bag).stamps) == 2
+    assert demo.ensure_bag(bag, frames=5) == bag  # an existing bag is used as it is
+    (tmp_path / "junk").mkdir()
+    with pytest.raises(ValueError, match="not a rosbag2 folder"):
+        demo.ensure_bag(tmp_path / "junk", frames=2)
+
+
 def test_check_scene_detects_other_simulator(tmp_path, bag):
     d = demo.load_bag(bag)
     d.gt = {s: g + 0.01 for s, g in d.gt.items()}
@@ -95,14 +103,22 @@ def test_params_put_frontend_under_wildcard_namespace(tmp_path):
     scene = dict(demo.DEMO_SCENE)
     path = demo.write_params("demo.yaml", tmp_path / "p.yaml", tmp_path / "rig.yaml", scene, 0.7)
     data = yaml.safe_load(path.read_text())
-    assert "frontend" not in data
+    assert "frontend" not in data and "association" not in data
     fe = data["/**/frontend"]["ros__parameters"]
     assert fe["image_transport"] == "compressed" and json.loads(fe["scene_dict"]) == scene
     assert fe["frames"] == 0 and fe["seed"] == -1 and fe["difficulty"] == ""  # scene_dict rules
     assert data["/**"]["ros__parameters"]["rig"] == str(tmp_path / "rig.yaml")
-    assert data["association"]["ros__parameters"]["max_wait"] == 0.7
+    assert data["/**/association"]["ros__parameters"]["max_wait"] == 0.7
+    assert data["/**/association"]["ros__parameters"]["tau_mesh"] == 8.0
     with pytest.raises(ValueError, match="no scene description"):
         demo.write_params("demo.yaml", tmp_path / "q.yaml", tmp_path / "rig.yaml", None)
+
+
+def test_node_section_merges_key_forms():
+    data = {"association": {"ros__parameters": {"a": 1, "b": 1}},
+            "/**/association": {"ros__parameters": {"b": 2}}}
+    assert demo.node_section(data, "association") == {"a": 1, "b": 2}
+    assert list(data) == ["/**/association"]
 
 
 def test_stage_timing_merges_frontends():
@@ -168,7 +184,7 @@ def test_graph_demo_reduced(tmp_path, bag):
 def test_graph_demo_reports_node_failure(tmp_path, bag):
     """A node that cannot start (bad parameter) is named with its log, exit code 1, no hang."""
     params = yaml.safe_load((REPO / "config" / "demo.yaml").read_text())
-    params["association"]["ros__parameters"]["tau_mesh"] = -1.0
+    demo.node_section(params, "association")["tau_mesh"] = -1.0
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump(params))
     r = run_cli(["--bag", str(bag), "--out", str(tmp_path / "out"), "--frames", "2",

@@ -30,7 +30,7 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
                       image_transport="raw"),
         # tau_det 0.5: the sim's scores straddle the paper's 0.9 (see test_ros_graph.ASSOC);
         # max_wait above the 0.2 s frame period of this test
-        association=dict(diagnostics_period=0.5, max_wait=1.0, tau_det=0.5),
+        association=dict(diagnostics_period=0.5, max_wait=2.0, tau_det=0.5),
         triangulation=dict(diagnostics_period=0.5))
     scene = make_scene(params)
     cams = scene.rig.names

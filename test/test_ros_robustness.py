@@ -24,7 +24,7 @@ pytestmark = pytest.mark.timeout(150)
 
 
 def test_silent_camera_is_reported_and_picked_up_again(graph, scene):
-    g = start_pipeline(graph, association=dict(max_wait=0.5))
+    g = start_pipeline(graph, association=dict(max_wait=0.8))
     cams = g["assoc"].rig.names
     silent = cams[-1]
     k_silent = cams.index(silent)
@@ -150,47 +150,71 @@ def test_empty_frames_flow_through(graph):
     assert d.get("/association")["frames_dropped"] == "0"
 
 
-def test_frontend_drops_bad_images_and_unknown_stamps(graph, scene):
+def _frontend_inputs(transport: str, img: np.ndarray, good: int, after_end: int, other: int):
+    """(message type, topic, good message, [bad messages with their drop reason])."""
+    import cv2
+    from sensor_msgs.msg import CompressedImage
+
+    if transport == "raw":
+        truncated = wire.bgr_to_image(img, other, "camera_2")
+        truncated.data = truncated.data[:100]
+        return Image, "/camera_2/image_raw", wire.bgr_to_image(img, good, "camera_2"), [
+            (wire.bgr_to_image(img, after_end, "camera_2"), "estimator"),
+            (truncated, "bad_size"),
+            (Image(header=truncated.header, height=2, width=2, encoding="32FC1", step=8,
+                   data=bytes(16)), "bad_encoding")]
+
+    def jpeg(stamp: int, data: bytes | None = None) -> CompressedImage:
+        msg = CompressedImage(format="jpeg", data=data if data is not None else
+                              cv2.imencode(".jpg", img)[1].tobytes())
+        msg.header = wire.make_header(stamp, "camera_2")
+        return msg
+    return CompressedImage, "/camera_2/image_raw/compressed", jpeg(good), [
+        (jpeg(after_end), "estimator"), (jpeg(other, b""), "bad_size"),
+        (jpeg(other, b"\xff\xd8 not a jpeg"), "bad_encoding")]
+
+
+@pytest.mark.parametrize("transport", ["raw", "compressed"])
+def test_frontend_drops_bad_images_and_unknown_stamps(graph, scene, transport):
     from maem_ros.ros.frontend_node import FrontendNode
 
     cfg = scene.config
     fe = graph.add(FrontendNode, dict(rig="sportcenter6", backend="synthetic", publish_overlay=True,
-                                      seed=cfg.seed, difficulty=cfg.difficulty, frames=cfg.frames,
+                                      image_transport=transport, seed=cfg.seed,
+                                      difficulty=cfg.difficulty, frames=cfg.frames,
                                       num_vertices=cfg.num_vertices, diagnostics_period=0.2),
                    namespace="/camera_2")
     assert fe.camera_name == "camera_2"
+    cam = fe.camera
+    img = np.full((cam.height, cam.width, 3), 90, np.uint8)
+    stamp = scene.stamp_ns(4)
+    after_end = scene.stamp_ns(scene.num_frames - 1) + 1_000_000_000
+    msg_type, topic, good, bad = _frontend_inputs(transport, img, stamp, after_end,
+                                                  scene.stamp_ns(5))
     client = graph.client("frontend_client")
-    pub = client.create_publisher(Image, "/camera_2/image_raw", IMAGE_QOS)
+    pub = client.create_publisher(msg_type, topic, IMAGE_QOS)
     dets = Recorder(client, PointCloud2, "/camera_2/detections", DATA_QOS,
                     lambda m: wire.msg_to_detections(m, "/camera_2/detections", ["camera_2"]))
     overlay = Recorder(client, Image, "/camera_2/detections/overlay", DATA_QOS)
     diags = DiagnosticsReader(client)
     assert wait_for(lambda: pub.get_subscription_count() > 0 and
                     dets.sub.get_publisher_count() > 0, 20.0, graph)
-    cam = fe.camera
-    img = np.zeros((cam.height, cam.width, 3), np.uint8)
-    stamp = scene.stamp_ns(4)
-    pub.publish(wire.bgr_to_image(img, stamp, "camera_2"))
+    pub.publish(good)
     assert wait_for(lambda: dets.has(stamp) and overlay.has(stamp), 20.0, graph)
     expect = scene.detections("camera_2", 4)
     np.testing.assert_allclose(dets.by_stamp[stamp].kpts2d, expect.kpts2d, atol=1e-3)
-    assert overlay.by_stamp[stamp].height == cam.height
-    # a stamp that is no scene frame, a truncated image, an unsupported encoding; one at a time
-    # (images are best effort, keep last 2: a burst may lose frames by design)
-    truncated = wire.bgr_to_image(img, scene.stamp_ns(5), "camera_2")
-    truncated.data = truncated.data[:100]
-    after_end = scene.stamp_ns(scene.num_frames - 1) + 1_000_000_000
-    bad = [wire.bgr_to_image(img, after_end, "camera_2"), truncated,
-           Image(header=truncated.header, height=2, width=2, encoding="32FC1", step=8,
-                 data=bytes(16))]
-    for i, msg in enumerate(bad, start=2):
+    ov = wire.image_to_bgr(overlay.by_stamp[stamp], "overlay")
+    assert ov.shape == img.shape and np.any(ov != ov[0, 0])  # something was drawn
+    # one at a time: images are best effort, keep last 2, so a burst may lose frames by design
+    for i, (msg, _) in enumerate(bad, start=2):
         pub.publish(msg)
-        diags.wait_value("/camera_2/frontend", "received//camera_2/image_raw",
-                         lambda v, i=i: v == i, graph=graph)
+        diags.wait_value("/camera_2/frontend", f"received/{topic.lstrip('/')}", lambda v, i=i: v == i,
+                         graph=graph)
     diags.wait_value("/camera_2/frontend", "frames_dropped", lambda v: v == 3, graph=graph)
     got = diags.get("/camera_2/frontend")
-    assert got["dropped/estimator"] == "1" and got["dropped/bad_size"] == "1"
-    assert got["dropped/bad_encoding"] == "1" and got["frames_processed"] == "1"
+    for _, reason in bad:
+        assert got[f"dropped/{reason}"] == "1", got
+    assert got["frames_processed"] == "1"
 
 
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -213,3 +237,28 @@ def test_invalid_parameters_exit_2_with_one_line(node, args, expect):
     assert len(lines) == 1, lines
     assert "invalid configuration" in lines[0] and f"'{expect}'" in lines[0]
     assert "Traceback" not in proc.stderr
+
+
+def test_frontend_max_rate_keeps_the_same_stamp_grid(graph, scene):
+    from maem_ros.ros.frontend_node import FrontendNode
+
+    cfg = scene.config
+    graph.add(FrontendNode, dict(rig="sportcenter6", max_rate=10.0, seed=cfg.seed,
+                                 difficulty=cfg.difficulty, frames=cfg.frames,
+                                 num_vertices=cfg.num_vertices, diagnostics_period=0.2),
+              namespace="/camera_4")
+    client = graph.client("rate_client")
+    pub = client.create_publisher(Image, "/camera_4/image_raw", IMAGE_QOS)
+    dets = Recorder(client, PointCloud2, "/camera_4/detections", DATA_QOS)
+    diags = DiagnosticsReader(client)
+    assert wait_for(lambda: pub.get_subscription_count() > 0 and
+                    dets.sub.get_publisher_count() > 0, 20.0, graph)
+    img = np.zeros((2, 2, 3), np.uint8)
+    for f in range(7):  # 30 fps stamps; 10 Hz keeps frames 0, 3, 6 (100 ms stamp grid)
+        pub.publish(wire.bgr_to_image(img, scene.stamp_ns(f), "camera_4"))
+        diags.wait_value("/camera_4/frontend", "received/camera_4/image_raw",
+                         lambda v, n=f + 1: v == n, graph=graph)
+    assert wait_for(lambda: dets.count() == 3, 10.0, graph)
+    assert sorted(dets.by_stamp) == [scene.stamp_ns(f) for f in (0, 3, 6)]
+    diags.wait_value("/camera_4/frontend", "count/skipped_max_rate", lambda v: v == 4, graph=graph)
+    assert diags.get("/camera_4/frontend")["frames_dropped"] == "0"

@@ -49,7 +49,7 @@ def roundtrip(msg):
 # ---------------------------------------------------------------------------------------------
 @FAST
 @given(n=st.integers(0, 6), j=st.integers(1, 20), v=st.integers(0, 40), seed=st.integers(0, 2**16),
-       stamp=st.integers(0, 2**62))
+       stamp=st.integers(0, wire.MAX_STAMP_NS))
 def test_detections_roundtrip(n, j, v, seed, stamp):
     dets = make_dets(n, j, v, seed, stamp_ns=stamp)
     msg = wire.detections_to_msg(dets)
@@ -225,6 +225,13 @@ def test_detections_decoder_rejects_values(field, index, value, name, reason):
         wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC)
     assert (ei.value.field, ei.value.reason) == (name, reason)
     assert "detection" in ei.value.problem
+
+
+def test_stamps_outside_ros_time_are_rejected():
+    assert wire.stamp_to_ns(wire.ns_to_stamp(wire.MAX_STAMP_NS)) == wire.MAX_STAMP_NS
+    for bad in (-1, wire.MAX_STAMP_NS + 1):
+        with pytest.raises(ValueError, match="stamp"):
+            wire.detections_to_msg(make_dets(1, 2, 0, stamp_ns=bad))
 
 
 def test_camera_mismatch_and_empty_frame():

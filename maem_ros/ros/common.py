@@ -173,7 +173,8 @@ class _Stage:
 class Diagnostics:
     """Counters and timings of one node, published as a DiagnosticArray every ``period`` s.
 
-    Values (KeyValue, all strings): ``rate_hz/<topic>`` input rate over the last period,
+    Values (KeyValue, all strings): ``rate_hz/<topic>`` input rate over the last period and
+    ``received/<topic>`` messages received (topic without its leading slash),
     ``frames_processed``, ``frames_dropped``, ``dropped/<reason>`` cumulative counts,
     ``time_ms/<stage>/median`` and ``/p99`` over the last 200 samples, ``count/<name>``
     cumulative counters (gate rejections ...), ``missing/<camera>`` frame sets without it,
@@ -267,8 +268,9 @@ class Diagnostics:
             dt = max(now - self._last_pub, 1e-6)
             kv: dict[str, str] = {}
             for topic in sorted(self._inputs_total):
-                kv[f"rate_hz/{topic}"] = f"{self._inputs[topic] / dt:.2f}"
-                kv[f"received/{topic}"] = str(self._inputs_total[topic])
+                name = topic.lstrip("/")
+                kv[f"rate_hz/{name}"] = f"{self._inputs[topic] / dt:.2f}"
+                kv[f"received/{name}"] = str(self._inputs_total[topic])
             kv["frames_processed"] = str(self.processed)
             kv["frames_dropped"] = str(sum(self.dropped.values()))
             for reason in sorted(self.dropped):

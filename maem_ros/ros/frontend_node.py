@@ -9,6 +9,10 @@ Subscribes ``image_raw`` (sensor_msgs/Image) or ``image_raw/compressed`` (Compre
 effort; publishes ``detections`` (reliable, keep last 10) stamped with the image stamp, and with
 ``publish_overlay`` ``detections/overlay`` (Image bgr8, the rectified image with the detections).
 The image is decoded (and rectified) only when the backend or the overlay needs it.
+``max_rate`` decimates on the stamp grid (one image per 1/max_rate s interval of the stamp), so
+frontends that cannot keep up with the cameras all keep the same instants and the association
+still finds complete frame sets (dropping by queue overflow would keep different frames per
+camera).
 """
 from __future__ import annotations
 
@@ -34,6 +38,9 @@ PARAMS = (
               choices=("raw", "compressed")),
     ParamSpec("publish_overlay", False, "also publish detections/overlay (rectified image + drawing)"),
     ParamSpec("vertex_stride", 1, "keep every n-th mesh vertex in verts2d", minimum=1),
+    ParamSpec("max_rate", 0.0, "Hz, process at most one image per 1/max_rate stamp interval "
+              "(stamp-aligned, so every camera keeps the same frames); 0 = every image",
+              minimum=0.0),
     # synthetic backend (sentinels -1 / 0 / '' = the scene's default)
     ParamSpec("scene_dict", "", "synthetic: SceneConfig as JSON (as recorded in bags)"),
     ParamSpec("scene_rig", "", "synthetic: sim rig name (default: the rig parameter)"),
@@ -88,6 +95,8 @@ class FrontendNode(Node):
         except (ValueError, ImportError) as e:
             raise ConfigError(f"backend {p['backend']!r}: {e}") from None
         self.publish_overlay = p["publish_overlay"]
+        self._bucket_ns = int(round(1e9 / p["max_rate"])) if p["max_rate"] > 0 else 0
+        self._last_bucket: int | None = None
         self._rectifier = None
         if self.estimator.needs_image or self.publish_overlay:
             from maem_ros.frontend.rectify import Rectifier
@@ -111,9 +120,22 @@ class FrontendNode(Node):
             return wire.compressed_to_bgr(msg, self.image_topic)
         return wire.image_to_bgr(msg, self.image_topic)
 
+    def skip(self, stamp_ns: int) -> bool:
+        """True when ``max_rate`` says this stamp's interval already had its image."""
+        if not self._bucket_ns:
+            return False
+        bucket = stamp_ns // self._bucket_ns
+        if bucket == self._last_bucket:
+            return True
+        self._last_bucket = bucket
+        return False
+
     def on_image(self, msg) -> None:
         self.diag.input(self.image_topic)
         stamp_ns = wire.stamp_to_ns(msg.header.stamp)
+        if self.skip(stamp_ns):
+            self.diag.count("skipped_max_rate")
+            return
         try:
             with Stopwatch(self.diag, "total"):
                 rect = None

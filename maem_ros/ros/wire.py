@@ -69,8 +69,14 @@ def stamp_to_ns(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+#: builtin_interfaces/Time.sec is int32: stamps from 0 up to 2^31 s (2038-01-19) fit
+MAX_STAMP_NS = 2**31 * 1_000_000_000 - 1
+
+
 def ns_to_stamp(ns: int) -> Time:
-    """Integer nanoseconds -> builtin_interfaces/Time."""
+    """Integer nanoseconds (0 .. MAX_STAMP_NS) -> builtin_interfaces/Time; ValueError outside."""
+    if not 0 <= int(ns) <= MAX_STAMP_NS:
+        raise ValueError(f"stamp: {int(ns)} ns is outside builtin_interfaces/Time (0 .. 2^31 s)")
     sec, nsec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nsec)
 

@@ -4,14 +4,15 @@
               [--params config/demo.yaml] [--keep-going] [--no-graph]
     maem-demo --make-bag bags/demo        (regenerate the committed demo bag, seeded)
 
-Graph mode (default) runs, each as its own process with one params file (OUT/params.yaml, built
-from --params plus what the bag says: rig, scene description): maem-record (/maem/poses,
-/maem/skeletons, /diagnostics -> OUT/record), one maem-frontend per camera (synthetic backend on
+Graph mode (default) runs, each as its own process with one params file (OUT/params.yaml:
+--params plus what the bag says, i.e. its rig and scene description, and association max_wait
+1 s as the six frontends share the CPU): maem-record (/maem/poses, /maem/skeletons,
+/diagnostics -> OUT/record), one maem-frontend per camera (synthetic backend on
 /<cam>/image_raw/compressed: it regenerates the full-resolution detections of each image stamp
 from the bag's scene description), maem-association, maem-triangulation, and last maem-play
 (the bag without its recorded detections and ground truth, at --rate). At the end every process
-gets SIGINT and its exit code is checked. --no-graph runs the core pipeline on the bag's recorded
-(vertex-subset) detections in this process instead.
+gets SIGINT and its exit code is checked. --no-graph runs the core pipeline on the bag's
+recorded (vertex-subset) detections in this process instead.
 
 Printed: the maem-eval accuracy table against the bag's /maem/gt_poses (same metrics, see
 maem-eval --help), per-stage timing from the last recorded /diagnostics of each node,
@@ -50,7 +51,8 @@ JPEG_QUALITY = 35
 BAG_VERTICES = 256
 #: default playback rate (1.5 fps): each synthetic frontend regenerates 18,439-vertex
 #: detections of ~12 people per image (~55 ms CPU); all six get a frame at the same moment and
-#: share 2 cores, ~0.4 s per frame on this machine, so faster replays drop frames
+#: share 2 cores with the rest of the machine (0.2-0.4 s per frame here), so faster replays
+#: drop frames
 DEFAULT_RATE = 0.05
 RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/diagnostics")
 LATENCY_DEFINITION = (
@@ -215,6 +217,17 @@ _SCENE_SENTINELS = {"seed": -1, "difficulty": "", "frames": 0, "num_vertices": 0
                     "start_stamp_ns": -1}
 
 
+def node_section(data: dict, node: str) -> dict:
+    """The ros__parameters of ``node`` in a params dict, merged from its "node", "/node" and
+    "/**/node" sections into one "/**/node" section (which also matches the namespaced
+    frontends, /camera_0/frontend; a plain "frontend" key matches only /frontend)."""
+    merged: dict = {}
+    for key in (node, f"/{node}", f"/**/{node}"):
+        merged.update(((data.pop(key, None) or {}).get("ros__parameters")) or {})
+    data[f"/**/{node}"] = {"ros__parameters": merged}
+    return merged
+
+
 def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None,
                  max_wait_s: float = 1.0) -> Path:
     """``base`` params file with the bag's rig for every node; for the frontends compressed
@@ -223,18 +236,13 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
     arrive spread over a few hundred ms)."""
     from maem_ros.params import resolve_config_path
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
-    # the frontends run namespaced (/camera_0/frontend): a plain "frontend" key only matches
-    # the root-namespace node, so its parameters go under "/**/frontend"
-    fe_key = "/**/frontend"
-    merged = {}
-    for key in ("frontend", "/frontend", fe_key):
-        merged.update((data.pop(key, None) or {}).get("ros__parameters") or {})
-    data[fe_key] = {"ros__parameters": merged}
-    for node in ("/**", fe_key, "association", "triangulation"):
-        section = data.setdefault(node, {}).setdefault("ros__parameters", {})
-        if node == "/**" or "rig" in section:
+    nodes = {name: node_section(data, name)
+             for name in ("frontend", "association", "triangulation")}
+    data.setdefault("/**", {}).setdefault("ros__parameters", {})["rig"] = str(rig_path)
+    for section in nodes.values():
+        if "rig" in section:
             section["rig"] = str(rig_path)
-    fe = data[fe_key]["ros__parameters"]
+    fe = nodes["frontend"]
     fe["image_transport"] = "compressed"
     if fe.get("backend", "synthetic") == "synthetic":
         if scene_config is None:
@@ -243,7 +251,7 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
         fe.update(_SCENE_SENTINELS)
         fe["scene_dict"] = json.dumps(scene_config, sort_keys=True)
         fe["scene_rig"] = str(scene_config.get("rig", ""))
-    data["association"]["ros__parameters"]["max_wait"] = max_wait_s
+    nodes["association"]["max_wait"] = float(max_wait_s)
     out.write_text(yaml.safe_dump(data, sort_keys=False))
     return out
 
@@ -342,7 +350,7 @@ class Listener:
     """rclpy node in its own context and thread: first arrival (monotonic ns) of each image stamp
     and of each /maem/poses stamp; also checks that the graph is wired before playing."""
 
-    def __init__(self, cameras: Sequence[str]):
+    def __init__(self, cameras: Sequence[str], domain_id: int):
         import rclpy
         from rclpy.executors import SingleThreadedExecutor
         from sensor_msgs.msg import CompressedImage, PointCloud2
@@ -351,7 +359,7 @@ class Listener:
 
         self.cameras = list(cameras)
         self.context = rclpy.Context()
-        rclpy.init(context=self.context)
+        rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node("maem_demo_listener", context=self.context)
         self.lock = threading.Lock()
         self.image_t: dict[int, int] = {}
@@ -423,13 +431,20 @@ class DemoError(RuntimeError):
 
 
 def _crash_text(proc: Proc, code: int | None) -> str:
-    what = "killed after SIGINT timeout" if code is None else f"exit code {code}"
+    if code is None:
+        what = "did not exit within the SIGINT timeout; killed"
+    elif code < 0:
+        what = f"killed by signal {signal.Signals(-code).name}"
+    else:
+        what = f"exit code {code}"
     return f"{proc.name}: {what}\n    " + "\n    ".join(proc.tail().rstrip().splitlines()[-12:])
 
 
-def run_graph(bag: Path, demo: DemoBag, params: Path, out: Path, rate: float, keep_going: bool,
-              startup_timeout_s: float = 60.0, drain_s: float = 5.0) -> GraphRun:
-    """Start recorder + nodes, wait until wired, play the bag, drain, SIGINT everything."""
+def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out: Path,
+              rate: float, keep_going: bool, startup_timeout_s: float = 60.0,
+              drain_s: float = 5.0) -> GraphRun:
+    """Start recorder + nodes, wait until wired, play ``bag`` (whose frames are ``stamps``),
+    wait until every frame has poses (or none came for ``drain_s``), SIGINT everything."""
     warm_numba_cache()
     group = ProcessGroup(out / "logs", child_env())
     record = out / "record"
@@ -446,16 +461,17 @@ def run_graph(bag: Path, demo: DemoBag, params: Path, out: Path, rate: float, ke
         for kind in ("association", "triangulation"):
             group.start(kind, module_command(f"maem_ros.ros.{kind}_node", "--ros-args",
                                              "--params-file", str(params)))
-        os.environ.update({k: group.env[k] for k in ("ROS_DOMAIN_ID",
-                                                     "ROS_AUTOMATIC_DISCOVERY_RANGE")})
-        listener = Listener(demo.cameras)
+        # the listener (this process) joins the children's domain and discovery range
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE",
+                              group.env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
+        listener = Listener(demo.cameras, int(group.env["ROS_DOMAIN_ID"]))
         _wait_wired(group, listener, startup_timeout_s)
         t0 = time.monotonic()
         group.start("player", module_command(
             "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
             "--exclude", "/*/detections", bagio.GT_TOPIC))
         crashed.update(_watch_play(group, nodes + ["recorder"], keep_going))
-        _drain(group, listener, demo.stamps, drain_s, nodes, crashed, keep_going)
+        _drain(group, listener, stamps, drain_s, nodes, crashed, keep_going)
         wall = time.monotonic() - t0
         time.sleep(1.3)  # one more /diagnostics period reaches the recorder
         codes = group.stop(nodes)
@@ -514,8 +530,9 @@ def _check_crashes(group: ProcessGroup, watched: list[str], crashed: dict[str, s
     for name, code in group.dead(watched).items():
         if name not in crashed:
             crashed[name] = _crash_text(group.procs[name], code)
-            log(f"NODE CRASHED: {crashed[name]}")
-            if not keep_going:
+            if keep_going:
+                log(f"NODE CRASHED (--keep-going: replay continues): {crashed[name]}")
+            else:
                 raise DemoError(f"{name} crashed during the replay (use --keep-going to finish "
                                 f"the replay anyway):\n  {crashed[name]}")
 
@@ -732,12 +749,14 @@ def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
 # CLI
 # ---------------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-demo", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-                                epilog=__doc__.split("\n\n", 2)[2] + "\n" + LATENCY_DEFINITION + ".",
+    p = argparse.ArgumentParser(prog="maem-demo",
+                                description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+                                epilog=f"{__doc__.split(chr(10) * 2, 2)[2]}\n{LATENCY_DEFINITION}.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--bag", type=Path, default=None,
                    help="input bag (default bags/demo; generated first when missing)")
-    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
+    p.add_argument("--out", type=Path, default=Path("out/demo"),
+                   help="output folder (default out/demo)")
     p.add_argument("--params", default="demo.yaml", help="params file (default config/demo.yaml)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--frames", type=int, default=None, help="play only the first N frames")
@@ -748,7 +767,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-going", action="store_true",
                    help="finish the replay when a node crashes (reported at the end, exit 1)")
     p.add_argument("--no-graph", action="store_true",
-                   help="offline: core association + triangulation on the bag's recorded detections")
+                   help="offline: core association + triangulation on the bag's recorded "
+                   "detections")
     p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                    help="give up when the graph is not wired after S seconds (default 60)")
     p.add_argument("--make-bag", type=Path, default=None, metavar="DIR",
@@ -809,80 +829,99 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
-def run_demo(a: argparse.Namespace, t_start: float) -> int:
-    from maem_ros.core.camera import Rig
-    bag = a.bag or default_bag()
+def ensure_bag(bag: Path, frames: int) -> Path:
+    """``bag`` when it is a rosbag2 folder; generate the demo bag there when it is missing."""
     if not (bag / "metadata.yaml").is_file():
         if bag.exists():
             raise ValueError(f"--bag {str(bag)!r}: not a rosbag2 folder (no metadata.yaml)")
         log(f"no bag at {str(bag)!r}: generating the demo bag (seeded)")
-        make_demo_bag(bag, frames=a.bag_frames)
+        make_demo_bag(bag, frames=frames)
+    return bag
+
+
+def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
+                 ) -> tuple[int, dict[int, Any], dict[str, Any]]:
+    """--no-graph: (exit code, poses by stamp, report entries)."""
+    poses, ms = run_offline(demo, rig, a.params, stamps)
+    metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
+    metrics["association_ms_median"] = float(np.median(ms))
+    print_accuracy("offline (bag detections)", metrics)
+    print(f"\ncore association + triangulation per frame: median {np.median(ms):.1f} ms, "
+          f"p99 {np.percentile(ms, 99):.1f} ms (this process, bag's vertex subset)")
+    return 0, poses, {"metrics": metrics, "pipeline_ms_median": float(np.median(ms))}
+
+
+def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: list[int]
+               ) -> tuple[int, dict[int, Any], dict[str, Any]]:
+    """The node graph replay: (exit code, recorded poses by stamp, report entries)."""
+    check_scene(demo)
+    n = len(stamps)
+    play_bag = demo.path if n == len(demo.stamps) else trim_bag(demo, a.out / "input", n)
+    params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(), demo.scene_config)
+    run = run_graph(play_bag, demo, stamps, params, a.out, a.rate, a.keep_going,
+                    startup_timeout_s=a.startup_timeout)
+    poses = recorded_poses(run.record)
+    diags = recorded_diagnostics(run.record)
+    metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
+    assoc = next((kv for name, kv in diags.items() if name.strip("/") == "association"), {})
+    metrics["association_ms_median"] = float(assoc.get("time_ms/associate/median", "nan"))
+    print_accuracy("graph (maem-play -> nodes)", metrics)
+    rows = stage_timing(diags)
+    print("\nper-stage timing (last /diagnostics of each node, over its last <= 200 frames):")
+    print(format_timing(rows) if rows else "  no /diagnostics recorded")
+    lat = latencies_ms(run.image_t, run.poses_t)
+    dropped = [s for s in stamps if s not in poses]
+    print_run_summary(a.rate, n, lat, dropped, diags, run)
+    report = {"metrics": metrics, "latency_definition": LATENCY_DEFINITION,
+              "timing": [dict(zip(("node", "stage", "median_ms", "p99_ms", "processed",
+                                   "dropped"), r)) for r in rows],
+              "latency_ms_median": float(np.median(lat)) if len(lat) else None,
+              "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+              "frames_dropped": len(dropped), "exit_codes": run.exit_codes,
+              "crashed": run.crashed, "record": str(run.record), "replay_wall_s": run.wall_s}
+    if run.crashed:
+        print("\nNODE FAILURES:")
+        for text in run.crashed.values():
+            print(f"  {text}")
+    return (1 if run.crashed else 0), poses, report
+
+
+def print_run_summary(rate: float, n: int, lat: np.ndarray, dropped: list[int],
+                      diags: dict[str, dict[str, str]], run: GraphRun) -> None:
+    """Latency, dropped frames (and the nodes' drop counters), machine load, exit codes."""
+    print(f"\nend-to-end latency (image received -> /maem/poses received, {len(lat)} frames): "
+          + (f"median {np.median(lat):.0f} ms, p99 {np.percentile(lat, 99):.0f} ms, "
+             f"max {lat.max():.0f} ms" if len(lat) else "no frame completed"))
+    print(f"frames dropped: {len(dropped)} of {n} played frames have no /maem/poses"
+          + (f" (rate {rate:g}; try a lower --rate)" if dropped and not run.crashed else ""))
+    for name, d in sorted(dropped_counters(diags).items()):
+        print(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(d.items())))
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} "
+          f"(1 min, all users)")
+    print(f"replay wall time: {run.wall_s:.1f} s; processes: " + ", ".join(
+        f"{k}={'killed' if v is None else v}" for k, v in run.exit_codes.items()))
+
+
+def run_demo(a: argparse.Namespace, t_start: float) -> int:
+    from maem_ros.core.camera import Rig
+    from maem_ros.tools.evaluate import _jsonable
+    bag = ensure_bag(a.bag or default_bag(), a.bag_frames)
     prepare_out(a.out)
     demo = load_bag(bag)
-    n = played_frames(demo, a.frames, a.duration)
-    stamps = demo.stamps[:n]
+    stamps = demo.stamps[:played_frames(demo, a.frames, a.duration)]
     rig_path = a.out / "rig.yaml"
     rig_path.write_text(demo.rig_yaml)
     rig = Rig.load(rig_path)
     log(f"bag {str(bag)!r}: {len(demo.stamps)} frames x {len(demo.cameras)} cameras at "
-        f"{demo.fps:.0f} fps; playing {n} frames "
+        f"{demo.fps:.0f} fps; playing {len(stamps)} frames "
         + ("offline (--no-graph)" if a.no_graph else f"at rate {a.rate:g}"))
-    report: dict[str, Any] = {"bag": str(bag), "frames_played": n, "cameras": demo.cameras,
-                              "mode": "offline" if a.no_graph else "graph", "rate": a.rate}
-    if a.no_graph:
-        poses, ms = run_offline(demo, rig, a.params, stamps)
-        metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
-        metrics["association_ms_median"] = float(np.median(ms)) if ms else float("nan")
-        print_accuracy("offline (bag detections)", metrics)
-        print(f"\ncore association + triangulation per frame: median {np.median(ms):.1f} ms, "
-              f"p99 {np.percentile(ms, 99):.1f} ms (this process, bag's vertex subset)")
-        report.update(metrics=metrics, pipeline_ms_median=float(np.median(ms)))
-        code = 0
-    else:
-        check_scene(demo)
-        play_bag = bag if n == len(demo.stamps) else trim_bag(demo, a.out / "input", n)
-        params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(),
-                              demo.scene_config)
-        run = run_graph(play_bag, demo, params, a.out, a.rate, a.keep_going,
-                        startup_timeout_s=a.startup_timeout)
-        poses = recorded_poses(run.record)
-        diags = recorded_diagnostics(run.record)
-        metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
-        assoc = next((kv for name, kv in diags.items() if name.strip("/") == "association"), {})
-        metrics["association_ms_median"] = float(assoc.get("time_ms/associate/median", "nan"))
-        print_accuracy("graph (maem-play -> nodes)", metrics)
-        rows = stage_timing(diags)
-        print("\nper-stage timing (last /diagnostics of each node, over its last <= 200 frames):")
-        print(format_timing(rows) if rows else "  no /diagnostics recorded")
-        lat = latencies_ms(run.image_t, run.poses_t)
-        dropped = [s for s in stamps if s not in poses]
-        print(f"\nend-to-end latency (image received -> /maem/poses received, {len(lat)} frames): "
-              + (f"median {np.median(lat):.0f} ms, p99 {np.percentile(lat, 99):.0f} ms, "
-                 f"max {lat.max():.0f} ms" if len(lat) else "no frame completed"))
-        print(f"frames dropped: {len(dropped)} of {n} played frames have no /maem/poses"
-              + (f" (rate {a.rate:g}; try a lower --rate)" if dropped else ""))
-        for name, d in sorted(dropped_counters(diags).items()):
-            print(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(d.items())))
-        print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} "
-              f"(1 min, all users)")
-        print(f"replay wall time: {run.wall_s:.1f} s; processes: " + ", ".join(
-            f"{k}={'killed' if v is None else v}" for k, v in run.exit_codes.items()))
-        report.update(metrics=metrics, timing=[dict(zip(("node", "stage", "median_ms", "p99_ms",
-                                                         "processed", "dropped"), r)) for r in rows],
-                      latency_ms_median=float(np.median(lat)) if len(lat) else None,
-                      latency_ms_p99=float(np.percentile(lat, 99)) if len(lat) else None,
-                      latency_definition=LATENCY_DEFINITION, frames_dropped=len(dropped),
-                      exit_codes=run.exit_codes, crashed=run.crashed, record=str(run.record))
-        code = 0
-        if run.crashed:
-            print("\nNODE FAILURES:")
-            for text in run.crashed.values():
-                print(f"  {text}")
-            code = 1
+    mode = offline_mode(a, demo, rig, stamps) if a.no_graph else graph_mode(a, demo, rig_path,
+                                                                            stamps)
+    code, poses, entries = mode
     pictures = write_pictures(a.out, demo, rig, stamps, poses)
-    from maem_ros.tools.evaluate import _jsonable
-    report["pictures"] = [str(p) for p in pictures]
-    report["wall_s"] = time.monotonic() - t_start
+    report = {"bag": str(bag), "frames_played": len(stamps), "cameras": demo.cameras,
+              "mode": "offline" if a.no_graph else "graph", "rate": a.rate, **entries,
+              "pictures": [str(p) for p in pictures], "wall_s": time.monotonic() - t_start}
     (a.out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))
     print(f"\nwrote {', '.join(str(p) for p in pictures) or 'no pictures (no frame with poses)'}, "
           f"{a.out / 'report.json'}")

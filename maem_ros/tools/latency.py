@@ -240,6 +240,18 @@ def match_mpjpe(pred: np.ndarray, gt: np.ndarray,
     return list(cost[rows, cols][keep]), list(zip(rows[keep], cols[keep]))
 
 
+def expected_stamps(stamps: Sequence[int], max_rate: float) -> list[int]:
+    """The stamps frontends with ``max_rate`` (stamp-aligned decimation) process."""
+    if max_rate <= 0:
+        return list(stamps)
+    bucket_ns, out, last = int(round(1e9 / max_rate)), [], None
+    for s in stamps:
+        if s // bucket_ns != last:
+            out.append(s)
+            last = s // bucket_ns
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # replay
 # ---------------------------------------------------------------------------------------------
@@ -287,9 +299,14 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
         if s in poses:
             gt = conv.select(scene.gt_keypoints(f)[scene.is_player])
             errors += match_mpjpe(poses[s][1].joints, gt)[0]
+    max_rate = float(load_node_params(params_file, "frontend").get("max_rate", 0.0) or 0.0)
+    expected = expected_stamps([scene.stamp_ns(f) for f in range(frames)], max_rate)
     report.update({
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "frontend_max_rate_hz": max_rate,
+        "frames_expected": len(expected),
         "poses_received": int(len(lat)),
-        "frames_dropped": int(frames - len(lat)),
+        "frames_dropped": int(sum(s not in poses for s in expected)),
         "latency_ms_median": float(np.median(lat)) if len(lat) else None,
         "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
         "latency_ms_max": float(lat.max()) if len(lat) else None,
@@ -310,6 +327,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=30.0, help="publish rate, Hz")
     ap.add_argument("--difficulty", default=None, choices=("none", "easy", "medium", "hard"))
     ap.add_argument("--num-vertices", type=int, default=None, help="mesh vertices per person")
+    ap.add_argument("--max-rate", type=float, default=None,
+                    help="frontend max_rate, Hz (stamp-aligned decimation)")
+    ap.add_argument("--max-wait", type=float, default=None, help="association max_wait, s")
     ap.add_argument("--log-dir", type=Path, default=None, help="node logs (default: a temp dir)")
     ap.add_argument("--json", action="store_true", help="print the report as JSON")
     a = ap.parse_args(argv)
@@ -319,7 +339,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         fe["difficulty"] = a.difficulty
     if a.num_vertices:
         fe["num_vertices"] = a.num_vertices
-    params = write_params(a.params, tmp / "params.yaml", frontend=fe)
+    if a.max_rate:
+        fe["max_rate"] = a.max_rate
+    assoc = {"max_wait": a.max_wait} if a.max_wait else None
+    params = write_params(a.params, tmp / "params.yaml", frontend=fe, association=assoc)
     report = run(params, a.frames, a.rate, a.log_dir or tmp / "logs")
     print(json.dumps(report, indent=2) if a.json else yaml.safe_dump(report, sort_keys=False))
     return 0
