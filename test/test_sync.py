@@ -174,3 +174,32 @@ def test_jittered_stamps_form_complete_sets(seed: int, jitter_ms: int, latency_m
     assert len(sets) == frames
     for k, fs in enumerate(sets):
         assert fs.missing == [] and set(fs.items.values()) == {k}
+
+
+def test_frame_period_longer_than_max_wait_still_gives_complete_sets() -> None:
+    """Slow replay (period 400 ms > max_wait 150 ms) with cameras arriving 30 ms apart: no
+    camera is taken for dead just because the previous frame was long ago."""
+    s = make()
+    period = 400 * MS
+    out: list[FrameSet] = []
+    for frame in range(5):
+        for k, cam in enumerate(CAMS):
+            t = T0 + frame * period
+            out += s.add(cam, t, (cam, frame), now_ns=t + 10 * MS + k * 30 * MS)
+    assert len(out) == 5
+    assert all(fs.missing == [] for fs in out)
+    assert s.counters["dropped_too_few_cameras"] == 0 and s.counters["dropped_late"] == 0
+
+
+def test_dead_camera_costs_one_max_wait_only() -> None:
+    """After one partial set lists a dead camera, later sets do not wait for it."""
+    s = make()
+    first = []
+    for cam in CAMS[:3]:
+        first += s.add(cam, T0, cam, now_ns=T0 + MS)
+    assert first == []
+    assert [fs.missing for fs in s.poll(T0 + 200 * MS)] == [["cam3"]]
+    out = []
+    for cam in CAMS[:3]:
+        out += s.add(cam, T0 + PERIOD, cam, now_ns=T0 + 201 * MS)
+    assert [fs.missing for fs in out] == [["cam3"]]  # emitted at once, no second wait

@@ -10,11 +10,13 @@ Rules (DESIGN.md §5):
 - The reference is the oldest queued message. A camera is *present* when its
   oldest queued message lies within ``[ref, ref + slop]`` (it cannot be older than
   the reference). It is *known missing* when its oldest message is newer than
-  ``ref + slop`` (stamps per camera only increase) or when it has delivered nothing
-  for more than ``max_wait`` (a stale or dead camera, so it adds no waiting to later
-  frames; it is picked up again with its next message, though if that first message
-  arrives after the other cameras' messages of its frame, that frame is already out
-  and the message counts as ``dropped_late``).
+  ``ref + slop`` (stamps per camera only increase) or when it was missing from the
+  last emitted set and has delivered nothing since (a dead camera costs one
+  ``max_wait`` once, not on every frame; judging it by its silence alone would
+  declare every camera dead whenever the frame period exceeds ``max_wait``). It is
+  picked up again with its next message, though if that first message arrives
+  after the other cameras' messages of its frame, that frame is already out and the
+  message counts as ``dropped_late``.
 - A FrameSet is emitted, stamped with the reference stamp, as soon as every camera
   is present or known missing, or once ``max_wait`` has passed since the reference
   message arrived; if fewer than ``min_cameras`` are present then, only the
@@ -82,8 +84,7 @@ class ApproximateTimeSync:
         for q in self._queues.values():
             q.clear()
         self._last_stamp: dict[str, int] = {}
-        self._last_arrival: dict[str, int] = {}
-        self._start_ns: int | None = None
+        self._silent: set[str] = set()  # missing from the last set, nothing delivered since
         self._last_emitted: int | None = None
         if count:
             self.counters["resets"] += 1
@@ -105,10 +106,8 @@ class ApproximateTimeSync:
             else:
                 self.counters["dropped_out_of_order"] += 1
                 return self.poll(now_ns)
-        if self._start_ns is None:
-            self._start_ns = now_ns
         self._last_stamp[camera] = stamp_ns
-        self._last_arrival[camera] = now_ns
+        self._silent.discard(camera)
         if self._last_emitted is not None and stamp_ns <= self._last_emitted:
             self.counters["dropped_late"] += 1
             return self.poll(now_ns)
@@ -131,7 +130,7 @@ class ApproximateTimeSync:
             ref = heads[ref_cam]
             limit = ref.stamp_ns + self.slop_ns
             present = [c for c in self.cameras if c in heads and heads[c].stamp_ns <= limit]
-            decided = all(c in heads or self._stale(c, now_ns) for c in self.cameras)
+            decided = all(c in heads or c in self._silent for c in self.cameras)
             if not decided and now_ns - ref.arrival_ns < self.max_wait_ns:
                 return out
             if len(present) < self.min_cameras:
@@ -140,13 +139,10 @@ class ApproximateTimeSync:
                 continue
             out.append(self._emit(ref.stamp_ns, present))
 
-    def _stale(self, camera: str, now_ns: int) -> bool:
-        last = self._last_arrival.get(camera, self._start_ns)
-        return last is not None and now_ns - last > self.max_wait_ns
-
     def _emit(self, stamp_ns: int, present: list[str]) -> FrameSet:
         items = {c: self._queues[c].popleft().item for c in present}
         missing = [c for c in self.cameras if c not in items]
+        self._silent = {c for c in missing if not self._queues[c]}
         self._last_emitted = stamp_ns
         self.counters["sets"] += 1
         if missing:

@@ -178,8 +178,9 @@ class Scene:
         """FrameDetections of ``camera`` at ``frame``: rectified px, MHR70, camera-frame metres."""
         d = self.simulated(camera, frame)
         cam, _ = self._camera(camera)
-        return FrameDetections(cam.name, self.stamp_ns(frame), d.bbox_rect, d.scores, d.kpts2d_rect, d.kpts3d,
-                               d.verts2d_rect.astype(np.float32))
+        # copies: callers may modify their detections, the cache must stay intact
+        return FrameDetections(cam.name, self.stamp_ns(frame), d.bbox_rect.copy(), d.scores.copy(),
+                               d.kpts2d_rect.copy(), d.kpts3d.copy(), d.verts2d_rect.astype(np.float32))
 
     def detection_persons(self, camera: str | int, frame: int) -> np.ndarray:
         """(N,) GT person index of each detection (same order as ``detections``), -1 = false positive."""
