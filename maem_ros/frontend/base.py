@@ -31,7 +31,8 @@ class Estimator(ABC):
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Detections of ``camera`` at ``stamp_ns`` (ns), 2D in the camera's RECTIFIED px.
 
-        ``image`` is the raw BGR uint8 (H,W,3) frame when ``needs_image``; ValueError on bad input.
+        ``image`` is the RECTIFIED BGR uint8 (H,W,3) frame (frontend.rectify.Rectifier, K_rect)
+        when ``needs_image``, else None; ValueError on bad input.
         """
 
 

@@ -56,7 +56,26 @@ PARAMS = (
               minimum=-1),
     # npz backend
     ParamSpec("dets_dir", "", "npz: folder with <camera>/<frame>.npz (or a scene folder)"),
+    # sam3d_body backend (frontend/sam3d_body.py; '' = the backend's default)
+    ParamSpec("checkpoint_path", "", "sam3d_body: model.ckpt of the official SAM 3D Body weights"),
+    ParamSpec("mhr_path", "", "sam3d_body: MHR model (default: assets/mhr_model.pt beside the "
+              "checkpoint)"),
+    ParamSpec("hf_repo_id", "", "sam3d_body: load from a local Hugging Face cache instead"),
+    ParamSpec("repo_path", "", "sam3d_body: clone of facebookresearch/sam-3d-body, if not installed"),
+    ParamSpec("device", "auto", "sam3d_body: auto | cpu | cuda | cuda:N"),
+    ParamSpec("precision", "fp32", "sam3d_body: inference precision",
+              choices=("fp32", "fp16", "bf16")),
+    ParamSpec("detector", "vitdet", "sam3d_body: person detector",
+              choices=("vitdet", "model", "none")),
+    ParamSpec("bbox_thr", 0.5, "sam3d_body: detector score threshold", minimum=0.0),
+    ParamSpec("inference_type", "full", "sam3d_body: full (body + hands) or body",
+              choices=("full", "body")),
+    ParamSpec("keypoint_convention", "mhr70", "sam3d_body: keypoints published",
+              choices=("mhr70", "sportcenter_13", "coco_17")),
 )
+
+SAM3D_KEYS = ("checkpoint_path", "mhr_path", "hf_repo_id", "repo_path", "device", "precision",
+              "detector", "bbox_thr", "inference_type", "keypoint_convention")
 
 
 def backend_options(p: dict[str, Any]) -> dict[str, Any]:
@@ -71,6 +90,8 @@ def backend_options(p: dict[str, Any]) -> dict[str, Any]:
             opts[key] = p[key]
     if p["backend"] != "synthetic":
         opts.pop("rig")
+    if p["backend"] == "sam3d_body":
+        opts.update({key: p[key] for key in SAM3D_KEYS})
     return opts
 
 
