@@ -80,11 +80,19 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (3-vectors): the products and differences of ``np.cross``, without
+    its overhead on small arrays."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _lin(*terms) -> np.ndarray:
     """sum of coefficient (P,) or scalar times vector (P,3)."""
     out = 0.0
     for c, v in terms:
-        out = out + np.asarray(c, dtype=np.float64)[..., None] * v
+        out = out + (c[..., None] if isinstance(c, np.ndarray) else c) * v
     return out
 
 
@@ -115,7 +123,7 @@ def forward_kinematics(height: np.ndarray, width: np.ndarray, angles: dict[str, 
     l0 = _lin((-np.sin(tw), ex), (np.cos(tw), ey))
     u_t = _unit(_lin((np.sin(lean), f0), (np.sin(roll), l0), (np.cos(lean) * np.cos(roll), ez)))
     l_t = _unit(l0 - np.sum(l0 * u_t, -1, keepdims=True) * u_t)
-    f_t = np.cross(l_t, u_t)
+    f_t = _cross(l_t, u_t)
 
     put("pelvis", np.zeros((P, 3)))
     put("spine_mid", _lin((0.14 * H, u_t)))
@@ -135,7 +143,7 @@ def forward_kinematics(height: np.ndarray, width: np.ndarray, angles: dict[str, 
     fy = _lin((np.cos(yaw), f_t), (np.sin(yaw), l_t))
     l_h = _lin((np.cos(yaw), l_t), (-np.sin(yaw), f_t))
     f_h = _lin((np.cos(pitch), fy), (-np.sin(pitch), u_t))
-    u_h = np.cross(f_h, l_h)
+    u_h = _cross(f_h, l_h)
     ear_mid = neck + _lin((0.082 * H, u_t))
     put("ear_mid", ear_mid)
     put("left_ear", ear_mid + _lin((0.072 * ws, l_h)))
@@ -184,23 +192,29 @@ def _arm(put, side, sg, sh, a, H, s, f_t, l_t, u_t) -> None:
     th_h = th + el + a[f"wrist_{side[0]}"]
     d_h = _limb_dir(th_h, be, sg, f_t, l_t, u_t)
     across = _front(th_h, f_t, u_t)  # thumb side (front when the arm hangs)
-    palm = _unit(np.cross(d_h, across) * sg)  # palm normal, medial when the arm hangs
+    palm = _unit(_cross(d_h, across) * sg)  # palm normal, medial when the arm hangs
     curl = a["finger_curl"]
     fingers = {"index": (0.026, 0.085, (0.040, 0.024, 0.020)), "middle": (0.008, 0.088, (0.045, 0.028, 0.022)),
                "ring": (-0.011, 0.084, (0.042, 0.026, 0.021)), "pinky": (-0.027, 0.077, (0.033, 0.019, 0.018))}
+    dirs = _phalanx_dirs(d_h, palm, curl)  # the same for the four fingers
     for name, (off, base, lengths) in fingers.items():
         p = wrist + _lin((base * s, d_h), (off * s, across))
-        _finger(put, f"{side}_{name}", p, lengths, s, d_h, palm, curl)
+        _finger(put, f"{side}_{name}", p, lengths, s, dirs)
     thumb_dir = _unit(_lin((0.55, d_h), (0.75, across), (0.35, palm)))
     p = wrist + _lin((0.032 * s, d_h), (0.028 * s, across), (0.012 * s, palm))
-    _finger(put, f"{side}_thumb", p, (0.040, 0.032, 0.028), s, thumb_dir, palm, 0.6 * curl)
+    _finger(put, f"{side}_thumb", p, (0.040, 0.032, 0.028), s, _phalanx_dirs(thumb_dir, palm, 0.6 * curl))
     put(f"{side}_hand_end", wrist + _lin((0.15 * s, d_h)))
 
 
-def _finger(put, prefix, p, lengths, s, d, palm, curl) -> None:
+def _phalanx_dirs(d, palm, curl) -> list[np.ndarray]:
+    """Unit directions (P,3) of the three phalanges: curled by k * curl (rad) from d towards palm."""
+    return [_lin((np.cos(k * curl), d), (np.sin(k * curl), palm)) for k in (1, 2, 3)]
+
+
+def _finger(put, prefix, p, lengths, s, dirs) -> None:
+    """Joints of one finger from its base p (P,3) m: phalanx lengths (m at 1.8 m) along dirs."""
     put(f"{prefix}_third_joint", p)
-    for k, (part, length) in enumerate(zip(("second_joint", "first_joint", "tip"), lengths), start=1):
-        dk = _lin((np.cos(k * curl), d), (np.sin(k * curl), palm))
+    for part, length, dk in zip(("second_joint", "first_joint", "tip"), lengths, dirs):
         p = p + _lin((length * s, dk))
         put(f"{prefix}_{part}", p)
 
@@ -216,7 +230,7 @@ def _leg(put, side, sg, hip, a, H, s, ex, ey, ez) -> None:
     toe_out = 0.12 * sg
     fd = _lin((np.cos(p) * np.cos(toe_out), ex), (np.cos(p) * np.sin(toe_out), ey), (np.sin(p), ez))
     uf = _lin((-np.sin(p) * np.cos(toe_out), ex), (-np.sin(p) * np.sin(toe_out), ey), (np.cos(p), ez))
-    lat = np.cross(uf, fd)  # left of the foot
+    lat = _cross(uf, fd)  # left of the foot
     Lf, ha = 0.152 * H, 0.039 * H
     put(f"{side}_heel", ankle + _lin((-0.22 * Lf, fd), (-0.85 * ha, uf)))
     big = ankle + _lin((0.76 * Lf, fd), (-0.85 * ha, uf), (-sg * 0.022 * s, lat))
@@ -251,19 +265,47 @@ class BodyModel:
 
     def vertices(self, skel: Skeleton, height: np.ndarray, width: np.ndarray) -> np.ndarray:
         """(P,V,3) world metres for the skeletons ``skel`` of persons with this shape."""
+        M = self.part_frames(skel, height, width)
+        out = np.empty((M.shape[0], self.num_vertices, 3))
+        for k, sl in enumerate(self.slices):
+            out[:, sl] = np.matmul(M[:, k], self.coeff[sl].T).transpose(0, 2, 1)
+        return out
+
+    def vertices_subset(self, skel: Skeleton, height: np.ndarray, width: np.ndarray,
+                        index: np.ndarray) -> np.ndarray:
+        """(P,len(index),3) world metres of the vertices ``index`` (sorted) only (same per-part
+        products as ``vertices``)."""
+        M = self.part_frames(skel, height, width)
+        index = np.asarray(index)
+        parts = self.part_of[index]
+        out = np.empty((M.shape[0], len(index), 3))
+        for k in np.unique(parts):
+            sel = np.flatnonzero(parts == k)
+            out[:, sel] = np.matmul(M[:, k], self.coeff[index[sel]].T).transpose(0, 2, 1)
+        return out
+
+    def part_frames(self, skel: Skeleton, height: np.ndarray, width: np.ndarray) -> np.ndarray:
+        """(P,K,3,4) per-part affine maps, metres: vertex = M[p, part] @ coeff[vertex].
+
+        Columns: anchor a, axis a -> b, e1 x radius 1, e2 x radius 2 (world frame).
+        """
         pts, refs = skel.points, skel.refs
         A, B = pts[:, self.anchor_a], pts[:, self.anchor_b]  # (P,K,3)
         axis = B - A
         u = _unit(axis)
         ref = refs[:, self.ref_index]
         e1 = _unit(ref - np.sum(ref * u, -1, keepdims=True) * u)
-        e2 = np.cross(u, e1)
+        e2 = _cross(u, e1)
         scale = (np.asarray(width, float) * np.asarray(height, float) / 1.8)[:, None, None]
         r = self.radii[None] * scale  # (P,K,2)
-        M = np.stack([A, axis, e1 * r[..., :1], e2 * r[..., 1:]], axis=-1)  # (P,K,3,4)
-        out = np.empty((pts.shape[0], self.num_vertices, 3))
+        return np.stack([A, axis, e1 * r[..., :1], e2 * r[..., 1:]], axis=-1)  # (P,K,3,4)
+
+    def evaluate_components(self, M: np.ndarray) -> np.ndarray:
+        """(P,3,V) coordinates, component-major, of the vertices under part maps M (P,K,3,4)
+        (e.g. ``part_frames`` moved into a camera frame): out[:, c] is contiguous per component."""
+        out = np.empty((M.shape[0], 3, self.num_vertices))
         for k, sl in enumerate(self.slices):
-            out[:, sl] = np.matmul(M[:, k], self.coeff[sl].T).transpose(0, 2, 1)
+            np.matmul(M[:, k], self.coeff[sl].T, out=out[:, :, sl])
         return out
 
     def part_vertex_sample(self, per_part: int) -> np.ndarray:

@@ -38,9 +38,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.camera import Camera
-from .body import ANGLE_KEYS, BodyModel, forward_kinematics, gait_angles
+from .body import ANGLE_KEYS, BodyModel, Skeleton, forward_kinematics, gait_angles
 from .rigs import COURT_LENGTH, COURT_WIDTH
-from .view import distort_points, inside_image, normalised, project_raw
+from .view import (camera_to_normalised_xy, camera_to_rectified, camera_to_rectified_xy, distort_points,
+                   inside_image_xy, normalised_to_raw_xy, project_raw_xy, world_to_camera)
 
 _SAMPLES_PER_PART = 12
 
@@ -100,12 +101,37 @@ class PersonState:
 
 
 @dataclass
+class VertexSource:
+    """Float64 vertex data of M estimates, behind the (lazy) vertex outputs of SimDetections.
+
+    rect_px (M,V,2) noisy rectified px and rect_f32 its float32; cam_m (M,3,V) camera-frame m
+    before the depth error, component-major; depth (M,) the depth-error scale; camera: the lens.
+    """
+
+    camera: Camera
+    rect_px: np.ndarray
+    rect_f32: np.ndarray
+    cam_m: np.ndarray
+    depth: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    def concat(self, other: "VertexSource") -> "VertexSource":
+        return VertexSource(self.camera, *(np.concatenate([getattr(self, f), getattr(other, f)])
+                                           for f in ("rect_px", "rect_f32", "cam_m", "depth")))
+
+
+@dataclass
 class SimDetections:
     """Simulated detections of one camera/frame (N detections, 70 keypoints, V vertices).
 
     person (N,) GT person index, -1 = false positive; bbox_raw (N,4) raw px; bbox_rect (N,4)
     rectified px (raw box moved so its centre is the undistorted raw centre); kpts2d/verts2d
     _rect and _raw px; kpts3d (N,70,3) / verts3d (N,V,3) camera frame m; cam_t (N,3) m.
+    The vertex outputs verts2d_rect, verts2d_raw and verts3d (float32) are taken from the rows
+    ``verts_rows`` (N,) of ``verts_source`` on first access (the frontends never need the last
+    two; permuting or concatenating detections moves no mesh data).
     """
 
     person: np.ndarray
@@ -114,12 +140,34 @@ class SimDetections:
     bbox_rect: np.ndarray
     kpts2d_rect: np.ndarray
     kpts2d_raw: np.ndarray
-    verts2d_rect: np.ndarray
-    verts2d_raw: np.ndarray
     kpts3d: np.ndarray
-    verts3d: np.ndarray
     cam_t: np.ndarray
+    verts_source: VertexSource
+    verts_rows: np.ndarray
     visible_fraction: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    _lazy: dict = field(default_factory=dict, repr=False)
+
+    def _once(self, key: str, make) -> np.ndarray:
+        if key not in self._lazy:
+            self._lazy[key] = make()
+        return self._lazy[key]
+
+    @property
+    def verts2d_rect(self) -> np.ndarray:
+        """(N,V,2) float32 rectified px of the vertices."""
+        return self._once("rect", lambda: self.verts_source.rect_f32[self.verts_rows])
+
+    @property
+    def verts2d_raw(self) -> np.ndarray:
+        """(N,V,2) float32 raw px of the vertices (the distorted float64 rectified px)."""
+        src, rows = self.verts_source, self.verts_rows
+        return self._once("raw", lambda: distort_points(src.camera, src.rect_px[rows]).astype(np.float32))
+
+    @property
+    def verts3d(self) -> np.ndarray:
+        """(N,V,3) float32 camera-frame m of the vertices (with the depth error)."""
+        src, rows = self.verts_source, self.verts_rows
+        return self._once("3d", lambda: _scaled_f32(src.depth[rows, None, None], src.cam_m[rows].transpose(0, 2, 1)))
 
 
 def visibility(camera: Camera, sample_world: np.ndarray, part_of_sample: np.ndarray,
@@ -128,50 +176,82 @@ def visibility(camera: Camera, sample_world: np.ndarray, part_of_sample: np.ndar
 
     Occluders are the per-part boxes (rectified px) of persons whose root is nearer the camera.
     """
-    P = sample_world.shape[0]
-    raw = project_raw(camera, sample_world)
-    in_img = inside_image(camera, raw)
-    rect = camera.project_rectified(sample_world)
-    depth = camera.world_to_camera(sample_world)[..., 2].mean(axis=1)  # (P,)
-    boxes = np.full((P, num_parts, 4), np.nan)
-    onehot = part_of_sample[None, :, None] == np.arange(num_parts)[None, None, :]  # (1,S,K)
-    with np.errstate(invalid="ignore"):
-        for c, (fn, col) in enumerate(((np.nanmin, 0), (np.nanmin, 1), (np.nanmax, 0), (np.nanmax, 1))):
-            vals = np.where(onehot, rect[..., col][:, :, None], np.nan)  # (P,S,K)
-            boxes[..., c] = _nan_reduce(fn, vals)
-        u, v = rect[..., 0][:, :, None, None], rect[..., 1][:, :, None, None]  # (P,S,1,1)
-        b = boxes[None, None]  # (1,1,P,K,4)
-        cover = ((u >= b[..., 0]) & (u <= b[..., 2]) & (v >= b[..., 1]) & (v <= b[..., 3]))  # (P,S,P,K)
-    cover = cover.any(axis=3) & (depth[None, :] < depth[:, None])[:, None, :]  # nearer persons only
-    occluded = cover.any(axis=2)
+    vis, in_img, _ = _sample_view(camera, sample_world, part_of_sample, num_parts)
+    return vis, in_img
+
+
+def _sample_view(camera: Camera, sample_world: np.ndarray, part_of_sample: np.ndarray,
+                 num_parts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``visibility`` plus the rectified v (P,S) px of the samples (NaN behind the camera)."""
+    Xc = world_to_camera(camera, sample_world)
+    in_img = inside_image_xy(camera, *normalised_to_raw_xy(camera, *camera_to_normalised_xy(camera, Xc)))
+    u, v = camera_to_rectified_xy(camera, Xc)
+    depth = Xc[..., 2].mean(axis=1)  # (P,)
+    boxes = _part_boxes(u, v, part_of_sample, num_parts)
+    occluded = _occluded(u, v, boxes, depth[None, :] < depth[:, None])  # nearer persons only
     visible = in_img & ~occluded
-    return visible.mean(axis=1), in_img.mean(axis=1)
+    return visible.mean(axis=1), in_img.mean(axis=1), v
 
 
-def _nan_reduce(fn, vals: np.ndarray) -> np.ndarray:
-    allnan = np.all(np.isnan(vals), axis=1)
-    out = fn(np.where(allnan[:, None, :], 0.0, vals), axis=1)
-    return np.where(allnan, np.nan, out)
+def _part_boxes(u: np.ndarray, v: np.ndarray, part_of_sample: np.ndarray, num_parts: int) -> np.ndarray:
+    """(P,K,4) px boxes (u0, v0, u1, v1) of each person's samples (P,S) per part, ignoring NaN
+    samples; NaN for a part without finite samples."""
+    keep = np.flatnonzero((part_of_sample >= 0) & (part_of_sample < num_parts))
+    order = keep[np.argsort(part_of_sample[keep], kind="stable")]
+    present, starts = np.unique(part_of_sample[order], return_index=True)
+    boxes = np.full((u.shape[0], num_parts, 4), np.nan)
+    if len(present):
+        us, vs = u[:, order], v[:, order]
+        for c, (fn, vals) in enumerate(((np.fmin, us), (np.fmin, vs), (np.fmax, us), (np.fmax, vs))):
+            boxes[:, present, c] = fn.reduceat(vals, starts, axis=1)  # fmin/fmax: NaN only if all are
+    return boxes
+
+
+def _occluded(u: np.ndarray, v: np.ndarray, boxes: np.ndarray, nearer: np.ndarray) -> np.ndarray:
+    """(P,S) samples (px u, v (P,S)) inside a part box (P,K,4) of a person q with nearer[p, q].
+
+    Only pairs whose sample extent overlaps the occluder's overall box are compared.
+    """
+    P, S = u.shape
+    ext = np.stack([np.fmin.reduce(u, 1), np.fmin.reduce(v, 1), np.fmax.reduce(u, 1), np.fmax.reduce(v, 1)], 1)
+    whole = np.stack([np.fmin.reduce(boxes[..., 0], 1), np.fmin.reduce(boxes[..., 1], 1),
+                      np.fmax.reduce(boxes[..., 2], 1), np.fmax.reduce(boxes[..., 3], 1)], 1)
+    with np.errstate(invalid="ignore"):
+        overlap = ((ext[:, None, 0] <= whole[None, :, 2]) & (ext[:, None, 2] >= whole[None, :, 0])
+                   & (ext[:, None, 1] <= whole[None, :, 3]) & (ext[:, None, 3] >= whole[None, :, 1]))
+        pp, qq = np.nonzero(nearer & overlap)
+        up, vp, b = u[pp][:, :, None], v[pp][:, :, None], boxes[qq][:, None]  # (M,S,1), (M,1,K,4)
+        cover = ((up >= b[..., 0]) & (up <= b[..., 2]) & (vp >= b[..., 1]) & (vp <= b[..., 3])).any(axis=2)
+    occluded = np.zeros((P, S), bool)
+    np.logical_or.at(occluded, pp, cover)
+    return occluded
 
 
 def simulate(camera: Camera, rng: np.random.Generator, params: NoiseParams, body: BodyModel,
-             state: PersonState, gt_points: np.ndarray, gt_verts: np.ndarray) -> SimDetections:
-    """Detections of one camera: gt_points (P,70+,3) world m (keypoints first), gt_verts (P,V,3)."""
+             state: PersonState, gt_points: np.ndarray, gt_verts: np.ndarray | None = None,
+             gt_skel: Skeleton | None = None) -> SimDetections:
+    """Detections of one camera: gt_points (P,70+,3) world m (keypoints first); the true meshes
+    either as gt_verts (P,V,3) world m or, faster (no world mesh), as the skeletons gt_skel that
+    ``body`` poses them from (then equal up to float64 rounding)."""
     sample_idx = body.part_vertex_sample(_SAMPLES_PER_PART)
-    vis, in_img = visibility(camera, gt_verts[:, sample_idx], body.part_of[sample_idx], len(body.slices))
-    beyond_fold = ~np.all(normalised(camera, gt_verts)[1], axis=1)  # lens fold: no consistent raw px
+    samples, gt_cam = _true_mesh(camera, body, state, sample_idx, gt_verts, gt_skel)
+    vis, in_img, sample_v = _sample_view(camera, samples, body.part_of[sample_idx], len(body.slices))
+    # every vertex once: the fold test, then the silhouette boxes of the detected persons
+    gt_x, gt_y, gt_ok = camera_to_normalised_xy(camera, gt_cam.transpose(0, 2, 1))
+    beyond_fold = ~np.all(gt_ok, axis=1)  # lens fold: no consistent raw px
     occ = np.clip(1.0 - vis / np.maximum(in_img, 1e-9), 0.0, 1.0)
     trunc = 1.0 - in_img
     if params.exact:
         detected = (in_img > 0) & ~beyond_fold
     else:
         u = rng.random(len(vis))
-        v = camera.project_rectified(gt_verts[:, sample_idx])[..., 1]
         with np.errstate(invalid="ignore"):
-            tall = np.nan_to_num(np.nanmax(v, axis=1) - np.nanmin(v, axis=1)) >= params.min_height_px
+            extent = np.fmax.reduce(sample_v, axis=1) - np.fmin.reduce(sample_v, axis=1)  # nanmax - nanmin
+            tall = np.nan_to_num(extent) >= params.min_height_px
         detected = (vis >= params.min_visible) & tall & ~beyond_fold & (u >= params.miss_rate * (1 + 4 * occ))
     idx = np.flatnonzero(detected)
-    dets = _estimate(camera, rng, params, body, state, idx, gt_points[:, :70], project_raw(camera, gt_verts[idx]), occ[idx])
+    gt_raw = normalised_to_raw_xy(camera, gt_x[idx], gt_y[idx], gt_ok[idx])
+    dets = _estimate(camera, rng, params, body, state, idx, gt_points[:, :70], gt_raw, occ[idx])
     dets.person = idx
     dets.visible_fraction = vis[idx]
     dets.scores = _scores(rng, params, state.is_player[idx], occ[idx], trunc[idx])
@@ -183,7 +263,20 @@ def simulate(camera: Camera, rng: np.random.Generator, params: NoiseParams, body
     return _take(dets, order)
 
 
+def _true_mesh(camera: Camera, body: BodyModel, state: PersonState, sample_idx: np.ndarray,
+               gt_verts: np.ndarray | None, gt_skel: Skeleton | None) -> tuple[np.ndarray, np.ndarray]:
+    """World m samples (P,S,3) (vertices ``sample_idx``) and camera-frame m vertices (P,3,V) of the
+    true meshes, from gt_verts (P,V,3) world m or, when given, from the skeletons gt_skel."""
+    if gt_skel is not None:
+        return (body.vertices_subset(gt_skel, state.height, state.width, sample_idx),
+                _camera_vertices(camera, body, gt_skel, state.height, state.width))
+    if gt_verts is None:
+        raise ValueError("simulate: needs gt_verts or gt_skel")
+    return gt_verts[:, sample_idx], world_to_camera(camera, gt_verts).transpose(0, 2, 1)
+
+
 def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ) -> SimDetections:
+    """Noisy estimates of persons ``idx``; gt_raw_verts: raw px (u, v) each (n,V) of their true mesh."""
     n = len(idx)
     sub_angles = {k: state.angles[k][idx] for k in ANGLE_KEYS}
     if params.exact:
@@ -194,38 +287,63 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
         yaw = state.heading[idx] + params.heading_sigma * rng.standard_normal(n)
         ang = {k: v + params.angle_sigma * rng.standard_normal(n) for k, v in sub_angles.items()}
     skel = forward_kinematics(h, w, ang, state.root_xy[idx], yaw)
-    verts = body.vertices(skel, h, w)
     kp = skel.keypoints
     shift = gt_kpts[idx].mean(axis=1, keepdims=True) - kp.mean(axis=1, keepdims=True)
-    kp, verts = kp + shift, verts + shift  # the estimator fits the person's image position
+    kp = kp + shift  # the estimator fits the person's image position
     depth = 1.0 + (0.0 if params.exact else np.clip(params.depth_sigma * rng.standard_normal(n), -0.4, 0.4))
     depth = np.broadcast_to(depth, (n,))[:, None, None]
-    kc = camera.world_to_camera(kp)
-    vc = camera.world_to_camera(verts)
+    kc = world_to_camera(camera, kp)
+    vc = _camera_vertices(camera, body, skel, h, w, shift)  # (n,3,V)
     jit = 1.0 + 2.0 * occ[:, None, None]
-    k2 = camera.project_rectified(kp) + params.kpt2d_px * jit * rng.standard_normal(kp.shape[:2] + (2,))
-    v2 = camera.project_rectified(verts)
+    k2 = camera_to_rectified(camera, kc) + params.kpt2d_px * jit * rng.standard_normal(kp.shape[:2] + (2,))
+    v2 = np.stack(camera_to_rectified_xy(camera, vc.transpose(0, 2, 1)), axis=-1)
     if params.vert2d_px > 0:
-        v2 = v2 + params.vert2d_px * jit * rng.standard_normal(v2.shape)
+        v2 += _scaled_normals(rng, v2.shape, params.vert2d_px * jit)
     kpts3d = depth * kc
     if params.kpt3d_sigma > 0:
         kpts3d = kpts3d + params.kpt3d_sigma * rng.standard_normal(kpts3d.shape)
-    bbox_raw = _silhouette_box(camera, gt_raw_verts, rng, params.bbox_px)
+    bbox_raw = _silhouette_box(camera, *gt_raw_verts, rng, params.bbox_px)
     return SimDetections(
         person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
-        kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), verts2d_rect=v2.astype(np.float32),
-        verts2d_raw=distort_points(camera, v2).astype(np.float32), kpts3d=kpts3d,
-        verts3d=(depth * vc).astype(np.float32),
-        cam_t=(depth * kc.mean(axis=1, keepdims=True))[:, 0])
+        kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), kpts3d=kpts3d,
+        cam_t=(depth * kc.mean(axis=1, keepdims=True))[:, 0],
+        verts_source=VertexSource(camera, v2, v2.astype(np.float32), vc, np.array(depth[:, 0, 0])),
+        verts_rows=np.arange(n))
 
 
-def _silhouette_box(camera: Camera, raw: np.ndarray, rng, jitter_px: float) -> np.ndarray:
-    """(N,4) raw px boxes of the projected vertices clipped to the image (truncated at borders)."""
-    if raw.shape[0] == 0:
+def _camera_vertices(camera: Camera, body: BodyModel, skel: Skeleton, height: np.ndarray, width: np.ndarray,
+                     shift: np.ndarray | None = None) -> np.ndarray:
+    """(n,3,V) camera-frame m, component-major, of the meshes of ``skel`` moved by ``shift`` (n,1,3)
+    world m: the part maps are moved into the camera frame, so each vertex costs one small product
+    (equal to ``world_to_camera`` of ``body.vertices`` up to float64 rounding)."""
+    M = body.part_frames(skel, height, width)  # (n,K,3,4) world
+    if shift is not None:
+        M[..., 0] += shift  # anchors (n,1,3) -> broadcast over the parts
+    Mc = np.matmul(camera.R, M)  # rotate every column
+    Mc[..., 0] += camera.t
+    return body.evaluate_components(Mc)
+
+
+def _scaled_normals(rng: np.random.Generator, shape: tuple[int, ...], sigma: np.ndarray) -> np.ndarray:
+    """sigma * N(0, 1) of ``shape`` (sigma broadcasts), drawn as ``rng.standard_normal(shape)``."""
+    z = rng.standard_normal(shape)
+    z *= sigma
+    return z
+
+
+def _scaled_f32(scale: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """float32 of scale * x, the product taken in float64 (one pass, no float64 temporary)."""
+    return np.multiply(scale, x, out=np.empty(np.broadcast_shapes(np.shape(scale), x.shape), np.float32),
+                       dtype=np.float64, casting="unsafe")
+
+
+def _silhouette_box(camera: Camera, u: np.ndarray, v: np.ndarray, rng, jitter_px: float) -> np.ndarray:
+    """(N,4) raw px boxes of the projected vertices (raw px u, v (N,V), NaN ignored) clipped to the
+    image (truncated at borders)."""
+    if u.shape[0] == 0:
         return np.zeros((0, 4))
     with np.errstate(invalid="ignore"):
-        box = np.stack([np.nanmin(raw[..., 0], 1), np.nanmin(raw[..., 1], 1), np.nanmax(raw[..., 0], 1),
-                        np.nanmax(raw[..., 1], 1)], axis=1)
+        box = np.stack([np.nanmin(u, 1), np.nanmin(v, 1), np.nanmax(u, 1), np.nanmax(v, 1)], axis=1)
     if jitter_px > 0:
         box = box + jitter_px * rng.standard_normal(box.shape)
     box[:, [0, 2]] = np.clip(box[:, [0, 2]], 0, camera.width - 1)
@@ -272,13 +390,10 @@ def _false_positives(camera, rng, params, body) -> SimDetections | None:
                       np.zeros(tries), rng.uniform(-0.5, 0.5, tries))
     state = PersonState(h, w, np.stack([x, y], 1), heading, ang, np.zeros(tries, bool))
     skel = forward_kinematics(h, w, ang, state.root_xy, heading)
-    verts = body.vertices(skel, h, w)
-    raw = project_raw(camera, verts)
-    ok = np.flatnonzero(~np.any(np.isnan(raw[..., 0]), axis=1) & (inside_image(camera, raw).mean(axis=1) > 0.6))
-    if len(ok) == 0:
+    idx, raw = _first_in_view(camera, body, skel, h, w, k)
+    if len(idx) == 0:
         return None
-    idx = ok[:k]
-    det = _estimate(camera, rng, params, body, state, idx, skel.keypoints, raw[idx], np.zeros(len(idx)))
+    det = _estimate(camera, rng, params, body, state, idx, skel.keypoints, raw, np.zeros(len(idx)))
     det.person = np.full(len(idx), -1)
     det.visible_fraction = np.ones(len(idx))
     hi = rng.random(len(idx)) < 0.08
@@ -286,16 +401,41 @@ def _false_positives(camera, rng, params, body) -> SimDetections | None:
     return det
 
 
-_FIELDS = ("person", "scores", "bbox_raw", "bbox_rect", "kpts2d_rect", "kpts2d_raw", "verts2d_rect",
-           "verts2d_raw", "kpts3d", "verts3d", "cam_t", "visible_fraction")
+def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.ndarray, width: np.ndarray,
+                   k: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """The first ``k`` candidate bodies (in order) fully in front of the lens fold and > 60 % inside
+    the raw image: their indices (m,) and raw px (u, v) each (m,V). Meshes are evaluated one
+    candidate at a time, only until ``k`` are found."""
+    found, us, vs = [], [], []
+    for i in range(len(height)):
+        if len(found) == k:
+            break
+        one = Skeleton(skel.points[i:i + 1], skel.refs[i:i + 1])
+        u, v = project_raw_xy(camera, body.vertices(one, height[i:i + 1], width[i:i + 1]))
+        if not np.isnan(u).any() and inside_image_xy(camera, u, v).mean() > 0.6:
+            found.append(i)
+            us.append(u)
+            vs.append(v)
+    if not found:
+        return np.zeros(0, int), (np.zeros((0, body.num_vertices)), np.zeros((0, body.num_vertices)))
+    return np.array(found), (np.concatenate(us), np.concatenate(vs))
+
+
+#: per-detection array fields (the vertex outputs follow verts_rows)
+_FIELDS = ("person", "scores", "bbox_raw", "bbox_rect", "kpts2d_rect", "kpts2d_raw", "kpts3d", "cam_t",
+           "visible_fraction")
 
 
 def _concat(a: SimDetections, b: SimDetections) -> SimDetections:
-    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS})
+    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},
+                         verts_source=a.verts_source.concat(b.verts_source),
+                         verts_rows=np.concatenate([a.verts_rows, b.verts_rows + len(a.verts_source)]))
 
 
 def _take(d: SimDetections, order: np.ndarray) -> SimDetections:
-    return SimDetections(**{f: np.asarray(getattr(d, f))[order] for f in _FIELDS})
+    return SimDetections(**{f: np.asarray(getattr(d, f))[order] for f in _FIELDS},
+                         verts_source=d.verts_source, verts_rows=d.verts_rows[order])
 
 
-__all__ = ["NoiseParams", "PRESETS", "get_preset", "PersonState", "SimDetections", "simulate", "visibility"]
+__all__ = ["NoiseParams", "PRESETS", "get_preset", "PersonState", "SimDetections", "VertexSource", "simulate",
+           "visibility"]

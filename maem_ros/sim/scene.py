@@ -170,8 +170,8 @@ class Scene:
 
         def make():
             rng = np.random.default_rng([self.config.seed, 4242, ci, f])
-            return simulate(cam, rng, self.noise, self.body, self.person_state(f), self.skeleton(f).points,
-                            self.vertices(f))
+            skel = self.skeleton(f)
+            return simulate(cam, rng, self.noise, self.body, self.person_state(f), skel.points, gt_skel=skel)
         return self._cached(("det", ci, f), make)
 
     def detections(self, camera: str | int, frame: int) -> FrameDetections:
