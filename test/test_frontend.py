@@ -78,11 +78,12 @@ def test_npz_backend_bad_stamps_and_files(scene):
 def test_vertex_stride_and_registry(scene):
     rig = scene.rig
     est = make_estimator("npz", {"dets_dir": str(scene.root), "vertex_stride": 4}, rig)
-    assert isinstance(est, StridedEstimator)
+    assert not isinstance(est, StridedEstimator)  # npz drops vertices before undistorting them
     full = make_estimator("npz", {"dets_dir": str(scene.root)}, rig).estimate(rig[0], START, None)
     got = est.estimate(rig[0], START, None)
     assert got.num_vertices == 8
     np.testing.assert_array_equal(got.verts2d, full.verts2d[:, ::4])
+    np.testing.assert_array_equal(got.kpts2d, full.kpts2d)
     with pytest.raises(ValueError, match="vertex_stride"):
         make_estimator("npz", {"dets_dir": str(scene.root), "vertex_stride": 0}, rig)
     with pytest.raises(ValueError, match="unknown 'nope'"):
@@ -101,6 +102,24 @@ def test_vertex_stride_and_registry(scene):
     register_backend("test_fixed", Fixed)
     est = make_estimator("test_fixed", {"value": 3}, rig)
     assert est.needs_image and est.estimate(rig[1], 10, np.zeros((2, 2, 3), np.uint8)).stamp_ns == 13
+    # a backend that does not apply vertex_stride itself gets wrapped
+    register_backend("test_verts", lambda options, rig: _Verts())
+    wrapped = make_estimator("test_verts", {"vertex_stride": 3}, rig)
+    assert isinstance(wrapped, StridedEstimator) and not wrapped.needs_image
+    out = wrapped.estimate(rig[0], 0, None)
+    np.testing.assert_array_equal(out.verts2d[0, :, 0], [0, 3, 6, 9])
+    assert _Verts.last.num_vertices == 10  # the backend's own object is left untouched
+
+
+class _Verts(Estimator):
+    needs_image = False
+    last = None
+
+    def estimate(self, camera, stamp_ns, image):
+        verts = np.stack([np.arange(10.0), np.zeros(10)], 1)[None]
+        _Verts.last = FrameDetections(camera.name, stamp_ns, [[0, 0, 9, 1]], [0.9], np.zeros((1, 70, 2)),
+                                      np.zeros((1, 70, 3)), verts)
+        return _Verts.last
 
 
 HAS_SIM = importlib.util.find_spec("maem_ros.sim.scene") is not None

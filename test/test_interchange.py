@@ -295,3 +295,12 @@ def test_scene_folder_needs_cameras(tmp_path):
         SceneFolder(tmp_path / "nope")
     with pytest.raises(ValueError, match="cameras/"):
         SceneFolder(tmp_path)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**62), st.floats(1.0, 240.0), st.integers(0, 10**6), st.floats(-0.49, 0.49))
+def test_frame_stamp_round_trip(start, fps, frame, jitter):
+    from maem_ros.core.interchange import frame_at_stamp, frame_stamp_ns
+    stamp = frame_stamp_ns(frame, start, fps)
+    assert frame_at_stamp(stamp + int(jitter * 1e9 / fps), start, fps) == frame
+    assert frame_at_stamp(start - int(0.6e9 / fps), start, fps) is None

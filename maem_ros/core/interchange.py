@@ -143,13 +143,17 @@ def _stored(value: Any, float32: bool) -> np.ndarray:
 
 
 def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: int,
-                          num_joints: int = 70, where: str = "outputs") -> FrameDetections:
+                          num_joints: int = 70, where: str = "outputs",
+                          vertex_stride: int = 1) -> FrameDetections:
     """SAM 3D Body outputs (RAW px) -> FrameDetections in the camera's RECTIFIED px.
 
     Keypoints, vertices and bbox centres of all people are undistorted in one batched call; each
     bbox keeps its width and height and is centred on its undistorted raw centre. kpts3d =
     pred_keypoints_3d + pred_cam_t (camera frame, metres). ``num_joints`` only sizes an empty frame.
+    ``vertex_stride`` keeps every n-th vertex, dropped before undistortion (which dominates the cost).
     """
+    if int(vertex_stride) < 1:
+        raise ValueError(f"vertex_stride: must be >= 1, got {vertex_stride}")
     fields = [validate_output(d, f"{where}[{i}]") for i, d in enumerate(outputs)]
     if not fields:
         return FrameDetections.empty(camera.name, stamp_ns, num_joints, 0)
@@ -163,7 +167,8 @@ def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: 
     size = bboxes[:, 2:] - bboxes[:, :2]
     raw = np.concatenate([0.5 * (bboxes[:, None, :2] + bboxes[:, None, 2:]),
                           np.stack([f["pred_keypoints_2d"] for f in fields]),
-                          np.stack([f["pred_keypoints_2d_verts"] for f in fields])], axis=1)
+                          np.stack([f["pred_keypoints_2d_verts"][::int(vertex_stride)] for f in fields])],
+                         axis=1)
     rect = camera.undistort_points(raw)
     if not np.all(np.isfinite(rect)):
         bad = int(np.argwhere(~np.isfinite(rect))[0][0])

@@ -26,6 +26,8 @@ class Estimator(ABC):
 
     #: True when estimate() needs the image (else it may be called with image=None)
     needs_image: bool = True
+    #: True when the backend applies the ``vertex_stride`` option itself (cheaper than wrapping)
+    applies_vertex_stride: bool = False
 
     @abstractmethod
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
@@ -112,4 +114,6 @@ def make_estimator(backend: str, options: Mapping[str, Any], rig: Rig) -> Estima
     options = dict(options or {})
     stride = option_int(options, "vertex_stride", 1, minimum=1)
     estimator = _factory(backend)(options, rig)
-    return StridedEstimator(estimator, stride) if stride > 1 else estimator
+    if stride > 1 and not estimator.applies_vertex_stride:
+        return StridedEstimator(estimator, stride)
+    return estimator

@@ -4,6 +4,7 @@ Options:
   dets_dir        a scene folder's dets/ folder, or the scene folder itself (required)
   fps             frame rate (default: the scene's scene.json, else 30)
   start_stamp_ns  stamp of frame 0 in ns (default: scene.json, else 0)
+  vertex_stride   keep every n-th vertex (applied before undistortion, default 1)
 Frame f of camera c is ``<dets_dir>/<c>/<f:06d>.npz`` (any file whose stem ends in the integer f);
 it is picked for the stamp within half a period of start_stamp_ns + f / fps. Raw-image px in the
 files are undistorted here with the rig's camera.
@@ -26,6 +27,7 @@ class NpzEstimator(Estimator):
     """Reads ``<dets_dir>/<camera>/<frame>.npz`` for the frame nearest the stamp."""
 
     needs_image = False
+    applies_vertex_stride = True
 
     def __init__(self, options: Mapping[str, Any], rig: Rig):
         if not options.get("dets_dir"):
@@ -37,6 +39,7 @@ class NpzEstimator(Estimator):
         info = _scene_info(self.dets_dir.parent / "scene.json")
         self.fps = option_float(options, "fps", info.get("fps", DEFAULT_FPS), positive=True)
         self.start_stamp_ns = option_int(options, "start_stamp_ns", int(info.get("start_stamp_ns", 0)))
+        self.vertex_stride = option_int(options, "vertex_stride", 1, minimum=1)
         self.rig = rig
         self._index: dict[str, dict[int, Path]] = {}
 
@@ -62,7 +65,7 @@ class NpzEstimator(Estimator):
             raise MissingDataError(f"npz backend: no file for camera {camera.name!r} frame {frame} "
                                    f"in {str(self.dets_dir / camera.name)!r}")
         return outputs_to_detections(read_maem_npz(path), camera, int(stamp_ns),
-                                     where=f"npz {str(path)!r} outputs")
+                                     where=f"npz {str(path)!r} outputs", vertex_stride=self.vertex_stride)
 
 
 def _scene_info(path: Path) -> dict:

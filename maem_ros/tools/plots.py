@@ -8,7 +8,7 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import Rig
-from ..core.metrics import average_precision, mpjpe
+from ..core.metrics import average_precision, match_frame, mpjpe
 from ..core.skeleton import SPORTCENTER_13
 
 #: AP curve thresholds, mm
@@ -30,16 +30,30 @@ def ap_curve(preds: Sequence[np.ndarray], scores: Sequence[np.ndarray], gts: Seq
     return np.array([average_precision(costs, scores, t / 1e3) for t in thresholds_mm])
 
 
-def plot_per_frame_mpjpe(path: Path, frame_ids: Sequence[int], runs) -> Path:
+def per_frame_recall(preds, gts, gt_masks) -> np.ndarray:
+    """(F,) matched GT people / GT people per frame (NaN for a frame without GT people)."""
+    out = []
+    for p, g, m in zip(preds, gts, gt_masks):
+        out.append(len(match_frame(np.asarray(p), np.asarray(g), np.asarray(m))[1]) / len(g) if len(g)
+                   else np.nan)
+    return np.array(out, dtype=float)
+
+
+def plot_per_frame_mpjpe(path: Path, frame_ids: Sequence[int], runs, gts, gt_masks) -> Path:
+    """Per-frame MPJPE of the matched people (top) and per-frame recall (bottom), one line per run."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(9, 4))
+    fig, (ax, ax_r) = plt.subplots(2, 1, figsize=(9, 5.5), sharex=True, height_ratios=[2, 1])
     for run in runs:
         ax.plot(frame_ids, run.metrics.get("per_frame_mpjpe", []), marker=".", lw=1, label=run.name)
-    ax.set_xlabel("frame")
-    ax.set_ylabel("MPJPE of matched people (mm)")
-    ax.set_title("Per-frame MPJPE (gaps: no person matched)")
+        ax_r.plot(frame_ids, 100 * per_frame_recall(run.preds, gts, gt_masks), lw=1, label=run.name)
+    ax.set_ylabel("MPJPE, matched (mm)")
+    ax.set_title("Per-frame MPJPE (gaps: no person matched) and recall@500mm")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
+    ax_r.set_xlabel("frame")
+    ax_r.set_ylabel("recall (%)")
+    ax_r.set_ylim(0, 105)
+    ax_r.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -146,7 +160,7 @@ def write_plots(out_dir: Path, runs, frame_ids: Sequence[int], gts, gt_masks, ri
     """All maem-eval PNGs into ``out_dir``; the court view shows the last run (full config)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    written = [plot_per_frame_mpjpe(out_dir / "per_frame_mpjpe.png", frame_ids, runs),
+    written = [plot_per_frame_mpjpe(out_dir / "per_frame_mpjpe.png", frame_ids, runs, gts, gt_masks),
                plot_ap_curve(out_dir / "ap_vs_threshold.png", runs, gts, gt_masks)]
     if frame_ids:
         if plot_frame is None or plot_frame not in frame_ids:
