@@ -11,14 +11,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.ros.camera_node import (Capture, ImageFolderSource, VideoSource, camera_info_msg,
                                       make_source)
 from maem_ros.ros.common import ConfigError, IMAGE_QOS
+
+from helpers_ros import ros_node
 
 W, H = 160, 120
 LEVELS = [20 * i + 10 for i in range(10)]  # frame i is uniformly LEVELS[i] grey
@@ -186,24 +186,9 @@ def _node_process(*params: str):
         proc.stderr.close()
 
 
-@contextmanager
-def _probe():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node("probe", context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    try:
-        yield node, ex
-    finally:
-        ex.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
-
-
 def _collect(msg_type, topic: str, count: int, proc, timeout: float = 40.0):
     images, infos = [], []
-    with _probe() as (node, ex):
+    with ros_node("probe") as (node, ex):
         node.create_subscription(msg_type, topic, images.append, IMAGE_QOS)
         node.create_subscription(CameraInfo, "/cam0/camera_info", infos.append, IMAGE_QOS)
         deadline = time.monotonic() + timeout

@@ -91,14 +91,6 @@ def test_trim_bag_keeps_first_frames_and_metadata(tmp_path, bag):
 
 
 # ---- helpers ------------------------------------------------------------------------------------
-def test_cdr_header_stamp():
-    stamp = 1_700_000_000_123_456_789
-    data = bagio.serialize(bagio.compressed_image_msg(stamp, "camera_0", b"\xff\xd8", "jpeg"))
-    assert demo.cdr_header_stamp_ns(data) == stamp
-    with pytest.raises(ValueError, match="too short"):
-        demo.cdr_header_stamp_ns(b"\x00\x01\x00\x00")
-
-
 def test_params_put_frontend_under_wildcard_namespace(tmp_path):
     scene = dict(demo.DEMO_SCENE)
     path = demo.write_params("demo.yaml", tmp_path / "p.yaml", tmp_path / "rig.yaml", scene, 0.7)

@@ -11,9 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
@@ -21,12 +19,11 @@ from maem_ros.ros.player_node import (BagPlayer, PlayOptions, loop_gap_ns, parse
                                       select_topics)
 from maem_ros.tools import bagio
 
+from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
+
 T0 = 1_700_000_000_000_000_000
 # irregular spacing (s) on /t1; /t2 interleaved 10 ms after each /t1 message
 OFFSETS = [0.0, 0.1, 0.25, 0.3, 0.5, 0.55, 0.8]
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @pytest.fixture(scope="module")
@@ -43,16 +40,8 @@ def bag(tmp_path_factory) -> Path:
 
 @pytest.fixture
 def ros():
-    rclpy.init()
-    node = rclpy.create_node("player_test")
-    ex = SingleThreadedExecutor()
-    ex.add_node(node)
-    try:
+    with ros_node("player_test") as (node, ex):
         yield node, ex
-    finally:
-        ex.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
 
 
 def collect(node, topics, qos=RELIABLE):
@@ -62,15 +51,6 @@ def collect(node, topics, qos=RELIABLE):
         cls = Clock if t == "/clock" else String
         node.create_subscription(cls, t, lambda m, t=t: got[t].append((time.monotonic(), m)), qos)
     return got
-
-
-def spin_until(ex, cond, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        ex.spin_once(timeout_sec=0.01)
-    return cond()
 
 
 def test_parse_args_and_loop_gap(bag: Path):
@@ -108,8 +88,8 @@ def test_timing_and_order(bag: Path, ros, rate: float):
     th = threading.Thread(target=lambda: result.update(n=(player.wait_ready(), player.play())[1]))
     th.start()
     try:
-        assert spin_until(ex, lambda: len(got["/t1"]) == len(OFFSETS) and
-                          len(got["/t2"]) == len(OFFSETS), 15.0 / rate)
+        assert wait_for(lambda: len(got["/t1"]) == len(OFFSETS) and
+                        len(got["/t2"]) == len(OFFSETS), 15.0 / rate, ex)
     finally:
         stop.set()
         th.join(10)
@@ -136,16 +116,11 @@ def _play(bag: Path, *args: str) -> subprocess.Popen:
 def test_loop_and_topic_filter(bag: Path, ros):
     node, ex = ros
     got = collect(node, ["/t1", "/t2"])
-    proc = _play(bag, "--loop", "--topics", "/t1", "--rate", "4")
-    try:
+    with killed_on_exit(_play(bag, "--loop", "--topics", "/t1", "--rate", "4")) as proc:
         n = len(OFFSETS)
-        assert spin_until(ex, lambda: len(got["/t1"]) >= 2 * n + 1, 20.0), proc.poll()
+        assert wait_for(lambda: len(got["/t1"]) >= 2 * n + 1, 20.0, ex), proc.poll()
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=15)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
     assert proc.returncode == 0, out
     assert "interrupted" in out
     assert got["/t2"] == []
@@ -163,15 +138,11 @@ def test_remap_start_offset_clock_and_latched(bag: Path, ros):
     got = collect(node, ["/renamed", "/t2", "/clock"])
     scene = []
     node.create_subscription(String, bagio.SCENE_TOPIC, scene.append, LATCHED)
-    proc = _play(bag, "--remap", "/t1:=/renamed", "--start", "0.2", "--clock", "100")
-    try:
-        spin_until(ex, lambda: proc.poll() is not None, 30.0)  # exits by itself (no --loop)
-        spin_until(ex, lambda: len(got["/t2"]) >= 5 and scene, 2.0)
+    with killed_on_exit(_play(bag, "--remap", "/t1:=/renamed", "--start", "0.2", "--clock",
+                              "100")) as proc:
+        wait_for(lambda: proc.poll() is not None, 30.0, ex)  # exits by itself (no --loop)
+        wait_for(lambda: len(got["/t2"]) >= 5 and scene, 2.0, ex)
         out, _ = proc.communicate(timeout=10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
     assert proc.returncode == 0, out
     later = [i for i, off in enumerate(OFFSETS) if off >= 0.2]
     assert [m.data for _, m in got["/renamed"]] == [f"a{i}" for i in later]
@@ -190,15 +161,10 @@ def test_large_last_messages_are_delivered_before_exit(tmp_path: Path, ros):
         for i, text in enumerate(payloads):
             w.write("/big", bagio.string_msg(text), T0 + i * 1_000_000)
     got = collect(node, ["/big"], QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
-    proc = _play(path)
-    try:
-        spin_until(ex, lambda: proc.poll() is not None, 30.0)
-        spin_until(ex, lambda: len(got["/big"]) == 3, 3.0)
+    with killed_on_exit(_play(path)) as proc:
+        wait_for(lambda: proc.poll() is not None, 30.0, ex)
+        wait_for(lambda: len(got["/big"]) == 3, 3.0, ex)
         out, _ = proc.communicate(timeout=10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
     assert proc.returncode == 0, out
     assert [m.data[0] + str(len(m.data)) for _, m in got["/big"]] == ["a3000000", "b3000000",
                                                                        "c3000000"]

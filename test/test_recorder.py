@@ -10,45 +10,21 @@ import time
 from pathlib import Path
 
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import String
 
 from maem_ros.ros.recorder_node import parse_args, wanted
 from maem_ros.tools import bagio
 
+from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
+
 N = 60
-RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 @pytest.fixture
 def ros():
-    rclpy.init()
-    node = rclpy.create_node("recorder_test")
-    ex = SingleThreadedExecutor()
-    ex.add_node(node)
-    try:
+    with ros_node("recorder_test") as (node, ex):
         yield node, ex
-    finally:
-        ex.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
-
-
-def wait_for(cond, timeout: float, ex=None) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        if ex is not None:
-            ex.spin_once(timeout_sec=0.02)
-        else:
-            time.sleep(0.02)
-    return cond()
 
 
 def test_parse_args_and_topic_selection():
@@ -69,11 +45,10 @@ def test_everything_received_is_in_the_bag(tmp_path: Path, ros, sig):
     latched = node.create_publisher(String, "/maem/scene_test", LATCHED)
     latched.publish(String(data="latched before the recorder started"))
     pub = node.create_publisher(String, "/rec_a", RELIABLE)
-    proc = subprocess.Popen([sys.executable, "-m", "maem_ros.ros.recorder_node", str(out),
-                             "--topics", "/rec_a", "/rec_info", "--all-maem"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ))
-    try:
+    with killed_on_exit(subprocess.Popen(
+            [sys.executable, "-m", "maem_ros.ros.recorder_node", str(out), "--topics", "/rec_a",
+             "/rec_info", "--all-maem"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, env=dict(os.environ))) as proc:
         assert wait_for(lambda: pub.get_subscription_count() > 0, 20.0, ex), "recorder never subscribed"
         late = node.create_publisher(CameraInfo, "/rec_info", RELIABLE)  # appears after start
         assert wait_for(lambda: late.get_subscription_count() > 0, 10.0, ex), "late topic missed"
@@ -85,10 +60,6 @@ def test_everything_received_is_in_the_bag(tmp_path: Path, ros, sig):
         time.sleep(0.5)  # reliable delivery on localhost; then stop it
         proc.send_signal(sig)
         text, _ = proc.communicate(timeout=20)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
     assert proc.returncode == 0, text
     bag_info = bagio.bag_info(out)
     assert bag_info.topics == {"/rec_a": bagio.STRING, "/rec_info": bagio.CAMERA_INFO,

@@ -17,6 +17,7 @@ from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
+from maem_ros.tools import bagio
 
 TOPIC = "/camera_0/detections"
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -232,6 +233,14 @@ def test_stamps_outside_ros_time_are_rejected():
     for bad in (-1, wire.MAX_STAMP_NS + 1):
         with pytest.raises(ValueError, match="stamp"):
             wire.detections_to_msg(make_dets(1, 2, 0, stamp_ns=bad))
+
+
+def test_cdr_header_stamp():
+    stamp = 1_700_000_000_123_456_789
+    data = bagio.serialize(bagio.compressed_image_msg(stamp, "camera_0", b"\xff\xd8", "jpeg"))
+    assert wire.cdr_header_stamp_ns(data) == stamp
+    with pytest.raises(ValueError, match="too short"):
+        wire.cdr_header_stamp_ns(b"\x00\x01\x00\x00")
 
 
 def test_camera_mismatch_and_empty_frame():

@@ -188,6 +188,8 @@ def _numba_kernel():
             part += e / np.sqrt(l0 * l0 + l1 * l1)
         return part
 
+    # block_sum_sym repeats block_sum's forward-line code on purpose: one branch-free loop per
+    # mode is what numba vectorises (an `if symmetric` inside the hot loop would block SIMD)
     @nb.njit(cache=True, fastmath=flags, error_model="numpy", boundscheck=False, nogil=True)
     def block_sum_sym(a, b, f):
         part = 0.0

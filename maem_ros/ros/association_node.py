@@ -21,7 +21,8 @@ from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, ConfigError, Diagnostics,
-                                 ParamSpec, Stopwatch, declare_params, load_rig_param, run_node)
+                                 ParamSpec, RejectErrors, Stopwatch, declare_params,
+                                 load_rig_param, run_node)
 
 NODE_NAME = "association"
 
@@ -142,17 +143,13 @@ class AssociationNode(Node):
             self.diag.set("missing_cameras_last", ",".join(fs.missing))
         else:
             self.diag.set("missing_cameras_last", "")
-        try:
+        with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
             with Stopwatch(self.diag, "associate"):
                 result = self._associate(self.rig, fs.items, self.params)
             with Stopwatch(self.diag, "encode"):
                 out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, fs.items,
                                            result.clusters)
-        except ValueError as e:
-            self.diag.reject("association_error", f"frame set {fs.stamp_ns}: {e}")
-            return
-        except Exception as e:  # noqa: BLE001 - a bug must not stop the live graph; counted
-            self.diag.reject("internal_error", f"frame set {fs.stamp_ns}: {type(e).__name__}: {e}")
+        if step.failed:
             return
         self.pub.publish(out)
         self.diag.ok()

@@ -26,9 +26,7 @@ from typing import Callable, Protocol
 
 import cv2
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -36,8 +34,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.core.camera import Camera
 from maem_ros.ros import wire
-from maem_ros.ros.common import (EXIT_CONFIG_ERROR, IMAGE_QOS, ConfigError, Diagnostics, ParamSpec,
-                                 Stopwatch, declare_params, default_camera_name, load_rig_param)
+from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, ParamSpec, Stopwatch,
+                                 declare_params, default_camera_name, load_rig_param, run_node)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
 EXIT_SOURCE_FAILED = 2
@@ -464,36 +462,14 @@ class CameraNode(Node):
         self.capture.close()
         self.done.set_result(code)
 
-
-def run(args: list[str] | None = None) -> int:
-    """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = CameraNode()
-        except ConfigError as e:
-            print(f"[maem-camera] invalid configuration: {e}", file=sys.stderr, flush=True)
-            return EXIT_CONFIG_ERROR
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        try:
-            executor.spin_until_future_complete(node.done)
-        finally:
-            executor.shutdown(timeout_sec=1.0)
-        return int(node.done.result()) if node.done.done() else 0
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return 0
-    finally:
-        if node is not None:
-            node.capture.close()
-            node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+    def destroy_node(self) -> None:
+        self.capture.close()
+        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> int:
-    return run(args)
+    """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
+    return run_node(CameraNode, args, "maem-camera", until=lambda node: node.done)
 
 
 if __name__ == "__main__":

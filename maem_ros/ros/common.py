@@ -27,6 +27,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.task import Future
 
 #: camera images: best effort, keep last 2
 IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
@@ -309,6 +310,32 @@ class Diagnostics:
             pass
 
 
+class RejectErrors:
+    """``with RejectErrors(diag, where, reason) as step:`` ... ``if step.failed: return``.
+
+    One processing step of a callback: a ValueError (bad input the core refused) drops the frame
+    under ``reason``, any other Exception under ``internal_error`` (a bug must not stop the live
+    graph; it is counted and logged), each with one log line starting with ``where``.
+    """
+
+    def __init__(self, diag: Diagnostics, where: str, reason: str):
+        self._diag, self._where, self._reason = diag, where, reason
+        self.failed = False
+
+    def __enter__(self) -> "RejectErrors":
+        return self
+
+    def __exit__(self, exc_type, e, tb) -> bool:
+        if not isinstance(e, Exception):
+            return False
+        self.failed = True
+        if isinstance(e, ValueError):
+            self._diag.reject(self._reason, f"{self._where}: {e}")
+        else:
+            self._diag.reject("internal_error", f"{self._where}: {type(e).__name__}: {e}")
+        return True
+
+
 class Stopwatch:
     """``with Stopwatch(diag, "stage"):`` records the block's wall time in ms."""
 
@@ -327,8 +354,11 @@ class Stopwatch:
 # ---------------------------------------------------------------------------------------------
 # main()
 # ---------------------------------------------------------------------------------------------
-def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str) -> int:
-    """rclpy.init, build the node, spin until SIGINT/shutdown; exit code 0, or 2 on bad params."""
+def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
+             until: Callable[[Node], Future] | None = None) -> int:
+    """rclpy.init, build the node, spin until SIGINT/shutdown, or with ``until`` until the
+    future it returns for the node completes (its result is the exit code). Exit code 0 at
+    SIGINT/shutdown, EXIT_CONFIG_ERROR (2) on bad params; the node is destroyed either way."""
     rclpy.init(args=args)
     node = None
     try:
@@ -340,7 +370,13 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str) -
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         try:
-            executor.spin()
+            if until is None:
+                executor.spin()
+            else:
+                done = until(node)
+                executor.spin_until_future_complete(done)
+                if done.done():
+                    return int(done.result())
         finally:
             executor.shutdown(timeout_sec=1.0)
     except (KeyboardInterrupt, ExternalShutdownException):

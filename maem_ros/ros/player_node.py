@@ -11,13 +11,13 @@ from __future__ import annotations
 import argparse
 import fnmatch
 import importlib
-import signal
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
+from maem_ros.ros.cli import split_ros_args, stop_on_signals
 from maem_ros.tools import bagio
 
 _IMAGE_TYPES = (bagio.IMAGE, bagio.COMPRESSED_IMAGE)
@@ -77,17 +77,6 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
                        exclude=a.exclude,
                        remap=remap, clock=a.clock is not None, clock_hz=a.clock or 40.0,
                        delay_s=max(0.0, a.delay), wait_subscribers_s=max(0.0, a.wait_subscribers))
-
-
-def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
-    """(our arguments, rclpy arguments): everything from the first ``--ros-args`` on is rclpy's.
-
-    rclpy's ``remove_ros_args`` is not used because it also swallows ``a:=b`` (legacy remap
-    syntax), which is our ``--remap`` value format.
-    """
-    argv = list(argv)
-    cut = argv.index("--ros-args") if "--ros-args" in argv else len(argv)
-    return argv[1:cut], argv[:1] + argv[cut:]
 
 
 def select_topics(available: Sequence[str], topics: Sequence[str] | None,
@@ -277,9 +266,7 @@ def main(args: Sequence[str] | None = None) -> int:
 
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-play", *args])
     opts = parse_args(ours)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("maem_player")
     log = node.get_logger()

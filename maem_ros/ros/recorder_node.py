@@ -8,13 +8,12 @@ follows the publishers: best effort if any publisher is, transient local if all 
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from typing import Sequence
 
+from maem_ros.ros.cli import split_ros_args, stop_on_signals
 from maem_ros.tools import bagio
 
 _HIDDEN = ("/rosout", "/parameter_events")
@@ -155,12 +154,9 @@ def main(args: Sequence[str] | None = None) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from maem_ros.ros.player_node import split_ros_args
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-record", *args])
     opts = parse_args(ours)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     try:
         writer = bagio.BagWriter(opts.out, compress=opts.compress)
     except Exception as e:  # noqa: BLE001 - rosbags WriterError / OSError: report, exit non-zero

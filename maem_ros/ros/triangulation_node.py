@@ -23,8 +23,8 @@ from visualization_msgs.msg import MarkerArray
 from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, MARKER_QOS, ConfigError,
-                                 Diagnostics, ParamSpec, Stopwatch, declare_params, load_rig_param,
-                                 run_node)
+                                 Diagnostics, ParamSpec, RejectErrors, Stopwatch, declare_params,
+                                 load_rig_param, run_node)
 
 NODE_NAME = "triangulation"
 
@@ -96,17 +96,13 @@ class TriangulationNode(Node):
         except wire.WireError as e:
             self.diag.reject(e.reason, str(e))
             return
-        try:
+        with RejectErrors(self.diag, self.topic, "triangulation_error") as step:
             with Stopwatch(self.diag, "triangulate"):
                 frames, clusters = cf.to_core(self.rig)
                 poses = self._triangulate(self.rig, frames, clusters, self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(clusters), cf.num_joints, 3))
-        except ValueError as e:
-            self.diag.reject("triangulation_error", f"{self.topic}: {e}")
-            return
-        except Exception as e:  # noqa: BLE001 - a bug must not stop the live graph; counted
-            self.diag.reject("internal_error", f"{self.topic}: {type(e).__name__}: {e}")
+        if step.failed:
             return
         if self._last_stamp is not None and cf.stamp_ns < self._last_stamp:
             self.tracker.reset()

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import array
 import colorsys
+import struct
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -79,6 +80,17 @@ def ns_to_stamp(ns: int) -> Time:
         raise ValueError(f"stamp: {int(ns)} ns is outside builtin_interfaces/Time (0 .. 2^31 s)")
     sec, nsec = divmod(int(ns), 1_000_000_000)
     return Time(sec=sec, nanosec=nsec)
+
+
+def cdr_header_stamp_ns(data: bytes) -> int:
+    """Header stamp of a serialized message whose first field is std_msgs/Header (CDR: 4-byte
+    encapsulation header, then builtin_interfaces/Time sec int32, nanosec uint32), without
+    deserialising the rest."""
+    if len(data) < 12:
+        raise ValueError(f"serialized message: {len(data)} bytes, too short for a header")
+    endian = "<" if data[1] & 1 else ">"
+    sec, nsec = struct.unpack_from(endian + "iI", data, 4)
+    return sec * 1_000_000_000 + nsec
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Header:

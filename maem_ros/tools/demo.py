@@ -27,186 +27,38 @@ import os
 import random
 import shutil
 import signal
-import struct
-import subprocess
 import sys
-import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import yaml
 
+from maem_ros.core import epipolar
+from maem_ros.core.association import associate
+from maem_ros.core.camera import Rig
+from maem_ros.core.triangulation import triangulate
+from maem_ros.params import resolve_config_path
+from maem_ros.ros.probe import ArrivalListener
+from maem_ros.ros.wire import msg_to_detections
 from maem_ros.tools import bagio
+from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
+                                     check_scene, default_bag, ensure_bag, image_topic, load_bag,
+                                     log, make_demo_bag, trim_bag)
+from maem_ros.tools.demo_report import (LATENCY_DEFINITION, format_timing, latencies_ms,
+                                        print_accuracy, print_run_summary, recorded_diagnostics,
+                                        recorded_poses, score, stage_timing, write_pictures)
+from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
+from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-#: the committed demo bag's scene (maem-demo --make-bag)
-DEMO_SCENE = {"rig": "sportcenter6", "frames": 30, "fps": 30.0, "seed": 0, "difficulty": "medium",
-              "num_vertices": 18439, "players": 10, "bystanders": 2,
-              "start_stamp_ns": 1_700_000_000_000_000_000}
-#: demo bag size knobs: JPEG quality of the rendered images, mesh vertices kept per detection
-JPEG_QUALITY = 35
-BAG_VERTICES = 256
 #: default playback rate (1.5 fps): each synthetic frontend regenerates 18,439-vertex
 #: detections of ~12 people per image (~55 ms CPU); all six get a frame at the same moment and
 #: share 2 cores with the rest of the machine (0.2-0.4 s per frame here), so faster replays
 #: drop frames
 DEFAULT_RATE = 0.05
 RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/diagnostics")
-LATENCY_DEFINITION = (
-    "latency = wall time (monotonic clock of the demo's listener node) at which /maem/poses with "
-    "stamp s is received, minus the wall time at which the listener received the first "
-    "/<cam>/image_raw/compressed with stamp s from maem-play; both measured in one process, so "
-    "it covers DDS transport, the frontends, synchronisation wait, association, triangulation")
-
-
-def log(text: str) -> None:
-    print(f"maem-demo: {text}", flush=True)
-
-
-def default_bag() -> Path:
-    """bags/demo of the source checkout when there is one, else ./bags/demo."""
-    repo = REPO_ROOT / "bags"
-    return (repo if repo.is_dir() else Path("bags")) / "demo"
-
-
-# ---------------------------------------------------------------------------------------------
-# the demo bag
-# ---------------------------------------------------------------------------------------------
-def subset_outputs(outputs: list[dict], idx: np.ndarray | None) -> list[dict]:
-    """MAEM output dicts with only the mesh vertices ``idx`` (None = all)."""
-    if idx is None:
-        return outputs
-    keys = ("pred_keypoints_2d_verts", "pred_vertices")
-    return [{k: (np.ascontiguousarray(v[idx]) if k in keys else v) for k, v in o.items()}
-            for o in outputs]
-
-
-def write_demo_scene(root: Path, scene_config: dict, quality: int, vertices: int) -> Path:
-    """Scene folder (maem-sim layout) of ``scene_config``: raw JPEGs at ``quality``, npz with an
-    evenly spaced subset of ``vertices`` mesh vertices, gt.npz, scene.json (full config)."""
-    from maem_ros.core.interchange import SceneFolder
-    from maem_ros.core.skeleton import SPORTCENTER_13
-    from maem_ros.sim.scene import Scene, SceneConfig
-    from maem_ros.tools.make_bag import vertex_subset
-    from maem_ros.tools.simulate import gt_arrays
-
-    scene = Scene(SceneConfig.from_dict(scene_config))
-    n = scene.num_frames
-    info = {"fps": float(scene.fps), "start_stamp_ns": int(scene.stamp_ns(0)), "num_frames": n,
-            "scene_config": scene.config.to_dict()}
-    folder = SceneFolder.create(root, scene.rig, info)
-    idx = vertex_subset(scene.config.num_vertices, vertices)
-    for frame in range(n):
-        for cam in scene.rig.names:
-            folder.write_outputs(cam, frame, subset_outputs(scene.raw_outputs(cam, frame), idx))
-            folder.write_image(cam, frame, scene.render(cam, frame), quality=quality)
-    folder.write_gt(*gt_arrays(scene, n), convention=SPORTCENTER_13.name)
-    return root
-
-
-def make_demo_bag(out: Path, frames: int = DEMO_SCENE["frames"], seed: int = DEMO_SCENE["seed"],
-                  quality: int = JPEG_QUALITY, vertices: int = BAG_VERTICES) -> Path:
-    """Build the demo bag at ``out`` (must not exist): sim scene -> maem-make-bag --compress."""
-    import tempfile
-
-    from maem_ros.tools import make_bag
-    if out.exists():
-        raise ValueError(f"--make-bag {str(out)!r}: exists already; remove it first")
-    cfg = dict(DEMO_SCENE, frames=int(frames), seed=int(seed))
-    with tempfile.TemporaryDirectory(prefix="maem_demo_scene_") as tmp:
-        t0 = time.monotonic()
-        scene_dir = write_demo_scene(Path(tmp) / "scene", cfg, quality, vertices)
-        log(f"simulated {frames} frames x 6 cameras in {time.monotonic() - t0:.1f} s")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        code = make_bag.main([str(out), "--scene", str(scene_dir), "--compress", "--quiet"])
-    if code != 0:
-        raise RuntimeError(f"maem-make-bag failed with exit code {code}")
-    size = sum(p.stat().st_size for p in out.iterdir())
-    log(f"demo bag {str(out)!r}: {size / 1e6:.1f} MB")
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# reading the input bag
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class DemoBag:
-    """What the demo needs from a bag: cameras, frame stamps, scene description, rig, GT."""
-
-    path: Path
-    info: bagio.BagInfo
-    cameras: list[str]
-    stamps: list[int]  # image stamps in order (one per frame)
-    scene_config: dict | None
-    rig_yaml: str
-    gt: dict[int, np.ndarray]  # stamp -> (P,13,3) world m, NaN = masked joint
-
-    @property
-    def fps(self) -> float:
-        d = np.diff(self.stamps)
-        return float(1e9 / np.median(d)) if len(d) else float("nan")
-
-
-def image_topic(cam: str) -> str:
-    return f"/{cam}/image_raw/compressed"
-
-
-def load_bag(path: Path) -> DemoBag:
-    """Read a demo bag's metadata, image stamps and ground truth; ValueError when unusable."""
-    from maem_ros.ros.wire import msg_to_poses
-    from maem_ros.tools.evaluate import to_sportcenter13
-
-    info = bagio.bag_info(path)
-    cams = sorted(t.split("/")[1] for t in info.topics if t.endswith("/image_raw/compressed"))
-    if not cams:
-        raise ValueError(f"bag {str(path)!r}: no /<camera>/image_raw/compressed topic")
-    rig_yaml = bagio.read_rig_yaml(path)
-    if not rig_yaml:
-        raise ValueError(f"bag {str(path)!r}: no rig in metadata custom_data ({bagio.CUSTOM_RIG})")
-    stamps = sorted({m.log_time_ns for m in bagio.read_messages(path, [image_topic(cams[0])])})
-    convention = info.custom.get(bagio.CUSTOM_GT_CONVENTION)
-    gt = {}
-    for m in bagio.read_messages(path, [bagio.GT_TOPIC]):
-        pf = msg_to_poses(m.decode(), bagio.GT_TOPIC)
-        gt[pf.stamp_ns] = to_sportcenter13(pf.joints, convention)
-    return DemoBag(path, info, cams, stamps, bagio.read_scene_config(path), rig_yaml, gt)
-
-
-def check_scene(demo: DemoBag, tol_m: float = 1e-3) -> None:
-    """ValueError when the simulator no longer regenerates the bag's ground truth (the bag was
-    made by another simulator version: the synthetic frontends would see other people)."""
-    from maem_ros.core.skeleton import SPORTCENTER_13
-    from maem_ros.sim.scene import Scene, SceneConfig
-    if demo.scene_config is None or not demo.gt:
-        return
-    scene = Scene(SceneConfig.from_dict(demo.scene_config))
-    stamp = min(demo.gt)
-    frame = scene.frame_at(stamp)
-    want = demo.gt[stamp]
-    got = SPORTCENTER_13.select(scene.gt_keypoints(frame)[scene.is_player]) if frame is not None \
-        else np.zeros((0, SPORTCENTER_13.num_joints, 3))
-    ok = got.shape == want.shape and bool(np.nanmax(np.abs(got - want), initial=0.0) < tol_m)
-    if not ok:
-        raise ValueError(f"bag {str(demo.path)!r} was made by another simulator version: its "
-                         f"ground truth differs from the scene its description regenerates; "
-                         f"rebuild it with: maem-demo --make-bag {demo.path} (after removing it)")
-
-
-def trim_bag(src: DemoBag, dst: Path, frames: int) -> Path:
-    """Copy the first ``frames`` frames of ``src`` (all topics, custom data, QoS) to ``dst``."""
-    stop = src.stamps[frames] if frames < len(src.stamps) else src.info.end_ns + 1
-    with bagio.BagWriter(dst, compress=False) as w:
-        for key, value in src.info.custom.items():
-            w.set_custom(key, value)
-        for topic, msgtype in src.info.topics.items():
-            qos = src.info.qos.get(topic) or [None]
-            w.add_topic(topic, msgtype, qos[0])
-        for m in bagio.read_messages(src.path, stop_ns=stop):
-            w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns)
-    return dst
 
 
 # ---------------------------------------------------------------------------------------------
@@ -234,7 +86,6 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
     images and the bag's scene description (the synthetic backend regenerates from it); for the
     association ``max_wait_s`` (s; the six frontends share the CPU, so one frame's detections
     arrive spread over a few hundred ms)."""
-    from maem_ros.params import resolve_config_path
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
     nodes = {name: node_section(data, name)
              for name in ("frontend", "association", "triangulation")}
@@ -257,73 +108,8 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
 
 
 # ---------------------------------------------------------------------------------------------
-# processes
+# the graph: processes, wiring, replay
 # ---------------------------------------------------------------------------------------------
-@dataclass
-class Proc:
-    name: str
-    popen: subprocess.Popen
-    log: Path
-
-    def tail(self, chars: int = 1500) -> str:
-        try:
-            return self.log.read_text(errors="replace")[-chars:]
-        except OSError:
-            return ""
-
-
-@dataclass
-class ProcessGroup:
-    """Child processes with logs in ``log_dir``; ``stop`` sends SIGINT and collects exit codes."""
-
-    log_dir: Path
-    env: dict[str, str]
-    procs: dict[str, Proc] = field(default_factory=dict)
-
-    def start(self, name: str, cmd: Sequence[str]) -> Proc:
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = self.log_dir / f"{name}.log"
-        with open(log_path, "wb") as fh:
-            popen = subprocess.Popen(list(cmd), stdout=fh, stderr=subprocess.STDOUT, env=self.env,
-                                     stdin=subprocess.DEVNULL)
-        self.procs[name] = Proc(name, popen, log_path)
-        return self.procs[name]
-
-    def dead(self, names: Sequence[str] | None = None) -> dict[str, int]:
-        """{name: exit code} of the processes (of ``names``) that have exited."""
-        return {n: p.popen.returncode for n, p in self.procs.items()
-                if (names is None or n in names) and p.popen.poll() is not None}
-
-    def stop(self, names: Sequence[str], timeout_s: float = 10.0) -> dict[str, int | None]:
-        """SIGINT ``names`` (still running), wait; kill leftovers. Exit codes, None = killed."""
-        for n in names:
-            if self.procs[n].popen.poll() is None:
-                self.procs[n].popen.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + timeout_s
-        codes: dict[str, int | None] = {}
-        for n in names:
-            p = self.procs[n].popen
-            try:
-                codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=5)
-                codes[n] = None
-        return codes
-
-    def shutdown(self) -> None:
-        """SIGINT whatever still runs (recorder last, so it keeps what it received), then kill."""
-        running = [n for n, p in self.procs.items() if p.popen.poll() is None]
-        if running:
-            self.stop([n for n in running if n != "recorder"], timeout_s=5.0)
-            if "recorder" in running:
-                self.stop(["recorder"], timeout_s=10.0)
-
-
-def module_command(module: str, *args: str) -> list[str]:
-    return [sys.executable, "-m", module, *args]
-
-
 def child_env() -> dict[str, str]:
     """Environment of the children: a private random ROS_DOMAIN_ID unless the user set one, and
     localhost-only discovery, so two demos (or a demo and a test run) never hear each other."""
@@ -334,86 +120,16 @@ def child_env() -> dict[str, str]:
     return env
 
 
-# ---------------------------------------------------------------------------------------------
-# listener: image and poses arrival times (latency)
-# ---------------------------------------------------------------------------------------------
-def cdr_header_stamp_ns(data: bytes) -> int:
-    """Header stamp of a serialized message whose first field is std_msgs/Header (CDR)."""
-    if len(data) < 12:
-        raise ValueError(f"serialized message: {len(data)} bytes, too short for a header")
-    endian = "<" if data[1] & 1 else ">"
-    sec, nsec = struct.unpack_from(endian + "iI", data, 4)
-    return sec * 1_000_000_000 + nsec
+def missing_links(listener: ArrivalListener, cameras: Sequence[str]) -> list[str]:
+    """What is not wired yet (empty = frontends, association, triangulation, recorder ready)."""
+    need = [(image_topic(c), 2, "frontend") for c in cameras]
+    need += [(f"/{c}/detections", 1, "association") for c in cameras]
+    need += [("/maem/clusters", 1, "triangulation"), ("/maem/poses", 2, "recorder"),
+             ("/maem/skeletons", 1, "recorder"), ("/diagnostics", 1, "recorder")]
+    return [f"{topic} has no {who} subscriber" for topic, k, who in need
+            if listener.count_subscribers(topic) < k]
 
 
-class Listener:
-    """rclpy node in its own context and thread: first arrival (monotonic ns) of each image stamp
-    and of each /maem/poses stamp; also checks that the graph is wired before playing."""
-
-    def __init__(self, cameras: Sequence[str], domain_id: int):
-        import rclpy
-        from rclpy.executors import SingleThreadedExecutor
-        from sensor_msgs.msg import CompressedImage, PointCloud2
-
-        from maem_ros.ros.common import DATA_QOS, IMAGE_QOS
-
-        self.cameras = list(cameras)
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("maem_demo_listener", context=self.context)
-        self.lock = threading.Lock()
-        self.image_t: dict[int, int] = {}
-        self.poses_t: dict[int, int] = {}
-        self.subs = [self.node.create_subscription(CompressedImage, image_topic(c), self._on_image,
-                                                   IMAGE_QOS, raw=True) for c in self.cameras]
-        self.subs.append(self.node.create_subscription(PointCloud2, "/maem/poses", self._on_poses,
-                                                       DATA_QOS, raw=True))
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def _on_image(self, data: bytes) -> None:
-        t = time.monotonic_ns()
-        with self.lock:
-            self.image_t.setdefault(cdr_header_stamp_ns(data), t)
-
-    def _on_poses(self, data: bytes) -> None:
-        t = time.monotonic_ns()
-        with self.lock:
-            self.poses_t.setdefault(cdr_header_stamp_ns(data), t)
-
-    def missing_links(self) -> list[str]:
-        """What is not wired yet (empty = frontends, association, triangulation, recorder ready)."""
-        n = self.node
-        need = [(image_topic(c), 2, "frontend") for c in self.cameras]
-        need += [(f"/{c}/detections", 1, "association") for c in self.cameras]
-        need += [("/maem/clusters", 1, "triangulation"), ("/maem/poses", 2, "recorder"),
-                 ("/maem/skeletons", 1, "recorder"), ("/diagnostics", 1, "recorder")]
-        return [f"{topic} has no {who} subscriber" for topic, k, who in need
-                if n.count_subscribers(topic) < k]
-
-    def snapshot(self) -> tuple[dict[int, int], dict[int, int]]:
-        with self.lock:
-            return dict(self.image_t), dict(self.poses_t)
-
-    def close(self) -> None:
-        import rclpy
-        self._stop.set()
-        self.thread.join(timeout=5)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
-# ---------------------------------------------------------------------------------------------
-# graph run
-# ---------------------------------------------------------------------------------------------
 @dataclass
 class GraphRun:
     """Outcome of one graph replay."""
@@ -455,17 +171,15 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
         group.start("recorder", module_command("maem_ros.ros.recorder_node", str(record),
                                                "--topics", *RECORD_TOPICS))
         for c in demo.cameras:
-            group.start(f"frontend_{c}", module_command(
-                "maem_ros.ros.frontend_node", "--ros-args", "--params-file", str(params),
-                "-r", f"__ns:=/{c}"))
+            group.start(f"frontend_{c}", node_command("frontend", params, f"/{c}"))
         for kind in ("association", "triangulation"):
-            group.start(kind, module_command(f"maem_ros.ros.{kind}_node", "--ros-args",
-                                             "--params-file", str(params)))
+            group.start(kind, node_command(kind, params))
         # the listener (this process) joins the children's domain and discovery range
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE",
                               group.env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
-        listener = Listener(demo.cameras, int(group.env["ROS_DOMAIN_ID"]))
-        _wait_wired(group, listener, startup_timeout_s)
+        listener = ArrivalListener([image_topic(c) for c in demo.cameras],
+                                   int(group.env["ROS_DOMAIN_ID"]))
+        _wait_wired(group, listener, demo.cameras, startup_timeout_s)
         t0 = time.monotonic()
         group.start("player", module_command(
             "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
@@ -491,7 +205,6 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
 def warm_numba_cache() -> None:
     """Compile the epipolar kernels here (numba's on-disk cache) so the association node loads
     them at its first frame instead of compiling them for seconds while frames queue up."""
-    from maem_ros.core import epipolar
     t0 = time.monotonic()
     epipolar.warmup()
     dt = time.monotonic() - t0
@@ -499,14 +212,15 @@ def warm_numba_cache() -> None:
         log(f"compiled the epipolar kernels in {dt:.1f} s (cached for the nodes)")
 
 
-def _wait_wired(group: ProcessGroup, listener: Listener, timeout_s: float) -> None:
+def _wait_wired(group: ProcessGroup, listener: ArrivalListener, cameras: Sequence[str],
+                timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         dead = group.dead()
         if dead:
             raise DemoError("process exited during start-up:\n  " + "\n  ".join(
                 _crash_text(group.procs[n], c) for n, c in dead.items()))
-        missing = listener.missing_links()
+        missing = missing_links(listener, cameras)
         if not missing:
             return
         if time.monotonic() > deadline:
@@ -537,7 +251,7 @@ def _check_crashes(group: ProcessGroup, watched: list[str], crashed: dict[str, s
                                 f"the replay anyway):\n  {crashed[name]}")
 
 
-def _drain(group: ProcessGroup, listener: Listener, stamps: list[int], idle_s: float,
+def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: list[int], idle_s: float,
            nodes: list[str], crashed: dict[str, str], keep_going: bool) -> None:
     """Wait until every frame has its poses, or no new poses arrived for ``idle_s``."""
     last_n, last_change = -1, time.monotonic()
@@ -549,161 +263,6 @@ def _drain(group: ProcessGroup, listener: Listener, stamps: list[int], idle_s: f
         if len(poses) != last_n:
             last_n, last_change = len(poses), time.monotonic()
         time.sleep(0.1)
-
-
-# ---------------------------------------------------------------------------------------------
-# results
-# ---------------------------------------------------------------------------------------------
-def recorded_poses(record: Path) -> dict[int, Any]:
-    """stamp -> PoseFrame of the recorded /maem/poses (first message per stamp)."""
-    from maem_ros.ros.wire import msg_to_poses
-    out: dict[int, Any] = {}
-    if not (record / "metadata.yaml").is_file():
-        return out
-    for m in bagio.read_messages(record, ["/maem/poses"]):
-        pf = msg_to_poses(m.decode(), m.topic)
-        out.setdefault(pf.stamp_ns, pf)
-    return out
-
-
-def recorded_diagnostics(record: Path) -> dict[str, dict[str, str]]:
-    """node name -> key/values of its last recorded DiagnosticStatus."""
-    out: dict[str, dict[str, str]] = {}
-    if not (record / "metadata.yaml").is_file():
-        return out
-    for m in bagio.read_messages(record, ["/diagnostics"]):
-        for st in m.decode().status:
-            out[st.name] = {kv.key: kv.value for kv in st.values}
-    return out
-
-
-def score(demo: DemoBag, stamps: Sequence[int], preds: dict[int, tuple[np.ndarray, np.ndarray]]
-          ) -> dict[str, Any]:
-    """maem-eval metrics over ``stamps``; a frame without predictions counts as all missed."""
-    from maem_ros.core.metrics import evaluate_sequence
-    from maem_ros.core.skeleton import SPORTCENTER_13
-    empty = (np.zeros((0, SPORTCENTER_13.num_joints, 3)), np.zeros(0))
-    ps, ss, gts, masks = [], [], [], []
-    for s in stamps:
-        if s not in demo.gt:
-            continue
-        joints, scores = preds.get(s, empty)
-        keep = np.isfinite(joints).all(-1).any(-1)
-        ps.append(joints[keep])
-        ss.append(scores[keep])
-        g = demo.gt[s]
-        m = np.isfinite(g).all(-1)
-        gts.append(np.where(m[..., None], g, 0.0))
-        masks.append(m)
-    if not gts:
-        raise ValueError(f"bag {str(demo.path)!r}: no ground truth (/maem/gt_poses) for the "
-                         "played frames")
-    metrics = dict(evaluate_sequence(ps, ss, gts, masks))
-    metrics["frames"] = len(gts)
-    return metrics
-
-
-def stage_timing(diags: dict[str, dict[str, str]]) -> list[tuple[str, str, float, float, int, int]]:
-    """Rows (node, stage, median ms, p99 ms, processed, dropped); frontends merged into one row
-    per stage (median of the cameras' medians, max of their p99)."""
-    groups: dict[str, list[dict[str, str]]] = {}
-    for name, kv in sorted(diags.items()):
-        key = "frontend" if name.endswith("/frontend") else name.strip("/")
-        groups.setdefault(key, []).append(kv)
-    rows = []
-    for key, kvs in groups.items():
-        label = f"{key} (x{len(kvs)})" if len(kvs) > 1 else key
-        processed = sum(int(kv.get("frames_processed", 0)) for kv in kvs)
-        dropped = sum(int(kv.get("frames_dropped", 0)) for kv in kvs)
-        stages = sorted({k.split("/")[1] for kv in kvs for k in kv if k.startswith("time_ms/")})
-        for st in stages:
-            med = [float(kv[f"time_ms/{st}/median"]) for kv in kvs if f"time_ms/{st}/median" in kv]
-            p99 = [float(kv[f"time_ms/{st}/p99"]) for kv in kvs if f"time_ms/{st}/p99" in kv]
-            rows.append((label, st, float(np.median(med)), float(np.max(p99)), processed, dropped))
-    return rows
-
-
-def format_timing(rows) -> str:
-    head = ("node", "stage", "median ms", "p99 ms", "processed", "dropped")
-    body = [(n, s, f"{m:.2f}", f"{p:.2f}", str(a), str(d)) for n, s, m, p, a, d in rows]
-    widths = [max(len(r[i]) for r in [head] + body) for i in range(len(head))]
-    fmt = lambda r: "  ".join(c.ljust(w) if i < 2 else c.rjust(w)  # noqa: E731
-                              for i, (c, w) in enumerate(zip(r, widths)))
-    return "\n".join([fmt(head), "  ".join("-" * w for w in widths)] + [fmt(r) for r in body])
-
-
-def latencies_ms(image_t: dict[int, int], poses_t: dict[int, int]) -> np.ndarray:
-    return np.array([(poses_t[s] - t) / 1e6 for s, t in image_t.items() if s in poses_t])
-
-
-def dropped_counters(diags: dict[str, dict[str, str]]) -> dict[str, dict[str, str]]:
-    """Per node: its non-zero drop / missing-camera counters."""
-    out = {}
-    for name, kv in diags.items():
-        d = {k: v for k, v in kv.items()
-             if (k.startswith(("dropped/", "missing/")) or k == "frames_dropped") and v != "0"}
-        if d:
-            out[name] = d
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# pictures
-# ---------------------------------------------------------------------------------------------
-def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any) -> Path:
-    """Raw camera image at ``stamp`` with GT (white) and estimated skeletons (colour = track id)
-    projected through the camera's distortion."""
-    import cv2
-
-    from maem_ros.core.skeleton import SPORTCENTER_13
-    from maem_ros.frontend.overlay import colour_for
-    from maem_ros.ros.wire import UNTRACKED_ID
-    msg = next(bagio.read_messages(demo.path, [image_topic(cam)], start_ns=stamp,
-                                   stop_ns=stamp + 1)).decode()
-    img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_COLOR)
-    camera = rig[cam]
-
-    def draw(joints: np.ndarray, colour, thick: int, label: str | None) -> None:
-        uv = camera.project(joints)
-        ok = np.isfinite(uv).all(-1)
-        for a, b in SPORTCENTER_13.bones:
-            if ok[a] and ok[b]:
-                cv2.line(img, tuple(int(v) for v in uv[a]), tuple(int(v) for v in uv[b]), colour,
-                         thick, cv2.LINE_AA)
-        if label and ok.any():
-            top = uv[ok][np.argmin(uv[ok][:, 1])]
-            cv2.putText(img, label, (int(top[0]) - 10, int(top[1]) - 10),
-                        cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour, 2, cv2.LINE_AA)
-
-    for g in demo.gt.get(stamp, []):
-        draw(g, (255, 255, 255), 4, None)
-    for pid, joints in zip(pred.ids, pred.joints):
-        tracked = int(pid) != UNTRACKED_ID
-        draw(joints, colour_for(int(pid)) if tracked else (128, 128, 128), 2,
-             f"#{int(pid)}" if tracked else None)
-    title = f"{cam}  stamp {stamp}  white = ground truth, colour = /maem/poses (track id)"
-    (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.8, 2)
-    cv2.rectangle(img, (10, 10), (30 + tw, 30 + th), (0, 0, 0), cv2.FILLED)
-    cv2.putText(img, title, (20, 20 + th), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2,
-                cv2.LINE_AA)
-    if not cv2.imwrite(str(path), img):
-        raise ValueError(f"snapshot {str(path)!r}: cv2.imwrite failed")
-    return path
-
-
-def write_pictures(out: Path, demo: DemoBag, rig, stamps: Sequence[int], poses: dict[int, Any]
-                   ) -> list[Path]:
-    """snapshot_<cam>.png and court.png at the middle played frame that has poses."""
-    from maem_ros.tools.plots import plot_court
-    with_poses = [s for s in stamps if s in poses and s in demo.gt]
-    if not with_poses:
-        return []
-    stamp = with_poses[len(with_poses) // 2]
-    pred = poses[stamp]
-    cam = demo.cameras[0]
-    frame = demo.stamps.index(stamp)
-    return [snapshot_png(out / f"snapshot_{cam}.png", demo, rig, cam, stamp, pred),
-            plot_court(out / "court.png", frame, demo.gt[stamp], pred.joints, rig)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -719,10 +278,6 @@ class OfflinePose:
 def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
                 ) -> tuple[dict[int, OfflinePose], list[float]]:
     """Association + triangulation of the bag's recorded detections, per frame, in process."""
-    from maem_ros.core.association import associate
-    from maem_ros.core.triangulation import triangulate
-    from maem_ros.ros.wire import msg_to_detections
-    from maem_ros.tools.evaluate import load_params, to_sportcenter13
     assoc, tri = load_params(params)
     frames: dict[int, dict[str, Any]] = {s: {} for s in stamps}
     topics = [f"/{c}/detections" for c in demo.cameras]
@@ -772,7 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                    help="give up when the graph is not wired after S seconds (default 60)")
     p.add_argument("--make-bag", type=Path, default=None, metavar="DIR",
-                   help="only build the demo bag into DIR (seeded) and exit")
+                   help=f"only build the demo bag into DIR (seeded; JPEG quality {JPEG_QUALITY}, "
+                   f"{BAG_VERTICES} mesh vertices per recorded detection) and exit")
     p.add_argument("--bag-frames", type=int, default=DEMO_SCENE["frames"], metavar="N",
                    help=f"frames of a generated demo bag (default {DEMO_SCENE['frames']})")
     return p
@@ -800,12 +356,6 @@ def prepare_out(out: Path) -> None:
         p.unlink()
 
 
-def print_accuracy(name: str, metrics: dict[str, Any]) -> None:
-    from maem_ros.tools.evaluate import format_table
-    print("\naccuracy against the bag's ground truth (/maem/gt_poses, players, sportcenter_13):")
-    print(format_table([(name, metrics)]))
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     if a.make_bag is not None:
@@ -827,16 +377,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, DemoError) as e:
         print(f"maem-demo: {e}", file=sys.stderr)
         return 1
-
-
-def ensure_bag(bag: Path, frames: int) -> Path:
-    """``bag`` when it is a rosbag2 folder; generate the demo bag there when it is missing."""
-    if not (bag / "metadata.yaml").is_file():
-        if bag.exists():
-            raise ValueError(f"--bag {str(bag)!r}: not a rosbag2 folder (no metadata.yaml)")
-        log(f"no bag at {str(bag)!r}: generating the demo bag (seeded)")
-        make_demo_bag(bag, frames=frames)
-    return bag
 
 
 def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
@@ -886,25 +426,7 @@ def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: lis
     return (1 if run.crashed else 0), poses, report
 
 
-def print_run_summary(rate: float, n: int, lat: np.ndarray, dropped: list[int],
-                      diags: dict[str, dict[str, str]], run: GraphRun) -> None:
-    """Latency, dropped frames (and the nodes' drop counters), machine load, exit codes."""
-    print(f"\nend-to-end latency (image received -> /maem/poses received, {len(lat)} frames): "
-          + (f"median {np.median(lat):.0f} ms, p99 {np.percentile(lat, 99):.0f} ms, "
-             f"max {lat.max():.0f} ms" if len(lat) else "no frame completed"))
-    print(f"frames dropped: {len(dropped)} of {n} played frames have no /maem/poses"
-          + (f" (rate {rate:g}; try a lower --rate)" if dropped and not run.crashed else ""))
-    for name, d in sorted(dropped_counters(diags).items()):
-        print(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in sorted(d.items())))
-    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} "
-          f"(1 min, all users)")
-    print(f"replay wall time: {run.wall_s:.1f} s; processes: " + ", ".join(
-        f"{k}={'killed' if v is None else v}" for k, v in run.exit_codes.items()))
-
-
 def run_demo(a: argparse.Namespace, t_start: float) -> int:
-    from maem_ros.core.camera import Rig
-    from maem_ros.tools.evaluate import _jsonable
     bag = ensure_bag(a.bag or default_bag(), a.bag_frames)
     prepare_out(a.out)
     demo = load_bag(bag)

@@ -16,11 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,40 +25,20 @@ from typing import Any, Sequence
 
 import numpy as np
 import yaml
+from scipy.optimize import linear_sum_assignment
 
+from maem_ros.core.skeleton import get_convention
+from maem_ros.frontend.synthetic import scene_config_dict
 from maem_ros.params import load_node_params, resolve_config_path
-
-NODE_MODULES = {"frontend": "maem_ros.ros.frontend_node",
-                "association": "maem_ros.ros.association_node",
-                "triangulation": "maem_ros.ros.triangulation_node"}
-
+from maem_ros.ros.common import load_rig_param
+from maem_ros.ros.frontend_node import PARAMS, backend_options
+from maem_ros.ros.probe import ReplayClient
+from maem_ros.sim.scene import Scene, SceneConfig
+from maem_ros.tools.processes import Proc, ProcessGroup, node_command
 
 # ---------------------------------------------------------------------------------------------
 # processes
 # ---------------------------------------------------------------------------------------------
-def node_command(kind: str, params_file: str | Path, namespace: str | None = None) -> list[str]:
-    """argv running one node with a params file (``python -m``, works without installing)."""
-    cmd = [sys.executable, "-m", NODE_MODULES[kind], "--ros-args", "--params-file", str(params_file)]
-    if namespace:
-        cmd += ["-r", f"__ns:={namespace}"]
-    return cmd
-
-
-@dataclass
-class NodeProcess:
-    name: str
-    popen: subprocess.Popen
-    log: Path
-
-    def cpu_seconds(self) -> float:
-        """user + system CPU seconds so far (Linux /proc), NaN when the process is gone."""
-        try:
-            parts = Path(f"/proc/{self.popen.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            return float("nan")
-        return (int(parts[11]) + int(parts[12])) / os.sysconf("SC_CLK_TCK")
-
-
 @dataclass
 class GraphProcesses:
     """The frontend (one per camera), association and triangulation processes of one graph."""
@@ -69,132 +46,33 @@ class GraphProcesses:
     params_file: Path
     cameras: Sequence[str]
     log_dir: Path
-    procs: list[NodeProcess] = field(default_factory=list)
+    group: ProcessGroup = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.group = ProcessGroup(self.log_dir,
+                                  dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1"))
+
+    @property
+    def procs(self) -> list[Proc]:
+        return list(self.group.procs.values())
 
     def start(self) -> "GraphProcesses":
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        specs = [(f"frontend_{c}", node_command("frontend", self.params_file, f"/{c}"))
-                 for c in self.cameras]
-        specs += [(k, node_command(k, self.params_file)) for k in ("association", "triangulation")]
-        env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-        for name, cmd in specs:
-            log = self.log_dir / f"{name}.log"
-            with open(log, "wb") as fh:
-                popen = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
-            self.procs.append(NodeProcess(name, popen, log))
+        for c in self.cameras:
+            self.group.start(f"frontend_{c}", node_command("frontend", self.params_file, f"/{c}"))
+        for kind in ("association", "triangulation"):
+            self.group.start(kind, node_command(kind, self.params_file))
         return self
 
     def dead(self) -> list[str]:
-        return [p.name for p in self.procs if p.popen.poll() is not None]
+        return list(self.group.dead())
 
     def stop(self, timeout_s: float = 15.0) -> dict[str, int | None]:
         """SIGINT every process, wait up to ``timeout_s``; kill leftovers. Returns exit codes
         (None = had to be killed)."""
-        for p in self.procs:
-            if p.popen.poll() is None:
-                p.popen.send_signal(signal.SIGINT)
-        deadline = time.monotonic() + timeout_s
-        codes: dict[str, int | None] = {}
-        for p in self.procs:
-            try:
-                codes[p.name] = p.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.popen.kill()
-                p.popen.wait(timeout=5)
-                codes[p.name] = None
-        return codes
+        return self.group.stop(timeout_s=timeout_s)
 
     def logs(self, tail: int = 2000) -> str:
-        return "\n".join(f"--- {p.name} ---\n{p.log.read_text(errors='replace')[-tail:]}"
-                         for p in self.procs if p.log.exists())
-
-
-# ---------------------------------------------------------------------------------------------
-# replay client
-# ---------------------------------------------------------------------------------------------
-class ReplayClient:
-    """A node (own Context) publishing images and recording /maem/poses + /diagnostics."""
-
-    def __init__(self, cameras: Sequence[str]):
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.executors import SingleThreadedExecutor
-        from sensor_msgs.msg import Image, PointCloud2
-
-        from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS
-
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("maem_replay", context=self.context)
-        self.cameras = list(cameras)
-        self.image_pubs = {c: self.node.create_publisher(Image, f"/{c}/image_raw", IMAGE_QOS)
-                           for c in self.cameras}
-        self.lock = threading.Lock()
-        self.sent: dict[int, float] = {}
-        self.poses: dict[int, tuple[float, Any]] = {}
-        self.diagnostics: dict[str, dict[str, str]] = {}
-        self.poses_sub = self.node.create_subscription(PointCloud2, "/maem/poses", self._on_poses,
-                                                       DATA_QOS)
-        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
-                                                      self._on_diag, DIAGNOSTICS_QOS)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self) -> None:
-        while not self._stop.is_set() and self.context.ok():
-            self.executor.spin_once(timeout_sec=0.05)
-
-    def _on_poses(self, msg) -> None:
-        from maem_ros.ros import wire
-        t = time.perf_counter()
-        pf = wire.msg_to_poses(msg, "/maem/poses")
-        with self.lock:
-            self.poses.setdefault(pf.stamp_ns, (t, pf))
-
-    def _on_diag(self, msg) -> None:
-        with self.lock:
-            for st in msg.status:
-                self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
-
-    def ready(self) -> bool:
-        """Every edge of the graph discovered: images -> frontends -> association ->
-        triangulation -> us."""
-        n = self.node
-        return (all(p.get_subscription_count() > 0 for p in self.image_pubs.values())
-                and all(n.count_publishers(f"/{c}/detections") > 0 and
-                        n.count_subscribers(f"/{c}/detections") > 0 for c in self.cameras)
-                and n.count_publishers("/maem/clusters") > 0
-                and n.count_subscribers("/maem/clusters") > 0
-                and self.poses_sub.get_publisher_count() > 0)
-
-    def wait_ready(self, timeout_s: float, alive=lambda: True) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.ready():
-                return True
-            if not alive():
-                return False
-            time.sleep(0.1)
-        return False
-
-    def publish_frame(self, stamp_ns: int) -> None:
-        from maem_ros.ros import wire
-        img = np.zeros((2, 2, 3), np.uint8)
-        with self.lock:
-            self.sent.setdefault(stamp_ns, time.perf_counter())
-        for cam, pub in self.image_pubs.items():
-            pub.publish(wire.bgr_to_image(img, stamp_ns, cam))
-
-    def close(self) -> None:
-        import rclpy
-        self._stop.set()
-        self.thread.join(timeout=5)
-        self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
+        return self.group.logs(tail)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -214,12 +92,8 @@ def write_params(base: str | Path, out: Path, frontend: dict[str, Any] | None = 
     return out
 
 
-def make_scene(params_file: Path):
+def make_scene(params_file: Path) -> Scene:
     """The sim Scene the synthetic frontends of ``params_file`` regenerate."""
-    from maem_ros.frontend.synthetic import scene_config_dict
-    from maem_ros.ros.frontend_node import PARAMS, backend_options
-    from maem_ros.sim.scene import Scene, SceneConfig
-
     p = {s.name: s.default for s in PARAMS}
     p.update(load_node_params(params_file, "frontend"))
     return Scene(SceneConfig.from_dict(scene_config_dict(backend_options(p))))
@@ -228,7 +102,6 @@ def make_scene(params_file: Path):
 def match_mpjpe(pred: np.ndarray, gt: np.ndarray,
                 max_m: float = 0.5) -> tuple[list[float], list[tuple[int, int]]]:
     """Hungarian on MPJPE (NaN joints ignored); pairs under ``max_m``: (errors m, (pred, gt))."""
-    from scipy.optimize import linear_sum_assignment
     if len(pred) == 0 or len(gt) == 0:
         return [], []
     d = np.linalg.norm(pred[:, None] - gt[None], axis=-1)  # (K,P,J)
@@ -257,9 +130,6 @@ def expected_stamps(stamps: Sequence[int], max_rate: float) -> list[int]:
 # ---------------------------------------------------------------------------------------------
 def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_timeout: float = 120.0,
         drain_s: float = 3.0) -> dict[str, Any]:
-    from maem_ros.core.skeleton import get_convention
-    from maem_ros.ros.common import load_rig_param
-
     rig = load_rig_param(load_node_params(params_file, "association").get("rig", ""))
     scene = make_scene(params_file)
     frames = min(frames, scene.num_frames)

@@ -1,0 +1,155 @@
+"""In-process graph probes for the tools: rclpy nodes that run beside a tool's own code.
+
+:class:`BackgroundNode` is the shared part: a node in a private ``rclpy.Context`` (so the tool
+never touches the default context or signal handling), spun by a ``SingleThreadedExecutor`` in a
+daemon thread, closed cleanly by :meth:`BackgroundNode.close`. On top of it:
+
+* :class:`ArrivalListener` (maem-demo): first arrival time of each header stamp on image topics
+  and on /maem/poses, read from the raw CDR bytes (no deserialisation);
+* :class:`ReplayClient` (tools/latency.py): publishes tiny images with given stamps and records
+  /maem/poses and /diagnostics.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import CompressedImage, Image, PointCloud2
+
+from maem_ros.ros import wire
+from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS
+
+
+class BackgroundNode:
+    """A node in its own Context, spun in a daemon thread once :meth:`start` is called.
+
+    Create subscriptions/publishers on ``self.node`` first, then ``start()``; ``close()`` stops
+    the thread and shuts the context down. ``lock`` guards what the callbacks record.
+    """
+
+    def __init__(self, name: str, domain_id: int | None = None):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+
+    def start(self) -> "BackgroundNode":
+        self.thread.start()
+        return self
+
+    def _spin(self) -> None:
+        while not self._stop.is_set() and self.context.ok():
+            self.executor.spin_once(timeout_sec=0.05)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self.thread.is_alive():
+            self.thread.join(timeout=5)
+        self.executor.shutdown(timeout_sec=1.0)
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+    def __enter__(self) -> "BackgroundNode":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ArrivalListener(BackgroundNode):
+    """First arrival (``time.monotonic_ns``) of each header stamp on ``image_topics``
+    (CompressedImage) and on /maem/poses, subscribed raw: only the CDR header is read."""
+
+    def __init__(self, image_topics: Sequence[str], domain_id: int | None = None,
+                 name: str = "maem_demo_listener"):
+        super().__init__(name, domain_id)
+        self.image_t: dict[int, int] = {}
+        self.poses_t: dict[int, int] = {}
+        self.subs = [self.node.create_subscription(CompressedImage, t, self._arrival(self.image_t),
+                                                   IMAGE_QOS, raw=True) for t in image_topics]
+        self.subs.append(self.node.create_subscription(
+            PointCloud2, "/maem/poses", self._arrival(self.poses_t), DATA_QOS, raw=True))
+        self.start()
+
+    def _arrival(self, table: dict[int, int]) -> Callable[[bytes], None]:
+        def record(data: bytes) -> None:
+            t = time.monotonic_ns()
+            with self.lock:
+                table.setdefault(wire.cdr_header_stamp_ns(data), t)
+        return record
+
+    def count_subscribers(self, topic: str) -> int:
+        return self.node.count_subscribers(topic)
+
+    def snapshot(self) -> tuple[dict[int, int], dict[int, int]]:
+        """(image arrivals, poses arrivals) by stamp, copies."""
+        with self.lock:
+            return dict(self.image_t), dict(self.poses_t)
+
+
+class ReplayClient(BackgroundNode):
+    """Publishes a tiny ``/<cam>/image_raw`` per camera for a stamp; records /maem/poses
+    (``poses``: stamp -> (perf_counter s at arrival, PoseFrame)) and the last /diagnostics
+    values of each node (``diagnostics``)."""
+
+    def __init__(self, cameras: Sequence[str], name: str = "maem_replay"):
+        super().__init__(name)
+        self.cameras = list(cameras)
+        self.image_pubs = {c: self.node.create_publisher(Image, f"/{c}/image_raw", IMAGE_QOS)
+                           for c in self.cameras}
+        self.sent: dict[int, float] = {}
+        self.poses: dict[int, tuple[float, Any]] = {}
+        self.diagnostics: dict[str, dict[str, str]] = {}
+        self.poses_sub = self.node.create_subscription(PointCloud2, "/maem/poses", self._on_poses,
+                                                       DATA_QOS)
+        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
+                                                      self._on_diag, DIAGNOSTICS_QOS)
+        self.start()
+
+    def _on_poses(self, msg: PointCloud2) -> None:
+        t = time.perf_counter()
+        pf = wire.msg_to_poses(msg, "/maem/poses")
+        with self.lock:
+            self.poses.setdefault(pf.stamp_ns, (t, pf))
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            for st in msg.status:
+                self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def ready(self) -> bool:
+        """Every edge of the graph discovered: images -> frontends -> association ->
+        triangulation -> us."""
+        n = self.node
+        return (all(p.get_subscription_count() > 0 for p in self.image_pubs.values())
+                and all(n.count_publishers(f"/{c}/detections") > 0 and
+                        n.count_subscribers(f"/{c}/detections") > 0 for c in self.cameras)
+                and n.count_publishers("/maem/clusters") > 0
+                and n.count_subscribers("/maem/clusters") > 0
+                and self.poses_sub.get_publisher_count() > 0)
+
+    def wait_ready(self, timeout_s: float, alive: Callable[[], bool] = lambda: True) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.ready():
+                return True
+            if not alive():
+                return False
+            time.sleep(0.1)
+        return False
+
+    def publish_frame(self, stamp_ns: int) -> None:
+        img = np.zeros((2, 2, 3), np.uint8)
+        with self.lock:
+            self.sent.setdefault(stamp_ns, time.perf_counter())
+        for cam, pub in self.image_pubs.items():
+            pub.publish(wire.bgr_to_image(img, stamp_ns, cam))
