@@ -10,6 +10,17 @@ arms, forearms, hands, thighs, shins, feet). Vertex k has fixed parameters (part
 the part's axis, angle around it), so it is the same body spot in every frame and for every
 person: its distance to its part's axis is constant over time (only the per-person shape scales
 it). Evaluation is one small matmul per part.
+
+Vertex density per part follows a real parametric body mesh, not surface area (``PART_SHARE``).
+Like SMPL-X, MHR (the mesh SAM 3D Body outputs) spends a large share of its vertices on the head
+and hands. Per-part counts of the MHR mesh were not found; the shares follow SMPL-X (10,475
+vertices), whose head is the FLAME head mesh and whose hands are MANO meshes (the correspondence
+files ``SMPL-X__FLAME_vertex_ids.npy`` and ``MANO_SMPLX_vertex_ids.pkl`` shipped with SMPL-X,
+Pavlakos et al. CVPR 2019): FLAME region 5,023 vertices (Li et al. 2017; 48 %, face, scalp, eyes
+and neck), MANO 778 vertices per hand (Romero et al. 2017; 7.4 % each). Here: head 42 %, neck 6 %,
+each hand 7.4 %, each foot 2.5 % (the SMPL-style foot + toe segments; approximate), the remaining
+32.2 % on torso and limbs by surface area. The torso (chest, abdomen, pelvis, shoulders, hip band)
+thus holds about 16 % of the vertices instead of 43 % by area.
 """
 from __future__ import annotations
 
@@ -56,6 +67,34 @@ PARTS: tuple[tuple[str, str, str, float, float, str, float], ...] = (
     ("hips_band", "left_hip", "right_hip", 0.12, 0.10, "pelvis_forward", 0.25),
 )
 PART_NAMES = tuple(p[0] for p in PARTS)
+#: fixed vertex shares (see the module docstring: SMPL-X FLAME / MANO counts); every other part
+#: shares the rest by template surface area
+PART_SHARE = {"head": 0.42, "neck": 0.06, "hand_l": 778 / 10475, "hand_r": 778 / 10475,
+              "foot_l": 0.025, "foot_r": 0.025}
+#: noise group of each surface part and of each MHR70 keypoint (sim/noise.py scales errors by group)
+NOISE_GROUPS = ("torso", "limb", "extremity", "face", "foot", "hand")
+PART_GROUP = {"head": "face", "neck": "torso", "chest": "torso", "abdomen": "torso", "pelvis": "torso",
+              "upper_arm_l": "limb", "upper_arm_r": "limb", "forearm_l": "limb", "forearm_r": "limb",
+              "hand_l": "hand", "hand_r": "hand", "thigh_l": "limb", "thigh_r": "limb", "shin_l": "limb",
+              "shin_r": "limb", "foot_l": "foot", "foot_r": "foot", "shoulders": "torso", "hips_band": "torso"}
+
+
+def _joint_group(name: str) -> str:
+    if name in ("nose", "left_eye", "right_eye", "left_ear", "right_ear"):
+        return "face"
+    if name.endswith(("_wrist", "_ankle")):
+        return "extremity"
+    if name.endswith(("_heel", "_toe_tip")):
+        return "foot"
+    if any(f in name for f in ("thumb", "index", "middle", "ring", "pinky")):
+        return "hand"
+    if name.endswith(("_elbow", "_knee", "_olecranon", "_cubital_fossa")):
+        return "limb"
+    return "torso"  # shoulders, acromions, hips, neck
+
+
+#: (70,) noise group index (into NOISE_GROUPS) of each MHR70 keypoint
+JOINT_GROUP = np.array([NOISE_GROUPS.index(_joint_group(n)) for n in MHR70_NAMES])
 #: part -> colour class used by the renderer: 0 skin, 1 jersey, 2 shorts, 3 shoes, 4 hair
 PART_CLASS = {"head": 0, "neck": 0, "chest": 1, "abdomen": 1, "pelvis": 2, "upper_arm_l": 1,
               "upper_arm_r": 1, "forearm_l": 0, "forearm_r": 0, "hand_l": 0, "hand_r": 0,
@@ -251,8 +290,7 @@ class BodyModel:
         if int(num_vertices) < len(PARTS):
             raise ValueError(f"num_vertices: {num_vertices} is fewer than the {len(PARTS)} body parts")
         self.num_vertices = int(num_vertices)
-        area = np.array([_template_area(p) for p in PARTS])
-        counts = np.maximum(1, np.floor(area / area.sum() * self.num_vertices).astype(int))
+        counts = np.maximum(1, np.floor(part_shares() * self.num_vertices).astype(int))
         counts[np.argmax(counts)] += self.num_vertices - counts.sum()
         self.counts = counts
         self.slices = [slice(int(o), int(o + n)) for o, n in zip(np.cumsum(counts) - counts, counts)]
@@ -262,6 +300,8 @@ class BodyModel:
         self.radii = np.array([[p[3], p[4]] for p in PARTS])
         self.ref_index = np.array([REFS.index(p[5]) for p in PARTS])
         self.coeff = np.concatenate([_lattice(n, p[6]) for n, p in zip(counts, PARTS)])
+        #: (V,) noise group index (into NOISE_GROUPS) of each vertex
+        self.group_of = np.array([NOISE_GROUPS.index(PART_GROUP[p[0]]) for p in PARTS])[self.part_of]
 
     def vertices(self, skel: Skeleton, height: np.ndarray, width: np.ndarray) -> np.ndarray:
         """(P,V,3) world metres for the skeletons ``skel`` of persons with this shape."""
@@ -313,6 +353,16 @@ class BodyModel:
         idx = [np.linspace(sl.start, sl.stop - 1, min(per_part, sl.stop - sl.start)).round().astype(int)
                for sl in self.slices]
         return np.concatenate(idx)
+
+
+def part_shares() -> np.ndarray:
+    """(K,) fraction of the vertices on each part: PART_SHARE, the rest by template area."""
+    area = np.array([_template_area(p) for p in PARTS])
+    fixed = np.array([PART_SHARE.get(p[0], np.nan) for p in PARTS])
+    free = np.isnan(fixed)
+    out = fixed.copy()
+    out[free] = area[free] / area[free].sum() * (1.0 - np.nansum(fixed))
+    return out
 
 
 def _template_area(part) -> float:

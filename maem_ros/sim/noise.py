@@ -7,28 +7,49 @@ missed when its visible fraction is below ``min_visible`` (mostly occluded or ou
 image) or when it is smaller than ``min_height_px`` (too far away), plus a small random miss rate
 that grows with occlusion.
 
-A detected person's estimate is the body model re-posed with noisy joint angles (``angle_sigma``
-rad on every angle, ``heading_sigma`` on the body yaw, ``shape_sigma`` relative error on height and
-width), re-centred on the true keypoint centroid (the estimator fits the image), then scaled
-about the camera centre by (1 + e), e ~ N(0, ``depth_sigma``): the root depth error along the
-viewing ray, invisible in 2D as for a real monocular estimate. 3D keypoints get extra iid jitter
-``kpt3d_sigma`` m; 2D keypoints / vertices are the projections of the noisy 3D plus iid jitter
-``kpt2d_px`` / ``vert2d_px`` (x (1 + 2 * occluded fraction)). Boxes come from the true silhouette
-(raw px, clipped to the image: truncated at borders) plus ``bbox_px`` edge jitter.
+A detected person's estimate is the body model re-posed with noisy joint angles, re-centred on
+the true keypoint centroid (the estimator fits the image), then scaled about the camera centre
+by (1 + e), e ~ N(0, ``depth_sigma``): the root depth error along the viewing ray, invisible in
+2D as for a real monocular estimate. Keypoints and mesh are one noisy body: every pose error
+below (angles, gross limb errors) moves the keypoints AND the vertices of that body part.
+
+Heteroscedastic, per body part (a real monocular mesh-recovery model is most accurate on the
+large, rarely occluded torso; hands, fingers, feet and face details are small in the image, often
+occluded or blurred, and much noisier):
+- joint angles: N(0, ``angle_sigma`` x ANGLE_SCALE[angle]): torso lean/twist 0.6, hips 0.8,
+  knees / shoulders 1.0, elbows 1.2, head yaw/pitch 1.5, ankles 2.0, wrists 2.5, finger curl 4.0;
+  shape: ``shape_sigma`` relative error on height and width; body yaw: ``heading_sigma``;
+- per-joint / per-vertex jitter scaled by the noise group (body.NOISE_GROUPS, ``group_scale``):
+  torso 0.6, limb (elbows, knees) 1.0, extremity (wrists, ankles) 1.3, face (nose, eyes, ears;
+  head vertices) 1.6, foot (heels, toes) 2.0, hand (fingers; hand vertices) 2.5 times
+  ``kpt3d_sigma`` m (3D keypoints), ``kpt2d_px`` px (2D keypoints) and ``vert2d_px`` px (2D
+  vertices), the 2D jitter x (1 + 2 x occluded fraction);
+- gross limb errors: with probability ``gross_rate`` x (1 + 2 x occluded fraction) per detection,
+  one limb (an arm with its hand, or a leg with its foot, uniform) is wrong: half of the time it
+  takes the opposite limb's pose (left/right confusion), otherwise a hallucinated pose (uniform
+  plausible angles). ``SimDetections.gross_limb`` records it.
+Boxes come from the true silhouette (raw px, clipped to the image: truncated at borders) plus
+``bbox_px`` edge jitter.
 
 Scores: players N(0.95, 0.025), bystanders N(0.84, 0.07), minus 0.15 x occluded fraction and
 0.3 x truncated fraction, clipped to [0.05, 0.995]. False positives: Poisson(``fp_rate``) per
 image, spectator-like bodies off the court with scores U(0.25, 0.85) (8 % U(0.85, 0.93)).
 
-Presets (angle_sigma rad / depth_sigma / kpt2d_px / min_visible / fp_rate):
-none 0 / 0 / 0 / - / 0 (exact: no noise, no misses, no false positives, score 0.95);
-easy 0.04 / 0.06 / 0.6 / 0.15 / 0.1; medium 0.075 / 0.12 / 1.0 / 0.25 / 0.3;
-hard 0.13 / 0.15 / 2.0 / 0.4 / 0.8.
+Presets (angle_sigma rad / kpt3d_sigma m / depth_sigma / kpt2d_px / vert2d_px / gross_rate /
+min_visible / fp_rate):
+none 0 / 0 / 0 / 0 / 0 / 0 / - / 0 (exact: no noise, no misses, no false positives, score 0.95);
+easy 0.05 / 0.008 / 0.06 / 0.6 / 0.3 / 0.02 / 0.15 / 0.1;
+medium 0.09 / 0.014 / 0.12 / 1.0 / 0.5 / 0.05 / 0.25 / 0.3;
+hard 0.15 / 0.02 / 0.15 / 2.0 / 1.0 / 0.1 / 0.4 / 0.8 (group_scale the same for all).
 
-Measured at medium (sportcenter6, seed 11; tests check the ranges): 3D keypoint PA-MPJPE mean
-52 mm (range 40-60); median |root depth error| 8 % of the distance (5-15 %); median 2D keypoint
-error 2.7 px, vertex error 2.1 px (1-6 px); misses 1 % (sportcenter6) and 7 % (humanm3_4, whose
-person-height cameras see more occlusion). Easy / hard PA-MPJPE: about 29 / 89 mm.
+Measured at medium (sportcenter6, seed 11, test/test_sim_noise.py checks the ranges):
+PA-MPJPE on the body joints (COCO-17, as mesh-recovery benchmarks report it) mean 47 mm (range
+40-60); on all 70 MHR70 joints 77 mm (42 of them hands / feet); median |root depth error| 8 % of
+the distance (5-15 %); median 2D keypoint error 3.4 px, vertex error 2.2 px (1-6 px); median 2D
+error per group, keypoints / vertices: torso 1.9 / 1.8, limb 2.2 / 1.9, extremity 3.2 / -, face
+2.9 / 2.5, foot 4.3 / 3.7, hand 4.1 / 2.9 px; gross limb errors on 6 % of the detections; misses
+1 % (sportcenter6) and 5 % (humanm3_4, whose person-height cameras see more occlusion).
+Easy / hard body PA-MPJPE: about 26 / 76 mm (all 70: 44 / 120 mm).
 Everything is deterministic per (seed, camera index, frame).
 """
 from __future__ import annotations
@@ -38,12 +59,27 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.camera import Camera
-from .body import ANGLE_KEYS, BodyModel, Skeleton, forward_kinematics, gait_angles
+from .body import ANGLE_KEYS, JOINT_GROUP, NOISE_GROUPS, BodyModel, Skeleton, forward_kinematics, gait_angles
 from .rigs import COURT_LENGTH, COURT_WIDTH
 from .view import (camera_to_normalised_xy, camera_to_rectified, camera_to_rectified_xy, distort_points,
                    inside_image_xy, normalised_to_raw_xy, project_raw_xy, world_to_camera)
 
 _SAMPLES_PER_PART = 12
+
+#: relative angle noise per joint angle (x ``angle_sigma``): the torso is estimated best; distal,
+#: small joints (wrists, ankles, fingers) and the head orientation worst
+ANGLE_SCALE = {"lean": 0.6, "side_lean": 0.6, "twist": 0.6, "head_yaw": 1.5, "head_pitch": 1.5,
+               "hip_flex_l": 0.8, "hip_flex_r": 0.8, "hip_abd_l": 0.8, "hip_abd_r": 0.8,
+               "knee_l": 1.0, "knee_r": 1.0, "ankle_l": 2.0, "ankle_r": 2.0,
+               "sh_flex_l": 1.0, "sh_flex_r": 1.0, "sh_abd_l": 1.0, "sh_abd_r": 1.0,
+               "elbow_l": 1.2, "elbow_r": 1.2, "wrist_l": 2.5, "wrist_r": 2.5, "finger_curl": 4.0}
+assert set(ANGLE_SCALE) == set(ANGLE_KEYS)
+#: the joint angles of each limb (gross errors): left arm, right arm, left leg, right leg
+_LIMBS = (("sh_flex_l", "sh_abd_l", "elbow_l", "wrist_l"), ("sh_flex_r", "sh_abd_r", "elbow_r", "wrist_r"),
+          ("hip_flex_l", "hip_abd_l", "knee_l", "ankle_l"), ("hip_flex_r", "hip_abd_r", "knee_r", "ankle_r"))
+#: uniform ranges (rad) of a hallucinated arm / leg pose, per angle of _LIMBS
+_ARM_RANGE = ((-0.6, 2.8), (0.0, 1.2), (0.0, 2.0), (-0.5, 0.8))
+_LEG_RANGE = ((-0.4, 1.4), (0.0, 0.45), (0.0, 1.8), (-0.4, 0.5))
 
 
 @dataclass(frozen=True)
@@ -51,14 +87,16 @@ class NoiseParams:
     """One difficulty preset (units: rad, m, px, fractions, detections per image)."""
 
     exact: bool = False
-    angle_sigma: float = 0.075
+    angle_sigma: float = 0.09
     heading_sigma: float = 0.05
     shape_sigma: float = 0.03
-    kpt3d_sigma: float = 0.012
+    kpt3d_sigma: float = 0.014
     depth_sigma: float = 0.12
     kpt2d_px: float = 1.0
     vert2d_px: float = 0.5
     bbox_px: float = 2.0
+    group_scale: tuple[float, ...] = (0.6, 1.0, 1.3, 1.6, 2.0, 2.5)
+    gross_rate: float = 0.05
     min_visible: float = 0.25
     min_height_px: float = 20.0
     miss_rate: float = 0.01
@@ -69,15 +107,16 @@ class NoiseParams:
 
 PRESETS: dict[str, NoiseParams] = {
     "none": NoiseParams(exact=True, angle_sigma=0.0, heading_sigma=0.0, shape_sigma=0.0, kpt3d_sigma=0.0,
-                        depth_sigma=0.0, kpt2d_px=0.0, vert2d_px=0.0, bbox_px=0.0, min_visible=0.0,
+                        depth_sigma=0.0, kpt2d_px=0.0, vert2d_px=0.0, bbox_px=0.0, gross_rate=0.0, min_visible=0.0,
                         miss_rate=0.0, fp_rate=0.0),
-    "easy": NoiseParams(angle_sigma=0.04, heading_sigma=0.03, shape_sigma=0.02, kpt3d_sigma=0.008,
-                        depth_sigma=0.06, kpt2d_px=0.6, vert2d_px=0.3, bbox_px=1.0, min_visible=0.15, min_height_px=16.0,
-                        miss_rate=0.005, fp_rate=0.1),
+    "easy": NoiseParams(angle_sigma=0.05, heading_sigma=0.03, shape_sigma=0.02, kpt3d_sigma=0.008,
+                        depth_sigma=0.06, kpt2d_px=0.6, vert2d_px=0.3, bbox_px=1.0, gross_rate=0.02,
+                        min_visible=0.15, min_height_px=16.0, miss_rate=0.005, fp_rate=0.1),
     "medium": NoiseParams(),
-    "hard": NoiseParams(angle_sigma=0.13, heading_sigma=0.09, shape_sigma=0.05, kpt3d_sigma=0.02,
-                        depth_sigma=0.15, kpt2d_px=2.0, vert2d_px=1.0, bbox_px=4.0, min_visible=0.4, min_height_px=28.0,
-                        miss_rate=0.03, fp_rate=0.8, player_score=(0.93, 0.035), bystander_score=(0.8, 0.08)),
+    "hard": NoiseParams(angle_sigma=0.15, heading_sigma=0.09, shape_sigma=0.05, kpt3d_sigma=0.02,
+                        depth_sigma=0.15, kpt2d_px=2.0, vert2d_px=1.0, bbox_px=4.0, gross_rate=0.1,
+                        min_visible=0.4, min_height_px=28.0, miss_rate=0.03, fp_rate=0.8,
+                        player_score=(0.93, 0.035), bystander_score=(0.8, 0.08)),
 }
 
 
@@ -128,9 +167,10 @@ class SimDetections:
 
     person (N,) GT person index, -1 = false positive; bbox_raw (N,4) raw px; bbox_rect (N,4)
     rectified px (raw box moved so its centre is the undistorted raw centre); kpts2d/verts2d
-    _rect and _raw px; kpts3d (N,70,3) / verts3d (N,V,3) camera frame m; cam_t (N,3) m.
-    The vertex outputs verts2d_rect, verts2d_raw and verts3d (float32) are taken from the rows
-    ``verts_rows`` (N,) of ``verts_source`` on first access (the frontends never need the last
+    _rect and _raw px; kpts3d (N,70,3) / verts3d (N,V,3) camera frame m; cam_t (N,3) m;
+    gross_limb (N,) the limb with a gross pose error (0 left arm, 1 right arm, 2 left leg, 3 right
+    leg) or -1. The vertex outputs verts2d_rect, verts2d_raw and verts3d (float32) are taken from
+    the rows ``verts_rows`` (N,) of ``verts_source`` on first access (the frontends never need the last
     two; permuting or concatenating detections moves no mesh data).
     """
 
@@ -145,6 +185,7 @@ class SimDetections:
     verts_source: VertexSource
     verts_rows: np.ndarray
     visible_fraction: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    gross_limb: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     _lazy: dict = field(default_factory=dict, repr=False)
 
     def _once(self, key: str, make) -> np.ndarray:
@@ -279,13 +320,15 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     """Noisy estimates of persons ``idx``; gt_raw_verts: raw px (u, v) each (n,V) of their true mesh."""
     n = len(idx)
     sub_angles = {k: state.angles[k][idx] for k in ANGLE_KEYS}
+    gross = np.full(n, -1)
     if params.exact:
         h, w, yaw, ang = state.height[idx], state.width[idx], state.heading[idx], sub_angles
     else:
         h = state.height[idx] * (1 + params.shape_sigma * rng.standard_normal(n))
         w = state.width[idx] * (1 + params.shape_sigma * rng.standard_normal(n))
         yaw = state.heading[idx] + params.heading_sigma * rng.standard_normal(n)
-        ang = {k: v + params.angle_sigma * rng.standard_normal(n) for k, v in sub_angles.items()}
+        ang = {k: v + ANGLE_SCALE[k] * params.angle_sigma * rng.standard_normal(n) for k, v in sub_angles.items()}
+        gross = _gross_limb_errors(rng, ang, params.gross_rate * (1 + 2 * occ))
     skel = forward_kinematics(h, w, ang, state.root_xy[idx], yaw)
     kp = skel.keypoints
     shift = gt_kpts[idx].mean(axis=1, keepdims=True) - kp.mean(axis=1, keepdims=True)
@@ -295,20 +338,45 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     kc = world_to_camera(camera, kp)
     vc = _camera_vertices(camera, body, skel, h, w, shift)  # (n,3,V)
     jit = 1.0 + 2.0 * occ[:, None, None]
-    k2 = camera_to_rectified(camera, kc) + params.kpt2d_px * jit * rng.standard_normal(kp.shape[:2] + (2,))
+    gscale = np.asarray(params.group_scale, dtype=np.float64)
+    kscale = gscale[JOINT_GROUP][None, :, None]  # (1,70,1)
+    k2 = camera_to_rectified(camera, kc) + params.kpt2d_px * kscale * jit * rng.standard_normal(kp.shape[:2] + (2,))
     v2 = np.stack(camera_to_rectified_xy(camera, vc.transpose(0, 2, 1)), axis=-1)
     if params.vert2d_px > 0:
-        v2 += _scaled_normals(rng, v2.shape, params.vert2d_px * jit)
+        z = rng.standard_normal(v2.shape).reshape(n, -1)  # (n, 2V): u, v of vertex k at 2k, 2k+1
+        z *= _vertex_scale2(body, params.group_scale)  # per vertex, by noise group
+        z *= params.vert2d_px * jit[:, :, 0]  # per detection, by occlusion
+        v2 += z.reshape(v2.shape)
     kpts3d = depth * kc
     if params.kpt3d_sigma > 0:
-        kpts3d = kpts3d + params.kpt3d_sigma * rng.standard_normal(kpts3d.shape)
+        kpts3d = kpts3d + params.kpt3d_sigma * kscale * rng.standard_normal(kpts3d.shape)
     bbox_raw = _silhouette_box(camera, *gt_raw_verts, rng, params.bbox_px)
     return SimDetections(
         person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
         kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), kpts3d=kpts3d,
         cam_t=(depth * kc.mean(axis=1, keepdims=True))[:, 0],
         verts_source=VertexSource(camera, v2, v2.astype(np.float32), vc, np.array(depth[:, 0, 0])),
-        verts_rows=np.arange(n))
+        verts_rows=np.arange(n), gross_limb=gross)
+
+
+def _gross_limb_errors(rng: np.random.Generator, ang: dict[str, np.ndarray], rate: np.ndarray) -> np.ndarray:
+    """Gross limb errors, in place on the noisy angles ``ang`` (n persons): with probability
+    ``rate`` (n,) one limb (arm or leg, uniform) is wrong, half of the time with the pose of the
+    opposite limb (left/right confusion), else with a hallucinated pose (uniform plausible angles).
+    Keypoints and mesh come from the same angles, so both show the error. Returns (n,) the limb
+    index (0 left arm, 1 right arm, 2 left leg, 3 right leg) or -1. Always draws the same numbers
+    per person (deterministic per seed whatever the rate)."""
+    n = len(rate)
+    hit = rng.random(n) < rate
+    limb = rng.integers(0, 4, n)
+    swap = rng.random(n) < 0.5
+    u = rng.random((n, 4))
+    for i in np.flatnonzero(hit):
+        names, other = _LIMBS[limb[i]], _LIMBS[limb[i] ^ 1]
+        rng_ = _ARM_RANGE if limb[i] < 2 else _LEG_RANGE
+        for j, (k, ko) in enumerate(zip(names, other)):
+            ang[k][i] = ang[ko][i] if swap[i] else rng_[j][0] + u[i, j] * (rng_[j][1] - rng_[j][0])
+    return np.where(hit, limb, -1)
 
 
 def _camera_vertices(camera: Camera, body: BodyModel, skel: Skeleton, height: np.ndarray, width: np.ndarray,
@@ -324,11 +392,13 @@ def _camera_vertices(camera: Camera, body: BodyModel, skel: Skeleton, height: np
     return body.evaluate_components(Mc)
 
 
-def _scaled_normals(rng: np.random.Generator, shape: tuple[int, ...], sigma: np.ndarray) -> np.ndarray:
-    """sigma * N(0, 1) of ``shape`` (sigma broadcasts), drawn as ``rng.standard_normal(shape)``."""
-    z = rng.standard_normal(shape)
-    z *= sigma
-    return z
+def _vertex_scale2(body: BodyModel, group_scale: tuple[float, ...]) -> np.ndarray:
+    """(2V,) the group scale of each vertex, repeated for its u and v (cached per body and scales)."""
+    cache = body.__dict__.setdefault("_noise_scale2", {})
+    key = tuple(float(g) for g in group_scale)
+    if key not in cache:
+        cache[key] = np.repeat(np.asarray(key)[body.group_of], 2)
+    return cache[key]
 
 
 def _scaled_f32(scale: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -423,7 +493,7 @@ def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.n
 
 #: per-detection array fields (the vertex outputs follow verts_rows)
 _FIELDS = ("person", "scores", "bbox_raw", "bbox_rect", "kpts2d_rect", "kpts2d_raw", "kpts3d", "cam_t",
-           "visible_fraction")
+           "visible_fraction", "gross_limb")
 
 
 def _concat(a: SimDetections, b: SimDetections) -> SimDetections:
