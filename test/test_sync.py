@@ -191,15 +191,37 @@ def test_frame_period_longer_than_max_wait_still_gives_complete_sets() -> None:
     assert s.counters["dropped_too_few_cameras"] == 0 and s.counters["dropped_late"] == 0
 
 
-def test_dead_camera_costs_one_max_wait_only() -> None:
-    """After one partial set lists a dead camera, later sets do not wait for it."""
-    s = make()
-    first = []
-    for cam in CAMS[:3]:
-        first += s.add(cam, T0, cam, now_ns=T0 + MS)
-    assert first == []
-    assert [fs.missing for fs in s.poll(T0 + 200 * MS)] == [["cam3"]]
-    out = []
-    for cam in CAMS[:3]:
-        out += s.add(cam, T0 + PERIOD, cam, now_ns=T0 + 201 * MS)
-    assert [fs.missing for fs in out] == [["cam3"]]  # emitted at once, no second wait
+def test_dead_camera_costs_max_wait_on_a_few_sets_only() -> None:
+    """A camera silent for dead_after_sets sets is no longer waited for."""
+    s = make(dead_after_sets=2)
+    waited = []
+    for frame in range(4):
+        t = T0 + frame * PERIOD
+        now = T0 + frame * 400 * MS
+        out = []
+        for cam in CAMS[:3]:
+            out += s.add(cam, t, cam, now_ns=now + MS)
+        if not out:  # still waiting for cam3: only max_wait releases the set
+            out = s.poll(now + 200 * MS)
+            waited.append(frame)
+        assert [fs.missing for fs in out] == [["cam3"]]
+    assert waited == [0, 1]
+
+
+def test_lagging_camera_is_still_waited_for() -> None:
+    """cam3 starts 1.5 s late (slow start-up) and then catches up, one frame at a time
+    (each of its messages >= 41 ms after the previous). Only frame 0 exceeds max_wait; the
+    later frames are complete because a camera that missed one set is still waited for
+    (stopping to wait after a single missed set lost frames 1 and 2 here)."""
+    s = make(max_wait_ns=1000 * MS)
+    period = 667 * MS
+    lag_ms = [1500, 874, 248, 20, 20, 20]
+    events = []  # (arrival ns, camera or None for a poll, stamp ns)
+    for frame, lag in enumerate(lag_ms):
+        t = T0 + frame * period
+        events += [(t + MS, cam, t) for cam in CAMS[:3]]
+        events += [(t + lag * MS, "cam3", t), (t + 1001 * MS, None, t)]
+    sets: list[FrameSet] = []
+    for now, cam, stamp in sorted(events, key=lambda e: e[0]):
+        sets += s.poll(now) if cam is None else s.add(cam, stamp, cam, now_ns=now)
+    assert [fs.missing for fs in sets] == [["cam3"], [], [], [], [], []]

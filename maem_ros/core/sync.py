@@ -10,13 +10,15 @@ Rules (DESIGN.md §5):
 - The reference is the oldest queued message. A camera is *present* when its
   oldest queued message lies within ``[ref, ref + slop]`` (it cannot be older than
   the reference). It is *known missing* when its oldest message is newer than
-  ``ref + slop`` (stamps per camera only increase) or when it was missing from the
-  last emitted set and has delivered nothing since (a dead camera costs one
-  ``max_wait`` once, not on every frame; judging it by its silence alone would
-  declare every camera dead whenever the frame period exceeds ``max_wait``). It is
-  picked up again with its next message, though if that first message arrives
-  after the other cameras' messages of its frame, that frame is already out and the
-  message counts as ``dropped_late``.
+  ``ref + slop`` (stamps per camera only increase) or when it is *dead*: missing
+  from the last ``dead_after_sets`` emitted sets without delivering anything since.
+  A dead camera costs ``max_wait`` on a few sets, not on every frame. Silence is
+  counted in sets, not seconds: a time rule would declare every camera dead whenever
+  the frame period exceeds ``max_wait``, and a one-set rule would stop waiting for a
+  camera that merely lags (its late messages keep it alive). A dead camera is picked
+  up again with its next message, though if that first message arrives after the
+  other cameras' messages of its frame, that frame is already out and the message
+  counts as ``dropped_late``.
 - A FrameSet is emitted, stamped with the reference stamp, as soon as every camera
   is present or known missing, or once ``max_wait`` has passed since the reference
   message arrived; if fewer than ``min_cameras`` are present then, only the
@@ -58,7 +60,7 @@ class ApproximateTimeSync:
     """Group per-camera messages whose stamps lie within ``slop_ns`` of a reference."""
 
     def __init__(self, cameras: Sequence[str], slop_ns: int, max_wait_ns: int,
-                 min_cameras: int = 2, queue_size: int = 16):
+                 min_cameras: int = 2, queue_size: int = 16, dead_after_sets: int = 3):
         cameras = list(cameras)
         if not cameras or len(set(cameras)) != len(cameras):
             raise ValueError(f"cameras: need a non-empty list of distinct names, got {cameras}")
@@ -70,6 +72,9 @@ class ApproximateTimeSync:
             raise ValueError(f"min_cameras: must be in 1..{len(cameras)}, got {min_cameras}")
         if int(queue_size) < 1:
             raise ValueError(f"queue_size: must be >= 1, got {queue_size}")
+        if int(dead_after_sets) < 1:
+            raise ValueError(f"dead_after_sets: must be >= 1, got {dead_after_sets}")
+        self.dead_after_sets = int(dead_after_sets)
         self.cameras = cameras
         self.slop_ns = int(slop_ns)
         self.max_wait_ns = int(max_wait_ns)
@@ -84,7 +89,7 @@ class ApproximateTimeSync:
         for q in self._queues.values():
             q.clear()
         self._last_stamp: dict[str, int] = {}
-        self._silent: set[str] = set()  # missing from the last set, nothing delivered since
+        self._missed: dict[str, int] = {}  # sets missed in a row with nothing delivered since
         self._last_emitted: int | None = None
         if count:
             self.counters["resets"] += 1
@@ -107,7 +112,7 @@ class ApproximateTimeSync:
                 self.counters["dropped_out_of_order"] += 1
                 return self.poll(now_ns)
         self._last_stamp[camera] = stamp_ns
-        self._silent.discard(camera)
+        self._missed[camera] = 0
         if self._last_emitted is not None and stamp_ns <= self._last_emitted:
             self.counters["dropped_late"] += 1
             return self.poll(now_ns)
@@ -130,7 +135,7 @@ class ApproximateTimeSync:
             ref = heads[ref_cam]
             limit = ref.stamp_ns + self.slop_ns
             present = [c for c in self.cameras if c in heads and heads[c].stamp_ns <= limit]
-            decided = all(c in heads or c in self._silent for c in self.cameras)
+            decided = all(c in heads or self._dead(c) for c in self.cameras)
             if not decided and now_ns - ref.arrival_ns < self.max_wait_ns:
                 return out
             if len(present) < self.min_cameras:
@@ -139,10 +144,14 @@ class ApproximateTimeSync:
                 continue
             out.append(self._emit(ref.stamp_ns, present))
 
+    def _dead(self, camera: str) -> bool:
+        return self._missed.get(camera, 0) >= self.dead_after_sets
+
     def _emit(self, stamp_ns: int, present: list[str]) -> FrameSet:
         items = {c: self._queues[c].popleft().item for c in present}
         missing = [c for c in self.cameras if c not in items]
-        self._silent = {c for c in missing if not self._queues[c]}
+        for c in missing:
+            self._missed[c] = self._missed.get(c, 0) + 1
         self._last_emitted = stamp_ns
         self.counters["sets"] += 1
         if missing:

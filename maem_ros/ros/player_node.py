@@ -36,6 +36,7 @@ class PlayOptions:
     clock_hz: float = 40.0
     delay_s: float = 0.5
     wait_subscribers_s: float = 0.0
+    wait_topics: list[str] = field(default_factory=list)
 
 
 def parse_args(argv: Sequence[str]) -> PlayOptions:
@@ -60,6 +61,9 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
                    help="wait S seconds after creating publishers (discovery; default 0.5)")
     p.add_argument("--wait-subscribers", type=float, default=0.0, metavar="S",
                    help="wait up to S seconds until every publisher has a subscriber")
+    p.add_argument("--wait-topics", nargs="+", default=[], metavar="TOPIC",
+                   help="with --wait-subscribers: only these bag topics (patterns allowed) must have "
+                   "a subscriber, e.g. '/*/image_raw/compressed' (default all)")
     a = p.parse_args(list(argv))
     if not a.rate > 0:
         p.error(f"--rate: must be > 0, got {a.rate}")
@@ -76,7 +80,8 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
     return PlayOptions(bag=a.bag, rate=a.rate, loop=a.loop, start_s=a.start, topics=a.topics,
                        exclude=a.exclude,
                        remap=remap, clock=a.clock is not None, clock_hz=a.clock or 40.0,
-                       delay_s=max(0.0, a.delay), wait_subscribers_s=max(0.0, a.wait_subscribers))
+                       delay_s=max(0.0, a.delay), wait_subscribers_s=max(0.0, a.wait_subscribers),
+                       wait_topics=a.wait_topics)
 
 
 def select_topics(available: Sequence[str], topics: Sequence[str] | None,
@@ -199,8 +204,11 @@ class BagPlayer:
     def wait_ready(self) -> None:
         """Discovery: wait for subscribers (optional, bounded) then the fixed delay."""
         deadline = time.monotonic() + self.opts.wait_subscribers_s
+        pats = self.opts.wait_topics or ["*"]
+        awaited = [p for t, p in self.pubs.items() if any(fnmatch.fnmatchcase(t, x) for x in pats)]
+        # best-effort images published before a subscriber is matched are simply lost
         while (time.monotonic() < deadline and not self.stop.is_set()
-               and any(p.get_subscription_count() == 0 for p in self.pubs.values())):
+               and any(p.get_subscription_count() == 0 for p in awaited)):
             self.stop.wait(0.02)
         if self.opts.delay_s:
             self.stop.wait(self.opts.delay_s)
