@@ -37,6 +37,7 @@ class PlayOptions:
     delay_s: float = 0.5
     wait_subscribers_s: float = 0.0
     wait_topics: list[str] = field(default_factory=list)
+    min_subscribers: int = 1
 
 
 def parse_args(argv: Sequence[str]) -> PlayOptions:
@@ -64,6 +65,8 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
     p.add_argument("--wait-topics", nargs="+", default=[], metavar="TOPIC",
                    help="with --wait-subscribers: only these bag topics (patterns allowed) must have "
                    "a subscriber, e.g. '/*/image_raw/compressed' (default all)")
+    p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
+                   help="with --wait-subscribers: wait until each awaited topic has N subscribers")
     a = p.parse_args(list(argv))
     if not a.rate > 0:
         p.error(f"--rate: must be > 0, got {a.rate}")
@@ -81,7 +84,7 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
                        exclude=a.exclude,
                        remap=remap, clock=a.clock is not None, clock_hz=a.clock or 40.0,
                        delay_s=max(0.0, a.delay), wait_subscribers_s=max(0.0, a.wait_subscribers),
-                       wait_topics=a.wait_topics)
+                       wait_topics=a.wait_topics, min_subscribers=max(1, a.min_subscribers))
 
 
 def select_topics(available: Sequence[str], topics: Sequence[str] | None,
@@ -208,7 +211,7 @@ class BagPlayer:
         awaited = [p for t, p in self.pubs.items() if any(fnmatch.fnmatchcase(t, x) for x in pats)]
         # best-effort images published before a subscriber is matched are simply lost
         while (time.monotonic() < deadline and not self.stop.is_set()
-               and any(p.get_subscription_count() == 0 for p in awaited)):
+               and any(p.get_subscription_count() < self.opts.min_subscribers for p in awaited)):
             self.stop.wait(0.02)
         if self.opts.delay_s:
             self.stop.wait(self.opts.delay_s)

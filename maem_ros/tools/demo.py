@@ -184,6 +184,7 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
         group.start("player", module_command(
             "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
             "--wait-subscribers", f"{startup_timeout_s:g}", "--wait-topics", "/*/image_raw/compressed",
+            "--min-subscribers", "2",  # the camera's frontend and this process's listener
             "--exclude", "/*/detections", bagio.GT_TOPIC))
         crashed.update(_watch_play(group, nodes + ["recorder"], keep_going))
         _drain(group, listener, stamps, drain_s, nodes, crashed, keep_going)
