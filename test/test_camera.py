@@ -358,3 +358,11 @@ def test_shipped_params_files(name: str, tau_det: float, k_min: int) -> None:
     p = load_node_params(name, "association")
     assert p["tau_det"] == tau_det and p["k_min"] == k_min and "rig" in p
     assert load_node_params(name, "triangulation")["tau_kps"] == 20.0
+
+
+@pytest.mark.parametrize("K", [np.zeros((3, 3)), [[800, 0, 640], [0, 800, 360], [0, 0, 2]],
+                               [[-800, 0, 640], [0, 800, 360], [0, 0, 1]],
+                               [[800, 0, 640], [5, 800, 360], [0, 0, 1]]])
+def test_non_pinhole_intrinsics_rejected(K):
+    with pytest.raises(ValueError, match="camera 'c' K: not pinhole intrinsics"):
+        Camera("c", K, np.eye(3), [0, 0, 5], 1280, 720)

@@ -281,3 +281,16 @@ def test_bad_parameters_exit_2(tmp_path, rig_file):
     with _node_process("camera:=cam0", "source:=0", "fps:=-1.0") as proc:
         assert proc.wait(timeout=30) == 2
         assert "parameter 'fps'" in proc.stderr.read()
+
+
+def test_unreadable_file_in_folder_is_skipped_not_replayed(tmp_path):
+    """A corrupt image is counted and skipped; the folder is not reopened from the start."""
+    for i in range(3):
+        cv2.imwrite(str(tmp_path / f"{i}.png"), np.full((4, 4), i + 1, np.uint8))
+    (tmp_path / "1.png").write_bytes(b"not an image")
+    cap = Capture(ImageFolderSource(str(tmp_path), lambda: 0), loop=False)
+    polls = [cap.poll(float(k)) for k in range(5)]
+    assert [p.status for p in polls[:4]] == ["frame", "skipped", "frame", "ended"]
+    assert [int(p.frame[0, 0, 0]) for p in polls if p.status == "frame"] == [1, 3]
+    assert cap.counters.skipped == 1 and cap.counters.read_failures == 0
+    assert "1.png" in polls[1].message

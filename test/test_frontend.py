@@ -174,3 +174,14 @@ def test_npz_backend_reproduces_synthetic_backend(tmp_path):
             np.testing.assert_allclose(a.kpts3d, b.kpts3d, atol=1e-5)
             np.testing.assert_allclose(a.scores, b.scores, atol=1e-6)
     assert total > 20
+
+
+def test_option_int_keeps_nanosecond_stamps_exact():
+    from maem_ros.frontend.base import option_int
+    stamp = 1_700_000_000_123_456_789  # > 2^53: a float round trip would change it
+    for value in (stamp, str(stamp), np.int64(stamp)):
+        assert option_int({"s": value}, "s", 0) == stamp
+    assert option_int({"s": 3.0}, "s", 0) == 3
+    for bad in (3.5, True, "x", None):
+        with pytest.raises(ValueError, match="'s': expected an integer"):
+            option_int({"s": bad}, "s", 0)

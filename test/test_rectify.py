@@ -107,3 +107,14 @@ def test_wrong_size_is_a_clear_error():
         Rectifier(cam).rectify(np.zeros((400, 640, 3), np.uint8))
     with pytest.raises(ValueError, match="expected an image array"):
         Rectifier(cam).rectify(None)
+
+
+def test_identity_rectification_accepts_any_image_size():
+    """No distortion and K_rect == K: nothing to remap, so a calibration without a stored
+    size (guessed from the principal point) does not reject the real frames."""
+    cam = Camera("h", [[1200, 0, 1022], [0, 1200, 779.5], [0, 0, 1]], np.eye(3), [0, 0, 30],
+                 2044, 1559)
+    img = np.zeros((1536, 2048, 3), np.uint8)
+    assert Rectifier(cam).rectify(img) is img
+    with pytest.raises(ValueError, match="expected an image array"):
+        Rectifier(cam).rectify(np.zeros((0, 0), np.uint8))

@@ -235,6 +235,20 @@ def test_stamps_outside_ros_time_are_rejected():
             wire.detections_to_msg(make_dets(1, 2, 0, stamp_ns=bad))
 
 
+@pytest.mark.parametrize("sec,nanosec", [(-3, 0), (1, 1_000_000_000), (2**31 - 1, 4_000_000_000)])
+def test_received_invalid_stamps_are_wire_errors(sec, nanosec):
+    msgs = {
+        wire.msg_to_detections: wire.detections_to_msg(make_dets(1, 2, 0)),
+        wire.msg_to_poses: wire.poses_to_msg(9, "world", np.array([1]), np.zeros((1, 2, 3)),
+                                             np.array([2]), np.array([0.9])),
+    }
+    for decode, msg in msgs.items():
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+        with pytest.raises(wire.WireError) as ei:
+            decode(msg, "/t")
+        assert (ei.value.field, ei.value.reason) == ("header.stamp", "bad_stamp")
+
+
 def test_cdr_header_stamp():
     stamp = 1_700_000_000_123_456_789
     data = bagio.serialize(bagio.compressed_image_msg(stamp, "camera_0", b"\xff\xd8", "jpeg"))

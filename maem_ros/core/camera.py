@@ -40,6 +40,15 @@ def _as_matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
     return arr
 
 
+def _check_intrinsics(name: str, label: str, K: np.ndarray) -> None:
+    """Pinhole intrinsics: fx, fy > 0, K[1,0] = 0, bottom row [0, 0, 1] (projection code and P
+    must agree on the pixel grid)."""
+    if not (K[0, 0] > 0 and K[1, 1] > 0 and abs(K[1, 0]) < 1e-9
+            and np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9)):
+        raise ValueError(f"camera {name!r} {label}: not pinhole intrinsics [[fx,s,cx],[0,fy,cy],"
+                         f"[0,0,1]] with fx, fy > 0: {K.tolist()}")
+
+
 @dataclass
 class Camera:
     """One calibrated camera (intrinsics, world->camera extrinsics, distortion)."""
@@ -60,6 +69,8 @@ class Camera:
         self.t = _as_matrix(self.t, (3,), f"camera {self.name!r} t")
         self.K_rect = self.K.copy() if self.K_rect is None else _as_matrix(
             self.K_rect, (3, 3), f"camera {self.name!r} K_rect")
+        for label, K in (("K", self.K), ("K_rect", self.K_rect)):
+            _check_intrinsics(self.name, label, K)
         if self.distortion_model not in DISTORTION_MODELS:
             raise ValueError(
                 f"camera {self.name!r} distortion_model: unknown {self.distortion_model!r}, "

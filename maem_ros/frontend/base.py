@@ -82,15 +82,28 @@ def _factory(backend: str) -> Callable[[Mapping[str, Any], Rig], Estimator]:
     return getattr(importlib.import_module(module), cls)
 
 
+def _exact_int(value: Any) -> int | None:
+    """``value`` as an exact int (no float round trip: ns stamps exceed 2^53), else None."""
+    if isinstance(value, (bool, np.bool_)):
+        return None
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return int(value) if float(value).is_integer() else None
+    if isinstance(value, str):
+        try:
+            return int(value.strip())
+        except ValueError:
+            return None
+    return None
+
+
 def option_int(options: Mapping[str, Any], key: str, default: int, minimum: int | None = None) -> int:
     """An integer option (ValueError naming it when not an integer or below ``minimum``)."""
     value = options.get(key, default)
-    try:
-        out = int(value)
-        if out != float(value):
-            raise ValueError
-    except (TypeError, ValueError):
-        raise ValueError(f"frontend option {key!r}: expected an integer, got {value!r}") from None
+    out = _exact_int(value)
+    if out is None:
+        raise ValueError(f"frontend option {key!r}: expected an integer, got {value!r}")
     if minimum is not None and out < minimum:
         raise ValueError(f"frontend option {key!r}: must be >= {minimum}, got {out}")
     return out

@@ -45,11 +45,15 @@ class Rectifier:
             self._maps = build_maps(self.camera)
         return self._maps
 
-    def check_size(self, image: np.ndarray) -> None:
-        """Raise ValueError unless ``image`` has the calibration's size."""
+    def check_image(self, image: np.ndarray) -> None:
+        """Raise ValueError unless ``image`` is a non-empty (H,W[,C]) array."""
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
             raise ValueError(f"camera {self.camera.name!r}: expected an image array (H,W[,C]), "
                              f"got {type(image).__name__} {getattr(image, 'shape', '')}")
+
+    def check_size(self, image: np.ndarray) -> None:
+        """Raise ValueError unless ``image`` has the calibration's size."""
+        self.check_image(image)
         h, w = image.shape[:2]
         if (w, h) != self.size:
             raise ValueError(
@@ -60,9 +64,12 @@ class Rectifier:
     def rectify(self, image: np.ndarray) -> np.ndarray:
         """(H,W[,C]) raw image -> (H,W[,C]) rectified image (same dtype; the input itself when
         no remap is needed)."""
-        self.check_size(image)
         if self.is_identity:
+            # nothing to remap, so the size does not matter (e.g. a camera JSON without width
+            # and height, whose size was guessed from the principal point)
+            self.check_image(image)
             return image
+        self.check_size(image)
         map1, map2 = self.maps()
         return cv2.remap(image, map1, map2, self.interpolation, borderMode=cv2.BORDER_CONSTANT)
 

@@ -253,6 +253,7 @@ class Sam3dBodyEstimator(Estimator):
         self._num_vertices = verts.shape[1]
         valid = (np.all(np.isfinite(verts2d), axis=(1, 2)) & np.all(np.isfinite(kp2d), axis=(1, 2))
                  & np.all(np.isfinite(kp3d), axis=(1, 2)) & np.all(np.isfinite(bboxes), axis=1)
+                 & np.isfinite(scores)
                  & (bboxes[:, 2] >= bboxes[:, 0]) & (bboxes[:, 3] >= bboxes[:, 1]))
         if not valid.all():
             self.stats["dropped_invalid"] += int((~valid).sum())

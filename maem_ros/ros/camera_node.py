@@ -123,7 +123,7 @@ class ImageFolderSource:
         stamp = self._clock_ns()
         frame = cv2.imread(path, cv2.IMREAD_COLOR)
         if frame is None:
-            raise OSError(f"unreadable image {path!r}")
+            raise UnreadableFrame(f"unreadable image {path!r}, skipped")
         return frame, stamp
 
     def rewind(self) -> bool:
@@ -195,9 +195,14 @@ def make_source(spec: str, clock_ns: Callable[[], int], open_timeout_s: float = 
 # ---------------------------------------------------------------------------------------------
 # open / read / reconnect state machine (no ROS; clock passed in)
 # ---------------------------------------------------------------------------------------------
+class UnreadableFrame(OSError):
+    """One bad frame of a source that is otherwise fine (e.g. a corrupt file in a folder):
+    skipped and counted, the source is not reopened."""
+
+
 @dataclass
 class Poll:
-    """Result of one capture tick: a frame, or status 'waiting' | 'ended' | 'failed'."""
+    """Result of one capture tick: a frame, or status 'skipped' | 'waiting' | 'ended' | 'failed'."""
 
     status: str
     frame: np.ndarray | None = None
@@ -211,6 +216,7 @@ class CaptureCounters:
     open_failures: int = 0
     reconnects: int = 0
     read_failures: int = 0
+    skipped: int = 0
     loops: int = 0
     frames: int = 0
 
@@ -258,15 +264,18 @@ class Capture:
                 return result
         try:
             frame, stamp = self.source.read()
+            if frame is None and self.source.finite:
+                if not self.loop:
+                    return self._finish(Poll("ended", message=f"end of {self.source.description}"))
+                self.counters.loops += 1
+                if not self.source.rewind():
+                    return self._lost(now, "cannot restart at its end")
+                frame, stamp = self.source.read()
+        except UnreadableFrame as e:
+            self.counters.skipped += 1
+            return Poll("skipped", message=str(e))
         except OSError as e:
             return self._lost(now, str(e))
-        if frame is None and self.source.finite:
-            if not self.loop:
-                return self._finish(Poll("ended", message=f"end of {self.source.description}"))
-            self.counters.loops += 1
-            if not self.source.rewind():
-                return self._lost(now, "cannot restart at its end")
-            frame, stamp = self.source.read()
         if frame is None:
             return self._lost(now, "read failed")
         self.counters.frames += 1
@@ -430,9 +439,12 @@ class CameraNode(Node):
 
     def _report(self, result: Poll) -> None:
         c = self.capture.counters
-        for name in ("opens", "open_failures", "reconnects", "read_failures", "loops"):
+        for name in ("opens", "open_failures", "reconnects", "read_failures", "skipped", "loops"):
             self.diag.set(f"count/{name}", getattr(c, name))
-        if result.message and result.message != self._last_message and result.status == "waiting":
+        if result.status == "skipped":
+            self.diag.drop("unreadable_frame")
+        if result.message and result.message != self._last_message and \
+                result.status in ("waiting", "skipped"):
             self.get_logger().warning(result.message)
         self._last_message = result.message
 

@@ -153,7 +153,11 @@ class FrontendNode(Node):
 
     def on_image(self, msg) -> None:
         self.diag.input(self.image_topic)
-        stamp_ns = wire.stamp_to_ns(msg.header.stamp)
+        try:
+            stamp_ns = wire.checked_stamp_ns(msg.header.stamp, self.image_topic)
+        except wire.WireError as e:
+            self.diag.reject(e.reason, str(e))
+            return
         if self.skip(stamp_ns):
             self.diag.count("skipped_max_rate")
             return

@@ -113,10 +113,12 @@ def message_class(msgtype: str):
 
 
 def topic_qos(topic: str, msgtype: str, recorded: Sequence = ()):
-    """Publisher QoS: images best-effort sensor data; latched (transient local) for /maem/scene or
-    when recorded so; everything else reliable, keep last 10."""
-    from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
-                           qos_profile_sensor_data)
+    """Publisher QoS: images as the camera nodes publish them (common.IMAGE_QOS, best effort);
+    latched (transient local) for /maem/scene or when recorded so; everything else reliable,
+    keep last 10."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    from maem_ros.ros.common import IMAGE_QOS
     latched = topic == bagio.SCENE_TOPIC or any(
         q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in recorded)
     if latched:
@@ -124,7 +126,7 @@ def topic_qos(topic: str, msgtype: str, recorded: Sequence = ()):
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if msgtype in _IMAGE_TYPES:
-        return qos_profile_sensor_data
+        return IMAGE_QOS
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 

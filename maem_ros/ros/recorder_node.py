@@ -157,13 +157,21 @@ def main(args: Sequence[str] | None = None) -> int:
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-record", *args])
     opts = parse_args(ours)
     stop = stop_on_signals()
+    # ROS first: a bad --ros-args must not leave a half-written bag behind
+    try:
+        rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
+        node = rclpy.create_node("maem_recorder")
+    except Exception as e:  # noqa: BLE001 - rclpy's RCLError for bad --ros-args: one line, exit 2
+        print(f"maem-record: ROS arguments {ros_args[1:]}: {e}", file=sys.stderr)
+        rclpy.try_shutdown()
+        return 2
     try:
         writer = bagio.BagWriter(opts.out, compress=opts.compress)
     except Exception as e:  # noqa: BLE001 - rosbags WriterError / OSError: report, exit non-zero
         print(f"maem-record: output bag {opts.out!r}: {e}", file=sys.stderr)
+        node.destroy_node()
+        rclpy.try_shutdown()
         return 2
-    rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("maem_recorder")
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     rec = Recorder(node, opts, writer)

@@ -111,10 +111,13 @@ class TriangulationNode(Node):
                                       f"{(self._last_stamp - cf.stamp_ns) / 1e9:.3f} s; "
                                       f"tracker reset")
         self._last_stamp = cf.stamp_ns
-        with Stopwatch(self.diag, "track"):
-            ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
-        self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views), np.asarray(poses.scores))
-        self.diag.ok()
+        with RejectErrors(self.diag, f"{self.topic} {cf.stamp_ns}", "publish_error") as step:
+            with Stopwatch(self.diag, "track"):
+                ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
+            self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views),
+                         np.asarray(poses.scores))
+        if not step.failed:
+            self.diag.ok()
 
     def publish(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, views: np.ndarray,
                 scores: np.ndarray) -> None:

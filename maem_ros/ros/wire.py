@@ -70,6 +70,15 @@ def stamp_to_ns(stamp: Time) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def checked_stamp_ns(stamp: Time, topic: str) -> int:
+    """stamp_to_ns for a received header: WireError (reason bad_stamp) for a negative sec or a
+    nanosec outside 0..999,999,999, which would otherwise decode to a wrong instant."""
+    if stamp.sec < 0 or not 0 <= stamp.nanosec < 1_000_000_000:
+        raise WireError(topic, "header.stamp", f"invalid stamp sec={stamp.sec} "
+                        f"nanosec={stamp.nanosec}", "bad_stamp")
+    return stamp_to_ns(stamp)
+
+
 #: builtin_interfaces/Time.sec is int32: stamps from 0 up to 2^31 s (2038-01-19) fit
 MAX_STAMP_NS = 2**31 * 1_000_000_000 - 1
 
@@ -277,7 +286,7 @@ def msg_to_detections(msg: PointCloud2, topic: str,
                         f"{int(np.argmax(inverted))}", "inverted_bbox")
     _check_score(topic, fields["score"][:, 0], "detection")
     return FrameDetections(
-        camera=cam, stamp_ns=stamp_to_ns(msg.header.stamp), bboxes=bbox,
+        camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
         scores=fields["score"][:, 0], kpts2d=fields["kpts2d"].reshape(n, j, 2),
         kpts3d=fields["kpts3d"].reshape(n, j, 3),
         verts2d=fields["verts2d"].reshape(n, counts["verts2d"] // 2, 2))
@@ -384,7 +393,7 @@ def msg_to_clusters(msg: PointCloud2, topic: str, num_cameras: int) -> ClusterFr
     _check_finite(topic, "score", f["score"], "member")
     _check_finite(topic, "cost", f["cost"], "member", allow_nan=True)
     _check_score(topic, f["score"][:, 0], "member")
-    return ClusterFrame(stamp_ns=stamp_to_ns(msg.header.stamp), frame_id=msg.header.frame_id,
+    return ClusterFrame(stamp_ns=checked_stamp_ns(msg.header.stamp, topic), frame_id=msg.header.frame_id,
                         cluster=f["cluster"][:, 0].astype(np.int64), camera=camera,
                         detection=f["detection"][:, 0].astype(np.int64),
                         score=f["score"][:, 0].astype(np.float64),
@@ -437,7 +446,7 @@ def msg_to_poses(msg: PointCloud2, topic: str) -> PoseFrame:
     _check_finite(topic, "joints", f["joints"], "person", allow_nan=True)
     _check_finite(topic, "score", f["score"], "person")
     n = len(rec)
-    return PoseFrame(stamp_ns=stamp_to_ns(msg.header.stamp), frame_id=msg.header.frame_id,
+    return PoseFrame(stamp_ns=checked_stamp_ns(msg.header.stamp, topic), frame_id=msg.header.frame_id,
                      ids=f["id"][:, 0].astype(np.int64),
                      joints=f["joints"].reshape(n, c3 // 3, 3).astype(np.float64),
                      views=f["views"][:, 0].astype(np.int64),

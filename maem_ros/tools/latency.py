@@ -134,7 +134,11 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
     scene = make_scene(params_file)
     frames = min(frames, scene.num_frames)
     graph = GraphProcesses(params_file, rig.names, log_dir).start()
-    client = ReplayClient(rig.names)
+    try:
+        client = ReplayClient(rig.names)
+    except BaseException:
+        graph.stop()
+        raise
     report: dict[str, Any] = {"cameras": len(rig.names), "frames_published": frames, "rate_hz": rate_hz}
     try:
         if not client.wait_ready(startup_timeout, alive=lambda: not graph.dead()):
