@@ -27,7 +27,10 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
+
+from maem_ros.ros.cli import stop_on_signals
 
 #: camera images: best effort, keep last 2
 IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
@@ -356,10 +359,16 @@ class Stopwatch:
 # ---------------------------------------------------------------------------------------------
 def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
              until: Callable[[Node], Future] | None = None) -> int:
-    """rclpy.init, build the node, spin until SIGINT/shutdown, or with ``until`` until the
-    future it returns for the node completes (its result is the exit code). Exit code 0 at
-    SIGINT/shutdown, EXIT_CONFIG_ERROR (2) on bad params; the node is destroyed either way."""
-    rclpy.init(args=args)
+    """rclpy.init, build the node, spin until SIGINT/SIGTERM, or with ``until`` until the future
+    it returns for the node completes (its result is the exit code). Exit code 0 at
+    SIGINT/SIGTERM, EXIT_CONFIG_ERROR (2) on bad params; the node is destroyed either way.
+
+    rclpy's own signal handler is not installed: the executor spins in short slices and a
+    Python handler sets an Event, so shutdown always runs from the main thread between
+    callbacks (with rclpy's C-level handler we saw rare hangs and SIGSEGV at Ctrl-C).
+    """
+    stop = stop_on_signals()
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:
         try:
@@ -369,23 +378,20 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
             return EXIT_CONFIG_ERROR
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        done = until(node) if until is not None else None
         try:
-            if until is None:
-                executor.spin()
-            else:
-                done = until(node)
-                executor.spin_until_future_complete(done)
-                if done.done():
-                    return int(done.result())
+            while not stop.is_set() and rclpy.ok() and not (done is not None and done.done()):
+                executor.spin_once(timeout_sec=0.1)
         finally:
             executor.shutdown(timeout_sec=1.0)
+        if done is not None and done.done():
+            return int(done.result())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
             node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        rclpy.try_shutdown()
     return 0
 
 
