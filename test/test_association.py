@@ -426,3 +426,11 @@ def test_epipolar_sums_rejects_bad_indices_and_shapes():
     with pytest.raises(ValueError, match="^backend:"):
         epipolar.epipolar_sums(x, x, np.eye(3), np.array([0]), np.array([0]), 8.0,
                                backend="cuda")
+
+
+def test_pa_mpjpe_cost_undefined_below_three_joints():
+    """Two joints always align exactly under a similarity: the cost is NaN, i.e. gated."""
+    rng = np.random.default_rng(3)
+    X, Y = rng.normal(size=(4, 2, 3)), rng.normal(size=(4, 2, 3))
+    assert np.all(np.isnan(pa_mpjpe_finite(X, Y)))
+    assert np.all(np.isfinite(pa_mpjpe_finite(rng.normal(size=(4, 3, 3)), rng.normal(size=(4, 3, 3)))))

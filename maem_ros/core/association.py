@@ -305,8 +305,11 @@ def pa_mpjpe_finite(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
     The same Umeyama alignment as core.procrustes.pa_mpjpe (rotation with reflection guard,
     translation, uniform scale) without its mask/NaN handling, which validated detections do
-    not need: one stacked SVD of the 3x3 covariances.
+    not need: one stacked SVD of the 3x3 covariances. Fewer than 3 joints do not fix a
+    similarity (any two point pairs align exactly), so the cost is NaN (= gated) then.
     """
+    if X.shape[1] < 3:
+        return np.full(X.shape[0], np.nan)
     Xc = X - X.mean(axis=1, keepdims=True)
     Yc = Y - Y.mean(axis=1, keepdims=True)
     U, S, Vt = np.linalg.svd(np.matmul(Yc.transpose(0, 2, 1), Xc))
