@@ -8,11 +8,17 @@ For every camera pair (a, b), a < b in rig order (DESIGN.md §1):
    into that view; epipolar geometry alone cannot see this).
 3. Epipolar gate on the survivors: mean point-to-epipolar-line distance over all mesh
    vertices ("mesh") or 2D keypoints ("sparse"); rejected if >= tau_mesh (core/epipolar.py).
-4. Cost = PA-MPJPE (metres) between the two detections' 3D keypoints (the lower camera's
-   aligned onto the other's); Hungarian per camera pair; gated pairs never match.
-5. Union-find over all matches -> clusters; while a cluster holds two detections of one
-   camera, the member with the highest mean PA-MPJPE to the rest is dropped; clusters with
-   fewer than k_min views are discarded.
+4. Pair cost: PA-MPJPE (metres) between the two detections' 3D keypoints on ``cost_joints``
+   (default the 13 body joints), plus ``cost_epipolar_weight`` x the pair's mean epipolar
+   distance (px); pairs above ``tau_cost`` never match.
+5. Clustering (core/clustering.py), ``clustering``:
+   ``consistent`` (default): best-first merges over all camera pairs at once, each merge
+   verified at cluster level (no two detections of one camera, most cross pairs gated,
+   every member's reprojection error of the triangulated body joints under tau_verify),
+   then local moves that raise the clustering objective;
+   ``paper``: Hungarian per camera pair, union-find, same-camera conflict removal (MAEM);
+   ``spectral``: the seed paper's PA-MPJPE matching baseline (no geometric gates).
+   Clusters with fewer than k_min views are discarded.
 
 All 2D input is rectified pinhole px (FrameDetections), so only Camera.P and F are used.
 """
@@ -24,30 +30,33 @@ from dataclasses import dataclass, field, fields
 from typing import Any, Mapping
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from . import epipolar
+from . import clustering, epipolar
 from .camera import Rig, fundamental_matrix
-from .detections import FrameDetections
-from .triangulation import dlt
+from .detections import Cluster, DetectionTable, FrameDetections
+from .geometry import reprojection_errors
+from .procrustes import pa_mpjpe_finite
+from .skeleton import body_joints
 
 _CHOICES = {
     "reproj_reduce": ("mean", "max"),
     "epipolar_gate": ("mesh", "sparse", "none"),
     "epipolar_distance": ("symmetric", "forward"),
     "backend": epipolar.BACKENDS,
+    "clustering": clustering.METHODS,
 }
-#: cost given to gated pairs in the Hungarian matrix: any real match is preferred, and
-#: an assignment that lands on it is discarded
-_GATED = 1e9
 
 
 @dataclass
 class AssociationParams:
-    """Thresholds (px, score) and ablation switches of MAEM stage 2.
+    """Thresholds (px, m, score) and switches of MAEM stage 2.
 
     ``backend`` selects the epipolar kernel (auto = numba when installed, else numpy); both
-    give the same decisions.
+    give the same decisions. ``cost_joints``: "body" (the 13 sportcenter body joints of the
+    detections' keypoint convention), "all", or comma-separated keypoint indices.
+    ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).
+    ``cost_epipolar_weight`` (m per px) adds the pair's mean epipolar distance to its cost.
+    ``tau_verify`` (px), ``min_support`` (fraction): the consistent clustering's merge checks.
     """
 
     tau_det: float = 0.9
@@ -62,15 +71,27 @@ class AssociationParams:
     vertex_count: int = 0
     early_exit: bool = True
     backend: str = "auto"
+    clustering: str = "consistent"
+    cost_joints: str = "body"
+    tau_cost: float = 0.15
+    cost_epipolar_weight: float = 0.0
+    tau_verify: float = 15.0
+    min_support: float = 0.75
 
     def __post_init__(self) -> None:
-        for name in ("tau_det", "tau_reproj_bbox", "tau_mesh"):
+        for name in ("tau_det", "tau_reproj_bbox", "tau_mesh", "tau_cost", "cost_epipolar_weight",
+                     "tau_verify", "min_support"):
             setattr(self, name, _number(name, getattr(self, name)))
         if not 0.0 <= self.tau_det <= 1.0:
             raise ValueError(f"tau_det: must be in [0, 1], got {self.tau_det}")
-        for name in ("tau_reproj_bbox", "tau_mesh"):
+        for name in ("tau_reproj_bbox", "tau_mesh", "tau_verify"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: must be > 0 px, got {getattr(self, name)}")
+        for name in ("tau_cost", "cost_epipolar_weight"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.min_support <= 1.0:
+            raise ValueError(f"min_support: must be in [0, 1], got {self.min_support}")
         self.k_min = _integer("k_min", self.k_min, 2)
         self.vertex_stride = _integer("vertex_stride", self.vertex_stride, 1)
         self.vertex_count = _integer("vertex_count", self.vertex_count, 0)
@@ -82,11 +103,38 @@ class AssociationParams:
             if getattr(self, name) not in choices:
                 raise ValueError(f"{name}: expected one of {list(choices)}, got "
                                  f"{getattr(self, name)!r}")
+        if self.clustering == "consistent" and self.tau_cost == 0:
+            raise ValueError("tau_cost: the consistent clustering needs a cost cap > 0 m")
+        parse_cost_joints(self.cost_joints, None)
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> "AssociationParams":
         """Take the known keys of a params dict (others, e.g. slop, are ignored); validate."""
         return cls(**{f.name: d[f.name] for f in fields(cls) if f.name in d})
+
+
+def parse_cost_joints(spec: Any, num_joints: int | None) -> np.ndarray | None:
+    """Keypoint indices of the pair cost for ``num_joints`` keypoints (None: only check ``spec``).
+
+    "body": the sportcenter_13 body joints of the convention with that many joints (all when
+    none is known); "all"; or comma-separated indices. ValueError naming cost_joints.
+    """
+    if not isinstance(spec, str):
+        raise ValueError(f"cost_joints: expected 'body', 'all' or comma-separated indices, got {spec!r}")
+    if spec in ("body", "all"):
+        if num_joints is None:
+            return None
+        return np.arange(num_joints) if spec == "all" else np.asarray(body_joints(num_joints))
+    try:
+        idx = np.array([int(x) for x in spec.split(",")], dtype=np.int64)
+    except ValueError:
+        raise ValueError(f"cost_joints: expected 'body', 'all' or comma-separated indices, "
+                         f"got {spec!r}") from None
+    if idx.size < 3 or np.unique(idx).size != idx.size or idx.min() < 0:
+        raise ValueError(f"cost_joints: need >= 3 distinct non-negative indices, got {spec!r}")
+    if num_joints is not None and idx.max() >= num_joints:
+        raise ValueError(f"cost_joints: index {int(idx.max())} out of range for {num_joints} keypoints")
+    return idx
 
 
 def _number(name: str, v: Any) -> float:
@@ -107,29 +155,20 @@ def _integer(name: str, v: Any, minimum: int) -> int:
 
 
 @dataclass
-class Cluster:
-    """One person: members (M,2) int64 (camera index in rig order, detection index in that
-    camera's FrameDetections as given), sorted; costs (M,) mean PA-MPJPE (m) of each member to
-    the rest (each pair aligned lower member onto higher), NaN if alone.
-    """
-
-    members: np.ndarray
-    costs: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.members = np.asarray(self.members, dtype=np.int64).reshape(-1, 2)
-        self.costs = np.asarray(self.costs, dtype=np.float64).reshape(-1)
-
-    def __len__(self) -> int:
-        return int(self.members.shape[0])
-
-
-@dataclass
 class AssociationResult:
-    """Clusters ordered by their first member (camera, detection); per-stage stats."""
+    """Clusters ordered by their first member (camera, detection); per-stage stats.
+
+    ``table`` and ``pairs`` are the frame set's kept detections and every candidate pair with
+    the stage that rejected it (for diagnosis: maem-eval --explain); ``groups`` the clusters
+    before k_min as table rows, ``conflicts`` rows dropped by conflict removal (paper).
+    """
 
     clusters: list[Cluster]
     stats: dict[str, float] = field(default_factory=dict)
+    table: DetectionTable | None = None
+    pairs: "PairSet | None" = None
+    groups: list[np.ndarray] = field(default_factory=list)
+    conflicts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 # ---------------------------------------------------------------------------------------
@@ -138,7 +177,7 @@ class AssociationResult:
 _GEOMETRY: "weakref.WeakKeyDictionary[Rig, tuple]" = weakref.WeakKeyDictionary()
 
 
-def _geometry(rig: Rig) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
+def rig_geometry(rig: Rig) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
     """(P (C,3,4) rectified world->px, F[(a,b)] with x_b^T F x_a = 0) for the rig."""
     key = tuple((c.name, c.K_rect.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in rig)
     hit = _GEOMETRY.get(rig)
@@ -182,79 +221,56 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
         if 0 in verts:
             raise ValueError("verts2d: epipolar_gate 'mesh' needs mesh vertices, got V=0 "
                              "(use epipolar_gate 'sparse' or 'none')")
+    if joints:
+        parse_cost_joints(params.cost_joints, next(iter(joints)))
     return by_index
 
 
 # ---------------------------------------------------------------------------------------
-# stages
+# candidate pairs and gates
 # ---------------------------------------------------------------------------------------
+#: PairSet.stage values: passed everything, or the first stage that rejected the pair
+PASSED, REJECTED_REPROJ, REJECTED_EPIPOLAR, REJECTED_COST = 0, 1, 2, 3
+
+
 @dataclass
-class _Candidates:
-    """Detection pairs still alive, flat over all camera pairs (a < b): camera indices ca, cb;
-    original detection indices di, dj; positions pi, pj among the camera's kept detections."""
+class PairSet:
+    """Every pair of kept detections of different cameras (rows i < j of the DetectionTable,
+    camera of i < camera of j), flat over all camera pairs in order.
 
-    ca: np.ndarray
-    cb: np.ndarray
-    di: np.ndarray
-    dj: np.ndarray
-    pi: np.ndarray
-    pj: np.ndarray
+    stage: PASSED or the first gate that rejected the pair; pose (m) PA-MPJPE on the cost
+    joints and epi (px) mean epipolar distance, both NaN where not computed (rejected
+    earlier; epi also where no epipolar gate ran); cost (m) = pose + w * epi where computed.
+    """
 
-    def select(self, keep: np.ndarray) -> "_Candidates":
-        return _Candidates(*(getattr(self, f.name)[keep] for f in fields(self)))
+    i: np.ndarray
+    j: np.ndarray
+    stage: np.ndarray
+    pose: np.ndarray
+    epi: np.ndarray
+    cost: np.ndarray
 
     def __len__(self) -> int:
-        return int(self.ca.size)
+        return int(self.i.size)
+
+    @property
+    def passed(self) -> np.ndarray:
+        return self.stage == PASSED
 
 
-def _enumerate_pairs(frames: dict[int, FrameDetections], kept: dict[int, np.ndarray],
-                     stats: dict[str, float]) -> _Candidates:
-    """Every kept x kept detection pair of every camera pair a < b; counts score rejections."""
-    cols: list[list[np.ndarray]] = [[] for _ in range(6)]
-    cams = sorted(frames)
-    for k, a in enumerate(cams):
-        for b in cams[k + 1:]:
-            total = frames[a].n * frames[b].n
-            na, nb = kept[a].size, kept[b].size
-            stats["pairs_considered"] += total
-            stats["rejected_score"] += total - na * nb
-            if na == 0 or nb == 0:
-                continue
-            pi, pj = np.repeat(np.arange(na), nb), np.tile(np.arange(nb), na)
-            for col, v in zip(cols, (np.full(na * nb, a), np.full(na * nb, b), kept[a][pi],
-                                     kept[b][pj], pi, pj)):
-                col.append(v)
-    if not cols[0]:
-        return _Candidates(*(np.zeros(0, dtype=np.int64) for _ in range(6)))
-    return _Candidates(*(np.concatenate(c).astype(np.int64) for c in cols))
+def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (i, j) of every kept x kept pair of every camera pair a < b."""
+    i, j = np.triu_indices(len(table), 1)
+    other = table.cam[i] != table.cam[j]
+    i, j = i[other].astype(np.int64), j[other].astype(np.int64)
+    order = np.lexsort((j, i, table.cam[j], table.cam[i]))  # grouped by camera pair
+    return i[order], j[order]
 
 
-def reprojection_errors(P: np.ndarray, uv: np.ndarray, reduce: str = "mean") -> np.ndarray:
-    """(S,) px bbox-centre reprojection error of S two-view pairs.
-
-    P (S,2,3,4) world -> rectified px; uv (S,2,2) the two centres. The centres are
-    DLT-triangulated (core.triangulation.dlt) and reprojected into both views; the two errors
-    are reduced by ``mean`` or ``max``. Inf when the point is behind either camera or the
-    rays are degenerate.
-    """
-    X = dlt(P, uv)  # (S,3)
-    h = np.einsum("svij,sj->svi", P[..., :3], X) + P[..., 3]  # (S,2,3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm(h[..., :2] / h[..., 2:3] - uv, axis=-1)
-    err = np.where((h[..., 2] > 0) & np.isfinite(err), err, np.inf)
-    return err.mean(axis=1) if reduce == "mean" else err.max(axis=1)
-
-
-def _reprojection_gate(cand: _Candidates, frames: dict[int, FrameDetections], P: np.ndarray,
+def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, P: np.ndarray,
                        params: AssociationParams) -> np.ndarray:
-    centres = {c: fd.centers for c, fd in frames.items()}
-    uv = np.empty((len(cand), 2, 2))
-    for c, cen in centres.items():
-        sel = cand.ca == c
-        uv[sel, 0] = cen[cand.di[sel]]
-        sel = cand.cb == c
-        uv[sel, 1] = cen[cand.dj[sel]]
-    Ps = np.stack([P[cand.ca], P[cand.cb]], axis=1)
+    uv = np.stack([table.centers[i], table.centers[j]], axis=1)
+    Ps = np.stack([P[table.cam[i]], P[table.cam[j]]], axis=1)
     return reprojection_errors(Ps, uv, params.reproj_reduce) < params.tau_reproj_bbox
 
 
@@ -271,169 +287,96 @@ def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
     return out
 
 
-def _epipolar_gate(cand: _Candidates, frames: dict[int, FrameDetections],
+def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
                    F: dict[tuple[int, int], np.ndarray], params: AssociationParams,
-                   stats: dict[str, float]) -> np.ndarray:
-    points = _gate_points(frames, params)
-    keep = np.zeros(len(cand), dtype=bool)
+                   stats: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """(keep (S,) bool, mean distance (S,) px, exact where kept) of pairs (i, j)."""
+    points = _gate_points(table.frames, params)
+    keep = np.zeros(i.size, dtype=bool)
+    mean = np.full(i.size, np.nan)
     budget = evaluated = 0
-    for a, b, idx in _groups(cand):
+    for a, b, idx in _groups(table.cam[i], table.cam[j]):
         xa, xb = points[a], points[b]
+        n = xa.shape[1]
         sums, used = epipolar.epipolar_sums(
-            xa, xb, F[(a, b)], cand.di[idx], cand.dj[idx], params.tau_mesh,
+            xa, xb, F[(a, b)], table.det[i[idx]], table.det[j[idx]], params.tau_mesh,
             symmetric=params.epipolar_distance == "symmetric", early_exit=params.early_exit,
             backend=params.backend)
-        keep[idx] = sums < params.tau_mesh * xa.shape[1]
-        budget += idx.size * xa.shape[1]
+        keep[idx] = sums < params.tau_mesh * n
+        mean[idx] = sums / max(n, 1)
+        budget += idx.size * n
         evaluated += int(used.sum())
     stats["epipolar_points_fraction"] = evaluated / budget if budget else 0.0
-    return keep
+    return keep, np.where(keep, mean, np.nan)
 
 
-def _groups(cand: _Candidates):
-    """(a, b, indices into cand) per camera pair, in order."""
-    if len(cand) == 0:
+def _groups(ca: np.ndarray, cb: np.ndarray):
+    """(a, b, indices) per camera pair, in order (pairs are sorted by camera pair)."""
+    if ca.size == 0:
         return
-    key = cand.ca * 65536 + cand.cb
+    key = ca * 65536 + cb
     bounds = np.flatnonzero(np.diff(key)) + 1
-    for idx in np.split(np.arange(len(cand)), bounds):
-        yield int(cand.ca[idx[0]]), int(cand.cb[idx[0]]), idx
+    for idx in np.split(np.arange(ca.size), bounds):
+        yield int(ca[idx[0]]), int(cb[idx[0]]), idx
 
 
-def pa_mpjpe_finite(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """(S,) PA-MPJPE (units of Y) of X (S,J,3) similarity-aligned onto Y (S,J,3), finite input.
-
-    The same Umeyama alignment as core.procrustes.pa_mpjpe (rotation with reflection guard,
-    translation, uniform scale) without its mask/NaN handling, which validated detections do
-    not need: one stacked SVD of the 3x3 covariances. Fewer than 3 joints do not fix a
-    similarity (any two point pairs align exactly), so the cost is NaN (= gated) then.
-    """
-    if X.shape[1] < 3:
-        return np.full(X.shape[0], np.nan)
-    Xc = X - X.mean(axis=1, keepdims=True)
-    Yc = Y - Y.mean(axis=1, keepdims=True)
-    U, S, Vt = np.linalg.svd(np.matmul(Yc.transpose(0, 2, 1), Xc))
-    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
-    d[d == 0] = 1.0
-    U[:, :, 2] *= d[:, None]
-    R = np.matmul(U, Vt)
-    var = np.einsum("sjk,sjk->s", Xc, Xc)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(var > 0, (S[:, 0] + S[:, 1] + d * S[:, 2]) / var, 0.0)
-    aligned = scale[:, None, None] * np.matmul(Xc, R.transpose(0, 2, 1))
-    return np.linalg.norm(aligned - Yc, axis=2).mean(axis=1)
-
-
-def _pair_costs(frames: dict[int, FrameDetections], ca, di, cb, dj) -> np.ndarray:
-    """(S,) PA-MPJPE (m) of detection (ca, di) aligned onto (cb, dj)."""
-    if len(ca) == 0:
+def pose_costs(table: DetectionTable, i: np.ndarray, j: np.ndarray, joints: np.ndarray
+               ) -> np.ndarray:
+    """(S,) PA-MPJPE (m) on ``joints`` of detection row i aligned onto row j."""
+    if i.size == 0:
         return np.zeros(0)
-    J = next(fd.num_joints for fd in frames.values() if fd.n)
-    X = np.empty((len(ca), J, 3))
-    Y = np.empty((len(ca), J, 3))
-    for c, fd in frames.items():
-        sel = ca == c
-        X[sel] = fd.kpts3d[di[sel]]
-        sel = cb == c
-        Y[sel] = fd.kpts3d[dj[sel]]
-    return pa_mpjpe_finite(X, Y)
+    X = table.kpts3d[:, joints]
+    return pa_mpjpe_finite(X[i], X[j])
 
 
-def _match(cand: _Candidates, costs: np.ndarray, kept: dict[int, np.ndarray]) -> np.ndarray:
-    """Indices into cand of the Hungarian matches (per camera pair; gated pairs never match)."""
-    matched = []
-    for a, b, idx in _groups(cand):
-        M = np.full((kept[a].size, kept[b].size), _GATED)
-        c = costs[idx]
-        ok = np.isfinite(c)
-        M[cand.pi[idx[ok]], cand.pj[idx[ok]]] = c[ok]
-        rows, cols = linear_sum_assignment(M)
-        real = M[rows, cols] < _GATED
-        lookup = np.full(M.shape, -1, dtype=np.int64)
-        lookup[cand.pi[idx], cand.pj[idx]] = idx
-        matched.append(lookup[rows[real], cols[real]])
-    return np.concatenate(matched) if matched else np.zeros(0, dtype=np.int64)
+def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
+               stats: dict[str, float]) -> PairSet:
+    """Steps 2-4 of the method on every kept pair: gates, costs, the cost cap."""
+    P, F = rig_geometry(rig)
+    i, j = _enumerate_pairs(table)
+    S = i.size
+    stage = np.full(S, PASSED, np.int8)
+    alive = np.arange(S)
+    t = time.perf_counter()
+    if params.reproj_gate and S:
+        ok = _reprojection_gate(table, i, j, P, params)
+        stage[alive[~ok]] = REJECTED_REPROJ
+        alive = alive[ok]
+    stats["rejected_reproj"] = float(S - alive.size)
+    stats["t_reproj_ms"], t = _lap(t)
 
+    epi = np.full(S, np.nan)
+    stats["epipolar_points_fraction"] = 0.0
+    if params.epipolar_gate != "none" and alive.size:
+        ok, mean = _epipolar_gate(table, i[alive], j[alive], F, params, stats)
+        epi[alive] = mean
+        stage[alive[~ok]] = REJECTED_EPIPOLAR
+        stats["rejected_epipolar"] = float(np.count_nonzero(~ok))
+        alive = alive[ok]
+    stats["t_epipolar_ms"], t = _lap(t)
 
-def _union_find(edges: np.ndarray) -> list[np.ndarray]:
-    """Connected components (sorted node arrays, sorted by first node) of an (E,2) edge list."""
-    parent: dict[int, int] = {}
-
-    def find(x: int) -> int:
-        parent.setdefault(x, x)
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for u, v in edges.tolist():
-        ru, rv = find(u), find(v)
-        if ru != rv:
-            parent[max(ru, rv)] = min(ru, rv)
-    comps: dict[int, list[int]] = {}
-    for x in parent:
-        comps.setdefault(find(x), []).append(x)
-    return sorted((np.array(sorted(m), dtype=np.int64) for m in comps.values()),
-                  key=lambda m: int(m[0]))
-
-
-def _member_costs(frames: dict[int, FrameDetections], members: list[np.ndarray],
-                  known: dict[tuple[int, int, int, int], float]) -> list[np.ndarray]:
-    """Per cluster, the symmetric (M,M) PA-MPJPE matrix (m) of its members (NaN diagonal);
-    entry (m, n), m < n, aligns member m onto member n. Costs already computed for the
-    matching (``known``, keyed (cam, det, cam, det)) are reused; the rest in one batch."""
-    tri = [np.triu_indices(len(m), 1) for m in members]
-    first = np.concatenate([m[t[0]] for m, t in zip(members, tri)] or [np.zeros((0, 2), int)])
-    second = np.concatenate([m[t[1]] for m, t in zip(members, tri)] or [np.zeros((0, 2), int)])
-    keys = list(zip(first[:, 0].tolist(), first[:, 1].tolist(), second[:, 0].tolist(),
-                    second[:, 1].tolist()))
-    flat = np.array([known.get(k, np.nan) for k in keys], dtype=np.float64)
-    todo = np.flatnonzero([k not in known for k in keys])
-    if todo.size:
-        flat[todo] = _pair_costs(frames, first[todo, 0], first[todo, 1], second[todo, 0],
-                                 second[todo, 1])
-    out, k = [], 0
-    for m, (r, c) in zip(members, tri):
-        C = np.full((len(m), len(m)), np.nan)
-        C[r, c] = C[c, r] = flat[k:k + r.size]
-        k += r.size
-        out.append(C)
-    return out
-
-
-def _mean_to_rest(C: np.ndarray, alive: np.ndarray) -> np.ndarray:
-    """(M,) mean cost of each member to the other alive members, ignoring NaN (NaN if none)."""
-    use = alive[None, :] & ~np.eye(len(alive), dtype=bool) & np.isfinite(C)
-    n = use.sum(axis=1)
-    total = np.where(use, C, 0.0).sum(axis=1)
-    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
-
-
-def _resolve_conflicts(members: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, int]:
-    """Drop, one at a time, the same-camera member with the highest mean cost to the rest.
-
-    Returns (alive mask, number dropped). A member whose mean cost is NaN counts as worst.
-    """
-    alive = np.ones(len(members), dtype=bool)
-    dropped = 0
-    while True:
-        cams, counts = np.unique(members[alive, 0], return_counts=True)
-        dup = cams[counts > 1]
-        if dup.size == 0:
-            return alive, dropped
-        cand = np.flatnonzero(alive & np.isin(members[:, 0], dup))
-        mean = _mean_to_rest(C, alive)[cand]
-        worst = cand[int(np.argmax(np.where(np.isnan(mean), np.inf, mean)))]
-        alive[worst] = False
-        dropped += 1
+    pose = np.full(S, np.nan)
+    if alive.size:
+        joints = parse_cost_joints(params.cost_joints, table.num_joints)
+        pose[alive] = pose_costs(table, i[alive], j[alive], joints)
+    weight = params.cost_epipolar_weight if params.epipolar_gate != "none" else 0.0
+    cost = pose + weight * np.nan_to_num(epi, nan=0.0)
+    capped = ~np.isfinite(cost[alive])
+    if params.tau_cost > 0:
+        capped |= cost[alive] > params.tau_cost
+    stage[alive[capped]] = REJECTED_COST
+    stats["rejected_cost"] = float(np.count_nonzero(capped))
+    stats["t_cost_ms"], _ = _lap(t)
+    return PairSet(i=i, j=j, stage=stage, pose=pose, epi=epi, cost=cost)
 
 
 # ---------------------------------------------------------------------------------------
 # entry point
 # ---------------------------------------------------------------------------------------
 STAT_KEYS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
-             "matched_pairs", "conflicts_removed", "clusters_below_k_min", "t_reproj_ms",
-             "t_epipolar_ms", "t_cost_ms", "t_match_ms", "t_cluster_ms", "t_total_ms")
+             "rejected_cost", "matched_pairs", "merges_rejected", "moves", "conflicts_removed",
+             "clusters_below_k_min", "t_reproj_ms", "t_epipolar_ms", "t_cost_ms",
+             "t_match_ms", "t_cluster_ms", "t_total_ms")
 
 
 def associate(rig: Rig, frames: Mapping[str, FrameDetections],
@@ -441,64 +384,48 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     """MAEM stage 2 on one synchronised frame set (frames keyed by camera name; absent = missing).
 
     Returns clusters (members index the detections as given) and per-stage stats: pair counts
-    (considered, rejected by score / reprojection / epipolar gate, matched), conflicts removed,
-    clusters below k_min, and the time of each stage in ms.
+    (considered, rejected by score / reprojection / epipolar gate / cost cap, matched), merges
+    refused by verification, conflicts removed, clusters below k_min, and the time of each
+    stage in ms.
     """
     t_start = time.perf_counter()
     stats: dict[str, float] = dict.fromkeys(STAT_KEYS, 0.0)
     by_index = _check_frames(rig, frames, params)
-    P, F = _geometry(rig)
     kept = {c: np.flatnonzero(fd.scores >= params.tau_det) for c, fd in by_index.items()}
-    stats["epipolar_points_fraction"] = 0.0
-    stats["detections"] = float(sum(fd.n for fd in by_index.values()))
-    stats["detections_kept"] = float(sum(k.size for k in kept.values()))
-    cand = _enumerate_pairs(by_index, kept, stats)
+    table = DetectionTable.build(by_index, len(rig), kept)
+    n_all = np.array([by_index[c].n for c in sorted(by_index)])
+    n_kept = np.array([kept[c].size for c in sorted(by_index)])
+    stats["detections"] = float(n_all.sum())
+    stats["detections_kept"] = float(n_kept.sum())
+    stats["pairs_considered"] = float((n_all.sum() ** 2 - (n_all ** 2).sum()) / 2)
+    stats["rejected_score"] = stats["pairs_considered"] - float(
+        (n_kept.sum() ** 2 - (n_kept ** 2).sum()) / 2)
+    pairs = gate_pairs(rig, table, params, stats)
 
     t = time.perf_counter()
-    if params.reproj_gate and len(cand):
-        keep = _reprojection_gate(cand, by_index, P, params)
-        stats["rejected_reproj"] = float(np.count_nonzero(~keep))
-        cand = cand.select(keep)
-    stats["t_reproj_ms"], t = _lap(t)
+    P, _ = rig_geometry(rig)
+    joints = parse_cost_joints(params.cost_joints, table.num_joints) if len(table) else None
 
-    if params.epipolar_gate != "none" and len(cand):
-        keep = _epipolar_gate(cand, by_index, F, params, stats)
-        stats["rejected_epipolar"] = float(np.count_nonzero(~keep))
-        cand = cand.select(keep)
-    stats["t_epipolar_ms"], t = _lap(t)
+    def pair_cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return pose_costs(table, a, b, joints)
 
-    costs = _pair_costs(by_index, cand.ca, cand.di, cand.cb, cand.dj)
-    stats["t_cost_ms"], t = _lap(t)
-
-    matched = _match(cand, costs, kept)
-    stats["matched_pairs"] = float(matched.size)
-    stats["t_match_ms"], t = _lap(t)
-
-    known = dict(zip(zip(cand.ca.tolist(), cand.di.tolist(), cand.cb.tolist(), cand.dj.tolist()),
-                     costs.tolist()))
-    clusters = _cluster(by_index, cand.select(matched), known, params, stats)
-    stats["clusters"] = float(len(clusters))
+    found = clustering.cluster(table, pairs, P, params, stats, pair_cost)
     stats["t_cluster_ms"], _ = _lap(t)
-    stats["t_total_ms"] = (time.perf_counter() - t_start) * 1e3
-    return AssociationResult(clusters=clusters, stats=stats)
 
-
-def _cluster(frames: dict[int, FrameDetections], matches: _Candidates,
-             known: dict[tuple[int, int, int, int], float], params: AssociationParams,
-             stats: dict[str, float]) -> list[Cluster]:
-    """Union-find over matches, same-camera conflict removal, k_min."""
-    base = 1 << 20  # node id = camera * base + detection (detections per camera < 2^20)
-    edges = np.stack([matches.ca * base + matches.di, matches.cb * base + matches.dj], axis=1)
-    members = [np.stack([m // base, m % base], axis=1) for m in _union_find(edges)]
-    out = []
-    for m, C in zip(members, _member_costs(frames, members, known)):
-        alive, dropped = _resolve_conflicts(m, C)
-        stats["conflicts_removed"] += dropped
-        if alive.sum() < params.k_min:
+    clusters = []
+    for rows in found.groups:
+        alive = rows[~np.isin(rows, found.conflicts)]
+        if np.unique(table.cam[alive]).size < params.k_min:
             stats["clusters_below_k_min"] += 1
             continue
-        out.append(Cluster(members=m[alive], costs=_mean_to_rest(C, alive)[alive]))
-    return sorted(out, key=lambda c: tuple(c.members[0].tolist()))
+        Cm = clustering.cost_matrix(alive, pair_cost)
+        clusters.append(Cluster(members=table.members(alive),
+                                costs=clustering.mean_to_rest(Cm, np.ones(alive.size, bool))))
+    clusters.sort(key=lambda c: tuple(c.members[0].tolist()))
+    stats["clusters"] = float(len(clusters))
+    stats["t_total_ms"] = (time.perf_counter() - t_start) * 1e3
+    return AssociationResult(clusters=clusters, stats=stats, table=table, pairs=pairs,
+                             groups=found.groups, conflicts=found.conflicts)
 
 
 def _lap(t: float) -> tuple[float, float]:

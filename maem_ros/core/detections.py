@@ -98,3 +98,90 @@ class FrameDetections:
 def _check_shape(where: str, field: str, arr: np.ndarray, shape: tuple[int, ...]) -> None:
     if arr.shape != shape:
         raise ValueError(f"{where}: {field}: expected shape {shape}, got {arr.shape}")
+
+
+@dataclass
+class Cluster:
+    """One person: members (M,2) int64 (camera index in rig order, detection index in that
+    camera's FrameDetections as given), sorted; costs (M,) mean pose cost (m) of each member to
+    the rest of the cluster, NaN if alone.
+    """
+
+    members: np.ndarray
+    costs: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.members = np.asarray(self.members, dtype=np.int64).reshape(-1, 2)
+        self.costs = np.asarray(self.costs, dtype=np.float64).reshape(-1)
+
+    def __len__(self) -> int:
+        return int(self.members.shape[0])
+
+
+@dataclass
+class DetectionTable:
+    """The detections of one frame set in one flat table: cameras in rig order, concatenated.
+
+    Row r is detection ``det[r]`` of camera index ``cam[r]``; the rows of camera c are
+    ``offsets[c]:offsets[c + 1]`` (empty for an absent camera). The one id scheme of a frame
+    set inside association and triangulation: a row index. Small per-detection arrays are
+    concatenated (scores (N,), centers (N,2) px, kpts2d (N,J,2) rectified px, kpts3d (N,J,3) m);
+    the mesh vertices stay in the per-camera ``frames`` (the epipolar kernel reads them there,
+    without a copy).
+    """
+
+    cam: np.ndarray
+    det: np.ndarray
+    offsets: np.ndarray
+    scores: np.ndarray
+    centers: np.ndarray
+    kpts2d: np.ndarray
+    kpts3d: np.ndarray
+    frames: dict[int, FrameDetections]
+
+    @classmethod
+    def build(cls, frames: dict[int, FrameDetections], num_cameras: int,
+              keep: dict[int, np.ndarray] | None = None) -> "DetectionTable":
+        """Table of ``frames`` (keyed by camera index); ``keep[c]`` = detection indices to take
+        (default: all), in increasing order."""
+        cams = sorted(frames)
+        idx = {c: (np.arange(frames[c].n) if keep is None else np.asarray(keep[c], np.int64))
+               for c in cams}
+        sizes = np.zeros(num_cameras, np.int64)
+        for c in cams:
+            sizes[c] = idx[c].size
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        J = next((frames[c].num_joints for c in cams if frames[c].n), 0)
+
+        def cat(get, shape):
+            parts = [get(frames[c])[idx[c]] for c in cams if idx[c].size]
+            return np.concatenate(parts) if parts else np.zeros((0,) + shape)
+
+        return cls(cam=np.repeat(np.arange(num_cameras), sizes),
+                   det=np.concatenate([idx[c] for c in cams] or [np.zeros(0, np.int64)]).astype(np.int64),
+                   offsets=offsets, scores=cat(lambda f: f.scores, ()),
+                   centers=cat(lambda f: f.centers, (2,)), kpts2d=cat(lambda f: f.kpts2d, (J, 2)),
+                   kpts3d=cat(lambda f: f.kpts3d, (J, 3)), frames=frames)
+
+    def __len__(self) -> int:
+        return int(self.cam.size)
+
+    @property
+    def num_joints(self) -> int:
+        return int(self.kpts2d.shape[1])
+
+    def rows(self, members: np.ndarray) -> np.ndarray:
+        """Row indices of (camera index, detection index) members (M,2); ValueError if absent."""
+        members = np.asarray(members, np.int64).reshape(-1, 2)
+        # rows are sorted by (camera, detection): one searchsorted on a combined key
+        span = int(max(self.det.max(initial=0), members[:, 1].max(initial=0))) + 1
+        key = self.cam * span + self.det
+        want = members[:, 0] * span + members[:, 1]
+        pos = np.searchsorted(key, want)
+        if np.any(pos >= len(self)) or np.any(key[np.minimum(pos, max(len(self) - 1, 0))] != want):
+            raise ValueError("members: detection not in the table")
+        return pos
+
+    def members(self, rows: np.ndarray) -> np.ndarray:
+        """(M,2) (camera index, detection index) of table rows."""
+        return np.stack([self.cam[rows], self.det[rows]], axis=1)

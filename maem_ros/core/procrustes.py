@@ -1,7 +1,7 @@
 """Batched similarity Procrustes (Umeyama): rotation, translation and uniform scale.
 
-Shared by the association cost (PA-MPJPE between two detections' 3D keypoints)
-and the evaluation metrics. Units are whatever the inputs use (metres here).
+Shared by the association cost (PA-MPJPE between two detections' 3D keypoints, the fast
+``pa_mpjpe_finite`` for validated input) and the evaluation metrics (``pa_mpjpe``, masked). Units are whatever the inputs use (metres here).
 """
 from __future__ import annotations
 
@@ -83,3 +83,27 @@ def pa_mpjpe(X: np.ndarray, Y: np.ndarray, mask: np.ndarray | None = None) -> np
     with np.errstate(invalid="ignore"):
         out = np.where(valid, dist, 0.0).sum(-1) / np.maximum(n, 1)
     return np.where(n >= MIN_JOINTS, out, np.nan)
+
+
+def pa_mpjpe_finite(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """(S,) PA-MPJPE (units of Y) of X (S,J,3) similarity-aligned onto Y (S,J,3), finite input.
+
+    The same Umeyama alignment as pa_mpjpe (rotation with reflection guard,
+    translation, uniform scale) without its mask/NaN handling, which validated detections do
+    not need: one stacked SVD of the 3x3 covariances. Fewer than 3 joints do not fix a
+    similarity (any two point pairs align exactly), so the cost is NaN (= gated) then.
+    """
+    if X.shape[1] < 3:
+        return np.full(X.shape[0], np.nan)
+    Xc = X - X.mean(axis=1, keepdims=True)
+    Yc = Y - Y.mean(axis=1, keepdims=True)
+    U, S, Vt = np.linalg.svd(np.matmul(Yc.transpose(0, 2, 1), Xc))
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    d[d == 0] = 1.0
+    U[:, :, 2] *= d[:, None]
+    R = np.matmul(U, Vt)
+    var = np.einsum("sjk,sjk->s", Xc, Xc)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(var > 0, (S[:, 0] + S[:, 1] + d * S[:, 2]) / var, 0.0)
+    aligned = scale[:, None, None] * np.matmul(Xc, R.transpose(0, 2, 1))
+    return np.linalg.norm(aligned - Yc, axis=2).mean(axis=1)

@@ -98,3 +98,16 @@ def convention_for(num_joints: int) -> KeypointConvention:
         if conv.num_joints == num_joints:
             return conv
     raise ValueError(f"keypoint convention: none has {num_joints} joints")
+
+
+def body_joints(num_joints: int) -> tuple[int, ...]:
+    """Indices of the sportcenter_13 body joints (head, shoulders, elbows, wrists, hips, knees,
+    ankles) within the convention that has ``num_joints`` joints, matched by name; all joints
+    when no convention has that count or it names none of them."""
+    try:
+        conv = convention_for(num_joints)
+    except ValueError:
+        return tuple(range(num_joints))
+    where = {n: i for i, n in enumerate(conv.names)}
+    picked = tuple(where[n] for n in SPORTCENTER_13.names if n in where)
+    return picked if len(picked) >= 3 else tuple(range(num_joints))

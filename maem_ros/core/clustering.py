@@ -1,0 +1,418 @@
+"""Clustering of gated cross-view detection pairs into people (MAEM stage 2, step 5).
+
+Input: the frame set's DetectionTable (row = detection) and its PairSet (every cross-camera
+pair with the stage that rejected it and, for survivors, the pair cost in metres). Output:
+groups of table rows (one per person candidate, before k_min) and, for the paper's pipeline,
+the rows conflict removal dropped.
+
+``consistent`` (default). Per-pair matching plus union-find is transitive: one wrong match
+joins two people. Here every decision is taken on whole clusters:
+  * objective: a cluster earns ``tau_cost - cost`` for each gated member pair and pays
+    ``tau_cost`` for each cross pair that did not pass the gates (correlation clustering with
+    the cost cap as the zero point);
+  * greedy best-first merges over all camera pairs at once, in rounds: every cluster pair
+    linked by a gated pair is a candidate; a merge is allowed only if the two share no camera,
+    at least ``min_support`` of the new cross pairs passed the gates, it raises the objective,
+    and (from three views on) every member's median reprojection error of the body joints
+    triangulated from all members is under ``tau_verify`` px; the best allowed merges that do
+    not touch each other are applied, then the candidates are rebuilt;
+  * local moves: a detection moves to another cluster (or alone) when that raises the
+    objective and the target stays verified; this undoes early greedy mistakes, e.g. a
+    detection whose true partner is absent in one camera, paired first with the closest
+    other person there.
+Designs read before choosing: MVPose (cycle-consistent multi-way matching of all views,
+convex relaxation: global but iterative and slow for 16 views), EasyMocap's associate
+(greedy growth from the best pair with view-consistency checks) and 4D association (limb
+graph, greedy with consistency); the choice here is EasyMocap-like greedy growth with
+MVPose-like global consistency (no camera twice, most cross pairs agree), geometric
+verification as in the RANSAC triangulation, and a cheap local search, everything batched.
+
+``paper``: Hungarian per camera pair on the gated cost, union-find over the matches, then
+while a cluster holds two detections of one camera the one with the highest mean cost to the
+rest is dropped (MAEM as published).
+
+``spectral``: the seed paper's PA-MPJPE matching baseline (Hokari et al.): a complete graph
+over all kept detections, weights exp(-(PA-MPJPE / sigma)^2) (0 within a camera; no
+geometric gates), normalised spectral clustering into as many people as the most crowded
+camera has detections, then the paper's conflict removal.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+from scipy.cluster.vq import kmeans2
+from scipy.optimize import linear_sum_assignment
+
+from .geometry import normal_entries, reprojection_error, solve_normal
+
+if TYPE_CHECKING:
+    from .association import AssociationParams, PairSet
+    from .detections import DetectionTable
+
+METHODS = ("consistent", "paper", "spectral")
+#: spectral baseline affinity width (m): about the body-joint PA-MPJPE of one person's
+#: detections in two views (see the simulator's noise model), so that same-person weights
+#: stay near 1 and different-person weights fall towards 0
+SPECTRAL_SIGMA = 0.05
+#: upper bound on local moves per frame set, as a multiple of the detections (each move
+#: raises the objective, so the search ends anyway; this only bounds the time)
+MAX_MOVES_PER_DETECTION = 2
+
+#: (rows_a, rows_b) -> pose costs (m) of those detection pairs, aligned a onto b
+PairCost = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass
+class Found:
+    """Clusters as table rows (sorted arrays, before k_min) and rows dropped as conflicts."""
+
+    groups: list[np.ndarray]
+    conflicts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+def cluster(table: "DetectionTable", pairs: "PairSet", P: np.ndarray,
+            params: "AssociationParams", stats: dict[str, float], pair_cost: PairCost) -> Found:
+    """Cluster the table's rows with ``params.clustering`` (see the module docstring)."""
+    if len(table) == 0:
+        return Found([])
+    if params.clustering == "paper":
+        return _paper(table, pairs, stats, pair_cost)
+    if params.clustering == "spectral":
+        return _spectral(table, stats, pair_cost)
+    return _consistent(table, pairs, P, params, stats)
+
+
+# ---------------------------------------------------------------------------------------
+# consistent clustering
+# ---------------------------------------------------------------------------------------
+class _Verifier:
+    """Batched cluster check: body joints triangulated (DLT) from all members, each member's
+    median reprojection error (px) must stay under tau_verify."""
+
+    def __init__(self, table: "DetectionTable", P: np.ndarray, params: "AssociationParams"):
+        from .association import parse_cost_joints  # the joint subset has one definition
+        joints = parse_cost_joints(params.cost_joints, table.num_joints)
+        self.uv = table.kpts2d[:, joints]  # (N,Jb,2)
+        self.P = P[table.cam]  # (N,3,4)
+        self.tau = params.tau_verify
+
+    def __call__(self, rows: np.ndarray) -> np.ndarray:
+        """rows (K,M) table rows, -1 = padding -> (K,) all members consistent."""
+        if rows.size == 0:
+            return np.zeros(rows.shape[0], bool)
+        present = rows >= 0
+        r = np.where(present, rows, 0)
+        P = self.P[r]  # (K,M,3,4)
+        uv = self.uv[r]  # (K,M,Jb,2)
+        usable = present[..., None] & np.isfinite(uv).all(-1)
+        E = normal_entries(P[:, :, None], uv, usable)  # (9,K,M,Jb)
+        X = solve_normal(E.sum(2))  # (K,Jb,3)
+        err = reprojection_error(P, X[:, None], uv)[:, :, 0]  # (K,M,Jb)
+        err = np.where(usable, err, np.nan)
+        with np.errstate(invalid="ignore"), _quiet_nanmedian():
+            med = np.nanmedian(err, axis=2)  # (K,M), NaN for a member without usable joints
+        bad = present & ~(med < self.tau)
+        return ~bad.any(axis=1)
+
+
+class _quiet_nanmedian:
+    """nanmedian of an all-NaN slice warns; here that slice is a failed member, not an error."""
+
+    def __enter__(self):
+        import warnings
+        self._w = warnings.catch_warnings()
+        self._w.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc):
+        return self._w.__exit__(*exc)
+
+
+def _gain_matrix(table: "DetectionTable", pairs: "PairSet", tau: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(gain (N,N), gated (N,N) bool): tau - cost for gated pairs, -tau for other cross pairs,
+    0 within a camera (such pairs are never together) and on the diagonal."""
+    N = len(table)
+    ok = pairs.passed
+    gated = np.zeros((N, N), bool)
+    gated[pairs.i[ok], pairs.j[ok]] = gated[pairs.j[ok], pairs.i[ok]] = True
+    gain = np.full((N, N), -tau)
+    gain[pairs.i[ok], pairs.j[ok]] = gain[pairs.j[ok], pairs.i[ok]] = tau - pairs.cost[ok]
+    gain[table.cam[:, None] == table.cam[None, :]] = 0.0
+    return gain, gated
+
+
+def _consistent(table: "DetectionTable", pairs: "PairSet", P: np.ndarray,
+                params: "AssociationParams", stats: dict[str, float]) -> Found:
+    gain, gated = _gain_matrix(table, pairs, params.tau_cost)
+    verify = _Verifier(table, P, params)
+    label = np.arange(len(table))
+    label = _greedy_merges(table, pairs, gain, gated, label, verify, params, stats)
+    label = _local_moves(table, gain, gated, label, verify, params, stats)
+    return Found(_groups(label))
+
+
+def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
+    """(K, M) table rows of the union of the given label sets per candidate, -1 padded.
+
+    parts: arrays (K,) of labels (-1 = none) whose members are concatenated per candidate.
+    """
+    order = np.argsort(label, kind="stable")
+    size = np.bincount(label, minlength=label.size)
+    start = np.concatenate([[0], np.cumsum(size)[:-1]])
+    sizes = [np.where(p >= 0, size[np.maximum(p, 0)], 0) for p in parts]
+    M = int(sum(sizes).max(initial=0))
+    slot = np.arange(M)[None, :]
+    out = np.full((parts[0].size, M), -1, np.int64)
+    base = np.zeros(parts[0].size, np.int64)
+    for p, s in zip(parts, sizes):
+        mine = (slot >= base[:, None]) & (slot < (base + s)[:, None])
+        src = start[np.maximum(p, 0)][:, None] + slot - base[:, None]
+        out[mine] = order[np.clip(src, 0, label.size - 1)][mine]
+        base = base + s
+    return out
+
+
+def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> np.ndarray:
+    """Best-first verified merges in rounds until no allowed merge is left."""
+    C = int(table.cam.max()) + 1
+    ok = pairs.passed
+    ei, ej = pairs.i[ok], pairs.j[ok]
+    refused: set[tuple[int, int, int, int]] = set()
+    N = label.size
+    while True:
+        la, lb = label[ei], label[ej]
+        cross = la != lb
+        if not cross.any():
+            return label
+        a, b = np.minimum(la, lb)[cross], np.maximum(la, lb)[cross]
+        key, inverse = np.unique(a * N + b, return_inverse=True)
+        A, B = key // N, key % N
+        count = np.bincount(inverse, minlength=key.size)
+        size = np.bincount(label, minlength=N)
+        camset = np.zeros((N, C), bool)
+        camset[label, table.cam] = True
+        # objective change: sum of gains over all cross pairs of the two clusters
+        members_ab = _members_padded(label, [A, B])
+        sa = size[A]
+        g = _cross_gain(gain, members_ab, sa)
+        disjoint = ~(camset[A] & camset[B]).any(1)
+        support = count / (size[A] * size[B])
+        allowed = disjoint & (support >= params.min_support) & (g > 0)
+        allowed &= np.array([(int(x), int(y), int(size[x]), int(size[y])) not in refused
+                             for x, y in zip(A, B)], bool) if refused else True
+        cand = np.flatnonzero(allowed)
+        if cand.size == 0:
+            return label
+        need = size[A[cand]] + size[B[cand]] >= 3
+        passed = np.ones(cand.size, bool)
+        if need.any():
+            passed[need] = verify(members_ab[cand[need]])
+        for k in cand[~passed]:
+            refused.add((int(A[k]), int(B[k]), int(size[A[k]]), int(size[B[k]])))
+        stats["merges_rejected"] += float(np.count_nonzero(~passed))
+        cand = cand[passed]
+        if cand.size == 0:
+            return label
+        cand = cand[np.argsort(-g[cand], kind="stable")]
+        used = np.zeros(N, bool)
+        merged = 0
+        for k in cand:  # one loop over candidate merges (not over vertices or joints)
+            x, y = int(A[k]), int(B[k])
+            if used[x] or used[y]:
+                continue
+            used[x] = used[y] = True
+            label[label == y] = x
+            merged += 1
+        stats["matched_pairs"] += float(merged)
+
+
+def _cross_gain(gain: np.ndarray, members: np.ndarray, split: np.ndarray) -> np.ndarray:
+    """(K,) sum of gain over pairs (first part x second part) of padded member rows (K,M)."""
+    K, M = members.shape
+    if K == 0:
+        return np.zeros(0)
+    present = members >= 0
+    r = np.where(present, members, 0)
+    G = gain[r[:, :, None], r[:, None, :]]  # (K,M,M)
+    slot = np.arange(M)
+    first = present & (slot[None, :] < split[:, None])
+    second = present & (slot[None, :] >= split[:, None])
+    return np.einsum("kmn,km,kn->k", G, first.astype(float), second.astype(float))
+
+
+def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray:
+    """Move single detections between clusters (or out) while that raises the objective."""
+    N = label.size
+    C = int(table.cam.max()) + 1
+    _, label = np.unique(label, return_inverse=True)
+    K = int(label.max()) + 1
+    # one spare empty column per detection would be wasteful: a move "out" is scored apart
+    Z = np.zeros((N, K))
+    Z[np.arange(N), label] = 1.0
+    G = gain @ Z  # (N,K): objective gain of each detection with each cluster
+    S = gated.astype(float) @ Z  # gated pairs of each detection with each cluster
+    size = Z.sum(0)
+    camset = np.zeros((K, C), bool)
+    camset[label, table.cam] = True
+    forbidden = np.zeros((N, K + 1), bool)
+    for _ in range(MAX_MOVES_PER_DETECTION * N):
+        own = G[np.arange(N), label]
+        delta = np.full((N, K + 1), -np.inf)
+        into = G - own[:, None]
+        occupied = camset[:, table.cam].T  # (N,K): cluster already has this detection's camera
+        support = S / np.maximum(size[None, :], 1)
+        allowed = ~occupied & (support >= params.min_support) & (size[None, :] > 0)
+        delta[:, :K] = np.where(allowed, into, -np.inf)
+        delta[:, K] = np.where(size[label] > 1, -own, -np.inf)  # leave: alone
+        delta[forbidden] = -np.inf
+        best = int(np.argmax(delta))
+        d, T = divmod(best, K + 1)
+        if not delta[d, T] > 1e-12:
+            break
+        if T < K and size[T] + 1 >= 3:
+            members = np.concatenate([np.flatnonzero(label == T), [d]])[None, :]
+            if not verify(members)[0]:
+                forbidden[d, T] = True
+                continue
+        if T == K:  # reuse an empty label for the new singleton
+            empty = np.flatnonzero(size == 0)
+            if empty.size == 0:
+                forbidden[d, T] = True
+                continue
+            T = int(empty[0])
+        src = label[d]
+        G[:, src] -= gain[:, d]
+        G[:, T] += gain[:, d]
+        S[:, src] -= gated[:, d]
+        S[:, T] += gated[:, d]
+        size[src] -= 1
+        size[T] += 1
+        camset[src, table.cam[d]] = False
+        camset[T, table.cam[d]] = True
+        label[d] = T
+        forbidden[:] = False
+        stats["moves"] += 1.0
+    return label
+
+
+def _groups(label: np.ndarray) -> list[np.ndarray]:
+    """Sorted row arrays of each label, ordered by first row."""
+    order = np.argsort(label, kind="stable")
+    bounds = np.flatnonzero(np.diff(label[order])) + 1
+    return sorted((np.sort(g) for g in np.split(order, bounds) if g.size), key=lambda g: int(g[0]))
+
+
+# ---------------------------------------------------------------------------------------
+# the paper's pipeline
+# ---------------------------------------------------------------------------------------
+#: cost given to gated pairs in the Hungarian matrix: any real match is preferred, and
+#: an assignment that lands on it is discarded
+_GATED = 1e9
+
+
+def _paper(table, pairs, stats, pair_cost) -> Found:
+    matched = _hungarian(table, pairs)
+    stats["matched_pairs"] = float(matched.size)
+    groups = _union_find(table, pairs.i[matched], pairs.j[matched])
+    return _remove_conflicts(table, groups, stats, pair_cost)
+
+
+def _hungarian(table, pairs) -> np.ndarray:
+    """Indices into pairs of the Hungarian matches, per camera pair (gated pairs never match)."""
+    from .association import _groups as camera_pair_groups
+    ok = pairs.passed
+    matched = []
+    ca, cb = table.cam[pairs.i], table.cam[pairs.j]
+    for a, b, idx in camera_pair_groups(ca, cb):
+        pi = pairs.i[idx] - table.offsets[a]
+        pj = pairs.j[idx] - table.offsets[b]
+        M = np.full((table.offsets[a + 1] - table.offsets[a], table.offsets[b + 1] - table.offsets[b]),
+                    _GATED)
+        use = ok[idx]
+        M[pi[use], pj[use]] = pairs.cost[idx[use]]
+        rows, cols = linear_sum_assignment(M)
+        real = M[rows, cols] < _GATED
+        lookup = np.full(M.shape, -1, dtype=np.int64)
+        lookup[pi, pj] = idx
+        matched.append(lookup[rows[real], cols[real]])
+    return np.concatenate(matched) if matched else np.zeros(0, dtype=np.int64)
+
+
+def _union_find(table, u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
+    """Connected components (sorted row arrays) of the match graph, singletons included."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    N = len(table)
+    graph = coo_matrix((np.ones(u.size), (u, v)), shape=(N, N))
+    _, label = connected_components(graph, directed=False)
+    return _groups(label)
+
+
+def _remove_conflicts(table, groups, stats, pair_cost) -> Found:
+    """While a group holds two detections of one camera, drop the one with the highest mean
+    cost to the rest of the group (NaN counts as worst)."""
+    conflicts = []
+    for rows in groups:
+        cams = table.cam[rows]
+        if np.unique(cams).size == cams.size:
+            continue
+        Cm = cost_matrix(rows, pair_cost)
+        alive = np.ones(rows.size, bool)
+        while True:
+            c, counts = np.unique(cams[alive], return_counts=True)
+            dup = c[counts > 1]
+            if dup.size == 0:
+                break
+            cand = np.flatnonzero(alive & np.isin(cams, dup))
+            mean = mean_to_rest(Cm, alive)[cand]
+            worst = cand[int(np.argmax(np.where(np.isnan(mean), np.inf, mean)))]
+            alive[worst] = False
+            conflicts.append(rows[worst])
+    stats["conflicts_removed"] += float(len(conflicts))
+    return Found(groups, np.array(sorted(conflicts), dtype=np.int64))
+
+
+def cost_matrix(rows: np.ndarray, pair_cost: PairCost) -> np.ndarray:
+    """Symmetric (M,M) pair costs of the rows (entry m<n aligns m onto n), NaN diagonal."""
+    r, c = np.triu_indices(rows.size, 1)
+    Cm = np.full((rows.size, rows.size), np.nan)
+    Cm[r, c] = Cm[c, r] = pair_cost(rows[r], rows[c])
+    return Cm
+
+
+def mean_to_rest(Cm: np.ndarray, alive: np.ndarray) -> np.ndarray:
+    """(M,) mean cost of each member to the other alive members, ignoring NaN (NaN if none)."""
+    use = alive[None, :] & ~np.eye(len(alive), dtype=bool) & np.isfinite(Cm)
+    n = use.sum(axis=1)
+    total = np.where(use, Cm, 0.0).sum(axis=1)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
+
+
+# ---------------------------------------------------------------------------------------
+# spectral baseline (PA-MPJPE matching)
+# ---------------------------------------------------------------------------------------
+def _spectral(table, stats, pair_cost) -> Found:
+    N = len(table)
+    k = int(np.diff(table.offsets).max())
+    if N < 2 or k < 1:
+        return Found(_groups(np.arange(N)))
+    i, j = np.triu_indices(N, 1)
+    other = table.cam[i] != table.cam[j]
+    i, j = i[other], j[other]
+    W = np.zeros((N, N))
+    w = np.exp(-(np.nan_to_num(pair_cost(i, j), nan=np.inf) / SPECTRAL_SIGMA) ** 2)
+    W[i, j] = W[j, i] = w
+    d = W.sum(1)
+    inv = np.where(d > 0, 1.0 / np.sqrt(np.maximum(d, 1e-300)), 0.0)
+    L = inv[:, None] * W * inv[None, :]
+    _, vecs = np.linalg.eigh(L)
+    U = vecs[:, -min(k, N):]
+    U /= np.maximum(np.linalg.norm(U, axis=1, keepdims=True), 1e-12)
+    with _quiet_nanmedian():  # an emptied k-means cluster warns; its people are simply fewer
+        _, label = kmeans2(U, min(k, N), minit="++", seed=np.random.default_rng(0), missing="warn")
+    groups = _groups(label)
+    stats["matched_pairs"] = float(sum(g.size - 1 for g in groups))
+    return _remove_conflicts(table, groups, stats, pair_cost)
