@@ -7,13 +7,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from maem_ros.core import epipolar
-from maem_ros.core.association import (AssociationParams, associate, pa_mpjpe_finite,
-                                       reprojection_errors)
+from maem_ros.core.association import AssociationParams, associate
 from maem_ros.core.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.procrustes import pa_mpjpe
+from maem_ros.core.geometry import reprojection_errors
+from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
 
 V, J = 400, 24
+#: the MAEM paper's pipeline exactly (cost on every keypoint, no cap, Hungarian + union-find)
+PAPER = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0}
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 
 
@@ -213,7 +215,7 @@ def test_same_camera_conflict_drops_the_member_with_highest_mean_cost():
     deformed = p.joints + np.random.default_rng(5).normal(0, 0.06, p.joints.shape)
     frames, _ = frames_for(rig, {"cam0": [(p, None), (p, deformed)], "cam1": [(p, deformed)],
                                  "cam2": [(p, None)], "cam3": [(p, None)]})
-    res = associate(rig, frames, AssociationParams(k_min=4))
+    res = associate(rig, frames, AssociationParams(k_min=4, **PAPER))
     assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)})}
     assert res.stats["conflicts_removed"] == 1
     exact, bent = (rig["cam0"].world_to_camera(x) for x in (p.joints, deformed))
@@ -434,3 +436,108 @@ def test_pa_mpjpe_cost_undefined_below_three_joints():
     X, Y = rng.normal(size=(4, 2, 3)), rng.normal(size=(4, 2, 3))
     assert np.all(np.isnan(pa_mpjpe_finite(X, Y)))
     assert np.all(np.isfinite(pa_mpjpe_finite(rng.normal(size=(4, 3, 3)), rng.normal(size=(4, 3, 3)))))
+
+
+# ---------------------------------------------------------------------------------------
+# clustering: consistent vs the paper's transitive union-find
+# ---------------------------------------------------------------------------------------
+def _chain_case_missing_partner():
+    """P seen by cam0..2, Q by cam1..3; Q stands on cam0's ray through P (hidden there) and P
+    is hidden in cam3, so P's cam0 detection and Q's cam3 detection pass both gates of pair
+    (0, 3) (each with no true partner there; their poses differ): the paper's Hungarian,
+    with no bound on the cost, matches them and union-find chains the two people."""
+    rig = Rig([look_at("cam0", (-22.0, 0.0, 1.5)), look_at("cam1", (0.0, -22.0, 1.5)),
+               look_at("cam2", (0.0, 22.0, 1.5)), look_at("cam3", (16.0, 16.0, 1.5))])
+    p = Body((0.0, 0.0), 61)
+    ray = p.centre - rig["cam0"].center
+    q = Body(tuple((p.centre + 1.0 * ray / np.linalg.norm(ray))[:2]), 61)  # same mesh shape
+    q.joints = q.centre + (p.joints - p.centre) * [1.0, 1.0, -1.0]  # another pose (upside down)
+    frames, _ = frames_for(rig, {"cam0": [(p, None)], "cam1": [(p, None), (q, None)],
+                                 "cam2": [(p, None), (q, None)], "cam3": [(q, None)]})
+    truth = {frozenset({(0, 0), (1, 0), (2, 0)}), frozenset({(1, 1), (2, 1), (3, 0)})}
+    return rig, frames, truth
+
+
+def _chain_case_side_by_side():
+    """Person-height rig: cam0 and cam1 on one horizontal baseline parallel to the line
+    through P and Q (similar poses, side by side), so pair (0, 1) cannot tell P from Q
+    geometrically; cam0's monocular 3D poses of the two are swapped, so the (0, 1) Hungarian
+    crosses them while every other camera pair matches correctly: union-find chains both."""
+    rig = Rig([look_at("cam0", (-15.0, -10.0, 0.9), (0, 0, 0.9)),
+               look_at("cam1", (15.0, -10.0, 0.9), (0, 0, 0.9)),
+               look_at("cam2", (2.0, 16.0, 1.6), (0, 0, 0.9)),
+               look_at("cam3", (-14.0, 9.0, 1.8), (0, 0, 0.9))])
+    p, q = Body((-1.5, 0.0), 71), Body((1.5, 0.0), 71)
+    q.joints = q.joints + np.random.default_rng(3).normal(0, 0.02, q.joints.shape)
+    per_cam = {c.name: [(p, None), (q, None)] for c in rig}
+    per_cam["cam0"] = [(p, q.joints - q.centre + p.centre), (q, p.joints - p.centre + q.centre)]
+    frames, _ = frames_for(rig, per_cam)
+    truth = {frozenset((c, 0) for c in range(4)), frozenset((c, 1) for c in range(4))}
+    return rig, frames, truth
+
+
+@pytest.mark.parametrize("case", [_chain_case_missing_partner, _chain_case_side_by_side])
+def test_consistent_clustering_keeps_apart_what_union_find_chains(case):
+    rig, frames, truth = case()
+    k_min = 3
+    paper = associate(rig, frames, AssociationParams(k_min=k_min, **PAPER))
+    # the paper's pipeline chains the two people: one cluster, conflicts removed, one lost
+    assert paper.stats["conflicts_removed"] >= 1
+    assert as_sets(paper.clusters) != truth
+    mixed = [g for g in paper.groups if len(g) > 4]
+    assert mixed, "union-find should have joined both people into one group"
+    consistent = associate(rig, frames, AssociationParams(k_min=k_min))
+    assert as_sets(consistent.clusters) == truth
+    assert consistent.stats["conflicts_removed"] == 0
+
+
+def test_cost_cap_and_cost_joints_change_decisions():
+    """Two views of P whose 3D poses differ only on joints 0-2 (a bent arm): with the cost on
+    every joint the pair costs more than the cap and never matches; on joints 3.. it is
+    exact and matches; with the cap off (0, the paper) it matches on any joints."""
+    rig = ring_rig(2)
+    p = Body((0.3, 0.2), 81)
+    bent = p.joints.copy()
+    bent[:3] += [0.6, -0.4, 0.3]
+    frames, _ = frames_for(rig, {"cam0": [(p, None)], "cam1": [(p, bent)]})
+    both = {frozenset({(0, 0), (1, 0)})}
+    base = dict(k_min=2, tau_cost=0.05)
+    res = associate(rig, frames, AssociationParams(cost_joints="all", **base))
+    assert res.clusters == [] and res.stats["rejected_cost"] == 1
+    rest = ",".join(str(k) for k in range(3, J))
+    assert as_sets(associate(rig, frames, AssociationParams(cost_joints=rest, **base)).clusters) == both
+    assert as_sets(associate(rig, frames, AssociationParams(k_min=2, **PAPER)).clusters) == both
+    # a cap above the pair's cost lets it match with every joint
+    full = associate(rig, frames, AssociationParams(k_min=2, cost_joints="all", tau_cost=5.0))
+    assert as_sets(full.clusters) == both
+
+
+def test_body_cost_joints_are_the_sportcenter_joints_of_mhr70():
+    from maem_ros.core.association import parse_cost_joints
+    from maem_ros.core.skeleton import SPORTCENTER_13_FROM_MHR70
+    assert tuple(parse_cost_joints("body", 70)) == SPORTCENTER_13_FROM_MHR70
+    assert tuple(parse_cost_joints("all", 5)) == tuple(range(5))
+    assert tuple(parse_cost_joints("4,1,2", 5)) == (4, 1, 2)
+    for bad in ("1,2", "a,b,c", "1,1,2", 3):
+        with pytest.raises(ValueError, match="^cost_joints:"):
+            AssociationParams(cost_joints=bad)
+    with pytest.raises(ValueError, match="^cost_joints: index 9"):
+        parse_cost_joints("0,1,9", 5)
+
+
+@pytest.mark.parametrize("clustering", ["spectral", "paper", "consistent"])
+def test_every_clustering_recovers_a_noiseless_scene(clustering):
+    rig, frames, truth = scene(6, 4, seed=3)
+    res = associate(rig, frames, AssociationParams(k_min=4, clustering=clustering))
+    assert as_sets(res.clusters) == truth
+
+
+def test_consistent_clustering_never_puts_two_detections_of_one_camera_together():
+    rig, frames, _ = scene(6, 5, seed=4)
+    rng = np.random.default_rng(0)
+    for fd in frames.values():  # heavy 3D pose noise: many close costs, many candidate merges
+        fd.kpts3d += rng.normal(0, 0.08, fd.kpts3d.shape)
+    res = associate(rig, frames, AssociationParams(k_min=2, tau_cost=0.5, min_support=0.0))
+    for g in res.groups:
+        cams = res.table.cam[g]
+        assert np.unique(cams).size == cams.size

@@ -374,7 +374,7 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
 # entry point
 # ---------------------------------------------------------------------------------------
 STAT_KEYS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
-             "rejected_cost", "matched_pairs", "merges_rejected", "moves", "conflicts_removed",
+             "rejected_cost", "matched_pairs", "merges", "merges_rejected", "moves", "conflicts_removed",
              "clusters_below_k_min", "t_reproj_ms", "t_epipolar_ms", "t_cost_ms",
              "t_match_ms", "t_cluster_ms", "t_total_ms")
 

@@ -151,6 +151,8 @@ def _consistent(table: "DetectionTable", pairs: "PairSet", P: np.ndarray,
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, gated, label, verify, params, stats)
     label = _local_moves(table, gain, gated, label, verify, params, stats)
+    together = label[:, None] == label[None, :]
+    stats["matched_pairs"] = float(np.count_nonzero(np.triu(together & gated, 1)))
     return Found(_groups(label))
 
 
@@ -226,7 +228,7 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
             used[x] = used[y] = True
             label[label == y] = x
             merged += 1
-        stats["matched_pairs"] += float(merged)
+        stats["merges"] += float(merged)
 
 
 def _cross_gain(gain: np.ndarray, members: np.ndarray, split: np.ndarray) -> np.ndarray:

@@ -5,6 +5,8 @@ A scene folder (what ``maem-sim`` writes and ``maem-eval`` reads)::
     cameras/<view>.json          MAEM camera JSON (world->camera extrinsics), one per view
     dets/<view>/<frame:06d>.npz  SAM 3D Body outputs as the MAEM authors save them, RAW image px
     gt.npz                       xrmocap keypoints3d: pose (F,P,K,4) metres, mask (F,P,K), convention
+    det_ids.npz                  optional: GT person of every detection, key "<view>/<frame:06d>",
+                                 (N,) int64 in the npz's detection order, -1 = false positive
     images/<view>/<frame:06d>.jpg  optional raw (distorted) images
     scene.json                   optional: fps, start_stamp_ns, num_frames, scene_config (simulator)
 
@@ -29,6 +31,15 @@ from .detections import FrameDetections
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
 REQUIRED_KEYS = ("bbox", "bbox_score", "pred_keypoints_3d", "pred_keypoints_2d", "pred_keypoints_2d_verts")
 DEFAULT_FPS = 30.0
+
+
+#: file of a scene folder with the GT person of every detection
+DET_IDS = "det_ids.npz"
+
+
+def det_ids_key(view: str, frame: int) -> str:
+    """Key of one view and frame in det_ids.npz."""
+    return f"{view}/{int(frame):06d}"
 
 
 class MissingDataError(ValueError):
@@ -416,6 +427,31 @@ class SceneFolder:
 
     def gt(self) -> tuple[np.ndarray, np.ndarray, str]:
         return read_gt(self.root / "gt.npz")
+
+    @property
+    def has_det_ids(self) -> bool:
+        return (self.root / DET_IDS).is_file()
+
+    def write_det_ids(self, ids: Mapping[tuple[str, int], np.ndarray]) -> None:
+        """det_ids.npz from {(view, frame): (N,) GT person per detection, -1 = false positive}."""
+        arrays = {det_ids_key(v, f): np.asarray(a, dtype=np.int64) for (v, f), a in ids.items()}
+        with open(self.root / DET_IDS, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
+
+    def det_ids(self) -> dict[str, np.ndarray]:
+        """{"<view>/<frame:06d>": (N,) int64} from det_ids.npz; ValueError naming a bad file."""
+        path = self.root / DET_IDS
+        if not path.is_file():
+            raise MissingDataError(f"scene {str(self.root)!r}: no {DET_IDS} (written by maem-sim)")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                out = {k: np.asarray(z[k]) for k in z.files}
+        except (OSError, ValueError) as e:
+            raise ValueError(f"{str(path)!r}: unreadable ({e})") from None
+        for k, a in out.items():
+            if a.ndim != 1 or a.dtype.kind not in "iu":
+                raise ValueError(f"{str(path)!r}: {k}: expected (N,) integers, got {a.dtype} {a.shape}")
+        return out
 
     def image_path(self, view: str, frame: int) -> Path:
         return self.root / "images" / view / f"{int(frame):06d}.jpg"

@@ -1,7 +1,7 @@
 """maem-eval: run MAEM association + triangulation offline on a scene folder and score it.
 
     maem-eval SCENE_DIR --params config/sportcenter.yaml [--json OUT.json] [--plots DIR]
-              [--ablation] [--pred OUT.npz] [--frames N]
+              [--ablation] [--oracle] [--explain] [--pred OUT.npz] [--frames N]
 """
 from __future__ import annotations
 
@@ -19,15 +19,21 @@ import numpy as np
 from tqdm import tqdm
 
 from ..core.detections import FrameDetections
-from ..core.interchange import MissingDataError, SceneFolder
+from ..core.interchange import MissingDataError, SceneFolder, det_ids_key
 from ..core.skeleton import SPORTCENTER_13, get_convention
 from ..params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
                "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames")
 
-#: the paper's ablation rows: association-parameter overrides on top of the params file
+#: the MAEM paper's pipeline exactly: cost on every keypoint, no cap, Hungarian + union-find
+PAPER = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0, "cost_epipolar_weight": 0.0}
+#: the paper's ablation rows (gates, with the configured clustering), the paper's pipeline and
+#: its PA-MPJPE matching baseline: association-parameter overrides on top of the params file;
+#: the last row is the configuration itself
 ABLATION: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("PA-MPJPE matching (spectral)", {"clustering": "spectral"}),
+    ("paper pipeline (MAEM)", {**PAPER, "reproj_gate": True, "epipolar_gate": "mesh"}),
     ("reproj only", {"reproj_gate": True, "epipolar_gate": "none"}),
     ("mesh only", {"reproj_gate": False, "epipolar_gate": "mesh"}),
     ("reproj + sparse kpts", {"reproj_gate": True, "epipolar_gate": "sparse"}),
@@ -65,6 +71,16 @@ Input handling (never a crash mid-sequence; every case is counted and reported a
   (unreadable, mis-shaped, NaN) npz leaves that view out of that frame; a frame with no
   readable view at all, or beyond the end of gt.npz, is not evaluated; a frame on which
   association/triangulation raises is evaluated with no predictions (its people are missed).
+--oracle adds a row whose association is the ground truth (det_ids.npz, as maem-sim writes it:
+                 every kept detection grouped with its true person, people seen by >= k_min
+                 cameras) with the same triangulation: the ceiling of any association.
+--explain      per configuration, the first cause of every lost GT person-frame (needs
+                 det_ids.npz), in pipeline order: frontend (< k_min cameras detect it),
+                 reproj_gate / epipolar_gate / cost_cap (its surviving true pairs connect
+                 < k_min views), wrong_match (a cluster mixes it with another person), merge
+                 (its detections stay in several clusters), conflict (conflict removal), k_min,
+                 triangulation (a pure cluster exists, no pose matched). Counts sum to the
+                 lost person-frames.
 --pred writes pose (F,K,13,3) world metres in sportcenter_13 (NaN = joint not triangulated),
 valid (F,K) bool, score (F,K); F = scene frames considered, K = most people in one frame.
 """
@@ -112,10 +128,12 @@ class Run:
 
     name: str
     assoc: Any
+    oracle: bool = False  # association from det_ids.npz instead of associate()
     preds: list[np.ndarray] = field(default_factory=list)   # per evaluated frame (K,13,3)
     scores: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,)
     assoc_ms: list[float] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
+    causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
@@ -167,15 +185,24 @@ def load_frame(folder: SceneFolder, views: Sequence[str], frame: int, skips: Ski
 
 
 def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, skips: SkipLog,
-              frame: int) -> None:
-    """Associate + triangulate one frame for one configuration; append its predictions."""
+              frame: int, det_ids: Mapping[str, np.ndarray] | None = None):
+    """Associate + triangulate one frame for one configuration; append its predictions.
+
+    Returns the AssociationResult (None for the oracle or when the pipeline raised)."""
     from ..core.association import associate
     from ..core.triangulation import triangulate
+    from .explain import oracle_clusters
+    result = None
     try:
         t0 = time.perf_counter()
-        result = associate(rig, frames, run.assoc)
+        if run.oracle:
+            clusters = oracle_clusters(rig.names, frames, det_ids or {}, run.assoc.tau_det,
+                                       run.assoc.k_min)
+        else:
+            result = associate(rig, frames, run.assoc)
+            clusters = result.clusters
         run.assoc_ms.append(1e3 * (time.perf_counter() - t0))
-        poses = triangulate(rig, frames, result.clusters, tri_params)
+        poses = triangulate(rig, frames, clusters, tri_params)
         joints = np.asarray(poses.joints, dtype=np.float64)
         joints = (to_sportcenter13(joints) if len(joints)
                   else np.zeros((0, SPORTCENTER_13.num_joints, 3)))
@@ -186,6 +213,39 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
         skips.add("pipeline_error", f"{run.name}, frame {frame}: {e}")
         run.preds.append(np.zeros((0, SPORTCENTER_13.num_joints, 3)))
         run.scores.append(np.zeros(0))
+    return result
+
+
+def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np.ndarray,
+                gt_mask: np.ndarray, gt_index: np.ndarray) -> None:
+    """Add the causes of this frame's lost GT persons to run.causes (--explain).
+
+    gt / gt_mask: the frame's present GT persons; gt_index: their person index in gt.npz
+    (= the ids in det_ids.npz)."""
+    from ..core.metrics import match_frame
+    from .explain import explain_frame, row_persons
+    _, cols, _ = match_frame(run.preds[-1], gt, gt_mask)
+    lost = np.setdiff1d(np.arange(len(gt)), cols)
+    if not lost.size:
+        return
+    if result is None:  # the pipeline raised on this frame
+        run.causes["pipeline_error"] += int(lost.size)
+        return
+    persons = row_persons(result, rig.names, det_ids)
+    run.causes.update(explain_frame(result, persons, gt_index[lost], run.assoc.k_min))
+
+
+def format_causes(runs: Sequence[Run]) -> str:
+    """Plain-text loss breakdown: one row per configuration, one column per cause."""
+    from .explain import CAUSES
+    cols = list(CAUSES) + sorted({c for r in runs for c in r.causes} - set(CAUSES))
+    head = ["config", "lost"] + cols
+    body = [[r.name, str(sum(r.causes.values()))] + [str(r.causes.get(c, 0)) for c in cols]
+            for r in runs]
+    widths = [max(len(row[i]) for row in [head] + body) for i in range(len(head))]
+    fmt_row = lambda row: "  ".join(c.ljust(w) if i == 0 else c.rjust(w)  # noqa: E731
+                                    for i, (c, w) in enumerate(zip(row, widths)))
+    return "\n".join([fmt_row(head), "  ".join("-" * w for w in widths)] + [fmt_row(r) for r in body])
 
 
 def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray]) -> dict[str, Any]:
@@ -266,6 +326,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scene frame for the top-down court plot (default: middle evaluated frame)")
     p.add_argument("--ablation", action="store_true",
                    help="also run the paper's ablation rows (reproj only; mesh only; reproj + sparse; full)")
+    p.add_argument("--oracle", action="store_true",
+                   help="also run the association from the ground truth (det_ids.npz): the ceiling")
+    p.add_argument("--explain", action="store_true",
+                   help="print the first cause of every lost GT person-frame (needs det_ids.npz)")
     p.add_argument("--pred", type=Path, help="write predictions (full configuration) to this npz")
     p.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -300,6 +364,14 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     configs = ([(name, dataclasses.replace(assoc, **o)) for name, o in ABLATION] if args.ablation
                else [("full", assoc)])
     runs = [Run(name, a) for name, a in configs]
+    det_ids = None
+    if args.oracle or args.explain:
+        if not folder.has_det_ids:
+            raise ValueError(f"scene folder {str(args.scene)!r}: --oracle/--explain need det_ids.npz "
+                             "(the GT person of every detection, as maem-sim writes it)")
+        det_ids = folder.det_ids()
+    if args.oracle:
+        runs.insert(0, Run("oracle (GT association)", assoc, oracle=True))
     frame_ids, gts, gt_masks = [], [], []
     for f in tqdm(range(n), desc="maem-eval", unit="frame", disable=args.quiet, file=sys.stderr):
         if gt is not None and f >= gt[0].shape[0]:
@@ -308,8 +380,9 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         frames = load_frame(folder, views, f, skips)
         if not frames:
             continue
-        for run in runs:
-            run_frame(run, rig, frames, tri, skips, f)
+        ids = ({v: det_ids[key] for v in frames if (key := det_ids_key(v, f)) in det_ids}
+               if det_ids is not None else None)
+        results = [run_frame(run, rig, frames, tri, skips, f, ids) for run in runs]
         frame_ids.append(f)
         if gt is not None:
             present = gt[1][f].any(-1)
@@ -318,6 +391,11 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             masked = int((~gt[1][f, present]).sum())
             if masked:
                 skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
+            if args.explain:
+                for run, result in zip(runs, results):
+                    if not run.oracle:
+                        explain_run(run, result, rig, ids, gts[-1], gt_masks[-1],
+                                    np.flatnonzero(present))
     report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
                               "association_params": dataclasses.asdict(assoc),
                               "triangulation_params": dataclasses.asdict(tri),
@@ -332,10 +410,18 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         report.update({k: main_run.metrics.get(k) for k in METRIC_KEYS})
         report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
         if args.ablation:
-            report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}} for r in runs]
+            report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}}
+                                  for r in runs if not r.oracle]
         log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
             f"{len(frame_ids)}/{n} frames evaluated, params {args.params}")
         log(format_table([(r.name, r.metrics) for r in runs]))
+        if args.oracle:
+            report["oracle"] = {k: runs[0].metrics.get(k) for k in METRIC_KEYS}
+        if args.explain:
+            explained = [r for r in runs if not r.oracle]
+            report["explain"] = {r.name: dict(r.causes) for r in explained}
+            log("lost GT person-frames by first cause:")
+            log(format_causes(explained))
     report["skips"] = dict(skips.counts)
     report["skip_examples"] = skips.examples
     log("skipped / excluded inputs:" if skips.counts else "skipped / excluded inputs: none")

@@ -20,6 +20,9 @@ Output layout:
   OUT/cameras/<view>.json          MAEM camera JSON per view (world->camera)
   OUT/dets/<view>/<frame:06d>.npz  simulated SAM 3D Body outputs, MAEM authors' npz, RAW (distorted) px
   OUT/gt.npz                       ground truth, xrmocap keypoints3d, sportcenter_13 (see below)
+  OUT/det_ids.npz                  GT person of every detection: key "<view>/<frame:06d>", (N,) int64
+                                   in the npz's detection order; the scene's person index (players
+                                   first: index p < players is gt.npz person p), -1 = false positive
   OUT/images/<view>/<frame:06d>.jpg  raw rendered images (with --images)
   OUT/scene.json                   fps, start_stamp_ns, num_frames, scene_config (regenerates the scene)
 By default ground truth holds the players (is_player): referees/bystanders are distractors
@@ -75,12 +78,15 @@ def write_scene(out: Path, config, images: bool = False, progress: bool = True,
     info = {"fps": float(config.fps), "start_stamp_ns": int(scene.stamp_ns(0)), "num_frames": int(n),
             "gt_people": gt_people, "scene_config": config.to_dict()}
     folder = SceneFolder.create(out, scene.rig, info)
+    ids = {}
     for frame in tqdm(range(n), desc="maem-sim", unit="frame", disable=not progress):
         for cam in scene.rig.names:
             folder.write_outputs(cam, frame, scene.raw_outputs(cam, frame))
+            ids[cam, frame] = scene.detection_persons(cam, frame)
             if images:
                 folder.write_image(cam, frame, scene.render(cam, frame))
     folder.write_gt(*gt_arrays(scene, n, gt_people), convention=SPORTCENTER_13.name)
+    folder.write_det_ids(ids)
     return folder
 
 
