@@ -7,15 +7,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from maem_ros.core import epipolar
-from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
 from maem_ros.core.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry import reprojection_errors
 from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
 
 V, J = 400, 24
-#: the MAEM paper's pipeline exactly (cost on every keypoint, no cap, Hungarian + union-find)
-PAPER = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0}
+PAPER = PAPER_PIPELINE
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 
 

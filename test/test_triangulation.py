@@ -10,7 +10,8 @@ from hypothesis import given, settings, strategies as st
 
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.triangulation import Poses, TriangulationParams, dlt, triangulate
+from maem_ros.core.geometry import dlt
+from maem_ros.core.triangulation import Poses, TriangulationParams, triangulate
 
 
 def look_at(centre, target=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:

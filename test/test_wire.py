@@ -128,22 +128,20 @@ def test_clusters_roundtrip(sizes, j, seed):
         assert cf.score[i] == pytest.approx(f.scores[d], abs=1e-6)
 
 
-def test_clusters_to_core_rebuilds_members():
-    pytest.importorskip("maem_ros.core.association")
+def test_clusters_dense_members_equal_the_sent_rows():
     rig = small_rig(3)
     frames = {c: make_dets(3, 4, 2, i, camera=c) for i, c in enumerate(rig.names)}
     clusters = [FakeCluster(np.array([[0, 2], [2, 1]]), np.array([0.1, 0.2])),
                 FakeCluster(np.array([[1, 0], [2, 0], [0, 0]]), np.array([0.1, 0.2, np.nan]))]
     cf = wire.msg_to_clusters(wire.clusters_to_msg(5, "world", rig, frames, clusters), "t", 3)
-    core_frames, core_clusters = cf.to_core(rig)
-    assert len(core_clusters) == 2
-    for orig, got in zip(clusters, core_clusters):
-        for (c, d), (c2, local) in zip(orig.members, got.members):
-            assert c == c2
-            f2 = core_frames[rig.names[c2]]
-            np.testing.assert_allclose(f2.kpts2d[local], frames[rig.names[c]].kpts2d[d], atol=1e-3)
-            assert f2.scores[local] == pytest.approx(frames[rig.names[c]].scores[d], abs=1e-6)
-        np.testing.assert_allclose(got.costs, orig.costs, rtol=1e-6)
+    cam, uv, score, present = cf.dense()
+    assert cam.shape == (2, 3) and present.tolist() == [[True, True, False], [True, True, True]]
+    for k, orig in enumerate(clusters):
+        for m, (c, d) in enumerate(orig.members):
+            assert cam[k, m] == c
+            np.testing.assert_allclose(uv[k, m], frames[rig.names[c]].kpts2d[d], atol=1e-3)
+            assert score[k, m] == pytest.approx(frames[rig.names[c]].scores[d], abs=1e-6)
+    assert np.isnan(uv[0, 2]).all()
 
 
 @FAST

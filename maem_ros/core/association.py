@@ -47,6 +47,12 @@ _CHOICES = {
 }
 
 
+#: overrides that give the MAEM paper's pipeline exactly: PA-MPJPE on every keypoint, no cost
+#: cap, per-pair Hungarian + union-find + conflict removal
+PAPER_PIPELINE = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0,
+                  "cost_epipolar_weight": 0.0}
+
+
 @dataclass
 class AssociationParams:
     """Thresholds (px, m, score) and switches of MAEM stage 2.
@@ -73,9 +79,9 @@ class AssociationParams:
     backend: str = "auto"
     clustering: str = "consistent"
     cost_joints: str = "body"
-    tau_cost: float = 0.15
+    tau_cost: float = 0.25
     cost_epipolar_weight: float = 0.0
-    tau_verify: float = 15.0
+    tau_verify: float = 10.0
     min_support: float = 0.75
 
     def __post_init__(self) -> None:

@@ -111,3 +111,26 @@ def body_joints(num_joints: int) -> tuple[int, ...]:
     where = {n: i for i, n in enumerate(conv.names)}
     picked = tuple(where[n] for n in SPORTCENTER_13.names if n in where)
     return picked if len(picked) >= 3 else tuple(range(num_joints))
+
+
+def convert(joints: np.ndarray, target: KeypointConvention, source: str | None = None) -> np.ndarray:
+    """(...,J,D) keypoints in convention ``source`` (default: the one with J joints) -> target.
+
+    The one keypoint-convention conversion: identity when the source is the target (or has
+    its joint count and no name is given), MHR70 -> any convention by its index map;
+    ValueError naming both conventions otherwise.
+    """
+    j = joints.shape[-2]
+    if source is None:
+        if j == target.num_joints:
+            return joints
+        try:
+            source = convention_for(j).name
+        except ValueError:
+            raise ValueError(f"keypoints: cannot map {j} joints (unknown convention) to "
+                             f"{target.name}") from None
+    if source == target.name and j == target.num_joints:
+        return joints
+    if source == MHR70.name and j == MHR70.num_joints:
+        return target.select(joints)
+    raise ValueError(f"keypoints: cannot map {j} joints (convention {source!r}) to {target.name}")

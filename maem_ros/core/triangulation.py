@@ -14,16 +14,13 @@ per-matrix SVD/LAPACK calls cost ~2 us each, far too slow for ~10^4 small system
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from .camera import Rig
-from .detections import FrameDetections
-from .geometry import dlt, normal_entries, reprojection_error, solve_normal  # noqa: F401 (dlt re-exported)
-
-if TYPE_CHECKING:  # only the .members attribute is used; avoids a hard import cycle
-    from .association import Cluster
+from .detections import Cluster, DetectionTable, FrameDetections
+from .geometry import normal_entries, reprojection_error, solve_normal
 
 #: a view whose detection score is 0 still counts as a view, with this tiny DLT weight
 _MIN_WEIGHT = 1e-3
@@ -75,17 +72,80 @@ class Poses:
 # ---------------------------------------------------------------------------------------
 # stage 3
 # ---------------------------------------------------------------------------------------
-def triangulate(rig: Rig, frames: Mapping[str, FrameDetections], clusters: Sequence["Cluster"],
+def triangulate(rig: Rig, frames: Mapping[str, FrameDetections], clusters: Sequence[Cluster],
                 params: TriangulationParams | None = None) -> Poses:
     """Triangulate every cluster (members = (camera index in rig order, detection index))."""
-    params = params or TriangulationParams()
     J = _num_joints(frames)
-    C = len(clusters)
+    if not clusters:
+        return triangulate_members(_rig_P(rig), *pad_members(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                                             np.zeros((0, J, 2)), np.zeros(0)), params)
+    members = [np.asarray(c.members, dtype=np.int64).reshape(-1, 2) for c in clusters]
+    allm = np.concatenate(members)
+    names = rig.names
+    if allm.size and (allm[:, 0].min() < 0 or allm[:, 0].max() >= len(names)):
+        raise ValueError(f"clusters: members: camera index outside the rig's 0..{len(names) - 1}")
+    by_index = {}
+    for ci in np.unique(allm[:, 0]):
+        if names[ci] not in frames:
+            raise ValueError(f"clusters: members: camera {names[ci]!r} has no detections in this frame")
+        by_index[int(ci)] = frames[names[ci]]
+    sizes = np.zeros(len(names), np.int64)
+    for ci, fd in by_index.items():
+        sizes[ci] = fd.n
+    bad = (allm[:, 1] < 0) | (allm[:, 1] >= sizes[allm[:, 0]])
+    if bad.any():
+        c, d = allm[int(np.argmax(bad))]
+        raise ValueError(f"clusters: members: detection {d} out of range for camera "
+                         f"{names[c]!r} ({sizes[c]} detections)")
+    table = DetectionTable.build(by_index, len(rig))
+    rows = table.rows(allm)
+    which = np.repeat(np.arange(len(members)), [len(m) for m in members])
+    return triangulate_members(_rig_P(rig), *pad_members(which, table.cam[rows], table.kpts2d[rows],
+                                                         table.scores[rows]), params)
+
+
+def _rig_P(rig: Rig) -> np.ndarray:
+    return np.stack([c.P for c in rig.cameras]) if len(rig) else np.zeros((0, 3, 4))
+
+
+def pad_members(cluster: np.ndarray, camera: np.ndarray, kpts2d: np.ndarray, score: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Member rows (R,) -> dense padded arrays, clusters in order of first appearance.
+
+    cluster (R,) id of each row's cluster; camera (R,) rig index; kpts2d (R,J,2) rectified px;
+    score (R,). Returns cam (C,M), uv (C,M,J,2) (NaN padding), score (C,M), present (C,M)
+    with M >= 2 (one view pair at least).
+    """
+    J = kpts2d.shape[1] if kpts2d.ndim == 3 else 0
+    _, first, inverse, counts = np.unique(cluster, return_index=True, return_inverse=True,
+                                          return_counts=True)
+    rank = np.argsort(np.argsort(first, kind="stable"), kind="stable")  # order of appearance
+    k = rank[inverse] if cluster.size else np.zeros(0, np.int64)
+    C, M = first.size, max(2, int(counts.max(initial=0)))
+    order = np.argsort(k, kind="stable")
+    slot = np.empty(cluster.size, np.int64)
+    starts = np.concatenate([[0], np.cumsum(np.bincount(k, minlength=C))[:-1]]) if C else np.zeros(0, int)
+    slot[order] = np.arange(cluster.size) - starts[k[order]]
+    cam = np.zeros((C, M), np.int64)
+    uv = np.full((C, M, J, 2), np.nan)
+    sc = np.zeros((C, M))
+    present = np.zeros((C, M), bool)
+    cam[k, slot], uv[k, slot], sc[k, slot], present[k, slot] = camera, kpts2d, score, True
+    return cam, uv, sc, present
+
+
+def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: np.ndarray,
+                        present: np.ndarray, params: TriangulationParams | None = None) -> Poses:
+    """Stage 3 on dense member arrays (see pad_members): P_rig (K,3,4) rectified world->px of
+    the rig's cameras; cam (C,M) rig index per member; uv (C,M,J,2) px; score (C,M);
+    present (C,M). Returns Poses in cluster order."""
+    params = params or TriangulationParams()
+    C, M = present.shape
+    J = uv.shape[2]
     if C == 0:
         return Poses(np.zeros((0, J, 3)), np.zeros(0, np.int64), np.zeros((0, J), np.int64),
                      np.zeros(0))
-    P, uv, score, present = _gather(rig, frames, clusters, J)  # (C,M,3,4) (C,M,J,2) (C,M) (C,M)
-    M = P.shape[1]
+    P = P_rig[cam]  # (C,M,3,4)
     usable = present[:, :, None] & np.isfinite(uv).all(-1)  # (C,M,J)
     weight = np.maximum(score, _MIN_WEIGHT)
 
@@ -122,44 +182,3 @@ def _num_joints(frames: Mapping[str, FrameDetections]) -> int:
     if counts:
         return next(iter(counts.values()))
     return max((f.kpts2d.shape[1] for f in frames.values() if f.kpts2d.ndim == 3), default=0)
-
-
-def _gather(rig: Rig, frames: Mapping[str, FrameDetections], clusters: Sequence["Cluster"], J: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pad clusters to M views: P (C,M,3,4), uv (C,M,J,2), score (C,M), present (C,M)."""
-    members = [np.asarray(c.members, dtype=np.int64).reshape(-1, 2) for c in clusters]
-    C, M = len(members), max(2, max(m.shape[0] for m in members))  # >= 1 view pair
-    cam = np.zeros((C, M), np.int64)
-    det = np.zeros((C, M), np.int64)
-    present = np.zeros((C, M), bool)
-    for k, m in enumerate(members):  # one row per cluster, not per joint or vertex
-        cam[k, :len(m)], det[k, :len(m)], present[k, :len(m)] = m[:, 0], m[:, 1], True
-
-    names = rig.names
-    if present.any() and (cam[present].min() < 0 or cam[present].max() >= len(names)):
-        raise ValueError(f"clusters: members: camera index outside the rig's 0..{len(names) - 1}")
-    # flatten every used camera's detections into one table, offset per camera
-    Ps = np.stack([c.P for c in rig.cameras])
-    offsets = np.zeros(len(names), np.int64)
-    kp, sc, sizes = [], [], np.zeros(len(names), np.int64)
-    total = 0
-    for ci in np.unique(cam[present]):
-        name = names[ci]
-        if name not in frames:
-            raise ValueError(f"clusters: members: camera {name!r} has no detections in this frame")
-        f = frames[name]
-        offsets[ci], sizes[ci] = total, f.n
-        total += f.n
-        kp.append(f.kpts2d.reshape(f.n, J, 2))
-        sc.append(f.scores)
-    bad = present & ((det < 0) | (det >= sizes[cam]))
-    if bad.any():
-        c, m = np.argwhere(bad)[0]
-        raise ValueError(f"clusters: members: detection {det[c, m]} out of range for camera "
-                         f"{names[cam[c, m]]!r} ({sizes[cam[c, m]]} detections) in cluster {c}")
-    kp_all = np.concatenate(kp) if kp else np.zeros((0, J, 2))
-    sc_all = np.concatenate(sc) if sc else np.zeros(0)
-    row = np.where(present, offsets[cam] + det, 0)
-    uv = np.where(present[..., None, None], kp_all[row] if total else np.nan, np.nan)
-    score = np.where(present, sc_all[row] if total else 0.0, 0.0)
-    return Ps[cam], uv, score, present

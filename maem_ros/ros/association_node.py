@@ -53,6 +53,19 @@ PARAMS = (
     ParamSpec("early_exit", True, "stop the mesh distance early once a pair cannot pass"),
     ParamSpec("backend", "auto", "epipolar kernel (auto = numba when installed, else numpy)",
               choices=("auto", "numba", "numpy")),
+    ParamSpec("clustering", "consistent", "consistent (verified best-first merges), paper "
+              "(Hungarian + union-find) or spectral (PA-MPJPE matching baseline)",
+              choices=("consistent", "paper", "spectral")),
+    ParamSpec("cost_joints", "body", "pair-cost keypoints: body (13 body joints), all, or "
+              "comma-separated indices"),
+    ParamSpec("tau_cost", 0.25, "m, pairs whose cost is above this never match (0 = no cap)",
+              minimum=0.0),
+    ParamSpec("cost_epipolar_weight", 0.0, "m per px of mean epipolar distance added to the "
+              "pair cost", minimum=0.0),
+    ParamSpec("tau_verify", 10.0, "px, consistent merges: each member's median reprojection "
+              "error of the triangulated body joints", minimum=0.0, exclusive_minimum=True),
+    ParamSpec("min_support", 0.75, "consistent merges: fraction of cross pairs that passed the "
+              "gates", minimum=0.0, maximum=1.0),
     ParamSpec("slop", 0.02, "s, stamps within this of the reference belong to one frame set",
               minimum=0.0),
     ParamSpec("max_wait", 0.15, "s, emit a partial frame set after waiting this long",

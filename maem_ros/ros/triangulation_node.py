@@ -20,7 +20,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
+from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, MARKER_QOS, ConfigError,
                                  Diagnostics, ParamSpec, RejectErrors, Stopwatch, declare_params,
@@ -57,14 +57,15 @@ class TriangulationNode(Node):
         p = declare_params(self, PARAMS)
         self.rig = load_rig_param(p["rig"])
         from maem_ros.core.tracking import Tracker
-        from maem_ros.core.triangulation import TriangulationParams, triangulate
+        from maem_ros.core.triangulation import TriangulationParams, triangulate_members
         try:
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
                                    timeout_s=p["track_timeout"])
         except ValueError as e:
             raise ConfigError(str(e)) from None
-        self._triangulate = triangulate
+        self._triangulate = triangulate_members
+        self._P = np.stack([c.P for c in self.rig.cameras])
         self.output = get_convention(p["output_convention"])
         self.frame_id = p["frame_id"]
         self.publish_tentative = p["publish_tentative"]
@@ -80,13 +81,7 @@ class TriangulationNode(Node):
 
     def convert(self, joints: np.ndarray) -> np.ndarray:
         """(P,J,3) joints in the clusters' convention -> (P,J_out,3) in output_convention."""
-        j = joints.shape[1]
-        if j == self.output.num_joints:
-            return joints
-        source: KeypointConvention = convention_for(j)  # ValueError when no convention has J
-        if source.name != "mhr70":
-            raise ValueError(f"joints: cannot convert {source.name} to {self.output.name}")
-        return self.output.select(joints)
+        return convert(joints, self.output)
 
     def on_clusters(self, msg: PointCloud2) -> None:
         self.diag.input(self.topic)
@@ -98,10 +93,9 @@ class TriangulationNode(Node):
             return
         with RejectErrors(self.diag, self.topic, "triangulation_error") as step:
             with Stopwatch(self.diag, "triangulate"):
-                frames, clusters = cf.to_core(self.rig)
-                poses = self._triangulate(self.rig, frames, clusters, self.params)
+                poses = self._triangulate(self._P, *cf.dense(), self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
-                len(clusters), cf.num_joints, 3))
+                len(poses), cf.num_joints, 3))
         if step.failed:
             return
         if self._last_stamp is not None and cf.stamp_ns < self._last_stamp:

@@ -315,34 +315,12 @@ class ClusterFrame:
     def num_joints(self) -> int:
         return int(self.kpts2d.shape[1])
 
-    def to_core(self, rig: Rig):
-        """(frames by camera name, clusters) for core.triangulation.triangulate.
-
-        Each camera's FrameDetections holds only its cluster members, in row order (bbox = the
-        keypoints' bounding box, kpts3d NaN and verts2d empty: not on the wire); Cluster.members
-        index into those.
-        """
-        from maem_ros.core.association import Cluster  # local: wire stays importable alone
-
-        j = self.num_joints
-        frames: dict[str, FrameDetections] = {}
-        local = np.zeros(len(self.camera), dtype=np.int64)
-        for ci in np.unique(self.camera):
-            rows = np.flatnonzero(self.camera == ci)
-            local[rows] = np.arange(len(rows))
-            k = self.kpts2d[rows]
-            frames[rig.names[int(ci)]] = FrameDetections(
-                camera=rig.names[int(ci)], stamp_ns=self.stamp_ns,
-                bboxes=np.concatenate([k.min(axis=1), k.max(axis=1)], axis=1),
-                scores=self.score[rows], kpts2d=k,
-                kpts3d=np.full((len(rows), j, 3), np.nan), verts2d=np.zeros((len(rows), 0, 2)))
-        clusters = []
-        _, first = np.unique(self.cluster, return_index=True)
-        for cid in self.cluster[np.sort(first)]:
-            rows = np.flatnonzero(self.cluster == cid)
-            members = np.stack([self.camera[rows].astype(np.int64), local[rows]], axis=1)
-            clusters.append(Cluster(members=members, costs=self.cost[rows].astype(np.float64)))
-        return frames, clusters
+    def dense(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Dense padded member arrays for core.triangulation.triangulate_members: cam (C,M),
+        kpts2d (C,M,J,2), score (C,M), present (C,M); clusters in order of first row."""
+        from maem_ros.core.triangulation import pad_members  # local: wire stays importable alone
+        return pad_members(self.cluster, self.camera.astype(np.int64),
+                           self.kpts2d.astype(np.float64), self.score.astype(np.float64))
 
 
 def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,

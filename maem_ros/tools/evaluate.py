@@ -18,22 +18,21 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from tqdm import tqdm
 
+from ..core.association import PAPER_PIPELINE
 from ..core.detections import FrameDetections
 from ..core.interchange import MissingDataError, SceneFolder, det_ids_key
-from ..core.skeleton import SPORTCENTER_13, get_convention
+from ..core.skeleton import SPORTCENTER_13, convert, get_convention
 from ..params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
                "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames")
 
-#: the MAEM paper's pipeline exactly: cost on every keypoint, no cap, Hungarian + union-find
-PAPER = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0, "cost_epipolar_weight": 0.0}
 #: the paper's ablation rows (gates, with the configured clustering), the paper's pipeline and
 #: its PA-MPJPE matching baseline: association-parameter overrides on top of the params file;
 #: the last row is the configuration itself
 ABLATION: tuple[tuple[str, dict[str, Any]], ...] = (
     ("PA-MPJPE matching (spectral)", {"clustering": "spectral"}),
-    ("paper pipeline (MAEM)", {**PAPER, "reproj_gate": True, "epipolar_gate": "mesh"}),
+    ("paper pipeline (MAEM)", {**PAPER_PIPELINE, "reproj_gate": True, "epipolar_gate": "mesh"}),
     ("reproj only", {"reproj_gate": True, "epipolar_gate": "none"}),
     ("mesh only", {"reproj_gate": False, "epipolar_gate": "mesh"}),
     ("reproj + sparse kpts", {"reproj_gate": True, "epipolar_gate": "sparse"}),
@@ -138,15 +137,7 @@ class Run:
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
     """(...,J,3) keypoints in ``convention`` (default: inferred from J: 70 = mhr70) -> (...,13,3)."""
-    j = joints.shape[-2]
-    if convention is None:
-        convention = "mhr70" if j == 70 else SPORTCENTER_13.name if j == SPORTCENTER_13.num_joints else ""
-    if convention == SPORTCENTER_13.name and j == SPORTCENTER_13.num_joints:
-        return joints
-    if convention == "mhr70" and j == 70:
-        return SPORTCENTER_13.select(joints)
-    raise ValueError(f"keypoints: cannot map {j} joints (convention {convention or 'unknown'!r}) "
-                     f"to sportcenter_13")
+    return convert(joints, SPORTCENTER_13, convention)
 
 
 def load_gt(folder: SceneFolder) -> tuple[np.ndarray, np.ndarray] | None:
