@@ -79,7 +79,7 @@ class AssociationParams:
     backend: str = "auto"
     clustering: str = "consistent"
     cost_joints: str = "body"
-    tau_cost: float = 0.25
+    tau_cost: float = 0.2
     cost_epipolar_weight: float = 0.0
     tau_verify: float = 10.0
     min_support: float = 0.75
@@ -418,15 +418,15 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     found = clustering.cluster(table, pairs, P, params, stats, pair_cost)
     stats["t_cluster_ms"], _ = _lap(t)
 
-    clusters = []
+    kept_groups = []
     for rows in found.groups:
         alive = rows[~np.isin(rows, found.conflicts)]
         if np.unique(table.cam[alive]).size < params.k_min:
             stats["clusters_below_k_min"] += 1
-            continue
-        Cm = clustering.cost_matrix(alive, pair_cost)
-        clusters.append(Cluster(members=table.members(alive),
-                                costs=clustering.mean_to_rest(Cm, np.ones(alive.size, bool))))
+        else:
+            kept_groups.append(alive)
+    clusters = [Cluster(members=table.members(g), costs=c)
+                for g, c in zip(kept_groups, clustering.mean_costs(kept_groups, pair_cost))]
     clusters.sort(key=lambda c: tuple(c.members[0].tolist()))
     stats["clusters"] = float(len(clusters))
     stats["t_total_ms"] = (time.perf_counter() - t_start) * 1e3

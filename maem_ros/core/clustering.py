@@ -109,25 +109,16 @@ class _Verifier:
         usable = present[..., None] & np.isfinite(uv).all(-1)
         E = normal_entries(P[:, :, None], uv, usable)  # (9,K,M,Jb)
         X = solve_normal(E.sum(2))  # (K,Jb,3)
-        err = reprojection_error(P, X[:, None], uv)[:, :, 0]  # (K,M,Jb)
-        err = np.where(usable, err, np.nan)
-        with np.errstate(invalid="ignore"), _quiet_nanmedian():
-            med = np.nanmedian(err, axis=2)  # (K,M), NaN for a member without usable joints
+        err = reprojection_error(P, X[:, None], uv)[:, :, 0]  # (K,M,Jb), inf if unusable
+        err = np.where(usable, err, np.inf)
+        n = usable.sum(-1)  # usable joints per member
+        # median over each member's usable joints: they sort first, inf (unusable) last
+        srt = np.sort(err, axis=-1)
+        lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+        hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
+        med = np.where(n > 0, 0.5 * (lo + hi), np.inf)
         bad = present & ~(med < self.tau)
         return ~bad.any(axis=1)
-
-
-class _quiet_nanmedian:
-    """nanmedian of an all-NaN slice warns; here that slice is a failed member, not an error."""
-
-    def __enter__(self):
-        import warnings
-        self._w = warnings.catch_warnings()
-        self._w.__enter__()
-        warnings.simplefilter("ignore", RuntimeWarning)
-
-    def __exit__(self, *exc):
-        return self._w.__exit__(*exc)
 
 
 def _gain_matrix(table: "DetectionTable", pairs: "PairSet", tau: float
@@ -246,12 +237,14 @@ def _cross_gain(gain: np.ndarray, members: np.ndarray, split: np.ndarray) -> np.
 
 
 def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray:
-    """Move single detections between clusters (or out) while that raises the objective."""
+    """Move single detections between clusters (or out) while that raises the objective.
+
+    Each step scores every (detection, target) move at once, verifies the improving ones in
+    one batch and applies the best that stays consistent."""
     N = label.size
     C = int(table.cam.max()) + 1
     _, label = np.unique(label, return_inverse=True)
     K = int(label.max()) + 1
-    # one spare empty column per detection would be wasteful: a move "out" is scored apart
     Z = np.zeros((N, K))
     Z[np.arange(N), label] = 1.0
     G = gain @ Z  # (N,K): objective gain of each detection with each cluster
@@ -259,32 +252,45 @@ def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray
     size = Z.sum(0)
     camset = np.zeros((K, C), bool)
     camset[label, table.cam] = True
-    forbidden = np.zeros((N, K + 1), bool)
+    refused = np.zeros((N, K), bool)  # verified inconsistent until the target changes
     for _ in range(MAX_MOVES_PER_DETECTION * N):
         own = G[np.arange(N), label]
-        delta = np.full((N, K + 1), -np.inf)
-        into = G - own[:, None]
         occupied = camset[:, table.cam].T  # (N,K): cluster already has this detection's camera
-        support = S / np.maximum(size[None, :], 1)
-        allowed = ~occupied & (support >= params.min_support) & (size[None, :] > 0)
-        delta[:, :K] = np.where(allowed, into, -np.inf)
-        delta[:, K] = np.where(size[label] > 1, -own, -np.inf)  # leave: alone
-        delta[forbidden] = -np.inf
-        best = int(np.argmax(delta))
-        d, T = divmod(best, K + 1)
-        if not delta[d, T] > 1e-12:
+        allowed = ~occupied & ~refused & (size[None, :] > 0) & \
+            (S >= params.min_support * size[None, :])
+        delta = np.where(allowed, G - own[:, None], -np.inf)
+        leave = np.where(size[label] > 1, -own, -np.inf)  # move out, alone
+        d_best = np.argmax(delta, axis=1)
+        into = delta[np.arange(N), d_best]
+        cand = np.flatnonzero((into > 1e-12) | (leave > 1e-12))
+        if cand.size == 0:
             break
-        if T < K and size[T] + 1 >= 3:
-            members = np.concatenate([np.flatnonzero(label == T), [d]])[None, :]
-            if not verify(members)[0]:
-                forbidden[d, T] = True
-                continue
-        if T == K:  # reuse an empty label for the new singleton
-            empty = np.flatnonzero(size == 0)
-            if empty.size == 0:
-                forbidden[d, T] = True
-                continue
-            T = int(empty[0])
+        moves = [(float(into[d]), int(d), int(d_best[d])) for d in cand if into[d] > 1e-12]
+        moves += [(float(leave[d]), int(d), -1) for d in cand if leave[d] > 1e-12]
+        moves.sort(key=lambda m: -m[0])
+        need = [m for m in moves if m[2] >= 0 and size[m[2]] + 1 >= 3]
+        ok = {}
+        if need:
+            rows = _members_padded(label, [np.array([m[2] for m in need])])
+            rows = np.concatenate([rows, np.array([[m[1]] for m in need])], axis=1)
+            for m, good in zip(need, verify(rows)):
+                ok[m[1], m[2]] = bool(good)
+                if not good:
+                    refused[m[1], m[2]] = True
+        chosen = next((m for m in moves if m[2] < 0 or ok.get((m[1], m[2]), True)), None)
+        if chosen is None:
+            continue
+        _, d, T = chosen
+        if T < 0:
+            T = int(np.flatnonzero(size == 0)[0]) if np.any(size == 0) else -1
+            if T < 0:  # every label in use: grow the tables by one empty cluster
+                G = np.concatenate([G, np.zeros((N, 1))], 1)
+                S = np.concatenate([S, np.zeros((N, 1))], 1)
+                size = np.append(size, 0.0)
+                camset = np.concatenate([camset, np.zeros((1, C), bool)])
+                refused = np.concatenate([refused, np.zeros((N, 1), bool)], 1)
+                T = K
+                K += 1
         src = label[d]
         G[:, src] -= gain[:, d]
         G[:, T] += gain[:, d]
@@ -295,7 +301,7 @@ def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray
         camset[src, table.cam[d]] = False
         camset[T, table.cam[d]] = True
         label[d] = T
-        forbidden[:] = False
+        refused[:, [src, T]] = False
         stats["moves"] += 1.0
     return label
 
@@ -383,6 +389,22 @@ def cost_matrix(rows: np.ndarray, pair_cost: PairCost) -> np.ndarray:
     Cm = np.full((rows.size, rows.size), np.nan)
     Cm[r, c] = Cm[c, r] = pair_cost(rows[r], rows[c])
     return Cm
+
+
+def mean_costs(groups: list[np.ndarray], pair_cost: PairCost) -> list[np.ndarray]:
+    """Per group (table rows), each member's mean pose cost (m) to the rest (member m aligned
+    onto n for m < n; NaN if alone), all groups' pairs in one batch."""
+    tri = [np.triu_indices(g.size, 1) for g in groups]
+    a = np.concatenate([g[t[0]] for g, t in zip(groups, tri)] + [np.zeros(0, np.int64)])
+    b = np.concatenate([g[t[1]] for g, t in zip(groups, tri)] + [np.zeros(0, np.int64)])
+    flat = pair_cost(a, b) if a.size else np.zeros(0)
+    out, k = [], 0
+    for g, (r, c) in zip(groups, tri):
+        Cm = np.full((g.size, g.size), np.nan)
+        Cm[r, c] = Cm[c, r] = flat[k:k + r.size]
+        k += r.size
+        out.append(mean_to_rest(Cm, np.ones(g.size, bool)))
+    return out
 
 
 def mean_to_rest(Cm: np.ndarray, alive: np.ndarray) -> np.ndarray:
