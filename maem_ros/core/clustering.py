@@ -38,6 +38,7 @@ camera has detections, then the paper's conflict removal.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
@@ -435,7 +436,8 @@ def _spectral(table, stats, pair_cost) -> Found:
     _, vecs = np.linalg.eigh(L)
     U = vecs[:, -min(k, N):]
     U /= np.maximum(np.linalg.norm(U, axis=1, keepdims=True), 1e-12)
-    with _quiet_nanmedian():  # an emptied k-means cluster warns; its people are simply fewer
+    with warnings.catch_warnings():  # an emptied k-means cluster warns: simply fewer people
+        warnings.simplefilter("ignore", UserWarning)
         _, label = kmeans2(U, min(k, N), minit="++", seed=np.random.default_rng(0), missing="warn")
     groups = _groups(label)
     stats["matched_pairs"] = float(sum(g.size - 1 for g in groups))
