@@ -108,7 +108,7 @@ class _Verifier:
         P = self.P[r]  # (K,M,3,4)
         uv = self.uv[r]  # (K,M,Jb,2)
         usable = present[..., None] & np.isfinite(uv).all(-1)
-        E = normal_entries(P[:, :, None], uv, usable)  # (9,K,M,Jb)
+        E = normal_entries(P[:, :, None], uv, usable) * usable  # (9,K,M,Jb), unusable = 0
         X = solve_normal(E.sum(2))  # (K,Jb,3)
         err = reprojection_error(P, X[:, None], uv)[:, :, 0]  # (K,M,Jb), inf if unusable
         err = np.where(usable, err, np.inf)

@@ -42,7 +42,8 @@ def normal_entries(P: np.ndarray, uv: np.ndarray, usable: np.ndarray) -> np.ndar
     Entries in the order n00 n01 n02 n11 n12 n22 n03 n13 n23 (the only ones the X4 = 1
     solve needs), entry axis first so every later operation runs on contiguous arrays.
     Summing over views (times squared weights) gives the system of any view subset, so
-    pair hypotheses and the final fit reuse one computation. Unusable views give zeros.
+    pair hypotheses and the final fit reuse one computation. Unusable views get uv = 0 (finite
+    rows, not zeros): callers weight them by 0.
     """
     uv0 = np.where(usable[..., None], uv, 0.0)
     u, v = uv0[..., 0], uv0[..., 1]
