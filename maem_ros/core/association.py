@@ -82,7 +82,7 @@ class AssociationParams:
     tau_cost: float = 0.2
     cost_epipolar_weight: float = 0.0
     tau_verify: float = 10.0
-    min_support: float = 0.75
+    min_support: float = 0.6
 
     def __post_init__(self) -> None:
         for name in ("tau_det", "tau_reproj_bbox", "tau_mesh", "tau_cost", "cost_epipolar_weight",

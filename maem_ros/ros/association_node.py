@@ -64,7 +64,7 @@ PARAMS = (
               "pair cost", minimum=0.0),
     ParamSpec("tau_verify", 10.0, "px, consistent merges: each member's median reprojection "
               "error of the triangulated body joints", minimum=0.0, exclusive_minimum=True),
-    ParamSpec("min_support", 0.75, "consistent merges: fraction of cross pairs that passed the "
+    ParamSpec("min_support", 0.6, "consistent merges: fraction of cross pairs that passed the "
               "gates", minimum=0.0, maximum=1.0),
     ParamSpec("slop", 0.02, "s, stamps within this of the reference belong to one frame set",
               minimum=0.0),
