@@ -412,8 +412,16 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     P, _ = rig_geometry(rig)
     joints = parse_cost_joints(params.cost_joints, table.num_joints) if len(table) else None
 
+    known = np.full((len(table), len(table)), np.nan)  # pose costs the gates already computed
+    known[pairs.i, pairs.j] = pairs.pose
+
     def pair_cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return pose_costs(table, a, b, joints)
+        """Pose costs of rows a onto b, reusing those of the gated pairs."""
+        out = known[a, b]
+        todo = np.flatnonzero(np.isnan(out))
+        if todo.size:
+            out[todo] = pose_costs(table, a[todo], b[todo], joints)
+        return out
 
     found = clustering.cluster(table, pairs, P, params, stats, pair_cost)
     stats["t_cluster_ms"], _ = _lap(t)
