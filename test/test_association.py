@@ -512,7 +512,7 @@ def test_cost_cap_and_cost_joints_change_decisions():
 
 
 def test_body_cost_joints_are_the_sportcenter_joints_of_mhr70():
-    from maem_ros.core.association import parse_cost_joints
+    from maem_ros.core.skeleton import joint_subset as parse_cost_joints
     from maem_ros.core.skeleton import SPORTCENTER_13_FROM_MHR70
     assert tuple(parse_cost_joints("body", 70)) == SPORTCENTER_13_FROM_MHR70
     assert tuple(parse_cost_joints("all", 5)) == tuple(range(5))

@@ -33,10 +33,11 @@ import numpy as np
 
 from . import clustering, epipolar
 from .camera import Rig, fundamental_matrix
-from .detections import Cluster, DetectionTable, FrameDetections
+from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
+                         DetectionTable, FrameDetections, PairSet, camera_pair_groups)
 from .geometry import reprojection_errors
 from .procrustes import pa_mpjpe_finite
-from .skeleton import body_joints
+from .skeleton import joint_subset
 
 _CHOICES = {
     "reproj_reduce": ("mean", "max"),
@@ -111,36 +112,12 @@ class AssociationParams:
                                  f"{getattr(self, name)!r}")
         if self.clustering == "consistent" and self.tau_cost == 0:
             raise ValueError("tau_cost: the consistent clustering needs a cost cap > 0 m")
-        parse_cost_joints(self.cost_joints, None)
+        joint_subset(self.cost_joints, None)
 
     @classmethod
     def from_mapping(cls, d: Mapping[str, Any]) -> "AssociationParams":
         """Take the known keys of a params dict (others, e.g. slop, are ignored); validate."""
         return cls(**{f.name: d[f.name] for f in fields(cls) if f.name in d})
-
-
-def parse_cost_joints(spec: Any, num_joints: int | None) -> np.ndarray | None:
-    """Keypoint indices of the pair cost for ``num_joints`` keypoints (None: only check ``spec``).
-
-    "body": the sportcenter_13 body joints of the convention with that many joints (all when
-    none is known); "all"; or comma-separated indices. ValueError naming cost_joints.
-    """
-    if not isinstance(spec, str):
-        raise ValueError(f"cost_joints: expected 'body', 'all' or comma-separated indices, got {spec!r}")
-    if spec in ("body", "all"):
-        if num_joints is None:
-            return None
-        return np.arange(num_joints) if spec == "all" else np.asarray(body_joints(num_joints))
-    try:
-        idx = np.array([int(x) for x in spec.split(",")], dtype=np.int64)
-    except ValueError:
-        raise ValueError(f"cost_joints: expected 'body', 'all' or comma-separated indices, "
-                         f"got {spec!r}") from None
-    if idx.size < 3 or np.unique(idx).size != idx.size or idx.min() < 0:
-        raise ValueError(f"cost_joints: need >= 3 distinct non-negative indices, got {spec!r}")
-    if num_joints is not None and idx.max() >= num_joints:
-        raise ValueError(f"cost_joints: index {int(idx.max())} out of range for {num_joints} keypoints")
-    return idx
 
 
 def _number(name: str, v: Any) -> float:
@@ -172,7 +149,7 @@ class AssociationResult:
     clusters: list[Cluster]
     stats: dict[str, float] = field(default_factory=dict)
     table: DetectionTable | None = None
-    pairs: "PairSet | None" = None
+    pairs: PairSet | None = None
     groups: list[np.ndarray] = field(default_factory=list)
     conflicts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
@@ -228,42 +205,13 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
             raise ValueError("verts2d: epipolar_gate 'mesh' needs mesh vertices, got V=0 "
                              "(use epipolar_gate 'sparse' or 'none')")
     if joints:
-        parse_cost_joints(params.cost_joints, next(iter(joints)))
+        joint_subset(params.cost_joints, next(iter(joints)))
     return by_index
 
 
 # ---------------------------------------------------------------------------------------
 # candidate pairs and gates
 # ---------------------------------------------------------------------------------------
-#: PairSet.stage values: passed everything, or the first stage that rejected the pair
-PASSED, REJECTED_REPROJ, REJECTED_EPIPOLAR, REJECTED_COST = 0, 1, 2, 3
-
-
-@dataclass
-class PairSet:
-    """Every pair of kept detections of different cameras (rows i < j of the DetectionTable,
-    camera of i < camera of j), flat over all camera pairs in order.
-
-    stage: PASSED or the first gate that rejected the pair; pose (m) PA-MPJPE on the cost
-    joints and epi (px) mean epipolar distance, both NaN where not computed (rejected
-    earlier; epi also where no epipolar gate ran); cost (m) = pose + w * epi where computed.
-    """
-
-    i: np.ndarray
-    j: np.ndarray
-    stage: np.ndarray
-    pose: np.ndarray
-    epi: np.ndarray
-    cost: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.i.size)
-
-    @property
-    def passed(self) -> np.ndarray:
-        return self.stage == PASSED
-
-
 def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
     """Rows (i, j) of every kept x kept pair of every camera pair a < b."""
     i, j = np.triu_indices(len(table), 1)
@@ -301,7 +249,7 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
     keep = np.zeros(i.size, dtype=bool)
     mean = np.full(i.size, np.nan)
     budget = evaluated = 0
-    for a, b, idx in _groups(table.cam[i], table.cam[j]):
+    for a, b, idx in camera_pair_groups(table.cam[i], table.cam[j]):
         xa, xb = points[a], points[b]
         n = xa.shape[1]
         sums, used = epipolar.epipolar_sums(
@@ -314,16 +262,6 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
         evaluated += int(used.sum())
     stats["epipolar_points_fraction"] = evaluated / budget if budget else 0.0
     return keep, np.where(keep, mean, np.nan)
-
-
-def _groups(ca: np.ndarray, cb: np.ndarray):
-    """(a, b, indices) per camera pair, in order (pairs are sorted by camera pair)."""
-    if ca.size == 0:
-        return
-    key = ca * 65536 + cb
-    bounds = np.flatnonzero(np.diff(key)) + 1
-    for idx in np.split(np.arange(ca.size), bounds):
-        yield int(ca[idx[0]]), int(cb[idx[0]]), idx
 
 
 def pose_costs(table: DetectionTable, i: np.ndarray, j: np.ndarray, joints: np.ndarray
@@ -363,7 +301,7 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
 
     pose = np.full(S, np.nan)
     if alive.size:
-        joints = parse_cost_joints(params.cost_joints, table.num_joints)
+        joints = joint_subset(params.cost_joints, table.num_joints)
         pose[alive] = pose_costs(table, i[alive], j[alive], joints)
     weight = params.cost_epipolar_weight if params.epipolar_gate != "none" else 0.0
     cost = pose + weight * np.nan_to_num(epi, nan=0.0)
@@ -410,7 +348,7 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
 
     t = time.perf_counter()
     P, _ = rig_geometry(rig)
-    joints = parse_cost_joints(params.cost_joints, table.num_joints) if len(table) else None
+    joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
 
     known = np.full((len(table), len(table)), np.nan)  # pose costs the gates already computed
     known[pairs.i, pairs.j] = pairs.pose
@@ -423,7 +361,7 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
             out[todo] = pose_costs(table, a[todo], b[todo], joints)
         return out
 
-    found = clustering.cluster(table, pairs, P, params, stats, pair_cost)
+    found = clustering.cluster(table, pairs, P, joints, params, stats, pair_cost)
     stats["t_cluster_ms"], _ = _lap(t)
 
     kept_groups = []

@@ -49,9 +49,10 @@ from scipy.optimize import linear_sum_assignment
 
 from .geometry import normal_entries, reprojection_error, solve_normal
 
+from .detections import DetectionTable, PairSet, camera_pair_groups
+
 if TYPE_CHECKING:
-    from .association import AssociationParams, PairSet
-    from .detections import DetectionTable
+    from .association import AssociationParams
 
 METHODS = ("consistent", "paper", "spectral")
 #: objective weight (x tau_cost) of a cross pair that a geometric gate rejected. Weak: with
@@ -83,16 +84,19 @@ class Found:
     conflicts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
-def cluster(table: "DetectionTable", pairs: "PairSet", P: np.ndarray,
+def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.ndarray,
             params: "AssociationParams", stats: dict[str, float], pair_cost: PairCost) -> Found:
-    """Cluster the table's rows with ``params.clustering`` (see the module docstring)."""
+    """Cluster the table's rows with ``params.clustering`` (see the module docstring).
+
+    P (C,3,4) the rig's rectified projections; joints: keypoint indices of the pair cost and
+    of the consistent clustering's merge check."""
     if len(table) == 0:
         return Found([])
     if params.clustering == "paper":
         return _paper(table, pairs, stats, pair_cost)
     if params.clustering == "spectral":
         return _spectral(table, stats, pair_cost)
-    return _consistent(table, pairs, P, params, stats)
+    return _consistent(table, pairs, _Verifier(table, P, joints, params.tau_verify), params, stats)
 
 
 # ---------------------------------------------------------------------------------------
@@ -102,12 +106,10 @@ class _Verifier:
     """Batched cluster check: body joints triangulated (DLT) from all members, each member's
     median reprojection error (px) must stay under tau_verify."""
 
-    def __init__(self, table: "DetectionTable", P: np.ndarray, params: "AssociationParams"):
-        from .association import parse_cost_joints  # the joint subset has one definition
-        joints = parse_cost_joints(params.cost_joints, table.num_joints)
+    def __init__(self, table: DetectionTable, P: np.ndarray, joints: np.ndarray, tau: float):
         self.uv = table.kpts2d[:, joints]  # (N,Jb,2)
         self.P = P[table.cam]  # (N,3,4)
-        self.tau = params.tau_verify
+        self.tau = tau
 
     def __call__(self, rows: np.ndarray) -> np.ndarray:
         """rows (K,M) table rows, -1 = padding -> (K,) all members consistent."""
@@ -132,7 +134,7 @@ class _Verifier:
         return ~bad.any(axis=1)
 
 
-def _gain_matrix(table: "DetectionTable", pairs: "PairSet", tau: float
+def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(gain (N,N), geometric (N,N) bool) over table rows.
 
@@ -141,29 +143,28 @@ def _gain_matrix(table: "DetectionTable", pairs: "PairSet", tau: float
     pairs a geometric gate rejected, 0
     within a camera (such pairs are never together) and on the diagonal. geometric: the pair
     passed the geometric gates (the merge support counts these)."""
-    from .association import PASSED, REJECTED_COST
     N = len(table)
-    ok = pairs.stage == PASSED
-    geo = ok | (pairs.stage == REJECTED_COST)
+    ok = pairs.passed
+    geo = pairs.geometric
     geometric = np.zeros((N, N), bool)
     geometric[pairs.i[geo], pairs.j[geo]] = geometric[pairs.j[geo], pairs.i[geo]] = True
     gain = np.full((N, N), REJECTED_PAIR_GAIN * tau)
     capped = geo & ~ok
-    gain[pairs.i[capped], pairs.j[capped]] = gain[pairs.j[capped], pairs.i[capped]] = CAPPED_PAIR_GAIN * tau
+    ci, cj = pairs.i[capped], pairs.j[capped]
+    gain[ci, cj] = gain[cj, ci] = CAPPED_PAIR_GAIN * tau
     gain[pairs.i[ok], pairs.j[ok]] = gain[pairs.j[ok], pairs.i[ok]] = tau - pairs.cost[ok]
     gain[table.cam[:, None] == table.cam[None, :]] = 0.0
     return gain, geometric
 
 
-def _consistent(table: "DetectionTable", pairs: "PairSet", P: np.ndarray,
+def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
                 params: "AssociationParams", stats: dict[str, float]) -> Found:
-    gain, gated = _gain_matrix(table, pairs, params.tau_cost)
-    verify = _Verifier(table, P, params)
+    gain, geometric = _gain_matrix(table, pairs, params.tau_cost)
     label = np.arange(len(table))
-    label = _greedy_merges(table, pairs, gain, gated, label, verify, params, stats)
-    label = _local_moves(table, gain, gated, label, verify, params, stats)
+    label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats)
+    label = _local_moves(table, gain, geometric, label, verify, params, stats)
     together = label[:, None] == label[None, :]
-    stats["matched_pairs"] = float(np.count_nonzero(np.triu(together & gated, 1)))
+    stats["matched_pairs"] = float(np.count_nonzero(np.triu(together & geometric, 1)))
     return Found(_groups(label))
 
 
@@ -355,7 +356,6 @@ def _paper(table, pairs, stats, pair_cost) -> Found:
 
 def _hungarian(table, pairs) -> np.ndarray:
     """Indices into pairs of the Hungarian matches, per camera pair (gated pairs never match)."""
-    from .association import _groups as camera_pair_groups
     ok = pairs.passed
     matched = []
     ca, cb = table.cam[pairs.i], table.cam[pairs.j]

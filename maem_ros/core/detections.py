@@ -185,3 +185,48 @@ class DetectionTable:
     def members(self, rows: np.ndarray) -> np.ndarray:
         """(M,2) (camera index, detection index) of table rows."""
         return np.stack([self.cam[rows], self.det[rows]], axis=1)
+
+
+#: PairSet.stage values: passed everything, or the first stage that rejected the pair
+PASSED, REJECTED_REPROJ, REJECTED_EPIPOLAR, REJECTED_COST = 0, 1, 2, 3
+
+
+@dataclass
+class PairSet:
+    """Every pair of kept detections of different cameras (rows i < j of the DetectionTable,
+    camera of i < camera of j), flat over all camera pairs in order.
+
+    stage: PASSED or the first gate that rejected the pair; pose (m) PA-MPJPE on the cost
+    joints and epi (px) mean epipolar distance, both NaN where not computed (rejected
+    earlier; epi also where no epipolar gate ran); cost (m) = pose + w * epi where computed.
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    stage: np.ndarray
+    pose: np.ndarray
+    epi: np.ndarray
+    cost: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.i.size)
+
+    @property
+    def passed(self) -> np.ndarray:
+        """(S,) passed the gates and the cost cap."""
+        return self.stage == PASSED
+
+    @property
+    def geometric(self) -> np.ndarray:
+        """(S,) passed the geometric gates (the cost cap may still have rejected it)."""
+        return (self.stage == PASSED) | (self.stage == REJECTED_COST)
+
+
+def camera_pair_groups(ca: np.ndarray, cb: np.ndarray):
+    """(a, b, indices) per camera pair, in order (pairs are sorted by camera pair)."""
+    if ca.size == 0:
+        return
+    key = ca * 65536 + cb
+    bounds = np.flatnonzero(np.diff(key)) + 1
+    for idx in np.split(np.arange(ca.size), bounds):
+        yield int(ca[idx[0]]), int(cb[idx[0]]), idx

@@ -134,3 +134,27 @@ def convert(joints: np.ndarray, target: KeypointConvention, source: str | None =
     if source == MHR70.name and j == MHR70.num_joints:
         return target.select(joints)
     raise ValueError(f"keypoints: cannot map {j} joints (convention {source!r}) to {target.name}")
+
+
+def joint_subset(spec: object, num_joints: int | None) -> np.ndarray | None:
+    """Keypoint indices named by ``spec`` for ``num_joints`` keypoints (None: only check ``spec``).
+
+    "body": the sportcenter_13 body joints of the convention with that many joints (all when
+    none is known); "all"; or comma-separated indices. ValueError naming cost_joints.
+    """
+    if not isinstance(spec, str):
+        raise ValueError(f"cost_joints: expected 'body', 'all' or comma-separated indices, got {spec!r}")
+    if spec in ("body", "all"):
+        if num_joints is None:
+            return None
+        return np.arange(num_joints) if spec == "all" else np.asarray(body_joints(num_joints))
+    try:
+        idx = np.array([int(x) for x in spec.split(",")], dtype=np.int64)
+    except ValueError:
+        raise ValueError(f"cost_joints: expected 'body', 'all' or comma-separated indices, "
+                         f"got {spec!r}") from None
+    if idx.size < 3 or np.unique(idx).size != idx.size or idx.min() < 0:
+        raise ValueError(f"cost_joints: need >= 3 distinct non-negative indices, got {spec!r}")
+    if num_joints is not None and idx.max() >= num_joints:
+        raise ValueError(f"cost_joints: index {int(idx.max())} out of range for {num_joints} keypoints")
+    return idx

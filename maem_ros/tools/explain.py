@@ -24,8 +24,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ..core.association import (PASSED, REJECTED_EPIPOLAR, REJECTED_REPROJ,
-                                AssociationResult)
+from ..core.association import AssociationResult
+from ..core.detections import PASSED, REJECTED_EPIPOLAR, REJECTED_REPROJ
 
 CAUSES = ("frontend", "reproj_gate", "epipolar_gate", "cost_cap", "wrong_match", "merge",
           "conflict", "k_min", "triangulation")
