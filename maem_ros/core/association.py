@@ -80,8 +80,8 @@ class AssociationParams:
     backend: str = "auto"
     clustering: str = "consistent"
     cost_joints: str = "body"
-    tau_cost: float = 0.2
-    cost_epipolar_weight: float = 0.0
+    tau_cost: float = 0.21
+    cost_epipolar_weight: float = 0.005
     tau_verify: float = 10.0
     min_support: float = 0.6
 

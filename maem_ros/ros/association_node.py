@@ -58,9 +58,9 @@ PARAMS = (
               choices=("consistent", "paper", "spectral")),
     ParamSpec("cost_joints", "body", "pair-cost keypoints: body (13 body joints), all, or "
               "comma-separated indices"),
-    ParamSpec("tau_cost", 0.2, "m, pairs whose cost is above this never match (0 = no cap)",
+    ParamSpec("tau_cost", 0.21, "m, pairs whose cost is above this never match (0 = no cap)",
               minimum=0.0),
-    ParamSpec("cost_epipolar_weight", 0.0, "m per px of mean epipolar distance added to the "
+    ParamSpec("cost_epipolar_weight", 0.005, "m per px of mean epipolar distance added to the "
               "pair cost", minimum=0.0),
     ParamSpec("tau_verify", 10.0, "px, consistent merges: each member's median reprojection "
               "error of the triangulated body joints", minimum=0.0, exclusive_minimum=True),
