@@ -34,37 +34,46 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.core.camera import Camera
 from maem_ros.ros import wire
-from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, ParamSpec, Stopwatch,
+from maem_ros.core.paramspec import Params, param
+from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, Stopwatch,
                                  declare_params, default_camera_name, load_rig_param, run_node)
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
 EXIT_SOURCE_FAILED = 2
 
-PARAMS = (
-    ParamSpec("camera", "", "camera name: rig key, topic namespace /<camera>/ (default: the "
-              "last component of the node namespace)"),
-    ParamSpec("rig", "", "rig YAML / camera-JSON folder / shipped rig name; empty = no camera_info"),
-    ParamSpec("fps", 30.0, "capture and publish rate, Hz", minimum=0.0, exclusive_minimum=True,
-              maximum=1000.0),
-    ParamSpec("transport", "raw", "raw: /<camera>/image_raw (bgr8); compressed: "
-              "/<camera>/image_raw/compressed (jpeg)", choices=("raw", "compressed")),
-    ParamSpec("jpeg_quality", 90, "JPEG quality for transport=compressed", minimum=1, maximum=100),
-    ParamSpec("loop", False, "restart a video file or image folder at its end (else exit 0)"),
-    ParamSpec("frame_id", "", "header.frame_id (default: the camera name)"),
-    ParamSpec("reliability", "reliable", "image/camera_info publisher QoS: reliable (matches every "
-              "subscriber, incl. RViz) or best_effort (sensor data)",
-              choices=("reliable", "best_effort")),
-    ParamSpec("open_attempts", 5, "attempts to open a source that never opened before giving up "
-              "(exit code 2)", minimum=1),
-    ParamSpec("open_timeout", 5.0, "s, open/read timeout for stream URLs (FFmpeg backend)",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("reconnect_backoff", 0.5, "s, first retry delay; doubles per failed attempt",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("reconnect_backoff_max", 10.0, "s, longest retry delay", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("max_reconnects", 0, "give up (exit 2) after this many failed reopen attempts of a "
-              "source that was open (0 = retry forever)", minimum=0),
-)
+@dataclass
+class CameraNodeParams(Params):
+    """The camera node's parameters (``source`` is declared separately: string or integer)."""
+
+    camera: str = param("", "camera name: rig key, topic namespace /<camera>/ (default: the "
+                            "last component of the node namespace)")
+    rig: str = param("", "rig YAML / camera-JSON folder / shipped rig name; empty = no "
+                         "camera_info")
+    fps: float = param(30.0, "capture and publish rate, Hz", minimum=0.0, exclusive_minimum=True,
+                       maximum=1000.0)
+    transport: str = param("raw", "raw: /<camera>/image_raw (bgr8); compressed: "
+                                  "/<camera>/image_raw/compressed (jpeg)",
+                           choices=("raw", "compressed"))
+    jpeg_quality: int = param(90, "JPEG quality for transport=compressed", minimum=1,
+                              maximum=100)
+    loop: bool = param(False, "restart a video file or image folder at its end (else exit 0)")
+    frame_id: str = param("", "header.frame_id (default: the camera name)")
+    reliability: str = param("reliable", "image/camera_info publisher QoS: reliable (matches "
+                                         "every subscriber, incl. RViz) or best_effort (sensor "
+                                         "data)", choices=("reliable", "best_effort"))
+    open_attempts: int = param(5, "attempts to open a source that never opened before giving "
+                                  "up (exit code 2)", minimum=1)
+    open_timeout: float = param(5.0, "s, open/read timeout for stream URLs (FFmpeg backend)",
+                                minimum=0.0, exclusive_minimum=True)
+    reconnect_backoff: float = param(0.5, "s, first retry delay; doubles per failed attempt",
+                                     minimum=0.0, exclusive_minimum=True)
+    reconnect_backoff_max: float = param(10.0, "s, longest retry delay", minimum=0.0,
+                                         exclusive_minimum=True)
+    max_reconnects: int = param(0, "give up (exit 2) after this many failed reopen attempts of a "
+                                   "source that was open (0 = retry forever)", minimum=0)
+
+
+PARAMS = CameraNodeParams.specs()
 
 
 # ---------------------------------------------------------------------------------------------

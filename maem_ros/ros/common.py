@@ -30,6 +30,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
+from maem_ros.core.paramspec import ParamError, Params, ParamSpec, param
 from maem_ros.ros.cli import stop_on_signals
 
 #: camera images: best effort, keep last 2
@@ -62,92 +63,42 @@ _PTYPE = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEG
           list: ParameterType.PARAMETER_STRING_ARRAY}
 
 
-@dataclass(frozen=True)
-class ParamSpec:
-    """One read-only start-up parameter: name, default (its type is the parameter type), checks.
+@dataclass
+class NodeParams(Params):
+    """Parameters every processing node has (node-only parameter classes subclass this)."""
 
-    ``minimum``/``maximum`` bound numbers (inclusive unless ``exclusive_minimum``), ``choices``
-    restricts strings. ``list`` defaults are string arrays.
-    """
-
-    name: str
-    default: Any
-    description: str
-    minimum: float | None = None
-    maximum: float | None = None
-    exclusive_minimum: bool = False
-    choices: tuple[str, ...] | None = None
-
-    @property
-    def ptype(self) -> type:
-        return type(self.default) if not isinstance(self.default, (list, tuple)) else list
-
-    def constraints(self) -> str:
-        parts = []
-        if self.minimum is not None:
-            parts.append(f"{'>' if self.exclusive_minimum else '>='} {self.minimum:g}")
-        if self.maximum is not None:
-            parts.append(f"<= {self.maximum:g}")
-        if self.choices:
-            parts.append("one of " + "|".join(self.choices))
-        return ", ".join(parts)
-
-    def check(self, value: Any) -> Any:
-        """The validated value (ints accepted for doubles); ConfigError naming the parameter."""
-        where = f"parameter '{self.name}'"
-        t = self.ptype
-        if t is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if t is list:
-            value = [str(v) for v in value]
-        elif not isinstance(value, t) or (t is int and isinstance(value, bool)):
-            raise ConfigError(f"{where}: expected {t.__name__}, got {value!r}")
-        if t in (int, float):
-            if not math.isfinite(value):
-                raise ConfigError(f"{where}: {value!r} is not finite")
-            if self.minimum is not None and (value <= self.minimum if self.exclusive_minimum
-                                             else value < self.minimum):
-                raise ConfigError(f"{where}: {value!r} must be {self.constraints()}")
-            if self.maximum is not None and value > self.maximum:
-                raise ConfigError(f"{where}: {value!r} must be {self.constraints()}")
-        if self.choices is not None and value not in self.choices:
-            raise ConfigError(f"{where}: unknown value {value!r}, expected one of {list(self.choices)}")
-        return value
-
-
-#: every node: /diagnostics period
-DIAGNOSTICS_PERIOD = ParamSpec("diagnostics_period", 1.0, "s, /diagnostics publish period",
-                               minimum=0.0, exclusive_minimum=True)
+    diagnostics_period: float = param(1.0, "s, /diagnostics publish period (steady clock)",
+                                      minimum=0.0, exclusive_minimum=True)
 
 
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     """Declare read-only parameters with descriptors; return {name: validated value}.
 
-    An integer given for a double parameter (``tau_mesh: 8``) is accepted. Any bad value raises
-    ConfigError with one line naming the parameter.
+    Parameters are dynamically typed for rclpy and type-checked by ParamSpec.check, so an
+    integer given for a double parameter (``tau_mesh: 8``) is accepted and converted. Any bad
+    value raises ConfigError with one line naming the parameter.
     """
-    overrides = getattr(node, "_parameter_overrides", {})
     out: dict[str, Any] = {}
     for spec in specs:
-        ov = overrides.get(spec.name)
-        if (ov is not None and spec.ptype is float and ov.type_ == Parameter.Type.INTEGER):
-            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(ov.value))
         desc = ParameterDescriptor(name=spec.name, type=_PTYPE[spec.ptype],
                                    description=spec.description,
                                    additional_constraints=spec.constraints(), read_only=True)
-        default = list(spec.default) if spec.ptype is list else spec.default
         try:
-            if spec.ptype is list and not default:
+            if spec.ptype is list:  # rclpy cannot infer a type from [] (string arrays only)
                 value = node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, desc).value
-                value = [] if value is None else value
+                value = list(spec.default) if value is None else value
             else:
-                value = node.declare_parameter(spec.name, default, desc).value
+                desc.dynamic_typing = True
+                value = node.declare_parameter(spec.name, spec.default, desc).value
         except InvalidParameterTypeException as e:
             raise ConfigError(f"parameter '{spec.name}': expected {spec.ptype.__name__} "
                               f"({_short(e)})") from None
         except (InvalidParameterValueException, ParameterException) as e:
             raise ConfigError(f"parameter '{spec.name}': {_short(e)}") from None
-        out[spec.name] = spec.check(value)
+        try:
+            out[spec.name] = spec.check(value)
+        except ParamError as e:
+            raise ConfigError(f"parameter '{e.name}': {e.problem}") from None
     return out
 
 
@@ -406,10 +357,4 @@ def load_rig_param(value: str, name: str = "rig"):
     try:
         return Rig.load(resolve_rig_path(value))
     except (ValueError, OSError) as e:
-        try:  # a synthetic rig whose YAML was not written to config/rigs/
-            from maem_ros.sim.rigs import RIG_NAMES, build_rig
-            if value in RIG_NAMES:
-                return build_rig(value)
-        except ImportError:
-            pass
         raise ConfigError(f"parameter '{name}': {e}") from None

@@ -13,6 +13,7 @@ on the converted joints; a person whose track is not confirmed yet has id 429496
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,33 +21,38 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
+from maem_ros.core.triangulation import TriangulationParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, MARKER_QOS, ConfigError,
-                                 Diagnostics, ParamSpec, RejectErrors, Stopwatch, declare_params,
-                                 load_rig_param, run_node)
+from maem_ros.ros.common import (DATA_QOS, MARKER_QOS, ConfigError, Diagnostics, NodeParams,
+                                 RejectErrors, Stopwatch, declare_params, load_rig_param,
+                                 run_node)
 
 NODE_NAME = "triangulation"
 
-PARAMS = (
-    DIAGNOSTICS_PERIOD,
-    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
-    ParamSpec("clusters_topic", "/maem/clusters", "input topic"),
-    ParamSpec("poses_topic", "/maem/poses", "output topic (PointCloud2)"),
-    ParamSpec("skeletons_topic", "/maem/skeletons", "output topic (MarkerArray)"),
-    ParamSpec("frame_id", "world", "header.frame_id of poses and markers"),
-    ParamSpec("tau_kps", 20.0, "px, keypoint inlier threshold", minimum=0.0, exclusive_minimum=True),
-    ParamSpec("min_views", 2, "inlier views needed per keypoint", minimum=2),
-    ParamSpec("output_convention", "sportcenter_13", "joints published",
-              choices=tuple(sorted(CONVENTIONS))),
-    ParamSpec("track_gate", 0.5, "m, mean joint distance gate for track assignment",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("track_min_hits", 3, "frames before a track gets an id", minimum=1),
-    ParamSpec("track_timeout", 1.0, "s, a track unseen this long dies", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("publish_tentative", True, "publish unconfirmed persons with id 4294967295"),
-    ParamSpec("marker_lifetime", 0.5, "s, marker lifetime", minimum=0.0, exclusive_minimum=True),
-)
+@dataclass
+class TriangulationNodeParams(NodeParams):
+    """The triangulation node's own parameters (the method's are core TriangulationParams)."""
+
+    rig: str = param("", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)")
+    clusters_topic: str = param("/maem/clusters", "input topic")
+    poses_topic: str = param("/maem/poses", "output topic (PointCloud2)")
+    skeletons_topic: str = param("/maem/skeletons", "output topic (MarkerArray)")
+    frame_id: str = param("world", "header.frame_id of poses and markers")
+    output_convention: str = param("sportcenter_13", "joints published",
+                                   choices=tuple(sorted(CONVENTIONS)))
+    track_gate: float = param(0.5, "m, mean joint distance gate for track assignment",
+                              minimum=0.0, exclusive_minimum=True)
+    track_min_hits: int = param(3, "frames before a track gets an id", minimum=1)
+    track_timeout: float = param(1.0, "s, a track unseen this long dies", minimum=0.0,
+                                 exclusive_minimum=True)
+    publish_tentative: bool = param(True, "publish unconfirmed persons with id 4294967295")
+    marker_lifetime: float = param(0.5, "s, marker lifetime", minimum=0.0,
+                                   exclusive_minimum=True)
+
+
+PARAMS = param_specs(TriangulationNodeParams, TriangulationParams)
 
 
 class TriangulationNode(Node):
@@ -57,7 +63,7 @@ class TriangulationNode(Node):
         p = declare_params(self, PARAMS)
         self.rig = load_rig_param(p["rig"])
         from maem_ros.core.tracking import Tracker
-        from maem_ros.core.triangulation import TriangulationParams, triangulate_members
+        from maem_ros.core.triangulation import triangulate_members
         try:
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
