@@ -15,7 +15,7 @@ from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.interchange import (SceneFolder, outputs_to_detections, read_maem_npz,
                                        write_gt, write_maem_npz)
 from maem_ros.ros.wire import msg_to_detections, msg_to_poses
-from maem_ros.tools import bagio
+from maem_ros import bagio
 from maem_ros.tools.make_bag import main, stamp_ns
 
 FPS = 10.0

@@ -17,7 +17,7 @@ from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 TOPIC = "/camera_0/detections"
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -249,7 +249,7 @@ def test_received_invalid_stamps_are_wire_errors(sec, nanosec):
 
 def test_cdr_header_stamp():
     stamp = 1_700_000_000_123_456_789
-    data = bagio.serialize(bagio.compressed_image_msg(stamp, "camera_0", b"\xff\xd8", "jpeg"))
+    data = bagio.serialize(wire.compressed_image_msg(b"\xff\xd8", "jpeg", stamp, "camera_0"))
     assert wire.cdr_header_stamp_ns(data) == stamp
     with pytest.raises(ValueError, match="too short"):
         wire.cdr_header_stamp_ns(b"\x00\x01\x00\x00")

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from maem_ros.ros.cli import split_ros_args, stop_on_signals
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 _HIDDEN = ("/rosout", "/parameter_events")
 

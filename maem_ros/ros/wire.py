@@ -20,7 +20,6 @@ field and problem, with a short ``reason`` code for /diagnostics.
 from __future__ import annotations
 
 import array
-import colorsys
 import struct
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -28,11 +27,12 @@ from typing import Mapping, Sequence
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Point
-from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from maem_ros.core.camera import Rig
+from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.colors import id_rgb
 from maem_ros.core.detections import FrameDetections
 
 #: poses ``id`` of a person whose track is not confirmed yet
@@ -435,8 +435,8 @@ def msg_to_poses(msg: PointCloud2, topic: str) -> PoseFrame:
 # skeleton markers
 # ---------------------------------------------------------------------------------------------
 def id_color(track_id: int, alpha: float = 1.0) -> ColorRGBA:
-    """A stable, well-spread colour per id (golden-ratio hue steps)."""
-    r, g, b = colorsys.hsv_to_rgb((int(track_id) * 0.618033988749895) % 1.0, 0.85, 0.95)
+    """The id's colour (core.colors.id_rgb) as std_msgs/ColorRGBA."""
+    r, g, b = id_rgb(track_id)
     return ColorRGBA(r=r, g=g, b=b, a=float(alpha))
 
 
@@ -529,3 +529,34 @@ def bgr_to_image(image: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
                 is_bigendian=0, step=w * 3)
     msg.data = image.tobytes()
     return msg
+
+
+#: CompressedImage.format of JPEG frames (image_transport 'compressed' convention)
+JPEG_FORMAT = "bgr8; jpeg compressed bgr8"
+
+
+def compressed_image_msg(data: bytes, fmt: str, stamp_ns: int, frame_id: str) -> CompressedImage:
+    """sensor_msgs/CompressedImage carrying encoded bytes unchanged (``fmt`` e.g. "jpeg", "png")."""
+    msg = CompressedImage(header=make_header(stamp_ns, frame_id), format=fmt)
+    msg.data = bytes(data)
+    return msg
+
+
+def bgr_to_compressed(image: np.ndarray, stamp_ns: int, frame_id: str,
+                      quality: int = 90) -> CompressedImage:
+    """BGR uint8 (H,W,3) -> sensor_msgs/CompressedImage, JPEG at ``quality`` (1..100)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("image: JPEG encoding failed")
+    return compressed_image_msg(buf.tobytes(), JPEG_FORMAT, stamp_ns, frame_id)
+
+
+def camera_info_msg(camera: Camera, stamp_ns: int, frame_id: str) -> CameraInfo:
+    """Camera -> sensor_msgs/CameraInfo of the RAW image: K, D and distortion model; R = I;
+    P = [K_rect | 0] of the rectified image the frontends work in."""
+    info = camera.to_camera_info()
+    return CameraInfo(header=make_header(stamp_ns, frame_id), width=int(info["width"]),
+                      height=int(info["height"]), distortion_model=str(info["distortion_model"]),
+                      d=info["d"], k=info["k"], r=info["r"], p=info["p"])
