@@ -1,4 +1,4 @@
-"""One parameter definition: core dataclass fields -> validation, offline reading, ROS parameters."""
+"""One parameter definition: core dataclass fields -> validation, offline reading, ROS params."""
 from __future__ import annotations
 
 import re
