@@ -44,7 +44,7 @@ class AssociationNodeParams(NodeParams):
     rig: str = param("", RIG_DESCRIPTION)
     cameras: list = param([], "cameras to subscribe (default: every rig camera)")
     frame_id: str = param("world", "header.frame_id of /maem/clusters (the rig's world frame)")
-    clusters_topic: str = param("/maem/clusters", "output topic")
+    clusters_topic: str = param("maem/clusters", "output topic (relative: follows __ns)")
     slop: float = param(0.02, "s, stamps within this of the reference belong to one frame set",
                         minimum=0.0)
     max_wait: float = param(0.15, "s, emit a partial frame set after waiting this long",
@@ -156,7 +156,7 @@ class AssociationNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: AssociationNode(), args, NODE_NAME)
+    return run_node(lambda: AssociationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

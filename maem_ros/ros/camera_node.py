@@ -28,7 +28,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.capture import Capture, Poll, make_source, to_bgr
 from maem_ros.core.camera import Camera
-from maem_ros.core.paramspec import Params, param
+from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
 from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, Stopwatch,
                                  declare_params, default_camera_name, load_rig_param, run_node)
@@ -68,6 +68,9 @@ class CameraNodeParams(Params):
 
 
 PARAMS = CameraNodeParams.specs()
+#: ``source`` takes a string or an integer (``source:=0`` parses as an int): declared on its own
+SOURCE = ParamSpec("source", "", "device index (0), video file, stream URL, or image folder / "
+                                 "glob")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -96,16 +99,18 @@ class CameraNode(Node):
                                backoff=p["reconnect_backoff"],
                                backoff_max=p["reconnect_backoff_max"],
                                max_reconnects=p["max_reconnects"])
-        base = f"/{self.camera_name}"
+        # relative names under the node's namespace: image_raw... in the camera's own namespace
+        # (/<camera>), else <camera>/image_raw... (/<camera>/... for a node in /)
+        base = "" if default_camera_name(self) == self.camera_name else f"{self.camera_name}/"
         qos = QoSProfile(depth=IMAGE_QOS.depth, history=HistoryPolicy.KEEP_LAST,
                          reliability=(ReliabilityPolicy.RELIABLE if p["reliability"] == "reliable"
                                       else ReliabilityPolicy.BEST_EFFORT))
         if self.transport == "raw":
-            self.pub_image = self.create_publisher(Image, f"{base}/image_raw", qos)
+            self.pub_image = self.create_publisher(Image, f"{base}image_raw", qos)
         else:
-            self.pub_image = self.create_publisher(CompressedImage, f"{base}/image_raw/compressed",
+            self.pub_image = self.create_publisher(CompressedImage, f"{base}image_raw/compressed",
                                                    qos)
-        self.pub_info = (self.create_publisher(CameraInfo, f"{base}/camera_info", qos)
+        self.pub_info = (self.create_publisher(CameraInfo, f"{base}camera_info", qos)
                          if self.camera is not None else None)
         self.diag = Diagnostics(self, hardware_id=self.camera_name)
         self.diag.set("source", source.description)
@@ -118,9 +123,8 @@ class CameraNode(Node):
 
     def _declare_source(self) -> str:
         """``source`` takes a string or an integer (``source:=0`` parses as an int)."""
-        desc = ParameterDescriptor(
-            name="source", description="device index (0), video file, stream URL, or image "
-            "folder / glob", dynamic_typing=True, read_only=True)
+        desc = ParameterDescriptor(name="source", description=SOURCE.description,
+                                   dynamic_typing=True, read_only=True)
         value = self.declare_parameter("source", "", desc).value
         if isinstance(value, bool) or not isinstance(value, (int, str)):
             raise ConfigError(f"parameter 'source': expected a device index or a string, "
@@ -199,7 +203,8 @@ class CameraNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    return run_node(CameraNode, args, "maem-camera", until=lambda node: node.done)
+    return run_node(CameraNode, args, "camera", until=lambda node: node.done,
+                    specs=(SOURCE,) + PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

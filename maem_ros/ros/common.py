@@ -21,6 +21,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               ParameterException)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -155,7 +156,9 @@ class Diagnostics:
         self._last_log: dict[str, float] = {}
         self._suppressed: dict[str, int] = defaultdict(int)
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-        self._timer = node.create_timer(period_s, self.publish)
+        # steady clock: with use_sim_time a ROS-time timer stalls whenever /clock does
+        self._timer = node.create_timer(period_s, self.publish,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # -- recording --------------------------------------------------------------------------
     def input(self, topic: str) -> None:
@@ -308,8 +311,28 @@ class Stopwatch:
 # ---------------------------------------------------------------------------------------------
 # main()
 # ---------------------------------------------------------------------------------------------
+def print_help(name: str, doc: str | None, specs: Sequence[ParamSpec]) -> None:
+    """``--help`` of a node: usage, the module docstring's first paragraph, every parameter
+    with type, default, constraints and description."""
+    summary = (doc or "").strip().split("\n\n", 1)[0].strip()
+    lines = [f"usage: ros2 run maem_ros {name} [--ros-args [--params-file FILE] "
+             f"[-p {name}:NAME:=VALUE] [-r __ns:=/NS] ...]", "", summary, "",
+             "parameters (read-only, set at start):"]
+    lines += [f"  {spec.help_line()}" for spec in specs]
+    print("\n".join(lines), flush=True)
+
+
+def wants_help(args: Sequence[str] | None) -> bool:
+    """``-h``/``--help`` before any ``--ros-args``."""
+    argv = list(sys.argv if args is None else args)[1:]
+    if "--ros-args" in argv:
+        argv = argv[:argv.index("--ros-args")]
+    return "-h" in argv or "--help" in argv
+
+
 def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
-             until: Callable[[Node], Future] | None = None) -> int:
+             until: Callable[[Node], Future] | None = None,
+             specs: Sequence[ParamSpec] = (), doc: str | None = None) -> int:
     """rclpy.init, build the node, spin until SIGINT/SIGTERM, or with ``until`` until the future
     it returns for the node completes (its result is the exit code). Exit code 0 at
     SIGINT/SIGTERM, EXIT_CONFIG_ERROR (2) on bad params; the node is destroyed either way.
@@ -317,7 +340,11 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
     rclpy's own signal handler is not installed: the executor spins in short slices and a
     Python handler sets an Event, so shutdown always runs from the main thread between
     callbacks (with rclpy's C-level handler we saw rare hangs and SIGSEGV at Ctrl-C).
+    ``-h``/``--help`` prints ``doc``'s summary and ``specs`` (print_help) and returns 0.
     """
+    if wants_help(args):
+        print_help(name, doc, specs)
+        return 0
     stop = stop_on_signals()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None

@@ -207,7 +207,7 @@ class FrontendNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: FrontendNode(), args, NODE_NAME)
+    return run_node(lambda: FrontendNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,8 @@ on the converted joints; a person whose track is not confirmed yet has id 429496
 from __future__ import annotations
 
 import sys
+import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,9 +38,9 @@ class TriangulationNodeParams(NodeParams):
     """The triangulation node's own parameters (the method's are core TriangulationParams)."""
 
     rig: str = param("", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)")
-    clusters_topic: str = param("/maem/clusters", "input topic")
-    poses_topic: str = param("/maem/poses", "output topic (PointCloud2)")
-    skeletons_topic: str = param("/maem/skeletons", "output topic (MarkerArray)")
+    clusters_topic: str = param("maem/clusters", "input topic (relative: follows __ns)")
+    poses_topic: str = param("maem/poses", "output topic (PointCloud2; relative: follows __ns)")
+    skeletons_topic: str = param("maem/skeletons", "output topic (MarkerArray; relative)")
     frame_id: str = param("world", "header.frame_id of poses and markers")
     output_convention: str = param("sportcenter_13", "joints published",
                                    choices=tuple(sorted(CONVENTIONS)))
@@ -48,8 +50,11 @@ class TriangulationNodeParams(NodeParams):
     track_timeout: float = param(1.0, "s, a track unseen this long dies", minimum=0.0,
                                  exclusive_minimum=True)
     publish_tentative: bool = param(True, "publish unconfirmed persons with id 4294967295")
-    marker_lifetime: float = param(0.5, "s, marker lifetime", minimum=0.0,
-                                   exclusive_minimum=True)
+    marker_lifetime: float = param(0.5, "s, shortest marker lifetime (also before the frame "
+                                        "period is known)", minimum=0.0, exclusive_minimum=True)
+    marker_lifetime_periods: float = param(3.0, "marker lifetime in frame periods (median "
+                                                "arrival interval of clusters, steady clock), "
+                                                "so markers outlive slow replays", minimum=0.0)
 
 
 PARAMS = param_specs(TriangulationNodeParams, TriangulationParams)
@@ -76,6 +81,8 @@ class TriangulationNode(Node):
         self.frame_id = p["frame_id"]
         self.publish_tentative = p["publish_tentative"]
         self.marker_lifetime = p["marker_lifetime"]
+        self.marker_lifetime_periods = p["marker_lifetime_periods"]
+        self._arrivals: deque[float] = deque(maxlen=16)
         self._last_stamp: int | None = None
         self.diag = Diagnostics(self, p["diagnostics_period"])
         self.pose_pub = self.create_publisher(PointCloud2, p["poses_topic"], DATA_QOS)
@@ -89,7 +96,16 @@ class TriangulationNode(Node):
         """(P,J,3) joints in the clusters' convention -> (P,J_out,3) in output_convention."""
         return convert(joints, self.output)
 
+    def lifetime_s(self) -> float:
+        """Marker lifetime: marker_lifetime_periods x the median arrival interval of the last
+        clusters messages (steady clock), at least marker_lifetime."""
+        if len(self._arrivals) < 2:
+            return self.marker_lifetime
+        period = float(np.median(np.diff(self._arrivals)))
+        return max(self.marker_lifetime, self.marker_lifetime_periods * period)
+
     def on_clusters(self, msg: PointCloud2) -> None:
+        self._arrivals.append(time.monotonic())
         self.diag.input(self.topic)
         try:
             with Stopwatch(self.diag, "decode"):
@@ -126,7 +142,7 @@ class TriangulationNode(Node):
             poses_msg = wire.poses_to_msg(stamp_ns, self.frame_id, ids[keep], joints[keep],
                                           views[keep], scores[keep])
             markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
-                                            self.output.bones, self.marker_lifetime)
+                                            self.output.bones, self.lifetime_s())
         self.pose_pub.publish(poses_msg)
         self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))
@@ -135,7 +151,7 @@ class TriangulationNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: TriangulationNode(), args, NODE_NAME)
+    return run_node(lambda: TriangulationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,8 @@ from maem_ros.core.detections import FrameDetections
 UNTRACKED_ID = 0xFFFFFFFF
 #: marker namespaces; marker id = track id in each
 NS_JOINTS, NS_BONES, NS_LABELS = "skeleton/joints", "skeleton/bones", "skeleton/ids"
+#: namespace of the DELETEALL marker that starts every skeleton MarkerArray
+NS_DELETE_ALL = "skeleton"
 
 _NP_OF_PF = {PointField.INT8: "i1", PointField.UINT8: "u1", PointField.INT16: "i2",
              PointField.UINT16: "u2", PointField.INT32: "i4", PointField.UINT32: "u4",
@@ -446,12 +448,15 @@ def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int], joints: n
     """Per person: SPHERE_LIST joints (ns skeleton/joints), LINE_LIST bones (ns skeleton/bones,
     bones with a NaN end skipped), TEXT_VIEW_FACING id 0.3 m above the highest joint
     (ns skeleton/ids). Marker id = track id in each ns; persons with id < 0 or no finite joint
-    are skipped. Markers expire after ``lifetime_s`` (> 0) so vanished persons disappear.
+    are skipped. The array starts with a DELETEALL marker (ns NS_DELETE_ALL), so each frame
+    replaces the previous one whatever the replay rate; markers also expire after
+    ``lifetime_s`` (> 0) so the view empties when the stream stops.
     """
     header = make_header(stamp_ns, frame_id)
     sec, nsec = divmod(int(round(lifetime_s * 1e9)), 1_000_000_000)
     life = Duration(sec=sec, nanosec=nsec)
-    out = MarkerArray()
+    out = MarkerArray(markers=[Marker(header=header, ns=NS_DELETE_ALL, id=0,
+                                      action=Marker.DELETEALL)])
     for pid, pj in zip(ids, np.asarray(joints, dtype=np.float64)):
         finite = np.all(np.isfinite(pj), axis=1)
         if pid < 0 or not finite.any():
