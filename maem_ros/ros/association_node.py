@@ -24,7 +24,8 @@ from maem_ros.core.association import AssociationParams
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, ConfigError, Diagnostics, NodeParams, RejectErrors,
-                                 Stopwatch, declare_params, load_rig_param, run_node)
+                                 Stopwatch, declare_params, load_rig_param,
+                                 publish_rig_tf, run_node)
 
 NODE_NAME = "association"
 
@@ -52,6 +53,8 @@ class AssociationNodeParams(NodeParams):
     min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
     poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0,
                                exclusive_minimum=True)
+    publish_tf: bool = param(True, "publish world -> each rig camera on /tf_static (transient "
+                                   "local) at start")
 
 
 PARAMS = param_specs(AssociationNodeParams, AssociationParams)
@@ -94,6 +97,7 @@ class AssociationNode(Node):
             self.subs.append(self.create_subscription(
                 PointCloud2, topic, partial(self.on_detections, cam, topic), DATA_QOS))
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
+        self.tf_pub = publish_rig_tf(self, self.rig, self.frame_id) if p["publish_tf"] else None
         self.get_logger().info(f"{len(self.cameras)} cameras {self.cameras} -> "
                                f"{self.pub.topic_name}")
 

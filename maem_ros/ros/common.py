@@ -43,6 +43,10 @@ DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 #: MarkerArray for RViz: reliable, keep last 10
 MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: /tf_static: reliable, transient local, keep last 1 (what tf2's static broadcaster offers)
+TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: /diagnostics: reliable, keep last 10
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                              reliability=ReliabilityPolicy.RELIABLE,
@@ -385,3 +389,22 @@ def load_rig_param(value: str, name: str = "rig"):
         return Rig.load(resolve_rig_path(value))
     except (ValueError, OSError) as e:
         raise ConfigError(f"parameter '{name}': {e}") from None
+
+
+def publish_rig_tf(node: Node, rig, world_frame: str):
+    """Publish world -> every rig camera once on /tf_static (transient local, so late joiners
+    get it); the publisher, or None with one log line when tf2_msgs is not importable (it is
+    built by ``make``, see README)."""
+    from maem_ros.core.frames import rig_transforms
+    from maem_ros.ros import wire
+
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        node.get_logger().warning("TF skipped: tf2_msgs is not importable (make builds it from "
+                                  "its upstream definition; see README, TF)")
+        return None
+    pub = node.create_publisher(TFMessage, wire.TF_STATIC_TOPIC, TF_STATIC_QOS)
+    pub.publish(wire.tf_message(rig_transforms(rig, world_frame),
+                                node.get_clock().now().nanoseconds))
+    return pub

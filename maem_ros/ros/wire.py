@@ -20,6 +20,7 @@ field and problem, with a short ``reason`` code for /diagnostics.
 from __future__ import annotations
 
 import array
+import importlib
 import struct
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -34,6 +35,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.frames import FrameTransform
 
 #: poses ``id`` of a person whose track is not confirmed yet
 UNTRACKED_ID = 0xFFFFFFFF
@@ -565,3 +567,55 @@ def camera_info_msg(camera: Camera, stamp_ns: int, frame_id: str) -> CameraInfo:
     return CameraInfo(header=make_header(stamp_ns, frame_id), width=int(info["width"]),
                       height=int(info["height"]), distortion_model=str(info["distortion_model"]),
                       d=info["d"], k=info["k"], r=info["r"], p=info["p"])
+
+
+# ---------------------------------------------------------------------------------------------
+# TF (tf2_msgs/TFMessage): built for rclpy or, with ``types``, for rosbags
+# ---------------------------------------------------------------------------------------------
+#: topic of the rig's static transforms (ROS convention: global, transient local)
+TF_STATIC_TOPIC = "/tf_static"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+
+def _rclpy_type(msgtype: str):
+    """The rclpy class of ``pkg/msg/Name`` (tf2_msgs is optional: ImportError when absent)."""
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int,
+               types: Mapping[str, type] | None = None):
+    """tf2_msgs/TFMessage of core.frames transforms (one TransformStamped each, header.stamp =
+    ``stamp_ns``). ``types``: msgtype -> class (e.g. the rosbags typestore's ``types``) to build
+    the same layout for a bag writer; default rclpy (ImportError if tf2_msgs is not installed).
+    """
+    T = types.__getitem__ if types is not None else _rclpy_type
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    Time_, Header_ = T("builtin_interfaces/msg/Time"), T("std_msgs/msg/Header")
+    Vector3, Quaternion = T("geometry_msgs/msg/Vector3"), T("geometry_msgs/msg/Quaternion")
+    Transform, Stamped = T("geometry_msgs/msg/Transform"), T("geometry_msgs/msg/TransformStamped")
+    out = []
+    for tr in transforms:
+        x, y, z = (float(v) for v in tr.translation)
+        qx, qy, qz, qw = (float(v) for v in tr.quaternion)
+        out.append(Stamped(header=Header_(stamp=Time_(sec=sec, nanosec=nsec), frame_id=tr.parent),
+                           child_frame_id=tr.child,
+                           transform=Transform(translation=Vector3(x=x, y=y, z=z),
+                                               rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))))
+    return T(TF_MESSAGE)(transforms=out)
+
+
+def msg_to_transforms(msg, topic: str) -> list[FrameTransform]:
+    """TFMessage (rclpy or rosbags) -> core.frames transforms; WireError on a non-unit quaternion
+    or a non-finite value."""
+    out = []
+    for i, ts in enumerate(msg.transforms):
+        t, r = ts.transform.translation, ts.transform.rotation
+        tr = np.array([t.x, t.y, t.z], dtype=np.float64)
+        q = np.array([r.x, r.y, r.z, r.w], dtype=np.float64)
+        if not (np.isfinite(tr).all() and np.isfinite(q).all()) or \
+                abs(np.linalg.norm(q) - 1) > 1e-6:
+            raise WireError(topic, f"transforms[{i}]", f"non-finite value or non-unit quaternion "
+                            f"{q.tolist()}", "bad_transform")
+        out.append(FrameTransform(ts.header.frame_id, ts.child_frame_id, tr, q))
+    return out

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from maem_ros import bagio
 from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.frames import rig_transforms
 from maem_ros.core.interchange import SceneFolder, outputs_to_detections, read_gt, read_maem_npz
 from maem_ros.ros import wire
 
@@ -263,6 +264,10 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
             text = json.dumps(src.scene, sort_keys=True)
             w.set_custom(bagio.CUSTOM_SCENE, text)
             w.write(bagio.SCENE_TOPIC, bagio.string_msg(text), src.start_ns, bagio.QOS_LATCHED)
+        # world -> each camera, latched, so TF users (RViz, Foxglove) place the cameras
+        tf = [t for t in rig_transforms(src.rig) if t.child in cams]
+        w.write(wire.TF_STATIC_TOPIC, wire.tf_message(tf, src.start_ns, bagio.TYPESTORE.types),
+                src.start_ns, bagio.QOS_LATCHED)
         for k in tqdm(range(len(src.frames)), desc="maem-make-bag", unit="frame",
                       disable=opts.quiet):
             write_frame(w, src, cams, k, gt, opts, report)
