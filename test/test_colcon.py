@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from helpers_ros import OutputWatcher, killed_on_exit
 
 REPO = Path(__file__).resolve().parents[1]

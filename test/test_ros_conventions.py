@@ -10,12 +10,11 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
 from maem_ros.ros.common import DATA_QOS
-
-from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 
 BIN = Path(sys.executable).parent
 PARAM_NODES = {"frontend": "maem_ros.ros.frontend_node",
@@ -138,7 +137,6 @@ def test_p_node_param_after_the_shipped_params_file(override: list[str], expecte
 def test_diagnostics_keep_coming_with_use_sim_time_and_no_clock() -> None:
     """The diagnostics timer runs on the steady clock: with use_sim_time and nobody publishing
     /clock (sim time stands still at 0) /diagnostics still arrives every period."""
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
 

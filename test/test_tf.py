@@ -9,12 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 
 from maem_ros.core.frames import rig_transforms
 from maem_ros.params import resolve_rig_path
 from maem_ros.ros import wire
-
-from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 
 BIN = Path(sys.executable).parent
 
