@@ -56,3 +56,40 @@ def killed_on_exit(proc: subprocess.Popen) -> Iterator[subprocess.Popen]:
         if proc.poll() is None:
             proc.kill()
             proc.wait(5)
+
+
+class OutputWatcher:
+    """Collects a child's merged stdout/stderr lines on a thread; ``wait_line(text, timeout)``
+    returns once a line containing ``text`` arrived (False at the timeout or the child's end)."""
+
+    def __init__(self, proc: subprocess.Popen):
+        import threading
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._done = False
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            with self._cond:
+                self.lines.append(line)
+                self._cond.notify_all()
+        with self._cond:
+            self._done = True
+            self._cond.notify_all()
+
+    def wait_line(self, text: str, timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not any(text in line for line in self.lines):
+                left = deadline - time.monotonic()
+                if self._done or left <= 0:
+                    return False
+                self._cond.wait(left)
+            return True
+
+    def text(self) -> str:
+        self._thread.join(timeout=5)
+        with self._cond:
+            return "".join(self.lines)

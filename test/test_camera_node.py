@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
+from maem_ros.capture import Capture, ImageFolderSource, VideoSource, make_source
 from maem_ros.core.camera import Camera, Rig
-from maem_ros.ros.camera_node import (Capture, ImageFolderSource, VideoSource, camera_info_msg,
-                                      make_source)
-from maem_ros.ros.common import ConfigError, IMAGE_QOS
+from maem_ros.ros.wire import camera_info_msg
+from maem_ros.ros.common import IMAGE_QOS
 
 from helpers_ros import ros_node
 
@@ -117,7 +117,7 @@ def test_make_source_kinds(tmp_path):
     assert isinstance(make_source(str(tmp_path / "*.jpg"), clock), ImageFolderSource)
     assert not make_source("rtsp://10.0.0.1/live", clock).finite
     assert make_source(str(tmp_path / "x.avi"), clock).finite
-    with pytest.raises(ConfigError, match="'source': empty"):
+    with pytest.raises(ValueError, match="^empty; give a device index"):
         make_source("  ", clock)
 
 

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from maem_ros.tools import bagio, demo
+from maem_ros import bagio
+from maem_ros.tools import demo
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_BAG = REPO / "bags" / "demo"

@@ -14,8 +14,8 @@ from mcap_ros2.decoder import DecoderFactory
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.interchange import (SceneFolder, outputs_to_detections, read_maem_npz,
                                        write_gt, write_maem_npz)
-from maem_ros.ros.wire import msg_to_detections, msg_to_poses
-from maem_ros.tools import bagio
+from maem_ros.ros.wire import TF_STATIC_TOPIC, msg_to_detections, msg_to_poses, msg_to_transforms
+from maem_ros import bagio
 from maem_ros.tools.make_bag import main, stamp_ns
 
 FPS = 10.0
@@ -67,6 +67,14 @@ def build(dataset: Path, *extra: str) -> tuple[int, Path]:
     return rc, out
 
 
+def assert_rig_transforms(transforms, rig: Rig) -> None:
+    """world -> camera transforms that map each camera's optical-frame points to world."""
+    assert [(t.parent, t.child) for t in transforms] == [("world", c) for c in rig.names]
+    X = np.random.default_rng(5).uniform(-3, 3, (20, 3))
+    for t in transforms:
+        np.testing.assert_allclose(t.apply(rig[t.child].world_to_camera(X)), X, atol=1e-6)
+
+
 def test_stamp_rounding_matches_scene_folder():
     assert stamp_ns(START, 30.0, 1) == START + 33_333_333
     assert stamp_ns(START, 30.0, 2) == START + 66_666_667
@@ -81,7 +89,8 @@ def test_bag_read_back_with_rosbags(dataset: Path):
     expected = {f"/{c}/{t}": NFRAMES for c in rig.names
                 for t in ("camera_info", "image_raw/compressed", "detections")}
     expected[bagio.GT_TOPIC] = NFRAMES
-    assert info.counts == expected
+    assert info.counts == {**expected, TF_STATIC_TOPIC: 1}
+    assert info.qos[TF_STATIC_TOPIC][0].durability == bagio.QosDurability.TRANSIENT_LOCAL
     assert info.topics["/cam_a/image_raw/compressed"] == bagio.COMPRESSED_IMAGE
     assert info.start_ns == START and info.end_ns == START + (NFRAMES - 1) * 100_000_000
     assert info.custom[bagio.CUSTOM_GT_CONVENTION] == "sportcenter_13"
@@ -92,6 +101,10 @@ def test_bag_read_back_with_rosbags(dataset: Path):
     seen = {t: [] for t in expected}
     for m in bagio.read_messages(out):
         msg = m.decode()
+        if m.topic == TF_STATIC_TOPIC:
+            assert m.log_time_ns == START
+            assert_rig_transforms(msg_to_transforms(msg, m.topic), rig)
+            continue
         k = (m.log_time_ns - START) // 100_000_000
         assert m.log_time_ns == START + k * 100_000_000
         assert bagio.stamp_to_ns(msg.header.stamp) == m.log_time_ns
@@ -146,6 +159,10 @@ def test_bag_read_back_with_mcap_decoder(dataset: Path):
     for _schema, channel, m, msg in decoded:
         topic = channel.topic
         counts[topic] = counts.get(topic, 0) + 1
+        if topic == TF_STATIC_TOPIC:  # decoded by mcap_ros2 from the schema rosbags wrote
+            assert _schema.name == "tf2_msgs/msg/TFMessage" and m.log_time == START
+            assert_rig_transforms(msg_to_transforms(msg, topic), rig)
+            continue
         k = (m.log_time - START) // 100_000_000
         assert m.log_time == START + k * 100_000_000
         assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == m.log_time

@@ -1,12 +1,15 @@
 """draw_detections: boxes, labels, bones and vertex dots end up where the detections say."""
 from __future__ import annotations
 
+import colorsys
+
 import numpy as np
 import pytest
 
+from maem_ros.core.colors import id_bgr8
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import MHR70, SPORTCENTER_13
-from maem_ros.frontend.overlay import colour_for, draw_detections
+from maem_ros.frontend.overlay import draw_detections
 
 
 def _dets(n: int = 2, joints: int = 13, verts: int = 200) -> FrameDetections:
@@ -27,7 +30,7 @@ def test_draws_box_bones_and_keeps_input():
     out = draw_detections(img, dets, ids=[7, -1])
     assert out.shape == img.shape and out.dtype == np.uint8
     assert not img.any(), "input image must not be modified"
-    colour = np.array(colour_for(7))
+    colour = np.array(id_bgr8(7))
     # a point on the left edge of box 0 has the id colour
     assert np.abs(out[200, 60].astype(int) - colour).max() <= 40
     # tentative id (-1) is grey
@@ -71,3 +74,16 @@ def test_empty_and_bad_inputs():
     d.bboxes[0] = [-1e9, -1e9, 1e9, 1e9]
     d.kpts2d[0, 0] = np.inf
     draw_detections(img, d)
+
+
+def test_one_id_colour_for_markers_and_overlays() -> None:
+    from maem_ros.core.colors import id_rgb
+    from maem_ros.ros.wire import id_color
+    for track_id in (0, 1, 7, 4096):
+        r, g, b = id_rgb(track_id)
+        marker = id_color(track_id)
+        assert (marker.r, marker.g, marker.b) == pytest.approx((r, g, b), abs=1e-6)
+        assert id_bgr8(track_id) == tuple(int(round(255 * c)) for c in (b, g, r))
+    # neighbouring ids are far apart in hue
+    hues = [colorsys.rgb_to_hsv(*id_rgb(i))[0] for i in range(8)]
+    assert min(abs(a - b) for a, b in zip(hues, hues[1:])) > 0.2

@@ -17,7 +17,7 @@ from std_msgs.msg import String
 
 from maem_ros.ros.player_node import (BagPlayer, PlayOptions, loop_gap_ns, parse_args,
                                       select_topics)
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
 

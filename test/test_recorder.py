@@ -14,7 +14,7 @@ from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import String
 
 from maem_ros.ros.recorder_node import parse_args, wanted
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
 

@@ -324,10 +324,12 @@ def test_poses_match_ground_truth_with_stable_ids(graph, scene):
         pf = g["poses"].by_stamp[stamp]
         confirmed = {int(i) for i in pf.ids if i != wire.UNTRACKED_ID}
         by_ns: dict[str, dict[int, Marker]] = {}
-        for m in arr.markers:
+        assert arr.markers[0].action == Marker.DELETEALL  # replaces the previous frame's
+        lifetimes = {m.lifetime.sec + m.lifetime.nanosec * 1e-9 for m in arr.markers[1:]}
+        assert len(lifetimes) <= 1 and all(t >= 0.5 - 1e-9 for t in lifetimes)
+        for m in arr.markers[1:]:
             by_ns.setdefault(m.ns, {})[m.id] = m
             assert m.header.frame_id == "world" and wire.stamp_to_ns(m.header.stamp) == stamp
-            assert m.lifetime.sec + m.lifetime.nanosec * 1e-9 == pytest.approx(0.5)
             assert m.action == Marker.ADD and m.color.a > 0
         assert set(by_ns) == {wire.NS_JOINTS, wire.NS_BONES, wire.NS_LABELS}
         for ns in by_ns:
@@ -383,3 +385,15 @@ def test_frontend_npz_backend_replays_a_scene_folder(graph, tmp_path):
         np.testing.assert_allclose(got.kpts2d, want.kpts2d, atol=0.05)
         np.testing.assert_allclose(got.scores, want.scores, atol=1e-6)
         time.sleep(0.1)  # best-effort images, keep last 2: no bursts
+
+
+def test_marker_lifetime_follows_the_frame_period(graph):
+    from maem_ros.ros.triangulation_node import TriangulationNode
+    _, tri_p = pipeline_params()
+    node = graph.add(TriangulationNode, dict(tri_p, marker_lifetime=0.2,
+                                             marker_lifetime_periods=3.0))
+    assert node.lifetime_s() == 0.2  # no period known yet
+    node._arrivals.extend([10.0, 10.5, 11.0, 11.5])  # a 2 Hz stream (slow replay)
+    assert node.lifetime_s() == pytest.approx(1.5)
+    node._arrivals.extend([11.51 + 0.01 * i for i in range(16)])  # 100 Hz
+    assert node.lifetime_s() == 0.2

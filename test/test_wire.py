@@ -17,7 +17,7 @@ from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 TOPIC = "/camera_0/detections"
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -249,7 +249,7 @@ def test_received_invalid_stamps_are_wire_errors(sec, nanosec):
 
 def test_cdr_header_stamp():
     stamp = 1_700_000_000_123_456_789
-    data = bagio.serialize(bagio.compressed_image_msg(stamp, "camera_0", b"\xff\xd8", "jpeg"))
+    data = bagio.serialize(wire.compressed_image_msg(b"\xff\xd8", "jpeg", stamp, "camera_0"))
     assert wire.cdr_header_stamp_ns(data) == stamp
     with pytest.raises(ValueError, match="too short"):
         wire.cdr_header_stamp_ns(b"\x00\x01\x00\x00")
@@ -349,8 +349,15 @@ def test_skeleton_markers_well_formed():
     joints[0, 5] = np.nan  # left_wrist-ish joint missing -> its bones skipped
     joints[2] = np.nan  # nothing finite -> no markers
     arr = wire.skeleton_markers(10**9 + 5, "world", [7, -1, 13], joints, SPORTCENTER_13.bones, 0.5)
-    assert len(arr.markers) == 3  # tentative id -1 and all-NaN person 13 are skipped
+    assert len(arr.markers) == 1 + 3  # tentative id -1 and all-NaN person 13 are skipped
     arr = wire.skeleton_markers(10**9 + 5, "world", [7, 12, 13], joints, SPORTCENTER_13.bones, 0.5)
+    # the previous frame's markers are deleted first (DELETEALL), then this frame's added
+    clear = arr.markers[0]
+    assert (clear.action, clear.ns, clear.header.stamp.sec) == (Marker.DELETEALL,
+                                                                 wire.NS_DELETE_ALL, 1)
+    empty = wire.skeleton_markers(10**9, "world", [], np.zeros((0, 13, 3)), SPORTCENTER_13.bones)
+    assert [m.action for m in empty.markers] == [Marker.DELETEALL]
+    arr.markers = arr.markers[1:]
     assert len(arr.markers) == 6
     by = {(m.ns, m.id): m for m in arr.markers}
     assert set(by) == {(ns, i) for ns in (wire.NS_JOINTS, wire.NS_BONES, wire.NS_LABELS)

@@ -26,8 +26,8 @@ from __future__ import annotations
 
 import time
 import weakref
-from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from dataclasses import dataclass, field
+from typing import Mapping
 
 import numpy as np
 
@@ -36,17 +36,9 @@ from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet, camera_pair_groups)
 from .geometry import reprojection_errors
+from .paramspec import Params, param
 from .procrustes import pa_mpjpe_finite
 from .skeleton import joint_subset
-
-_CHOICES = {
-    "reproj_reduce": ("mean", "max"),
-    "epipolar_gate": ("mesh", "sparse", "none"),
-    "epipolar_distance": ("symmetric", "forward"),
-    "backend": epipolar.BACKENDS,
-    "clustering": clustering.METHODS,
-}
-
 
 #: overrides that give the MAEM paper's pipeline exactly: PA-MPJPE on every keypoint, no cost
 #: cap, per-pair Hungarian + union-find + conflict removal
@@ -55,8 +47,10 @@ PAPER_PIPELINE = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0,
 
 
 @dataclass
-class AssociationParams:
-    """Thresholds (px, m, score) and switches of MAEM stage 2.
+class AssociationParams(Params):
+    """Thresholds (px, m, score) and switches of MAEM stage 2; one field = one parameter of the
+    association node (core/paramspec.py: add a field with ``param()`` and it is validated, read
+    from params files and declared, with --help, by the node).
 
     ``backend`` selects the epipolar kernel (auto = numba when installed, else numpy); both
     give the same decisions. ``cost_joints``: "body" (the 13 sportcenter body joints of the
@@ -66,75 +60,42 @@ class AssociationParams:
     ``tau_verify`` (px), ``min_support`` (fraction): the consistent clustering's merge checks.
     """
 
-    tau_det: float = 0.9
-    tau_reproj_bbox: float = 10.0
-    tau_mesh: float = 8.0
-    k_min: int = 4
-    reproj_gate: bool = True
-    reproj_reduce: str = "mean"
-    epipolar_gate: str = "mesh"
-    epipolar_distance: str = "symmetric"
-    vertex_stride: int = 1
-    vertex_count: int = 0
-    early_exit: bool = True
-    backend: str = "auto"
-    clustering: str = "consistent"
-    cost_joints: str = "body"
-    tau_cost: float = 0.21
-    cost_epipolar_weight: float = 0.005
-    tau_verify: float = 10.0
-    min_support: float = 0.6
+    tau_det: float = param(0.9, "detection score threshold", minimum=0.0, maximum=1.0)
+    tau_reproj_bbox: float = param(10.0, "px, bbox-centre reprojection gate", minimum=0.0,
+                                   exclusive_minimum=True)
+    tau_mesh: float = param(8.0, "px, dense-mesh epipolar gate", minimum=0.0,
+                            exclusive_minimum=True)
+    k_min: int = param(4, "minimum views per cluster", minimum=2)
+    reproj_gate: bool = param(True, "apply the bbox-centre reprojection gate")
+    reproj_reduce: str = param("mean", "reprojection error of the pair", choices=("mean", "max"))
+    epipolar_gate: str = param("mesh", "epipolar gate", choices=("mesh", "sparse", "none"))
+    epipolar_distance: str = param("symmetric", "point-to-line distance direction",
+                                   choices=("symmetric", "forward"))
+    vertex_stride: int = param(1, "use every n-th mesh vertex", minimum=1)
+    vertex_count: int = param(0, "use at most this many vertices (0 = all)", minimum=0)
+    early_exit: bool = param(True, "stop the mesh distance early once a pair cannot pass")
+    backend: str = param("auto", "epipolar kernel (auto = numba when installed, else numpy)",
+                         choices=epipolar.BACKENDS)
+    clustering: str = param("consistent", "consistent (verified best-first merges), paper "
+                                          "(Hungarian + union-find) or spectral (PA-MPJPE "
+                                          "matching baseline)", choices=clustering.METHODS)
+    cost_joints: str = param("body", "pair-cost keypoints: body (13 body joints), all, or "
+                                     "comma-separated indices")
+    tau_cost: float = param(0.21, "m, pairs whose cost is above this never match (0 = no cap)",
+                            minimum=0.0)
+    cost_epipolar_weight: float = param(0.005, "m per px of mean epipolar distance added to "
+                                               "the pair cost", minimum=0.0)
+    tau_verify: float = param(10.0, "px, consistent merges: each member's median reprojection "
+                                    "error of the triangulated body joints", minimum=0.0,
+                              exclusive_minimum=True)
+    min_support: float = param(0.6, "consistent merges: fraction of cross pairs that passed "
+                                    "the gates", minimum=0.0, maximum=1.0)
 
     def __post_init__(self) -> None:
-        for name in ("tau_det", "tau_reproj_bbox", "tau_mesh", "tau_cost", "cost_epipolar_weight",
-                     "tau_verify", "min_support"):
-            setattr(self, name, _number(name, getattr(self, name)))
-        if not 0.0 <= self.tau_det <= 1.0:
-            raise ValueError(f"tau_det: must be in [0, 1], got {self.tau_det}")
-        for name in ("tau_reproj_bbox", "tau_mesh", "tau_verify"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name}: must be > 0 px, got {getattr(self, name)}")
-        for name in ("tau_cost", "cost_epipolar_weight"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: must be >= 0, got {getattr(self, name)}")
-        if not 0.0 <= self.min_support <= 1.0:
-            raise ValueError(f"min_support: must be in [0, 1], got {self.min_support}")
-        self.k_min = _integer("k_min", self.k_min, 2)
-        self.vertex_stride = _integer("vertex_stride", self.vertex_stride, 1)
-        self.vertex_count = _integer("vertex_count", self.vertex_count, 0)
-        for name in ("reproj_gate", "early_exit"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise ValueError(f"{name}: expected true/false, got {getattr(self, name)!r}")
-            setattr(self, name, bool(getattr(self, name)))
-        for name, choices in _CHOICES.items():
-            if getattr(self, name) not in choices:
-                raise ValueError(f"{name}: expected one of {list(choices)}, got "
-                                 f"{getattr(self, name)!r}")
+        super().__post_init__()
         if self.clustering == "consistent" and self.tau_cost == 0:
             raise ValueError("tau_cost: the consistent clustering needs a cost cap > 0 m")
         joint_subset(self.cost_joints, None)
-
-    @classmethod
-    def from_mapping(cls, d: Mapping[str, Any]) -> "AssociationParams":
-        """Take the known keys of a params dict (others, e.g. slop, are ignored); validate."""
-        return cls(**{f.name: d[f.name] for f in fields(cls) if f.name in d})
-
-
-def _number(name: str, v: Any) -> float:
-    if isinstance(v, (bool, str, np.bool_)) or not isinstance(v, (int, float, np.number)):
-        raise ValueError(f"{name}: expected a number, got {v!r}")
-    if not np.isfinite(v):
-        raise ValueError(f"{name}: must be finite, got {v}")
-    return float(v)
-
-
-def _integer(name: str, v: Any, minimum: int) -> int:
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
-            or not np.isfinite(v) or int(v) != v:
-        raise ValueError(f"{name}: expected an integer, got {v!r}")
-    if int(v) < minimum:
-        raise ValueError(f"{name}: must be >= {minimum}, got {int(v)}")
-    return int(v)
 
 
 @dataclass

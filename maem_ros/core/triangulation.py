@@ -14,41 +14,27 @@ per-matrix SVD/LAPACK calls cost ~2 us each, far too slow for ~10^4 small system
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 
 from .camera import Rig
 from .detections import Cluster, DetectionTable, FrameDetections
 from .geometry import normal_entries, reprojection_error, solve_normal
+from .paramspec import Params, param
 
 #: a view whose detection score is 0 still counts as a view, with this tiny DLT weight
 _MIN_WEIGHT = 1e-3
 
 
 @dataclass
-class TriangulationParams:
-    """tau_kps: keypoint inlier threshold (rectified px); min_views: inlier views per keypoint."""
+class TriangulationParams(Params):
+    """Per-keypoint RANSAC triangulation thresholds (one field = one parameter of the
+    triangulation node, see core/paramspec.py)."""
 
-    tau_kps: float = 20.0
-    min_views: int = 2
-
-    def __post_init__(self) -> None:
-        self.tau_kps = float(self.tau_kps)
-        if not np.isfinite(self.tau_kps) or self.tau_kps <= 0:
-            raise ValueError(f"tau_kps: must be a positive number of px, got {self.tau_kps}")
-        if int(self.min_views) != self.min_views or self.min_views < 2:
-            raise ValueError(f"min_views: must be an integer >= 2, got {self.min_views}")
-        self.min_views = int(self.min_views)
-
-    @classmethod
-    def from_mapping(cls, d: Mapping[str, Any]) -> "TriangulationParams":
-        """Take the known keys of a params dict (others, e.g. frame_id, are ignored)."""
-        kwargs = {k: d[k] for k in ("tau_kps", "min_views") if k in d}
-        for k, v in kwargs.items():
-            if isinstance(v, (bool, str)) or not isinstance(v, (int, float, np.number)):
-                raise ValueError(f"{k}: expected a number, got {v!r}")
-        return cls(**kwargs)
+    tau_kps: float = param(20.0, "px, keypoint inlier threshold (rectified image)", minimum=0.0,
+                           exclusive_minimum=True)
+    min_views: int = param(2, "inlier views needed per keypoint", minimum=2)
 
 
 @dataclass

@@ -5,23 +5,16 @@ drawn on the rectified image (``Rectifier.rectify``), not on the raw one.
 """
 from __future__ import annotations
 
-import colorsys
 from typing import Sequence
 
 import cv2
 import numpy as np
 
+from maem_ros.core.colors import id_bgr8
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import KeypointConvention, convention_for, get_convention
 
 _LIMIT = 1 << 15  # cv2 drawing takes int coordinates; clamp far-off points well outside any image
-
-
-def colour_for(key: int) -> tuple[int, int, int]:
-    """A stable, well-separated BGR colour for an integer (track id or detection index)."""
-    hue = (int(key) * 0.61803398875) % 1.0
-    r, g, b = colorsys.hsv_to_rgb(hue, 0.85, 1.0)
-    return int(255 * b), int(255 * g), int(255 * r)
 
 
 def _resolve_convention(conv: KeypointConvention | str | None, num_joints: int
@@ -83,7 +76,7 @@ def draw_detections(image_rect: np.ndarray, dets: FrameDetections,
     scale = max(0.4, min(out.shape[:2]) / 1000.0)
     for i in range(n):
         key = int(ids[i]) if ids is not None else i
-        colour = colour_for(key) if key >= 0 else (160, 160, 160)
+        colour = id_bgr8(key) if key >= 0 else (160, 160, 160)
         if max_vertices > 0 and dets.num_vertices:
             _draw_vertices(out, dets.verts2d[i], max_vertices, colour)
         _draw_skeleton(out, dets.kpts2d[i], conv, colour, thickness)

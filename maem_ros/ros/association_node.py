@@ -13,16 +13,19 @@ without clusters, so downstream still sees every frame).
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
+from maem_ros.core.association import AssociationParams
+from maem_ros.core.paramspec import param, param_specs
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, ConfigError, Diagnostics,
-                                 ParamSpec, RejectErrors, Stopwatch, declare_params,
-                                 load_rig_param, run_node)
+from maem_ros.ros.common import (DATA_QOS, ConfigError, Diagnostics, NodeParams, RejectErrors,
+                                 Stopwatch, declare_params, load_rig_param,
+                                 publish_rig_tf, run_node)
 
 NODE_NAME = "association"
 
@@ -32,48 +35,29 @@ GATE_COUNTS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejecte
 #: ... and as per-stage times (ms)
 STAGE_TIMES = ("t_reproj_ms", "t_epipolar_ms", "t_cost_ms", "t_match_ms", "t_cluster_ms")
 
-PARAMS = (
-    DIAGNOSTICS_PERIOD,
-    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
-    ParamSpec("cameras", [], "cameras to subscribe (default: every rig camera)"),
-    ParamSpec("frame_id", "world", "header.frame_id of /maem/clusters (the rig's world frame)"),
-    ParamSpec("clusters_topic", "/maem/clusters", "output topic"),
-    ParamSpec("tau_det", 0.9, "detection score threshold", minimum=0.0, maximum=1.0),
-    ParamSpec("tau_reproj_bbox", 10.0, "px, bbox-centre reprojection gate", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("tau_mesh", 8.0, "px, dense-mesh epipolar gate", minimum=0.0, exclusive_minimum=True),
-    ParamSpec("k_min", 4, "minimum views per cluster", minimum=2),
-    ParamSpec("reproj_gate", True, "apply the bbox-centre reprojection gate"),
-    ParamSpec("reproj_reduce", "mean", "reprojection error of the pair", choices=("mean", "max")),
-    ParamSpec("epipolar_gate", "mesh", "epipolar gate", choices=("mesh", "sparse", "none")),
-    ParamSpec("epipolar_distance", "symmetric", "point-to-line distance direction",
-              choices=("symmetric", "forward")),
-    ParamSpec("vertex_stride", 1, "use every n-th mesh vertex", minimum=1),
-    ParamSpec("vertex_count", 0, "use at most this many vertices (0 = all)", minimum=0),
-    ParamSpec("early_exit", True, "stop the mesh distance early once a pair cannot pass"),
-    ParamSpec("backend", "auto", "epipolar kernel (auto = numba when installed, else numpy)",
-              choices=("auto", "numba", "numpy")),
-    ParamSpec("clustering", "consistent", "consistent (verified best-first merges), paper "
-              "(Hungarian + union-find) or spectral (PA-MPJPE matching baseline)",
-              choices=("consistent", "paper", "spectral")),
-    ParamSpec("cost_joints", "body", "pair-cost keypoints: body (13 body joints), all, or "
-              "comma-separated indices"),
-    ParamSpec("tau_cost", 0.21, "m, pairs whose cost is above this never match (0 = no cap)",
-              minimum=0.0),
-    ParamSpec("cost_epipolar_weight", 0.005, "m per px of mean epipolar distance added to the "
-              "pair cost", minimum=0.0),
-    ParamSpec("tau_verify", 10.0, "px, consistent merges: each member's median reprojection "
-              "error of the triangulated body joints", minimum=0.0, exclusive_minimum=True),
-    ParamSpec("min_support", 0.6, "consistent merges: fraction of cross pairs that passed the "
-              "gates", minimum=0.0, maximum=1.0),
-    ParamSpec("slop", 0.02, "s, stamps within this of the reference belong to one frame set",
-              minimum=0.0),
-    ParamSpec("max_wait", 0.15, "s, emit a partial frame set after waiting this long",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("min_cameras", 2, "cameras needed for a partial frame set", minimum=2),
-    ParamSpec("poll_period", 0.01, "s, synchroniser poll timer", minimum=0.0,
-              exclusive_minimum=True),
-)
+RIG_DESCRIPTION = "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"
+
+
+@dataclass
+class AssociationNodeParams(NodeParams):
+    """The association node's own parameters (the method's are core AssociationParams)."""
+
+    rig: str = param("", RIG_DESCRIPTION)
+    cameras: list = param([], "cameras to subscribe (default: every rig camera)")
+    frame_id: str = param("world", "header.frame_id of /maem/clusters (the rig's world frame)")
+    clusters_topic: str = param("maem/clusters", "output topic (relative: follows __ns)")
+    slop: float = param(0.02, "s, stamps within this of the reference belong to one frame set",
+                        minimum=0.0)
+    max_wait: float = param(0.15, "s, emit a partial frame set after waiting this long",
+                            minimum=0.0, exclusive_minimum=True)
+    min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
+    poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0,
+                               exclusive_minimum=True)
+    publish_tf: bool = param(True, "publish world -> each rig camera on /tf_static (transient "
+                                   "local) at start")
+
+
+PARAMS = param_specs(AssociationNodeParams, AssociationParams)
 
 
 class AssociationNode(Node):
@@ -90,7 +74,7 @@ class AssociationNode(Node):
                               f"({self.rig.names})")
         if p["min_cameras"] > len(cams):
             raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
-        from maem_ros.core.association import AssociationParams, associate
+        from maem_ros.core.association import associate
         from maem_ros.core.sync import ApproximateTimeSync
         try:
             self.params = AssociationParams.from_mapping(p)
@@ -113,6 +97,7 @@ class AssociationNode(Node):
             self.subs.append(self.create_subscription(
                 PointCloud2, topic, partial(self.on_detections, cam, topic), DATA_QOS))
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
+        self.tf_pub = publish_rig_tf(self, self.rig, self.frame_id) if p["publish_tf"] else None
         self.get_logger().info(f"{len(self.cameras)} cameras {self.cameras} -> "
                                f"{self.pub.topic_name}")
 
@@ -175,7 +160,7 @@ class AssociationNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: AssociationNode(), args, NODE_NAME)
+    return run_node(lambda: AssociationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

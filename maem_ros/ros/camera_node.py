@@ -15,16 +15,10 @@ model of the RAW image, P = [K_rect | 0] of the rectified image the frontend pro
 """
 from __future__ import annotations
 
-import glob as globmod
-import os
-import re
 import sys
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Callable, Protocol
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
@@ -32,327 +26,51 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
+from maem_ros.capture import Capture, Poll, make_source, to_bgr
 from maem_ros.core.camera import Camera
+from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, ParamSpec, Stopwatch,
+from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, Stopwatch,
                                  declare_params, default_camera_name, load_rig_param, run_node)
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
 EXIT_SOURCE_FAILED = 2
 
-PARAMS = (
-    ParamSpec("camera", "", "camera name: rig key, topic namespace /<camera>/ (default: the "
-              "last component of the node namespace)"),
-    ParamSpec("rig", "", "rig YAML / camera-JSON folder / shipped rig name; empty = no camera_info"),
-    ParamSpec("fps", 30.0, "capture and publish rate, Hz", minimum=0.0, exclusive_minimum=True,
-              maximum=1000.0),
-    ParamSpec("transport", "raw", "raw: /<camera>/image_raw (bgr8); compressed: "
-              "/<camera>/image_raw/compressed (jpeg)", choices=("raw", "compressed")),
-    ParamSpec("jpeg_quality", 90, "JPEG quality for transport=compressed", minimum=1, maximum=100),
-    ParamSpec("loop", False, "restart a video file or image folder at its end (else exit 0)"),
-    ParamSpec("frame_id", "", "header.frame_id (default: the camera name)"),
-    ParamSpec("reliability", "reliable", "image/camera_info publisher QoS: reliable (matches every "
-              "subscriber, incl. RViz) or best_effort (sensor data)",
-              choices=("reliable", "best_effort")),
-    ParamSpec("open_attempts", 5, "attempts to open a source that never opened before giving up "
-              "(exit code 2)", minimum=1),
-    ParamSpec("open_timeout", 5.0, "s, open/read timeout for stream URLs (FFmpeg backend)",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("reconnect_backoff", 0.5, "s, first retry delay; doubles per failed attempt",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("reconnect_backoff_max", 10.0, "s, longest retry delay", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("max_reconnects", 0, "give up (exit 2) after this many failed reopen attempts of a "
-              "source that was open (0 = retry forever)", minimum=0),
-)
-
-
-# ---------------------------------------------------------------------------------------------
-# frame sources
-# ---------------------------------------------------------------------------------------------
-class FrameSource(Protocol):
-    """One openable image source. ``finite``: its end is normal (file/folder), not a failure."""
-
-    description: str
-    finite: bool
-
-    def open(self) -> bool: ...
-
-    def read(self) -> tuple[np.ndarray | None, int]:
-        """(frame or None at end/failure, stamp ns taken right after the grab)."""
-
-    def rewind(self) -> bool: ...
-
-    def release(self) -> None: ...
-
-
-def _natural_key(s: str):
-    return [int(p) if p.isdigit() else p.lower() for p in re.split(r"(\d+)", s)]
-
-
-class ImageFolderSource:
-    """Images of a folder (known extensions) or a glob pattern, in natural order."""
-
-    finite = True
-
-    def __init__(self, pattern: str, clock_ns: Callable[[], int]):
-        self.pattern = pattern
-        self.description = f"image folder {pattern!r}"
-        self._clock_ns = clock_ns
-        self._files: list[str] = []
-        self._index = 0
-
-    def _list(self) -> list[str]:
-        p = Path(self.pattern).expanduser()
-        if p.is_dir():
-            files = [str(f) for f in p.iterdir() if f.suffix.lower() in IMAGE_EXTENSIONS]
-        else:
-            files = [f for f in globmod.glob(str(p)) if os.path.isfile(f)]
-        return sorted(files, key=_natural_key)
-
-    def open(self) -> bool:
-        self._files = self._list()
-        self._index = 0
-        return bool(self._files)
-
-    def read(self) -> tuple[np.ndarray | None, int]:
-        if self._index >= len(self._files):
-            return None, 0
-        path = self._files[self._index]
-        self._index += 1
-        stamp = self._clock_ns()
-        frame = cv2.imread(path, cv2.IMREAD_COLOR)
-        if frame is None:
-            raise UnreadableFrame(f"unreadable image {path!r}, skipped")
-        return frame, stamp
-
-    def rewind(self) -> bool:
-        self._index = 0
-        return bool(self._files)
-
-    def release(self) -> None:
-        self._index = len(self._files)
-
-
-class VideoSource:
-    """cv2.VideoCapture on a device index, a video file or a stream URL."""
-
-    def __init__(self, spec: str | int, clock_ns: Callable[[], int], open_timeout_s: float = 5.0):
-        self.spec = spec
-        self.finite = isinstance(spec, str) and "://" not in spec  # a local file ends; streams fail
-        kind = "device" if isinstance(spec, int) else ("video file" if self.finite else "stream")
-        self.description = f"{kind} {spec!r}"
-        self._clock_ns = clock_ns
-        self._timeout_ms = int(1000 * open_timeout_s)
-        self._cap: cv2.VideoCapture | None = None
-
-    def open(self) -> bool:
-        self.release()
-        if isinstance(self.spec, int):
-            cap = cv2.VideoCapture(self.spec)
-            cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # newest frame, not a queued one (V4L2)
-        else:
-            target = str(Path(self.spec).expanduser()) if self.finite else self.spec
-            cap = cv2.VideoCapture(target, cv2.CAP_ANY,
-                                   [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, self._timeout_ms,
-                                    cv2.CAP_PROP_READ_TIMEOUT_MSEC, self._timeout_ms])
-        if not cap.isOpened():
-            cap.release()
-            return False
-        self._cap = cap
-        return True
-
-    def read(self) -> tuple[np.ndarray | None, int]:
-        if self._cap is None or not self._cap.grab():
-            return None, 0
-        stamp = self._clock_ns()
-        ok, frame = self._cap.retrieve()
-        return (frame if ok and frame is not None else None), stamp
-
-    def rewind(self) -> bool:
-        return self.open()
-
-    def release(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
-
-def make_source(spec: str, clock_ns: Callable[[], int], open_timeout_s: float = 5.0) -> FrameSource:
-    """The FrameSource for a ``source`` parameter value (see the module docstring)."""
-    spec = spec.strip()
-    if not spec:
-        raise ConfigError("parameter 'source': empty; give a device index, video file, stream "
-                          "URL or image folder/glob")
-    if re.fullmatch(r"\d+", spec):
-        return VideoSource(int(spec), clock_ns, open_timeout_s)
-    p = Path(spec).expanduser()
-    if p.is_dir() or (not p.exists() and any(c in spec for c in "*?[") and "://" not in spec):
-        return ImageFolderSource(spec, clock_ns)
-    return VideoSource(spec, clock_ns, open_timeout_s)
-
-
-# ---------------------------------------------------------------------------------------------
-# open / read / reconnect state machine (no ROS; clock passed in)
-# ---------------------------------------------------------------------------------------------
-class UnreadableFrame(OSError):
-    """One bad frame of a source that is otherwise fine (e.g. a corrupt file in a folder):
-    skipped and counted, the source is not reopened."""
-
-
 @dataclass
-class Poll:
-    """Result of one capture tick: a frame, or status 'skipped' | 'waiting' | 'ended' | 'failed'."""
+class CameraNodeParams(Params):
+    """The camera node's parameters (``source`` is declared separately: string or integer)."""
 
-    status: str
-    frame: np.ndarray | None = None
-    stamp_ns: int = 0
-    message: str = ""
-
-
-@dataclass
-class CaptureCounters:
-    opens: int = 0
-    open_failures: int = 0
-    reconnects: int = 0
-    read_failures: int = 0
-    skipped: int = 0
-    loops: int = 0
-    frames: int = 0
-
-
-@dataclass
-class Capture:
-    """Opens ``source``, reads frames, reopens after failures with exponential backoff.
-
-    Delays (s): after the k-th consecutive failed attempt the next one waits
-    ``min(backoff * 2**(k-1), backoff_max)``. A source never opened fails for good after
-    ``open_attempts`` failed attempts; one that was open retries forever unless
-    ``max_reconnects`` > 0 consecutive reopen attempts failed.
-    """
-
-    source: FrameSource
-    loop: bool = False
-    open_attempts: int = 5
-    backoff: float = 0.5
-    backoff_max: float = 10.0
-    max_reconnects: int = 0
-    counters: CaptureCounters = field(default_factory=CaptureCounters)
-
-    def __post_init__(self) -> None:
-        self._open = False
-        self._ever_opened = False
-        self._failed_attempts = 0
-        self._next_attempt = -float("inf")
-        self._final: Poll | None = None
-
-    @property
-    def is_open(self) -> bool:
-        return self._open
-
-    def delay(self, failed_attempts: int) -> float:
-        """s to wait after ``failed_attempts`` consecutive failures (>= 1)."""
-        return min(self.backoff * 2.0 ** (failed_attempts - 1), self.backoff_max)
-
-    def poll(self, now: float) -> Poll:
-        """One tick at monotonic time ``now`` (s)."""
-        if self._final is not None:
-            return self._final
-        if not self._open:
-            result = self._try_open(now)
-            if result is not None:
-                return result
-        try:
-            frame, stamp = self.source.read()
-            if frame is None and self.source.finite:
-                if not self.loop:
-                    return self._finish(Poll("ended", message=f"end of {self.source.description}"))
-                self.counters.loops += 1
-                if not self.source.rewind():
-                    return self._lost(now, "cannot restart at its end")
-                frame, stamp = self.source.read()
-        except UnreadableFrame as e:
-            self.counters.skipped += 1
-            return Poll("skipped", message=str(e))
-        except OSError as e:
-            return self._lost(now, str(e))
-        if frame is None:
-            return self._lost(now, "read failed")
-        self.counters.frames += 1
-        return Poll("frame", frame, stamp)
-
-    def _try_open(self, now: float) -> Poll | None:
-        if now < self._next_attempt:
-            return Poll("waiting")
-        if self.source.open():
-            self._open = True
-            self.counters.opens += 1
-            if self._ever_opened:
-                self.counters.reconnects += 1
-            self._ever_opened = True
-            self._failed_attempts = 0
-            return None
-        self.counters.open_failures += 1
-        self._failed_attempts += 1
-        if not self._ever_opened and self._failed_attempts >= self.open_attempts:
-            return self._finish(Poll("failed", message=(
-                f"cannot open {self.source.description} after {self._failed_attempts} attempts; "
-                "check the path/URL/device index and that nothing else holds the device")))
-        if self._ever_opened and 0 < self.max_reconnects <= self._failed_attempts:
-            return self._finish(Poll("failed", message=(
-                f"lost {self.source.description}; {self._failed_attempts} reopen attempts failed")))
-        self._next_attempt = now + self.delay(self._failed_attempts)
-        return Poll("waiting", message=f"cannot open {self.source.description}, retrying in "
-                                       f"{self.delay(self._failed_attempts):.1f} s")
-
-    def _lost(self, now: float, why: str) -> Poll:
-        self.counters.read_failures += 1
-        self.source.release()
-        self._open = False
-        self._next_attempt = now  # first reopen immediately, then back off
-        return Poll("waiting", message=f"{self.source.description}: {why}; reconnecting")
-
-    def _finish(self, result: Poll) -> Poll:
-        self.source.release()
-        self._open = False
-        self._final = result
-        return result
-
-    def close(self) -> None:
-        self.source.release()
-        self._open = False
+    camera: str = param("", "camera name: rig key, topic namespace /<camera>/ (default: the "
+                            "last component of the node namespace)")
+    rig: str = param("", "rig YAML / camera-JSON folder / shipped rig name; empty = no "
+                         "camera_info")
+    fps: float = param(30.0, "capture and publish rate, Hz", minimum=0.0, exclusive_minimum=True,
+                       maximum=1000.0)
+    transport: str = param("raw", "raw: /<camera>/image_raw (bgr8); compressed: "
+                                  "/<camera>/image_raw/compressed (jpeg)",
+                           choices=("raw", "compressed"))
+    jpeg_quality: int = param(90, "JPEG quality for transport=compressed", minimum=1,
+                              maximum=100)
+    loop: bool = param(False, "restart a video file or image folder at its end (else exit 0)")
+    frame_id: str = param("", "header.frame_id (default: the camera name)")
+    reliability: str = param("reliable", "image/camera_info publisher QoS: reliable (matches "
+                                         "every subscriber, incl. RViz) or best_effort (sensor "
+                                         "data)", choices=("reliable", "best_effort"))
+    open_attempts: int = param(5, "attempts to open a source that never opened before giving "
+                                  "up (exit code 2)", minimum=1)
+    open_timeout: float = param(5.0, "s, open/read timeout for stream URLs (FFmpeg backend)",
+                                minimum=0.0, exclusive_minimum=True)
+    reconnect_backoff: float = param(0.5, "s, first retry delay; doubles per failed attempt",
+                                     minimum=0.0, exclusive_minimum=True)
+    reconnect_backoff_max: float = param(10.0, "s, longest retry delay", minimum=0.0,
+                                         exclusive_minimum=True)
+    max_reconnects: int = param(0, "give up (exit 2) after this many failed reopen attempts of a "
+                                   "source that was open (0 = retry forever)", minimum=0)
 
 
-# ---------------------------------------------------------------------------------------------
-# messages not (yet) in wire.py: JPEG CompressedImage and CameraInfo from the rig
-# ---------------------------------------------------------------------------------------------
-def to_bgr(frame: np.ndarray) -> np.ndarray:
-    """Any uint8 mono / BGR / BGRA capture -> BGR uint8 (H,W,3)."""
-    if frame.dtype != np.uint8:
-        raise ValueError(f"image: expected uint8 pixels, got {frame.dtype}")
-    if frame.ndim == 2 or frame.shape[2] == 1:
-        return cv2.cvtColor(frame.reshape(frame.shape[:2]), cv2.COLOR_GRAY2BGR)
-    return cv2.cvtColor(frame, cv2.COLOR_BGRA2BGR) if frame.shape[2] == 4 else frame
-
-
-def bgr_to_compressed(image: np.ndarray, stamp_ns: int, frame_id: str,
-                      quality: int) -> CompressedImage:
-    """BGR uint8 -> sensor_msgs/CompressedImage, JPEG (image_transport 'compressed' format)."""
-    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise ValueError("image: JPEG encoding failed")
-    msg = CompressedImage(header=wire.make_header(stamp_ns, frame_id),
-                          format="bgr8; jpeg compressed bgr8")
-    msg.data = buf.tobytes()
-    return msg
-
-
-def camera_info_msg(camera: Camera, stamp_ns: int, frame_id: str) -> CameraInfo:
-    """Camera -> sensor_msgs/CameraInfo (raw image K, D, model; R = I; P = [K_rect | 0])."""
-    info = camera.to_camera_info()
-    return CameraInfo(header=wire.make_header(stamp_ns, frame_id), width=info["width"],
-                      height=info["height"], distortion_model=info["distortion_model"],
-                      d=info["d"], k=info["k"], r=info["r"], p=info["p"])
+PARAMS = CameraNodeParams.specs()
+#: ``source`` takes a string or an integer (``source:=0`` parses as an int): declared on its own
+SOURCE = ParamSpec("source", "", "device index (0), video file, stream URL, or image folder / "
+                                 "glob")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -373,21 +91,26 @@ class CameraNode(Node):
         self.camera = self._load_camera(p["rig"])
         self.transport, self.jpeg_quality = p["transport"], p["jpeg_quality"]
         clock = self.get_clock()
-        source = make_source(p["source"], lambda: clock.now().nanoseconds, p["open_timeout"])
+        try:
+            source = make_source(p["source"], lambda: clock.now().nanoseconds, p["open_timeout"])
+        except ValueError as e:
+            raise ConfigError(f"parameter 'source': {e}") from None
         self.capture = Capture(source, loop=p["loop"], open_attempts=p["open_attempts"],
                                backoff=p["reconnect_backoff"],
                                backoff_max=p["reconnect_backoff_max"],
                                max_reconnects=p["max_reconnects"])
-        base = f"/{self.camera_name}"
+        # relative names under the node's namespace: image_raw... in the camera's own namespace
+        # (/<camera>), else <camera>/image_raw... (/<camera>/... for a node in /)
+        base = "" if default_camera_name(self) == self.camera_name else f"{self.camera_name}/"
         qos = QoSProfile(depth=IMAGE_QOS.depth, history=HistoryPolicy.KEEP_LAST,
                          reliability=(ReliabilityPolicy.RELIABLE if p["reliability"] == "reliable"
                                       else ReliabilityPolicy.BEST_EFFORT))
         if self.transport == "raw":
-            self.pub_image = self.create_publisher(Image, f"{base}/image_raw", qos)
+            self.pub_image = self.create_publisher(Image, f"{base}image_raw", qos)
         else:
-            self.pub_image = self.create_publisher(CompressedImage, f"{base}/image_raw/compressed",
+            self.pub_image = self.create_publisher(CompressedImage, f"{base}image_raw/compressed",
                                                    qos)
-        self.pub_info = (self.create_publisher(CameraInfo, f"{base}/camera_info", qos)
+        self.pub_info = (self.create_publisher(CameraInfo, f"{base}camera_info", qos)
                          if self.camera is not None else None)
         self.diag = Diagnostics(self, hardware_id=self.camera_name)
         self.diag.set("source", source.description)
@@ -400,9 +123,8 @@ class CameraNode(Node):
 
     def _declare_source(self) -> str:
         """``source`` takes a string or an integer (``source:=0`` parses as an int)."""
-        desc = ParameterDescriptor(
-            name="source", description="device index (0), video file, stream URL, or image "
-            "folder / glob", dynamic_typing=True, read_only=True)
+        desc = ParameterDescriptor(name="source", description=SOURCE.description,
+                                   dynamic_typing=True, read_only=True)
         value = self.declare_parameter("source", "", desc).value
         if isinstance(value, bool) or not isinstance(value, (int, str)):
             raise ConfigError(f"parameter 'source': expected a device index or a string, "
@@ -462,10 +184,10 @@ class CameraNode(Node):
             if self.transport == "raw":
                 msg = wire.bgr_to_image(bgr, stamp_ns, self.frame_id)
             else:
-                msg = bgr_to_compressed(bgr, stamp_ns, self.frame_id, self.jpeg_quality)
+                msg = wire.bgr_to_compressed(bgr, stamp_ns, self.frame_id, self.jpeg_quality)
         self.pub_image.publish(msg)
         if self.pub_info is not None:
-            self.pub_info.publish(camera_info_msg(self.camera, stamp_ns, self.frame_id))
+            self.pub_info.publish(wire.camera_info_msg(self.camera, stamp_ns, self.frame_id))
         self.diag.input("capture")
         self.diag.ok()
 
@@ -481,7 +203,8 @@ class CameraNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    return run_node(CameraNode, args, "maem-camera", until=lambda node: node.done)
+    return run_node(CameraNode, args, "camera", until=lambda node: node.done,
+                    specs=(SOURCE,) + PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
                               ParameterException)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -30,6 +31,7 @@ from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityP
 from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
+from maem_ros.core.paramspec import ParamError, Params, ParamSpec, param
 from maem_ros.ros.cli import stop_on_signals
 
 #: camera images: best effort, keep last 2
@@ -41,6 +43,10 @@ DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 #: MarkerArray for RViz: reliable, keep last 10
 MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: /tf_static: reliable, transient local, keep last 1 (what tf2's static broadcaster offers)
+TF_STATIC_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                           reliability=ReliabilityPolicy.RELIABLE,
+                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 #: /diagnostics: reliable, keep last 10
 DIAGNOSTICS_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                              reliability=ReliabilityPolicy.RELIABLE,
@@ -62,92 +68,42 @@ _PTYPE = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEG
           list: ParameterType.PARAMETER_STRING_ARRAY}
 
 
-@dataclass(frozen=True)
-class ParamSpec:
-    """One read-only start-up parameter: name, default (its type is the parameter type), checks.
+@dataclass
+class NodeParams(Params):
+    """Parameters every processing node has (node-only parameter classes subclass this)."""
 
-    ``minimum``/``maximum`` bound numbers (inclusive unless ``exclusive_minimum``), ``choices``
-    restricts strings. ``list`` defaults are string arrays.
-    """
-
-    name: str
-    default: Any
-    description: str
-    minimum: float | None = None
-    maximum: float | None = None
-    exclusive_minimum: bool = False
-    choices: tuple[str, ...] | None = None
-
-    @property
-    def ptype(self) -> type:
-        return type(self.default) if not isinstance(self.default, (list, tuple)) else list
-
-    def constraints(self) -> str:
-        parts = []
-        if self.minimum is not None:
-            parts.append(f"{'>' if self.exclusive_minimum else '>='} {self.minimum:g}")
-        if self.maximum is not None:
-            parts.append(f"<= {self.maximum:g}")
-        if self.choices:
-            parts.append("one of " + "|".join(self.choices))
-        return ", ".join(parts)
-
-    def check(self, value: Any) -> Any:
-        """The validated value (ints accepted for doubles); ConfigError naming the parameter."""
-        where = f"parameter '{self.name}'"
-        t = self.ptype
-        if t is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if t is list:
-            value = [str(v) for v in value]
-        elif not isinstance(value, t) or (t is int and isinstance(value, bool)):
-            raise ConfigError(f"{where}: expected {t.__name__}, got {value!r}")
-        if t in (int, float):
-            if not math.isfinite(value):
-                raise ConfigError(f"{where}: {value!r} is not finite")
-            if self.minimum is not None and (value <= self.minimum if self.exclusive_minimum
-                                             else value < self.minimum):
-                raise ConfigError(f"{where}: {value!r} must be {self.constraints()}")
-            if self.maximum is not None and value > self.maximum:
-                raise ConfigError(f"{where}: {value!r} must be {self.constraints()}")
-        if self.choices is not None and value not in self.choices:
-            raise ConfigError(f"{where}: unknown value {value!r}, expected one of {list(self.choices)}")
-        return value
-
-
-#: every node: /diagnostics period
-DIAGNOSTICS_PERIOD = ParamSpec("diagnostics_period", 1.0, "s, /diagnostics publish period",
-                               minimum=0.0, exclusive_minimum=True)
+    diagnostics_period: float = param(1.0, "s, /diagnostics publish period (steady clock)",
+                                      minimum=0.0, exclusive_minimum=True)
 
 
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     """Declare read-only parameters with descriptors; return {name: validated value}.
 
-    An integer given for a double parameter (``tau_mesh: 8``) is accepted. Any bad value raises
-    ConfigError with one line naming the parameter.
+    Parameters are dynamically typed for rclpy and type-checked by ParamSpec.check, so an
+    integer given for a double parameter (``tau_mesh: 8``) is accepted and converted. Any bad
+    value raises ConfigError with one line naming the parameter.
     """
-    overrides = getattr(node, "_parameter_overrides", {})
     out: dict[str, Any] = {}
     for spec in specs:
-        ov = overrides.get(spec.name)
-        if (ov is not None and spec.ptype is float and ov.type_ == Parameter.Type.INTEGER):
-            overrides[spec.name] = Parameter(spec.name, Parameter.Type.DOUBLE, float(ov.value))
         desc = ParameterDescriptor(name=spec.name, type=_PTYPE[spec.ptype],
                                    description=spec.description,
                                    additional_constraints=spec.constraints(), read_only=True)
-        default = list(spec.default) if spec.ptype is list else spec.default
         try:
-            if spec.ptype is list and not default:
+            if spec.ptype is list:  # rclpy cannot infer a type from [] (string arrays only)
                 value = node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, desc).value
-                value = [] if value is None else value
+                value = list(spec.default) if value is None else value
             else:
-                value = node.declare_parameter(spec.name, default, desc).value
+                desc.dynamic_typing = True
+                value = node.declare_parameter(spec.name, spec.default, desc).value
         except InvalidParameterTypeException as e:
             raise ConfigError(f"parameter '{spec.name}': expected {spec.ptype.__name__} "
                               f"({_short(e)})") from None
         except (InvalidParameterValueException, ParameterException) as e:
             raise ConfigError(f"parameter '{spec.name}': {_short(e)}") from None
-        out[spec.name] = spec.check(value)
+        try:
+            out[spec.name] = spec.check(value)
+        except ParamError as e:
+            raise ConfigError(f"parameter '{e.name}': {e.problem}") from None
     return out
 
 
@@ -204,7 +160,9 @@ class Diagnostics:
         self._last_log: dict[str, float] = {}
         self._suppressed: dict[str, int] = defaultdict(int)
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
-        self._timer = node.create_timer(period_s, self.publish)
+        # steady clock: with use_sim_time a ROS-time timer stalls whenever /clock does
+        self._timer = node.create_timer(period_s, self.publish,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # -- recording --------------------------------------------------------------------------
     def input(self, topic: str) -> None:
@@ -357,8 +315,28 @@ class Stopwatch:
 # ---------------------------------------------------------------------------------------------
 # main()
 # ---------------------------------------------------------------------------------------------
+def print_help(name: str, doc: str | None, specs: Sequence[ParamSpec]) -> None:
+    """``--help`` of a node: usage, the module docstring's first paragraph, every parameter
+    with type, default, constraints and description."""
+    summary = (doc or "").strip().split("\n\n", 1)[0].strip()
+    lines = [f"usage: ros2 run maem_ros {name} [--ros-args [--params-file FILE] "
+             f"[-p {name}:NAME:=VALUE] [-r __ns:=/NS] ...]", "", summary, "",
+             "parameters (read-only, set at start):"]
+    lines += [f"  {spec.help_line()}" for spec in specs]
+    print("\n".join(lines), flush=True)
+
+
+def wants_help(args: Sequence[str] | None) -> bool:
+    """``-h``/``--help`` before any ``--ros-args``."""
+    argv = list(sys.argv if args is None else args)[1:]
+    if "--ros-args" in argv:
+        argv = argv[:argv.index("--ros-args")]
+    return "-h" in argv or "--help" in argv
+
+
 def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
-             until: Callable[[Node], Future] | None = None) -> int:
+             until: Callable[[Node], Future] | None = None,
+             specs: Sequence[ParamSpec] = (), doc: str | None = None) -> int:
     """rclpy.init, build the node, spin until SIGINT/SIGTERM, or with ``until`` until the future
     it returns for the node completes (its result is the exit code). Exit code 0 at
     SIGINT/SIGTERM, EXIT_CONFIG_ERROR (2) on bad params; the node is destroyed either way.
@@ -366,7 +344,11 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
     rclpy's own signal handler is not installed: the executor spins in short slices and a
     Python handler sets an Event, so shutdown always runs from the main thread between
     callbacks (with rclpy's C-level handler we saw rare hangs and SIGSEGV at Ctrl-C).
+    ``-h``/``--help`` prints ``doc``'s summary and ``specs`` (print_help) and returns 0.
     """
+    if wants_help(args):
+        print_help(name, doc, specs)
+        return 0
     stop = stop_on_signals()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
@@ -406,10 +388,23 @@ def load_rig_param(value: str, name: str = "rig"):
     try:
         return Rig.load(resolve_rig_path(value))
     except (ValueError, OSError) as e:
-        try:  # a synthetic rig whose YAML was not written to config/rigs/
-            from maem_ros.sim.rigs import RIG_NAMES, build_rig
-            if value in RIG_NAMES:
-                return build_rig(value)
-        except ImportError:
-            pass
         raise ConfigError(f"parameter '{name}': {e}") from None
+
+
+def publish_rig_tf(node: Node, rig, world_frame: str):
+    """Publish world -> every rig camera once on /tf_static (transient local, so late joiners
+    get it); the publisher, or None with one log line when tf2_msgs is not importable (it is
+    built by ``make``, see README)."""
+    from maem_ros.core.frames import rig_transforms
+    from maem_ros.ros import wire
+
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        node.get_logger().warning("TF skipped: tf2_msgs is not importable (make builds it from "
+                                  "its upstream definition; see README, TF)")
+        return None
+    pub = node.create_publisher(TFMessage, wire.TF_STATIC_TOPIC, TF_STATIC_QOS)
+    pub.publish(wire.tf_message(rig_transforms(rig, world_frame),
+                                node.get_clock().now().nanoseconds))
+    return pub

@@ -17,62 +17,72 @@ camera).
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
+from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, IMAGE_QOS, ConfigError,
-                                 Diagnostics, ParamSpec, Stopwatch, declare_params,
-                                 default_camera_name, load_rig_param, run_node)
+from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
+                                 Stopwatch, declare_params, default_camera_name, load_rig_param,
+                                 run_node)
 
 NODE_NAME = "frontend"
 
-PARAMS = (
-    DIAGNOSTICS_PERIOD,
-    ParamSpec("camera", "", "camera name = rig key = frame_id (default: last namespace component)"),
-    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
-    ParamSpec("backend", "synthetic", "estimator backend", choices=("synthetic", "npz", "sam3d_body")),
-    ParamSpec("image_transport", "raw", "subscribe image_raw (raw) or image_raw/compressed",
-              choices=("raw", "compressed")),
-    ParamSpec("publish_overlay", False, "also publish detections/overlay (rectified image + drawing)"),
-    ParamSpec("vertex_stride", 1, "keep every n-th mesh vertex in verts2d", minimum=1),
-    ParamSpec("max_rate", 0.0, "Hz, process at most one image per 1/max_rate stamp interval "
-              "(stamp-aligned, so every camera keeps the same frames); 0 = every image",
-              minimum=0.0),
+
+@dataclass
+class FrontendNodeParams(NodeParams):
+    """The frontend node's parameters (estimator backends' options included)."""
+
+    camera: str = param("", "camera name = rig key = frame_id (default: last namespace component)")
+    rig: str = param("", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)")
+    backend: str = param("synthetic", "estimator backend",
+                         choices=("synthetic", "npz", "sam3d_body"))
+    image_transport: str = param("raw", "subscribe image_raw (raw) or image_raw/compressed",
+                                 choices=("raw", "compressed"))
+    publish_overlay: bool = param(False, "also publish detections/overlay (rectified image + "
+                                         "drawing)")
+    vertex_stride: int = param(1, "keep every n-th mesh vertex in verts2d", minimum=1)
+    max_rate: float = param(0.0, "Hz, process at most one image per 1/max_rate stamp interval "
+                                 "(stamp-aligned, so every camera keeps the same frames); "
+                                 "0 = every image", minimum=0.0)
     # synthetic backend (sentinels -1 / 0 / '' = the scene's default)
-    ParamSpec("scene_dict", "", "synthetic: SceneConfig as JSON (as recorded in bags)"),
-    ParamSpec("scene_rig", "", "synthetic: sim rig name (default: the rig parameter)"),
-    ParamSpec("seed", -1, "synthetic: scene seed (-1 = scene default)", minimum=-1),
-    ParamSpec("difficulty", "", "synthetic: detection noise level",
-              choices=("", "none", "easy", "medium", "hard")),
-    ParamSpec("frames", 0, "synthetic: scene length in frames (0 = scene default)", minimum=0),
-    ParamSpec("num_vertices", 0, "synthetic: mesh vertices per person (0 = scene default)",
-              minimum=0),
+    scene_dict: str = param("", "synthetic: SceneConfig as JSON (as recorded in bags)")
+    scene_rig: str = param("", "synthetic: sim rig name (default: the rig parameter)")
+    seed: int = param(-1, "synthetic: scene seed (-1 = scene default)", minimum=-1)
+    difficulty: str = param("", "synthetic: detection noise level",
+                            choices=("", "none", "easy", "medium", "hard"))
+    frames: int = param(0, "synthetic: scene length in frames (0 = scene default)", minimum=0)
+    num_vertices: int = param(0, "synthetic: mesh vertices per person (0 = scene default)",
+                              minimum=0)
     # synthetic and npz
-    ParamSpec("fps", 0.0, "frame rate, Hz (0 = scene / scene.json default)", minimum=0.0),
-    ParamSpec("start_stamp_ns", -1, "stamp of frame 0, ns (-1 = scene / scene.json default)",
-              minimum=-1),
+    fps: float = param(0.0, "frame rate, Hz (0 = scene / scene.json default)", minimum=0.0)
+    start_stamp_ns: int = param(-1, "stamp of frame 0, ns (-1 = scene / scene.json default)",
+                                minimum=-1)
     # npz backend
-    ParamSpec("dets_dir", "", "npz: folder with <camera>/<frame>.npz (or a scene folder)"),
+    dets_dir: str = param("", "npz: folder with <camera>/<frame>.npz (or a scene folder)")
     # sam3d_body backend (frontend/sam3d_body.py; '' = the backend's default)
-    ParamSpec("checkpoint_path", "", "sam3d_body: model.ckpt of the official SAM 3D Body weights"),
-    ParamSpec("mhr_path", "", "sam3d_body: MHR model (default: assets/mhr_model.pt beside the "
-              "checkpoint)"),
-    ParamSpec("hf_repo_id", "", "sam3d_body: load from a local Hugging Face cache instead"),
-    ParamSpec("repo_path", "", "sam3d_body: clone of facebookresearch/sam-3d-body, if not installed"),
-    ParamSpec("device", "auto", "sam3d_body: auto | cpu | cuda | cuda:N"),
-    ParamSpec("precision", "fp32", "sam3d_body: inference precision",
-              choices=("fp32", "fp16", "bf16")),
-    ParamSpec("detector", "vitdet", "sam3d_body: person detector",
-              choices=("vitdet", "model", "none")),
-    ParamSpec("bbox_thr", 0.5, "sam3d_body: detector score threshold", minimum=0.0),
-    ParamSpec("inference_type", "full", "sam3d_body: full (body + hands) or body",
-              choices=("full", "body")),
-    ParamSpec("keypoint_convention", "mhr70", "sam3d_body: keypoints published",
-              choices=("mhr70", "sportcenter_13", "coco_17")),
-)
+    checkpoint_path: str = param("", "sam3d_body: model.ckpt of the official SAM 3D Body weights")
+    mhr_path: str = param("", "sam3d_body: MHR model (default: assets/mhr_model.pt beside the "
+                              "checkpoint)")
+    hf_repo_id: str = param("", "sam3d_body: load from a local Hugging Face cache instead")
+    repo_path: str = param("", "sam3d_body: clone of facebookresearch/sam-3d-body, if not "
+                               "installed")
+    device: str = param("auto", "sam3d_body: auto | cpu | cuda | cuda:N")
+    precision: str = param("fp32", "sam3d_body: inference precision",
+                           choices=("fp32", "fp16", "bf16"))
+    detector: str = param("vitdet", "sam3d_body: person detector",
+                          choices=("vitdet", "model", "none"))
+    bbox_thr: float = param(0.5, "sam3d_body: detector score threshold", minimum=0.0)
+    inference_type: str = param("full", "sam3d_body: full (body + hands) or body",
+                                choices=("full", "body"))
+    keypoint_convention: str = param("mhr70", "sam3d_body: keypoints published",
+                                     choices=("mhr70", "sportcenter_13", "coco_17"))
+
+
+PARAMS = FrontendNodeParams.specs()
 
 SAM3D_KEYS = ("checkpoint_path", "mhr_path", "hf_repo_id", "repo_path", "device", "precision",
               "detector", "bbox_thr", "inference_type", "keypoint_convention")
@@ -197,7 +207,7 @@ class FrontendNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: FrontendNode(), args, NODE_NAME)
+    return run_node(lambda: FrontendNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

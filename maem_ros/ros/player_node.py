@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
 from maem_ros.ros.cli import split_ros_args, stop_on_signals
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 _IMAGE_TYPES = (bagio.IMAGE, bagio.COMPRESSED_IMAGE)
 

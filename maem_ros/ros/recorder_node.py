@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from maem_ros.ros.cli import split_ros_args, stop_on_signals
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 _HIDDEN = ("/rosout", "/parameter_events")
 
@@ -37,7 +37,7 @@ def parse_args(argv: Sequence[str]) -> RecordOptions:
         "(serialized bytes; closed cleanly on SIGINT/SIGTERM).")
     p.add_argument("out", help="output bag folder (must not exist)")
     p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="topics to record")
-    p.add_argument("--all-maem", action="store_true", help="every /maem/* topic")
+    p.add_argument("--all-maem", action="store_true", help="every /maem/* topic and /tf_static")
     p.add_argument("--all", dest="all_topics", action="store_true",
                    help="every topic except /rosout and /parameter_events")
     p.add_argument("--duration", type=float, default=0.0, metavar="S",
@@ -59,7 +59,7 @@ def parse_args(argv: Sequence[str]) -> RecordOptions:
 def wanted(topic: str, opts: RecordOptions) -> bool:
     if topic in opts.topics:
         return True
-    if opts.all_maem and topic.startswith("/maem/"):
+    if opts.all_maem and (topic.startswith("/maem/") or topic == "/tf_static"):
         return True
     return opts.all_topics and topic not in _HIDDEN
 

@@ -13,6 +13,9 @@ on the converted joints; a person whose track is not confirmed yet has id 429496
 from __future__ import annotations
 
 import sys
+import time
+from collections import deque
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -20,33 +23,41 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
+from maem_ros.core.triangulation import TriangulationParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, MARKER_QOS, ConfigError,
-                                 Diagnostics, ParamSpec, RejectErrors, Stopwatch, declare_params,
-                                 load_rig_param, run_node)
+from maem_ros.ros.common import (DATA_QOS, MARKER_QOS, ConfigError, Diagnostics, NodeParams,
+                                 RejectErrors, Stopwatch, declare_params, load_rig_param,
+                                 run_node)
 
 NODE_NAME = "triangulation"
 
-PARAMS = (
-    DIAGNOSTICS_PERIOD,
-    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
-    ParamSpec("clusters_topic", "/maem/clusters", "input topic"),
-    ParamSpec("poses_topic", "/maem/poses", "output topic (PointCloud2)"),
-    ParamSpec("skeletons_topic", "/maem/skeletons", "output topic (MarkerArray)"),
-    ParamSpec("frame_id", "world", "header.frame_id of poses and markers"),
-    ParamSpec("tau_kps", 20.0, "px, keypoint inlier threshold", minimum=0.0, exclusive_minimum=True),
-    ParamSpec("min_views", 2, "inlier views needed per keypoint", minimum=2),
-    ParamSpec("output_convention", "sportcenter_13", "joints published",
-              choices=tuple(sorted(CONVENTIONS))),
-    ParamSpec("track_gate", 0.5, "m, mean joint distance gate for track assignment",
-              minimum=0.0, exclusive_minimum=True),
-    ParamSpec("track_min_hits", 3, "frames before a track gets an id", minimum=1),
-    ParamSpec("track_timeout", 1.0, "s, a track unseen this long dies", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("publish_tentative", True, "publish unconfirmed persons with id 4294967295"),
-    ParamSpec("marker_lifetime", 0.5, "s, marker lifetime", minimum=0.0, exclusive_minimum=True),
-)
+@dataclass
+class TriangulationNodeParams(NodeParams):
+    """The triangulation node's own parameters (the method's are core TriangulationParams)."""
+
+    rig: str = param("", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)")
+    clusters_topic: str = param("maem/clusters", "input topic (relative: follows __ns)")
+    poses_topic: str = param("maem/poses", "output topic (PointCloud2; relative: follows __ns)")
+    skeletons_topic: str = param("maem/skeletons", "output topic (MarkerArray; relative)")
+    frame_id: str = param("world", "header.frame_id of poses and markers")
+    output_convention: str = param("sportcenter_13", "joints published",
+                                   choices=tuple(sorted(CONVENTIONS)))
+    track_gate: float = param(0.5, "m, mean joint distance gate for track assignment",
+                              minimum=0.0, exclusive_minimum=True)
+    track_min_hits: int = param(3, "frames before a track gets an id", minimum=1)
+    track_timeout: float = param(1.0, "s, a track unseen this long dies", minimum=0.0,
+                                 exclusive_minimum=True)
+    publish_tentative: bool = param(True, "publish unconfirmed persons with id 4294967295")
+    marker_lifetime: float = param(0.5, "s, shortest marker lifetime (also before the frame "
+                                        "period is known)", minimum=0.0, exclusive_minimum=True)
+    marker_lifetime_periods: float = param(3.0, "marker lifetime in frame periods (median "
+                                                "arrival interval of clusters, steady clock), "
+                                                "so markers outlive slow replays", minimum=0.0)
+
+
+PARAMS = param_specs(TriangulationNodeParams, TriangulationParams)
 
 
 class TriangulationNode(Node):
@@ -57,7 +68,7 @@ class TriangulationNode(Node):
         p = declare_params(self, PARAMS)
         self.rig = load_rig_param(p["rig"])
         from maem_ros.core.tracking import Tracker
-        from maem_ros.core.triangulation import TriangulationParams, triangulate_members
+        from maem_ros.core.triangulation import triangulate_members
         try:
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
@@ -70,6 +81,8 @@ class TriangulationNode(Node):
         self.frame_id = p["frame_id"]
         self.publish_tentative = p["publish_tentative"]
         self.marker_lifetime = p["marker_lifetime"]
+        self.marker_lifetime_periods = p["marker_lifetime_periods"]
+        self._arrivals: deque[float] = deque(maxlen=16)
         self._last_stamp: int | None = None
         self.diag = Diagnostics(self, p["diagnostics_period"])
         self.pose_pub = self.create_publisher(PointCloud2, p["poses_topic"], DATA_QOS)
@@ -83,7 +96,16 @@ class TriangulationNode(Node):
         """(P,J,3) joints in the clusters' convention -> (P,J_out,3) in output_convention."""
         return convert(joints, self.output)
 
+    def lifetime_s(self) -> float:
+        """Marker lifetime: marker_lifetime_periods x the median arrival interval of the last
+        clusters messages (steady clock), at least marker_lifetime."""
+        if len(self._arrivals) < 2:
+            return self.marker_lifetime
+        period = float(np.median(np.diff(self._arrivals)))
+        return max(self.marker_lifetime, self.marker_lifetime_periods * period)
+
     def on_clusters(self, msg: PointCloud2) -> None:
+        self._arrivals.append(time.monotonic())
         self.diag.input(self.topic)
         try:
             with Stopwatch(self.diag, "decode"):
@@ -120,7 +142,7 @@ class TriangulationNode(Node):
             poses_msg = wire.poses_to_msg(stamp_ns, self.frame_id, ids[keep], joints[keep],
                                           views[keep], scores[keep])
             markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
-                                            self.output.bones, self.marker_lifetime)
+                                            self.output.bones, self.lifetime_s())
         self.pose_pub.publish(poses_msg)
         self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))
@@ -129,7 +151,7 @@ class TriangulationNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: TriangulationNode(), args, NODE_NAME)
+    return run_node(lambda: TriangulationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ field and problem, with a short ``reason`` code for /diagnostics.
 from __future__ import annotations
 
 import array
-import colorsys
+import importlib
 import struct
 from dataclasses import dataclass
 from typing import Mapping, Sequence
@@ -28,17 +28,21 @@ from typing import Mapping, Sequence
 import numpy as np
 from builtin_interfaces.msg import Duration, Time
 from geometry_msgs.msg import Point
-from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from maem_ros.core.camera import Rig
+from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.colors import id_rgb
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.frames import FrameTransform
 
 #: poses ``id`` of a person whose track is not confirmed yet
 UNTRACKED_ID = 0xFFFFFFFF
 #: marker namespaces; marker id = track id in each
 NS_JOINTS, NS_BONES, NS_LABELS = "skeleton/joints", "skeleton/bones", "skeleton/ids"
+#: namespace of the DELETEALL marker that starts every skeleton MarkerArray
+NS_DELETE_ALL = "skeleton"
 
 _NP_OF_PF = {PointField.INT8: "i1", PointField.UINT8: "u1", PointField.INT16: "i2",
              PointField.UINT16: "u2", PointField.INT32: "i4", PointField.UINT32: "u4",
@@ -435,8 +439,8 @@ def msg_to_poses(msg: PointCloud2, topic: str) -> PoseFrame:
 # skeleton markers
 # ---------------------------------------------------------------------------------------------
 def id_color(track_id: int, alpha: float = 1.0) -> ColorRGBA:
-    """A stable, well-spread colour per id (golden-ratio hue steps)."""
-    r, g, b = colorsys.hsv_to_rgb((int(track_id) * 0.618033988749895) % 1.0, 0.85, 0.95)
+    """The id's colour (core.colors.id_rgb) as std_msgs/ColorRGBA."""
+    r, g, b = id_rgb(track_id)
     return ColorRGBA(r=r, g=g, b=b, a=float(alpha))
 
 
@@ -446,12 +450,15 @@ def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int], joints: n
     """Per person: SPHERE_LIST joints (ns skeleton/joints), LINE_LIST bones (ns skeleton/bones,
     bones with a NaN end skipped), TEXT_VIEW_FACING id 0.3 m above the highest joint
     (ns skeleton/ids). Marker id = track id in each ns; persons with id < 0 or no finite joint
-    are skipped. Markers expire after ``lifetime_s`` (> 0) so vanished persons disappear.
+    are skipped. The array starts with a DELETEALL marker (ns NS_DELETE_ALL), so each frame
+    replaces the previous one whatever the replay rate; markers also expire after
+    ``lifetime_s`` (> 0) so the view empties when the stream stops.
     """
     header = make_header(stamp_ns, frame_id)
     sec, nsec = divmod(int(round(lifetime_s * 1e9)), 1_000_000_000)
     life = Duration(sec=sec, nanosec=nsec)
-    out = MarkerArray()
+    out = MarkerArray(markers=[Marker(header=header, ns=NS_DELETE_ALL, id=0,
+                                      action=Marker.DELETEALL)])
     for pid, pj in zip(ids, np.asarray(joints, dtype=np.float64)):
         finite = np.all(np.isfinite(pj), axis=1)
         if pid < 0 or not finite.any():
@@ -529,3 +536,86 @@ def bgr_to_image(image: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
                 is_bigendian=0, step=w * 3)
     msg.data = image.tobytes()
     return msg
+
+
+#: CompressedImage.format of JPEG frames (image_transport 'compressed' convention)
+JPEG_FORMAT = "bgr8; jpeg compressed bgr8"
+
+
+def compressed_image_msg(data: bytes, fmt: str, stamp_ns: int, frame_id: str) -> CompressedImage:
+    """sensor_msgs/CompressedImage carrying encoded bytes unchanged (``fmt`` e.g. "jpeg", "png")."""
+    msg = CompressedImage(header=make_header(stamp_ns, frame_id), format=fmt)
+    msg.data = bytes(data)
+    return msg
+
+
+def bgr_to_compressed(image: np.ndarray, stamp_ns: int, frame_id: str,
+                      quality: int = 90) -> CompressedImage:
+    """BGR uint8 (H,W,3) -> sensor_msgs/CompressedImage, JPEG at ``quality`` (1..100)."""
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("image: JPEG encoding failed")
+    return compressed_image_msg(buf.tobytes(), JPEG_FORMAT, stamp_ns, frame_id)
+
+
+def camera_info_msg(camera: Camera, stamp_ns: int, frame_id: str) -> CameraInfo:
+    """Camera -> sensor_msgs/CameraInfo of the RAW image: K, D and distortion model; R = I;
+    P = [K_rect | 0] of the rectified image the frontends work in."""
+    info = camera.to_camera_info()
+    return CameraInfo(header=make_header(stamp_ns, frame_id), width=int(info["width"]),
+                      height=int(info["height"]), distortion_model=str(info["distortion_model"]),
+                      d=info["d"], k=info["k"], r=info["r"], p=info["p"])
+
+
+# ---------------------------------------------------------------------------------------------
+# TF (tf2_msgs/TFMessage): built for rclpy or, with ``types``, for rosbags
+# ---------------------------------------------------------------------------------------------
+#: topic of the rig's static transforms (ROS convention: global, transient local)
+TF_STATIC_TOPIC = "/tf_static"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+
+def _rclpy_type(msgtype: str):
+    """The rclpy class of ``pkg/msg/Name`` (tf2_msgs is optional: ImportError when absent)."""
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int,
+               types: Mapping[str, type] | None = None):
+    """tf2_msgs/TFMessage of core.frames transforms (one TransformStamped each, header.stamp =
+    ``stamp_ns``). ``types``: msgtype -> class (e.g. the rosbags typestore's ``types``) to build
+    the same layout for a bag writer; default rclpy (ImportError if tf2_msgs is not installed).
+    """
+    T = types.__getitem__ if types is not None else _rclpy_type
+    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+    Time_, Header_ = T("builtin_interfaces/msg/Time"), T("std_msgs/msg/Header")
+    Vector3, Quaternion = T("geometry_msgs/msg/Vector3"), T("geometry_msgs/msg/Quaternion")
+    Transform, Stamped = T("geometry_msgs/msg/Transform"), T("geometry_msgs/msg/TransformStamped")
+    out = []
+    for tr in transforms:
+        x, y, z = (float(v) for v in tr.translation)
+        qx, qy, qz, qw = (float(v) for v in tr.quaternion)
+        out.append(Stamped(header=Header_(stamp=Time_(sec=sec, nanosec=nsec), frame_id=tr.parent),
+                           child_frame_id=tr.child,
+                           transform=Transform(translation=Vector3(x=x, y=y, z=z),
+                                               rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))))
+    return T(TF_MESSAGE)(transforms=out)
+
+
+def msg_to_transforms(msg, topic: str) -> list[FrameTransform]:
+    """TFMessage (rclpy or rosbags) -> core.frames transforms; WireError on a non-unit quaternion
+    or a non-finite value."""
+    out = []
+    for i, ts in enumerate(msg.transforms):
+        t, r = ts.transform.translation, ts.transform.rotation
+        tr = np.array([t.x, t.y, t.z], dtype=np.float64)
+        q = np.array([r.x, r.y, r.z, r.w], dtype=np.float64)
+        if not (np.isfinite(tr).all() and np.isfinite(q).all()) or \
+                abs(np.linalg.norm(q) - 1) > 1e-6:
+            raise WireError(topic, f"transforms[{i}]", f"non-finite value or non-unit quaternion "
+                            f"{q.tolist()}", "bad_transform")
+        out.append(FrameTransform(ts.header.frame_id, ts.child_frame_id, tr, q))
+    return out

@@ -43,7 +43,7 @@ from maem_ros.core.triangulation import triangulate
 from maem_ros.params import resolve_config_path
 from maem_ros.ros.probe import ArrivalListener
 from maem_ros.ros.wire import msg_to_detections
-from maem_ros.tools import bagio
+from maem_ros import bagio
 from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
                                      check_scene, default_bag, ensure_bag, image_topic, load_bag,
                                      log, make_demo_bag, trim_bag)

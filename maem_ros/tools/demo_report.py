@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING, Any, Sequence
 import cv2
 import numpy as np
 
+from maem_ros import bagio
+from maem_ros.core.colors import id_bgr8
 from maem_ros.core.metrics import evaluate_sequence
 from maem_ros.core.skeleton import SPORTCENTER_13
-from maem_ros.frontend.overlay import colour_for
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_poses
-from maem_ros.tools import bagio
 from maem_ros.tools.demo_bag import DemoBag, image_topic
 from maem_ros.tools.evaluate import format_table
 from maem_ros.tools.plots import plot_court
@@ -175,7 +175,7 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
         draw(g, (255, 255, 255), 4, None)
     for pid, joints in zip(pred.ids, pred.joints):
         tracked = int(pid) != UNTRACKED_ID
-        draw(joints, colour_for(int(pid)) if tracked else (128, 128, 128), 2,
+        draw(joints, id_bgr8(int(pid)) if tracked else (128, 128, 128), 2,
              f"#{int(pid)}" if tracked else None)
     title = f"{cam}  stamp {stamp}  white = ground truth, colour = /maem/poses (track id)"
     (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.8, 2)

@@ -26,9 +26,11 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
+from maem_ros import bagio
 from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.frames import rig_transforms
 from maem_ros.core.interchange import SceneFolder, outputs_to_detections, read_gt, read_maem_npz
-from maem_ros.tools import bagio
+from maem_ros.ros import wire
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 IMAGE_FORMATS = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}
@@ -151,24 +153,21 @@ def vertex_subset(num_vertices: int, keep: int) -> np.ndarray | None:
 
 
 def detections_message(path: Path, camera: Camera, stamp: int, max_vertices: int):
-    """rosbags PointCloud2 of one npz (rectified detections, DESIGN §4 layout via ros/wire.py)."""
-    from maem_ros.ros.wire import detections_to_msg
+    """PointCloud2 of one npz (rectified detections, DESIGN §4 layout)."""
     dets = outputs_to_detections(read_maem_npz(path), camera, stamp, where=f"npz {str(path)!r} outputs")
     idx = vertex_subset(dets.num_vertices, max_vertices)
     if idx is not None:
         dets.verts2d = np.ascontiguousarray(dets.verts2d[:, idx])
-    return bagio.pointcloud2_from_ros(detections_to_msg(dets))
+    return wire.detections_to_msg(dets)
 
 
 def gt_message(pose: np.ndarray, mask: np.ndarray, stamp: int):
     """GT of one frame (P,K,4|3), mask (P,K) -> Poses PointCloud2 (persons with >= 1 valid joint)."""
-    from maem_ros.ros.wire import poses_to_msg
     mask = np.asarray(mask, bool) & np.all(np.isfinite(pose[..., :3]), axis=-1)
     keep = np.flatnonzero(mask.any(axis=1))
     joints = np.where(mask[keep, :, None], pose[keep, :, :3], np.nan)
-    msg = poses_to_msg(stamp, GT_FRAME_ID, keep, joints, np.zeros(len(keep), np.int64),
-                       np.ones(len(keep)))
-    return bagio.pointcloud2_from_ros(msg)
+    return wire.poses_to_msg(stamp, GT_FRAME_ID, keep, joints, np.zeros(len(keep), np.int64),
+                             np.ones(len(keep)))
 
 
 def find_dets_file(dets_dir: Path, cam: str, stem: str, k: int) -> Path | None:
@@ -230,7 +229,7 @@ def write_frame(w: bagio.BagWriter, src: Sources, cams: Sequence[str], k: int, g
                     report.skip("unreadable image", str(img))
                 else:
                     msgs.append((f"/{cam}/image_raw/compressed",
-                                 bagio.compressed_image_msg(t, cam, data, fmt)))
+                                 wire.compressed_image_msg(data, fmt, t, cam)))
         if src.dets_dir is not None and (src.dets_dir / cam).is_dir():
             path = find_dets_file(src.dets_dir, cam, stem, k)
             if path is None:
@@ -243,7 +242,7 @@ def write_frame(w: bagio.BagWriter, src: Sources, cams: Sequence[str], k: int, g
                     warn(f"{e}; skipped")
                     report.skip("bad detections file", str(path))
         if msgs:
-            w.write(f"/{cam}/camera_info", bagio.camera_info_msg(t, cam, camera.to_camera_info()), t)
+            w.write(f"/{cam}/camera_info", wire.camera_info_msg(camera, t, cam), t)
             for topic, msg in msgs:
                 w.write(topic, msg, t)
     if gt is not None and k < gt[0].shape[0]:
@@ -265,6 +264,10 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
             text = json.dumps(src.scene, sort_keys=True)
             w.set_custom(bagio.CUSTOM_SCENE, text)
             w.write(bagio.SCENE_TOPIC, bagio.string_msg(text), src.start_ns, bagio.QOS_LATCHED)
+        # world -> each camera, latched, so TF users (RViz, Foxglove) place the cameras
+        tf = [t for t in rig_transforms(src.rig) if t.child in cams]
+        w.write(wire.TF_STATIC_TOPIC, wire.tf_message(tf, src.start_ns, bagio.TYPESTORE.types),
+                src.start_ns, bagio.QOS_LATCHED)
         for k in tqdm(range(len(src.frames)), desc="maem-make-bag", unit="frame",
                       disable=opts.quiet):
             write_frame(w, src, cams, k, gt, opts, report)

@@ -1,17 +1,18 @@
-"""rosbag2 (MCAP) helpers on ``rosbags``: typestore, message construction, writing and reading.
+"""rosbag2 (MCAP) reading and writing on ``rosbags``: typestore, QoS, writer, reader.
 
-No rclpy here: messages are ``rosbags`` dataclasses serialised to CDR with the ROS 2 Jazzy
-typestore, so tools (make_bag, evaluate, demo) and nodes (player, recorder) share one format.
-Stamps are integer nanoseconds everywhere.
+Shared by the tools (make_bag, evaluate, demo) and the nodes (player, recorder), so both use one
+format. Message layouts live in ros/wire.py: a writer takes either a ``rosbags`` message
+(serialised with the ROS 2 Jazzy typestore) or an rclpy message built by wire.py (serialised by
+rclpy, which needs no init). Reading returns CDR bytes and ``rosbags`` messages, which wire.py's
+decoders accept as they are. Stamps are integer nanoseconds everywhere.
 """
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping
+from typing import Any, Iterable, Iterator
 
-import numpy as np
 import yaml
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
@@ -55,7 +56,7 @@ def is_image_type(msgtype: str) -> bool:
     return msgtype in (IMAGE, COMPRESSED_IMAGE)
 
 
-# ---- message construction ------------------------------------------------------------------------
+# ---- small standard messages (rosbags) ------------------------------------------------------------
 def time_msg(stamp_ns: int):
     """builtin_interfaces/Time from integer nanoseconds (>= 0)."""
     stamp_ns = int(stamp_ns)
@@ -70,39 +71,6 @@ def stamp_to_ns(stamp) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
-def header_msg(stamp_ns: int, frame_id: str):
-    return _T["std_msgs/msg/Header"](stamp=time_msg(stamp_ns), frame_id=frame_id)
-
-
-def compressed_image_msg(stamp_ns: int, frame_id: str, data: bytes, fmt: str):
-    """CompressedImage carrying encoded file bytes unchanged (fmt "jpeg" or "png")."""
-    return _T[COMPRESSED_IMAGE](header=header_msg(stamp_ns, frame_id), format=fmt,
-                                data=np.frombuffer(data, dtype=np.uint8))
-
-
-def image_msg(stamp_ns: int, frame_id: str, image: np.ndarray):
-    """Image from a BGR (H,W,3) or mono (H,W) uint8 array."""
-    image = np.ascontiguousarray(image)
-    if image.dtype != np.uint8 or image.ndim not in (2, 3):
-        raise ValueError(f"image: expected uint8 (H,W) or (H,W,3), got {image.dtype} {image.shape}")
-    enc = "mono8" if image.ndim == 2 else "bgr8"
-    h, w = image.shape[:2]
-    return _T[IMAGE](header=header_msg(stamp_ns, frame_id), height=h, width=w, encoding=enc,
-                     is_bigendian=0, step=image.strides[0], data=image.reshape(-1).view(np.uint8))
-
-
-def camera_info_msg(stamp_ns: int, frame_id: str, info: Mapping[str, Any]):
-    """CameraInfo from a ``Camera.to_camera_info()`` dict (width, height, distortion_model, d,k,r,p)."""
-    roi = _T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                  do_rectify=False)
-    return _T[CAMERA_INFO](
-        header=header_msg(stamp_ns, frame_id), height=int(info["height"]), width=int(info["width"]),
-        distortion_model=str(info["distortion_model"]),
-        d=np.asarray(info["d"], dtype=np.float64), k=np.asarray(info["k"], dtype=np.float64),
-        r=np.asarray(info["r"], dtype=np.float64), p=np.asarray(info["p"], dtype=np.float64),
-        binning_x=0, binning_y=0, roi=roi)
-
-
 def string_msg(text: str):
     return _T[STRING](data=text)
 
@@ -111,28 +79,20 @@ def clock_msg(stamp_ns: int):
     return _T[CLOCK](clock=time_msg(stamp_ns))
 
 
-# ---- PointCloud2 built by ros/wire.py (rclpy message) -> rosbags message ----------------------------
-def pointcloud2_from_ros(msg):
-    """rosbags PointCloud2 with the same header, fields and data as an rclpy PointCloud2.
-
-    ros/wire.py owns the layouts and builds rclpy messages; this copies them field by field so the
-    bag is still serialised by rosbags (no rclpy serialisation needed, no init).
-    """
-    pf = _T["sensor_msgs/msg/PointField"]
-    fields = [pf(name=f.name, offset=int(f.offset), datatype=int(f.datatype), count=int(f.count))
-              for f in msg.fields]
-    return _T[POINT_CLOUD2](
-        header=header_msg(stamp_to_ns(msg.header.stamp), msg.header.frame_id),
-        height=int(msg.height), width=int(msg.width), fields=fields,
-        is_bigendian=bool(msg.is_bigendian), point_step=int(msg.point_step),
-        row_step=int(msg.row_step), data=np.frombuffer(msg.data, dtype=np.uint8),
-        is_dense=bool(msg.is_dense))
-
-
 # ---- serialisation ---------------------------------------------------------------------------------
+def msgtype_of(msg) -> str:
+    """``pkg/msg/Name`` of a rosbags or an rclpy message."""
+    if hasattr(msg, "__msgtype__"):
+        return msg.__msgtype__
+    return f"{type(msg).__module__.split('.', 1)[0]}/msg/{type(msg).__name__}"
+
+
 def serialize(msg) -> bytes:
-    """CDR bytes of a rosbags message."""
-    return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+    """CDR bytes of a rosbags message or an rclpy message (e.g. from ros/wire.py)."""
+    if hasattr(msg, "__msgtype__"):
+        return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+    from rclpy.serialization import serialize_message
+    return bytes(serialize_message(msg))
 
 
 def deserialize(data: bytes, msgtype: str):
@@ -178,8 +138,8 @@ class BagWriter:
         self.counts[topic] = 0
 
     def write(self, topic: str, msg, stamp_ns: int, qos: Qos | None = None) -> None:
-        """Serialise and write a rosbags message at log time ``stamp_ns``."""
-        self.write_raw(topic, msg.__msgtype__, serialize(msg), stamp_ns, qos)
+        """Serialise and write a rosbags or rclpy message at log time ``stamp_ns``."""
+        self.write_raw(topic, msgtype_of(msg), serialize(msg), stamp_ns, qos)
 
     def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int,
                   qos: Qos | None = None) -> None:

@@ -1,0 +1,159 @@
+"""ROS conventions a user relies on: ``--help`` on every node, relative output topics that
+follow ``-r __ns:=``, ``-p node:param:=value`` after a params file."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
+from sensor_msgs.msg import PointCloud2
+
+from maem_ros.ros import wire
+from maem_ros.ros.common import DATA_QOS
+
+BIN = Path(sys.executable).parent
+PARAM_NODES = {"frontend": "maem_ros.ros.frontend_node",
+               "association": "maem_ros.ros.association_node",
+               "triangulation": "maem_ros.ros.triangulation_node",
+               "camera": "maem_ros.ros.camera_node"}
+
+
+@pytest.mark.parametrize("node", sorted(PARAM_NODES))
+def test_help_lists_every_parameter_and_exits_0(node: str) -> None:
+    import importlib
+    module = importlib.import_module(PARAM_NODES[node])
+    out = subprocess.run([str(BIN / node), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"usage: ros2 run maem_ros {node} ")
+    lines = {line.strip().split(" ", 1)[0]: line for line in out.stdout.splitlines()
+             if line.startswith("  ")}
+    specs = list(module.PARAMS) + ([module.SOURCE] if node == "camera" else [])
+    for spec in specs:
+        assert spec.name in lines, f"{spec.name} missing from {node} --help"
+        assert f"default {spec.default!r}" in lines[spec.name] and spec.description in \
+            lines[spec.name]
+
+
+@pytest.mark.parametrize("node", ["player", "recorder"])
+def test_help_of_the_bag_nodes(node: str) -> None:
+    out = subprocess.run([str(BIN / node), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and out.stdout.startswith("usage:"), out.stderr
+
+
+def _start(cmd: list[str]) -> tuple[subprocess.Popen, OutputWatcher]:
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return proc, OutputWatcher(proc)
+
+
+def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
+    """association + triangulation started with -r __ns:=/team read /team/<cam>/detections and
+    deliver /team/maem/poses; a second params file overrides the first (what works for a
+    namespaced node: rcl's ``-p node:name:=value`` only matches a node in /)."""
+    sim = pytest.importorskip("maem_ros.sim.scene")
+    scene = sim.Scene(sim.SceneConfig(rig="sportcenter6", frames=4, seed=3, difficulty="easy",
+                                      num_vertices=500))
+    params = tmp_path / "params.yaml"
+    params.write_text(yaml.safe_dump({
+        "/**": {"ros__parameters": {"rig": "sportcenter6", "diagnostics_period": 0.5}},
+        "/**/association": {"ros__parameters": {"tau_det": 0.5, "max_wait": 1.0}},
+        "/**/triangulation": {"ros__parameters": {"track_min_hits": 1, "publish_tentative": False}},
+    }))
+    override = tmp_path / "override.yaml"
+    override.write_text(yaml.safe_dump({"/**/triangulation": {"ros__parameters": {
+        "tau_kps": 25.0}}}))
+    base = ["--ros-args", "--params-file", str(params), "-r", "__ns:=/team"]
+    assoc, assoc_out = _start([str(BIN / "association"), *base])
+    tri, tri_out = _start([str(BIN / "triangulation"), *base, "--params-file", str(override)])
+    with killed_on_exit(assoc), killed_on_exit(tri), ros_node("ns_client") as (node, ex):
+        assert assoc_out.wait_line("-> /team/maem/clusters", 120), assoc_out.text()
+        assert tri_out.wait_line("/team/maem/clusters -> /team/maem/poses", 120), tri_out.text()
+        got: dict[int, wire.PoseFrame] = {}
+        node.create_subscription(PointCloud2, "/team/maem/poses", lambda m: got.setdefault(
+            wire.stamp_to_ns(m.header.stamp), wire.msg_to_poses(m, "/team/maem/poses")), DATA_QOS)
+        pubs = {c: node.create_publisher(PointCloud2, f"/team/{c}/detections", DATA_QOS)
+                for c in scene.rig.names}
+        assert wait_for(lambda: all(p.get_subscription_count() for p in pubs.values()), 60, ex)
+        for f in range(scene.num_frames):
+            for cam, pub in pubs.items():
+                pub.publish(wire.detections_to_msg(scene.detections(cam, f)))
+            t_end = time.monotonic() + 0.2
+            wait_for(lambda: time.monotonic() > t_end, 1.0, ex)
+        stamps = [scene.stamp_ns(f) for f in range(scene.num_frames)]
+        assert wait_for(lambda: all(s in got for s in stamps), 60, ex), \
+            f"{len(got)}/{len(stamps)} frames\n{assoc_out.text()}\n{tri_out.text()}"
+        assert all(len(got[s].ids) >= scene.is_player.sum() // 2 for s in stamps), \
+            [len(got[s].ids) for s in stamps]
+        # the second params file's value reached the node
+        desc = subprocess.run([sys.executable, "-c", _GET_PARAM, "/team/triangulation", "tau_kps"],
+                              capture_output=True, text=True, timeout=60)
+        assert desc.stdout.strip() == "25.0", desc.stdout + desc.stderr
+        for proc in (assoc, tri):
+            proc.send_signal(signal.SIGINT)
+        assert assoc.wait(30) == 0 and tri.wait(30) == 0
+
+
+#: `ros2 param get` without ros2cli: the GetParameters service of a running node
+_GET_PARAM = """
+import sys, rclpy
+from rcl_interfaces.srv import GetParameters
+rclpy.init()
+node = rclpy.create_node("param_get")
+cli = node.create_client(GetParameters, sys.argv[1] + "/get_parameters")
+assert cli.wait_for_service(timeout_sec=30)
+fut = cli.call_async(GetParameters.Request(names=[sys.argv[2]]))
+rclpy.spin_until_future_complete(node, fut, timeout_sec=30)
+print(fut.result().values[0].double_value)
+"""
+
+
+@pytest.mark.parametrize("override,expected", [
+    (["-p", "triangulation:tau_kps:=25.0"], 25.0),  # node-specific -p after the file: wins
+    (["-p", "tau_kps:=25.0"], 20.0),  # a wildcard -p loses to the file's /**/triangulation
+])
+def test_p_node_param_after_the_shipped_params_file(override: list[str], expected: float) -> None:
+    """What README says about -p next to --params-file, with the installed share path."""
+    import rclpy
+
+    from maem_ros.params import resolve_config_path
+    from maem_ros.ros.triangulation_node import TriangulationNode
+
+    shipped = resolve_config_path("sportcenter.yaml")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, args=["triangulation", "--ros-args", "--params-file", str(shipped),
+                                  *override])
+    try:
+        node = TriangulationNode(context=ctx)
+        assert node.params.tau_kps == expected
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_diagnostics_keep_coming_with_use_sim_time_and_no_clock() -> None:
+    """The diagnostics timer runs on the steady clock: with use_sim_time and nobody publishing
+    /clock (sim time stands still at 0) /diagnostics still arrives every period."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.parameter import Parameter
+
+    from maem_ros.ros.common import DIAGNOSTICS_QOS
+    from maem_ros.ros.triangulation_node import TriangulationNode
+
+    with ros_node("diag_listener") as (client, ex):
+        got = []
+        client.create_subscription(DiagnosticArray, "/diagnostics", lambda m: got.extend(
+            s for s in m.status if s.name == "/triangulation"), DIAGNOSTICS_QOS)
+        node = TriangulationNode(context=client.context, parameter_overrides=[
+            Parameter("rig", value="sportcenter6"), Parameter("diagnostics_period", value=0.2),
+            Parameter("use_sim_time", value=True)])
+        ex.add_node(node)
+        try:
+            assert node.get_clock().now().nanoseconds == 0  # sim time, no /clock
+            assert wait_for(lambda: len(got) >= 3, 20, ex), len(got)
+        finally:
+            ex.remove_node(node)
+            node.destroy_node()
