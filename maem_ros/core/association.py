@@ -190,15 +190,44 @@ def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, P: n
 
 
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
-                 ) -> dict[int, np.ndarray]:
-    """Per camera, the (N,n,2) rectified px the epipolar gate compares (vertices or keypoints)."""
+                 ) -> dict[int, epipolar.PointRows]:
+    """Per camera, the points the epipolar gate compares (vertices or keypoints), in the layout
+    the kernel reads: built once per camera (not per camera pair), a view of the decoded
+    message when the gate uses every vertex it received."""
     if params.epipolar_gate == "sparse":
-        return {c: fd.kpts2d for c, fd in frames.items()}
-    out = {}
-    for c, fd in frames.items():
-        subset = epipolar.vertex_subset(fd.num_vertices, params.vertex_stride,
-                                        params.vertex_count) if fd.n else None
-        out[c] = fd.verts2d if subset is None else fd.verts2d[:, subset]
+        return {c: epipolar.point_rows(fd.kpts2d) for c, fd in frames.items()}
+    columns = _gate_columns(frames, params)
+    return {c: epipolar.point_rows(fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]])
+            for c, fd in frames.items()}
+
+
+def _gate_columns(frames: dict[int, FrameDetections], params: AssociationParams
+                  ) -> dict[int, np.ndarray | None]:
+    """Per camera, the verts2d columns the mesh gate uses (None = all of them, no copy).
+
+    The gate compares full-mesh vertex ids: the ones the params select (vertex_stride /
+    vertex_count on the full mesh) that every camera with detections sent (a frontend may send
+    an announced subset, FrameDetections.vertex_ids).
+    """
+    live = {c: fd for c, fd in frames.items() if fd.n}
+    if not live:
+        return {c: None for c in frames}
+    mesh = next(iter(live.values())).mesh_vertices
+    wanted = epipolar.vertex_subset(mesh, params.vertex_stride, params.vertex_count)
+    ids = {c: fd.vertex_ids for c, fd in live.items()}
+    common = wanted
+    for got in ids.values():
+        if got is not None:
+            common = got if common is None else np.intersect1d(common, got, assume_unique=True)
+    if common is None:
+        return {c: None for c in frames}
+    out: dict[int, np.ndarray | None] = {c: None for c in frames}
+    for c in live:
+        got = ids[c]
+        if got is None:
+            out[c] = None if common.size == mesh else common
+        elif got.size != common.size:  # common is a subset of got: positions of its ids
+            out[c] = np.searchsorted(got, common)
     return out
 
 
@@ -211,15 +240,15 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
     mean = np.full(i.size, np.nan)
     budget = evaluated = 0
     for a, b, idx in camera_pair_groups(table.cam[i], table.cam[j]):
-        xa, xb = points[a], points[b]
-        n = xa.shape[1]
         sums, used = epipolar.epipolar_sums(
-            xa, xb, F[(a, b)], table.det[i[idx]], table.det[j[idx]], params.tau_mesh,
-            symmetric=params.epipolar_distance == "symmetric", early_exit=params.early_exit,
-            backend=params.backend)
-        keep[idx] = sums < params.tau_mesh * n
-        mean[idx] = sums / max(n, 1)
-        budget += idx.size * n
+            points[a], points[b], F[(a, b)], table.det[i[idx]], table.det[j[idx]],
+            params.tau_mesh, symmetric=params.epipolar_distance == "symmetric",
+            early_exit=params.early_exit, backend=params.backend)
+        # mean over the points both detections have (missing vertices take no part)
+        keep[idx] = sums < params.tau_mesh * used
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean[idx] = sums / used
+        budget += idx.size * points[a].n
         evaluated += int(used.sum())
     stats["epipolar_points_fraction"] = evaluated / budget if budget else 0.0
     return keep, np.where(keep, mean, np.nan)

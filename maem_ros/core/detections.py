@@ -6,7 +6,7 @@ association only compares them up to a similarity transform).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable
 
 import numpy as np
@@ -17,8 +17,11 @@ class FrameDetections:
     """N detections of one camera at one stamp (J keypoints, V mesh vertices each).
 
     bboxes (N,4) x1 y1 x2 y2 px; scores (N,); kpts2d (N,J,2) px; kpts3d (N,J,3) m;
-    verts2d (N,V,2) px, float32 (V may be 0 when no mesh is available).
-    ``stamp_ns`` is the image capture time in integer nanoseconds.
+    verts2d (N,V,2) px, float32 (V may be 0 when no mesh is available; NaN = vertex missing,
+    e.g. outside what the compact wire layout can carry). ``stamp_ns`` is the image capture
+    time in integer nanoseconds. ``mesh_subset`` = (mesh vertices, stride, count) when verts2d
+    holds the fixed-topology subset core.epipolar.vertex_subset(*mesh_subset) of the mesh
+    (announced on the wire), None when it holds the whole mesh.
     """
 
     camera: str
@@ -28,6 +31,8 @@ class FrameDetections:
     kpts2d: np.ndarray
     kpts3d: np.ndarray
     verts2d: np.ndarray
+    mesh_subset: tuple[int, int, int] | None = None
+    _validated: tuple = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.bboxes = np.asarray(self.bboxes, dtype=np.float64)
@@ -36,6 +41,8 @@ class FrameDetections:
         self.kpts3d = np.asarray(self.kpts3d, dtype=np.float64)
         self.verts2d = np.asarray(self.verts2d, dtype=np.float32)
         self.stamp_ns = int(self.stamp_ns)
+        if self.mesh_subset is not None:
+            self.mesh_subset = tuple(int(v) for v in self.mesh_subset)
 
     @property
     def n(self) -> int:
@@ -50,6 +57,20 @@ class FrameDetections:
         return int(self.verts2d.shape[1]) if self.verts2d.ndim == 3 else 0
 
     @property
+    def mesh_vertices(self) -> int:
+        """Vertices of the full mesh (verts2d may hold a subset of them)."""
+        return self.mesh_subset[0] if self.mesh_subset is not None else self.num_vertices
+
+    @property
+    def vertex_ids(self) -> np.ndarray | None:
+        """Full-mesh index of each verts2d column (sorted), None when verts2d is the whole mesh."""
+        if self.mesh_subset is None:
+            return None
+        from .epipolar import vertex_subset  # local: epipolar is the home of the subset rule
+        ids = vertex_subset(*self.mesh_subset)
+        return np.arange(self.mesh_subset[0]) if ids is None else ids
+
+    @property
     def centers(self) -> np.ndarray:
         """(N,2) bbox centres, rectified px."""
         return 0.5 * (self.bboxes[:, :2] + self.bboxes[:, 2:])
@@ -62,13 +83,28 @@ class FrameDetections:
     def select(self, index: np.ndarray) -> "FrameDetections":
         """Subset by boolean mask or integer index (copies)."""
         return FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
-                               self.kpts2d[index], self.kpts3d[index], self.verts2d[index])
+                               self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
+                               self.mesh_subset)
+
+    def _arrays(self) -> tuple:
+        return (self.camera, self.mesh_subset) + tuple(
+            (id(a), a.shape) for a in (self.bboxes, self.scores, self.kpts2d, self.kpts3d,
+                                       self.verts2d))
+
+    def mark_validated(self) -> "FrameDetections":
+        """Record that the caller (the wire decoder) checked everything :meth:`validate` checks,
+        so consumers do not check the same arrays twice. Replacing an array re-enables the
+        check; writing into the arrays in place afterwards is the writer's responsibility."""
+        self._validated = self._arrays()
+        return self
 
     def validate(self, known_cameras: Iterable[str] | None = None) -> "FrameDetections":
         """Raise ValueError naming the first bad field; return self when valid."""
         where = f"detections of camera {self.camera!r}"
         if known_cameras is not None and self.camera not in set(known_cameras):
             raise ValueError(f"{where}: camera: unknown camera {self.camera!r}")
+        if self._validated and self._validated == self._arrays():
+            return self
         if self.bboxes.ndim != 2 or self.bboxes.shape[1] != 4:
             raise ValueError(f"{where}: bbox: expected shape (N,4), got {self.bboxes.shape}")
         n = self.bboxes.shape[0]
@@ -79,12 +115,19 @@ class FrameDetections:
         _check_shape(where, "kpts3d", self.kpts3d, (n, j, 3))
         if self.verts2d.ndim != 3 or self.verts2d.shape[0] != n or self.verts2d.shape[2] != 2:
             raise ValueError(f"{where}: verts2d: expected shape ({n},V,2), got {self.verts2d.shape}")
-        for field, arr in (("bbox", self.bboxes), ("score", self.scores), ("kpts2d", self.kpts2d),
-                           ("kpts3d", self.kpts3d), ("verts2d", self.verts2d)):
-            bad = ~np.isfinite(arr)
+        if self.mesh_subset is not None:
+            ids = self.vertex_ids
+            if len(self.mesh_subset) != 3 or ids.size != self.verts2d.shape[1]:
+                raise ValueError(f"{where}: mesh_subset: {self.mesh_subset} selects {ids.size} "
+                                 f"vertices, verts2d has {self.verts2d.shape[1]}")
+        for name, arr in (("bbox", self.bboxes), ("score", self.scores), ("kpts2d", self.kpts2d),
+                          ("kpts3d", self.kpts3d), ("verts2d", self.verts2d)):
+            # a missing vertex is NaN; inf is never a coordinate
+            bad = np.isinf(arr) if name == "verts2d" else ~np.isfinite(arr)
             if bad.any():
                 det = int(np.argwhere(bad)[0][0]) if arr.ndim > 1 else int(np.argmax(bad))
-                raise ValueError(f"{where}: {field}: NaN or inf in detection {det}")
+                what = "inf" if name == "verts2d" else "NaN or inf"
+                raise ValueError(f"{where}: {name}: {what} in detection {det}")
         inverted = (self.bboxes[:, 2] < self.bboxes[:, 0]) | (self.bboxes[:, 3] < self.bboxes[:, 1])
         if inverted.any():
             raise ValueError(f"{where}: bbox: inverted box (x2<x1 or y2<y1) in detection "
@@ -92,6 +135,7 @@ class FrameDetections:
         if np.any((self.scores < 0) | (self.scores > 1)):
             raise ValueError(f"{where}: score: outside [0, 1] in detection "
                              f"{int(np.argmax((self.scores < 0) | (self.scores > 1)))}")
+        self._validated = self._arrays()
         return self
 
 
