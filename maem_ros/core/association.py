@@ -151,17 +151,17 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
             raise ValueError(f"frames[{name!r}]: expected FrameDetections, got {type(fd).__name__}")
         if fd.camera != name:
             raise ValueError(f"frames[{name!r}]: camera: detections are of camera {fd.camera!r}")
-        fd.validate()
+        fd.validate()  # returns at once for frames the wire decoder validated
         if fd.n:
             joints.add(fd.num_joints)
-            verts.add(fd.num_vertices)
+            verts.add(fd.mesh_vertices)
         by_index[rig.index(name)] = fd
     if len(joints) > 1:
         raise ValueError(f"kpts2d: cameras disagree on the number of keypoints {sorted(joints)}")
     if params.epipolar_gate == "mesh" and by_index and verts:
         if len(verts) > 1:
             raise ValueError(f"verts2d: cameras disagree on the number of mesh vertices "
-                             f"{sorted(verts)}")
+                             f"{sorted(verts)} (full mesh, before any announced subset)")
         if 0 in verts:
             raise ValueError("verts2d: epipolar_gate 'mesh' needs mesh vertices, got V=0 "
                              "(use epipolar_gate 'sparse' or 'none')")

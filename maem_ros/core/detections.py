@@ -86,6 +86,31 @@ class FrameDetections:
                                self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
                                self.mesh_subset)
 
+    def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
+        """These detections with verts2d cut to the fixed-topology subset
+        ``core.epipolar.vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
+        (self when verts2d holds exactly those already). ValueError when verts2d lacks some of
+        them (it holds a different subset)."""
+        from .epipolar import vertex_subset  # local: epipolar is the home of the subset rule
+        mesh = self.mesh_vertices
+        want = vertex_subset(mesh, int(stride), int(count))
+        have = self.vertex_ids
+        if want is None:
+            if have is not None:
+                raise ValueError(f"detections of camera {self.camera!r}: verts2d: holds the "
+                                 f"subset {self.mesh_subset}, the whole mesh was asked for")
+            return self
+        if have is not None and np.array_equal(have, want):
+            return self
+        cols = want if have is None else np.searchsorted(have, want)
+        if have is not None and (cols.max(initial=0) >= have.size
+                                 or not np.array_equal(have[np.minimum(cols, have.size - 1)], want)):
+            raise ValueError(f"detections of camera {self.camera!r}: verts2d: subset "
+                             f"{self.mesh_subset} does not contain (stride {stride}, count {count})")
+        return FrameDetections(self.camera, self.stamp_ns, self.bboxes, self.scores, self.kpts2d,
+                               self.kpts3d, np.ascontiguousarray(self.verts2d[:, cols]),
+                               (mesh, int(stride), int(count)))
+
     def _arrays(self) -> tuple:
         return (self.camera, self.mesh_subset) + tuple(
             (id(a), a.shape) for a in (self.bboxes, self.scores, self.kpts2d, self.kpts3d,

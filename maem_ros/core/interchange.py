@@ -192,6 +192,7 @@ def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: 
         kpts2d=rect[:, 1:1 + j],
         kpts3d=np.stack([f["pred_keypoints_3d"] + f["pred_cam_t"] for f in fields]),
         verts2d=rect[:, 1 + j:].astype(np.float32),
+        mesh_subset=(v, int(vertex_stride), 0) if int(vertex_stride) > 1 else None,
     )
 
 

@@ -10,7 +10,6 @@ Options common to every backend:
 """
 from __future__ import annotations
 
-import dataclasses
 import importlib
 from abc import ABC, abstractmethod
 from typing import Any, Callable, Mapping
@@ -50,8 +49,8 @@ class StridedEstimator(Estimator):
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         dets = self.inner.estimate(camera, stamp_ns, image)
-        # a new object: the inner backend may cache what it returned
-        return dataclasses.replace(dets, verts2d=np.ascontiguousarray(dets.verts2d[:, ::self.stride]))
+        # a new object (the inner backend may cache what it returned), the subset announced
+        return dets.with_vertex_subset(self.stride)
 
 
 #: backend name -> "module:Class" (imported on demand so a missing optional dependency of one

@@ -44,7 +44,13 @@ class FrontendNodeParams(NodeParams):
                                  choices=("raw", "compressed"))
     publish_overlay: bool = param(False, "also publish detections/overlay (rectified image + "
                                          "drawing)")
-    vertex_stride: int = param(1, "keep every n-th mesh vertex in verts2d", minimum=1)
+    vertex_stride: int = param(1, "keep every n-th mesh vertex in verts2d (announced on the "
+                                  "wire)", minimum=1)
+    vertex_count: int = param(0, "then keep this many of them, spread over the mesh (0 = all; "
+                                 "core.epipolar.vertex_subset, announced on the wire)", minimum=0)
+    wire_vertices: str = param("f32", "verts2d layout: f32, or q4 (uint16, 1/16 px, half the "
+                                      "bytes)", choices=("f32", "q4"))
+    wire_keypoints: str = param("f32", "kpts2d layout: f32 or q4", choices=("f32", "q4"))
     max_rate: float = param(0.0, "Hz, process at most one image per 1/max_rate stamp interval "
                                  "(stamp-aligned, so every camera keeps the same frames); "
                                  "0 = every image", minimum=0.0)
@@ -126,6 +132,8 @@ class FrontendNode(Node):
         except (ValueError, ImportError) as e:
             raise ConfigError(f"backend {p['backend']!r}: {e}") from None
         self.publish_overlay = p["publish_overlay"]
+        self.vertex_stride, self.vertex_count = p["vertex_stride"], p["vertex_count"]
+        self.wire_vertices, self.wire_keypoints = p["wire_vertices"], p["wire_keypoints"]
         self._bucket_ns = int(round(1e9 / p["max_rate"])) if p["max_rate"] > 0 else 0
         self._last_bucket: int | None = None
         self._rectifier = None
@@ -181,7 +189,9 @@ class FrontendNode(Node):
                     dets = self.estimator.estimate(self.camera, stamp_ns,
                                                    rect if self.estimator.needs_image else None)
                 with Stopwatch(self.diag, "encode"):
-                    out = wire.detections_to_msg(dets)
+                    if self.vertex_count:
+                        dets = dets.with_vertex_subset(self.vertex_stride, self.vertex_count)
+                    out = wire.detections_to_msg(dets, self.wire_vertices, self.wire_keypoints)
                 self.pub.publish(out)
                 if self.overlay_pub is not None:
                     self._publish_overlay(rect, dets, stamp_ns)

@@ -6,6 +6,11 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   ``bbox``(4: x1 y1 x2 y2 rectified px) ``score``(1) ``kpts2d``(2J rectified px, u v per joint)
   ``kpts3d``(3J m, camera-relative) ``verts2d``(2V rectified px). header.frame_id = camera name,
   header.stamp = image capture stamp. J and V come from the counts.
+  Compact variant (:data:`WIRE_VERTICES` ``q4``): ``verts2d_q4`` (uint16 x 2V) instead of
+  ``verts2d``, value = round(px * 16) (1/16 px up to 4095.9375 px), 65535 = missing (a vertex
+  outside 0 .. 4095.9 px); optionally ``kpts2d_q4`` (uint16 x 2J, no missing keypoint) instead
+  of ``kpts2d``. A vertex subset is announced by ``verts2d_subset`` (uint32 x 3: full mesh
+  vertices, stride, count; core.epipolar.vertex_subset gives the ids) in every point.
 * clusters (``/maem/clusters``), one point per (cluster, member view): ``cluster``(uint32, index in
   the frame) ``camera``(uint16, index in the rig's camera order) ``detection``(uint16, index in
   that camera's detections message) ``score``(f32) ``cost``(f32, mean PA-MPJPE m to the rest of
@@ -53,6 +58,14 @@ _PF_NAME = {PointField.INT8: "INT8", PointField.UINT8: "UINT8", PointField.INT16
 
 F32, U32, U16 = PointField.FLOAT32, PointField.UINT32, PointField.UINT16
 DETECTION_TYPES = {"bbox": F32, "score": F32, "kpts2d": F32, "kpts3d": F32, "verts2d": F32}
+#: the compact fields, each replacing the float32 field of the same name without ``_q4``
+Q4_FIELDS = {"kpts2d_q4": "kpts2d", "verts2d_q4": "verts2d"}
+#: optional field announcing a vertex subset: (full mesh vertices, stride, count)
+SUBSET_FIELD = "verts2d_subset"
+#: frontend ``wire_vertices`` choices
+WIRE_VERTICES = ("f32", "q4")
+#: q4: 1/16 px steps; the largest code is the missing marker
+Q4_SCALE, Q4_MISSING = 16.0, 65535
 CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, "cost": F32,
                  "kpts2d": F32}
 POSE_TYPES = {"id": U32, "joints": F32, "views": U16, "score": F32}
@@ -234,25 +247,106 @@ def _check_score(topic: str, scores: np.ndarray, what: str) -> None:
 # ---------------------------------------------------------------------------------------------
 # detections
 # ---------------------------------------------------------------------------------------------
-def detections_to_msg(dets: FrameDetections) -> PointCloud2:
-    """FrameDetections -> PointCloud2 (frame_id = camera, stamp = image stamp)."""
+def encode_q4(px: np.ndarray) -> np.ndarray:
+    """Rectified px -> uint16 q4 codes (round(px * 16)); NaN and values outside
+    0 .. 4095.9375 px become Q4_MISSING."""
+    px = np.asarray(px, dtype=np.float64)
+    code = np.rint(px * Q4_SCALE)
+    ok = (code >= 0) & (code < Q4_MISSING)  # False for NaN
+    return np.where(ok, code, Q4_MISSING).astype(np.uint16)
+
+
+def decode_q4(code: np.ndarray, dtype=np.float32) -> np.ndarray:
+    """uint16 q4 codes -> px (``dtype``), NaN where the code is Q4_MISSING (one pass, one copy)."""
+    out = np.multiply(code, dtype(1.0 / Q4_SCALE), dtype=dtype)
+    missing = code == Q4_MISSING
+    if missing.any():
+        out[missing] = np.nan
+    return out
+
+
+def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
+                      keypoints: str = "f32") -> PointCloud2:
+    """FrameDetections -> PointCloud2 (frame_id = camera, stamp = image stamp).
+
+    ``vertices`` / ``keypoints``: ``f32`` (verts2d / kpts2d float32) or ``q4`` (verts2d_q4 /
+    kpts2d_q4 uint16, 1/16 px). A vertex outside 0 .. 4095.875 px is sent as missing (65535);
+    keypoints are never dropped: a message with a keypoint q4 cannot carry sends kpts2d as f32.
+    A vertex subset held by ``dets`` (mesh_subset) is announced in verts2d_subset.
+    """
+    for name, value in (("vertices", vertices), ("keypoints", keypoints)):
+        if value not in WIRE_VERTICES:
+            raise ValueError(f"{name}: expected one of {list(WIRE_VERTICES)}, got {value!r}")
     n, j, v = dets.n, dets.num_joints, dets.num_vertices
-    fields = [("bbox", F32, 4), ("score", F32, 1), ("kpts2d", F32, 2 * j),
-              ("kpts3d", F32, 3 * j), ("verts2d", F32, 2 * v)]
+    kp = dets.kpts2d.reshape(n, 2 * j)
+    k_code = encode_q4(kp) if keypoints == "q4" else None
+    if k_code is not None and (k_code == Q4_MISSING).any():
+        k_code = None  # a keypoint outside 0 .. 4095.875 px: this message carries f32 keypoints
+    k_field = ("kpts2d_q4", U16) if k_code is not None else ("kpts2d", F32)
+    v_field = ("verts2d_q4", U16) if vertices == "q4" else ("verts2d", F32)
+    fields = [("bbox", F32, 4), ("score", F32, 1), (*k_field, 2 * j), ("kpts3d", F32, 3 * j),
+              (*v_field, 2 * v)]
+    if dets.mesh_subset is not None:
+        fields.append((SUBSET_FIELD, U32, 3))
     msg, rec = _new_cloud(dets.stamp_ns, dets.camera, fields, n)
     if n:
         rec["bbox"] = dets.bboxes
         rec["score"] = dets.scores
-        rec["kpts2d"] = dets.kpts2d.reshape(n, 2 * j)
+        if k_code is not None:
+            rec["kpts2d_q4"] = k_code
+        else:
+            rec["kpts2d"] = kp
         rec["kpts3d"] = dets.kpts3d.reshape(n, 3 * j)
-        rec["verts2d"] = dets.verts2d.reshape(n, 2 * v)
+        vp = dets.verts2d.reshape(n, 2 * v)
+        if vertices == "q4":
+            rec["verts2d_q4"] = encode_q4(vp)
+        else:
+            rec["verts2d"] = vp
+        if dets.mesh_subset is not None:
+            rec[SUBSET_FIELD] = np.asarray(dets.mesh_subset, dtype=np.uint32)
     return _set_data(msg, rec)
+
+
+def _detection_layout(msg: PointCloud2, topic: str) -> dict[str, int]:
+    """Field name -> PointField datatype of this detections message (f32 or q4 variants)."""
+    names = {f.name for f in msg.fields}
+    expected = dict(DETECTION_TYPES)
+    for q4, plain in Q4_FIELDS.items():
+        if q4 in names:
+            if plain in names:
+                raise WireError(topic, q4, f"both {plain!r} and {q4!r} present", "duplicate_field")
+            del expected[plain]
+            expected[q4] = U16
+    if SUBSET_FIELD in names:
+        expected[SUBSET_FIELD] = U32
+    return expected
+
+
+def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
+    """The announced (mesh vertices, stride, count), identical in every point and giving V ids."""
+    if len(sub) and np.any(sub != sub[0]):
+        row = int(np.argmax(np.any(sub != sub[0], axis=1)))
+        raise WireError(topic, SUBSET_FIELD, f"detection {row} announces {sub[row].tolist()}, "
+                        f"detection 0 {sub[0].tolist()}", "bad_subset")
+    mesh, stride, count = (int(x) for x in sub[0])
+    from maem_ros.core.epipolar import vertex_subset
+    if stride < 1 or mesh < v:
+        raise WireError(topic, SUBSET_FIELD, f"(mesh {mesh}, stride {stride}, count {count}) "
+                        f"for {v} vertices", "bad_subset")
+    ids = vertex_subset(mesh, stride, count)
+    got = mesh if ids is None else ids.size
+    if got != v:
+        raise WireError(topic, SUBSET_FIELD, f"(mesh {mesh}, stride {stride}, count {count}) "
+                        f"selects {got} vertices, verts2d has {v}", "bad_subset")
+    return mesh, stride, count
 
 
 def msg_to_detections(msg: PointCloud2, topic: str,
                       known_cameras: Sequence[str] | None = None,
                       expected_camera: str | None = None) -> FrameDetections:
-    """PointCloud2 -> FrameDetections, validated; verts2d is a view of msg.data.
+    """PointCloud2 -> FrameDetections, validated once (the result is marked validated, so the
+    association does not check the arrays again); f32 verts2d is a view of msg.data, q4 codes
+    are decoded once into one float32 array (NaN = missing).
 
     ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
     (the camera whose topic this came from).
@@ -264,36 +358,57 @@ def msg_to_detections(msg: PointCloud2, topic: str,
     if expected_camera is not None and cam != expected_camera:
         raise WireError(topic, "header.frame_id", f"camera {cam!r} on the topic of camera "
                         f"{expected_camera!r}", "camera_mismatch")
-    rec = _view_cloud(msg, topic, DETECTION_TYPES)
-    counts = {name: _count(msg, name) for name in DETECTION_TYPES}
+    layout = _detection_layout(msg, topic)
+    rec = _view_cloud(msg, topic, layout)
+    counts = {name: _count(msg, name) for name in layout}
+    kname = "kpts2d_q4" if "kpts2d_q4" in layout else "kpts2d"
+    vname = "verts2d_q4" if "verts2d_q4" in layout else "verts2d"
     if counts["bbox"] != 4:
         raise WireError(topic, "bbox", f"count {counts['bbox']}, expected 4", "bad_count")
     if counts["score"] != 1:
         raise WireError(topic, "score", f"count {counts['score']}, expected 1", "bad_count")
-    if counts["kpts2d"] % 2 or counts["kpts2d"] == 0:
-        raise WireError(topic, "kpts2d", f"count {counts['kpts2d']}, expected 2J (J >= 1)",
+    if counts[kname] % 2 or counts[kname] == 0:
+        raise WireError(topic, kname, f"count {counts[kname]}, expected 2J (J >= 1)",
                         "bad_count")
-    j = counts["kpts2d"] // 2
+    j = counts[kname] // 2
     if counts["kpts3d"] != 3 * j:
         raise WireError(topic, "kpts3d", f"count {counts['kpts3d']}, expected 3J = {3 * j} "
-                        f"(J={j} from kpts2d)", "bad_count")
-    if counts["verts2d"] % 2:
-        raise WireError(topic, "verts2d", f"count {counts['verts2d']}, expected 2V", "bad_count")
-    n = len(rec)
-    fields = {name: _field(rec, name) for name in DETECTION_TYPES}
-    for name, arr in fields.items():
-        _check_finite(topic, name, arr)
+                        f"(J={j} from {kname})", "bad_count")
+    if counts[vname] % 2:
+        raise WireError(topic, vname, f"count {counts[vname]}, expected 2V", "bad_count")
+    if SUBSET_FIELD in layout and counts[SUBSET_FIELD] != 3:
+        raise WireError(topic, SUBSET_FIELD, f"count {counts[SUBSET_FIELD]}, expected 3 (mesh "
+                        f"vertices, stride, count)", "bad_count")
+    n, v = len(rec), counts[vname] // 2
+    fields = {name: _field(rec, name) for name in layout}
+    for name in ("bbox", "score", "kpts3d") + (("kpts2d",) if kname == "kpts2d" else ()):
+        _check_finite(topic, name, fields[name])
+    if kname == "kpts2d_q4":
+        missing = fields[kname] == Q4_MISSING
+        if missing.any():
+            raise WireError(topic, kname, f"missing keypoint (65535) in detection "
+                            f"{int(np.argwhere(missing)[0][0])}", "missing_value")
+        kpts2d = decode_q4(fields[kname], np.float64)
+    else:
+        kpts2d = fields["kpts2d"]
+    if vname == "verts2d_q4":
+        verts2d = decode_q4(fields[vname])
+    else:
+        verts2d = fields["verts2d"]
+        _check_finite(topic, "verts2d", verts2d, allow_nan=True)  # NaN = missing vertex
     bbox = fields["bbox"]
     inverted = (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1])
     if inverted.any():
         raise WireError(topic, "bbox", f"inverted box (x2<x1 or y2<y1) in detection "
                         f"{int(np.argmax(inverted))}", "inverted_bbox")
     _check_score(topic, fields["score"][:, 0], "detection")
+    subset = _mesh_subset(topic, fields[SUBSET_FIELD], v) if SUBSET_FIELD in layout and n \
+        else None
     return FrameDetections(
         camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
-        scores=fields["score"][:, 0], kpts2d=fields["kpts2d"].reshape(n, j, 2),
-        kpts3d=fields["kpts3d"].reshape(n, j, 3),
-        verts2d=fields["verts2d"].reshape(n, counts["verts2d"] // 2, 2))
+        scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
+        kpts3d=fields["kpts3d"].reshape(n, j, 3), verts2d=verts2d.reshape(n, v, 2),
+        mesh_subset=subset).mark_validated()
 
 
 # ---------------------------------------------------------------------------------------------

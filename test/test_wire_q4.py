@@ -1,0 +1,211 @@
+"""Compact detections layout (verts2d_q4 / kpts2d_q4), announced vertex subsets, and what they do
+to the association: same clusters as float32, subsets honoured, validation done once."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import PointCloud2, PointField
+
+from maem_ros.core import epipolar
+from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.detections import FrameDetections
+from maem_ros.params import load_node_params
+from maem_ros.ros import wire
+from maem_ros.sim.rigs import load_rig
+from maem_ros.tools.bench_load import body_template, make_frame
+
+TOPIC = "/camera_0/detections"
+FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def roundtrip(msg):
+    return deserialize_message(serialize_message(msg), type(msg))
+
+
+def make_dets(n, j, v, seed=0, lo=0.0, hi=4000.0):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 1000, (n, 2))
+    return FrameDetections("camera_0", 5, np.concatenate([xy, xy + 50], 1), rng.uniform(0, 1, n),
+                           rng.uniform(0, 4000, (n, j, 2)), rng.normal(0, 1, (n, j, 3)),
+                           rng.uniform(lo, hi, (n, v, 2)))
+
+
+@FAST
+@given(n=st.integers(0, 5), j=st.integers(1, 12), v=st.integers(0, 50), seed=st.integers(0, 2**16))
+def test_q4_round_trip_is_exact_to_a_32nd_of_a_pixel(n, j, v, seed):
+    dets = make_dets(n, j, v, seed, lo=-30.0, hi=4200.0)  # some vertices outside the q4 range
+    msg = roundtrip(wire.detections_to_msg(dets, vertices="q4", keypoints="q4"))
+    names = {f.name: (f.datatype, f.count) for f in msg.fields}
+    assert names["verts2d_q4"] == (PointField.UINT16, 2 * v) and "verts2d" not in names
+    assert names["kpts2d_q4"] == (PointField.UINT16, 2 * j) and "kpts2d" not in names
+    back = wire.msg_to_detections(msg, TOPIC)
+    assert back.verts2d.dtype == np.float32 and back.verts2d.shape == (n, v, 2)
+    inside = (dets.verts2d > -1 / 32) & (dets.verts2d < 65534 / 16 + 1 / 32)
+    # a vertex is missing as a whole when one of its coordinates is outside
+    inside_pt = np.repeat(np.all(inside, axis=-1, keepdims=True), 2, axis=-1)
+    assert np.all(np.abs(back.verts2d[inside_pt] - dets.verts2d[inside_pt]) <= 1 / 32 + 1e-4)
+    assert np.all(np.isnan(back.verts2d[~inside]))  # outside the q4 range: missing
+    assert np.all(np.abs(back.kpts2d - dets.kpts2d) <= 1 / 32 + 1e-9)
+    # q4 halves the vertex bytes
+    f32 = wire.detections_to_msg(dets)
+    assert len(msg.data) == len(f32.data) - n * 4 * (v + j)
+
+
+def test_q4_codes_and_missing_values():
+    # 65534 / 16 = 4095.875 px is the largest value; 65535 marks a missing one
+    px = np.array([0.0, 1 / 32 - 1e-6, 100.03125, 4095.875, 4095.9375, -0.02, -5.0, np.nan, 1e9])
+    code = wire.encode_q4(px)
+    assert code.tolist() == [0, 0, 1600, 65534, 65535, 0, 65535, 65535, 65535]
+    back = wire.decode_q4(code)
+    assert back[2] == np.float32(100.0) and back[3] == np.float32(4095.875)
+    assert np.isnan(back[4]) and np.all(np.isnan(back[6:])) and back[5] == 0.0
+
+
+def _q4_message(n=2, j=3, v=4):
+    return wire.detections_to_msg(make_dets(n, j, v, hi=1000.0), vertices="q4", keypoints="q4")
+
+
+def test_q4_out_of_range_and_missing_keypoints_are_wire_errors():
+    dets = make_dets(2, 3, 4)
+    dets.kpts2d[1, 0, 0] = -3.0  # q4 cannot carry it: this message sends f32 keypoints
+    back = wire.msg_to_detections(wire.detections_to_msg(dets, keypoints="q4"), TOPIC)
+    np.testing.assert_array_equal(back.kpts2d, dets.kpts2d.astype(np.float32))
+    msg = _q4_message()
+    rec = np.frombuffer(msg.data, dtype=np.uint8).copy()
+    off = next(f.offset for f in msg.fields if f.name == "kpts2d_q4") + msg.point_step
+    rec[off:off + 2] = 255  # detection 1, keypoint 0 u = 65535
+    msg.data = rec.tobytes()
+    with pytest.raises(wire.WireError, match="kpts2d_q4: missing keypoint .* detection 1") as e:
+        wire.msg_to_detections(msg, TOPIC)
+    assert e.value.reason == "missing_value"
+    with pytest.raises(ValueError, match="vertices: expected one of"):
+        wire.detections_to_msg(make_dets(1, 1, 1), vertices="q8")
+
+
+def test_q4_layout_errors():
+    msg = _q4_message()
+    msg.fields = list(msg.fields) + [PointField(name="verts2d", offset=0, datatype=7, count=8)]
+    with pytest.raises(wire.WireError, match="both 'verts2d' and 'verts2d_q4'") as e:
+        wire.msg_to_detections(msg, TOPIC)
+    assert e.value.reason == "duplicate_field"
+    msg = _q4_message()
+    for f in msg.fields:
+        if f.name == "verts2d_q4":
+            f.datatype = PointField.FLOAT32
+            f.count = 4
+    with pytest.raises(wire.WireError, match="verts2d_q4: datatype FLOAT32, expected UINT16"):
+        wire.msg_to_detections(msg, TOPIC)
+
+
+def test_announced_subset_round_trip_and_errors():
+    full = make_dets(3, 2, 100, hi=1000.0)
+    sub = full.with_vertex_subset(3, 10)
+    assert sub.mesh_subset == (100, 3, 10) and sub.num_vertices == 10 and sub.mesh_vertices == 100
+    np.testing.assert_array_equal(sub.verts2d, full.verts2d[:, epipolar.vertex_subset(100, 3, 10)])
+    for layout in ("f32", "q4"):
+        back = wire.msg_to_detections(roundtrip(wire.detections_to_msg(sub, layout)), TOPIC)
+        assert back.mesh_subset == (100, 3, 10)
+        np.testing.assert_array_equal(back.vertex_ids, epipolar.vertex_subset(100, 3, 10))
+    # the frontend's stride, then a count on top of it
+    assert full.with_vertex_subset(3).with_vertex_subset(3, 10).mesh_subset == (100, 3, 10)
+    with pytest.raises(ValueError, match="does not contain"):
+        sub.with_vertex_subset(2)
+    with pytest.raises(ValueError, match="the whole mesh was asked for"):
+        sub.with_vertex_subset(1)
+    msg = wire.detections_to_msg(sub)
+    data = np.frombuffer(msg.data, dtype=np.uint8).copy()
+    off = next(f.offset for f in msg.fields if f.name == wire.SUBSET_FIELD)
+    data[off + 4:off + 8] = np.frombuffer(np.uint32(4).tobytes(), np.uint8)  # detection 0 stride 4
+    bad = wire.detections_to_msg(sub)
+    bad.data = data.tobytes()
+    with pytest.raises(wire.WireError, match="verts2d_subset: detection 1 announces") as e:
+        wire.msg_to_detections(bad, TOPIC)
+    assert e.value.reason == "bad_subset"
+    one = wire.detections_to_msg(sub.select(np.array([0])))
+    data = np.frombuffer(one.data, dtype=np.uint8).copy()
+    data[off + 8:off + 12] = 0  # count 0: every 3rd of 100 vertices
+    one.data = data.tobytes()
+    with pytest.raises(wire.WireError, match="selects 34 vertices, verts2d has 10"):
+        wire.msg_to_detections(one, TOPIC)
+
+
+def test_f32_verts_view_the_message_and_are_validated_once(monkeypatch):
+    dets = make_dets(3, 4, 600, hi=1000.0)
+    msg = roundtrip(wire.detections_to_msg(dets))
+    back = wire.msg_to_detections(msg, TOPIC)
+    rows = epipolar.point_rows(back.verts2d)
+    assert np.shares_memory(rows.flat, np.frombuffer(msg.data, dtype=np.uint8))  # zero copy
+    calls = []
+    original = np.isfinite
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(np, "isfinite", spy)
+    back.validate()
+    assert calls == []  # marked validated by the decoder: no second pass over the arrays
+    replaced = FrameDetections(back.camera, back.stamp_ns, back.bboxes, back.scores, back.kpts2d,
+                               back.kpts3d, back.verts2d.copy())
+    replaced.validate()
+    assert calls  # a new object (or a replaced array) is checked
+    calls.clear()
+    replaced.validate()
+    assert calls == []
+    replaced.bboxes = replaced.bboxes.copy()
+    replaced.validate()
+    assert calls
+
+
+
+
+@pytest.fixture(scope="module")
+def bench_frames():
+    rig = load_rig("sportcenter6")
+    rng = np.random.default_rng(3)
+    template = body_template(2000, 70, 3)
+    return rig, [make_frame(rig, template, rng, 6, 2, stamp_ns=k) for k in range(2)]
+
+
+def _decoded(frames, **encode):
+    return {c: wire.msg_to_detections(roundtrip(wire.detections_to_msg(fd, **encode)), f"/{c}/d")
+            for c, fd in frames.items()}
+
+
+def _members(result):
+    return [c.members.tolist() for c in result.clusters]
+
+
+def test_f32_and_q4_give_the_same_clusters(bench_frames):
+    rig, load = bench_frames
+    params = AssociationParams.from_mapping(load_node_params("sportcenter.yaml", "association"))
+    for fr in load:
+        f32 = associate(rig, _decoded(fr.frames), params)
+        q4 = associate(rig, _decoded(fr.frames, vertices="q4", keypoints="q4"), params)
+        assert _members(f32) == _members(q4)
+        assert len(f32.clusters) == 6
+        assert f32.stats["rejected_epipolar"] == q4.stats["rejected_epipolar"]
+
+
+def test_a_subset_announced_on_the_wire_is_honoured(bench_frames):
+    rig, load = bench_frames
+    base = load_node_params("sportcenter.yaml", "association")
+    fr = load[0]
+    sent = {c: fd.with_vertex_subset(8) for c, fd in fr.frames.items()}
+    got = _decoded(sent, vertices="q4")
+    assert all(fd.mesh_subset == (2000, 8, 0) for fd in got.values())
+    on_wire = associate(rig, got, AssociationParams.from_mapping(base))
+    local = associate(rig, fr.frames, AssociationParams.from_mapping({**base, "vertex_stride": 8}))
+    assert _members(on_wire) == _members(local)
+    assert on_wire.stats["rejected_epipolar"] == local.stats["rejected_epipolar"]
+    # the association's own subset applies on the full mesh ids: stride 16 of the full mesh is
+    # every 2nd vertex of a stride-8 message
+    both = associate(rig, got, AssociationParams.from_mapping({**base, "vertex_stride": 16}))
+    ref = associate(rig, fr.frames, AssociationParams.from_mapping({**base, "vertex_stride": 16}))
+    assert _members(both) == _members(ref)
+    # one camera sends the whole mesh, the others a subset: compared on the common vertices
+    mixed = dict(got, **{rig.names[0]: fr.frames[rig.names[0]]})
+    assert _members(associate(rig, mixed, AssociationParams.from_mapping(base))) == _members(local)
