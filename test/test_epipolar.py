@@ -1,0 +1,123 @@
+"""The epipolar kernel: the numba kernel (line norms once per detection and camera pair, read in
+place) decides exactly like the numpy reference and the plain full mean, with missing points,
+shared detections, strided message views, early exit and points at the epipole."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from maem_ros.core import epipolar
+from maem_ros.core.camera import fundamental_matrix
+from test_association import two_facing_cameras
+
+BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
+
+
+def _scene(seed: int, n: int, tau: float, na: int, nb: int):
+    """na detections in a, nb in b; b's detection d sees a's detection d % na's points moved off
+    their epipolar lines by amounts around tau (some pairs just below / above it)."""
+    rig = two_facing_cameras()
+    F = fundamental_matrix(rig["a"], rig["b"])
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-2, 2, (na, n, 3)) + [0, 0, 1]
+    xa = rig["a"].project_rectified(X)
+    xb = rig["b"].project_rectified(X[np.arange(nb) % na])
+    lines = np.einsum("ij,dnj->dni", F, np.concatenate([xa, np.ones((na, n, 1))], -1))
+    normal = lines[np.arange(nb) % na, :, :2]
+    normal = normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+    shift = rng.uniform(0.0, 2.0, (nb, n, 1)) * rng.uniform(0.5, 1.5, (nb, 1, 1)) * tau
+    xb = xb + normal * shift * rng.choice([-1, 1], (nb, n, 1))
+    return F, xa, xb, rng
+
+
+def _full_mean(xa, xb, F, ia, jb, symmetric):
+    d = epipolar.point_distances(xa[ia], xb[jb], F, symmetric)
+    present = ~np.isnan(d)
+    with np.errstate(invalid="ignore"):
+        return np.where(present, d, 0.0).sum(axis=1) / present.sum(axis=1), present.sum(axis=1)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 2500), symmetric=st.booleans(),
+       tau=st.floats(0.5, 20.0), missing=st.sampled_from([0.0, 0.02, 0.3]),
+       dtype=st.sampled_from([np.float32, np.float64]), pairs=st.integers(1, 40))
+def test_kernel_decisions_equal_the_reference_and_the_full_mean(seed, n, symmetric, tau, missing,
+                                                                dtype, pairs):
+    F, xa, xb, rng = _scene(seed, n, tau, 5, 7)
+    xa = xa.astype(dtype)
+    xb = xb.astype(dtype)
+    xa[rng.random(xa.shape[:2]) < missing] = np.nan  # missing vertices (q4 65535)
+    xb[rng.random(xb.shape[:2]) < missing, 1] = np.nan  # one coordinate is enough
+    # random candidates: detections appear in several pairs (the cached norms are shared)
+    ia, jb = rng.integers(0, 5, pairs), rng.integers(0, 7, pairs)
+    mean, count = _full_mean(xa, xb, F, ia, jb, symmetric)
+    reference = ~(mean < tau)  # no common point (NaN mean) rejects
+    near_tie = np.abs(mean - tau) < 1e-9 * tau
+    for backend in BACKENDS:
+        for early in (True, False):
+            sums, used = epipolar.epipolar_sums(xa, xb, F, ia, jb, tau, symmetric, early, backend)
+            reject = ~(sums < tau * used)
+            assert np.array_equal(reject[~near_tie], reference[~near_tie]), backend
+            assert np.array_equal(used[~reject], count[~reject])  # accepted: summed in full
+            np.testing.assert_allclose(sums[~reject] / used[~reject], mean[~reject], rtol=1e-9)
+            if not early:
+                assert np.array_equal(used, count)
+                ok = count > 0
+                np.testing.assert_allclose(sums[ok] / used[ok], mean[ok], rtol=1e-9)
+
+
+def test_strided_message_views_are_read_in_place():
+    F, xa, xb, _ = _scene(1, 700, 8.0, 3, 3)
+    # points inside wider records (as a PointCloud2 field view): (N, n, 2) with a row stride
+    rec = np.zeros((3, 2 * 700 + 11), dtype=np.float32)
+    rec[:, 5:5 + 1400] = xa.reshape(3, -1)
+    view = rec[:, 5:5 + 1400].reshape(3, 700, 2)
+    rows = epipolar.point_rows(view)
+    assert np.shares_memory(rows.flat, rec)
+    ia = jb = np.arange(3)
+    for backend in BACKENDS:
+        got = epipolar.epipolar_sums(view, xb, F, ia, jb, 8.0, backend=backend)
+        ref = epipolar.epipolar_sums(np.ascontiguousarray(view), xb, F, ia, jb, 8.0,
+                                     backend=backend)
+        for g, r in zip(got, ref):
+            np.testing.assert_array_equal(g, r)
+    # a layout the kernel cannot read in place (big-endian) is copied once and still right
+    big = xa.astype(">f8")
+    np.testing.assert_allclose(epipolar.epipolar_sums(big, xb, F, ia, jb, 8.0)[0],
+                               epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0)[0], rtol=1e-12)
+
+
+def test_wrong_pairs_exit_early_and_all_missing_rejects():
+    rig = two_facing_cameras()
+    F = fundamental_matrix(rig["a"], rig["b"])
+    rng = np.random.default_rng(0)
+    xa = rng.uniform(0, 1000, (2, 18439, 2)).astype(np.float32)
+    xb = rng.uniform(0, 1000, (2, 18439, 2)).astype(np.float32)
+    xb[1, ::2] = np.nan  # half of detection 1 missing: the exit bound shrinks as they are seen
+    for backend in BACKENDS:
+        sums, used = epipolar.epipolar_sums(xa, xb, F, np.array([0, 1]), np.array([1, 0]), 8.0,
+                                            backend=backend)
+        assert np.all(sums >= 8.0 * used) and np.all(used <= 2 * epipolar.BLOCK
+                                                    * epipolar.CHUNK_BLOCKS)
+        none = np.full((1, 600, 2), np.nan, np.float32)
+        sums, used = epipolar.epipolar_sums(none, xb[:1, :600], F, [0], [0], 8.0, backend=backend)
+        assert used[0] == 0 and not sums[0] < 8.0 * used[0]
+
+
+def test_points_at_the_epipole_reject_in_both_backends():
+    """F e_a = 0: the line of a point at a's epipole is undefined (inf / NaN distance)."""
+    rig = two_facing_cameras()
+    F = fundamental_matrix(rig["a"], rig["b"])
+    X = np.random.default_rng(2).uniform(-1, 1, (1, 1100, 3)) + [0, 0, 1]
+    xa, xb = rig["a"].project_rectified(X), rig["b"].project_rectified(X)
+    e_a = np.linalg.svd(F)[2][-1]  # a's epipole: F's right null space
+    xa_epi = np.tile(e_a[:2] / e_a[2], (1, 1100, 1))
+    assert np.abs(F @ e_a).max() < 1e-12
+    for backend in BACKENDS:
+        sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend)
+        assert sums[0] < 1e-6 * used[0] and used[0] == 1100  # a perfect pair passes
+        for symmetric in (True, False):
+            sums, used = epipolar.epipolar_sums(xa_epi, xb, F, [0], [0], 8.0, symmetric,
+                                                backend=backend)
+            assert not sums[0] < 8.0 * used[0]
