@@ -27,6 +27,31 @@ from ..core.detections import FrameDetections
 COURT_HALF = (13.0, 6.5)
 
 
+def ring_rig(num_cameras: int = 16) -> Rig:
+    """``num_cameras`` elevated cameras on an ellipse around the court, all looking at its centre
+    (1920x1080, f 1000 px, mild plumb_bob distortion): every player is seen by every camera."""
+    from ..sim.rigs import look_at
+
+    cams = []
+    for k in range(num_cameras):
+        phi = 2 * np.pi * k / num_cameras
+        eye = np.array([24.0 * np.cos(phi), 17.0 * np.sin(phi), 7.0 + 0.3 * (k % 3)])
+        R, t = look_at(eye, np.array([0.0, 0.0, 0.8]))
+        K = np.array([[1000.0, 0.0, 959.5 + k % 5], [0.0, 1000.0, 539.5 - k % 4], [0.0, 0.0, 1.0]])
+        cams.append(Camera(name=f"camera_{k}", K=K, R=R, t=t, width=1920, height=1080,
+                           distortion_model="plumb_bob",
+                           D=[-0.08 - 0.002 * (k % 4), 0.02, 0.0005, -0.0003, 0.0]))
+    return Rig(cams)
+
+
+def load_bench_rig(name: str) -> Rig:
+    """``ring16`` (the large load's rig), or a shipped rig name / rig file."""
+    if name.startswith("ring") and name[4:].isdigit():
+        return ring_rig(int(name[4:]))
+    from ..sim.rigs import load_rig
+    return load_rig(name)
+
+
 @dataclass
 class RawDetections:
     """One camera's detections in RAW px, as a detector on the distorted image gives them."""
