@@ -245,7 +245,8 @@ def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb:
         used[alive] += present.sum(axis=1)
         seen += idx.size
         # used + (points still to come) bounds the final count from above
-        alive = alive[sums[alive] < tau * (used[alive] + (ra.n - seen))]
+        with np.errstate(invalid="ignore"):  # inf * 0 without early exit: NaN, not < anything
+            alive = alive[sums[alive] < tau * (used[alive] + (ra.n - seen))]
         if alive.size == 0:
             break
     return sums, used
