@@ -334,6 +334,28 @@ def wants_help(args: Sequence[str] | None) -> bool:
     return "-h" in argv or "--help" in argv
 
 
+#: environment variables Fast DDS reads its XML profiles file from (either one)
+DDS_PROFILE_VARS = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+
+
+def use_shipped_dds_profile() -> str | None:
+    """Point Fast DDS at the shipped config/fastdds.xml (shared memory with a 256 MiB segment
+    plus UDPv4, see the file) unless the user chose a profile or another RMW. Call before
+    rclpy.init; child processes inherit it. Returns the file now in use (None = untouched)."""
+    import os
+
+    if any(os.environ.get(v) for v in DDS_PROFILE_VARS):
+        return None
+    if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
+        return None
+    from maem_ros.params import config_dirs
+    for d in config_dirs():
+        if (d / "fastdds.xml").is_file():
+            os.environ[DDS_PROFILE_VARS[0]] = str(d / "fastdds.xml")
+            return os.environ[DDS_PROFILE_VARS[0]]
+    return None
+
+
 def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
              until: Callable[[Node], Future] | None = None,
              specs: Sequence[ParamSpec] = (), doc: str | None = None) -> int:
@@ -350,6 +372,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
         print_help(name, doc, specs)
         return 0
     stop = stop_on_signals()
+    use_shipped_dds_profile()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     try:

@@ -22,7 +22,7 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS
+from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS, use_shipped_dds_profile
 
 
 class BackgroundNode:
@@ -33,6 +33,7 @@ class BackgroundNode:
     """
 
     def __init__(self, name: str, domain_id: int | None = None):
+        use_shipped_dds_profile()
         self.context = rclpy.Context()
         rclpy.init(context=self.context, domain_id=domain_id)
         self.node = rclpy.create_node(name, context=self.context)
