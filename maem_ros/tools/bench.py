@@ -13,6 +13,8 @@ pixels, per-pair distances), and checks both give identical clusters.
     maem-bench --load large    # 16 cameras x 25 detections
     maem-bench --json          # one JSON object
     maem-bench --vertices 500 --frames 1 --repeats 1 --json   # quick smoke run
+    maem-bench --live [--wire q4] [--bag BAG]   # camera-rate run through the node graph
+                                                # (tools/live.py)
 
 Targets (reported, not enforced): standard load association median <= 6.5 ms/frame,
 triangulation median <= 1.5 ms for 10 people, speedup >= 50; large load association median
@@ -48,15 +50,17 @@ def _parser() -> argparse.ArgumentParser:
                    help="standard (6 cameras x 12) or large (16 cameras x 25); sets the rig, "
                         "--players and --extras unless given")
     p.add_argument("--rig", default=None, help="rig name or file (default: the load's)")
-    p.add_argument("--params", default="sportcenter.yaml",
-                   help="params file for the association/triangulation thresholds")
+    p.add_argument("--params", default=None,
+                   help="params file for the association/triangulation thresholds (default "
+                        "sportcenter.yaml; --live: demo.yaml, whose synthetic scene it plays)")
     p.add_argument("--vertices", type=int, default=18439, help="mesh vertices per detection")
     p.add_argument("--keypoints", type=int, default=70, help="keypoints per detection")
     p.add_argument("--players", type=int, default=None,
                    help="people seen by every camera (default: the load's, 10 / 22)")
     p.add_argument("--extras", type=int, default=None,
                    help="extra people per camera, seen by that camera only (default 2 / 3)")
-    p.add_argument("--frames", type=int, default=5, help="distinct frames in the load")
+    p.add_argument("--frames", type=int, default=None,
+                   help="distinct frames in the load (default 5; --live: frames published, 90)")
     p.add_argument("--repeats", type=int, default=10, help="timed runs per frame (fast paths)")
     p.add_argument("--straightforward-frames", type=int, default=None,
                    help="frames the straightforward implementation runs on (slow; default 2, "
@@ -66,10 +70,14 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--backend", default="auto", choices=("auto", "numba", "numpy"),
                    help="epipolar kernel of the fast path")
     p.add_argument("--seed", type=int, default=0)
+    from .live import add_live_arguments
+    add_live_arguments(p)
     return p
 
 
 def _load_defaults(args: argparse.Namespace) -> argparse.Namespace:
+    args.params = args.params or ("demo.yaml" if args.live else "sportcenter.yaml")
+    args.frames = args.frames if args.frames is not None else (90 if args.live else 5)
     rig, players, extras = LOADS[args.load]
     args.rig = args.rig or rig
     args.players = players if args.players is None else args.players
@@ -234,10 +242,20 @@ def main(argv: list[str] | None = None) -> int:
     _pin_threads()
     args = _load_defaults(_parser().parse_args(argv))
     try:
-        result = run(args)
+        if args.live:
+            from .live import check_live_arguments, run_live
+            check_live_arguments(args)
+            result = run_live(args)
+        else:
+            result = run(args)
     except ValueError as e:
         print(f"maem-bench: {e}", file=sys.stderr)
         return 2
+    if args.live:
+        import yaml
+        print(json.dumps(_finite_or_null(result)) if args.json
+              else yaml.safe_dump(_finite_or_null(result), sort_keys=False))
+        return 0
     if args.json:
         print(json.dumps(_finite_or_null(result)))
     else:

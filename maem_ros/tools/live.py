@@ -1,0 +1,351 @@
+"""maem-bench --live: recorded full-mesh detections through association + triangulation at camera
+rate, one publisher process per camera (as camera machines would); latency, drops, partial
+sets, CPU per process and recall against ground truth.
+
+    maem-bench --live                                # synthetic scene (config/demo.yaml), f32
+    maem-bench --live --wire q4 --frames 150
+    maem-bench --live --bag bags/demo --rate 30      # the bag's recorded /<cam>/detections
+    maem-bench --live --vertex-stride 8              # a vertex subset, announced on the wire
+
+Detections: from ``--bag`` (its /<cam>/detections and /maem/gt_poses), else regenerated from the
+params file's synthetic scene (every publisher builds its camera's messages before the clock
+starts, so generating them costs nothing during the run). Each camera's publisher process
+(``python -m maem_ros.tools.live --publish CAM``) sends frame f at T0 + f / rate (wall clock);
+maem-association and maem-triangulation run as nodes with the params file. This process
+subscribes /maem/poses: latency = arrival - scheduled publish time of that frame. Frames
+without poses = published frames that never got a /maem/poses message. Partial sets = the
+association's frame sets that missed a camera (its /diagnostics). Recall = ground-truth players
+with a pose within 500 mm MPJPE (Hungarian), live and offline (core association +
+triangulation on the same decoded messages in this process). Every process gets the shipped
+Fast DDS profile (config/fastdds.xml) unless FASTRTPS_DEFAULT_PROFILES_FILE is set or
+``--no-profile``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+#: poses within this MPJPE (m) of a ground-truth player count as recalling it
+RECALL_MM = 500.0
+
+
+# ---------------------------------------------------------------------------------------------
+# the messages: bag or synthetic scene
+# ---------------------------------------------------------------------------------------------
+def _encode(fd, wire_layout: str, stride: int) -> bytes:
+    from rclpy.serialization import serialize_message
+
+    from maem_ros.ros import wire
+    if stride > 1:
+        fd = fd.with_vertex_subset(stride)
+    return bytes(serialize_message(wire.detections_to_msg(fd, wire_layout)))
+
+
+def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: int,
+                    wire_layout: str, stride: int) -> list[tuple[int, bytes]]:
+    """(stamp ns, serialized /<camera>/detections) per frame, in order."""
+    if bag is not None:
+        from maem_ros.ros import wire
+        from maem_ros.tools import bagio
+        out = []
+        for m in bagio.read_messages(bag, [f"/{camera}/detections"]):
+            if len(out) >= frames:
+                break
+            fd = wire.msg_to_detections(m.decode(), m.topic)
+            out.append((fd.stamp_ns, _encode(fd, wire_layout, stride)))
+        if not out:
+            raise ValueError(f"bag {str(bag)!r}: no /{camera}/detections")
+        return out
+    from maem_ros.tools.latency import make_scene
+    scene = make_scene(params_file)
+    return [(scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride))
+            for f in range(min(frames, scene.num_frames))]
+
+
+def ground_truth(params_file: Path, bag: Path | None, stamps: Sequence[int]
+                 ) -> dict[int, np.ndarray]:
+    """stamp -> (P,13,3) world m ground-truth players (sportcenter_13, NaN = masked joint)."""
+    from maem_ros.core.skeleton import SPORTCENTER_13
+    if bag is not None:
+        from maem_ros.tools.demo_bag import load_bag
+        return dict(load_bag(bag).gt)
+    from maem_ros.tools.latency import make_scene
+    scene = make_scene(params_file)
+    frame = {scene.stamp_ns(f): f for f in range(scene.num_frames)}
+    return {s: SPORTCENTER_13.select(scene.gt_keypoints(frame[s])[scene.is_player])
+            for s in stamps if s in frame}
+
+
+# ---------------------------------------------------------------------------------------------
+# one camera's publisher process
+# ---------------------------------------------------------------------------------------------
+def publish_main(a: argparse.Namespace) -> int:
+    """Build the messages, wait until the association subscribes, write them to ``CAM.pkl``
+    (for the offline comparison), signal READY, then publish on the shared start time."""
+    import rclpy
+    from sensor_msgs.msg import PointCloud2
+
+    from maem_ros.ros.common import DATA_QOS, use_shipped_dds_profile
+
+    msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride)
+    work = Path(a.work)
+    with open(work / f"{a.publish}.pkl", "wb") as fh:
+        pickle.dump(msgs, fh)
+    if not a.no_profile:
+        use_shipped_dds_profile()
+    rclpy.init()
+    node = rclpy.create_node(f"live_publisher_{a.publish}")
+    pub = node.create_publisher(PointCloud2, f"/{a.publish}/detections", DATA_QOS)
+    try:
+        deadline = time.monotonic() + 120
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        (work / f"{a.publish}.ready").write_text("ready")
+        start = work / "start"
+        while not start.exists():
+            time.sleep(0.005)
+        t0 = float(start.read_text())
+        for f, (_, data) in enumerate(msgs):
+            target = t0 + f / a.rate
+            while (now := time.time()) < target:
+                time.sleep(min(target - now, 0.002))
+            pub.publish(data)
+        time.sleep(1.0)  # let reliable delivery finish before the writer goes away
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# the run
+# ---------------------------------------------------------------------------------------------
+def _listener():
+    from diagnostic_msgs.msg import DiagnosticArray
+    from sensor_msgs.msg import PointCloud2
+
+    from maem_ros.ros import wire
+    from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS
+    from maem_ros.ros.probe import BackgroundNode
+
+    bg = BackgroundNode("maem_live_listener")
+    bg.poses, bg.diagnostics = {}, {}
+
+    def on_poses(msg):
+        t = time.time()
+        pf = wire.msg_to_poses(msg, "/maem/poses")
+        with bg.lock:
+            bg.poses.setdefault(pf.stamp_ns, (t, pf))
+
+    def on_diag(msg):
+        with bg.lock:
+            for st in msg.status:
+                bg.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
+
+    bg.subs = [bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS),
+               bg.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag,
+                                           DIAGNOSTICS_QOS)]
+    return bg.start()
+
+
+def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[int]) -> float:
+    """Fraction of ground-truth players of ``stamps`` with a pose within RECALL_MM."""
+    from maem_ros.tools.latency import match_mpjpe
+    hit = total = 0
+    for s in stamps:
+        want = gt.get(s)
+        if want is None:
+            continue
+        total += len(want)
+        if s in poses:
+            hit += len(match_mpjpe(poses[s], want, RECALL_MM / 1e3)[0])
+    return hit / total if total else float("nan")
+
+
+def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, bytes]]]
+                  ) -> dict[int, np.ndarray]:
+    """Core association + triangulation of the same messages in this process (the reference
+    recall): stamp -> (P,13,3) world m."""
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    from maem_ros.core.association import AssociationParams, associate
+    from maem_ros.core.skeleton import SPORTCENTER_13, convert
+    from maem_ros.core.triangulation import TriangulationParams, triangulate
+    from maem_ros.params import load_node_params
+    from maem_ros.ros import wire
+
+    ap = AssociationParams.from_mapping(load_node_params(params_file, "association"))
+    tp = TriangulationParams.from_mapping(load_node_params(params_file, "triangulation"))
+    by_stamp: dict[int, dict] = {}
+    for cam, msgs in messages.items():
+        for stamp, data in msgs:
+            by_stamp.setdefault(stamp, {})[cam] = wire.msg_to_detections(
+                deserialize_message(data, PointCloud2), f"/{cam}/detections")
+    out = {}
+    for stamp, frames in sorted(by_stamp.items()):
+        res = associate(rig, frames, ap)
+        joints = np.asarray(triangulate(rig, frames, res.clusters, tp).joints, np.float64)
+        out[stamp] = convert(joints, SPORTCENTER_13) if len(joints) else np.zeros((0, 13, 3))
+    return out
+
+
+def run_live(a: argparse.Namespace) -> dict[str, Any]:
+    from maem_ros.params import load_node_params
+    from maem_ros.ros.common import DDS_PROFILE_VARS, load_rig_param, use_shipped_dds_profile
+    from maem_ros.tools.latency import write_params
+    from maem_ros.tools.processes import ProcessGroup, module_command, node_command
+
+    work = Path(tempfile.mkdtemp(prefix="maem_live_"))
+    assoc_over = {"max_wait": a.max_wait} if a.max_wait else None
+    params = write_params(a.params, work / "params.yaml",
+                          frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
+                          association=assoc_over)
+    if a.bag is not None:
+        from maem_ros.tools import bagio
+        rig_yaml = bagio.read_rig_yaml(a.bag)
+        if rig_yaml:
+            (work / "rig.yaml").write_text(rig_yaml)
+            params = write_params(params, work / "params.yaml",
+                                  association={"rig": str(work / "rig.yaml")},
+                                  triangulation={"rig": str(work / "rig.yaml")})
+    rig = load_rig_param(load_node_params(params, "association").get("rig", ""))
+    profile = None if a.no_profile else use_shipped_dds_profile()
+    env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
+    if a.no_profile:
+        for v in DDS_PROFILE_VARS:
+            env.pop(v, None)
+    group = ProcessGroup(work / "logs", env)
+    listener = None
+    try:
+        for kind in ("association", "triangulation"):
+            group.start(kind, node_command(kind, params))
+        for cam in rig.names:
+            cmd = module_command("maem_ros.tools.live", "--publish", cam, "--params", str(params),
+                                 "--work", str(work), "--frames", str(a.frames), "--rate",
+                                 f"{a.rate}", "--wire", a.wire, "--vertex-stride",
+                                 str(a.vertex_stride))
+            cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
+                                                                else [])
+            group.start(f"publisher_{cam}", cmd)
+        listener = _listener()
+        deadline = time.monotonic() + a.startup_timeout
+        while not all((work / f"{c}.ready").exists() for c in rig.names):
+            if group.dead():
+                raise RuntimeError(f"process exited during start-up: {group.dead()}\n"
+                                   f"{group.logs()}")
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"publishers not ready after {a.startup_timeout:.0f} s\n"
+                                   f"{group.logs()}")
+            time.sleep(0.1)
+        while listener.node.count_publishers("/maem/poses") == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(1.0)  # the last discovery round
+        messages = {c: pickle.loads((work / f"{c}.pkl").read_bytes()) for c in rig.names}
+        stamps = [s for s, _ in messages[rig.names[0]]]
+        procs = list(group.procs.values())
+        cpu0 = {p.name: p.cpu_seconds() for p in procs}
+        t0 = time.time() + 0.5
+        (work / "start").write_text(repr(t0))
+        end = t0 + len(stamps) / a.rate
+        while time.time() < end + a.drain and not (time.time() > end and stamps[-1] in
+                                                   listener.poses):
+            time.sleep(0.05)
+        wall = time.time() - t0
+        cpu1 = {p.name: p.cpu_seconds() for p in procs}
+        time.sleep(1.2)  # one more /diagnostics period
+        with listener.lock:
+            poses = dict(listener.poses)
+            diags = dict(listener.diagnostics)
+    finally:
+        publishers = [n for n in group.procs if n.startswith("publisher_")]
+        stop_by = time.monotonic() + 10.0  # they exit by themselves after the last frame
+        while time.monotonic() < stop_by and len(group.dead(publishers)) < len(publishers):
+            time.sleep(0.05)
+        codes = group.stop(timeout_s=15.0)
+        if listener is not None:
+            listener.close()
+    sent = {s: t0 + f / a.rate for f, s in enumerate(stamps)}
+    lat = np.array([(poses[s][0] - t) * 1e3 for s, t in sent.items() if s in poses])
+    gt = ground_truth(params, a.bag, stamps)
+    from maem_ros.core.skeleton import SPORTCENTER_13, convert
+    live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
+    assoc = next((kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
+    size = np.median([len(d) for m in messages.values() for _, d in m])
+    report = {
+        "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
+        "wire": a.wire, "vertex_stride": a.vertex_stride,
+        "message_mb": round(float(size) / 1e6, 3),
+        "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
+        "dds_profile": profile or os.environ.get(DDS_PROFILE_VARS[0]) or "Fast DDS default",
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "latency_ms_median": float(np.median(lat)) if len(lat) else None,
+        "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+        "latency_ms_max": float(lat.max()) if len(lat) else None,
+        "frames_without_poses": int(sum(s not in poses for s in stamps)),
+        "partial_sets": int(float(assoc.get("count/sync_partial_sets", 0))),
+        "missing_camera_counts": {k.split("/", 1)[1]: int(v) for k, v in assoc.items()
+                                  if k.startswith("missing/")},
+        "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
+        "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
+        "recall_live": recall(live, gt, stamps),
+        "recall_offline": recall(offline_poses(rig, params, messages), gt, stamps),
+        "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
+        "exit_codes": codes,
+        "work_dir": str(work),
+    }
+    return report
+
+
+def add_live_arguments(p: argparse.ArgumentParser) -> None:
+    """The --live options of maem-bench (--frames, --wire, --vertices, --params are shared)."""
+    g = p.add_argument_group("live benchmark (--live)")
+    g.add_argument("--live", action="store_true",
+                   help="publish detections at camera rate through the node graph (see above)")
+    g.add_argument("--bag", type=Path, default=None,
+                   help="--live: publish this bag's recorded /<cam>/detections")
+    g.add_argument("--rate", type=float, default=30.0, help="--live: frames per second")
+    g.add_argument("--vertex-stride", type=int, default=1,
+                   help="--live: send every n-th vertex (announced subset)")
+    g.add_argument("--max-wait", type=float, default=None, help="--live: association max_wait, s")
+    g.add_argument("--drain", type=float, default=3.0,
+                   help="--live: seconds to wait for the last poses")
+    g.add_argument("--startup-timeout", type=float, default=180.0,
+                   help="--live: seconds for publishers to build messages and match")
+    g.add_argument("--no-profile", action="store_true",
+                   help="--live: Fast DDS defaults instead of config/fastdds.xml")
+
+
+def check_live_arguments(a: argparse.Namespace) -> None:
+    if not a.rate > 0:
+        raise ValueError(f"--rate: must be > 0, got {a.rate}")
+    if a.vertex_stride < 1:
+        raise ValueError(f"--vertex-stride: must be >= 1, got {a.vertex_stride}")
+    if a.bag is not None and not Path(a.bag).exists():
+        raise ValueError(f"--bag: {str(a.bag)!r} does not exist")
+
+
+def _publisher_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m maem_ros.tools.live")
+    p.add_argument("--publish", required=True, help="camera name")
+    p.add_argument("--params", required=True)
+    p.add_argument("--work", required=True)
+    p.add_argument("--frames", type=int, required=True)
+    p.add_argument("--rate", type=float, required=True)
+    p.add_argument("--wire", default="f32", choices=("f32", "q4"))
+    p.add_argument("--vertex-stride", type=int, default=1)
+    p.add_argument("--bag", type=Path, default=None)
+    p.add_argument("--no-profile", action="store_true")
+    return p
+
+
+if __name__ == "__main__":
+    sys.exit(publish_main(_publisher_parser().parse_args()))
