@@ -148,11 +148,30 @@ def test_offline_demo_accuracy(tmp_path, bag, capsys):
 
 
 @pytest.mark.timeout(120)
-def test_graph_demo_reduced(tmp_path, bag):
-    """The real node graph (9 processes + player + recorder) on 12 frames of the demo bag."""
+def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
+    """The default: the bag's recorded detections at rate 1.0 -> association + triangulation."""
     out = tmp_path / "out"
-    r = run_cli(["--bag", str(bag), "--out", str(out), "--frames", "12", "--rate", "0.05"],
-                timeout_s=100)
+    r = run_cli(["--bag", str(bag), "--out", str(out), "--frames", "20"], timeout_s=100)
+    log = f"stdout:\n{r.stdout}\nstderr:\n{r.stderr}"
+    assert r.returncode == 0, log
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames_played"] == 20 and report["rate"] == 1.0
+    assert all(code == 0 for code in report["exit_codes"].values()), log
+    assert "frontend" not in " ".join(report["exit_codes"])
+    assert report["metrics"]["recall"] >= 0.6, log
+    assert report["frames_dropped"] <= 3, log
+    assert "/<cam>/detections" in report["latency_definition"]
+    assert "played 20/20 frames" in r.stdout, log
+    nodes = set(demo.recorded_diagnostics(out / "record"))
+    assert {"/association", "/triangulation"} <= nodes and "/camera_0/frontend" not in nodes
+
+
+@pytest.mark.timeout(120)
+def test_graph_demo_reduced(tmp_path, bag):
+    """--frontends: the real node graph (9 processes + player + recorder) on 12 frames."""
+    out = tmp_path / "out"
+    r = run_cli(["--bag", str(bag), "--out", str(out), "--frames", "12", "--rate", "0.05",
+                 "--frontends"], timeout_s=100)
     log = f"stdout:\n{r.stdout}\nstderr:\n{r.stderr}"
     assert r.returncode == 0, log
     report = json.loads((out / "report.json").read_text())

@@ -4,8 +4,9 @@
 never touches the default context or signal handling), spun by a ``SingleThreadedExecutor`` in a
 daemon thread, closed cleanly by :meth:`BackgroundNode.close`. On top of it:
 
-* :class:`ArrivalListener` (maem-demo): first arrival time of each header stamp on image topics
-  and on /maem/poses, read from the raw CDR bytes (no deserialisation);
+* :class:`ArrivalListener` (maem-demo): first arrival time of each header stamp on the input
+  topics (images, or detections) and on /maem/poses, read from the raw CDR bytes (no
+  deserialisation);
 * :class:`ReplayClient` (tools/latency.py): publishes tiny images with given stamps and records
   /maem/poses and /diagnostics.
 """
@@ -71,12 +72,13 @@ class ArrivalListener(BackgroundNode):
     (CompressedImage) and on /maem/poses, subscribed raw: only the CDR header is read."""
 
     def __init__(self, image_topics: Sequence[str], domain_id: int | None = None,
-                 name: str = "maem_demo_listener"):
+                 name: str = "maem_demo_listener", input_type: type = CompressedImage):
         super().__init__(name, domain_id)
         self.image_t: dict[int, int] = {}
         self.poses_t: dict[int, int] = {}
-        self.subs = [self.node.create_subscription(CompressedImage, t, self._arrival(self.image_t),
-                                                   IMAGE_QOS, raw=True) for t in image_topics]
+        qos = IMAGE_QOS if input_type is CompressedImage else DATA_QOS
+        self.subs = [self.node.create_subscription(input_type, t, self._arrival(self.image_t),
+                                                   qos, raw=True) for t in image_topics]
         self.subs.append(self.node.create_subscription(
             PointCloud2, "/maem/poses", self._arrival(self.poses_t), DATA_QOS, raw=True))
         self.start()

@@ -1,18 +1,20 @@
 """maem-demo: replay the demo bag through the real node graph; print accuracy, timing and latency.
 
     maem-demo [--bag bags/demo] [--out out/demo] [--frames N | --duration S] [--rate R]
-              [--params config/demo.yaml] [--keep-going] [--no-graph]
+              [--params config/demo.yaml] [--keep-going] [--frontends | --no-graph]
     maem-demo --make-bag bags/demo        (regenerate the committed demo bag, seeded)
 
 Graph mode (default) runs, each as its own process with one params file (OUT/params.yaml:
---params plus what the bag says, i.e. its rig and scene description, and association max_wait
-1 s as the six frontends share the CPU): maem-record (/maem/poses, /maem/skeletons,
-/diagnostics -> OUT/record), one maem-frontend per camera (synthetic backend on
-/<cam>/image_raw/compressed: it regenerates the full-resolution detections of each image stamp
-from the bag's scene description), maem-association, maem-triangulation, and last maem-play
-(the bag without its recorded detections and ground truth, at --rate). At the end every process
-gets SIGINT and its exit code is checked. --no-graph runs the core pipeline on the bag's
-recorded (vertex-subset) detections in this process instead.
+--params plus what the bag says, i.e. its rig): maem-record (/maem/poses, /maem/skeletons,
+/diagnostics -> OUT/record), maem-association, maem-triangulation, and last maem-play, which
+publishes the bag's recorded /<cam>/detections in real time (--rate 1.0, 30 fps): the live path
+a user sees from the fusion machine, with a progress line. --frontends instead runs one
+maem-frontend per camera (synthetic backend on /<cam>/image_raw/compressed: it regenerates the
+full-resolution detections of each image stamp from the bag's scene description; association
+max_wait 1 s as the six frontends share the CPU) and plays the bag's images without its
+recorded detections, by default at rate 0.05. At the end every process gets SIGINT and its exit
+code is checked. --no-graph runs the core pipeline on the bag's recorded (vertex-subset)
+detections in this process instead.
 
 Printed: the maem-eval accuracy table against the bag's /maem/gt_poses (same metrics, see
 maem-eval --help), per-stage timing from the last recorded /diagnostics of each node,
@@ -53,11 +55,13 @@ from maem_ros.tools.demo_report import (LATENCY_DEFINITION, format_timing, laten
 from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
 from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
 
-#: default playback rate (1.5 fps): each synthetic frontend regenerates 18,439-vertex
-#: detections of ~12 people per image (~55 ms CPU); all six get a frame at the same moment and
-#: share 2 cores with the rest of the machine (0.2-0.4 s per frame here), so faster replays
-#: drop frames
-DEFAULT_RATE = 0.05
+#: default playback rate of the recorded detections: real time
+DEFAULT_RATE = 1.0
+#: default playback rate with --frontends (1.5 fps): each synthetic frontend regenerates
+#: 18,439-vertex detections of ~12 people per image (~55 ms CPU); all six get a frame at the
+#: same moment and share 2 cores with the rest of the machine (0.2-0.4 s per frame here), so
+#: faster replays drop frames
+FRONTENDS_RATE = 0.05
 RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/diagnostics")
 
 
@@ -81,11 +85,11 @@ def node_section(data: dict, node: str) -> dict:
 
 
 def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None,
-                 max_wait_s: float = 1.0) -> Path:
-    """``base`` params file with the bag's rig for every node; for the frontends compressed
-    images and the bag's scene description (the synthetic backend regenerates from it); for the
-    association ``max_wait_s`` (s; the six frontends share the CPU, so one frame's detections
-    arrive spread over a few hundred ms)."""
+                 max_wait_s: float | None = 1.0, frontends: bool = True) -> Path:
+    """``base`` params file with the bag's rig for every node; with ``frontends``, for them
+    compressed images and the bag's scene description (the synthetic backend regenerates from
+    it); for the association ``max_wait_s`` (s, None = the params file's; the six frontends
+    share the CPU, so one frame's detections arrive spread over a few hundred ms)."""
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
     nodes = {name: node_section(data, name)
              for name in ("frontend", "association", "triangulation")}
@@ -95,14 +99,15 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
             section["rig"] = str(rig_path)
     fe = nodes["frontend"]
     fe["image_transport"] = "compressed"
-    if fe.get("backend", "synthetic") == "synthetic":
+    if frontends and fe.get("backend", "synthetic") == "synthetic":
         if scene_config is None:
             raise ValueError("the bag has no scene description (/maem/scene): the synthetic "
                              "frontend cannot regenerate its detections")
         fe.update(_SCENE_SENTINELS)
         fe["scene_dict"] = json.dumps(scene_config, sort_keys=True)
         fe["scene_rig"] = str(scene_config.get("rig", ""))
-    nodes["association"]["max_wait"] = float(max_wait_s)
+    if max_wait_s is not None:
+        nodes["association"]["max_wait"] = float(max_wait_s)
     out.write_text(yaml.safe_dump(data, sort_keys=False))
     return out
 
@@ -120,10 +125,12 @@ def child_env() -> dict[str, str]:
     return env
 
 
-def missing_links(listener: ArrivalListener, cameras: Sequence[str]) -> list[str]:
+def missing_links(listener: ArrivalListener, cameras: Sequence[str],
+                  frontends: bool = True) -> list[str]:
     """What is not wired yet (empty = frontends, association, triangulation, recorder ready)."""
-    need = [(image_topic(c), 2, "frontend") for c in cameras]
-    need += [(f"/{c}/detections", 1, "association") for c in cameras]
+    need = [(image_topic(c), 2, "frontend") for c in cameras] if frontends else []
+    # without frontends the player publishes the detections: association + this listener
+    need += [(f"/{c}/detections", 1 if frontends else 2, "association") for c in cameras]
     need += [("/maem/clusters", 1, "triangulation"), ("/maem/poses", 2, "recorder"),
              ("/maem/skeletons", 1, "recorder"), ("/diagnostics", 1, "recorder")]
     return [f"{topic} has no {who} subscriber" for topic, k, who in need
@@ -158,35 +165,45 @@ def _crash_text(proc: Proc, code: int | None) -> str:
 
 def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out: Path,
               rate: float, keep_going: bool, startup_timeout_s: float = 60.0,
-              drain_s: float = 5.0) -> GraphRun:
-    """Start recorder + nodes, wait until wired, play ``bag`` (whose frames are ``stamps``),
-    wait until every frame has poses (or none came for ``drain_s``), SIGINT everything."""
+              drain_s: float = 5.0, frontends: bool = False) -> GraphRun:
+    """Start recorder + nodes, wait until wired, play ``bag`` (whose frames are ``stamps``:
+    its recorded detections, or with ``frontends`` its images), wait until every frame has
+    poses (or none came for ``drain_s``), SIGINT everything."""
     warm_numba_cache()
     group = ProcessGroup(out / "logs", child_env())
     record = out / "record"
-    nodes = [f"frontend_{c}" for c in demo.cameras] + ["association", "triangulation"]
+    nodes = ([f"frontend_{c}" for c in demo.cameras] if frontends else []) + \
+        ["association", "triangulation"]
     listener = None
     crashed: dict[str, str] = {}
     try:
         group.start("recorder", module_command("maem_ros.ros.recorder_node", str(record),
                                                "--topics", *RECORD_TOPICS))
-        for c in demo.cameras:
+        for c in (demo.cameras if frontends else []):
             group.start(f"frontend_{c}", node_command("frontend", params, f"/{c}"))
         for kind in ("association", "triangulation"):
             group.start(kind, node_command(kind, params))
         # the listener (this process) joins the children's domain and discovery range
         os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE",
                               group.env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
-        listener = ArrivalListener([image_topic(c) for c in demo.cameras],
-                                   int(group.env["ROS_DOMAIN_ID"]))
-        _wait_wired(group, listener, demo.cameras, startup_timeout_s)
+        if frontends:
+            listener = ArrivalListener([image_topic(c) for c in demo.cameras],
+                                       int(group.env["ROS_DOMAIN_ID"]))
+        else:
+            from sensor_msgs.msg import PointCloud2
+            listener = ArrivalListener([f"/{c}/detections" for c in demo.cameras],
+                                       int(group.env["ROS_DOMAIN_ID"]), input_type=PointCloud2)
+        _wait_wired(group, listener, demo.cameras, startup_timeout_s, frontends)
         t0 = time.monotonic()
+        played, dropped = (("/*/image_raw/compressed", "/*/detections") if frontends
+                           else ("/*/detections", "/*/image_raw/compressed"))
         group.start("player", module_command(
             "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
-            "--wait-subscribers", f"{startup_timeout_s:g}", "--wait-topics", "/*/image_raw/compressed",
-            "--min-subscribers", "2",  # the camera's frontend and this process's listener
-            "--exclude", "/*/detections", bagio.GT_TOPIC))
-        crashed.update(_watch_play(group, nodes + ["recorder"], keep_going))
+            "--wait-subscribers", f"{startup_timeout_s:g}", "--wait-topics", played,
+            "--min-subscribers", "2",  # the frontend / association and this process's listener
+            "--exclude", dropped, bagio.GT_TOPIC))
+        crashed.update(_watch_play(group, nodes + ["recorder"], keep_going,
+                                   _progress(listener, len(stamps))))
         _drain(group, listener, stamps, drain_s, nodes, crashed, keep_going)
         wall = time.monotonic() - t0
         time.sleep(1.3)  # one more /diagnostics period reaches the recorder
@@ -214,15 +231,33 @@ def warm_numba_cache() -> None:
         log(f"compiled the epipolar kernels in {dt:.1f} s (cached for the nodes)")
 
 
+def _progress(listener: ArrivalListener, total: int, period_s: float = 1.0):
+    """A callable printing one progress line (frames in, frames with poses) every period_s;
+    rewritten in place on a terminal."""
+    state = {"next": time.monotonic() + period_s}
+    tty = sys.stdout.isatty()
+
+    def show(final: bool = False) -> None:
+        now = time.monotonic()
+        if not final and now < state["next"]:
+            return
+        state["next"] = now + period_s
+        inputs, poses = listener.snapshot()
+        text = f"maem-demo: played {len(inputs)}/{total} frames, poses for {len(poses)}"
+        print(("\r" + text + ("\n" if final else "")) if tty else text, end="" if tty else "\n",
+              flush=True)
+    return show
+
+
 def _wait_wired(group: ProcessGroup, listener: ArrivalListener, cameras: Sequence[str],
-                timeout_s: float) -> None:
+                timeout_s: float, frontends: bool = True) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         dead = group.dead()
         if dead:
             raise DemoError("process exited during start-up:\n  " + "\n  ".join(
                 _crash_text(group.procs[n], c) for n, c in dead.items()))
-        missing = missing_links(listener, cameras)
+        missing = missing_links(listener, cameras, frontends)
         if not missing:
             return
         if time.monotonic() > deadline:
@@ -230,14 +265,19 @@ def _wait_wired(group: ProcessGroup, listener: ArrivalListener, cameras: Sequenc
         time.sleep(0.2)
 
 
-def _watch_play(group: ProcessGroup, watched: list[str], keep_going: bool) -> dict[str, str]:
+def _watch_play(group: ProcessGroup, watched: list[str], keep_going: bool,
+                progress=None) -> dict[str, str]:
     """Wait for the player to finish; a crashed node aborts unless ``keep_going``."""
     crashed: dict[str, str] = {}
     player = group.procs["player"].popen
     while player.poll() is None:
         _check_crashes(group, watched, crashed, keep_going)
+        if progress is not None:
+            progress()
         time.sleep(0.1)
     _check_crashes(group, watched, crashed, keep_going)
+    if progress is not None:
+        progress(final=True)
     return crashed
 
 
@@ -319,13 +359,18 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--frames", type=int, default=None, help="play only the first N frames")
     g.add_argument("--duration", type=float, default=None, metavar="S",
                    help="play only the first S seconds of bag time")
-    p.add_argument("--rate", type=float, default=DEFAULT_RATE,
-                   help=f"playback rate (default {DEFAULT_RATE}; the bag is 30 fps)")
+    p.add_argument("--rate", type=float, default=None,
+                   help=f"playback rate (default {DEFAULT_RATE}, with --frontends "
+                        f"{FRONTENDS_RATE}; the bag is 30 fps)")
     p.add_argument("--keep-going", action="store_true",
                    help="finish the replay when a node crashes (reported at the end, exit 1)")
-    p.add_argument("--no-graph", action="store_true",
-                   help="offline: core association + triangulation on the bag's recorded "
-                   "detections")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--no-graph", action="store_true",
+                      help="offline: core association + triangulation on the bag's recorded "
+                      "detections")
+    mode.add_argument("--frontends", action="store_true",
+                      help="run the synthetic frontends on the bag's images instead of playing "
+                      "its recorded detections")
     p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
                    help="give up when the graph is not wired after S seconds (default 60)")
     p.add_argument("--make-bag", type=Path, default=None, metavar="DIR",
@@ -367,6 +412,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"maem-demo: {e}", file=sys.stderr)
             return 2
         return 0
+    if a.rate is None:
+        a.rate = FRONTENDS_RATE if a.frontends else DEFAULT_RATE
     if not a.rate > 0:
         print(f"maem-demo: --rate must be > 0, got {a.rate}", file=sys.stderr)
         return 2
@@ -396,25 +443,34 @@ def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
 def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: list[int]
                ) -> tuple[int, dict[int, Any], dict[str, Any]]:
     """The node graph replay: (exit code, recorded poses by stamp, report entries)."""
-    check_scene(demo)
+    if a.frontends:
+        check_scene(demo)
+    elif not any(f"/{c}/detections" in demo.info.topics for c in demo.cameras):
+        raise ValueError(f"bag {str(demo.path)!r}: no recorded /<camera>/detections to play "
+                         f"(use --frontends to run the synthetic frontends on its images)")
     n = len(stamps)
     play_bag = demo.path if n == len(demo.stamps) else trim_bag(demo, a.out / "input", n)
-    params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(), demo.scene_config)
+    params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(), demo.scene_config,
+                          max_wait_s=1.0 if a.frontends else None, frontends=a.frontends)
     run = run_graph(play_bag, demo, stamps, params, a.out, a.rate, a.keep_going,
-                    startup_timeout_s=a.startup_timeout)
+                    startup_timeout_s=a.startup_timeout, frontends=a.frontends)
     poses = recorded_poses(run.record)
     diags = recorded_diagnostics(run.record)
     metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
     assoc = next((kv for name, kv in diags.items() if name.strip("/") == "association"), {})
     metrics["association_ms_median"] = float(assoc.get("time_ms/associate/median", "nan"))
-    print_accuracy("graph (maem-play -> nodes)", metrics)
+    print_accuracy("graph (maem-play -> frontends -> nodes)" if a.frontends
+                   else "graph (maem-play detections -> nodes)", metrics)
     rows = stage_timing(diags)
     print("\nper-stage timing (last /diagnostics of each node, over its last <= 200 frames):")
     print(format_timing(rows) if rows else "  no /diagnostics recorded")
     lat = latencies_ms(run.image_t, run.poses_t)
     dropped = [s for s in stamps if s not in poses]
     print_run_summary(a.rate, n, lat, dropped, diags, run)
-    report = {"metrics": metrics, "latency_definition": LATENCY_DEFINITION,
+    definition = LATENCY_DEFINITION if a.frontends else LATENCY_DEFINITION.replace(
+        "/<cam>/image_raw/compressed", "/<cam>/detections").replace(
+        "the frontends, synchronisation", "synchronisation")
+    report = {"metrics": metrics, "latency_definition": definition,
               "timing": [dict(zip(("node", "stage", "median_ms", "p99_ms", "processed",
                                    "dropped"), r)) for r in rows],
               "latency_ms_median": float(np.median(lat)) if len(lat) else None,
