@@ -95,3 +95,38 @@ def test_reference_pa_mpjpe_is_zero_for_a_similarity():
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
     assert pa_mpjpe_one(1.7 * X @ R.T + [1, 2, 3], X) < 1e-12
     assert pa_mpjpe_one(X + rng.normal(0, 0.1, X.shape), X) > 0.01
+
+
+def test_bench_large_load_reduced():
+    proc = _bench("--load", "large", "--vertices", "300", "--frames", "1", "--repeats", "1",
+                  "--straightforward-frames", "0", "--json", timeout=240)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert (out["load"], out["cameras"], out["detections_per_camera"]) == ("large", 16, 25)
+    assert out["true_clusters_recovered"] == out["true_clusters"] == 22
+    assert set(out["targets"]) == {"association_ms_median"}
+    assert out["targets"]["association_ms_median"]["target"] == 33.0
+
+
+@pytest.mark.timeout(300)
+def test_bench_live_reduced_run():
+    """maem-bench --live: 6 publisher processes at 30 fps through association + triangulation."""
+    proc = _bench("--live", "--frames", "20", "--vertices", "500", "--wire", "q4", "--json",
+                  timeout=280)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert (out["cameras"], out["frames_published"], out["wire"]) == (6, 20, "q4")
+    assert out["frames_without_poses"] <= 4, out
+    assert out["latency_ms_median"] > 0 and out["latency_ms_p99"] >= out["latency_ms_median"]
+    assert out["recall_offline"] >= 0.8 and out["recall_live"] >= 0.6, out
+    assert {"association", "triangulation", "publisher_camera_0"} <= set(out["cpu_percent"])
+    assert all(code == 0 for code in out["exit_codes"].values()), out
+    assert out["dds_profile"].endswith("fastdds.xml")
+    assert isinstance(out["partial_sets"], int)
+
+
+def test_bench_live_rejects_bad_arguments():
+    proc = _bench("--live", "--rate", "0")
+    assert proc.returncode == 2 and "--rate" in proc.stderr
+    proc = _bench("--live", "--bag", "/nonexistent/bag")
+    assert proc.returncode == 2 and "--bag" in proc.stderr

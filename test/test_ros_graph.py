@@ -397,3 +397,40 @@ def test_marker_lifetime_follows_the_frame_period(graph):
     assert node.lifetime_s() == pytest.approx(1.5)
     node._arrivals.extend([11.51 + 0.01 * i for i in range(16)])  # 100 Hz
     assert node.lifetime_s() == 0.2
+
+
+def test_frontend_sends_q4_and_an_announced_vertex_subset(graph):
+    """wire_vertices q4 + vertex_stride/vertex_count: the frontend publishes verts2d_q4 and
+    verts2d_subset; the decoder gives the announced subset of the scene's vertices (1/32 px)."""
+    sim = pytest.importorskip("maem_ros.sim.scene")
+    from sensor_msgs.msg import Image
+
+    from maem_ros.core import epipolar
+    from maem_ros.ros.common import IMAGE_QOS
+    from maem_ros.ros.frontend_node import FrontendNode
+
+    cfg = dict(rig="sportcenter6", frames=3, seed=4, difficulty="easy", num_vertices=600)
+    scene = sim.Scene(sim.SceneConfig(**cfg))
+    graph.add(FrontendNode, dict(rig="sportcenter6", backend="synthetic", seed=4,
+                                 difficulty="easy", frames=3, num_vertices=600, vertex_stride=2,
+                                 vertex_count=100, wire_vertices="q4", diagnostics_period=0.2),
+              namespace="/camera_2")
+    client = graph.client("q4_client")
+    pub = client.create_publisher(Image, "/camera_2/image_raw", IMAGE_QOS)
+    raw = Recorder(client, PointCloud2, "/camera_2/detections", DATA_QOS)
+    assert wait_for(lambda: pub.get_subscription_count() > 0 and
+                    raw.sub.get_publisher_count() > 0, 20.0, graph)
+    stamp = scene.stamp_ns(1)
+    pub.publish(wire.bgr_to_image(np.zeros((2, 2, 3), np.uint8), stamp, "camera_2"))
+    assert wait_for(lambda: raw.has(stamp), 20.0, graph)
+    msg = raw.by_stamp[stamp]
+    fields = {f.name: f.count for f in msg.fields}
+    assert fields["verts2d_q4"] == 200 and fields[wire.SUBSET_FIELD] == 3 and "verts2d" not in fields
+    got = wire.msg_to_detections(msg, "/camera_2/detections")
+    want = scene.detections("camera_2", 1)
+    ids = epipolar.vertex_subset(600, 2, 100)
+    assert got.mesh_subset == (600, 2, 100) and np.array_equal(got.vertex_ids, ids)
+    ref = want.verts2d[:, ids]
+    inside = np.all((ref > 0) & (ref < 4095), axis=-1)
+    assert np.all(np.abs(got.verts2d[inside] - ref[inside]) <= 1 / 32 + 1e-3)
+    assert np.all(np.isnan(got.verts2d[~inside]))
