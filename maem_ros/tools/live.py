@@ -198,6 +198,14 @@ def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, by
     return out
 
 
+def _ros_env(env: dict[str, str]) -> list[str]:
+    """NAME=value of the variables the publishers need (``ip netns exec`` keeps the environment,
+    spelled out so a sudo wrapper cannot drop them)."""
+    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS",
+            "FASTRTPS_DEFAULT_PROFILES_FILE", "PYTHONUNBUFFERED", "OMP_NUM_THREADS", "PATH")
+    return [f"{k}={env[k]}" for k in keys if k in env]
+
+
 def run_live(a: argparse.Namespace) -> dict[str, Any]:
     from maem_ros.params import load_node_params
     from maem_ros.ros.common import DDS_PROFILE_VARS, load_rig_param, use_shipped_dds_profile
@@ -235,6 +243,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
                                  str(a.vertex_stride))
             cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
                                                                 else [])
+            if a.publisher_netns:  # the camera machines: another network namespace
+                cmd = ["ip", "netns", "exec", a.publisher_netns, "env", *_ros_env(env), *cmd]
             group.start(f"publisher_{cam}", cmd)
         listener = _listener()
         deadline = time.monotonic() + a.startup_timeout
@@ -283,6 +293,7 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
     report = {
         "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
         "wire": a.wire, "vertex_stride": a.vertex_stride,
+        "publisher_netns": a.publisher_netns,
         "message_mb": round(float(size) / 1e6, 3),
         "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
         "dds_profile": profile or os.environ.get(DDS_PROFILE_VARS[0]) or "Fast DDS default",
@@ -322,6 +333,9 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
                    help="--live: seconds for publishers to build messages and match")
     g.add_argument("--no-profile", action="store_true",
                    help="--live: Fast DDS defaults instead of config/fastdds.xml")
+    g.add_argument("--publisher-netns", default=None, metavar="NS",
+                   help="--live: run the camera publishers in network namespace NS (ip netns; "
+                        "root), as separate machines (see scripts/netns_link.sh)")
 
 
 def check_live_arguments(a: argparse.Namespace) -> None:
