@@ -88,18 +88,18 @@ def test_strided_message_views_are_read_in_place():
                                epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0)[0], rtol=1e-12)
 
 
-def test_wrong_pairs_exit_early_and_all_missing_rejects():
+def test_wrong_pairs_with_missing_points_exit_early_and_all_missing_rejects():
+    """test_association covers the early exit of complete detections; here half of b's points
+    are missing, so the exit bound tau * (used + still to come) shrinks as they are walked."""
     rig = two_facing_cameras()
     F = fundamental_matrix(rig["a"], rig["b"])
     rng = np.random.default_rng(0)
-    xa = rng.uniform(0, 1000, (2, 18439, 2)).astype(np.float32)
-    xb = rng.uniform(0, 1000, (2, 18439, 2)).astype(np.float32)
-    xb[1, ::2] = np.nan  # half of detection 1 missing: the exit bound shrinks as they are seen
+    xa = rng.uniform(0, 1000, (1, 18439, 2)).astype(np.float32)
+    xb = rng.uniform(0, 1000, (1, 18439, 2)).astype(np.float32)
+    xb[0, ::2] = np.nan
     for backend in BACKENDS:
-        sums, used = epipolar.epipolar_sums(xa, xb, F, np.array([0, 1]), np.array([1, 0]), 8.0,
-                                            backend=backend)
-        assert np.all(sums >= 8.0 * used) and np.all(used <= 2 * epipolar.BLOCK
-                                                    * epipolar.CHUNK_BLOCKS)
+        sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend)
+        assert sums[0] >= 8.0 * used[0] and 0 < used[0] <= epipolar.BLOCK * epipolar.CHUNK_BLOCKS
         none = np.full((1, 600, 2), np.nan, np.float32)
         sums, used = epipolar.epipolar_sums(none, xb[:1, :600], F, [0], [0], 8.0, backend=backend)
         assert used[0] == 0 and not sums[0] < 8.0 * used[0]
