@@ -43,15 +43,18 @@ def test_q4_round_trip_is_exact_to_a_32nd_of_a_pixel(n, j, v, seed):
     assert names["kpts2d_q4"] == (PointField.UINT16, 2 * j) and "kpts2d" not in names
     back = wire.msg_to_detections(msg, TOPIC)
     assert back.verts2d.dtype == np.float32 and back.verts2d.shape == (n, v, 2)
-    inside = (dets.verts2d > -1 / 32) & (dets.verts2d < 65534 / 16 + 1 / 32)
+    # codes count from each detection's origin, the floor of its smallest coordinates
+    origin = np.floor(dets.verts2d.min(axis=1, keepdims=True)) if v else 0.0
+    rel = dets.verts2d - origin
+    inside = (rel > -1 / 32) & (rel < 65534 / 16 + 1 / 32)
     # a vertex is missing as a whole when one of its coordinates is outside
     inside_pt = np.repeat(np.all(inside, axis=-1, keepdims=True), 2, axis=-1)
     assert np.all(np.abs(back.verts2d[inside_pt] - dets.verts2d[inside_pt]) <= 1 / 32 + 1e-4)
     assert np.all(np.isnan(back.verts2d[~inside]))  # outside the q4 range: missing
     assert np.all(np.abs(back.kpts2d - dets.kpts2d) <= 1 / 32 + 1e-9)
-    # q4 halves the vertex bytes
+    # q4 halves the vertex and keypoint bytes (+ 8 bytes of origin per detection)
     f32 = wire.detections_to_msg(dets)
-    assert len(msg.data) == len(f32.data) - n * 4 * (v + j)
+    assert len(msg.data) == len(f32.data) - n * 4 * (v + j) + n * 8
 
 
 def test_q4_codes_and_missing_values():
@@ -62,6 +65,20 @@ def test_q4_codes_and_missing_values():
     back = wire.decode_q4(code)
     assert back[2] == np.float32(100.0) and back[3] == np.float32(4095.875)
     assert np.isnan(back[4]) and np.all(np.isnan(back[6:])) and back[5] == 0.0
+
+
+def test_q4_carries_people_at_negative_rectified_coordinates():
+    """Wide distorted cameras put whole people at u < 0 in the rectified image: the origin keeps
+    them (a fixed 0 origin would mark every vertex missing)."""
+    dets = make_dets(2, 3, 50, lo=-900.0, hi=-20.0)
+    back = wire.msg_to_detections(wire.detections_to_msg(dets, vertices="q4"), TOPIC)
+    assert np.all(np.abs(back.verts2d - dets.verts2d) <= 1 / 32 + 1e-4)
+    assert np.all(wire.encode_q4(dets.verts2d) == wire.Q4_MISSING)  # what origin 0 would send
+    msg = wire.detections_to_msg(dets, vertices="q4")
+    msg.fields = [f for f in msg.fields if f.name != wire.ORIGIN_FIELD]  # optional field: the
+    np.testing.assert_allclose(  # codes then count from 0 0 (the issue's plain q4 layout)
+        wire.msg_to_detections(msg, TOPIC).verts2d,
+        (dets.verts2d - np.floor(dets.verts2d.min(axis=1, keepdims=True))), atol=1 / 32 + 1e-4)
 
 
 def _q4_message(n=2, j=3, v=4):

@@ -7,8 +7,11 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   ``kpts3d``(3J m, camera-relative) ``verts2d``(2V rectified px). header.frame_id = camera name,
   header.stamp = image capture stamp. J and V come from the counts.
   Compact variant (:data:`WIRE_VERTICES` ``q4``): ``verts2d_q4`` (uint16 x 2V) instead of
-  ``verts2d``, value = round(px * 16) (1/16 px up to 4095.9375 px), 65535 = missing (a vertex
-  outside 0 .. 4095.9 px); optionally ``kpts2d_q4`` (uint16 x 2J, no missing keypoint) instead
+  ``verts2d``, value = round((px - origin) * 16) (1/16 px steps over 4095.875 px from the origin),
+  65535 = missing (outside that range); ``verts2d_q4_origin`` (f32 x 2, optional, default 0 0)
+  is the detection's origin in px: the encoder puts it at the floor of the detection's smallest
+  vertex coordinates, so people whose rectified vertices are negative or beyond 4096 px (wide,
+  strongly distorted cameras) lose nothing; optionally ``kpts2d_q4`` (uint16 x 2J, no missing keypoint) instead
   of ``kpts2d``. A vertex subset is announced by ``verts2d_subset`` (uint32 x 3: full mesh
   vertices, stride, count; core.epipolar.vertex_subset gives the ids) in every point.
 * clusters (``/maem/clusters``), one point per (cluster, member view): ``cluster``(uint32, index in
@@ -62,6 +65,8 @@ DETECTION_TYPES = {"bbox": F32, "score": F32, "kpts2d": F32, "kpts3d": F32, "ver
 Q4_FIELDS = {"kpts2d_q4": "kpts2d", "verts2d_q4": "verts2d"}
 #: optional field announcing a vertex subset: (full mesh vertices, stride, count)
 SUBSET_FIELD = "verts2d_subset"
+#: optional per-detection origin (px) of the verts2d_q4 codes
+ORIGIN_FIELD = "verts2d_q4_origin"
 #: frontend ``wire_vertices`` choices
 WIRE_VERTICES = ("f32", "q4")
 #: q4: 1/16 px steps; the largest code is the missing marker
@@ -256,13 +261,25 @@ def encode_q4(px: np.ndarray) -> np.ndarray:
     return np.where(ok, code, Q4_MISSING).astype(np.uint16)
 
 
-def decode_q4(code: np.ndarray, dtype=np.float32) -> np.ndarray:
-    """uint16 q4 codes -> px (``dtype``), NaN where the code is Q4_MISSING (one pass, one copy)."""
+def decode_q4(code: np.ndarray, dtype=np.float32, origin: np.ndarray | None = None) -> np.ndarray:
+    """uint16 q4 codes (N, 2K) -> px (``dtype``), NaN where the code is Q4_MISSING (one pass, one
+    copy); ``origin`` (N, 2) px is added to every (u, v)."""
     out = np.multiply(code, dtype(1.0 / Q4_SCALE), dtype=dtype)
+    if origin is not None and len(out):
+        out.reshape(len(out), -1, 2)[:] += origin[:, None, :].astype(dtype)
     missing = code == Q4_MISSING
     if missing.any():
         out[missing] = np.nan
     return out
+
+
+def q4_origin(verts2d: np.ndarray) -> np.ndarray:
+    """(N, 2) px origin of each detection's q4 codes: the floor of its smallest finite vertex
+    coordinates (0 where it has none), an integer so origin + code / 16 is exact in float32."""
+    with np.errstate(invalid="ignore"):
+        lo = np.nanmin(np.where(np.isfinite(verts2d), verts2d, np.nan), axis=1) \
+            if verts2d.shape[1] else np.zeros((len(verts2d), 2))
+    return np.floor(np.nan_to_num(lo, nan=0.0)).astype(np.float32)
 
 
 def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
@@ -286,6 +303,8 @@ def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
     v_field = ("verts2d_q4", U16) if vertices == "q4" else ("verts2d", F32)
     fields = [("bbox", F32, 4), ("score", F32, 1), (*k_field, 2 * j), ("kpts3d", F32, 3 * j),
               (*v_field, 2 * v)]
+    if vertices == "q4":
+        fields.append((ORIGIN_FIELD, F32, 2))
     if dets.mesh_subset is not None:
         fields.append((SUBSET_FIELD, U32, 3))
     msg, rec = _new_cloud(dets.stamp_ns, dets.camera, fields, n)
@@ -299,7 +318,9 @@ def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
         rec["kpts3d"] = dets.kpts3d.reshape(n, 3 * j)
         vp = dets.verts2d.reshape(n, 2 * v)
         if vertices == "q4":
-            rec["verts2d_q4"] = encode_q4(vp)
+            origin = q4_origin(dets.verts2d)
+            rec[ORIGIN_FIELD] = origin
+            rec["verts2d_q4"] = encode_q4((dets.verts2d - origin[:, None, :]).reshape(n, 2 * v))
         else:
             rec["verts2d"] = vp
         if dets.mesh_subset is not None:
@@ -319,6 +340,10 @@ def _detection_layout(msg: PointCloud2, topic: str) -> dict[str, int]:
             expected[q4] = U16
     if SUBSET_FIELD in names:
         expected[SUBSET_FIELD] = U32
+    if ORIGIN_FIELD in names:
+        if "verts2d_q4" not in names:
+            raise WireError(topic, ORIGIN_FIELD, "without verts2d_q4", "unknown_field")
+        expected[ORIGIN_FIELD] = F32
     return expected
 
 
@@ -376,6 +401,9 @@ def msg_to_detections(msg: PointCloud2, topic: str,
                         f"(J={j} from {kname})", "bad_count")
     if counts[vname] % 2:
         raise WireError(topic, vname, f"count {counts[vname]}, expected 2V", "bad_count")
+    if ORIGIN_FIELD in layout and counts[ORIGIN_FIELD] != 2:
+        raise WireError(topic, ORIGIN_FIELD, f"count {counts[ORIGIN_FIELD]}, expected 2 (u v px)",
+                        "bad_count")
     if SUBSET_FIELD in layout and counts[SUBSET_FIELD] != 3:
         raise WireError(topic, SUBSET_FIELD, f"count {counts[SUBSET_FIELD]}, expected 3 (mesh "
                         f"vertices, stride, count)", "bad_count")
@@ -392,7 +420,10 @@ def msg_to_detections(msg: PointCloud2, topic: str,
     else:
         kpts2d = fields["kpts2d"]
     if vname == "verts2d_q4":
-        verts2d = decode_q4(fields[vname])
+        origin = fields.get(ORIGIN_FIELD)
+        if origin is not None:
+            _check_finite(topic, ORIGIN_FIELD, origin)
+        verts2d = decode_q4(fields[vname], origin=origin)
     else:
         verts2d = fields["verts2d"]
         _check_finite(topic, "verts2d", verts2d, allow_nan=True)  # NaN = missing vertex
