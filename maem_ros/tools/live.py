@@ -303,6 +303,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         "latency_ms_max": float(lat.max()) if len(lat) else None,
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
         "partial_sets": int(float(assoc.get("count/sync_partial_sets", 0))),
+        # where they happen: frames whose best-seen person has fewer views than the run's best
+        "frames_with_fewer_views": _fewer_views(poses, stamps),
         "missing_camera_counts": {k.split("/", 1)[1]: int(v) for k, v in assoc.items()
                                   if k.startswith("missing/")},
         "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
@@ -314,6 +316,14 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         "work_dir": str(work),
     }
     return report
+
+
+def _fewer_views(poses: dict[int, Any], stamps: Sequence[int]) -> list[int]:
+    """Frame indices whose poses have at most (the run's most views - 1) views: a camera was
+    missing from that frame set (or lost every person there)."""
+    best = {f: int(poses[s][1].views.max(initial=0)) for f, s in enumerate(stamps) if s in poses}
+    top = max(best.values(), default=0)
+    return [f for f, v in best.items() if v < top]
 
 
 def add_live_arguments(p: argparse.ArgumentParser) -> None:
