@@ -264,10 +264,14 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         procs = list(group.procs.values())
         cpu0 = {p.name: p.cpu_seconds() for p in procs}
         t0 = time.time() + 0.5
-        (work / "start").write_text(repr(t0))
+        (work / "start.tmp").write_text(repr(t0))
+        (work / "start.tmp").rename(work / "start")  # atomic: a publisher never reads it half
         end = t0 + len(stamps) / a.rate
         while time.time() < end + a.drain and not (time.time() > end and stamps[-1] in
                                                    listener.poses):
+            failed = {n: c for n, c in group.dead().items() if c != 0}
+            if failed:
+                raise RuntimeError(f"process failed during the run: {failed}\n{group.logs()}")
             time.sleep(0.05)
         wall = time.time() - t0
         cpu1 = {p.name: p.cpu_seconds() for p in procs}
