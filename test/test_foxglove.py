@@ -84,7 +84,7 @@ class FoxgloveClient:
             while not done(self.received) and time.monotonic() < deadline:
                 try:
                     frame = await asyncio.wait_for(ws.recv(), max(0.05, deadline - time.monotonic()))
-                except asyncio.TimeoutError:
+                except (asyncio.TimeoutError, websockets.ConnectionClosed):
                     break
                 if isinstance(frame, str):
                     msg = json.loads(frame)
@@ -271,6 +271,31 @@ def test_bag_source_channels_and_messages(image_bag):
                                    proj[np.isfinite(proj).all(axis=1)], atol=1e-6)
     # log times are the recording's stamps
     assert set(client.log_times["/maem/skeletons"]) <= set(frames)
+
+
+def test_two_bags_merged_images_from_one_poses_from_the_other(tmp_path):
+    """As after `make demo`: the camera bag (rig, images) plus a recorder bag (poses only)."""
+    from maem_ros.tools import bagio
+    frames = known_frames(num_frames=3, dropped=())
+    known = write_poses_bag(tmp_path / "cams", frames, images=True, topic="/other")
+    with bagio.BagWriter(tmp_path / "record") as w:
+        for stamp, ids, joints in frames:
+            msg = wire.poses_to_msg(stamp, "world", ids, joints, np.full(len(ids), 2),
+                                    np.full(len(ids), 0.9))
+            w.write("/maem/poses", bagio.pointcloud2_from_ros(msg), stamp)
+    cam = known.rig.names[0]
+    topics = ["/maem/skeletons", f"/{cam}/image_raw/compressed", f"/{cam}/skeletons_2d"]
+    cmd = [str(BIN / "maem-foxglove"), "--bag", str(tmp_path / "record"), "--bag",
+           str(tmp_path / "cams"), "--port", "0", "--loop", "--rate", "3"]
+    with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                         text=True)) as proc:
+        url = read_url(proc.stdout, r"Foxglove server on (ws://\S+)")
+        client = FoxgloveClient(url).start(every_topic(topics, 3)).join()
+        proc.terminate()
+        assert proc.wait(20) == 0
+    stamps = {s for s, _, _ in frames}
+    for t in topics:
+        assert set(client.log_times[t]) <= stamps and len(client.received[t]) >= 3
 
 
 @pytest.mark.parametrize("args, needle", [
