@@ -212,6 +212,21 @@ def image_bag(tmp_path_factory):
     return path, known
 
 
+def watch_bags(bags, done) -> FoxgloveClient:
+    """`maem-foxglove --bag ... --loop` on a free port, watched by a client until ``done``;
+    the server must then stop cleanly on SIGTERM."""
+    cmd = [str(BIN / "maem-foxglove"), "--port", "0", "--loop", "--rate", "3"]
+    for b in bags:
+        cmd += ["--bag", str(b)]
+    with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                         text=True)) as proc:
+        url = read_url(proc.stdout, r"Foxglove server on (ws://\S+)")
+        client = FoxgloveClient(url).start(done).join()
+        proc.terminate()
+        assert proc.wait(20) == 0
+    return client
+
+
 def _decoded_frames(known):
     return {s: (ids, j.astype(np.float32).astype(np.float64)) for s, ids, j in known.frames}
 
@@ -220,13 +235,7 @@ def test_bag_source_channels_and_messages(image_bag):
     bag, known = image_bag
     cams = known.rig.names
     want = expected_schemas(cams)
-    cmd = [str(BIN / "maem-foxglove"), "--bag", str(bag), "--port", "0", "--loop", "--rate", "3"]
-    with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                         text=True)) as proc:
-        url = read_url(proc.stdout, r"Foxglove server on (ws://\S+)")
-        client = FoxgloveClient(url).start(every_topic(want, 2)).join()
-        proc.terminate()
-        assert proc.wait(20) == 0
+    client = watch_bags([bag], every_topic(want, 2))
     assert {t: c["schemaName"] for t, c in client.channels.items()} == want
     got = client.received
     frames = _decoded_frames(known)
@@ -285,14 +294,7 @@ def test_two_bags_merged_images_from_one_poses_from_the_other(tmp_path):
             w.write("/maem/poses", bagio.pointcloud2_from_ros(msg), stamp)
     cam = known.rig.names[0]
     topics = ["/maem/skeletons", f"/{cam}/image_raw/compressed", f"/{cam}/skeletons_2d"]
-    cmd = [str(BIN / "maem-foxglove"), "--bag", str(tmp_path / "record"), "--bag",
-           str(tmp_path / "cams"), "--port", "0", "--loop", "--rate", "3"]
-    with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                         text=True)) as proc:
-        url = read_url(proc.stdout, r"Foxglove server on (ws://\S+)")
-        client = FoxgloveClient(url).start(every_topic(topics, 3)).join()
-        proc.terminate()
-        assert proc.wait(20) == 0
+    client = watch_bags([tmp_path / "record", tmp_path / "cams"], every_topic(topics, 3))
     stamps = {s for s, _, _ in frames}
     for t in topics:
         assert set(client.log_times[t]) <= stamps and len(client.received[t]) >= 3
@@ -329,6 +331,7 @@ def test_bag_without_rig_needs_rig_option(tmp_path):
 # ---------------------------------------------------------------------------------------------
 def test_live_node_serves_graph_topics(tmp_path):
     import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
 
     from helpers_ros import RELIABLE, ros_node, wait_for
@@ -339,7 +342,7 @@ def test_live_node_serves_graph_topics(tmp_path):
     rig.to_yaml(rig_path)
     frames = known_frames(num_frames=4, dropped=())
     cmd = [str(BIN / "maem-foxglove"), "--ros-args", "-p", f"rig:={rig_path}", "-p", "port:=0",
-           "-p", "static_period:=0.2"]
+           "-p", "static_period:=0.2", "-p", "diagnostics_period:=0.2"]
     env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
     want = expected_schemas(rig.names)
     with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
@@ -376,6 +379,18 @@ def test_live_node_serves_graph_topics(tmp_path):
 
         assert wait_for(publish_round, 90, ex, step=0.05)
         client.join()
+        # a malformed poses message is dropped with its reason in /diagnostics, the node goes on
+        diag: dict[str, str] = {}
+        node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
+            {kv.key: kv.value for st in m.status if st.name == "/foxglove" for kv in st.values}),
+            RELIABLE)
+        bad = PointCloud2(header=wire.make_header(T0_NS, "world"))
+        assert wait_for(lambda: pose_pub.publish(bad) or diag.get("dropped/missing_field")
+                        not in (None, "0"), 30, ex, step=0.2)
+        before = int(diag["frames_processed"])
+        assert wait_for(lambda: (publish_round(), int(diag["frames_processed"]) > before)[1],
+                        30, ex, step=0.2), diag
+        assert proc.poll() is None
         proc.send_signal(2)
         assert proc.wait(20) == 0
     assert {t: c["schemaName"] for t, c in client.channels.items()} == want
