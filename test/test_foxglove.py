@@ -329,10 +329,11 @@ def test_bag_without_rig_needs_rig_option(tmp_path):
 # ---------------------------------------------------------------------------------------------
 # live graph source: the node, fed by a test publisher
 # ---------------------------------------------------------------------------------------------
-def test_live_node_serves_graph_topics(tmp_path):
+@pytest.mark.parametrize("transport", ["compressed", "raw"])
+def test_live_node_serves_graph_topics(tmp_path, transport):
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
-    from sensor_msgs.msg import CameraInfo, CompressedImage, PointCloud2
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
     from helpers_ros import RELIABLE, ros_node, wait_for
     from maem_ros.ros.common import IMAGE_QOS
@@ -342,22 +343,26 @@ def test_live_node_serves_graph_topics(tmp_path):
     rig.to_yaml(rig_path)
     frames = known_frames(num_frames=4, dropped=())
     cmd = [str(BIN / "maem-foxglove"), "--ros-args", "-p", f"rig:={rig_path}", "-p", "port:=0",
-           "-p", "static_period:=0.2", "-p", "diagnostics_period:=0.2"]
+           "-p", "static_period:=0.2", "-p", "diagnostics_period:=0.2",
+           "-p", f"image_transport:={transport}"]
     env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
     want = expected_schemas(rig.names)
     with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                          text=True, env=env)) as proc, ros_node("fox_test") as (node, ex):
         url = read_url(proc.stdout, r"Foxglove server on (ws://[0-9.]+:[0-9]+)")
         pose_pub = node.create_publisher(PointCloud2, "/maem/poses", RELIABLE)
-        img_pubs = {c: node.create_publisher(CompressedImage, f"/{c}/image_raw/compressed",
-                                             IMAGE_QOS) for c in rig.names}
+        raw = transport == "raw"
+        img_pubs = {c: node.create_publisher(Image if raw else CompressedImage, f"/{c}/image_raw"
+                                             + ("" if raw else "/compressed"), IMAGE_QOS)
+                    for c in rig.names}
         info_pubs = {c: node.create_publisher(CameraInfo, f"/{c}/camera_info", IMAGE_QOS)
                      for c in rig.names}
         assert wait_for(lambda: pose_pub.get_subscription_count() > 0 and all(
             p.get_subscription_count() > 0 for p in [*img_pubs.values(), *info_pubs.values()]),
             30, ex)
         client = FoxgloveClient(url).start(every_topic(want, 1), timeout=60)
-        jpg = cv2.imencode(".jpg", np.full((rig[0].height, rig[0].width, 3), 60, np.uint8))[1]
+        frames_bgr = {c.name: np.full((c.height, c.width, 3), 60, np.uint8) for c in rig}
+        jpgs = {c: cv2.imencode(".jpg", f)[1].tobytes() for c, f in frames_bgr.items()}
         k = 0
 
         def publish_round() -> bool:
@@ -367,8 +372,10 @@ def test_live_node_serves_graph_topics(tmp_path):
             pose_pub.publish(wire.poses_to_msg(stamp, "world", ids, joints, np.full(len(ids), 2),
                                                np.full(len(ids), 0.9)))
             for cam in rig:
-                img_pubs[cam.name].publish(CompressedImage(
-                    header=wire.make_header(stamp, cam.name), format="jpeg", data=jpg.tobytes()))
+                img_pubs[cam.name].publish(
+                    wire.bgr_to_image(frames_bgr[cam.name], stamp, cam.name) if raw else
+                    CompressedImage(header=wire.make_header(stamp, cam.name), format="jpeg",
+                                    data=jpgs[cam.name]))
                 info = cam.to_camera_info()
                 info_pubs[cam.name].publish(CameraInfo(
                     header=wire.make_header(stamp, cam.name), width=info["width"],
@@ -398,8 +405,14 @@ def test_live_node_serves_graph_topics(tmp_path):
     assert {e.id for e in upd.entities} >= {"person/3", "person/7"}
     calib = client.received[f"/{rig[0].name}/camera_info"][-1]
     np.testing.assert_allclose(list(calib.K), rig[0].K.ravel())
-    img = client.received[f"/{rig[1].name}/image_raw/compressed"][0]
-    assert bytes(img.data) == jpg.tobytes()
+    for cam in rig:
+        img = client.received[f"/{cam.name}/image_raw/compressed"][0]
+        assert img.format == "jpeg"
+        if not raw:
+            assert bytes(img.data) == jpgs[cam.name]
+        bgr = cv2.imdecode(np.frombuffer(img.data, np.uint8), cv2.IMREAD_COLOR)
+        assert bgr.shape == (cam.height, cam.width, 3)
+        assert abs(float(bgr.mean()) - 60) < 2
 
 
 def test_live_node_bad_rig_exits_2():
