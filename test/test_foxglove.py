@@ -190,6 +190,10 @@ def test_skeletons_update_replaces_previous_frame_and_skips_missing_joints():
         e3.spheres[0].color.g != by_id["person/7"].spheres[0].color.g
 
 
+def test_untracked_id_is_the_wire_one():
+    assert scene.UNTRACKED_ID == wire.UNTRACKED_ID
+
+
 def test_annotations_are_the_rig_projection():
     cam = two_camera_rig()[1]
     _, ids, joints = known_frames()[0]
@@ -314,6 +318,21 @@ def test_bag_source_bad_inputs_exit_2(image_bag, args, needle):
     assert res.returncode == 2, res.stderr
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0], res.stderr
+
+
+def test_port_in_use_exit_2(image_bag):
+    from maem_ros.viz.bridge import FoxgloveBridge
+    bag, known = image_bag
+    taken = FoxgloveBridge(known.rig, port=0)
+    port = taken.port
+    try:
+        res = subprocess.run([str(BIN / "maem-foxglove"), "--bag", str(bag), "--port",
+                              str(port), "--no-wait"], capture_output=True, text=True,
+                             timeout=60)
+    finally:
+        taken.close()
+    assert res.returncode == 2
+    assert res.stderr.count("\n") == 1 and f"--port {port}: cannot listen" in res.stderr, res.stderr
 
 
 def test_bag_without_rig_needs_rig_option(tmp_path):

@@ -34,10 +34,12 @@ from typing import Sequence
 import numpy as np
 
 from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
+from maem_ros.ros import wire
+from maem_ros.tools import bagio
 
+#: poses id of a person without a confirmed track
+UNTRACKED = wire.UNTRACKED_ID
 FORMATS = ("trc", "c3d", "csv")
-#: poses ``id`` of a person whose track is not confirmed (ros/wire.py UNTRACKED_ID)
-UNTRACKED = 0xFFFFFFFF
 EXIT_BAD_INPUT = 2
 
 
@@ -86,9 +88,6 @@ class Tracks:
 # ---------------------------------------------------------------------------------------------
 def read_pose_series(bag: str | Path, topic: str) -> PoseSeries:
     """All poses messages of ``topic`` in ``bag`` (InputError naming the bag/topic/message)."""
-    from maem_ros.ros import wire
-    from maem_ros.tools import bagio
-
     try:
         info = bagio.bag_info(bag)
     except (ValueError, OSError) as e:

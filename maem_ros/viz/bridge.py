@@ -86,7 +86,6 @@ class FoxgloveBridge:
         self._last_statics = -np.inf
         self._last_stamp_ns = 0
         self._live_calibration: dict[str, Mapping] = {}
-        self.counts: dict[str, int] = {}
         self.context = foxglove.Context()
         ctx = self.context
         self.skeletons = SceneUpdateChannel(SKELETONS_TOPIC, context=ctx)
@@ -102,7 +101,7 @@ class FoxgloveBridge:
             self.server = foxglove.start_server(name=name, host=host, port=port, context=ctx,
                                                 server_listener=_Listener(self))
         except Exception as e:  # noqa: BLE001 - the SDK raises its own error types
-            raise OSError(f"Foxglove server on {host}:{port}: {e}") from None
+            raise OSError(f"cannot listen on {host}:{port} ({e})") from None
         self.host = host
 
     # -- server ---------------------------------------------------------------------------------
@@ -126,9 +125,6 @@ class FoxgloveBridge:
             self._statics_due = True
         self._subscribed.set()
 
-    def _count(self, topic: str) -> None:
-        self.counts[topic] = self.counts.get(topic, 0) + 1
-
     # -- publishing -----------------------------------------------------------------------------
     def tick(self, stamp_ns: int | None = None) -> None:
         """Send the static messages if a client subscribed since, or every static period."""
@@ -148,7 +144,6 @@ class FoxgloveBridge:
             info = live.get(cam.name, cam.to_camera_info())
             self.calibrations[cam.name].log(scene.calibration(stamp, cam.name, info),
                                             log_time=stamp)
-        self._count(RIG_TOPIC)
 
     def publish_poses(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray) -> None:
         """One poses frame: 3D skeletons, transforms and every camera's 2D reprojection.
@@ -164,7 +159,6 @@ class FoxgloveBridge:
             self.annotations[cam.name].log(
                 scene.skeleton_annotations(stamp_ns, cam, ids, joints, bones),
                 log_time=stamp_ns)
-        self._count(SKELETONS_TOPIC)
 
     def bones_for(self, num_joints: int) -> tuple[tuple[int, int], ...]:
         conv = self.convention or convention_for(num_joints)
@@ -178,7 +172,6 @@ class FoxgloveBridge:
         self._channel(self.images, cam).log(scene.compressed_image(stamp_ns, cam, data, fmt),
                                             log_time=stamp_ns)
         self.tick(stamp_ns)
-        self._count(image_topic(cam))
 
     def publish_bgr(self, cam: str, stamp_ns: int, image_bgr: np.ndarray,
                     jpeg_quality: int = 90) -> None:
@@ -197,7 +190,6 @@ class FoxgloveBridge:
         self._channel(self.calibrations, cam).log(msg, log_time=stamp_ns)
         with self._lock:
             self._live_calibration[cam] = dict(info)
-        self._count(calibration_topic(cam))
 
     def _channel(self, channels: Mapping, cam: str):
         if cam not in channels:

@@ -21,7 +21,8 @@ from maem_ros.core.camera import Camera, Rig
 from maem_ros.frontend.overlay import colour_for
 
 WORLD = "world"
-#: poses ``id`` of a person without a confirmed track (drawn grey, without an id label)
+#: poses ``id`` of a person without a confirmed track, drawn grey without an id label (the value
+#: of ros/wire.py UNTRACKED_ID, which this ROS-free module cannot import; a test keeps them equal)
 UNTRACKED_ID = 0xFFFFFFFF
 #: Foxglove's names for the rig's distortion models
 FOXGLOVE_DISTORTION = {"plumb_bob": "plumb_bob", "rational_polynomial": "rational_polynomial",
