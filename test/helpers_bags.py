@@ -34,6 +34,11 @@ def two_camera_rig() -> Rig:
     return Rig([full[0], full[1]])
 
 
+def read_poses(path: Path, topic: str) -> list:
+    """The decoded poses messages (wire.PoseFrame) of ``topic`` in a bag, in log-time order."""
+    return [wire.msg_to_poses(m.decode(), topic) for m in bagio.read_messages(path, [topic])]
+
+
 def known_frames(num_frames: int = 10, dropped: tuple[int, ...] = (6,),
                  seed: int = 0) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """Tracks 3 and 7 in every frame (a few NaN joints), track 12 in frames 2-3 only, one
@@ -59,10 +64,11 @@ def known_frames(num_frames: int = 10, dropped: tuple[int, ...] = (6,),
 
 
 def write_poses_bag(path: Path, frames, rig: Rig | None = None, images: bool = False,
-                    topic: str = "/maem/poses") -> KnownPoses:
+                    topic: str = "/maem/poses", store_rig: bool = True) -> KnownPoses:
     """A rosbag2 folder with ``topic`` (poses layout); with ``images`` also per camera of
-    ``rig`` a JPEG /<cam>/image_raw/compressed and /<cam>/camera_info at every stamp; the rig
-    YAML in custom data when a rig is given."""
+    ``rig`` (default two_camera_rig()) a JPEG /<cam>/image_raw/compressed and /<cam>/camera_info
+    at every stamp; with ``store_rig`` the rig YAML in custom data (as maem-make-bag writes it;
+    a maem-record bag has none)."""
     rig = rig if rig is not None else two_camera_rig()
     with bagio.BagWriter(path) as bag:
         for stamp, ids, joints in frames:
@@ -79,8 +85,9 @@ def write_poses_bag(path: Path, frames, rig: Rig | None = None, images: bool = F
                               stamp)
                     bag.write(f"/{cam.name}/camera_info",
                               bagio.camera_info_msg(stamp, cam.name, cam.to_camera_info()), stamp)
-        tmp = path.parent / f"{path.name}.rig.yaml"
-        rig.to_yaml(tmp)
-        bag.set_custom(bagio.CUSTOM_RIG, tmp.read_text())
-        tmp.unlink()
+        if store_rig:
+            tmp = path.parent / f"{path.name}.rig.yaml"
+            rig.to_yaml(tmp)
+            bag.set_custom(bagio.CUSTOM_RIG, tmp.read_text())
+            tmp.unlink()
     return KnownPoses(list(frames), rig)

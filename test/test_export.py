@@ -10,14 +10,14 @@ import ezc3d
 import numpy as np
 import pytest
 
-from helpers_bags import FPS, STEP_NS, T0_NS, known_frames, write_poses_bag
+from helpers_bags import FPS, STEP_NS, T0_NS, known_frames, read_poses, write_poses_bag
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.tools import bagio
 from maem_ros.tools.export import main as export_main
 
 REPO = Path(__file__).resolve().parent.parent
 NAMES = SPORTCENTER_13.names
+GT_TOPIC = "/maem/gt_poses"
 
 
 def run_export(*args: str) -> subprocess.CompletedProcess:
@@ -152,13 +152,12 @@ def test_min_frames_drops_short_tracks(known, tmp_path):
 def test_demo_bag_ground_truth_to_c3d(tmp_path):
     """The shipped demo bag's /maem/gt_poses, exported and read back, equal the bag's."""
     bag = REPO / "bags" / "demo"
-    assert export_main([str(bag), "--topic", bagio.GT_TOPIC, "--format", "c3d",
+    assert export_main([str(bag), "--topic", GT_TOPIC, "--format", "c3d",
                         "--out", str(tmp_path)]) == 0
     c3d = ezc3d.c3d(str(tmp_path / "demo.c3d"))
     labels = c3d["parameters"]["POINT"]["LABELS"]["value"]
     pts = c3d["data"]["points"]
-    msgs = [wire.msg_to_poses(m.decode(), bagio.GT_TOPIC)
-            for m in bagio.read_messages(bag, [bagio.GT_TOPIC])]
+    msgs = read_poses(bag, GT_TOPIC)
     assert pts.shape[2] == len(msgs) == 30
     for k, frame in enumerate(sorted(msgs, key=lambda f: f.stamp_ns)):
         for pid, pj in zip(frame.ids, frame.joints):

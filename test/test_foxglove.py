@@ -288,14 +288,9 @@ def test_bag_source_channels_and_messages(image_bag):
 
 def test_two_bags_merged_images_from_one_poses_from_the_other(tmp_path):
     """As after `make demo`: the camera bag (rig, images) plus a recorder bag (poses only)."""
-    from maem_ros.tools import bagio
     frames = known_frames(num_frames=3, dropped=())
     known = write_poses_bag(tmp_path / "cams", frames, images=True, topic="/other")
-    with bagio.BagWriter(tmp_path / "record") as w:
-        for stamp, ids, joints in frames:
-            msg = wire.poses_to_msg(stamp, "world", ids, joints, np.full(len(ids), 2),
-                                    np.full(len(ids), 0.9))
-            w.write("/maem/poses", bagio.pointcloud2_from_ros(msg), stamp)
+    write_poses_bag(tmp_path / "record", frames, store_rig=False)
     cam = known.rig.names[0]
     topics = ["/maem/skeletons", f"/{cam}/image_raw/compressed", f"/{cam}/skeletons_2d"]
     client = watch_bags([tmp_path / "record", tmp_path / "cams"], every_topic(topics, 3))
@@ -336,10 +331,7 @@ def test_port_in_use_exit_2(image_bag):
 
 
 def test_bag_without_rig_needs_rig_option(tmp_path):
-    from maem_ros.tools import bagio
-    with bagio.BagWriter(tmp_path / "norig") as w:
-        msg = wire.poses_to_msg(T0_NS, "world", [1], np.zeros((1, 13, 3)), [2], [0.9])
-        w.write("/maem/poses", bagio.pointcloud2_from_ros(msg), T0_NS)
+    write_poses_bag(tmp_path / "norig", known_frames(num_frames=2, dropped=()), store_rig=False)
     res = subprocess.run([str(BIN / "maem-foxglove"), "--bag", str(tmp_path / "norig")],
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2 and "no rig in metadata" in res.stderr and "--rig" in res.stderr
