@@ -64,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
 def load_rig(args: argparse.Namespace) -> Rig:
     """--rig, else the rig YAML in the first bag's metadata that has one."""
     from maem_ros.params import resolve_rig_path
+
     if args.rig:
         try:
             return Rig.load(resolve_rig_path(args.rig))
@@ -89,7 +90,7 @@ class BagSource:
     """The bags' messages for the Foxglove bridge, merged by log time."""
 
     def __init__(self, bags: Sequence[str], rig: Rig, poses_topic: str, log=print):
-            self.bags = list(bags)
+        self.bags = list(bags)
         self.poses_topic = poses_topic
         infos = {}
         for b in self.bags:
@@ -118,7 +119,7 @@ class BagSource:
         self.wanted = [t for t in [poses_topic, *self.camera_of] if t in self.topics]
 
     def messages(self) -> Iterator:
-            streams = [bagio.read_messages(b, self.wanted) for b in self.bags]
+        streams = [bagio.read_messages(b, self.wanted) for b in self.bags]
         return heapq.merge(*streams, key=lambda m: m.log_time_ns)
 
 
