@@ -342,7 +342,6 @@ def test_bag_without_rig_needs_rig_option(tmp_path):
 # ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("transport", ["compressed", "raw"])
 def test_live_node_serves_graph_topics(tmp_path, transport):
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
