@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -64,16 +65,20 @@ def known_frames(num_frames: int = 10, dropped: tuple[int, ...] = (6,),
 
 
 def write_poses_bag(path: Path, frames, rig: Rig | None = None, images: bool = False,
-                    topic: str = "/maem/poses", store_rig: bool = True) -> KnownPoses:
+                    topic: str = "/maem/poses", store_rig: bool = True,
+                    malformed: Sequence[int] = ()) -> KnownPoses:
     """A rosbag2 folder with ``topic`` (poses layout); with ``images`` also per camera of
     ``rig`` (default two_camera_rig()) a JPEG /<cam>/image_raw/compressed and /<cam>/camera_info
     at every stamp; with ``store_rig`` the rig YAML in custom data (as maem-make-bag writes it;
-    a maem-record bag has none)."""
+    a maem-record bag has none). Messages ``malformed`` (indices into ``frames``) are written as
+    a PointCloud2 without fields."""
     rig = rig if rig is not None else two_camera_rig()
     with bagio.BagWriter(path) as bag:
-        for stamp, ids, joints in frames:
+        for n, (stamp, ids, joints) in enumerate(frames):
             msg = wire.poses_to_msg(stamp, "world", ids, joints, np.full(len(ids), 2),
                                     np.full(len(ids), 0.9))
+            if n in malformed:
+                msg.fields = []
             bag.write(topic, bagio.pointcloud2_from_ros(msg), stamp)
             if images:
                 for cam in rig:

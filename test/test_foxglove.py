@@ -315,6 +315,19 @@ def test_bag_source_bad_inputs_exit_2(image_bag, args, needle):
     assert len(lines) == 1 and needle in lines[0], res.stderr
 
 
+def test_bad_message_is_skipped_and_the_replay_goes_on(tmp_path):
+    write_poses_bag(tmp_path / "bag", known_frames(num_frames=4, dropped=()), images=True,
+                    malformed=(1,))
+    res = subprocess.run([str(BIN / "maem-foxglove"), "--bag", str(tmp_path / "bag"), "--port",
+                          "0", "--no-wait", "--rate", "4"], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0, res.stderr
+    skips = [ln for ln in res.stdout.splitlines() if ln.startswith("skipped /maem/poses")]
+    assert len(skips) == 1 and "missing field" in skips[0], res.stdout
+    # 4 poses - 1 malformed + 2 cameras x 4 x (image, camera_info)
+    assert "sent 19 messages, skipped 1" in res.stdout, res.stdout
+
+
 def test_port_in_use_exit_2(image_bag):
     from maem_ros.viz.bridge import FoxgloveBridge
     bag, known = image_bag

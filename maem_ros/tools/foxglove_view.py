@@ -164,7 +164,9 @@ class Player:
                 else:
                     self.bridge.publish_calibration(cam, stamp, camera_info_fields(msg))
             self.sent += 1
-        except (ValueError, KeyError, AttributeError) as e:
+        except Exception as e:  # noqa: BLE001 - a bad message must not end the replay
+            if not isinstance(e, ValueError):
+                e = f"{type(e).__name__}: {e}"
             n = self.rejected.get(m.topic, 0)
             self.rejected[m.topic] = n + 1
             if n == 0:
