@@ -39,7 +39,8 @@ def parse_trc(path: Path) -> dict:
     assert lines[5] == ""
     rows = [ln.split("\t") for ln in lines[6:] if ln]
     for r in rows:
-        assert len(r) == 2 + 3 * len(markers), r
+        assert len(r) == 3 + 3 * len(markers) and r[-1] == "", r  # trailing tab
+        r.pop()
     frames = np.array([int(r[0]) for r in rows])
     times = np.array([float(r[1]) for r in rows])
     xyz = np.array([[float(c) if c else np.nan for c in r[2:]] for r in rows])
@@ -91,6 +92,24 @@ def test_trc_per_track_matches_bag(known, tmp_path):
     trc3 = parse_trc(tmp_path / "game_P3.trc")
     assert np.isnan(trc3["xyz"][6]).all()
     assert np.isnan(trc3["xyz"][1, 4]).all() and np.isfinite(trc3["xyz"][1, 3]).all()
+
+
+def test_trc_read_by_opensim(known, tmp_path):
+    """OpenSim's own TRC reader (TRCFileAdapter) gets the same markers, times and values."""
+    osim = pytest.importorskip("opensim")
+    bag, frames = known
+    assert export_main([str(bag), "--format", "trc", "--out", str(tmp_path)]) == 0
+    for track in (3, 12):
+        table = osim.TimeSeriesTableVec3(str(tmp_path / f"game_P{track}.trc"))
+        assert list(table.getColumnLabels()) == list(NAMES)
+        assert table.getTableMetaDataAsString("Units") == "mm"
+        assert float(table.getTableMetaDataAsString("DataRate")) == pytest.approx(FPS)
+        times = np.array(list(table.getIndependentColumn()))
+        np.testing.assert_allclose(times, np.arange(10) / FPS, atol=1e-6)
+        got = np.array([[[table.getRowAtIndex(k)[j][a] for a in range(3)]
+                         for j in range(len(NAMES))] for k in range(table.getNumRows())])
+        want = expected_grid(frames, track)[..., [1, 2, 0]] * 1000.0
+        np.testing.assert_allclose(got, want, atol=6e-4, equal_nan=True)
 
 
 def test_trc_zup_keeps_world_axes(known, tmp_path):
@@ -165,6 +184,13 @@ def test_demo_bag_ground_truth_to_c3d(tmp_path):
             np.testing.assert_allclose(pts[:3, cols, k].T, pj * 1000.0, atol=6e-4)
 
 
+@pytest.fixture(scope="module")
+def small_image_bag(tmp_path_factory):
+    bag = tmp_path_factory.mktemp("export_bad") / "bag"
+    write_poses_bag(bag, known_frames(num_frames=4, dropped=()), images=True)
+    return bag
+
+
 @pytest.mark.parametrize("args, needle", [
     (["--topic", "/nope"], "no topic '/nope'"),
     (["--topic", "/camera_0/camera_info"], "is sensor_msgs/msg/CameraInfo"),
@@ -172,9 +198,8 @@ def test_demo_bag_ground_truth_to_c3d(tmp_path):
     (["--min-frames", "99"], "no tracked person to export"),
     (["--convention", "coco_17"], "13 joints, convention coco_17 has 17"),
 ])
-def test_bad_inputs_one_line_exit_2(tmp_path, args, needle):
-    bag = tmp_path / "bag"
-    write_poses_bag(bag, known_frames(num_frames=4, dropped=()), images=True)
+def test_bad_inputs_one_line_exit_2(small_image_bag, tmp_path, args, needle):
+    bag = small_image_bag
     res = run_export(str(bag), "--format", "trc", "--out", str(tmp_path / "out"), *args)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()

@@ -184,7 +184,8 @@ def write_trc(path: Path, joints_m: np.ndarray, names: Sequence[str], rate_hz: f
 
     Pose2Sim / OpenSim layout (tab separated): PathFileType 4 header, rate line, marker names
     with X/Y/Z sub-headers, a blank line, then ``Frame# Time X1 Y1 Z1 ...`` (Frame# from 1,
-    Time = (Frame# - 1) / rate s), millimetres with 3 decimals, missing markers empty.
+    Time = (Frame# - 1) / rate s), millimetres with 3 decimals, missing markers empty, each row
+    ending with a tab (as OpenSim's TRCFileAdapter needs to read empty last markers).
     """
     xyz = zup_to_yup(joints_m) if axes == "yup" else joints_m
     k, j = xyz.shape[:2]
@@ -201,7 +202,8 @@ def write_trc(path: Path, joints_m: np.ndarray, names: Sequence[str], rate_hz: f
     frames = np.arange(1, k + 1)
     cells = np.column_stack([frames.astype(str), np.char.mod("%.6f", (frames - 1) / rate_hz),
                              _fmt_cells(xyz.reshape(k, 3 * j) * 1000.0, 3)])
-    rows = ["\t".join(r) for r in cells]
+    # every row ends with a tab: OpenSim's TRC reader drops trailing empty cells otherwise
+    rows = ["\t".join(r) + "\t" for r in cells]
     path.write_text("\n".join(header + rows) + "\n")
 
 
