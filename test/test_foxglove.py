@@ -343,6 +343,15 @@ def test_port_in_use_exit_2(image_bag):
     assert res.stderr.count("\n") == 1 and f"--port {port}: cannot listen" in res.stderr, res.stderr
 
 
+def test_help_lists_bag_options_and_node_parameters():
+    res = subprocess.run([str(BIN / "maem-foxglove"), "--help"], capture_output=True, text=True,
+                         timeout=60)
+    assert res.returncode == 0
+    for needle in ("--bag", "--loop", "--rate", "--port", "image_transport (default",
+                   "rig (default ''"):
+        assert needle in res.stdout, needle
+
+
 def test_bag_without_rig_needs_rig_option(tmp_path):
     write_poses_bag(tmp_path / "norig", known_frames(num_frames=2, dropped=()), store_rig=False)
     res = subprocess.run([str(BIN / "maem-foxglove"), "--bag", str(tmp_path / "norig")],

@@ -214,11 +214,21 @@ def run_bag(args: argparse.Namespace, log=print) -> int:
     return 0
 
 
+def print_help() -> None:
+    """The --bag options, then the live node's parameters (name, default, description)."""
+    from maem_ros.ros.foxglove_node import PARAMS
+
+    build_parser().print_help()
+    print("\nlive node parameters (maem-foxglove --ros-args -p NAME:=VALUE):")
+    for spec in PARAMS:
+        print(f"  {spec.name} (default {spec.default!r}): {spec.description}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--bag" not in argv and not any(a.startswith("--bag=") for a in argv):
         if "-h" in argv or "--help" in argv:
-            build_parser().print_help()
+            print_help()
             return 0
         from maem_ros.ros.foxglove_node import main as node_main
         return node_main([sys.argv[0], *argv])
