@@ -452,3 +452,23 @@ def test_live_node_bad_rig_exits_2():
                          capture_output=True, text=True, timeout=60)
     assert res.returncode == 2
     assert "parameter 'rig'" in res.stderr
+
+
+def test_live_node_sends_rig_without_data_under_sim_time(tmp_path):
+    """Court, frustums, transforms and calibrations reach a client with no data flowing, even
+    with use_sim_time and no /clock (the resend timer runs on a steady clock)."""
+    rig = two_camera_rig()
+    rig.to_yaml(tmp_path / "rig.yaml")
+    cmd = [str(BIN / "maem-foxglove"), "--ros-args", "-p", f"rig:={tmp_path / 'rig.yaml'}",
+           "-p", "port:=0", "-p", "static_period:=0.2", "-p", "use_sim_time:=true"]
+    env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
+    topics = ["/maem/rig", "/tf"] + [f"/{c}/camera_info" for c in rig.names]
+    with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                         text=True, env=env)) as proc:
+        url = read_url(proc.stdout, r"Foxglove server on (ws://[0-9.]+:[0-9]+)")
+        client = FoxgloveClient(url).start(every_topic(topics, 2), timeout=30).join()
+        proc.send_signal(2)
+        assert proc.wait(20) == 0
+    assert all(len(client.received.get(t, ())) >= 2 for t in topics), {
+        t: len(v) for t, v in client.received.items()}
+    assert "/maem/skeletons" not in client.received

@@ -18,6 +18,7 @@ from __future__ import annotations
 import sys
 from typing import Any
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
@@ -86,7 +87,9 @@ class FoxgloveNode(Node):
                 lambda m, c=cam, t=image: self.on_image(c, t, m), IMAGE_QOS))
             self.subs.append(self.create_subscription(
                 CameraInfo, info, lambda m, c=cam, t=info: self.on_info(c, t, m), IMAGE_QOS))
-        self.timer = self.create_timer(p["static_period"], self.bridge.tick)
+        # steady clock: with use_sim_time and no /clock yet a ROS-time timer would never fire
+        self.timer = self.create_timer(p["static_period"], self.bridge.tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.diag.set("url", self.bridge.url)
         self.get_logger().info(f"Foxglove server on {self.bridge.url}: {self.poses_topic} and "
                                f"{len(rig)} cameras ({p['image_transport']} images)")
