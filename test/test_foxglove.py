@@ -83,7 +83,8 @@ class FoxgloveClient:
             deadline = time.monotonic() + timeout
             while not done(self.received) and time.monotonic() < deadline:
                 try:
-                    frame = await asyncio.wait_for(ws.recv(), max(0.05, deadline - time.monotonic()))
+                    left = max(0.05, deadline - time.monotonic())
+                    frame = await asyncio.wait_for(ws.recv(), left)
                 except (asyncio.TimeoutError, websockets.ConnectionClosed):
                     break
                 if isinstance(frame, str):
@@ -377,17 +378,23 @@ def test_live_node_serves_graph_topics(tmp_path, transport):
     cmd = [str(BIN / "maem-foxglove"), "--ros-args", "-p", f"rig:={rig_path}", "-p", "port:=0",
            "-p", "static_period:=0.2", "-p", "diagnostics_period:=0.2",
            "-p", f"image_transport:={transport}"]
+    # the raw variant also runs in a namespace: its inputs follow it (relative names)
+    ns = "/team" if transport == "raw" else ""
+    if ns:
+        cmd += ["-r", f"__ns:={ns}"]
     env = dict(os.environ, RCUTILS_LOGGING_BUFFERED_STREAM="0")
     want = expected_schemas(rig.names)
-    with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                         text=True, env=env)) as proc, ros_node("fox_test") as (node, ex):
+    child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                             env=env)
+    with killed_on_exit(child) as proc, ros_node("fox_test") as (node, ex):
         url = read_url(proc.stdout, r"Foxglove server on (ws://[0-9.]+:[0-9]+)")
-        pose_pub = node.create_publisher(PointCloud2, "/maem/poses", RELIABLE)
+        pose_pub = node.create_publisher(PointCloud2, f"{ns}/maem/poses", RELIABLE)
         raw = transport == "raw"
-        img_pubs = {c: node.create_publisher(Image if raw else CompressedImage, f"/{c}/image_raw"
-                                             + ("" if raw else "/compressed"), IMAGE_QOS)
+        suffix = "" if raw else "/compressed"
+        img_pubs = {c: node.create_publisher(Image if raw else CompressedImage,
+                                             f"{ns}/{c}/image_raw{suffix}", IMAGE_QOS)
                     for c in rig.names}
-        info_pubs = {c: node.create_publisher(CameraInfo, f"/{c}/camera_info", IMAGE_QOS)
+        info_pubs = {c: node.create_publisher(CameraInfo, f"{ns}/{c}/camera_info", IMAGE_QOS)
                      for c in rig.names}
         assert wait_for(lambda: pose_pub.get_subscription_count() > 0 and all(
             p.get_subscription_count() > 0 for p in [*img_pubs.values(), *info_pubs.values()]),
@@ -421,7 +428,8 @@ def test_live_node_serves_graph_topics(tmp_path, transport):
         # a malformed poses message is dropped with its reason in /diagnostics, the node goes on
         diag: dict[str, str] = {}
         node.create_subscription(DiagnosticArray, "/diagnostics", lambda m: diag.update(
-            {kv.key: kv.value for st in m.status if st.name == "/foxglove" for kv in st.values}),
+            {kv.key: kv.value for st in m.status if st.name == f"{ns}/foxglove"
+             for kv in st.values}),
             RELIABLE)
         bad = PointCloud2(header=wire.make_header(T0_NS, "world"))
         assert wait_for(lambda: pose_pub.publish(bad) or diag.get("dropped/missing_field")

@@ -4,9 +4,11 @@ the viewer and no foxglove_bridge needed.
     ros2 run maem_ros foxglove --ros-args -p rig:=sportcenter6
     maem-foxglove --ros-args --params-file config/demo.yaml
 
-Subscribes ``poses_topic`` (/maem/poses, reliable) and per camera of the rig (``cameras``, default
-all) /<cam>/image_raw/compressed (``image_transport: compressed``) or /<cam>/image_raw (raw,
-JPEG-encoded for Foxglove) and /<cam>/camera_info (best effort, accepts either publisher). Serves
+Subscribes ``poses_topic`` (maem/poses, reliable) and per camera of the rig (``cameras``, default
+all) <cam>/image_raw/compressed (``image_transport: compressed``) or <cam>/image_raw (raw,
+JPEG-encoded for Foxglove) and <cam>/camera_info (best effort, accepts either publisher); the
+names are relative, so in the root namespace they are /maem/poses, /<cam>/..., and under
+``-r __ns:=/team`` /team/maem/poses, /team/<cam>/... Serves
 on ``host``:``port`` (default 127.0.0.1:8765) the channels of maem_ros/viz/bridge.py: 3D
 skeletons, court and camera frustums, world -> camera transforms, images, calibrations and the
 skeletons reprojected into every image. A message that cannot be decoded is dropped with its
@@ -35,7 +37,8 @@ PARAMS = (
     DIAGNOSTICS_PERIOD,
     ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
     ParamSpec("cameras", [], "cameras to show (default: every camera of the rig)"),
-    ParamSpec("poses_topic", "/maem/poses", "input topic (PointCloud2, poses layout)"),
+    ParamSpec("poses_topic", "maem/poses", "input topic (PointCloud2, poses layout; relative "
+              "names follow the node's namespace)"),
     ParamSpec("image_transport", "compressed", "camera images to subscribe",
               choices=("compressed", "raw")),
     ParamSpec("convention", "", "keypoint convention of the poses (empty: from the joint count)",
@@ -80,8 +83,8 @@ class FoxgloveNode(Node):
                                               DATA_QOS)]
         raw = p["image_transport"] == "raw"
         for cam in rig.names:
-            image = self.resolve_topic_name(f"/{cam}/image_raw" + ("" if raw else "/compressed"))
-            info = self.resolve_topic_name(f"/{cam}/camera_info")
+            image = self.resolve_topic_name(f"{cam}/image_raw" + ("" if raw else "/compressed"))
+            info = self.resolve_topic_name(f"{cam}/camera_info")
             self.subs.append(self.create_subscription(
                 Image if raw else CompressedImage, image,
                 lambda m, c=cam, t=image: self.on_image(c, t, m), IMAGE_QOS))

@@ -2,17 +2,19 @@
 
 Channels (schema; the Foxglove app's 3D and Image panels show them as they are):
 
-=============================  ============================  ===========================================
-topic                          schema                        content
-=============================  ============================  ===========================================
-/maem/skeletons                foxglove.SceneUpdate          per person joints (spheres), bones (lines),
-                                                             id (text), coloured by track id
-/maem/rig                      foxglove.SceneUpdate          court floor and camera frustums
-/tf                            foxglove.FrameTransforms      world -> every camera (from the rig)
-/<cam>/image_raw/compressed    foxglove.CompressedImage      the camera's images (raw ones JPEG-encoded)
-/<cam>/camera_info             foxglove.CameraCalibration    K, D, R, P of the raw image
-/<cam>/skeletons_2d            foxglove.ImageAnnotations     the 3D skeletons reprojected into the camera
-=============================  ============================  ===========================================
+===========================  ==========================  ======================================
+topic                        schema                      content
+===========================  ==========================  ======================================
+/maem/skeletons              foxglove.SceneUpdate        per person joints (spheres), bones
+                                                         (lines), id (text), coloured by id
+/maem/rig                    foxglove.SceneUpdate        court floor and camera frustums
+/tf                          foxglove.FrameTransforms    world -> every camera (from the rig)
+/<cam>/image_raw/compressed  foxglove.CompressedImage    the camera's images (raw ones
+                                                         JPEG-encoded)
+/<cam>/camera_info           foxglove.CameraCalibration  K, D, R, P of the raw image
+/<cam>/skeletons_2d          foxglove.ImageAnnotations   the 3D skeletons reprojected into
+                                                         the camera
+===========================  ==========================  ======================================
 
 The rig scene, transforms and calibrations have no "latched" delivery in the protocol, so they
 are sent again whenever a client subscribes and every ``static_period_s`` after that.
