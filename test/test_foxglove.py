@@ -153,7 +153,7 @@ def read_url(stream, pattern: str, timeout: float = 60.0) -> str:
 # ---------------------------------------------------------------------------------------------
 def test_transforms_place_each_camera_at_its_centre_looking_along_its_axis():
     rig = two_camera_rig()
-    tf = decode(scene.rig_transforms(5, rig))
+    tf = decode(scene.rig_transforms(5, scene.camera_poses(rig)))
     from scipy.spatial.transform import Rotation
     for t, cam in zip(tf.transforms, rig):
         assert (t.parent_frame_id, t.child_frame_id) == ("world", cam.name)

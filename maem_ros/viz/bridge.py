@@ -80,6 +80,7 @@ class FoxgloveBridge:
                  convention: str | None = None, name: str = "maem_ros"):
         self.rig = rig
         self.convention = get_convention(convention) if convention else None
+        self._camera_poses = scene.camera_poses(rig)
         self.court_size = court_size
         self.static_period_s = float(static_period_s)
         self._lock = threading.Lock()
@@ -141,7 +142,7 @@ class FoxgloveBridge:
             stamp = self._last_stamp_ns
             live = dict(self._live_calibration)
         self.rig_scene.log(scene.rig_update(stamp, self.rig, self.court_size), log_time=stamp)
-        self.tf.log(scene.rig_transforms(stamp, self.rig), log_time=stamp)
+        self.tf.log(scene.rig_transforms(stamp, self._camera_poses), log_time=stamp)
         for cam in self.rig:
             info = live.get(cam.name, cam.to_camera_info())
             self.calibrations[cam.name].log(scene.calibration(stamp, cam.name, info),
@@ -156,7 +157,7 @@ class FoxgloveBridge:
         self.tick(stamp_ns)
         self.skeletons.log(scene.skeletons_update(stamp_ns, ids, joints, bones),
                            log_time=stamp_ns)
-        self.tf.log(scene.rig_transforms(stamp_ns, self.rig), log_time=stamp_ns)
+        self.tf.log(scene.rig_transforms(stamp_ns, self._camera_poses), log_time=stamp_ns)
         for cam in self.rig:
             self.annotations[cam.name].log(
                 scene.skeleton_annotations(stamp_ns, cam, ids, joints, bones),

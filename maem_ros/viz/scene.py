@@ -149,18 +149,26 @@ def rig_update(stamp_ns: int, rig: Rig, court_size: tuple[float, float] = (28.0,
     return SceneUpdate(entities=entities)
 
 
-def rig_transforms(stamp_ns: int, rig: Rig) -> FrameTransforms:
-    """world -> camera_i: each camera's pose in the world (translation = centre -R^T t,
-    rotation = R^T as a quaternion), the convention of ROS TF and Foxglove FrameTransform."""
+def camera_poses(rig: Rig) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(names, centres (N,3) world m, quaternions (N,4) x y z w of R^T): each camera's pose in
+    the world, computed once per rig (one batched scipy conversion)."""
+    names = rig.names
+    centres = np.stack([cam.center for cam in rig])
+    quats = Rotation.from_matrix(np.stack([cam.R.T for cam in rig])).as_quat()
+    return names, centres, quats
+
+
+def rig_transforms(stamp_ns: int, poses: tuple[list[str], np.ndarray, np.ndarray]
+                   ) -> FrameTransforms:
+    """world -> camera_i from :func:`camera_poses`: translation = the centre -R^T t, rotation =
+    R^T, the convention of ROS TF and Foxglove FrameTransform."""
     ts = timestamp(stamp_ns)
-    out = []
-    for cam in rig:
-        x, y, z, w = Rotation.from_matrix(cam.R.T).as_quat()
-        cx, cy, cz = cam.center.tolist()
-        out.append(FrameTransform(timestamp=ts, parent_frame_id=WORLD, child_frame_id=cam.name,
-                                  translation=Vector3(x=cx, y=cy, z=cz),
-                                  rotation=Quaternion(x=x, y=y, z=z, w=w)))
-    return FrameTransforms(transforms=out)
+    names, centres, quats = poses
+    return FrameTransforms(transforms=[
+        FrameTransform(timestamp=ts, parent_frame_id=WORLD, child_frame_id=name,
+                       translation=Vector3(x=cx, y=cy, z=cz),
+                       rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+        for name, (cx, cy, cz), (qx, qy, qz, qw) in zip(names, centres.tolist(), quats.tolist())])
 
 
 # ---------------------------------------------------------------------------------------------
