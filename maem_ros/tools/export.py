@@ -94,8 +94,10 @@ def read_pose_series(bag: str | Path, topic: str) -> PoseSeries:
         raise InputError(str(e)) from None
     if topic not in info.topics:
         poses = sorted(t for t, ty in info.topics.items() if ty == bagio.POINT_CLOUD2)
+        hint = (f"; --topic {bagio.GT_TOPIC} exports the ground truth" if bagio.GT_TOPIC in poses
+                else "")
         raise InputError(f"bag {str(bag)!r}: no topic {topic!r} (PointCloud2 topics: "
-                         f"{', '.join(poses) or 'none'})")
+                         f"{', '.join(poses) or 'none'}{hint})")
     if info.topics[topic] != bagio.POINT_CLOUD2:
         raise InputError(f"bag {str(bag)!r}: topic {topic!r} is {info.topics[topic]}, expected "
                          f"{bagio.POINT_CLOUD2} (poses layout)")
