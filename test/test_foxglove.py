@@ -191,6 +191,19 @@ def test_skeletons_update_replaces_previous_frame_and_skips_missing_joints():
         e3.spheres[0].color.g != by_id["person/7"].spheres[0].color.g
 
 
+def test_world_frame_name_is_configurable():
+    rig = two_camera_rig()
+    _, ids, joints = known_frames()[0]
+    upd = decode(scene.skeletons_update(T0_NS, ids, joints, SPORTCENTER_13.bones,
+                                        frame_id="court"))
+    assert {e.frame_id for e in upd.entities} == {"court"}
+    tf = decode(scene.rig_transforms(T0_NS, scene.camera_poses(rig), world="court"))
+    assert {t.parent_frame_id for t in tf.transforms} == {"court"}
+    court = [e for e in decode(scene.rig_update(T0_NS, rig, world="court")).entities
+             if e.id == "court"]
+    assert court[0].frame_id == "court"
+
+
 def test_untracked_id_is_the_wire_one():
     assert scene.UNTRACKED_ID == wire.UNTRACKED_ID
 

@@ -43,6 +43,8 @@ PARAMS = (
               choices=("compressed", "raw")),
     ParamSpec("convention", "", "keypoint convention of the poses (empty: from the joint count)",
               choices=("",) + tuple(sorted(CONVENTIONS))),
+    ParamSpec("frame_id", "world", "the rig's world frame (triangulation's frame_id): parent of "
+              "the camera transforms"),
     ParamSpec("host", "127.0.0.1", "address the Foxglove WebSocket server listens on"),
     ParamSpec("port", 8765, "WebSocket port (0 = a free port, logged)", minimum=0,
               maximum=65535),
@@ -74,7 +76,8 @@ class FoxgloveNode(Node):
             self.bridge = FoxgloveBridge(
                 rig, host=p["host"], port=p["port"],
                 court_size=(p["court_length"], p["court_width"]),
-                static_period_s=p["static_period"], convention=p["convention"] or None)
+                static_period_s=p["static_period"], convention=p["convention"] or None,
+                world_frame=p["frame_id"])
         except OSError as e:
             raise ConfigError(f"parameter 'port': {e}") from None
         self.diag = Diagnostics(self, p["diagnostics_period"])
@@ -106,7 +109,8 @@ class FoxgloveNode(Node):
             return
         with RejectErrors(self.diag, f"{self.poses_topic} {frame.stamp_ns}", "bad_poses") as step:
             with Stopwatch(self.diag, "publish_poses"):
-                self.bridge.publish_poses(frame.stamp_ns, frame.ids, frame.joints)
+                self.bridge.publish_poses(frame.stamp_ns, frame.ids, frame.joints,
+                                          frame.frame_id)
         if not step.failed:
             self.diag.ok()
 

@@ -56,6 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="court floor size in m (default 28 15)")
     p.add_argument("--convention", choices=sorted(CONVENTIONS),
                    help="keypoint convention of the poses (default: the one with J joints)")
+    p.add_argument("--frame", default="world",
+                   help="the rig's world frame: parent of the camera transforms (default world)")
     p.add_argument("--no-wait", action="store_true",
                    help="start replaying at once instead of at the first subscription")
     return p
@@ -153,7 +155,8 @@ class Player:
             msg = m.decode()
             if m.topic == self.source.poses_topic:
                 frame = self.wire.msg_to_poses(msg, m.topic)
-                self.bridge.publish_poses(frame.stamp_ns, frame.ids, frame.joints)
+                self.bridge.publish_poses(frame.stamp_ns, frame.ids, frame.joints,
+                                          frame.frame_id)
             else:
                 cam, kind = self.source.camera_of[m.topic]
                 stamp = self.wire.checked_stamp_ns(msg.header.stamp, m.topic)
@@ -188,7 +191,7 @@ def run_bag(args: argparse.Namespace, log=print) -> int:
     source = BagSource(args.bag, rig, args.topic, log)
     try:
         bridge = FoxgloveBridge(rig, host=args.host, port=args.port, court_size=tuple(args.court),
-                                convention=args.convention)
+                                convention=args.convention, world_frame=args.frame)
     except OSError as e:
         raise InputError(f"--port {args.port}: {e}") from None
     stop = threading.Event()

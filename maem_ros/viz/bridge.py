@@ -72,13 +72,17 @@ class FoxgloveBridge:
 
     ``port`` 0 picks a free port (see :attr:`port`). Skeleton bones come from the keypoint
     convention with the poses' joint count (``convention`` names it when that is ambiguous).
+    ``world_frame`` is the rig's world: parent of the camera transforms, frame of the court and,
+    unless the poses name another, of the skeletons.
     Thread-safe: calls may come from ROS callbacks or a playback loop.
     """
 
     def __init__(self, rig: Rig, host: str = "127.0.0.1", port: int = 8765,
                  court_size: tuple[float, float] = (28.0, 15.0), static_period_s: float = 1.0,
-                 convention: str | None = None, name: str = "maem_ros"):
+                 convention: str | None = None, world_frame: str = scene.WORLD,
+                 name: str = "maem_ros"):
         self.rig = rig
+        self.world_frame = world_frame
         self.convention = get_convention(convention) if convention else None
         self._camera_poses = scene.camera_poses(rig)
         self.court_size = court_size
@@ -141,23 +145,29 @@ class FoxgloveBridge:
             self._statics_due, self._last_statics = False, now
             stamp = self._last_stamp_ns
             live = dict(self._live_calibration)
-        self.rig_scene.log(scene.rig_update(stamp, self.rig, self.court_size), log_time=stamp)
-        self.tf.log(scene.rig_transforms(stamp, self._camera_poses), log_time=stamp)
+        self.rig_scene.log(scene.rig_update(stamp, self.rig, self.court_size,
+                                            world=self.world_frame), log_time=stamp)
+        self.tf.log(scene.rig_transforms(stamp, self._camera_poses, self.world_frame),
+                    log_time=stamp)
         for cam in self.rig:
             info = live.get(cam.name, cam.to_camera_info())
             self.calibrations[cam.name].log(scene.calibration(stamp, cam.name, info),
                                             log_time=stamp)
 
-    def publish_poses(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray) -> None:
-        """One poses frame: 3D skeletons, transforms and every camera's 2D reprojection.
+    def publish_poses(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray,
+                      frame_id: str = "") -> None:
+        """One poses frame (in ``frame_id``, '' = the world frame): 3D skeletons, transforms and
+        every camera's 2D reprojection.
         joints (P,J,3) world m (NaN = missing); ValueError when no keypoint convention has J
         joints (or J differs from ``convention``'s)."""
         joints = np.asarray(joints, dtype=np.float64)
         bones = self.bones_for(joints.shape[1]) if joints.ndim == 3 and len(joints) else ()
         self.tick(stamp_ns)
-        self.skeletons.log(scene.skeletons_update(stamp_ns, ids, joints, bones),
+        self.skeletons.log(scene.skeletons_update(stamp_ns, ids, joints, bones,
+                                                  frame_id=frame_id or self.world_frame),
                            log_time=stamp_ns)
-        self.tf.log(scene.rig_transforms(stamp_ns, self._camera_poses), log_time=stamp_ns)
+        self.tf.log(scene.rig_transforms(stamp_ns, self._camera_poses, self.world_frame),
+                    log_time=stamp_ns)
         for cam in self.rig:
             self.annotations[cam.name].log(
                 scene.skeleton_annotations(stamp_ns, cam, ids, joints, bones),

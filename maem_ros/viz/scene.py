@@ -71,8 +71,8 @@ def _bone_ends(finite: np.ndarray, bones: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 def skeletons_update(stamp_ns: int, ids: np.ndarray, joints: np.ndarray,
                      bones: Sequence[tuple[int, int]], joint_diameter: float = 0.08,
-                     bone_width: float = 0.03) -> SceneUpdate:
-    """One frame's people: per person a SceneEntity (frame ``world``, id ``person/<id>``, or
+                     bone_width: float = 0.03, frame_id: str = WORLD) -> SceneUpdate:
+    """One frame's people: per person a SceneEntity (``frame_id``, id ``person/<id>``, or
     ``untracked/<row>``) with a sphere per finite joint, a LINE_LIST of the bones whose ends are
     finite and the id as text 0.3 m above the highest joint, coloured by id.
 
@@ -101,7 +101,7 @@ def skeletons_update(stamp_ns: int, ids: np.ndarray, joints: np.ndarray,
         texts = [TextPrimitive(pose=_pose(top + [0.0, 0.0, 0.3]), billboard=True, font_size=0.25,
                                color=color, text=str(int(pid)))] if tracked else []
         entities.append(SceneEntity(
-            timestamp=ts, frame_id=WORLD, id=f"person/{pid}" if tracked else f"untracked/{row}",
+            timestamp=ts, frame_id=frame_id, id=f"person/{pid}" if tracked else f"untracked/{row}",
             spheres=spheres, lines=lines, texts=texts))
     return SceneUpdate(deletions=[SceneEntityDeletion(timestamp=ts,
                                                       type=SceneEntityDeletionType.All)],
@@ -116,7 +116,7 @@ def frustum_corners(cam: Camera, depth: float) -> np.ndarray:
 
 
 def rig_update(stamp_ns: int, rig: Rig, court_size: tuple[float, float] = (28.0, 15.0),
-               frustum_depth: float = 1.5) -> SceneUpdate:
+               frustum_depth: float = 1.5, world: str = WORLD) -> SceneUpdate:
     """The static scene: the court floor (a ``court_size`` L x W m slab under z = 0, centred on
     the world origin, with its outline and centre line) and per camera a frustum (frame-locked
     to the camera's frame: apex, image corners at ``frustum_depth`` m, the name)."""
@@ -128,7 +128,7 @@ def rig_update(stamp_ns: int, rig: Rig, court_size: tuple[float, float] = (28.0,
     outline = np.array([[-hx, -hy, 0.005], [hx, -hy, 0.005], [hx, hy, 0.005], [-hx, hy, 0.005]])
     centre = np.array([[0.0, -hy, 0.005], [0.0, hy, 0.005]])
     entities = [SceneEntity(
-        timestamp=ts, frame_id=WORLD, id="court", frame_locked=True,
+        timestamp=ts, frame_id=world, id="court", frame_locked=True,
         cubes=[CubePrimitive(pose=_pose((0.0, 0.0, -0.01)),
                              size=Vector3(x=length, y=width, z=0.02), color=floor_color)],
         lines=[LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=_pose(), thickness=0.05,
@@ -158,14 +158,14 @@ def camera_poses(rig: Rig) -> tuple[list[str], np.ndarray, np.ndarray]:
     return names, centres, quats
 
 
-def rig_transforms(stamp_ns: int, poses: tuple[list[str], np.ndarray, np.ndarray]
-                   ) -> FrameTransforms:
-    """world -> camera_i from :func:`camera_poses`: translation = the centre -R^T t, rotation =
-    R^T, the convention of ROS TF and Foxglove FrameTransform."""
+def rig_transforms(stamp_ns: int, poses: tuple[list[str], np.ndarray, np.ndarray],
+                   world: str = WORLD) -> FrameTransforms:
+    """``world`` -> camera_i from :func:`camera_poses`: translation = the centre -R^T t,
+    rotation = R^T, the convention of ROS TF and Foxglove FrameTransform."""
     ts = timestamp(stamp_ns)
     names, centres, quats = poses
     return FrameTransforms(transforms=[
-        FrameTransform(timestamp=ts, parent_frame_id=WORLD, child_frame_id=name,
+        FrameTransform(timestamp=ts, parent_frame_id=world, child_frame_id=name,
                        translation=Vector3(x=cx, y=cy, z=cz),
                        rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))
         for name, (cx, cy, cz), (qx, qy, qz, qw) in zip(names, centres.tolist(), quats.tolist())])
