@@ -243,6 +243,12 @@ def test_irregular_and_single_frame_bags(tmp_path):
     write_poses_bag(tmp_path / "jitter", frames)
     res = run_export(str(tmp_path / "jitter"), "--format", "c3d", "--out", str(tmp_path))
     assert res.returncode == 2 and "fall on one frame" in res.stderr
+    frames = known_frames(num_frames=3, dropped=())
+    s, ids, j = frames[1]
+    frames[1] = (s, np.where(ids == 7, 3, ids), j)  # two persons with track id 3
+    write_poses_bag(tmp_path / "twice", frames)
+    res = run_export(str(tmp_path / "twice"), "--format", "c3d", "--out", str(tmp_path))
+    assert res.returncode == 2 and f"track id 3 appears twice at stamp {s}" in res.stderr
     write_poses_bag(tmp_path / "one", known_frames(num_frames=1, dropped=()))
     res = run_export(str(tmp_path / "one"), "--format", "trc", "--out", str(tmp_path))
     assert res.returncode == 2 and "a frame rate needs at least 2 stamps" in res.stderr

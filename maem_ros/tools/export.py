@@ -155,8 +155,13 @@ def grid_tracks(series: PoseSeries, min_frames: int, where: str) -> tuple[Tracks
     k, t, j = int(grid[-1]) + 1, len(tracked), series.num_joints
     joints = np.full((k, t, j, 3), np.nan)
     seen = np.zeros(t, dtype=np.int64)
-    for g, ids, pj in zip(grid, series.ids, series.joints):
+    for g, stamp, ids, pj in zip(grid, series.stamps, series.ids, series.joints):
         keep = ids != UNTRACKED
+        ordered = np.sort(ids[keep])
+        twice = ordered[1:][np.diff(ordered) == 0]
+        if twice.size:
+            raise InputError(f"{where}: track id {int(twice[0])} appears twice at stamp "
+                             f"{int(stamp)}")
         col = np.searchsorted(tracked, ids[keep])
         joints[g, col] = pj[keep]
         seen[col] += np.isfinite(pj[keep]).all(axis=2).any(axis=1)
