@@ -12,7 +12,7 @@ import numpy as np
 from maem_ros.core.camera import Rig
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 T0_NS = 1_700_000_000_000_000_000
 FPS = 30.0
@@ -79,17 +79,17 @@ def write_poses_bag(path: Path, frames, rig: Rig | None = None, images: bool = F
                                     np.full(len(ids), 0.9))
             if n in malformed:
                 msg.fields = []
-            bag.write(topic, bagio.pointcloud2_from_ros(msg), stamp)
+            bag.write(topic, msg, stamp)
             if images:
                 for cam in rig:
                     img = np.full((cam.height, cam.width, 3), 90, np.uint8)
                     ok, jpg = cv2.imencode(".jpg", img)
                     assert ok
                     bag.write(f"/{cam.name}/image_raw/compressed",
-                              bagio.compressed_image_msg(stamp, cam.name, jpg.tobytes(), "jpeg"),
+                              wire.compressed_image_msg(jpg.tobytes(), "jpeg", stamp, cam.name),
                               stamp)
                     bag.write(f"/{cam.name}/camera_info",
-                              bagio.camera_info_msg(stamp, cam.name, cam.to_camera_info()), stamp)
+                              wire.camera_info_msg(cam, stamp, cam.name), stamp)
         if store_rig:
             tmp = path.parent / f"{path.name}.rig.yaml"
             rig.to_yaml(tmp)

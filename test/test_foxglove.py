@@ -361,8 +361,8 @@ def test_help_lists_bag_options_and_node_parameters():
     res = subprocess.run([str(BIN / "maem-foxglove"), "--help"], capture_output=True, text=True,
                          timeout=60)
     assert res.returncode == 0
-    for needle in ("--bag", "--loop", "--rate", "--port", "image_transport (default",
-                   "rig (default ''"):
+    for needle in ("--bag", "--loop", "--rate", "--port", "image_transport (str, default",
+                   "rig (str, default ''"):
         assert needle in res.stdout, needle
 
 

@@ -18,43 +18,50 @@ reason in /diagnostics; the node keeps running. For a bag without a ROS graph:
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
+from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS
 from maem_ros.ros import wire
+from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
+                                 RejectErrors, Stopwatch, declare_params, load_rig_param,
+                                 run_node)
 from maem_ros.viz.scene import camera_info_fields
-from maem_ros.ros.common import (DATA_QOS, DIAGNOSTICS_PERIOD, IMAGE_QOS, ConfigError,
-                                 Diagnostics, ParamSpec, RejectErrors, Stopwatch, declare_params,
-                                 load_rig_param, run_node)
 
 NODE_NAME = "foxglove"
 
-PARAMS = (
-    DIAGNOSTICS_PERIOD,
-    ParamSpec("rig", "", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"),
-    ParamSpec("cameras", [], "cameras to show (default: every camera of the rig)"),
-    ParamSpec("poses_topic", "maem/poses", "input topic (PointCloud2, poses layout; relative "
-              "names follow the node's namespace)"),
-    ParamSpec("image_transport", "compressed", "camera images to subscribe",
-              choices=("compressed", "raw")),
-    ParamSpec("convention", "", "keypoint convention of the poses (empty: from the joint count)",
-              choices=("",) + tuple(sorted(CONVENTIONS))),
-    ParamSpec("frame_id", "world", "the rig's world frame (triangulation's frame_id): parent of "
-              "the camera transforms"),
-    ParamSpec("host", "127.0.0.1", "address the Foxglove WebSocket server listens on"),
-    ParamSpec("port", 8765, "WebSocket port (0 = a free port, logged)", minimum=0,
-              maximum=65535),
-    ParamSpec("court_length", 28.0, "m, court floor length (x)", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("court_width", 15.0, "m, court floor width (y)", minimum=0.0,
-              exclusive_minimum=True),
-    ParamSpec("static_period", 1.0, "s, period of resending court, frustums, transforms and "
-              "calibrations", minimum=0.0, exclusive_minimum=True),
-)
+
+@dataclass
+class FoxgloveNodeParams(NodeParams):
+    """The Foxglove node's parameters."""
+
+    rig: str = param("", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)")
+    cameras: list = param([], "cameras to show (default: every camera of the rig)")
+    poses_topic: str = param("maem/poses", "input topic (PointCloud2, poses layout; relative "
+                                           "names follow the node's namespace)")
+    image_transport: str = param("compressed", "camera images to subscribe",
+                                 choices=("compressed", "raw"))
+    convention: str = param("", "keypoint convention of the poses (empty: from the joint count)",
+                            choices=("",) + tuple(sorted(CONVENTIONS)))
+    frame_id: str = param("world", "the rig's world frame (triangulation's frame_id): parent of "
+                                   "the camera transforms")
+    host: str = param("127.0.0.1", "address the Foxglove WebSocket server listens on")
+    port: int = param(8765, "WebSocket port (0 = a free port, logged)", minimum=0,
+                      maximum=65535)
+    court_length: float = param(28.0, "m, court floor length (x)", minimum=0.0,
+                                exclusive_minimum=True)
+    court_width: float = param(15.0, "m, court floor width (y)", minimum=0.0,
+                               exclusive_minimum=True)
+    static_period: float = param(1.0, "s, period of resending court, frustums, transforms and "
+                                      "calibrations", minimum=0.0, exclusive_minimum=True)
+
+
+PARAMS = param_specs(FoxgloveNodeParams)
 
 
 class FoxgloveNode(Node):
@@ -135,7 +142,7 @@ class FoxgloveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: FoxgloveNode(), args, NODE_NAME)
+    return run_node(lambda: FoxgloveNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ import numpy as np
 
 from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
 from maem_ros.ros import wire
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 #: poses id of a person without a confirmed track
 UNTRACKED = wire.UNTRACKED_ID

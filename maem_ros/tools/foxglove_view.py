@@ -29,7 +29,7 @@ from typing import Iterator, Sequence
 
 from maem_ros.core.camera import Rig
 from maem_ros.core.skeleton import CONVENTIONS
-from maem_ros.tools import bagio
+from maem_ros import bagio
 from maem_ros.viz.scene import camera_info_fields
 
 EXIT_BAD_INPUT = 2
@@ -224,7 +224,7 @@ def print_help() -> None:
     build_parser().print_help()
     print("\nlive node parameters (maem-foxglove --ros-args -p NAME:=VALUE):")
     for spec in PARAMS:
-        print(f"  {spec.name} (default {spec.default!r}): {spec.description}")
+        print(f"  {spec.help_line()}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

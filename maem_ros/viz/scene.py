@@ -18,7 +18,7 @@ from foxglove.messages import (CameraCalibration, Color, CompressedImage, CubePr
 from scipy.spatial.transform import Rotation
 
 from maem_ros.core.camera import Camera, Rig
-from maem_ros.frontend.overlay import colour_for
+from maem_ros.core.colors import id_rgb
 
 WORLD = "world"
 #: poses ``id`` of a person without a confirmed track, drawn grey without an id label (the value
@@ -41,8 +41,7 @@ def id_color(track_id: int, alpha: float = 1.0) -> Color:
     if int(track_id) == UNTRACKED_ID or int(track_id) < 0:
         r, g, b = _GREY
     else:
-        b8, g8, r8 = colour_for(int(track_id))
-        r, g, b = r8 / 255.0, g8 / 255.0, b8 / 255.0
+        r, g, b = id_rgb(int(track_id))
     return Color(r=r, g=g, b=b, a=float(alpha))
 
 
