@@ -23,6 +23,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from helpers_bags import T0_NS, known_frames, two_camera_rig, write_poses_bag
 from helpers_ros import killed_on_exit
+from maem_ros.core.frames import rig_transforms
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 from maem_ros.viz import scene
@@ -153,7 +154,7 @@ def read_url(stream, pattern: str, timeout: float = 60.0) -> str:
 # ---------------------------------------------------------------------------------------------
 def test_transforms_place_each_camera_at_its_centre_looking_along_its_axis():
     rig = two_camera_rig()
-    tf = decode(scene.rig_transforms(5, scene.camera_poses(rig)))
+    tf = decode(scene.rig_transforms(5, rig_transforms(rig)))
     from scipy.spatial.transform import Rotation
     for t, cam in zip(tf.transforms, rig):
         assert (t.parent_frame_id, t.child_frame_id) == ("world", cam.name)
@@ -197,7 +198,7 @@ def test_world_frame_name_is_configurable():
     upd = decode(scene.skeletons_update(T0_NS, ids, joints, SPORTCENTER_13.bones,
                                         frame_id="court"))
     assert {e.frame_id for e in upd.entities} == {"court"}
-    tf = decode(scene.rig_transforms(T0_NS, scene.camera_poses(rig), world="court"))
+    tf = decode(scene.rig_transforms(T0_NS, rig_transforms(rig, "court")))
     assert {t.parent_frame_id for t in tf.transforms} == {"court"}
     court = [e for e in decode(scene.rig_update(T0_NS, rig, world="court")).entities
              if e.id == "court"]

@@ -34,6 +34,7 @@ from foxglove.channels import (CameraCalibrationChannel, CompressedImageChannel,
 from foxglove.websocket import ServerListener
 
 from maem_ros.core.camera import Rig
+from maem_ros.core.frames import rig_transforms
 from maem_ros.core.skeleton import convention_for, get_convention
 from maem_ros.viz import scene
 
@@ -83,8 +84,8 @@ class FoxgloveBridge:
                  name: str = "maem_ros"):
         self.rig = rig
         self.world_frame = world_frame
+        self._frames = rig_transforms(rig, world_frame)
         self.convention = get_convention(convention) if convention else None
-        self._camera_poses = scene.camera_poses(rig)
         self.court_size = court_size
         self.static_period_s = float(static_period_s)
         self._lock = threading.Lock()
@@ -147,8 +148,7 @@ class FoxgloveBridge:
             live = dict(self._live_calibration)
         self.rig_scene.log(scene.rig_update(stamp, self.rig, self.court_size,
                                             world=self.world_frame), log_time=stamp)
-        self.tf.log(scene.rig_transforms(stamp, self._camera_poses, self.world_frame),
-                    log_time=stamp)
+        self.tf.log(scene.rig_transforms(stamp, self._frames), log_time=stamp)
         for cam in self.rig:
             info = live.get(cam.name, cam.to_camera_info())
             self.calibrations[cam.name].log(scene.calibration(stamp, cam.name, info),
@@ -166,8 +166,7 @@ class FoxgloveBridge:
         self.skeletons.log(scene.skeletons_update(stamp_ns, ids, joints, bones,
                                                   frame_id=frame_id or self.world_frame),
                            log_time=stamp_ns)
-        self.tf.log(scene.rig_transforms(stamp_ns, self._camera_poses, self.world_frame),
-                    log_time=stamp_ns)
+        self.tf.log(scene.rig_transforms(stamp_ns, self._frames), log_time=stamp_ns)
         for cam in self.rig:
             self.annotations[cam.name].log(
                 scene.skeleton_annotations(stamp_ns, cam, ids, joints, bones),

@@ -15,8 +15,8 @@ from foxglove.messages import (CameraCalibration, Color, CompressedImage, CubePr
                                PointsAnnotationType, Pose, Quaternion, SceneEntity,
                                SceneEntityDeletion, SceneEntityDeletionType, SceneUpdate,
                                SpherePrimitive, TextAnnotation, TextPrimitive, Timestamp, Vector3)
-from scipy.spatial.transform import Rotation
 
+from maem_ros.core import frames as frames_
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
 
@@ -148,26 +148,17 @@ def rig_update(stamp_ns: int, rig: Rig, court_size: tuple[float, float] = (28.0,
     return SceneUpdate(entities=entities)
 
 
-def camera_poses(rig: Rig) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """(names, centres (N,3) world m, quaternions (N,4) x y z w of R^T): each camera's pose in
-    the world, computed once per rig (one batched scipy conversion)."""
-    names = rig.names
-    centres = np.stack([cam.center for cam in rig])
-    quats = Rotation.from_matrix(np.stack([cam.R.T for cam in rig])).as_quat()
-    return names, centres, quats
-
-
-def rig_transforms(stamp_ns: int, poses: tuple[list[str], np.ndarray, np.ndarray],
-                   world: str = WORLD) -> FrameTransforms:
-    """``world`` -> camera_i from :func:`camera_poses`: translation = the centre -R^T t,
-    rotation = R^T, the convention of ROS TF and Foxglove FrameTransform."""
+def rig_transforms(stamp_ns: int, frames: Sequence[frames_.FrameTransform]) -> FrameTransforms:
+    """The rig's world -> camera transforms (``core.frames.rig_transforms``: translation = the
+    camera centre, rotation = R^T) as Foxglove FrameTransforms at ``stamp_ns``."""
     ts = timestamp(stamp_ns)
-    names, centres, quats = poses
     return FrameTransforms(transforms=[
-        FrameTransform(timestamp=ts, parent_frame_id=world, child_frame_id=name,
-                       translation=Vector3(x=cx, y=cy, z=cz),
-                       rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))
-        for name, (cx, cy, cz), (qx, qy, qz, qw) in zip(names, centres.tolist(), quats.tolist())])
+        FrameTransform(timestamp=ts, parent_frame_id=f.parent, child_frame_id=f.child,
+                       translation=Vector3(x=float(f.translation[0]), y=float(f.translation[1]),
+                                           z=float(f.translation[2])),
+                       rotation=Quaternion(x=float(f.quaternion[0]), y=float(f.quaternion[1]),
+                                           z=float(f.quaternion[2]), w=float(f.quaternion[3])))
+        for f in frames])
 
 
 # ---------------------------------------------------------------------------------------------
