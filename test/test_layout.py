@@ -37,6 +37,7 @@ def _files(sub: str) -> list[Path]:
 @pytest.mark.parametrize("sub,forbidden", [
     ("core", ROS_MODULES + ("maem_ros.ros", "maem_ros.tools", "maem_ros.sim", "maem_ros.bagio")),
     ("ros", ("maem_ros.tools", "maem_ros.sim")),
+    ("viz", ROS_MODULES + ("maem_ros.ros", "maem_ros.tools", "maem_ros.sim")),
     # bagio serialises rclpy messages it is given with rclpy.serialization, nothing else of ROS
     ("bagio", ("maem_ros.tools", "maem_ros.sim") + ROS_MODULES[1:]),
     ("capture", ROS_MODULES + ("maem_ros.ros", "maem_ros.tools")),

@@ -21,9 +21,10 @@ ROSDEP_KEY = {
     "yaml": "python3-yaml", "rosbags": "python3-rosbags-pip", "tqdm": "python3-tqdm",
     "matplotlib": "python3-matplotlib", "numba": "python3-numba",
     "threadpoolctl": "python3-threadpoolctl-pip",
+    "foxglove": "python3-foxglove-sdk-pip", "ezc3d": "python3-ezc3d-pip",
 }
 #: keys rosdistro lacks, defined in the repository's rosdep.yaml
-CUSTOM_KEYS = {"python3-threadpoolctl-pip"}
+CUSTOM_KEYS = {"python3-threadpoolctl-pip", "python3-foxglove-sdk-pip", "python3-ezc3d-pip"}
 #: imports of the optional SAM 3D Body backend (frontend/sam3d_body.py): installed with the
 #: model's own repository, not by rosdep (README, SAM 3D Body)
 OPTIONAL = {"torch", "detectron2", "sam_3d_body", "tools"}

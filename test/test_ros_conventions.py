@@ -20,7 +20,8 @@ BIN = Path(sys.executable).parent
 PARAM_NODES = {"frontend": "maem_ros.ros.frontend_node",
                "association": "maem_ros.ros.association_node",
                "triangulation": "maem_ros.ros.triangulation_node",
-               "camera": "maem_ros.ros.camera_node"}
+               "camera": "maem_ros.ros.camera_node",
+               "foxglove": "maem_ros.ros.foxglove_node"}
 
 
 @pytest.mark.parametrize("node", sorted(PARAM_NODES))
