@@ -304,7 +304,7 @@ def _set(a: np.ndarray, index, value) -> np.ndarray:
     (lambda: detections(verts2d=np.zeros((1, 3, 2))), "verts2d"),
     (lambda: _with("kpts2d", lambda a: _set(a, (1, 2, 0), np.nan)), "kpts2d"),
     (lambda: _with("kpts3d", lambda a: _set(a, (0, 0, 2), np.inf)), "kpts3d"),
-    (lambda: _with("verts2d", lambda a: _set(a, (1, 0, 1), np.nan)), "verts2d"),
+    (lambda: _with("verts2d", lambda a: _set(a, (1, 0, 1), np.inf)), "verts2d"),  # NaN = missing
     (lambda: _with("bboxes", lambda a: _set(a, (0, 0), np.inf)), "bbox"),
     (lambda: _with("scores", lambda a: _set(a, 1, np.nan)), "score"),
     (lambda: _with("scores", lambda a: _set(a, 1, 1.5)), "score"),
@@ -366,3 +366,9 @@ def test_shipped_params_files(name: str, tau_det: float, k_min: int) -> None:
 def test_non_pinhole_intrinsics_rejected(K):
     with pytest.raises(ValueError, match="camera 'c' K: not pinhole intrinsics"):
         Camera("c", K, np.eye(3), [0, 0, 5], 1280, 720)
+
+
+def test_nan_vertices_are_missing_not_invalid() -> None:
+    """A vertex the compact wire layout cannot carry arrives as NaN: valid, it takes no part in
+    the epipolar gate (core.epipolar)."""
+    assert _with("verts2d", lambda a: _set(a, (1, 0, 1), np.nan)).validate() is not None
