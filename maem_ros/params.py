@@ -12,6 +12,8 @@ from typing import Any
 
 import yaml
 
+from maem_ros.core.errors import InputError
+
 _REPO_CONFIG = Path(__file__).resolve().parent.parent / "config"
 
 
@@ -38,8 +40,8 @@ def resolve_config_path(value: str | Path, subdir: str = "") -> Path:
         for cand in (d / subdir / p, d / subdir / f"{p}.yaml", d / p):
             if cand.exists():
                 return cand
-    raise ValueError(f"config {str(value)!r}: not a file/folder and not a shipped "
-                     f"config{'/' + subdir if subdir else ''} entry")
+    raise InputError(f"config {str(value)!r}: not a file/folder and not a shipped "
+                     f"config{'/' + subdir if subdir else ''} entry", "bad_config")
 
 
 def resolve_rig_path(value: str | Path) -> Path:
@@ -53,9 +55,11 @@ def load_node_params(params_file: str | Path, node_name: str) -> dict[str, Any]:
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
-        raise ValueError(f"params file {str(path)!r}: unreadable ({e})") from None
+        raise InputError(f"params file {str(path)!r}: unreadable ({' '.join(str(e).split())})",
+                         "bad_config") from None
     if not isinstance(data, dict):
-        raise ValueError(f"params file {str(path)!r}: expected a mapping of node names")
+        raise InputError(f"params file {str(path)!r}: expected a mapping of node names",
+                         "bad_config")
     out: dict[str, Any] = {}
     for key in ("/**", node_name, f"/{node_name}", f"/**/{node_name}"):
         section = data.get(key)

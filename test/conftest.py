@@ -13,3 +13,27 @@ os.environ["ROS_DOMAIN_ID"] = os.environ.get("MAEM_TEST_DOMAIN_ID") or str(
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+import pytest  # noqa: E402 - after the environment above
+
+from helpers_ros import SCENE, Graph  # noqa: E402
+
+
+@pytest.fixture
+def graph():
+    """An in-process node graph on a private Context (helpers_ros.Graph), closed after the test."""
+    g = Graph()
+    yield g
+    g.close()
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """The graph tests' synthetic scene (helpers_ros.SCENE), epipolar kernel compiled."""
+    sim = pytest.importorskip("maem_ros.sim.scene")
+    from maem_ros.core.association import AssociationParams, associate
+    sc = sim.Scene(sim.SceneConfig(**SCENE))
+    # compile the epipolar kernel (numba) before any node runs: a first-frame stall longer than
+    # max_wait would make the synchroniser treat every camera as dead for one frame
+    associate(sc.rig, {c: sc.detections(c, 0) for c in sc.rig.names}, AssociationParams())
+    return sc

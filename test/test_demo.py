@@ -65,12 +65,17 @@ def test_make_demo_bag_small(tmp_path):
         demo.make_demo_bag(out, frames=3)
 
 
-def test_ensure_bag_generates_missing_and_rejects_non_bags(tmp_path):
-    bag = demo.ensure_bag(tmp_path / "new", frames=2)
-    assert len(demo.load_bag(bag).stamps) == 2
+def test_ensure_bag_generates_only_the_default_and_rejects_non_bags(tmp_path, monkeypatch):
+    import maem_ros.tools.demo_bag as demo_bag
+    with pytest.raises(bagio.BagError, match="no such file"):  # --bag /typo: nothing created
+        demo.ensure_bag(tmp_path / "typo", frames=2)
+    assert not (tmp_path / "typo").exists()
+    monkeypatch.setattr(demo_bag, "default_bag", lambda: tmp_path / "new")
+    bag = demo.ensure_bag(None, frames=2)  # no --bag and no default bag yet: generated
+    assert bag == tmp_path / "new" and len(demo.load_bag(bag).stamps) == 2
     assert demo.ensure_bag(bag, frames=5) == bag  # an existing bag is used as it is
     (tmp_path / "junk").mkdir()
-    with pytest.raises(ValueError, match="not a rosbag2 folder"):
+    with pytest.raises(bagio.BagError, match="not a rosbag2 folder"):
         demo.ensure_bag(tmp_path / "junk", frames=2)
 
 

@@ -174,7 +174,7 @@ def test_bad_bag_and_topics_exit_with_message(tmp_path: Path, bag: Path):
     proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.player_node", str(tmp_path / "none")],
                           capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2
-    assert "not a rosbag2 folder" in proc.stdout + proc.stderr
+    assert "no such file or directory" in proc.stdout + proc.stderr
     proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.player_node", str(bag), "--topics",
                            "/nothing", "--delay", "0"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2

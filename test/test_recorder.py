@@ -6,10 +6,10 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from rclpy.duration import Duration
 from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import String
 
@@ -57,7 +57,9 @@ def test_everything_received_is_in_the_bag(tmp_path: Path, ros, sig):
         info = CameraInfo(width=640, height=480, distortion_model="plumb_bob")
         info.header.frame_id = "cam"
         late.publish(info)
-        time.sleep(0.5)  # reliable delivery on localhost; then stop it
+        # reliable: stop the recorder once it acknowledged everything
+        assert pub.wait_for_all_acked(Duration(seconds=10)) and \
+            late.wait_for_all_acked(Duration(seconds=10)), "recorder did not acknowledge"
         proc.send_signal(sig)
         text, _ = proc.communicate(timeout=20)
     assert proc.returncode == 0, text

@@ -15,6 +15,8 @@ import pytest
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 
+from helpers_ros import wait_for
+
 pytestmark = pytest.mark.timeout(240)
 
 FRAMES = 8
@@ -41,17 +43,14 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
         client = ReplayClient(cams)
         assert client.wait_ready(150, alive=lambda: not graph.dead()), \
             f"graph not ready; dead: {graph.dead()}\n{graph.logs()}"
-        time.sleep(0.5)
         t0 = time.monotonic()
         for f in range(FRAMES):  # 5 Hz
             while time.monotonic() < t0 + f / 5.0:
                 time.sleep(0.005)
             client.publish_frame(scene.stamp_ns(f))
         stamps = [scene.stamp_ns(f) for f in range(FRAMES)]
-        deadline = time.monotonic() + 60
-        while not all(s in client.poses for s in stamps) and time.monotonic() < deadline:
-            assert not graph.dead(), graph.logs()
-            time.sleep(0.05)
+        assert wait_for(lambda: all(s in client.poses for s in stamps) or bool(graph.dead()),
+                        60.0) and not graph.dead(), graph.logs()
         assert all(s in client.poses for s in stamps), \
             f"poses for {sum(s in client.poses for s in stamps)}/{FRAMES} frames\n{graph.logs()}"
         want = {"/association": str(FRAMES), "/triangulation": str(FRAMES),
@@ -61,9 +60,7 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
             with client.lock:
                 return all(client.diagnostics.get(n, {}).get("frames_processed") == v
                            for n, v in want.items())
-        deadline = time.monotonic() + 15
-        while time.monotonic() < deadline and not diag_done():
-            time.sleep(0.1)
+        wait_for(diag_done, 15.0)  # asserted below with the values
     finally:
         codes = graph.stop(timeout_s=30)
         if client is not None:

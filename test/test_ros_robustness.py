@@ -17,8 +17,7 @@ from sensor_msgs.msg import Image, PointCloud2, PointField
 from maem_ros.core.detections import FrameDetections
 from maem_ros.ros import wire
 from maem_ros.ros.common import DATA_QOS, IMAGE_QOS
-from test_ros_graph import (DiagnosticsReader, Recorder, graph, play, scene,  # noqa: F401
-                            start_pipeline, wait_for)
+from helpers_ros import DiagnosticsReader, Recorder, bad_messages, play, start_pipeline, wait_for
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -66,51 +65,9 @@ def test_stamps_jumping_backwards_reset_sync_and_tracker(graph, scene):
     assert before and after and not (before & after)
 
 
-def _fresh(scene, camera: str, frame: int) -> FrameDetections:
-    """A private copy (the scene's detections share arrays with its cache)."""
-    d = scene.detections(camera, frame)
-    return d.select(np.arange(d.n))
-
-
-def _bad_messages(scene) -> list[tuple[str, PointCloud2]]:
-    """(expected drop reason, message) published on /camera_0/detections."""
-    out = []
-
-    def base():
-        return wire.detections_to_msg(scene.detections("camera_0", 1))
-
-    m = base()
-    m.fields = [f for f in m.fields if f.name != "verts2d"]
-    out.append(("missing_field", m))
-    m = base()
-    m.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype,
-                           count=f.count - (3 if f.name == "kpts3d" else 0)) for f in m.fields]
-    out.append(("bad_count", m))  # kpts3d count 3J-3 with kpts2d 2J
-    m = base()
-    m.fields = [PointField(name=f.name, offset=f.offset, datatype=f.datatype,
-                           count=f.count + (3 if f.name == "kpts3d" else 0)) for f in m.fields]
-    out.append(("bad_layout", m))  # kpts3d now runs into verts2d
-    d = _fresh(scene, "camera_0", 1)
-    d.kpts2d[0, 3, 1] = np.nan
-    out.append(("nonfinite", wire.detections_to_msg(d)))
-    m = base()
-    m.data = array.array("B")
-    out.append(("bad_size", m))
-    m = base()
-    m.header.frame_id = "camera_42"
-    out.append(("unknown_camera", m))
-    m = base()
-    m.header.frame_id = "camera_1"
-    out.append(("camera_mismatch", m))
-    d = _fresh(scene, "camera_0", 1)
-    d.bboxes[0, 2] = d.bboxes[0, 0] - 1
-    out.append(("inverted_bbox", wire.detections_to_msg(d)))
-    return out
-
-
 def test_malformed_detections_are_dropped_and_counted(graph, scene):
     g = start_pipeline(graph)
-    bad = _bad_messages(scene)
+    bad = bad_messages(scene)
     for _, msg in bad:
         g["player"].publish_msg("camera_0", msg)
     reasons = [r for r, _ in bad]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.sync import ApproximateTimeSync, FrameSet
+from maem_ros.core.sync import ApproximateTimeSync, FrameSet, SyncDrop
 
 MS = 1_000_000
 PERIOD = 33 * MS
@@ -98,20 +98,25 @@ def test_too_few_cameras_dropped_and_counted() -> None:
     assert s.counters["dropped_too_few_cameras"] == 2 and s.pending() == 0
 
 
-def test_stamps_backwards_reset() -> None:
+def test_stream_jumping_back_resets_once_and_keeps_the_new_frames() -> None:
     s = make()
     for k in range(3):
         for cam in CAMS:
             s.add(cam, T0 + k * PERIOD, k, now_ns=T0 + k * PERIOD)
     s.add("cam0", T0 + 3 * PERIOD, 3, now_ns=T0 + 3 * PERIOD)
     assert s.pending() == 1
-    # bag loop: cam1 jumps back to the start; the queues are cleared, new sets flow
+    # bag loop: cam1 jumps back to the start; one camera alone is held aside, no reset
     assert s.add("cam1", T0, "loop", now_ns=T0 + 4 * PERIOD) == []
-    assert s.counters["resets"] == 1 and s.pending() == 1
+    assert s.stats.resets == 0 and s.pending() == 1
     out = []
     for cam in ["cam0", "cam2", "cam3"]:
         out += s.add(cam, T0 + 2 * MS, "loop", now_ns=T0 + 4 * PERIOD + MS)
+    # three of four cameras jumped: one reset, cam0's queued frame 3 counted, held replayed
+    assert s.stats.resets == 1 and s.stats.dropped[SyncDrop.RESET] == 1
     assert len(out) == 1 and out[0].stamp_ns == T0 and out[0].missing == []
+    assert set(out[0].items.values()) == {"loop"}
+    assert [e.kind for e in s.take_events()] == ["reset"]
+    assert s.stats.dropped[SyncDrop.STALE] == 0
 
 
 def test_small_step_back_and_duplicates_are_dropped() -> None:
@@ -225,3 +230,184 @@ def test_lagging_camera_is_still_waited_for() -> None:
     for now, cam, stamp in sorted(events, key=lambda e: e[0]):
         sets += s.poll(now) if cam is None else s.add(cam, stamp, cam, now_ns=now)
     assert [fs.missing for fs in sets] == [["cam3"], [], [], [], [], []]
+
+
+def run_stream(s: ApproximateTimeSync, frames: int, arrival, extra=()) -> list[FrameSet]:
+    """Feed ``frames`` frames of every camera in arrival order; ``arrival(cam, k)`` -> ns after
+    the stamp (None = not sent); ``extra`` = (arrival ns, cam, stamp ns) hostile messages."""
+    events = [(T0 + k * PERIOD + arrival(c, k), c, T0 + k * PERIOD, (c, k))
+              for k in range(frames) for c in CAMS if arrival(c, k) is not None]
+    events += [(t, c, st, "hostile") for t, c, st in extra]
+    events.sort(key=lambda e: e[0])
+    out: list[FrameSet] = []
+    for t, cam, stamp, item in events:
+        out += s.poll(t)
+        out += s.add(cam, stamp, item, now_ns=t)
+    return out + s.poll(events[-1][0] + 10**10)
+
+
+def test_camera_300ms_late_stops_holding_back_the_others_and_rejoins() -> None:
+    s = make()
+    lag_ms = lambda c, k: 300 if c == "cam3" and k < 60 else (c == "cam3") * 2 + 1  # noqa: E731
+    sets = run_stream(s, 90, lambda c, k: lag_ms(c, k) * MS)
+    assert [fs.stamp_ns for fs in sets] == [T0 + k * PERIOD for k in range(90)]
+    without = [k for k, fs in enumerate(sets) if fs.missing == ["cam3"]]
+    # the first frames wait max_wait for cam3 until two late messages show its lag; then none
+    assert without[0] == 0 and without == list(range(without[-1] + 1))
+    assert 55 <= len(without) <= 62
+    assert all(fs.missing == [] for fs in sets[without[-1] + 1:])
+    # every cam3 message missing from a set is counted: lagging, late, or overtaken by
+    # frame 60 (sent with the short lag) and so out of order
+    assert s.stats.total_dropped == len(without)
+    assert s.stats.dropped[SyncDrop.LAGGING] >= 45
+    kinds = [(e.kind, e.camera) for e in s.take_events()]
+    assert kinds == [("lagging", "cam3"), ("rejoined", "cam3")]
+
+
+def test_lagging_camera_costs_the_others_no_latency() -> None:
+    """Release time of each set (the poll that emits it) vs its stamp: bounded by one
+    max_wait for the first few frames, then the normal arrival latency."""
+    s = make()
+    released = []
+    events = sorted((T0 + k * PERIOD + (300 if c == "cam3" else 1) * MS, c, T0 + k * PERIOD)
+                    for k in range(60) for c in CAMS)
+    for t, cam, stamp in events:
+        for fs in s.poll(t) + s.add(cam, stamp, cam, now_ns=t):
+            released.append(t - fs.stamp_ns)
+    assert len(released) >= 59
+    assert max(released) <= 150 * MS + PERIOD  # polled at arrivals only: one period granular
+    assert max(released[12:]) <= 1 * MS  # no waiting once the lag is known
+
+
+def test_max_lag_compensates_a_constant_lag() -> None:
+    s = make(max_lag_ns=400 * MS)
+    sets = run_stream(s, 40, lambda c, k: (300 if c == "cam3" else 1) * MS)
+    # the first sets go without cam3 (its lag is measured on two messages, 300 ms after their
+    # stamps, and by then it has missed dead_after_sets sets), then it is waited for
+    assert all(fs.missing == [] for fs in sets[12:]) and len(sets) == 40
+    assert s.stats.total_dropped == sum(bool(fs.missing) for fs in sets)
+    assert s.lagging() == {}
+
+
+@pytest.mark.parametrize("stamp_of", [lambda k: 0, lambda k: T0 + (k - 30) * PERIOD,
+                                      lambda k: T0 + (k - 1) * PERIOD,
+                                      lambda k: T0 + 10**12 + k])
+def test_hostile_stamps_from_one_camera_cost_no_frames(stamp_of) -> None:
+    """Stamp 0, a 1 s old duplicate, a previous frame, a far-future stamp: every 10th frame
+    cam2 sends one extra such message; all frames stay complete, no reset, each counted."""
+    s = make()
+    extra = [(T0 + k * PERIOD + 2 * MS, "cam2", stamp_of(k)) for k in range(5, 60, 10)]
+    sets = run_stream(s, 60, lambda c, k: MS, extra)
+    assert len(sets) == 60 and all(fs.missing == [] for fs in sets)
+    assert all("hostile" not in fs.items.values() for fs in sets)
+    assert s.stats.resets == 0
+    assert s.stats.total_dropped == len(extra)
+    assert s.stats.received == 60 * 4 + len(extra)
+
+
+def test_held_stale_stamps_are_counted_when_released() -> None:
+    s = make()
+    for k in range(3):
+        for cam in CAMS:
+            s.add(cam, T0 + k * PERIOD, k, now_ns=T0 + k * PERIOD + MS)
+    s.add("cam1", 0, "zero", now_ns=T0 + 3 * PERIOD)
+    assert s.stats.total_dropped == 0  # held: it might be the start of a loop
+    s.add("cam1", T0 + 3 * PERIOD, 3, now_ns=T0 + 3 * PERIOD + MS)
+    assert s.stats.dropped[SyncDrop.STALE] == 1
+
+
+def test_future_first_message_does_not_poison_the_others() -> None:
+    """cam0's very first stamp is far in the future (nobody to compare with): once the
+    others run, its valid stamps re-anchor it and every camera is in the sets."""
+    s = make()
+    s.add("cam0", T0 + 10**12, "future", now_ns=T0)
+    sets = run_stream(s, 20, lambda c, k: MS)
+    assert len(sets) >= 19 and all(fs.missing == [] for fs in sets[2:])
+    assert "future" not in [v for fs in sets for v in fs.items.values()]
+
+
+# ---- StampGuard (one stream: the triangulation node's clusters) ---------------------------------
+from maem_ros.core.sync import StampGuard  # noqa: E402
+
+
+def push_all(g: StampGuard, stamps):
+    accepted, dropped, jumps = [], [], 0
+    for s in stamps:
+        r = g.push(s, s)
+        accepted += [st for st, _ in r.accepted]
+        dropped += r.dropped
+        jumps += r.jumped_back
+    return accepted, dropped, jumps
+
+
+def test_stamp_guard_drops_isolated_hostile_stamps() -> None:
+    ok = [T0 + k * PERIOD for k in range(10)]
+    stream = ok[:3] + [0] + ok[3:5] + [ok[4]] + ok[5:7] + [T0 + 10**15] + ok[7:]
+    accepted, dropped, jumps = push_all(StampGuard(), stream)
+    assert accepted == ok and jumps == 0
+    assert [r for r, _ in dropped] == ["stale_stamp", "duplicate_stamp", "future_stamp"]
+
+
+def test_stamp_guard_confirms_a_loop_and_loses_nothing() -> None:
+    first = [T0 + k * PERIOD for k in range(6)]
+    loop = [T0 + k * PERIOD for k in range(5)]
+    accepted, dropped, jumps = push_all(StampGuard(confirm=2), first + loop)
+    assert accepted == first + loop and dropped == [] and jumps == 1
+    # a forward jump (pause, seek) is confirmed too, without a reset
+    later = [T0 + 10**12 + k * PERIOD for k in range(4)]
+    g = StampGuard()
+    accepted, dropped, jumps = push_all(g, first + later)
+    assert accepted == first + later and jumps == 0 and g.last == later[-1]
+
+
+def test_stamp_guard_slow_stream_is_not_a_jump() -> None:
+    """A 0.5 fps stream (2 s between frames > jump_ns 1 s): the bound grows with the time
+    between messages, so every frame goes through at once; a far-future stamp still does not."""
+    g = StampGuard(jump_ns=10**9)
+    period = 2 * 10**9
+    for k in range(5):
+        r = g.push(T0 + k * period, k, now_ns=T0 + k * period + 5 * MS)
+        assert [it for _, it in r.accepted] == [k] and not r.dropped
+    assert g.push(T0 + 10**15, "future", now_ns=T0 + 5 * period).accepted == []
+    r = g.push(T0 + 5 * period, 5, now_ns=T0 + 5 * period + 5 * MS)
+    assert [it for _, it in r.accepted] == [5] and r.dropped == [("future_stamp", "future")]
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(0, 40), min_size=1, max_size=60))
+def test_stamp_guard_output_is_strictly_increasing_between_jumps(steps) -> None:
+    """Whatever comes in, accepted stamps only go back at a confirmed jump, and every input
+    is accepted, dropped or still held."""
+    g = StampGuard(jump_ns=10 * MS, confirm=2)
+    stamps = [T0 + s * MS for s in steps]
+    out, n_dropped = [], 0
+    for s in stamps:
+        r = g.push(s, s)
+        if r.jumped_back:
+            out.append(None)
+        out += [st for st, _ in r.accepted]
+        n_dropped += len(r.dropped)
+    runs, cur = [], []
+    for v in out:
+        if v is None:
+            runs.append(cur)
+            cur = []
+        else:
+            cur.append(v)
+    runs.append(cur)
+    for run in runs:
+        assert all(b > a for a, b in zip(run, run[1:])), out
+    held = len(g._held)
+    assert sum(len(r) for r in runs) + n_dropped + held == len(stamps)
+
+
+def test_lag_fluctuating_around_the_window_does_not_flap() -> None:
+    """cam3's lag cycles between 140 and 200 ms around max_wait 150 ms (in order: each
+    message after the previous): once lagging it stays so (it would rejoin below 75 ms), so
+    the sets are not held back whenever its lag dips under the window."""
+    s = make()
+    cycle = (170, 200, 180, 160, 140, 160, 190)
+    sets = run_stream(s, 63, lambda c, k: (cycle[k % 7] if c == "cam3" else 1) * MS)
+    kinds = [e.kind for e in s.take_events()]
+    assert kinds.count("lagging") == 1 and "rejoined" not in kinds
+    assert s.stats.timeouts <= 6 and len(sets) == 63

@@ -9,6 +9,8 @@ decoders accept as they are. Stamps are integer nanoseconds everywhere.
 from __future__ import annotations
 
 import json
+import struct
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -16,9 +18,11 @@ from typing import Any, Iterable, Iterator
 import yaml
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 from rosbags.typesys import Stores, get_typestore
+
+from maem_ros.core.errors import InputError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 _T = TYPESTORE.types
@@ -191,16 +195,39 @@ class BagInfo:
     qos: dict[str, list[Qos]]  # topic -> offered QoS profiles recorded
 
 
+class BagError(InputError):
+    """A bag that cannot be read: ``bag '<path>': <problem>`` on one line."""
+
+    reason = "bad_bag"
+
+
 def _check_bag(path: Path) -> Path:
+    if not path.exists():
+        raise BagError(f"bag {str(path)!r}: no such file or directory")
     if not (path / "metadata.yaml").is_file():
-        raise ValueError(f"bag {str(path)!r}: not a rosbag2 folder (no metadata.yaml)")
+        raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (no metadata.yaml)")
     return path
+
+
+@contextmanager
+def _reading(path: Path) -> Iterator[None]:
+    """rosbags / YAML / OS errors of a damaged bag (zero-byte or truncated mcap, garbage
+    metadata.yaml, missing storage file) as one-line BagErrors."""
+    try:
+        yield
+    except BagError:
+        raise
+    except (ReaderError, yaml.YAMLError, OSError, KeyError, TypeError, ValueError,
+            AttributeError, IndexError, struct.error) as e:
+        problem = " ".join(str(e).split()) or type(e).__name__
+        raise BagError(f"bag {str(path)!r}: unreadable ({type(e).__name__}: "
+                       f"{problem[:200]})") from None
 
 
 def bag_info(path: str | Path) -> BagInfo:
     """Topics, counts, time range, custom data and recorded QoS of a rosbag2 folder."""
     path = _check_bag(Path(path))
-    with Reader(path) as reader:
+    with _reading(path), Reader(path) as reader:
         topics = {c.topic: c.msgtype for c in reader.connections}
         counts = {t: 0 for t in topics}
         qos: dict[str, list[Qos]] = {}
@@ -214,8 +241,10 @@ def bag_info(path: str | Path) -> BagInfo:
 
 def custom_data(path: str | Path) -> dict[str, str]:
     """metadata.yaml custom_data (empty dict when absent)."""
-    meta = yaml.safe_load((_check_bag(Path(path)) / "metadata.yaml").read_text()) or {}
-    return dict(meta.get("rosbag2_bagfile_information", {}).get("custom_data") or {})
+    path = _check_bag(Path(path))
+    with _reading(path):
+        meta = yaml.safe_load((path / "metadata.yaml").read_text()) or {}
+        return dict(meta.get("rosbag2_bagfile_information", {}).get("custom_data") or {})
 
 
 def read_messages(path: str | Path, topics: Iterable[str] | None = None,
@@ -223,7 +252,7 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None,
     """Messages in log-time order, optionally only ``topics`` and log times in [start, stop)."""
     path = _check_bag(Path(path))
     wanted = None if topics is None else set(topics)
-    with Reader(path) as reader:
+    with _reading(path), Reader(path) as reader:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
         if not conns:
             return

@@ -11,6 +11,9 @@ from typing import Iterable
 
 import numpy as np
 
+from .errors import InputError
+
+
 
 @dataclass
 class FrameDetections:
@@ -124,18 +127,21 @@ class FrameDetections:
         return self
 
     def validate(self, known_cameras: Iterable[str] | None = None) -> "FrameDetections":
-        """Raise ValueError naming the first bad field; return self when valid."""
+        """Raise InputError (a ValueError, with a reason) naming the first bad field; return self
+        when valid."""
         where = f"detections of camera {self.camera!r}"
         if known_cameras is not None and self.camera not in set(known_cameras):
             raise ValueError(f"{where}: camera: unknown camera {self.camera!r}")
         if self._validated and self._validated == self._arrays():
             return self
         if self.bboxes.ndim != 2 or self.bboxes.shape[1] != 4:
-            raise ValueError(f"{where}: bbox: expected shape (N,4), got {self.bboxes.shape}")
+            raise InputError(f"{where}: bbox: expected shape (N,4), got {self.bboxes.shape}",
+                             "bad_count")
         n = self.bboxes.shape[0]
         _check_shape(where, "score", self.scores, (n,))
         if self.kpts2d.ndim != 3 or self.kpts2d.shape[0] != n or self.kpts2d.shape[2] != 2:
-            raise ValueError(f"{where}: kpts2d: expected shape ({n},J,2), got {self.kpts2d.shape}")
+            raise InputError(f"{where}: kpts2d: expected shape ({n},J,2), got {self.kpts2d.shape}",
+                             "bad_count")
         j = self.kpts2d.shape[1]
         _check_shape(where, "kpts3d", self.kpts3d, (n, j, 3))
         if self.verts2d.ndim != 3 or self.verts2d.shape[0] != n or self.verts2d.shape[2] != 2:
@@ -155,8 +161,8 @@ class FrameDetections:
                 raise ValueError(f"{where}: {name}: {what} in detection {det}")
         inverted = (self.bboxes[:, 2] < self.bboxes[:, 0]) | (self.bboxes[:, 3] < self.bboxes[:, 1])
         if inverted.any():
-            raise ValueError(f"{where}: bbox: inverted box (x2<x1 or y2<y1) in detection "
-                             f"{int(np.argmax(inverted))}")
+            raise InputError(f"{where}: bbox: inverted box (x2<x1 or y2<y1) in detection "
+                             f"{int(np.argmax(inverted))}", "inverted_bbox")
         if np.any((self.scores < 0) | (self.scores > 1)):
             raise ValueError(f"{where}: score: outside [0, 1] in detection "
                              f"{int(np.argmax((self.scores < 0) | (self.scores > 1)))}")
@@ -166,7 +172,8 @@ class FrameDetections:
 
 def _check_shape(where: str, field: str, arr: np.ndarray, shape: tuple[int, ...]) -> None:
     if arr.shape != shape:
-        raise ValueError(f"{where}: {field}: expected shape {shape}, got {arr.shape}")
+        raise InputError(f"{where}: {field}: expected shape {shape}, got {arr.shape}",
+                         "bad_count")
 
 
 @dataclass

@@ -27,6 +27,7 @@ import numpy as np
 
 from .camera import Camera, Rig
 from .detections import FrameDetections
+from .errors import InputError
 
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
 REQUIRED_KEYS = ("bbox", "bbox_score", "pred_keypoints_3d", "pred_keypoints_2d", "pred_keypoints_2d_verts")
@@ -42,8 +43,10 @@ def det_ids_key(view: str, frame: int) -> str:
     return f"{view}/{int(frame):06d}"
 
 
-class MissingDataError(ValueError):
+class MissingDataError(InputError):
     """A file a scene folder should hold is absent: a documented skip, not corruption."""
+
+    reason = "no_data"
 
 
 # ---- SAM 3D Body npz (MAEM authors' layout) -----------------------------------------------

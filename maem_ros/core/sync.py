@@ -6,34 +6,45 @@ passes ``now_ns`` (the caller's clock: wall or sim time), which keeps it testabl
 Rules (DESIGN.md §5):
 
 - Each camera has a short queue, kept sorted by stamp (at most ``queue_size``
-  messages; when full the oldest is dropped, counted ``dropped_queue_full``).
+  messages; when full the oldest is dropped, reason ``queue_full``).
 - The reference is the oldest queued message. A camera is *present* when its
-  oldest queued message lies within ``[ref, ref + slop]`` (it cannot be older than
-  the reference). It is *known missing* when its oldest message is newer than
-  ``ref + slop`` (stamps per camera only increase) or when it is *dead*: missing
-  from the last ``dead_after_sets`` emitted sets without delivering anything since.
-  A dead camera costs ``max_wait`` on a few sets, not on every frame. Silence is
-  counted in sets, not seconds: a time rule would declare every camera dead whenever
-  the frame period exceeds ``max_wait``, and a one-set rule would stop waiting for a
-  camera that merely lags (its late messages keep it alive). A dead camera is picked
-  up again with its next message, though if that first message arrives after the
-  other cameras' messages of its frame, that frame is already out and the message
-  counts as ``dropped_late``.
-- A FrameSet is emitted, stamped with the reference stamp, as soon as every camera
-  is present or known missing, or once ``max_wait`` has passed since the reference
-  message arrived; if fewer than ``min_cameras`` are present then, only the
-  reference message is dropped (``dropped_too_few_cameras``) and the next oldest
-  becomes the reference. Emitted sets never go back in time: a message whose stamp
-  is not newer than the last emitted reference is dropped (``dropped_late``).
-- A stamp older than the same camera's previous one by more than ``slop`` (bag loop,
-  restart) clears every queue first (``resets``); a smaller step back or a repeated
-  stamp is dropped (``dropped_out_of_order``).
+  oldest queued message lies within ``[ref, ref + slop]``. A camera is not waited for when
+  its oldest message is newer than ``ref + slop`` (stamps per camera only increase), when it
+  is *dead* (missing from the last ``dead_after_sets`` sets with nothing queued since), or
+  when it is *lagging* (below).
+- A FrameSet is emitted, stamped with the reference stamp, as soon as no camera is waited
+  for, or once ``max_wait`` has passed since the reference message arrived; if fewer than
+  ``min_cameras`` are present then, only the reference message is dropped
+  (``too_few_cameras``). Emitted sets never go back in time: a message whose stamp is not
+  newer than the last emitted reference is dropped (``late``, or ``lagging`` for a camera
+  known to lag).
+- Lag: each camera's transport latency (arrival - stamp, which includes any clock offset) is
+  compared with the median latency of the other cameras. A camera whose relative lag exceeds
+  ``max_wait`` on two messages in a row is *lagging*: sets stop waiting for it (the sets
+  before that wait ``max_wait`` at most), so it cannot hold the others back; it rejoins as
+  soon as one of its messages arrives with a lag under half the window (hysteresis: a lag
+  fluctuating around the window does not flap) or in time for its set. With ``max_lag_ns`` > 0 a
+  camera lagging by at most ``max_lag`` is compensated instead: sets wait up to its lag plus
+  ``max_wait`` for it (whole graph delayed by that lag, the camera kept).
+- Stamp jumps: a camera's stamp that steps back by more than ``slop`` or lies more than
+  ``jump_ns`` ahead of the other cameras (by arrival time) is held aside for that camera, not
+  queued. If the camera goes on as before, the held messages are dropped (``stale`` /
+  ``future``) and nothing else happens. If most live cameras jump (bag loop, restart of the
+  whole stream), the synchroniser resets: queued messages are dropped (``reset``), the reset
+  is counted once (``stats.resets``) and the held messages are replayed on the new timeline.
+  A step back within ``slop`` or a repeated stamp is dropped (``out_of_order``).
 """
 from __future__ import annotations
 
-from collections import deque
+import statistics
+from collections import Counter, deque
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Any, Sequence
+
+
+#: consecutive late samples that make a camera lagging (one sample under the window rejoins it)
+LAG_SAMPLES = 2
 
 
 @dataclass
@@ -45,6 +56,44 @@ class FrameSet:
     missing: list[str] = field(default_factory=list)
 
 
+class SyncDrop(str, Enum):
+    """Why the synchroniser dropped a message (the /diagnostics reason is ``sync_<value>``)."""
+
+    LATE = "late"  # older than the last emitted set
+    LAGGING = "lagging"  # late, from a camera known to lag by more than the window
+    TOO_FEW_CAMERAS = "too_few_cameras"  # reference of a set with fewer than min_cameras
+    OUT_OF_ORDER = "out_of_order"  # repeated stamp or a step back within slop
+    STALE = "stale"  # far step back of one camera (the others went on)
+    FUTURE = "future"  # far ahead of the other cameras (the others went on)
+    QUEUE_FULL = "queue_full"  # oldest queued message pushed out
+    RESET = "reset"  # queued when the whole stream jumped and the sync reset
+
+
+@dataclass
+class SyncStats:
+    """Cumulative counts: every message received ends up in a set, queued, held or ``dropped``."""
+
+    received: int = 0
+    sets: int = 0
+    partial_sets: int = 0
+    timeouts: int = 0  # sets emitted only because max_wait ran out on an awaited camera
+    resets: int = 0
+    dropped: Counter = field(default_factory=Counter)  # SyncDrop -> messages
+
+    @property
+    def total_dropped(self) -> int:
+        return sum(self.dropped.values())
+
+
+@dataclass
+class SyncEvent:
+    """A state change worth one log line: ``kind`` lagging | rejoined | reset."""
+
+    kind: str
+    camera: str | None
+    text: str
+
+
 @dataclass
 class _Msg:
     stamp_ns: int
@@ -52,76 +101,219 @@ class _Msg:
     item: Any
 
 
-_COUNTERS = ("received", "sets", "partial_sets", "dropped_late", "dropped_too_few_cameras",
-             "dropped_out_of_order", "dropped_queue_full", "resets")
-
-
 class ApproximateTimeSync:
     """Group per-camera messages whose stamps lie within ``slop_ns`` of a reference."""
 
     def __init__(self, cameras: Sequence[str], slop_ns: int, max_wait_ns: int,
-                 min_cameras: int = 2, queue_size: int = 16, dead_after_sets: int = 3):
+                 min_cameras: int = 2, queue_size: int = 16, dead_after_sets: int = 3,
+                 max_lag_ns: int = 0, jump_ns: int = 1_000_000_000):
         cameras = list(cameras)
         if not cameras or len(set(cameras)) != len(cameras):
             raise ValueError(f"cameras: need a non-empty list of distinct names, got {cameras}")
-        if int(slop_ns) < 0:
-            raise ValueError(f"slop_ns: must be >= 0, got {slop_ns}")
-        if int(max_wait_ns) < 0:
-            raise ValueError(f"max_wait_ns: must be >= 0, got {max_wait_ns}")
+        for name, value in (("slop_ns", slop_ns), ("max_wait_ns", max_wait_ns),
+                            ("max_lag_ns", max_lag_ns)):
+            if int(value) < 0:
+                raise ValueError(f"{name}: must be >= 0, got {value}")
         if not 1 <= int(min_cameras) <= len(cameras):
             raise ValueError(f"min_cameras: must be in 1..{len(cameras)}, got {min_cameras}")
         if int(queue_size) < 1:
             raise ValueError(f"queue_size: must be >= 1, got {queue_size}")
         if int(dead_after_sets) < 1:
             raise ValueError(f"dead_after_sets: must be >= 1, got {dead_after_sets}")
-        self.dead_after_sets = int(dead_after_sets)
+        if int(jump_ns) <= int(slop_ns):
+            raise ValueError(f"jump_ns: must be > slop_ns ({slop_ns}), got {jump_ns}")
         self.cameras = cameras
         self.slop_ns = int(slop_ns)
         self.max_wait_ns = int(max_wait_ns)
+        self.max_lag_ns = int(max_lag_ns)
+        self.jump_ns = int(jump_ns)
         self.min_cameras = int(min_cameras)
         self.queue_size = int(queue_size)
-        self.counters: dict[str, int] = dict.fromkeys(_COUNTERS, 0)
+        self.dead_after_sets = int(dead_after_sets)
+        self.stats = SyncStats()
+        self._events: list[SyncEvent] = []
         self._queues: dict[str, deque[_Msg]] = {c: deque() for c in cameras}
-        self.reset(count=False)
+        self._held: dict[str, deque[tuple[str, _Msg]]] = {c: deque() for c in cameras}
+        self._clear()
 
-    def reset(self, count: bool = True) -> None:
-        """Drop every queued message and forget all stamps."""
+    # -- state ----------------------------------------------------------------------------
+    def _clear(self) -> None:
         for q in self._queues.values():
             q.clear()
+        for h in self._held.values():
+            h.clear()
         self._last_stamp: dict[str, int] = {}
-        self._missed: dict[str, int] = {}  # sets missed in a row with nothing delivered since
+        self._missed: dict[str, int] = {}  # sets missed in a row with nothing queued since
+        self._latency: dict[str, int] = {}  # last arrival - stamp per camera, ns
+        self._lag: dict[str, deque[int]] = {}  # last lags relative to the other cameras, ns
+        self._lagging: set[str] = set()  # not waited for until their lag falls back
         self._last_emitted: int | None = None
-        if count:
-            self.counters["resets"] += 1
+
+    def reset(self) -> None:
+        """Drop every queued and held message (counted ``reset``) and forget all stamps."""
+        lost = self.pending() + sum(len(h) for h in self._held.values())
+        self._drop(SyncDrop.RESET, lost)
+        self.stats.resets += 1
+        self._clear()
 
     def pending(self) -> int:
-        """Messages currently queued."""
+        """Messages currently queued (held jump candidates not included)."""
         return sum(len(q) for q in self._queues.values())
 
+    def lagging(self) -> dict[str, float]:
+        """Cameras currently lagging beyond the window: relative lag in seconds."""
+        return {c: self._lag_ns(c) / 1e9 for c in self.cameras if self._is_lagging(c)}
+
+    def take_events(self) -> list[SyncEvent]:
+        """State changes since the last call (for one log line each)."""
+        events, self._events = self._events, []
+        return events
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Flat view of :attr:`stats` (``dropped_<reason>`` keys) for reports and tests."""
+        out = {"received": self.stats.received, "sets": self.stats.sets,
+               "partial_sets": self.stats.partial_sets, "timeouts": self.stats.timeouts,
+               "resets": self.stats.resets}
+        out.update({f"dropped_{r.value}": self.stats.dropped[r] for r in SyncDrop})
+        return out
+
+    def _drop(self, reason: SyncDrop, n: int = 1) -> None:
+        if n:
+            self.stats.dropped[reason] += n
+
+    # -- input ----------------------------------------------------------------------------
     def add(self, camera: str, stamp_ns: int, item: Any, now_ns: int) -> list[FrameSet]:
         """Queue one message and return the frame sets that became complete."""
         if camera not in self._queues:
             raise ValueError(f"camera: unknown camera {camera!r}; expected one of {self.cameras}")
-        stamp_ns, now_ns = int(stamp_ns), int(now_ns)
-        self.counters["received"] += 1
+        self.stats.received += 1
+        out = self._accept(camera, _Msg(int(stamp_ns), int(now_ns), item))
+        return out + self.poll(int(now_ns))
+
+    def _baseline(self, camera: str) -> int | None:
+        """Median latency of the other cameras that are alive (None without any)."""
+        others = [v for c, v in self._latency.items() if c != camera and not self._dead(c)]
+        return int(statistics.median_low(others)) if others else None
+
+    def _accept(self, camera: str, m: _Msg) -> list[FrameSet]:
         prev = self._last_stamp.get(camera)
-        if prev is not None and stamp_ns <= prev:
-            if prev - stamp_ns > self.slop_ns:
-                self.reset()
-            else:
-                self.counters["dropped_out_of_order"] += 1
-                return self.poll(now_ns)
-        self._last_stamp[camera] = stamp_ns
+        base = self._baseline(camera)
+        latency = m.arrival_ns - m.stamp_ns
+        if prev is not None and m.stamp_ns <= prev:
+            if prev - m.stamp_ns <= self.slop_ns:
+                self._drop(SyncDrop.OUT_OF_ORDER)
+                return []
+            if not self._outlier_before(camera, latency, base):
+                return self._hold(camera, SyncDrop.STALE, m)
+            self._drop_queued_from(camera, m.stamp_ns)
+        elif base is not None and latency < base - self.jump_ns:
+            return self._hold(camera, SyncDrop.FUTURE, m)
+        self._release_held(camera)
+        forward = prev is None or m.stamp_ns > prev
+        self._last_stamp[camera] = m.stamp_ns
+        self._latency[camera] = latency
+        if forward and base is not None:
+            self._update_lag(camera, latency - base)
+        lagging = self._is_lagging(camera)
+        if not lagging:  # a camera that merely lags within the window is kept alive
+            self._missed[camera] = 0
+        if self._last_emitted is not None and m.stamp_ns <= self._last_emitted:
+            self._drop(SyncDrop.LAGGING if lagging else SyncDrop.LATE)
+            return []
         self._missed[camera] = 0
-        if self._last_emitted is not None and stamp_ns <= self._last_emitted:
-            self.counters["dropped_late"] += 1
-            return self.poll(now_ns)
+        if lagging:  # in time for its set although not waited for: back in the window
+            self._rejoin(camera, "a message in time")
         q = self._queues[camera]
         if len(q) >= self.queue_size:
             q.popleft()
-            self.counters["dropped_queue_full"] += 1
-        q.append(_Msg(stamp_ns, now_ns, item))
-        return self.poll(now_ns)
+            self._drop(SyncDrop.QUEUE_FULL)
+        q.append(m)
+        return []
+
+    def _outlier_before(self, camera: str, latency: int, base: int | None) -> bool:
+        """The others agree with this stamp but not with the camera's previous one (accepted
+        before there was anyone to compare with): re-anchor the camera instead of holding."""
+        prev = self._latency.get(camera)
+        return (base is not None and prev is not None and abs(latency - base) <= self.jump_ns
+                and abs(prev - base) > self.jump_ns)
+
+    def _drop_queued_from(self, camera: str, stamp_ns: int) -> None:
+        """Remove ``camera``'s queued messages at or after ``stamp_ns`` (counted ``future``)."""
+        q = self._queues[camera]
+        while q and q[-1].stamp_ns >= stamp_ns:
+            q.pop()
+            self._drop(SyncDrop.FUTURE)
+
+    def _update_lag(self, camera: str, lag: int) -> None:
+        """Enter lagging after LAG_SAMPLES lags beyond the window; leave it (hysteresis, so a
+        noisy lag around the window does not flap) at a lag under half the window."""
+        self._lag.setdefault(camera, deque(maxlen=LAG_SAMPLES)).append(lag)
+        if camera not in self._lagging and self._lag_ns(camera) > self.max_wait_ns \
+                and not self._compensated(camera):
+            self._lagging.add(camera)
+            self._events.append(SyncEvent("lagging", camera, f"camera {camera} lags the others "
+                                          f"by {lag / 1e6:.0f} ms (> window): not waited for"))
+        elif camera in self._lagging and (lag <= self.max_wait_ns // 2
+                                          or self._compensated(camera)):
+            self._rejoin(camera, f"lag {lag / 1e6:.0f} ms")
+
+    def _rejoin(self, camera: str, why: str) -> None:
+        self._lagging.discard(camera)
+        self._events.append(SyncEvent("rejoined", camera, f"camera {camera} back within the "
+                                      f"window ({why}): waited for again"))
+
+    def _hold(self, camera: str, reason: SyncDrop, m: _Msg) -> list[FrameSet]:
+        """Keep a jumped message aside; reset and replay when most live cameras jumped."""
+        held = self._held[camera]
+        if len(held) >= self.queue_size:
+            self._drop(held.popleft()[0])
+        held.append((reason, m))
+        live = [c for c in self.cameras if c in self._last_stamp and not self._dead(c)]
+        jumped = [c for c in live if self._held[c]]
+        if len(jumped) < max(1, len(live) // 2 + 1):
+            return []
+        replay = sorted(((msg.arrival_ns, k, c, msg) for c in self.cameras
+                         for k, (_, msg) in enumerate(self._held[c])), key=lambda e: e[:2])
+        for c in self.cameras:
+            self._held[c].clear()
+        kind = "back" if reason is SyncDrop.STALE else "forward"
+        self.reset()
+        self._events.append(SyncEvent("reset", None, f"{len(jumped)} of {len(live)} cameras "
+                                      f"jumped {kind} (bag loop or restart): synchroniser reset"))
+        out: list[FrameSet] = []
+        for _, _, c, msg in replay:
+            out += self._accept(c, msg)
+        return out
+
+    def _release_held(self, camera: str) -> None:
+        """The camera went on as before: its held jump candidates were outliers."""
+        for reason, _ in self._held[camera]:
+            self._drop(reason)
+        self._held[camera].clear()
+
+    # -- output ---------------------------------------------------------------------------
+    def _lag_ns(self, camera: str) -> int:
+        """The camera's lag behind the others: the smallest of its last LAG_SAMPLES (0 until
+        that many were measured), so one delayed message does not make a camera lag."""
+        lags = self._lag.get(camera)
+        return min(lags) if lags is not None and len(lags) == LAG_SAMPLES else 0
+
+    def _compensated(self, camera: str) -> bool:
+        return bool(self.max_lag_ns) and self._lag_ns(camera) <= self.max_lag_ns
+
+    def _is_lagging(self, camera: str) -> bool:
+        return camera in self._lagging
+
+    def _wait_ns(self, camera: str) -> int:
+        """How long after the reference's arrival a set waits for ``camera``."""
+        lag = self._lag_ns(camera)
+        if self.max_lag_ns and self.max_wait_ns < lag <= self.max_lag_ns:
+            return lag + self.max_wait_ns
+        return self.max_wait_ns
+
+    def _dead(self, camera: str) -> bool:
+        return self._missed.get(camera, 0) >= self.dead_after_sets
 
     def poll(self, now_ns: int) -> list[FrameSet]:
         """Emit every frame set that is complete or has waited long enough at ``now_ns``."""
@@ -135,17 +327,16 @@ class ApproximateTimeSync:
             ref = heads[ref_cam]
             limit = ref.stamp_ns + self.slop_ns
             present = [c for c in self.cameras if c in heads and heads[c].stamp_ns <= limit]
-            decided = all(c in heads or self._dead(c) for c in self.cameras)
-            if not decided and now_ns - ref.arrival_ns < self.max_wait_ns:
+            awaited = [c for c in self.cameras if c not in heads and not self._dead(c)
+                       and not self._is_lagging(c)]
+            if awaited and now_ns - ref.arrival_ns < max(self._wait_ns(c) for c in awaited):
                 return out
             if len(present) < self.min_cameras:
                 self._queues[ref_cam].popleft()
-                self.counters["dropped_too_few_cameras"] += 1
+                self._drop(SyncDrop.TOO_FEW_CAMERAS)
                 continue
+            self.stats.timeouts += bool(awaited)
             out.append(self._emit(ref.stamp_ns, present))
-
-    def _dead(self, camera: str) -> bool:
-        return self._missed.get(camera, 0) >= self.dead_after_sets
 
     def _emit(self, stamp_ns: int, present: list[str]) -> FrameSet:
         items = {c: self._queues[c].popleft().item for c in present}
@@ -153,7 +344,84 @@ class ApproximateTimeSync:
         for c in missing:
             self._missed[c] = self._missed.get(c, 0) + 1
         self._last_emitted = stamp_ns
-        self.counters["sets"] += 1
+        self.stats.sets += 1
         if missing:
-            self.counters["partial_sets"] += 1
+            self.stats.partial_sets += 1
         return FrameSet(stamp_ns, items, missing)
+
+
+@dataclass
+class GuardResult:
+    """What :meth:`StampGuard.push` decided: items to process now (in order), items dropped
+    with their reason (``stale_stamp`` / ``future_stamp`` / ``duplicate_stamp``), and whether
+    the stream jumped back (confirmed: state keyed on time, such as a tracker, must reset)."""
+
+    accepted: list[tuple[int, Any]] = field(default_factory=list)
+    dropped: list[tuple[str, Any]] = field(default_factory=list)
+    jumped_back: bool = False
+
+
+class StampGuard:
+    """Monotonic stamps for one stream, with jumps confirmed by the messages after them.
+
+    A repeated stamp is dropped. A step back, or a step forward by more than the time that
+    passed since the previous message (``now_ns``, the caller's clock) plus ``jump_ns``, is
+    held: if the next ``confirm`` messages continue from it (each newer than the previous, by
+    no more than the same bound) the stream jumped (bag loop, restart, seek) and the held
+    messages are released in order; if a message continues the old timeline instead, the held
+    ones were outliers (stamp 0, an old duplicate, a far-future stamp) and are dropped. A
+    hostile stamp thus costs no valid frame, and a real jump costs ``confirm`` messages of
+    delay, no loss. A slow stream (frame period above ``jump_ns``) is no jump: the bound grows
+    with the time between its messages.
+    """
+
+    def __init__(self, jump_ns: int = 1_000_000_000, confirm: int = 2):
+        if int(jump_ns) <= 0 or int(confirm) < 1:
+            raise ValueError(f"jump_ns > 0 and confirm >= 1 required, got {jump_ns}, {confirm}")
+        self.jump_ns, self.confirm = int(jump_ns), int(confirm)
+        self.last: int | None = None
+        self._last_arrival = 0
+        self._held: list[tuple[int, int, Any]] = []  # (stamp, arrival, item)
+
+    def _follows(self, stamp_ns: int, prev: int, prev_arrival: int, now_ns: int) -> bool:
+        return prev < stamp_ns <= prev + self.jump_ns + max(0, now_ns - prev_arrival)
+
+    def push(self, stamp_ns: int, item: Any, now_ns: int = 0) -> GuardResult:
+        """Decide about one message arriving at ``now_ns`` (ns, any clock; 0 = stamps only)."""
+        stamp_ns, now_ns, out = int(stamp_ns), int(now_ns), GuardResult()
+        last = self.last
+        if last is None:
+            self._accept(stamp_ns, now_ns)
+            out.accepted.append((stamp_ns, item))
+            return out
+        if self._held and self._follows(stamp_ns, self._held[-1][0], self._held[-1][1], now_ns):
+            self._held.append((stamp_ns, now_ns, item))
+            if len(self._held) > self.confirm:
+                out.jumped_back = self._held[0][0] < last
+                out.accepted = [(st, it) for st, _, it in self._held]
+                self._held = []
+                self._accept(stamp_ns, now_ns)
+            return out
+        if stamp_ns == last:
+            out.dropped.append(("duplicate_stamp", item))
+        elif self._follows(stamp_ns, last, self._last_arrival, now_ns):
+            self._accept(stamp_ns, now_ns)
+            out.accepted.append((stamp_ns, item))
+        else:  # a jump: held until the next messages confirm or refute it
+            self._drop_held(out)
+            self._held = [(stamp_ns, now_ns, item)]
+            return out
+        self._drop_held(out)
+        return out
+
+    def _accept(self, stamp_ns: int, now_ns: int) -> None:
+        self.last, self._last_arrival = stamp_ns, now_ns
+
+    def _drop_held(self, out: GuardResult) -> None:
+        for stamp, _, item in self._held:
+            out.dropped.append(("stale_stamp" if stamp < (self.last or 0) else "future_stamp",
+                                item))
+        self._held = []
+
+    def reset(self) -> None:
+        self.last, self._held = None, []

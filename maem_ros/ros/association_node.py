@@ -5,7 +5,11 @@
 
 Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10), groups them with
 core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer polls every
-``poll_period`` so a silent camera never stalls the graph; stamps going backwards reset the queues),
+``poll_period`` so a silent camera never stalls the graph; a camera lagging beyond ``max_wait``
+is not waited for (``max_lag`` compensates a known lag); one camera's stale/future stamps are
+dropped for that camera, a jump of most cameras or of /clock resets the queues; every dropped
+message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message or
+pixels beyond ``pixel_margin`` are rejected),
 runs core.association.associate with the paper's thresholds and publishes ``/maem/clusters``
 (PointCloud2, one point per (cluster, member view), see wire.py; an empty cloud for a frame set
 without clusters, so downstream still sees every frame).
@@ -17,23 +21,28 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
+from rclpy.clock import ClockChange, JumpThreshold
+from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core.association import AssociationParams
+from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
+from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, ConfigError, Diagnostics, NodeParams, RejectErrors,
                                  Stopwatch, declare_params, load_rig_param,
-                                 publish_rig_tf, run_node)
+                                 publish_rig_tf, run_node, subscribe_counted)
 
 NODE_NAME = "association"
 
 #: core.association.AssociationResult.stats keys reported as cumulative counts in /diagnostics
 GATE_COUNTS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
                "matched_pairs", "conflicts_removed", "clusters_below_k_min")
-#: ... and as per-stage times (ms)
-STAGE_TIMES = ("t_reproj_ms", "t_epipolar_ms", "t_cost_ms", "t_match_ms", "t_cluster_ms")
+#: ... and as per-stage times (stats key -> /diagnostics stage, ms)
+STAGE_TIMES = {"t_reproj_ms": "reproj", "t_epipolar_ms": "epipolar", "t_cost_ms": "cost",
+               "t_match_ms": "match", "t_cluster_ms": "cluster"}
 
 RIG_DESCRIPTION = "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"
 
@@ -53,6 +62,17 @@ class AssociationNodeParams(NodeParams):
     min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
     poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0,
                                exclusive_minimum=True)
+    max_lag: float = param(0.0, "s, wait up to this lag (+ max_wait) for a camera that lags the "
+                                "others (0 = a camera lagging beyond max_wait is not waited for)",
+                           minimum=0.0)
+    jump_tolerance: float = param(1.0, "s, a stamp this far from the other cameras' is a jump "
+                                       "(held; a reset when most cameras jump)", minimum=0.0,
+                                  exclusive_minimum=True)
+    reset_on_clock_jump: bool = param(True, "with use_sim_time: reset the synchroniser when "
+                                            "/clock jumps back")
+    max_detections: int = param(100, "detections per camera message; more: dropped", minimum=1)
+    pixel_margin: float = param(1.0, "image sizes a pixel coordinate may lie outside the image",
+                                minimum=0.0)
     publish_tf: bool = param(True, "publish world -> each rig camera on /tf_static (transient "
                                    "local) at start")
 
@@ -75,7 +95,6 @@ class AssociationNode(Node):
         if p["min_cameras"] > len(cams):
             raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
         from maem_ros.core.association import associate
-        from maem_ros.core.sync import ApproximateTimeSync
         try:
             self.params = AssociationParams.from_mapping(p)
         except ValueError as e:
@@ -86,18 +105,29 @@ class AssociationNode(Node):
             epipolar.warmup()  # compile/load the numba kernels now, not on the first frame
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]
-        self.sync = ApproximateTimeSync(self.cameras, int(round(p["slop"] * 1e9)),
-                                        int(round(p["max_wait"] * 1e9)), p["min_cameras"])
-        self._sync_seen: dict[str, int] = {}
+        try:
+            self.sync = ApproximateTimeSync(
+                self.cameras, int(round(p["slop"] * 1e9)), int(round(p["max_wait"] * 1e9)),
+                p["min_cameras"], max_lag_ns=int(round(p["max_lag"] * 1e9)),
+                jump_ns=int(round(p["jump_tolerance"] * 1e9)))
+            self.limits = InputLimits(max_detections=p["max_detections"],
+                                      pixel_margin=p["pixel_margin"])
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        self._sync_seen = SyncStats()
         self.diag = Diagnostics(self, p["diagnostics_period"])
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
         for cam in self.cameras:
             topic = self.resolve_topic_name(f"{cam}/detections")
-            self.subs.append(self.create_subscription(
-                PointCloud2, topic, partial(self.on_detections, cam, topic), DATA_QOS))
+            self.subs.append(subscribe_counted(self, self.diag, PointCloud2, topic,
+                                               partial(self.on_detections, cam, topic), DATA_QOS))
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
         self.tf_pub = publish_rig_tf(self, self.rig, self.frame_id) if p["publish_tf"] else None
+        if p["reset_on_clock_jump"]:
+            self._jump_handle = self.get_clock().create_jump_callback(
+                JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
+                              on_clock_change=False), post_callback=self.on_clock_jump)
         self.get_logger().info(f"{len(self.cameras)} cameras {self.cameras} -> "
                                f"{self.pub.topic_name}")
 
@@ -105,17 +135,24 @@ class AssociationNode(Node):
         return self.get_clock().now().nanoseconds
 
     def on_detections(self, cam: str, topic: str, msg: PointCloud2) -> None:
-        self.diag.input(topic)
-        try:
+        with RejectErrors(self.diag, topic, "bad_detections") as step:
             with Stopwatch(self.diag, "decode"):
                 dets = wire.msg_to_detections(msg, topic, self.rig.names, expected_camera=cam)
-        except wire.WireError as e:
-            self.diag.reject(e.reason, str(e))
+                check_detections(dets, self.rig, self.limits, topic)
+        if step.failed:
             return
         self._handle(self.sync.add(cam, dets.stamp_ns, dets, self._now_ns()))
 
     def on_timer(self) -> None:
         self._handle(self.sync.poll(self._now_ns()))
+
+    def on_clock_jump(self, jump) -> None:
+        """/clock went back (use_sim_time, bag replayed again): start over, counted once."""
+        if jump.clock_change == ClockChange.ROS_TIME_NO_CHANGE and jump.delta.nanoseconds < 0:
+            self.sync.reset()
+            self.get_logger().warning(f"clock jumped by {jump.delta.nanoseconds / 1e9:.3f} s: "
+                                      f"synchroniser reset")
+            self._sync_counters()
 
     def _handle(self, sets) -> None:
         self._sync_counters()
@@ -123,16 +160,27 @@ class AssociationNode(Node):
             self.process(fs)
 
     def _sync_counters(self) -> None:
-        """Report the synchroniser's drop/reset counters (cumulative) as dropped frames."""
-        for key, value in self.sync.counters.items():
-            new = int(value) - self._sync_seen.get(key, 0)
+        """Report the synchroniser's drops (``sync_<reason>``), resets and state changes."""
+        stats, seen = self.sync.stats, self._sync_seen
+        for reason, total in stats.dropped.items():
+            new = total - seen.dropped[reason]
             if new > 0:
-                self._sync_seen[key] = int(value)
-                if key.startswith("dropped"):
-                    self.diag.reject(f"sync_{key[len('dropped_'):] or key}",
-                                     f"synchroniser: {key} +{new} (total {value})")
-                else:
-                    self.diag.count(f"sync_{key}", new)
+                self.diag.reject(f"sync_{reason.value}", f"synchroniser: {reason.value} +{new} "
+                                 f"(total {total})", n=new)
+        for name in ("sets", "partial_sets", "timeouts", "resets"):
+            new = getattr(stats, name) - getattr(seen, name)
+            if new > 0:
+                self.diag.count(f"sync_{name}", new)
+        self._sync_seen = SyncStats(sets=stats.sets, partial_sets=stats.partial_sets,
+                                    timeouts=stats.timeouts, resets=stats.resets,
+                                    dropped=stats.dropped.copy())
+        for event in self.sync.take_events():  # state changes: one line each, not per frame
+            if event.kind == "rejoined":
+                self.get_logger().info(event.text)
+            else:
+                self.get_logger().warning(event.text)
+        self.diag.set("lagging_cameras", ",".join(f"{c}:{lag * 1e3:.0f}ms" for c, lag in
+                                                  self.sync.lagging().items()))
 
     def process(self, fs) -> None:
         """Associate one frame set and publish its clusters."""
@@ -152,9 +200,9 @@ class AssociationNode(Node):
         self.pub.publish(out)
         self.diag.ok()
         self.diag.add_counts(result.stats, GATE_COUNTS)
-        for key in STAGE_TIMES:
+        for key, stage in STAGE_TIMES.items():
             if key in result.stats:
-                self.diag.time(key[2:-3], float(result.stats[key]))
+                self.diag.time(stage, float(result.stats[key]))
         self.diag.set("last_clusters", len(result.clusters))
         self.diag.set("last_cameras", len(fs.items))
 

@@ -2,9 +2,14 @@
 arguments and handle SIGINT/SIGTERM themselves. No rclpy import here (``--help`` stays fast)."""
 from __future__ import annotations
 
+import re
 import signal
+import sys
 import threading
 from typing import Sequence
+
+#: exit code of a command whose input (arguments, params file, bag) is invalid
+EXIT_BAD_INPUT = 2
 
 
 def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
@@ -25,3 +30,61 @@ def stop_on_signals() -> threading.Event:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     return stop
+
+
+def rcl_error_line(e: Exception) -> str:
+    """rcl's error text on one line, without its C source locations (``, at /x/y.c:12``)."""
+    text = " ".join(str(e).split())
+    return re.sub(r",? at [^,]*\.c:\d+", "", text).strip()
+
+
+def params_file_problem(args: Sequence[str] | None) -> str | None:
+    """The first ``--params-file`` after ``--ros-args`` that is missing or not YAML, as one
+    line (rcl would log its own error line and a C traceback for it), else None."""
+    import yaml
+
+    args = list(args or [])
+    if "--ros-args" not in args:
+        return None
+    ros = args[args.index("--ros-args") + 1:]
+    for flag, path in zip(ros, ros[1:] + [None]):
+        if flag != "--params-file":
+            continue
+        if path is None:
+            return "--params-file: missing file name"
+        try:
+            with open(path, encoding="utf-8") as f:
+                data = yaml.safe_load(f)
+        except OSError as e:
+            return f"--params-file {path!r}: {e.strerror or e}"
+        except yaml.YAMLError as e:
+            mark = getattr(e, "problem_mark", None)
+            where = f" (line {mark.line + 1})" if mark is not None else ""
+            return f"--params-file {path!r}: not valid YAML{where}: " \
+                f"{getattr(e, 'problem', None) or e}"
+        if not isinstance(data, dict):
+            return f"--params-file {path!r}: expected a mapping of node names, got " \
+                f"{type(data).__name__}"
+    return None
+
+
+def init_ros(args: Sequence[str] | None, name: str) -> bool:
+    """rclpy.init without rclpy's signal handler; on bad ``--ros-args`` (unknown argument,
+    missing or unparsable --params-file) print one line naming them and return False."""
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    problem = params_file_problem(sys.argv if args is None else args)
+    if problem is not None:
+        print(f"[{name}] invalid configuration: {problem}", file=sys.stderr, flush=True)
+        return False
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except Exception as e:  # noqa: BLE001 - RCLError / UnknownROSArgsError from the C layer
+        what = "unknown ROS arguments" if type(e).__name__ == "UnknownROSArgsError" else \
+            "ROS arguments"
+        print(f"[{name}] invalid configuration: {what}: {rcl_error_line(e)}", file=sys.stderr,
+              flush=True)
+        rclpy.try_shutdown()
+        return False
+    return True

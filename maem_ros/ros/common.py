@@ -28,11 +28,11 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
-from rclpy.signals import SignalHandlerOptions
 from rclpy.task import Future
 
+from maem_ros.core.errors import InputError
 from maem_ros.core.paramspec import ParamError, Params, ParamSpec, param
-from maem_ros.ros.cli import stop_on_signals
+from maem_ros.ros.cli import init_ros, stop_on_signals
 
 #: camera images: best effort, keep last 2
 IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
@@ -179,19 +179,25 @@ class Diagnostics:
             self.dropped[reason] += n
             self._warn_dropped += n
 
-    def reject(self, reason: str, text: str, log_period_s: float = 1.0) -> None:
-        """Count a dropped frame under ``reason`` and log ``text`` as one warning line (at most
-        one line per reason per ``log_period_s``; the next line says how many were suppressed)."""
-        self.drop(reason)
+    def reject(self, reason: str, text: str, log_period_s: float = 1.0, n: int = 1) -> None:
+        """Count ``n`` dropped frames under ``reason`` and log ``text`` as one warning line (at
+        most one line per reason per ``log_period_s``; the next line says how many were
+        suppressed)."""
+        self.drop(reason, n)
+        self.log_throttled(reason, f"dropped [{reason}] {text}", log_period_s, n)
+
+    def log_throttled(self, key: str, text: str, log_period_s: float = 1.0, n: int = 1) -> None:
+        """One warning line per ``key`` per ``log_period_s`` (the next says how many were
+        suppressed)."""
         now = time.monotonic()
         with self._lock:
-            if now - self._last_log.get(reason, -math.inf) < log_period_s:
-                self._suppressed[reason] += 1
+            if now - self._last_log.get(key, -math.inf) < log_period_s:
+                self._suppressed[key] += n
                 return
-            self._last_log[reason] = now
-            skipped = self._suppressed.pop(reason, 0)
-        more = f" (+{skipped} more '{reason}' drops)" if skipped else ""
-        self._node.get_logger().warning(f"dropped [{reason}] {text}{more}")
+            self._last_log[key] = now
+            skipped = self._suppressed.pop(key, 0)
+        more = f" (+{skipped} more '{key}')" if skipped else ""
+        self._node.get_logger().warning(f"{text}{more}")
 
     def count(self, name: str, n: float = 1) -> None:
         with self._lock:
@@ -274,9 +280,10 @@ class Diagnostics:
 class RejectErrors:
     """``with RejectErrors(diag, where, reason) as step:`` ... ``if step.failed: return``.
 
-    One processing step of a callback: a ValueError (bad input the core refused) drops the frame
-    under ``reason``, any other Exception under ``internal_error`` (a bug must not stop the live
-    graph; it is counted and logged), each with one log line starting with ``where``.
+    One processing step of a callback: an InputError drops the frame under its own ``reason``,
+    another ValueError (bad input the core refused) under ``reason``, any other Exception under
+    ``internal_error`` (a bug must not stop the live graph; it is counted and logged), each with
+    one log line starting with ``where``.
     """
 
     def __init__(self, diag: Diagnostics, where: str, reason: str):
@@ -290,11 +297,65 @@ class RejectErrors:
         if not isinstance(e, Exception):
             return False
         self.failed = True
-        if isinstance(e, ValueError):
+        if isinstance(e, InputError):
+            self._diag.reject(e.reason, f"{self._where}: {e}")
+        elif isinstance(e, ValueError):
             self._diag.reject(self._reason, f"{self._where}: {e}")
         else:
             self._diag.reject("internal_error", f"{self._where}: {type(e).__name__}: {e}")
         return True
+
+
+class SequenceGaps:
+    """Messages a subscription never got: gaps in the publisher's sequence numbers.
+
+    DDS keep-last history silently overwrites messages a slow node has not taken yet; the
+    ``publication_sequence_number`` of the message info shows the gap. Counted only while the
+    topic has one publisher: the message info does not say which publisher sent a message, so
+    while several publish, their sequences interleave and nothing is counted, and once one is
+    left the count starts again from its next message. A number going back is a restarted
+    publisher, not a loss; the first message sets the start.
+    """
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._shared = False  # several publishers seen since the last anchor
+
+    def lost(self, info: Mapping[str, Any] | None, publishers: Callable[[], int]) -> int:
+        seq = (info or {}).get("publication_sequence_number")
+        if not isinstance(seq, int) or seq <= 0:
+            return 0
+        if self._shared:
+            if publishers() > 1:
+                self._last = seq
+                return 0
+            self._shared, self._last = False, None  # one publisher again: re-anchor
+        last, self._last = self._last, seq
+        if last is None or seq <= last + 1:
+            return 0
+        if publishers() > 1:
+            self._shared = True
+            return 0
+        return seq - last - 1
+
+
+def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
+                      callback: Callable[[Any], None], qos: QoSProfile):
+    """create_subscription whose callback first records the input in ``diag`` and counts
+    messages lost before the node took them (``dropped/dds_lost``, see SequenceGaps)."""
+    gaps = SequenceGaps()
+    sub = None
+
+    def on_message(msg: Any, info: Mapping[str, Any]) -> None:
+        diag.input(topic)
+        lost = gaps.lost(info, sub.get_publisher_count)
+        if lost:
+            diag.reject("dds_lost", f"{topic}: {lost} message(s) overwritten in the DDS history "
+                        f"before this node took them (node too slow for the input rate)", n=lost)
+        callback(msg)
+
+    sub = node.create_subscription(msg_type, topic, on_message, qos)
+    return sub
 
 
 class Stopwatch:
@@ -373,7 +434,8 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
         return 0
     stop = stop_on_signals()
     use_shipped_dds_profile()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    if not init_ros(args, name):
+        return EXIT_CONFIG_ERROR
     node = None
     try:
         try:

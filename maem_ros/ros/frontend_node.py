@@ -26,8 +26,8 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
-                                 Stopwatch, declare_params, default_camera_name, load_rig_param,
-                                 run_node)
+                                 RejectErrors, Stopwatch, declare_params, default_camera_name,
+                                 load_rig_param, run_node, subscribe_counted)
 
 NODE_NAME = "frontend"
 
@@ -149,8 +149,8 @@ class FrontendNode(Node):
         compressed = p["image_transport"] == "compressed"
         self.image_topic = self.resolve_topic_name(
             f"{prefix}image_raw/compressed" if compressed else f"{prefix}image_raw")
-        self.sub = self.create_subscription(CompressedImage if compressed else Image,
-                                            self.image_topic, self.on_image, IMAGE_QOS)
+        self.sub = subscribe_counted(self, self.diag, CompressedImage if compressed else Image,
+                                     self.image_topic, self.on_image, IMAGE_QOS)
         self.get_logger().info(f"camera {self.camera_name!r}: {self.image_topic} -> "
                                f"{self.pub.topic_name} (backend {p['backend']})")
 
@@ -170,7 +170,6 @@ class FrontendNode(Node):
         return False
 
     def on_image(self, msg) -> None:
-        self.diag.input(self.image_topic)
         try:
             stamp_ns = wire.checked_stamp_ns(msg.header.stamp, self.image_topic)
         except wire.WireError as e:
@@ -179,7 +178,7 @@ class FrontendNode(Node):
         if self.skip(stamp_ns):
             self.diag.count("skipped_max_rate")
             return
-        try:
+        with RejectErrors(self.diag, self.image_topic, "estimator") as step:
             with Stopwatch(self.diag, "total"):
                 rect = None
                 if self._rectifier is not None:
@@ -195,15 +194,7 @@ class FrontendNode(Node):
                 self.pub.publish(out)
                 if self.overlay_pub is not None:
                     self._publish_overlay(rect, dets, stamp_ns)
-        except wire.WireError as e:
-            self.diag.reject(e.reason, str(e))
-            return
-        except ValueError as e:
-            reason = "no_data" if type(e).__name__ == "MissingDataError" else "estimator"
-            self.diag.reject(reason, f"{self.image_topic}: estimator: {e}")
-            return
-        except Exception as e:  # noqa: BLE001 - a bug must not stop the live graph; counted
-            self.diag.reject("internal_error", f"{self.image_topic}: {type(e).__name__}: {e}")
+        if step.failed:
             return
         self.diag.ok()
         self.diag.set("last_detections", dets.n)

@@ -17,8 +17,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
-from maem_ros.ros.cli import split_ros_args, stop_on_signals
 from maem_ros import bagio
+from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, split_ros_args, stop_on_signals
 
 _IMAGE_TYPES = (bagio.IMAGE, bagio.COMPRESSED_IMAGE)
 
@@ -275,12 +275,17 @@ class BagPlayer:
 
 def main(args: Sequence[str] | None = None) -> int:
     import rclpy
-    from rclpy.signals import SignalHandlerOptions
 
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-play", *args])
     opts = parse_args(ours)
+    try:
+        bagio.bag_info(opts.bag)  # a bad bag: one line before any ROS set-up
+    except bagio.BagError as e:
+        print(f"maem-play: {e}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
     stop = stop_on_signals()
-    rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
+    if not init_ros(ros_args, "maem-play"):
+        return EXIT_BAD_INPUT
     node = rclpy.create_node("maem_player")
     log = node.get_logger()
     code = 0
@@ -299,9 +304,9 @@ def main(args: Sequence[str] | None = None) -> int:
         log.info(f"published {n} messages in {elapsed:.2f} s"
                  f"{' (interrupted)' if stop.is_set() else ''}"
                  f"{f'; skipped topics: {sorted(player.skipped)}' if player.skipped else ''}")
-    except ValueError as e:
+    except ValueError as e:  # BagError (damaged mid-file), --start past the end, no topic
         log.error(str(e))
-        code = 2
+        code = EXIT_BAD_INPUT
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -150,9 +150,11 @@ class ReplayClient(BackgroundNode):
             time.sleep(0.1)
         return False
 
-    def publish_frame(self, stamp_ns: int) -> None:
+    def publish_frame(self, stamp_ns: int, cameras: Sequence[str] | None = None) -> None:
+        """One tiny image per camera (default all) with ``stamp_ns``; ``sent`` keeps the time
+        of the first image of each stamp."""
         img = np.zeros((2, 2, 3), np.uint8)
         with self.lock:
             self.sent.setdefault(stamp_ns, time.perf_counter())
-        for cam, pub in self.image_pubs.items():
-            pub.publish(wire.bgr_to_image(img, stamp_ns, cam))
+        for cam in self.cameras if cameras is None else cameras:
+            self.image_pubs[cam].publish(wire.bgr_to_image(img, stamp_ns, cam))

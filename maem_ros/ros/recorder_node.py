@@ -13,8 +13,8 @@ import time
 from dataclasses import dataclass
 from typing import Sequence
 
-from maem_ros.ros.cli import split_ros_args, stop_on_signals
 from maem_ros import bagio
+from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, split_ros_args, stop_on_signals
 
 _HIDDEN = ("/rosout", "/parameter_events")
 
@@ -152,19 +152,14 @@ def _drain(executor, recorder: Recorder, max_s: float = 2.0) -> None:
 def main(args: Sequence[str] | None = None) -> int:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
 
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-record", *args])
     opts = parse_args(ours)
     stop = stop_on_signals()
     # ROS first: a bad --ros-args must not leave a half-written bag behind
-    try:
-        rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
-        node = rclpy.create_node("maem_recorder")
-    except Exception as e:  # noqa: BLE001 - rclpy's RCLError for bad --ros-args: one line, exit 2
-        print(f"maem-record: ROS arguments {ros_args[1:]}: {e}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
+    if not init_ros(ros_args, "maem-record"):
+        return EXIT_BAD_INPUT
+    node = rclpy.create_node("maem_recorder")
     try:
         writer = bagio.BagWriter(opts.out, compress=opts.compress)
     except Exception as e:  # noqa: BLE001 - rosbags WriterError / OSError: report, exit non-zero

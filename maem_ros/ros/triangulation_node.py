@@ -8,7 +8,11 @@ person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and `
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids come from core.tracking.Tracker
 on the converted joints; a person whose track is not confirmed yet has id 4294967295 in poses
-(dropped unless ``publish_tentative``) and no markers. Stamps going backwards reset the tracker.
+(dropped unless ``publish_tentative``) and no markers. A stamp that steps back or far ahead is
+held until the next frames confirm the jump (then a stamp going back resets the tracker) or
+refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``max_people``
+clusters or member pixels beyond ``pixel_margin`` reject the frame; joints beyond
+``world_extent`` become NaN (counted ``joints_beyond_world_extent``).
 """
 from __future__ import annotations
 
@@ -23,13 +27,15 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from maem_ros.core.limits import InputLimits, check_clusters, mask_far_joints
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
+from maem_ros.core.sync import StampGuard
 from maem_ros.core.triangulation import TriangulationParams
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, MARKER_QOS, ConfigError, Diagnostics, NodeParams,
                                  RejectErrors, Stopwatch, declare_params, load_rig_param,
-                                 run_node)
+                                 run_node, subscribe_counted)
 
 NODE_NAME = "triangulation"
 
@@ -55,6 +61,15 @@ class TriangulationNodeParams(NodeParams):
     marker_lifetime_periods: float = param(3.0, "marker lifetime in frame periods (median "
                                                 "arrival interval of clusters, steady clock), "
                                                 "so markers outlive slow replays", minimum=0.0)
+    max_people: int = param(50, "clusters per message; more: dropped", minimum=1)
+    pixel_margin: float = param(1.0, "image sizes a member keypoint may lie outside the image",
+                                minimum=0.0)
+    world_extent: float = param(200.0, "m, joints farther from the world origin become NaN",
+                                minimum=0.0, exclusive_minimum=True)
+    jump_tolerance: float = param(1.0, "s, a stamp this far ahead (beyond the time since the "
+                                  "previous message) or any step back is held until the next "
+                                  "messages confirm the jump", minimum=0.0,
+                                  exclusive_minimum=True)
 
 
 PARAMS = param_specs(TriangulationNodeParams, TriangulationParams)
@@ -73,6 +88,9 @@ class TriangulationNode(Node):
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
                                    timeout_s=p["track_timeout"])
+            self.limits = InputLimits(max_people=p["max_people"], pixel_margin=p["pixel_margin"],
+                                      world_extent_m=p["world_extent"])
+            self.guard = StampGuard(int(round(p["jump_tolerance"] * 1e9)))
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self._triangulate = triangulate_members
@@ -83,12 +101,12 @@ class TriangulationNode(Node):
         self.marker_lifetime = p["marker_lifetime"]
         self.marker_lifetime_periods = p["marker_lifetime_periods"]
         self._arrivals: deque[float] = deque(maxlen=16)
-        self._last_stamp: int | None = None
         self.diag = Diagnostics(self, p["diagnostics_period"])
         self.pose_pub = self.create_publisher(PointCloud2, p["poses_topic"], DATA_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, p["skeletons_topic"], MARKER_QOS)
         self.topic = self.resolve_topic_name(p["clusters_topic"])
-        self.sub = self.create_subscription(PointCloud2, self.topic, self.on_clusters, DATA_QOS)
+        self.sub = subscribe_counted(self, self.diag, PointCloud2, self.topic, self.on_clusters,
+                                     DATA_QOS)
         self.get_logger().info(f"{self.topic} -> {self.pose_pub.topic_name}, "
                                f"{self.marker_pub.topic_name} ({self.output.name})")
 
@@ -106,27 +124,38 @@ class TriangulationNode(Node):
 
     def on_clusters(self, msg: PointCloud2) -> None:
         self._arrivals.append(time.monotonic())
-        self.diag.input(self.topic)
-        try:
+        with RejectErrors(self.diag, self.topic, "bad_clusters") as step:
             with Stopwatch(self.diag, "decode"):
                 cf = wire.msg_to_clusters(msg, self.topic, len(self.rig))
-        except wire.WireError as e:
-            self.diag.reject(e.reason, str(e))
+                check_clusters(len(np.unique(cf.cluster)), cf.camera, cf.kpts2d, self.rig,
+                               self.limits, f"{self.topic} {cf.stamp_ns}")
+        if step.failed:
             return
+        verdict = self.guard.push(cf.stamp_ns, cf, self.get_clock().now().nanoseconds)
+        for reason, bad in verdict.dropped:
+            self.diag.reject(reason, f"{self.topic}: stamp {bad.stamp_ns} does not continue the "
+                             f"stream (last {self.guard.last}); frame ignored")
+        if verdict.jumped_back:
+            self.tracker.reset()
+            self.diag.count("tracker_resets")
+            self.diag.log_throttled("tracker_reset", f"{self.topic}: stamps went back to "
+                                    f"{verdict.accepted[0][0]} (confirmed by the next "
+                                    f"{self.guard.confirm} frames); tracker reset")
+        for _, frame in verdict.accepted:
+            self.process(frame)
+
+    def process(self, cf: wire.ClusterFrame) -> None:
+        """Triangulate, convert, track and publish one clusters frame."""
         with RejectErrors(self.diag, self.topic, "triangulation_error") as step:
             with Stopwatch(self.diag, "triangulate"):
                 poses = self._triangulate(self._P, *cf.dense(), self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(poses), cf.num_joints, 3))
+            far = mask_far_joints(joints, self.limits)
+            if far:
+                self.diag.count("joints_beyond_world_extent", far)
         if step.failed:
             return
-        if self._last_stamp is not None and cf.stamp_ns < self._last_stamp:
-            self.tracker.reset()
-            self.diag.count("tracker_resets")
-            self.get_logger().warning(f"{self.topic}: stamp went back by "
-                                      f"{(self._last_stamp - cf.stamp_ns) / 1e9:.3f} s; "
-                                      f"tracker reset")
-        self._last_stamp = cf.stamp_ns
         with RejectErrors(self.diag, f"{self.topic} {cf.stamp_ns}", "publish_error") as step:
             with Stopwatch(self.diag, "track"):
                 ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)

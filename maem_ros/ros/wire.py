@@ -44,6 +44,7 @@ from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.frames import FrameTransform
+from maem_ros.core.errors import InputError
 
 #: poses ``id`` of a person whose track is not confirmed yet
 UNTRACKED_ID = 0xFFFFFFFF
@@ -76,12 +77,12 @@ CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, 
 POSE_TYPES = {"id": U32, "joints": F32, "views": U16, "score": F32}
 
 
-class WireError(ValueError):
+class WireError(InputError):
     """A message that cannot be decoded: ``topic: field: problem`` plus a diagnostics reason."""
 
     def __init__(self, topic: str, field: str, problem: str, reason: str):
-        super().__init__(f"{topic}: {field}: {problem}")
-        self.topic, self.field, self.problem, self.reason = topic, field, problem, reason
+        super().__init__(f"{topic}: {field}: {problem}", reason)
+        self.topic, self.field, self.problem = topic, field, problem
 
 
 # ---------------------------------------------------------------------------------------------

@@ -41,13 +41,14 @@ import yaml
 from maem_ros.core import epipolar
 from maem_ros.core.association import associate
 from maem_ros.core.camera import Rig
+from maem_ros.core.errors import InputError
 from maem_ros.core.triangulation import triangulate
-from maem_ros.params import resolve_config_path
+from maem_ros.params import load_node_params, resolve_config_path
 from maem_ros.ros.probe import ArrivalListener
 from maem_ros.ros.wire import msg_to_detections
 from maem_ros import bagio
 from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
-                                     check_scene, default_bag, ensure_bag, image_topic, load_bag,
+                                     check_scene, ensure_bag, image_topic, load_bag,
                                      log, make_demo_bag, trim_bag)
 from maem_ros.tools.demo_report import (LATENCY_DEFINITION, format_timing, latencies_ms,
                                         print_accuracy, print_run_summary, recorded_diagnostics,
@@ -351,7 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 epilog=f"{__doc__.split(chr(10) * 2, 2)[2]}\n{LATENCY_DEFINITION}.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--bag", type=Path, default=None,
-                   help="input bag (default bags/demo; generated first when missing)")
+                   help="input bag, which must exist (default bags/demo, generated first when "
+                   "missing; --make-bag DIR builds one elsewhere)")
     p.add_argument("--out", type=Path, default=Path("out/demo"),
                    help="output folder (default out/demo)")
     p.add_argument("--params", default="demo.yaml", help="params file (default config/demo.yaml)")
@@ -423,6 +425,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     t_start = time.monotonic()
     try:
         return run_demo(a, t_start)
+    except InputError as e:  # the bag (missing, damaged, not a demo bag), the params file
+        print(f"maem-demo: {e}", file=sys.stderr)
+        return 2
     except (ValueError, DemoError) as e:
         print(f"maem-demo: {e}", file=sys.stderr)
         return 1
@@ -484,10 +489,22 @@ def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: lis
     return (1 if run.crashed else 0), poses, report
 
 
+def open_demo_bag(a: argparse.Namespace) -> DemoBag:
+    """The demo's input bag, read and checked; InputError (exit 2) when it is unusable."""
+    bag = ensure_bag(a.bag, a.bag_frames)
+    try:
+        return load_bag(bag)
+    except InputError:
+        raise
+    except ValueError as e:  # readable, but not a demo bag (no images, no rig ...)
+        raise InputError(str(e), "bad_bag") from None
+
+
 def run_demo(a: argparse.Namespace, t_start: float) -> int:
-    bag = ensure_bag(a.bag or default_bag(), a.bag_frames)
+    load_node_params(a.params, "association")  # a bad params file: one line before any work
+    demo = open_demo_bag(a)
+    bag = demo.path
     prepare_out(a.out)
-    demo = load_bag(bag)
     stamps = demo.stamps[:played_frames(demo, a.frames, a.duration)]
     rig_path = a.out / "rig.yaml"
     rig_path.write_text(demo.rig_yaml)

@@ -90,11 +90,21 @@ def make_demo_bag(out: Path, frames: int = DEMO_SCENE["frames"], seed: int = DEM
     return out
 
 
-def ensure_bag(bag: Path, frames: int) -> Path:
-    """``bag`` when it is a rosbag2 folder; generate the demo bag there when it is missing."""
+def ensure_bag(bag: Path | None, frames: int) -> Path:
+    """The bag given with --bag (which must exist: it is never created here), or the default
+    demo bag, generated (seeded) when missing."""
+    if bag is not None:
+        if not bag.exists():
+            raise bagio.BagError(f"--bag {str(bag)!r}: no such file or directory (maem-demo "
+                                 f"--make-bag DIR builds a demo bag)")
+        if not (bag / "metadata.yaml").is_file():
+            raise bagio.BagError(f"--bag {str(bag)!r}: not a rosbag2 folder (no metadata.yaml)")
+        return bag
+    bag = default_bag()
     if not (bag / "metadata.yaml").is_file():
         if bag.exists():
-            raise ValueError(f"--bag {str(bag)!r}: not a rosbag2 folder (no metadata.yaml)")
+            raise bagio.BagError(f"default bag {str(bag)!r}: not a rosbag2 folder "
+                                 f"(no metadata.yaml)")
         log(f"no bag at {str(bag)!r}: generating the demo bag (seeded)")
         make_demo_bag(bag, frames=frames)
     return bag

@@ -125,11 +125,38 @@ def expected_stamps(stamps: Sequence[int], max_rate: float) -> list[int]:
     return out
 
 
+@dataclass(frozen=True)
+class Faults:
+    """Injected faults: ``lag_camera`` gets its images ``lag_s`` after the others (slow link,
+    clock offset); every ``stale_every_s`` one camera also gets an image with a stale stamp
+    (stamp 0, then alternately a 1 s old duplicate)."""
+
+    lag_camera: str | None = None
+    lag_s: float = 0.0
+    stale_every_s: float = 0.0
+
+    def schedule(self, stamps: Sequence[int], cameras: Sequence[str], rate_hz: float
+                 ) -> list[tuple[float, int, tuple[str, ...]]]:
+        """(seconds after the start, stamp, cameras) publish events, in time order."""
+        period = 1.0 / rate_hz
+        on_time = tuple(c for c in cameras if c != self.lag_camera)
+        events = [(f * period, s, on_time) for f, s in enumerate(stamps)]
+        if self.lag_camera:
+            events += [(f * period + self.lag_s, s, (self.lag_camera,))
+                       for f, s in enumerate(stamps)]
+        if self.stale_every_s > 0:
+            step = max(1, int(round(self.stale_every_s * rate_hz)))
+            for k, f in enumerate(range(step, len(stamps), step)):
+                stale = 0 if k % 2 == 0 else stamps[max(0, f - int(round(rate_hz)))]
+                events.append((f * period + 0.5 * period, stale, (on_time[0],)))
+        return sorted(events, key=lambda e: e[0])
+
+
 # ---------------------------------------------------------------------------------------------
 # replay
 # ---------------------------------------------------------------------------------------------
 def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_timeout: float = 120.0,
-        drain_s: float = 3.0) -> dict[str, Any]:
+        drain_s: float = 3.0, faults: Faults = Faults()) -> dict[str, Any]:
     rig = load_rig_param(load_node_params(params_file, "association").get("rig", ""))
     scene = make_scene(params_file)
     frames = min(frames, scene.num_frames)
@@ -146,12 +173,12 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
         time.sleep(1.0)  # let the last discovery settle
         cpu0 = {p.name: p.cpu_seconds() for p in graph.procs}
         t0 = time.perf_counter()
-        period = 1.0 / rate_hz
-        for f in range(frames):
-            target = t0 + f * period
+        stamps = [scene.stamp_ns(f) for f in range(frames)]
+        for offset, stamp, cams in faults.schedule(stamps, rig.names, rate_hz):
+            target = t0 + offset
             while (now := time.perf_counter()) < target:
                 time.sleep(min(target - now, 0.005))
-            client.publish_frame(scene.stamp_ns(f))
+            client.publish_frame(stamp, cams)
         deadline = time.perf_counter() + drain_s
         last = scene.stamp_ns(frames - 1)
         while time.perf_counter() < deadline and last not in client.poses:
@@ -164,7 +191,8 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
         client.close()
     with client.lock:
         sent, poses, diags = dict(client.sent), dict(client.poses), dict(client.diagnostics)
-    lat = np.array([(poses[s][0] - t) * 1e3 for s, t in sent.items() if s in poses])
+    valid = set(scene.stamp_ns(f) for f in range(frames))
+    lat = np.array([(poses[s][0] - t) * 1e3 for s, t in sent.items() if s in poses and s in valid])
     conv = get_convention(load_node_params(params_file, "triangulation")
                           .get("output_convention", "sportcenter_13"))
     errors = []
@@ -194,6 +222,50 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
     return report
 
 
+def sync_model(cameras: Sequence[str], frames: int, rate_hz: float, faults: Faults,
+               max_wait_s: float = 0.15, slop_s: float = 0.02, max_lag_s: float = 0.0,
+               poll_s: float = 0.01, delivery_ms: float = 12.0, jitter_ms: float = 4.0,
+               seed: int = 0) -> dict[str, Any]:
+    """The association's synchroniser alone on the fault schedule (no processes, no CPU
+    contention): each image reaches the synchroniser ``delivery_ms`` (frontend + transport)
+    plus exponential jitter (mean ``jitter_ms``) after it is published, in order per camera;
+    the synchroniser is polled every ``poll_s`` as the node's timer does. Latency = set emitted
+    - first image of the stamp published; a frame is lost when no set holds it."""
+    from maem_ros.core.sync import ApproximateTimeSync
+
+    rng = np.random.default_rng(seed)
+    stamps = [int(i * 1e9 / rate_hz) + 10**18 for i in range(frames)]
+    arrivals, last = [], dict.fromkeys(cameras, 0)
+    first_sent: dict[int, int] = {}
+    for t, stamp, cams in faults.schedule(stamps, cameras, rate_hz):
+        first_sent.setdefault(stamp, int(t * 1e9))
+        for c in cams:
+            at = int((t + (delivery_ms + rng.exponential(jitter_ms)) / 1e3) * 1e9)
+            last[c] = at = max(at, last[c] + 1)  # one FIFO transport per camera
+            arrivals.append((at, c, stamp))
+    arrivals.sort()
+    sync = ApproximateTimeSync(cameras, int(slop_s * 1e9), int(max_wait_s * 1e9),
+                               max_lag_ns=int(max_lag_s * 1e9))
+    out, k, now = [], 0, 0
+    end = arrivals[-1][0] + int(2e9)
+    while now <= end:
+        while k < len(arrivals) and arrivals[k][0] <= now:
+            at, c, stamp = arrivals[k]
+            out += [(at, fs) for fs in sync.add(c, stamp, c, at)]
+            k += 1
+        out += [(now, fs) for fs in sync.poll(now)]
+        now += int(poll_s * 1e9)
+    emitted = {fs.stamp_ns: t for t, fs in out}
+    lat = np.array([(emitted[s] - first_sent[s]) / 1e6 for s in stamps if s in emitted])
+    missing = [c for _, fs in out for c in fs.missing]
+    return {"frames": frames, "frames_without_set": sum(s not in emitted for s in stamps),
+            "latency_ms_median": float(np.median(lat)), "latency_ms_p99":
+            float(np.percentile(lat, 99)), "missing_slots": {c: missing.count(c) for c in
+                                                             sorted(set(missing))},
+            "sync_timeouts": sync.stats.timeouts,
+            "dropped": {r.value: n for r, n in sync.stats.dropped.items() if n}}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="maem-latency", description=__doc__.splitlines()[0])
     ap.add_argument("--params", default="demo.yaml", help="params file (default config/demo.yaml)")
@@ -204,9 +276,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--max-rate", type=float, default=None,
                     help="frontend max_rate, Hz (stamp-aligned decimation)")
     ap.add_argument("--max-wait", type=float, default=None, help="association max_wait, s")
+    ap.add_argument("--lag-camera", default=None, help="fault: this camera's images come late")
+    ap.add_argument("--lag-ms", type=float, default=300.0, help="fault: its lag, ms")
+    ap.add_argument("--stale-every", type=float, default=0.0,
+                    help="fault: every this many s one camera gets a stale stamp (0 = off)")
+    ap.add_argument("--max-lag", type=float, default=None, help="association max_lag, s")
+    ap.add_argument("--sync-model", action="store_true",
+                    help="no processes: the synchroniser alone on the fault schedule, with a "
+                    "delivery model (see sync_model); isolates its decisions from CPU load")
     ap.add_argument("--log-dir", type=Path, default=None, help="node logs (default: a temp dir)")
     ap.add_argument("--json", action="store_true", help="print the report as JSON")
     a = ap.parse_args(argv)
+    if a.sync_model:
+        cams = load_rig_param(load_node_params(resolve_config_path(a.params), "association")
+                              .get("rig", "")).names
+        report = sync_model(cams, a.frames, a.rate, Faults(a.lag_camera, a.lag_ms / 1e3,
+                                                           a.stale_every),
+                            max_wait_s=a.max_wait or 0.15, max_lag_s=a.max_lag or 0.0)
+        print(json.dumps(report, indent=2) if a.json else yaml.safe_dump(report, sort_keys=False))
+        return 0
     tmp = Path(tempfile.mkdtemp(prefix="maem_latency_"))
     fe: dict[str, Any] = {"frames": max(a.frames, 1)}
     if a.difficulty:
@@ -215,9 +303,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         fe["num_vertices"] = a.num_vertices
     if a.max_rate:
         fe["max_rate"] = a.max_rate
-    assoc = {"max_wait": a.max_wait} if a.max_wait else None
-    params = write_params(a.params, tmp / "params.yaml", frontend=fe, association=assoc)
-    report = run(params, a.frames, a.rate, a.log_dir or tmp / "logs")
+    assoc = {k: v for k, v in (("max_wait", a.max_wait), ("max_lag", a.max_lag)) if v}
+    params = write_params(a.params, tmp / "params.yaml", frontend=fe, association=assoc or None)
+    faults = Faults(a.lag_camera, a.lag_ms / 1e3, a.stale_every)
+    report = run(params, a.frames, a.rate, a.log_dir or tmp / "logs", faults=faults)
     print(json.dumps(report, indent=2) if a.json else yaml.safe_dump(report, sort_keys=False))
     return 0
 
