@@ -10,7 +10,7 @@ For every camera pair (a, b), a < b in rig order (DESIGN.md §1):
    vertices ("mesh") or 2D keypoints ("sparse"); rejected if >= tau_mesh (core/epipolar.py).
 4. Pair cost: PA-MPJPE (metres) between the two detections' 3D keypoints on ``cost_joints``
    (default the 13 body joints), plus ``cost_epipolar_weight`` x the pair's mean epipolar
-   distance (px); pairs above ``tau_cost`` never match.
+   distance as a fraction of tau_mesh; pairs above ``tau_cost`` never match.
 5. Clustering (core/clustering.py), ``clustering``:
    ``consistent`` (default): best-first merges over all camera pairs at once, each merge
    verified at cluster level (no two detections of one camera, most cross pairs gated,
@@ -56,7 +56,8 @@ class AssociationParams(Params):
     give the same decisions. ``cost_joints``: "body" (the 13 sportcenter body joints of the
     detections' keypoint convention), "all", or comma-separated keypoint indices.
     ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).
-    ``cost_epipolar_weight`` (m per px) adds the pair's mean epipolar distance to its cost.
+    ``cost_epipolar_weight`` (m) adds the pair's mean epipolar distance, as a fraction of
+    tau_mesh (so the term scales with the gate: mesh px, keypoint px), to its cost.
     ``tau_verify`` (px), ``min_support`` (fraction): the consistent clustering's merge checks.
     """
 
@@ -83,8 +84,8 @@ class AssociationParams(Params):
                                      "comma-separated indices")
     tau_cost: float = param(0.21, "m, pairs whose cost is above this never match (0 = no cap)",
                             minimum=0.0)
-    cost_epipolar_weight: float = param(0.005, "m per px of mean epipolar distance added to "
-                                               "the pair cost", minimum=0.0)
+    cost_epipolar_weight: float = param(0.04, "m added to the pair cost per tau_mesh of mean "
+                                               "epipolar distance", minimum=0.0)
     tau_verify: float = param(10.0, "px, consistent merges: each member's median reprojection "
                                     "error of the triangulated body joints", minimum=0.0,
                               exclusive_minimum=True)
@@ -293,7 +294,9 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     if alive.size:
         joints = joint_subset(params.cost_joints, table.num_joints)
         pose[alive] = pose_costs(table, i[alive], j[alive], joints)
-    weight = params.cost_epipolar_weight if params.epipolar_gate != "none" else 0.0
+    # relative to the gate threshold, so one default fits dense-mesh px and keypoint px
+    weight = (params.cost_epipolar_weight / params.tau_mesh if params.epipolar_gate != "none"
+              else 0.0)
     cost = pose + weight * np.nan_to_num(epi, nan=0.0)
     capped = ~np.isfinite(cost[alive])
     if params.tau_cost > 0:
