@@ -4,6 +4,8 @@ Backends (``make_estimator(backend, options, rig)``):
   synthetic   the simulator's detection-noise model on a regenerated sim scene (no image needed)
   npz         precomputed SAM 3D Body outputs in the MAEM authors' npz layout (no image needed)
   sam3d_body  the official SAM 3D Body model (needs images; imported lazily)
+  mediapipe   multi-person BlazePose-33 from the mediapipe wheel, CPU, no mesh (V = 0; optional
+              extra, imported lazily)
 
 Options common to every backend:
   vertex_stride (int, default 1)  keep every n-th mesh vertex of verts2d (bandwidth / CPU).
@@ -59,6 +61,7 @@ _BACKENDS: dict[str, str | Callable[[Mapping[str, Any], Rig], Estimator]] = {
     "synthetic": "maem_ros.frontend.synthetic:SyntheticEstimator",
     "npz": "maem_ros.frontend.npz:NpzEstimator",
     "sam3d_body": "maem_ros.frontend.sam3d_body:Sam3dBodyEstimator",
+    "mediapipe": "maem_ros.frontend.mediapipe_pose:MediapipeEstimator",
 }
 
 

@@ -189,13 +189,16 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
 
 def write_pictures(out: Path, demo: DemoBag, rig, stamps: Sequence[int], poses: dict[int, Any]
                    ) -> list[Path]:
-    """snapshot_<cam>.png and court.png at the middle played frame that has poses."""
-    with_poses = [s for s in stamps if s in poses and s in demo.gt]
+    """snapshot_<cam>.png and court.png at the middle played frame that has poses (and ground
+    truth, when the bag has any; a bag without it, e.g. a real capture, gets a snapshot of every
+    camera)."""
+    with_poses = [s for s in stamps if s in poses and (s in demo.gt or not demo.gt)]
     if not with_poses:
         return []
     stamp = with_poses[len(with_poses) // 2]
     pred = poses[stamp]
-    cam = demo.cameras[0]
+    cams = demo.cameras if not demo.gt else demo.cameras[:1]
     frame = demo.stamps.index(stamp)
-    return [snapshot_png(out / f"snapshot_{cam}.png", demo, rig, cam, stamp, pred),
-            plot_court(out / "court.png", frame, demo.gt[stamp], pred.joints, rig)]
+    gt = demo.gt.get(stamp, np.zeros((0, SPORTCENTER_13.num_joints, 3)))
+    return [snapshot_png(out / f"snapshot_{cam}.png", demo, rig, cam, stamp, pred)
+            for cam in cams] + [plot_court(out / "court.png", frame, gt, pred.joints, rig)]
