@@ -1,0 +1,106 @@
+"""maem-pose2sim-demo: a real multi-person capture, end to end on a CPU.
+
+    maem-pose2sim-demo [--out out/pose2sim] [--frames N] [--cache DIR] [--rate R]
+
+Fetches Pose2Sim's Demo_MultiPerson (4 calibrated cameras, Qualisys Calib.qca.txt, 100 frames of
+portrait 1088x1920 video at 60 fps, two people in a lab with bystanders) from the ``pose2sim``
+wheel on PyPI (``pip download --no-deps pose2sim==0.10.49`` into the cache, ~51 MB, once; the
+footage is extracted from the wheel, never committed), builds a bag with
+``maem-make-bag --videos ... --rig Calib.qca.txt`` and runs ``maem-demo --backend mediapipe`` on
+it (needs the mediapipe extra: make mediapipe). Everything lands in OUT: bag/, report.json,
+snapshot_cam0N.png, court.png.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+from typing import Sequence
+
+POSE2SIM_VERSION = "0.10.49"
+DEMO_PREFIX = "Pose2Sim/Demo_MultiPerson/"
+
+
+def cache_dir() -> Path:
+    """$MAEM_CACHE, else $XDG_CACHE_HOME/maem_ros, else ~/.cache/maem_ros."""
+    if os.environ.get("MAEM_CACHE"):
+        return Path(os.environ["MAEM_CACHE"]).expanduser()
+    base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "maem_ros"
+
+
+def fetch_demo(cache: Path | None = None, timeout_s: float = 600.0) -> Path:
+    """The Demo_MultiPerson folder (calibration/Calib.qca.txt, videos/cam0N.mp4), downloaded and
+    extracted into ``cache`` on first use; RuntimeError when the wheel cannot be had."""
+    cache = (cache or cache_dir()) / f"pose2sim-{POSE2SIM_VERSION}"
+    demo = cache / DEMO_PREFIX
+    if (demo / "calibration" / "Calib.qca.txt").is_file() and len(list((demo / "videos").glob("*.mp4"))) == 4:
+        return demo
+    cache.mkdir(parents=True, exist_ok=True)
+    wheels = sorted(cache.glob(f"pose2sim-{POSE2SIM_VERSION}-*.whl"))
+    if not wheels:
+        cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--quiet", "--dest", str(cache),
+               f"pose2sim=={POSE2SIM_VERSION}"]
+        try:
+            done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            raise RuntimeError(f"pip download pose2sim=={POSE2SIM_VERSION}: no answer in "
+                               f"{timeout_s:.0f} s") from None
+        wheels = sorted(cache.glob(f"pose2sim-{POSE2SIM_VERSION}-*.whl"))
+        if done.returncode != 0 or not wheels:
+            tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
+            raise RuntimeError(f"pip download pose2sim=={POSE2SIM_VERSION} failed: {tail[0]}")
+    try:
+        with zipfile.ZipFile(wheels[0]) as z:
+            members = [m for m in z.namelist() if m.startswith(DEMO_PREFIX)
+                       and (m.endswith(".mp4") or m.endswith(".qca.txt"))]
+            if not members:
+                raise RuntimeError(f"wheel {wheels[0].name}: no {DEMO_PREFIX} videos/calibration")
+            z.extractall(cache, members)
+    except zipfile.BadZipFile:
+        wheels[0].unlink()
+        raise RuntimeError(f"wheel {wheels[0].name}: not a zip file (removed; run again)") from None
+    return demo
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="maem-pose2sim-demo",
+                                description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+                                epilog=__doc__.split("\n\n", 2)[2],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=Path("out/pose2sim"), help="output folder")
+    p.add_argument("--frames", type=int, default=None, help="play only the first N frames")
+    p.add_argument("--cache", type=Path, default=None,
+                   help=f"download cache (default {cache_dir()})")
+    p.add_argument("--rate", type=float, default=None, help="playback rate (maem-demo default)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    from maem_ros.tools import demo, make_bag
+    try:
+        root = fetch_demo(a.cache)
+    except RuntimeError as e:
+        print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
+        return 2
+    bag = a.out / "bag"
+    if not (bag / "metadata.yaml").is_file():
+        a.out.mkdir(parents=True, exist_ok=True)
+        code = make_bag.main([str(bag), "--videos", str(root / "videos"), "--rig",
+                              str(root / "calibration" / "Calib.qca.txt"), "--quiet"])
+        if code != 0:
+            return code
+    args = ["--bag", str(bag), "--backend", "mediapipe", "--out", str(a.out)]
+    if a.frames is not None:
+        args += ["--frames", str(a.frames)]
+    if a.rate is not None:
+        args += ["--rate", str(a.rate)]
+    return demo.main(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
