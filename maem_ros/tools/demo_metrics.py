@@ -14,7 +14,7 @@ import numpy as np
 
 from maem_ros.core.camera import Rig
 from maem_ros.core.skeleton import KeypointConvention
-from maem_ros.core.triangulation import TriangulationParams, triangulate
+from maem_ros.core.triangulation import TriangulationParams, mirror_permutation, triangulate
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_clusters
 from maem_ros.tools import bagio
 
@@ -23,7 +23,8 @@ REPROJECTION_DEFINITION = (
     "reprojection error = distance (rectified px) between a triangulated joint projected into a "
     "member view of its cluster and that view's 2D keypoint, over every (joint, view) with both "
     "finite; the clusters are the recorded /maem/clusters, triangulated again with the "
-    "triangulation node's parameters (the same core function, so the same joints). "
+    "triangulation node's parameters (the same core function, so the same joints; a view "
+    "relabelled left/right by left_right is compared with its relabelled keypoints). "
     "reprojection_px_mean averages every such pair; _inliers only pairs under tau_kps (the views "
     "the per-keypoint RANSAC keeps)")
 #: bones whose length is checked over time (both sides), by joint name
@@ -56,9 +57,12 @@ def reprojection_errors(record: Path, rig: Rig, params: TriangulationParams,
         wanted.discard(cf.stamp_ns)  # first message per stamp, as the poses
         frames, clusters = cf.to_core(rig)
         poses = triangulate(rig, frames, clusters, params)
-        for cl, X in zip(clusters, np.asarray(poses.joints)):
+        for k, (cl, X) in enumerate(zip(clusters, np.asarray(poses.joints))):
             cams, dets = cl.members[:, 0], cl.members[:, 1]
             uv = np.stack([frames[rig.names[c]].kpts2d[d] for c, d in zip(cams, dets)])
+            if poses.mirrored is not None:  # views relabelled left/right are compared as such
+                flip = poses.mirrored[k, :len(cams)]
+                uv[flip] = uv[flip][:, mirror_permutation(uv.shape[1])]
             Xh = np.concatenate([X, np.ones((len(X), 1))], axis=1)
             proj = np.einsum("vij,kj->vki", P[cams], Xh)
             with np.errstate(divide="ignore", invalid="ignore"):
