@@ -177,7 +177,8 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
         tracked = int(pid) != UNTRACKED_ID
         draw(joints, id_bgr8(int(pid)) if tracked else (128, 128, 128), 2,
              f"#{int(pid)}" if tracked else None)
-    title = f"{cam}  stamp {stamp}  white = ground truth, colour = /maem/poses (track id)"
+    title = f"{cam}  stamp {stamp}  " + ("white = ground truth, " if demo.gt else "") + \
+        "colour = /maem/poses (track id)"
     (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.8, 2)
     cv2.rectangle(img, (10, 10), (30 + tw, 30 + th), (0, 0, 0), cv2.FILLED)
     cv2.putText(img, title, (20, 20 + th), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2,

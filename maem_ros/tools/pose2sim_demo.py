@@ -1,6 +1,7 @@
 """maem-pose2sim-demo: a real multi-person capture, end to end on a CPU.
 
     maem-pose2sim-demo [--out out/pose2sim] [--frames N] [--cache DIR] [--rate R]
+    maem-pose2sim-demo --bench N      (frontend time per image, in this process, no graph)
 
 Fetches Pose2Sim's Demo_MultiPerson (4 calibrated cameras, Qualisys Calib.qca.txt, 100 frames of
 portrait 1088x1920 video at 60 fps, two people in a lab with bystanders) from the ``pose2sim``
@@ -8,7 +9,9 @@ wheel on PyPI (``pip download --no-deps pose2sim==0.10.49`` into the cache, ~51 
 footage is extracted from the wheel, never committed), builds a bag with
 ``maem-make-bag --videos ... --rig Calib.qca.txt`` and runs ``maem-demo --backend mediapipe`` on
 it (needs the mediapipe extra: make mediapipe). Everything lands in OUT: bag/, report.json,
-snapshot_cam0N.png, court.png.
+snapshot_cam0N.png, court.png. --bench N runs the mediapipe frontend (config/mediapipe.yaml) on
+the first N frames of every camera, one image at a time in this process, and prints the time per
+image and per model pass (the machine's load matters: compare the two, measured in one run).
 """
 from __future__ import annotations
 
@@ -76,7 +79,53 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache", type=Path, default=None,
                    help=f"download cache (default {cache_dir()})")
     p.add_argument("--rate", type=float, default=None, help="playback rate (maem-demo default)")
+    p.add_argument("--bench", type=int, default=None, metavar="N",
+                   help="only time the mediapipe frontend on N frames per camera")
     return p
+
+
+def bench_frontend(root: Path, frames: int) -> dict:
+    """Time the mediapipe frontend on the first ``frames`` frames of each camera (ms)."""
+    import time
+
+    import cv2
+    import numpy as np
+
+    from maem_ros.core.camera import Rig
+    from maem_ros.frontend.base import make_estimator
+    from maem_ros.frontend.rectify import Rectifier
+    from maem_ros.params import load_node_params
+    rig = Rig.load(root / "calibration" / "Calib.qca.txt")
+    options = load_node_params("mediapipe.yaml", "frontend")
+    per_image, rectify_ms, people, calls, images = [], [], [], 0, 0
+    for cam in rig:
+        est = make_estimator("mediapipe", options, rig)
+        rect = Rectifier(cam)
+        cap = cv2.VideoCapture(str(root / "videos" / f"{cam.name}.mp4"))
+        for k in range(frames):
+            ok, img = cap.read()
+            if not ok:
+                break
+            t0 = time.perf_counter()
+            r = rect.rectify(img)
+            t1 = time.perf_counter()
+            dets = est.estimate(cam, k, r)
+            t2 = time.perf_counter()
+            if k:  # frame 0 includes the model's start-up
+                rectify_ms.append(1e3 * (t1 - t0))
+                per_image.append(1e3 * (t2 - t1))
+            people.append(dets.n)
+        cap.release()
+        calls += est.stats["passes"]
+        images += est.stats["frames"]
+    per_pass = calls / max(images, 1)
+    out = {"images": len(per_image), "estimate_ms_median": float(np.median(per_image)),
+           "estimate_ms_p90": float(np.percentile(per_image, 90)),
+           "rectify_ms_median": float(np.median(rectify_ms)),
+           "people_per_image_mean": float(np.mean(people)),
+           "model_passes_per_image": per_pass,
+           "ms_per_model_pass": float(np.median(per_image)) / per_pass}
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -87,6 +136,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     except RuntimeError as e:
         print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
         return 2
+    if a.bench is not None:
+        if a.bench < 2:
+            print("maem-pose2sim-demo: --bench needs N >= 2 frames", file=sys.stderr)
+            return 2
+        try:
+            result = bench_frontend(root, a.bench)
+        except ImportError as e:
+            print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
+            return 2
+        print("mediapipe frontend, in-process, one image at a time (frame 0 excluded): "
+              + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
+                          for k, v in result.items()))
+        print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
+        return 0
     bag = a.out / "bag"
     if not (bag / "metadata.yaml").is_file():
         a.out.mkdir(parents=True, exist_ok=True)
