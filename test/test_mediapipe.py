@@ -16,7 +16,7 @@ import pytest
 from maem_ros.core.association import AssociationParams, associate
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.skeleton import (BLAZEPOSE_33, COCO_17, SPORTCENTER_13, convention_for,
-                                    convert_keypoints, get_convention)
+                                    convert, get_convention)
 from maem_ros.core.triangulation import TriangulationParams, triangulate
 from maem_ros.frontend.base import make_estimator
 from maem_ros.frontend.mediapipe_pose import INSTALL_HELP, import_mediapipe
@@ -32,11 +32,11 @@ def test_blazepose_maps_to_sportcenter_13_and_coco_17():
     assert COCO_17.indices_in(BLAZEPOSE_33) == (0, 2, 5, 7, 8, 11, 12, 13, 14, 15, 16, 23, 24,
                                                 25, 26, 27, 28)
     x = np.arange(2 * 33 * 3, dtype=float).reshape(2, 33, 3)
-    sc = convert_keypoints(x, "blazepose_33", "sportcenter_13")
+    sc = convert(x, SPORTCENTER_13, "blazepose_33")
     np.testing.assert_array_equal(sc[:, 5], x[:, 15])  # left wrist
     # the MHR70 path gives the same joints by name as the index table of DESIGN §7
     mhr = np.arange(70 * 2, dtype=float).reshape(70, 2)
-    np.testing.assert_array_equal(convert_keypoints(mhr, "mhr70", SPORTCENTER_13),
+    np.testing.assert_array_equal(convert(mhr, SPORTCENTER_13, "mhr70"),
                                   SPORTCENTER_13.select(mhr))
 
 
@@ -44,9 +44,12 @@ def test_blazepose_bones_and_bad_conversions():
     assert len(BLAZEPOSE_33.bones) == 35  # mp.solutions.pose.POSE_CONNECTIONS
     assert all(0 <= a < 33 and 0 <= b < 33 for a, b in BLAZEPOSE_33.bones)
     with pytest.raises(ValueError, match="mhr70 has no left_eye_inner"):
-        convert_keypoints(np.zeros((70, 2)), "mhr70", "blazepose_33")
-    with pytest.raises(ValueError, match="expected 33 blazepose_33 joints"):
-        convert_keypoints(np.zeros((13, 2)), "blazepose_33", "coco_17")
+        convert(np.zeros((70, 2)), BLAZEPOSE_33, "mhr70")
+    with pytest.raises(ValueError, match="13 joints .convention 'blazepose_33', 33 joints"):
+        convert(np.zeros((13, 2)), COCO_17, "blazepose_33")
+    # the convention is inferred from the joint count
+    np.testing.assert_array_equal(convert(np.arange(66.0).reshape(33, 2), SPORTCENTER_13)[1],
+                                  [22.0, 23.0])
     with pytest.raises(ValueError, match="not a subset of mhr70"):
         BLAZEPOSE_33.select(np.zeros((70, 3)))
 
@@ -188,7 +191,7 @@ def test_real_frames_two_people_triangulated(pose2sim_demo, mediapipe_installed)
     result = associate(rig, frames, assoc)
     poses = triangulate(rig, frames, result.clusters, tri)
     assert len(poses) == 2
-    sc = convert_keypoints(poses.joints, BLAZEPOSE_33, SPORTCENTER_13)
+    sc = convert(poses.joints, SPORTCENTER_13, BLAZEPOSE_33.name)
     hips = np.nanmean(sc[:, 7:9], axis=1)
     ankles = np.nanmean(sc[:, 11:13], axis=1)
     assert np.all((hips[:, 2] > 0.6) & (hips[:, 2] < 1.4)), hips  # hip height above the floor

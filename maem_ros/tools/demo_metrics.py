@@ -14,7 +14,8 @@ import numpy as np
 
 from maem_ros.core.camera import Rig
 from maem_ros.core.skeleton import KeypointConvention
-from maem_ros.core.triangulation import TriangulationParams, mirror_permutation, triangulate
+from maem_ros.core.triangulation import (TriangulationParams, mirror_permutation,
+                                         triangulate_members)
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_clusters
 from maem_ros.tools import bagio
 
@@ -49,25 +50,24 @@ def reprojection_errors(record: Path, rig: Rig, params: TriangulationParams,
         return np.zeros(0)
     wanted = set(stamps)
     errs = []
-    P = np.stack([c.P for c in rig])
+    P_rig = np.stack([c.P for c in rig])
     for m in bagio.read_messages(record, [CLUSTERS_TOPIC]):
         cf = msg_to_clusters(m.decode(), m.topic, len(rig))
         if cf.stamp_ns not in wanted or not len(cf.cluster):
             continue
         wanted.discard(cf.stamp_ns)  # first message per stamp, as the poses
-        frames, clusters = cf.to_core(rig)
-        poses = triangulate(rig, frames, clusters, params)
-        for k, (cl, X) in enumerate(zip(clusters, np.asarray(poses.joints))):
-            cams, dets = cl.members[:, 0], cl.members[:, 1]
-            uv = np.stack([frames[rig.names[c]].kpts2d[d] for c, d in zip(cams, dets)])
-            if poses.mirrored is not None:  # views relabelled left/right are compared as such
-                flip = poses.mirrored[k, :len(cams)]
-                uv[flip] = uv[flip][:, mirror_permutation(uv.shape[1])]
-            Xh = np.concatenate([X, np.ones((len(X), 1))], axis=1)
-            proj = np.einsum("vij,kj->vki", P[cams], Xh)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                e = np.linalg.norm(proj[..., :2] / proj[..., 2:] - uv, axis=-1)
-            errs.append(e[np.isfinite(e)])
+        cam, uv, score, present = cf.dense()  # (C,M) (C,M,J,2) (C,M) (C,M)
+        poses = triangulate_members(P_rig, cam, uv, score, present, params)
+        if poses.mirrored is not None:  # views relabelled left/right are compared as such
+            uv = np.where(poses.mirrored[:, :, None, None],
+                          uv[:, :, mirror_permutation(uv.shape[2])], uv)
+        X = np.asarray(poses.joints)  # (C,J,3)
+        Xh = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=-1)
+        proj = np.einsum("cmij,ckj->cmki", P_rig[cam], Xh)  # (C,M,J,3)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            e = np.linalg.norm(proj[..., :2] / proj[..., 2:] - uv, axis=-1)  # (C,M,J)
+        keep = present[:, :, None] & np.isfinite(e) & (proj[..., 2] > 0)
+        errs.append(e[keep])
     return np.concatenate(errs) if errs else np.zeros(0)
 
 
