@@ -124,6 +124,16 @@ def option_float(options: Mapping[str, Any], key: str, default: float, positive:
     return out
 
 
+def check_bgr_image(image: Any, backend: str, camera: str) -> np.ndarray:
+    """``image`` when it is a BGR uint8 (H,W,3) array, else ValueError naming backend and camera."""
+    if image is None or not isinstance(image, np.ndarray) or image.ndim != 3 \
+            or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"{backend} backend: camera {camera!r}: expected a BGR uint8 "
+                         f"(H,W,3) image, got {getattr(image, 'shape', type(image).__name__)} "
+                         f"{getattr(image, 'dtype', '')}")
+    return image
+
+
 def make_estimator(backend: str, options: Mapping[str, Any], rig: Rig) -> Estimator:
     """Build a backend from its options (unknown keys are ignored: the node passes all its params)."""
     options = dict(options or {})

@@ -44,7 +44,6 @@ Options (frontend parameters; unknown keys are ignored):
 """
 from __future__ import annotations
 
-import logging
 from typing import Any, Mapping
 
 import cv2
@@ -53,9 +52,8 @@ import numpy as np
 from ..core.camera import Camera, Rig
 from ..core.detections import FrameDetections
 from ..core.skeleton import BLAZEPOSE_33, KeypointConvention, convert, get_convention
-from .base import Estimator, option_float, option_int
+from .base import Estimator, check_bgr_image, option_float, option_int
 
-log = logging.getLogger(__name__)
 
 MEDIAPIPE_VERSION = "0.10.21"
 INSTALL_HELP = (
@@ -154,11 +152,7 @@ class MediapipeEstimator(Estimator):
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image -> detections (rectified px, camera metres)."""
-        if image is None or not isinstance(image, np.ndarray) or image.ndim != 3 \
-                or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"mediapipe backend: camera {camera.name!r}: expected a BGR uint8 "
-                             f"(H,W,3) image, got {getattr(image, 'shape', type(image).__name__)} "
-                             f"{getattr(image, 'dtype', '')}")
+        check_bgr_image(image, "mediapipe", camera.name)
         self.stats["frames"] += 1
         h, w = image.shape[:2]
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

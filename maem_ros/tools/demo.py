@@ -549,7 +549,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
     reproj = dm.reprojection_summary(dm.reprojection_errors(record, rig, tri, stamps), tri.tau_kps)
     bones = dm.bone_length_cv(poses, conv)
     counts = np.bincount(people) if people else np.zeros(1, int)
-    print(f"\npeople per frame (/maem/poses): " + ", ".join(
+    print("\npeople per frame (/maem/poses): " + ", ".join(
         f"{k}: {c} frames" for k, c in enumerate(counts) if c))
     if reproj["reprojection_pairs"]:
         print(f"reprojection error of the triangulated joints in their clusters' views: mean "
