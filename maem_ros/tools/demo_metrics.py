@@ -56,19 +56,26 @@ def reprojection_errors(record: Path, rig: Rig, params: TriangulationParams,
         if cf.stamp_ns not in wanted or not len(cf.cluster):
             continue
         wanted.discard(cf.stamp_ns)  # first message per stamp, as the poses
-        cam, uv, score, present = cf.dense()  # (C,M) (C,M,J,2) (C,M) (C,M)
-        poses = triangulate_members(P_rig, cam, uv, score, present, params)
-        if poses.mirrored is not None:  # views relabelled left/right are compared as such
-            uv = np.where(poses.mirrored[:, :, None, None],
-                          uv[:, :, mirror_permutation(uv.shape[2])], uv)
-        X = np.asarray(poses.joints)  # (C,J,3)
-        Xh = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=-1)
-        proj = np.einsum("cmij,ckj->cmki", P_rig[cam], Xh)  # (C,M,J,3)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            e = np.linalg.norm(proj[..., :2] / proj[..., 2:] - uv, axis=-1)  # (C,M,J)
-        keep = present[:, :, None] & np.isfinite(e) & (proj[..., 2] > 0)
-        errs.append(e[keep])
+        errs.append(member_reprojection_errors(P_rig, *cf.dense(), params)[1])
     return np.concatenate(errs) if errs else np.zeros(0)
+
+
+def member_reprojection_errors(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray,
+                               score: np.ndarray, present: np.ndarray,
+                               params: TriangulationParams) -> tuple[Any, np.ndarray]:
+    """Triangulate dense member arrays (core.triangulation.pad_members) and measure: (Poses,
+    (E,) px errors of every finite joint in every member view)."""
+    poses = triangulate_members(P_rig, cam, uv, score, present, params)
+    if poses.mirrored is not None:  # views relabelled left/right are compared as such
+        uv = np.where(poses.mirrored[:, :, None, None],
+                      uv[:, :, mirror_permutation(uv.shape[2])], uv)
+    X = np.asarray(poses.joints)  # (C,J,3)
+    Xh = np.concatenate([X, np.ones(X.shape[:2] + (1,))], axis=-1)
+    proj = np.einsum("cmij,ckj->cmki", P_rig[cam], Xh)  # (C,M,J,3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.linalg.norm(proj[..., :2] / proj[..., 2:] - uv, axis=-1)  # (C,M,J)
+    keep = present[:, :, None] & np.isfinite(e) & (proj[..., 2] > 0)
+    return poses, e[keep]
 
 
 def reprojection_summary(errors: np.ndarray, tau_kps: float) -> dict[str, float | int | None]:

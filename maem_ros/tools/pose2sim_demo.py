@@ -2,6 +2,7 @@
 
     maem-pose2sim-demo [--out out/pose2sim] [--frames N] [--cache DIR] [--rate R]
     maem-pose2sim-demo --bench N      (frontend time per image, in this process, no graph)
+    maem-pose2sim-demo --offline      (every image through the same core code in this process)
 
 Fetches Pose2Sim's Demo_MultiPerson (4 calibrated cameras, Qualisys Calib.qca.txt, 100 frames of
 portrait 1088x1920 video at 60 fps, two people in a lab with bystanders) from the ``pose2sim``
@@ -12,6 +13,9 @@ it (needs the mediapipe extra: make mediapipe). Everything lands in OUT: bag/, r
 snapshot_cam0N.png, court.png. --bench N runs the mediapipe frontend (config/mediapipe.yaml) on
 the first N frames of every camera, one image at a time in this process, and prints the time per
 image and per model pass (the machine's load matters: compare the two, measured in one run).
+--offline runs frontend, association, triangulation and tracking (config/mediapipe.yaml) on every
+frame in this process, so no image is lost to transport or a busy CPU, and writes
+OUT/report_offline.json with the same measures as the graph run.
 """
 from __future__ import annotations
 
@@ -81,7 +85,76 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=None, help="playback rate (maem-demo default)")
     p.add_argument("--bench", type=int, default=None, metavar="N",
                    help="only time the mediapipe frontend on N frames per camera")
+    p.add_argument("--offline", action="store_true",
+                   help="no graph: every frame through frontend, association, triangulation "
+                   "and tracking in this process (OUT/report_offline.json)")
     return p
+
+
+def run_offline(root: Path, frames: int | None) -> dict:
+    """Every frame (or the first ``frames``) of the four videos through the core pipeline."""
+    import cv2
+    import numpy as np
+
+    from maem_ros.core.association import AssociationParams, associate
+    from maem_ros.core.camera import Rig
+    from maem_ros.core.skeleton import get_convention
+    from maem_ros.core.skeleton import convert as convert_joints
+    from maem_ros.core.tracking import Tracker
+    from maem_ros.core.triangulation import TriangulationParams, pad_members
+    from maem_ros.frontend.base import make_estimator
+    from maem_ros.frontend.rectify import Rectifier
+    from maem_ros.params import load_node_params
+    from maem_ros.ros.wire import UNTRACKED_ID, PoseFrame
+    from maem_ros.tools import demo_metrics as dm
+    rig = Rig.load(root / "calibration" / "Calib.qca.txt")
+    node = {n: load_node_params("mediapipe.yaml", n) for n in ("frontend", "association",
+                                                              "triangulation")}
+    assoc = AssociationParams.from_mapping(node["association"])
+    tri = TriangulationParams.from_mapping(node["triangulation"])
+    out_conv = get_convention(node["triangulation"].get("output_convention", "sportcenter_13"))
+    tracker = Tracker(node["triangulation"].get("track_gate", 0.5),
+                      node["triangulation"].get("track_min_hits", 3),
+                      node["triangulation"].get("track_timeout", 1.0))
+    ests = {c.name: make_estimator("mediapipe", node["frontend"], rig) for c in rig}
+    rects = {c.name: Rectifier(c) for c in rig}
+    caps = {c.name: cv2.VideoCapture(str(root / "videos" / f"{c.name}.mp4")) for c in rig}
+    fps = caps[rig.names[0]].get(cv2.CAP_PROP_FPS) or 60.0
+    P_rig = np.stack([c.P for c in rig])
+    poses_by_stamp, errs, stamps, k = {}, [], [], 0
+    while frames is None or k < frames:
+        images = {name: cap.read() for name, cap in caps.items()}
+        if not all(ok for ok, _ in images.values()):
+            break
+        stamp = int(round(k * 1e9 / fps))
+        dets = {c.name: ests[c.name].estimate(c, stamp, rects[c.name].rectify(images[c.name][1]))
+                for c in rig}
+        clusters = associate(rig, dets, assoc).clusters
+        rows = [(i, int(c), int(d)) for i, cl in enumerate(clusters) for c, d in cl.members]
+        if rows:
+            which, cam, det = (np.array(x) for x in zip(*rows))
+            kp = np.stack([dets[rig.names[c]].kpts2d[d] for c, d in zip(cam, det)])
+            sc = np.array([dets[rig.names[c]].scores[d] for c, d in zip(cam, det)])
+            poses, e = dm.member_reprojection_errors(P_rig, *pad_members(which, cam, kp, sc), tri)
+            joints = convert_joints(np.asarray(poses.joints), out_conv)
+            errs.append(e)
+        else:
+            joints = np.zeros((0, out_conv.num_joints, 3))
+        ids = np.asarray(tracker.update(stamp, joints), np.int64)
+        ids = np.where(ids >= 0, ids, UNTRACKED_ID)
+        poses_by_stamp[stamp] = PoseFrame(stamp, "world", ids, joints, np.zeros(len(ids)),
+                                          np.ones(len(ids)))
+        stamps.append(stamp)
+        k += 1
+    for cap in caps.values():
+        cap.release()
+    people = dm.people_per_frame(stamps, poses_by_stamp)
+    errors = np.concatenate(errs) if errs else np.zeros(0)
+    return {"mode": "offline", "frames": len(stamps), "people_per_frame": people,
+            **dm.reprojection_summary(errors, tri.tau_kps),
+            **dm.bone_length_cv(poses_by_stamp, out_conv),
+            "frontend_stats": {n: e.stats for n, e in ests.items()},
+            "reprojection_definition": dm.REPROJECTION_DEFINITION}
 
 
 def bench_frontend(root: Path, frames: int) -> dict:
@@ -149,6 +222,26 @@ def main(argv: Sequence[str] | None = None) -> int:
               + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
                           for k, v in result.items()))
         print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
+        return 0
+    if a.offline:
+        import json
+        try:
+            report = run_offline(root, a.frames)
+        except ImportError as e:
+            print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
+            return 2
+        a.out.mkdir(parents=True, exist_ok=True)
+        (a.out / "report_offline.json").write_text(json.dumps(report, indent=2))
+        people = report["people_per_frame"]
+        both = sum(p >= 2 for p in people)
+        print(f"offline, {report['frames']} frames: >= 2 people in {both} frames "
+              f"({sum(p == 2 for p in people)} exactly 2); reprojection mean "
+              f"{report['reprojection_px_mean']:.1f} px, median "
+              f"{report['reprojection_px_median']:.1f} px, under tau_kps "
+              f"{report['reprojection_px_mean_inliers']:.1f} px; bone length CV mean "
+              f"{100 * (report['bone_length_cv_mean'] or 0):.1f} %, max "
+              f"{100 * (report['bone_length_cv_max'] or 0):.1f} %; wrote "
+              f"{a.out / 'report_offline.json'}")
         return 0
     bag = a.out / "bag"
     if not (bag / "metadata.yaml").is_file():
