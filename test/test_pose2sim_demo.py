@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from maem_ros.tools import bagio
+from maem_ros import bagio
 from maem_ros.tools.make_bag import main as make_bag_main
 
 REPO = Path(__file__).resolve().parents[1]

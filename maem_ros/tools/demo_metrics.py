@@ -17,7 +17,7 @@ from maem_ros.core.skeleton import KeypointConvention
 from maem_ros.core.triangulation import (TriangulationParams, mirror_permutation,
                                          triangulate_members)
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_clusters
-from maem_ros.tools import bagio
+from maem_ros import bagio
 
 CLUSTERS_TOPIC = "/maem/clusters"
 REPROJECTION_DEFINITION = (

@@ -297,10 +297,10 @@ def video_frame_message(reader: VideoReader, t: int, quality: int, stem: str, re
     if frame is None:
         report.skip(f"missing video frame of camera {reader.camera.name}", stem)
         return None
-    ok, data = cv2.imencode(".jpg", frame, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise ValueError(f"video {str(reader.path)!r} frame {stem}: JPEG encoding failed")
-    return bagio.compressed_image_msg(t, reader.camera.name, data.tobytes(), "jpeg")
+    try:
+        return wire.bgr_to_compressed(frame, t, reader.camera.name, quality)
+    except ValueError as e:
+        raise ValueError(f"video {str(reader.path)!r} frame {stem}: {e}") from None
 
 
 def write_frame(w: bagio.BagWriter, src: Sources, cams: Sequence[str], k: int, gt, opts,
