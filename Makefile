@@ -13,9 +13,24 @@ ROS_PKGS := 'ros-jazzy-rclpy[fastrtps]' ros-jazzy-common-interfaces
 # torch is pinned: 2.13.0 is the CPU build; any other spec downloads gigabytes.
 TORCH := torch==2.13.0
 
-.PHONY: venv test demo bench clean
+MEDIAPIPE := mediapipe==0.10.21
+MP_STAMP := $(VENV)/.mediapipe
+
+.PHONY: venv test demo bench clean mediapipe pose2sim-demo
 
 venv: $(STAMP) $(TF2_STAMP)
+
+# The optional mediapipe frontend: its runtime deps as the [mediapipe] extra, the wheel (models
+# included) with --no-deps, as its own requirements pin numpy<2 and opencv-contrib-python. `make
+# test` tries it too; when the wheel cannot be had, the mediapipe tests skip with the reason.
+mediapipe: $(STAMP)
+	$(PY) -m pip install --quiet -e '.[mediapipe]'
+	$(PY) -m pip install --quiet --no-deps $(MEDIAPIPE)
+	touch $(MP_STAMP)
+
+$(MP_STAMP): $(STAMP)
+	-$(MAKE) --no-print-directory mediapipe || echo "make: $(MEDIAPIPE) not installed; its tests will skip"
+	touch $(MP_STAMP)
 
 $(STAMP): setup.cfg setup.py package.xml
 	$(PYTHON) -m venv $(VENV)
@@ -28,11 +43,14 @@ $(TF2_STAMP): $(STAMP) $(TF2_SOURCES)
 	bash ros_msgs/build.sh $(VENV)
 	touch $(TF2_STAMP)
 
-test: $(STAMP) $(TF2_STAMP)
+test: $(STAMP) $(TF2_STAMP) $(MP_STAMP)
 	$(PY) -m pytest -q test
 
 demo: $(STAMP) $(TF2_STAMP)
 	$(VENV)/bin/maem-demo
+
+pose2sim-demo: mediapipe
+	$(VENV)/bin/maem-pose2sim-demo
 
 bench: $(STAMP)
 	$(VENV)/bin/maem-bench

@@ -37,3 +37,24 @@ def scene():
     # max_wait would make the synchroniser treat every camera as dead for one frame
     associate(sc.rig, {c: sc.detections(c, 0) for c in sc.rig.names}, AssociationParams())
     return sc
+
+
+@pytest.fixture(scope="session")
+def pose2sim_demo():
+    """Pose2Sim's Demo_MultiPerson folder (real calibration + videos) from the pose2sim wheel,
+    downloaded into the maem_ros cache once; the test skips when the wheel cannot be had."""
+    from maem_ros.tools.pose2sim_demo import POSE2SIM_VERSION, fetch_demo
+    try:
+        return fetch_demo(timeout_s=300.0)
+    except RuntimeError as e:
+        pytest.skip(f"pose2sim=={POSE2SIM_VERSION} wheel (the real footage) not available: {e}")
+
+
+@pytest.fixture(scope="session")
+def mediapipe_installed():
+    """Skips unless the optional mediapipe wheel is installed (make mediapipe)."""
+    from maem_ros.frontend.mediapipe_pose import import_mediapipe
+    try:
+        return import_mediapipe()
+    except ImportError as e:
+        pytest.skip(str(e))

@@ -364,15 +364,21 @@ class Rig:
     # ---- I/O ----------------------------------------------------------------
     @classmethod
     def load(cls, path: str | Path) -> "Rig":
-        """Load from a rig YAML, a folder of MAEM camera JSONs, or a scene folder with cameras/."""
+        """Load from a rig YAML, a folder of MAEM camera JSONs, a scene folder with cameras/, a
+        Qualisys ``.qca.txt`` or a Pose2Sim ``Calib*.toml`` (core/calibration.py)."""
+        from .calibration import is_calibration_file, read_calibration
+
         p = Path(path)
         if p.is_dir():
             return cls.from_json_folder(p / "cameras" if (p / "cameras").is_dir() else p)
-        if p.suffix.lower() in (".yaml", ".yml"):
-            return cls.from_yaml(p)
         if not p.exists():
             raise ValueError(f"rig {str(p)!r}: no such file or folder")
-        raise ValueError(f"rig {str(p)!r}: expected a .yaml file or a folder of camera JSONs")
+        if p.suffix.lower() in (".yaml", ".yml"):
+            return cls.from_yaml(p)
+        if is_calibration_file(p):
+            return cls(read_calibration(p))
+        raise ValueError(f"rig {str(p)!r}: expected a .yaml file, a folder of camera JSONs, a "
+                         f"Qualisys .qca.txt or a Pose2Sim .toml")
 
     @classmethod
     def from_json_folder(cls, folder: str | Path,

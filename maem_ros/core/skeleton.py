@@ -1,4 +1,9 @@
-"""Keypoint conventions (names, index maps from MHR70) and bone lists for drawing."""
+"""Keypoint conventions (names, index maps from MHR70, name-based conversion) and bones.
+
+mhr70 (SAM 3D Body), sportcenter_13 and coco_17 (subsets of MHR70) and blazepose_33 (MediaPipe
+Pose: its own 33 landmarks, not an MHR70 subset). Conversion between any two goes by joint name
+(``convert``); a target joint the source lacks is a ValueError, never a zero.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -51,11 +56,12 @@ _HAND_BONES = [(f"{s}_wrist", f"{s}_{f}_third_joint") for s in ("left", "right")
 
 @dataclass(frozen=True)
 class KeypointConvention:
-    """A keypoint set: names, the MHR70 index of each, bones as index pairs."""
+    """A keypoint set: names, the MHR70 index of each (None when not an MHR70 subset), bones as
+    index pairs."""
 
     name: str
     names: tuple[str, ...]
-    from_mhr70: tuple[int, ...]
+    from_mhr70: tuple[int, ...] | None
     bones: tuple[tuple[int, int], ...]
 
     @property
@@ -64,9 +70,20 @@ class KeypointConvention:
 
     def select(self, mhr70: np.ndarray, axis: int = -2) -> np.ndarray:
         """Pick this convention's joints out of an MHR70 array along ``axis`` (default: (...,70,D))."""
+        if self.from_mhr70 is None:
+            raise ValueError(f"keypoints: {self.name} is not a subset of mhr70; use convert")
         if mhr70.shape[axis] != 70:
             raise ValueError(f"keypoints: expected 70 MHR70 joints on axis {axis}, got {mhr70.shape[axis]}")
         return np.take(mhr70, self.from_mhr70, axis=axis)
+
+    def indices_in(self, source: "KeypointConvention") -> tuple[int, ...]:
+        """Index in ``source`` of each of this convention's joints (matched by name)."""
+        idx = {n: i for i, n in enumerate(source.names)}
+        missing = [n for n in self.names if n not in idx]
+        if missing:
+            raise ValueError(f"keypoints: cannot convert {source.name} to {self.name}: "
+                             f"{source.name} has no {', '.join(missing)}")
+        return tuple(idx[n] for n in self.names)
 
 
 SPORTCENTER_13_FROM_MHR70 = (0, 5, 6, 7, 8, 62, 41, 9, 10, 11, 12, 13, 14)
@@ -82,7 +99,31 @@ _COCO17_NAMES = tuple(MHR70_NAMES[i] for i in _COCO17_FROM_MHR70)
 COCO_17 = KeypointConvention("coco_17", _COCO17_NAMES, _COCO17_FROM_MHR70,
                              _bones(_COCO17_NAMES, _BODY_BONES))
 
-CONVENTIONS: dict[str, KeypointConvention] = {c.name: c for c in (MHR70, SPORTCENTER_13, COCO_17)}
+#: MediaPipe Pose (BlazePose) landmark order, as mp.solutions.pose.PoseLandmark
+BLAZEPOSE_33_NAMES: tuple[str, ...] = (
+    "nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
+    "right_eye_outer", "left_ear", "right_ear", "mouth_left", "mouth_right",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "left_pinky", "right_pinky", "left_index", "right_index", "left_thumb", "right_thumb",
+    "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+    "left_heel", "right_heel", "left_foot_index", "right_foot_index")
+#: mp.solutions.pose.POSE_CONNECTIONS
+_BLAZEPOSE_BONES = (
+    [("nose", "left_eye_inner"), ("left_eye_inner", "left_eye"), ("left_eye", "left_eye_outer"),
+     ("left_eye_outer", "left_ear"), ("nose", "right_eye_inner"),
+     ("right_eye_inner", "right_eye"), ("right_eye", "right_eye_outer"),
+     ("right_eye_outer", "right_ear"), ("mouth_left", "mouth_right"),
+     ("left_shoulder", "right_shoulder"), ("left_shoulder", "left_hip"),
+     ("right_shoulder", "right_hip"), ("left_hip", "right_hip")]
+    + [(f"{s}_{a}", f"{s}_{b}") for s in ("left", "right") for a, b in (
+        ("shoulder", "elbow"), ("elbow", "wrist"), ("wrist", "pinky"), ("wrist", "index"),
+        ("wrist", "thumb"), ("pinky", "index"), ("hip", "knee"), ("knee", "ankle"),
+        ("ankle", "heel"), ("heel", "foot_index"), ("ankle", "foot_index"))])
+BLAZEPOSE_33 = KeypointConvention("blazepose_33", BLAZEPOSE_33_NAMES, None,
+                                  _bones(BLAZEPOSE_33_NAMES, _BLAZEPOSE_BONES))
+
+CONVENTIONS: dict[str, KeypointConvention] = {
+    c.name: c for c in (MHR70, SPORTCENTER_13, COCO_17, BLAZEPOSE_33)}
 
 
 def get_convention(name: str) -> KeypointConvention:
@@ -117,8 +158,9 @@ def convert(joints: np.ndarray, target: KeypointConvention, source: str | None =
     """(...,J,D) keypoints in convention ``source`` (default: the one with J joints) -> target.
 
     The one keypoint-convention conversion: identity when the source is the target (or has
-    its joint count and no name is given), MHR70 -> any convention by its index map;
-    ValueError naming both conventions otherwise.
+    its joint count and no name is given), MHR70 -> any convention by its index map, any
+    other pair by joint name (e.g. blazepose_33 -> sportcenter_13); ValueError naming both
+    conventions when the source lacks one of the target's joints.
     """
     j = joints.shape[-2]
     if source is None:
@@ -131,9 +173,13 @@ def convert(joints: np.ndarray, target: KeypointConvention, source: str | None =
                              f"{target.name}") from None
     if source == target.name and j == target.num_joints:
         return joints
-    if source == MHR70.name and j == MHR70.num_joints:
+    if source == MHR70.name and j == MHR70.num_joints and target.from_mhr70 is not None:
         return target.select(joints)
-    raise ValueError(f"keypoints: cannot map {j} joints (convention {source!r}) to {target.name}")
+    src = get_convention(source)
+    if j != src.num_joints:
+        raise ValueError(f"keypoints: cannot map {j} joints (convention {source!r}, "
+                         f"{src.num_joints} joints) to {target.name}")
+    return np.take(joints, target.indices_in(src), axis=-2)
 
 
 def joint_subset(spec: object, num_joints: int | None) -> np.ndarray | None:

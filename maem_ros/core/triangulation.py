@@ -7,12 +7,20 @@ through ``Camera.P``) is below ``tau_kps``; the best hypothesis has the most inl
 the best hypothesis with a detection-score-weighted DLT. Fewer than ``min_views`` usable
 inlier views (non-finite 2D input is unusable) -> NaN.
 
+Beyond the paper (``left_right``, default off): monocular estimators such as BlazePose label a
+person seen from behind as seen from the front, so one view's left and right joints are swapped.
+Before the RANSAC, each cluster picks the left/right labelling of its views (one flip bit per
+view, every combination tried) that minimises the summed median two-view reprojection residual
+over all its view pairs; of two equally good labellings (all bits inverted) the one that flips
+the lower-scored views is kept.
+
 Everything is batched: all clusters, view pairs and joints are solved in array
 operations, with the 3x3 normal equations of the DLT solved in closed form (numpy's
 per-matrix SVD/LAPACK calls cost ~2 us each, far too slow for ~10^4 small systems).
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Mapping, Sequence
 
@@ -35,6 +43,8 @@ class TriangulationParams(Params):
     tau_kps: float = param(20.0, "px, keypoint inlier threshold (rectified image)", minimum=0.0,
                            exclusive_minimum=True)
     min_views: int = param(2, "inlier views needed per keypoint", minimum=2)
+    left_right: bool = param(False, "relabel each cluster's views left/right consistently before "
+                                    "the RANSAC (monocular left/right swaps; off = the paper)")
 
 
 @dataclass
@@ -43,13 +53,15 @@ class Poses:
 
     joints (P,J,3) world metres (NaN = missing); views (P,) member views per cluster;
     inliers (P,J) inlier views used per joint (0 where NaN); scores (P,) mean detection
-    score of the members.
+    score of the members; mirrored (P,M) True where member m's left/right labels were swapped
+    (``left_right``; member order of the cluster, M = most members of any cluster), else None.
     """
 
     joints: np.ndarray
     views: np.ndarray
     inliers: np.ndarray
     scores: np.ndarray
+    mirrored: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.joints.shape[0])
@@ -132,6 +144,10 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
         return Poses(np.zeros((0, J, 3)), np.zeros(0, np.int64), np.zeros((0, J), np.int64),
                      np.zeros(0))
     P = P_rig[cam]  # (C,M,3,4)
+    mirrored = None
+    if params.left_right:
+        mirrored = consistent_left_right(P, uv, score, present, mirror_permutation(J))
+        uv = np.where(mirrored[:, :, None, None], uv[:, :, mirror_permutation(J)], uv)
     usable = present[:, :, None] & np.isfinite(uv).all(-1)  # (C,M,J)
     weight = np.maximum(score, _MIN_WEIGHT)
 
@@ -157,7 +173,65 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
     X = np.where(ok[..., None], X, np.nan)
     n_inl = np.where(np.isfinite(X).all(-1), n_inl, 0)
     mean_score = (score * present).sum(1) / np.maximum(present.sum(1), 1)
-    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), mean_score)
+    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), mean_score,
+                 mirrored)
+
+
+def mirror_permutation(num_joints: int) -> np.ndarray:
+    """(J,) joint index of each joint's left/right counterpart (itself when central), for the
+    keypoint convention with ``num_joints`` joints (core.skeleton); ValueError when none."""
+    from .skeleton import convention_for
+    names = convention_for(num_joints).names
+    idx = {n: i for i, n in enumerate(names)}
+    swap = lambda n: n.replace("left", "\0").replace("right", "left").replace("\0", "right")  # noqa: E731
+    return np.array([idx.get(swap(n), i) for i, n in enumerate(names)], dtype=np.int64)
+
+
+#: views per cluster up to which every left/right labelling is tried (2^(M-1) combinations)
+_MAX_LR_VIEWS = 12
+
+
+def consistent_left_right(P: np.ndarray, uv: np.ndarray, score: np.ndarray, present: np.ndarray,
+                          mirror: np.ndarray) -> np.ndarray:
+    """(C,M) bool: which views of each cluster to relabel (swap left and right) for consistency.
+
+    Pair residual r(a, b) = median over joints of the two-view DLT reprojection error (mean of
+    the two views), for the pair as given and with a's labels mirrored; a labelling s (C,M) of
+    flip bits costs sum over present pairs of r_same where s_a == s_b else r_flip.
+    """
+    C, M, J, _ = uv.shape
+    if M > _MAX_LR_VIEWS or J == 0:
+        return np.zeros((C, M), bool)
+    uvm = uv[:, :, mirror]
+    ia, ib = np.triu_indices(M, 1)
+    pair = present[:, ia] & present[:, ib]  # (C,Q)
+    r = []
+    for first in (uv, uvm):
+        use = np.isfinite(first[:, ia]).all(-1) & np.isfinite(uv[:, ib]).all(-1)  # (C,Q,J)
+        Ea = normal_entries(P[:, ia, None], first[:, ia], use)
+        Eb = normal_entries(P[:, ib, None], uv[:, ib], use)
+        X = solve_normal(Ea + Eb)  # (C,Q,J,3)
+        # each pair as a one-view, one-hypothesis "cluster" of reprojection_error
+        Q = len(ia)
+        flat = lambda a: a.reshape(C * Q, 1, *a.shape[2:])  # noqa: E731
+        ea = reprojection_error(flat(P[:, ia]), flat(X), flat(first[:, ia])).reshape(C, Q, J)
+        eb = reprojection_error(flat(P[:, ib]), flat(X), flat(uv[:, ib])).reshape(C, Q, J)
+        e = np.where(use & np.isfinite(ea) & np.isfinite(eb), 0.5 * (ea + eb), np.nan)
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pairs: no evidence
+            med = np.nanmedian(e, axis=-1)
+        r.append(np.where(pair & np.isfinite(med), med, 0.0))
+    r_same, r_flip = r  # (C,Q)
+    # every labelling with view 0 unflipped; its complement is the same geometry
+    bits = (np.arange(2 ** (M - 1))[:, None] >> np.arange(M - 1)[None]) & 1
+    labels = np.concatenate([np.zeros((len(bits), 1), np.int64), bits], axis=1).astype(bool)
+    differ = labels[:, ia] != labels[:, ib]  # (A,Q)
+    cost = np.where(differ[None], r_flip[:, None], r_same[:, None]).sum(-1)  # (C,A)
+    best = labels[np.argmin(cost, axis=1)] & present  # (C,M)
+    # flip the less confident side: the complement when it flips less total score
+    flipped_score = (score * best).sum(1)
+    other = ~best & present
+    return np.where(((score * other).sum(1) < flipped_score)[:, None], other, best)
 
 
 def _num_joints(frames: Mapping[str, FrameDetections]) -> int:

@@ -4,6 +4,8 @@ Backends (``make_estimator(backend, options, rig)``):
   synthetic   the simulator's detection-noise model on a regenerated sim scene (no image needed)
   npz         precomputed SAM 3D Body outputs in the MAEM authors' npz layout (no image needed)
   sam3d_body  the official SAM 3D Body model (needs images; imported lazily)
+  mediapipe   multi-person BlazePose-33 from the mediapipe wheel, CPU, no mesh (V = 0; optional
+              extra, imported lazily)
 
 Options common to every backend:
   vertex_stride (int, default 1)  keep every n-th mesh vertex of verts2d (bandwidth / CPU).
@@ -59,6 +61,7 @@ _BACKENDS: dict[str, str | Callable[[Mapping[str, Any], Rig], Estimator]] = {
     "synthetic": "maem_ros.frontend.synthetic:SyntheticEstimator",
     "npz": "maem_ros.frontend.npz:NpzEstimator",
     "sam3d_body": "maem_ros.frontend.sam3d_body:Sam3dBodyEstimator",
+    "mediapipe": "maem_ros.frontend.mediapipe_pose:MediapipeEstimator",
 }
 
 
@@ -119,6 +122,16 @@ def option_float(options: Mapping[str, Any], key: str, default: float, positive:
         raise ValueError(f"frontend option {key!r}: expected a finite{' positive' if positive else ''} "
                          f"number, got {value!r}")
     return out
+
+
+def check_bgr_image(image: Any, backend: str, camera: str) -> np.ndarray:
+    """``image`` when it is a BGR uint8 (H,W,3) array, else ValueError naming backend and camera."""
+    if image is None or not isinstance(image, np.ndarray) or image.ndim != 3 \
+            or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise ValueError(f"{backend} backend: camera {camera!r}: expected a BGR uint8 "
+                         f"(H,W,3) image, got {getattr(image, 'shape', type(image).__name__)} "
+                         f"{getattr(image, 'dtype', '')}")
+    return image
 
 
 def make_estimator(backend: str, options: Mapping[str, Any], rig: Rig) -> Estimator:

@@ -56,7 +56,7 @@ import numpy as np
 from ..core.camera import Camera, Rig
 from ..core.detections import FrameDetections
 from ..core.skeleton import KeypointConvention, get_convention
-from .base import Estimator, option_float
+from .base import Estimator, check_bgr_image, option_float
 from .rectify import Rectifier
 
 log = logging.getLogger(__name__)
@@ -163,11 +163,7 @@ class Sam3dBodyEstimator(Estimator):
     # ---- per frame ------------------------------------------------------------------------
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image (raw with option ``rectify``) -> detections."""
-        if image is None or not isinstance(image, np.ndarray) or image.ndim != 3 \
-                or image.shape[2] != 3 or image.dtype != np.uint8:
-            raise ValueError(f"sam3d_body backend: camera {camera.name!r}: expected a BGR uint8 "
-                             f"(H,W,3) image, got {getattr(image, 'shape', type(image).__name__)} "
-                             f"{getattr(image, 'dtype', '')}")
+        check_bgr_image(image, "sam3d_body", camera.name)
         rect = self.rectifier(camera)
         if self.rectify:
             image = rect.rectify(image)

@@ -39,7 +39,7 @@ class FrontendNodeParams(NodeParams):
     camera: str = param("", "camera name = rig key = frame_id (default: last namespace component)")
     rig: str = param("", "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)")
     backend: str = param("synthetic", "estimator backend",
-                         choices=("synthetic", "npz", "sam3d_body"))
+                         choices=("synthetic", "npz", "sam3d_body", "mediapipe"))
     image_transport: str = param("raw", "subscribe image_raw (raw) or image_raw/compressed",
                                  choices=("raw", "compressed"))
     publish_overlay: bool = param(False, "also publish detections/overlay (rectified image + "
@@ -84,14 +84,33 @@ class FrontendNodeParams(NodeParams):
     bbox_thr: float = param(0.5, "sam3d_body: detector score threshold", minimum=0.0)
     inference_type: str = param("full", "sam3d_body: full (body + hands) or body",
                                 choices=("full", "body"))
-    keypoint_convention: str = param("mhr70", "sam3d_body: keypoints published",
-                                     choices=("mhr70", "sportcenter_13", "coco_17"))
+    keypoint_convention: str = param(
+        "", "sam3d_body / mediapipe: keypoints published ('' = the backend's own: mhr70 / "
+        "blazepose_33)", choices=("", "mhr70", "sportcenter_13", "coco_17", "blazepose_33"))
+    # mediapipe backend (frontend/mediapipe_pose.py)
+    max_people: int = param(4, "mediapipe: people searched per image (one model pass each)",
+                            minimum=1)
+    min_detection_confidence: float = param(0.5, "mediapipe: BlazePose detector threshold",
+                                            minimum=0.0, maximum=1.0)
+    min_bbox_height: float = param(0.0, "mediapipe: px, smaller people are dropped", minimum=0.0)
+    mask_threshold: float = param(0.5, "mediapipe: segmentation probability of the person",
+                                  minimum=0.0, maximum=1.0)
+    mask_dilate: int = param(15, "mediapipe: px grown around a found person before masking it",
+                             minimum=0)
+    duplicate_overlap: float = param(0.6, "mediapipe: landmark fraction inside earlier people's "
+                                          "masks that makes a detection a duplicate",
+                                     minimum=0.0, maximum=1.0)
+    pnp_min_visibility: float = param(0.5, "mediapipe: landmark visibility used to place the 3D "
+                                           "pose in the camera", minimum=0.0, maximum=1.0)
 
 
 PARAMS = FrontendNodeParams.specs()
 
 SAM3D_KEYS = ("checkpoint_path", "mhr_path", "hf_repo_id", "repo_path", "device", "precision",
               "detector", "bbox_thr", "inference_type", "keypoint_convention")
+MEDIAPIPE_KEYS = ("keypoint_convention", "max_people", "min_detection_confidence",
+                  "min_bbox_height", "mask_threshold", "mask_dilate", "duplicate_overlap",
+                  "pnp_min_visibility")
 
 
 def backend_options(p: dict[str, Any]) -> dict[str, Any]:
@@ -108,6 +127,8 @@ def backend_options(p: dict[str, Any]) -> dict[str, Any]:
         opts.pop("rig")
     if p["backend"] == "sam3d_body":
         opts.update({key: p[key] for key in SAM3D_KEYS})
+    if p["backend"] == "mediapipe":
+        opts.update({key: p[key] for key in MEDIAPIPE_KEYS})
     return opts
 
 

@@ -3,6 +3,7 @@
     maem-demo [--bag bags/demo] [--out out/demo] [--frames N | --duration S] [--rate R]
               [--params config/demo.yaml] [--keep-going] [--frontends | --no-graph]
     maem-demo --make-bag bags/demo        (regenerate the committed demo bag, seeded)
+    maem-demo --bag BAG --backend mediapipe --out out/real   (real images, e.g. maem-make-bag --videos)
 
 Graph mode (default) runs, each as its own process with one params file (OUT/params.yaml:
 --params plus what the bag says, i.e. its rig): maem-record (/maem/poses, /maem/skeletons,
@@ -20,6 +21,13 @@ Printed: the maem-eval accuracy table against the bag's /maem/gt_poses (same met
 maem-eval --help), per-stage timing from the last recorded /diagnostics of each node,
 end-to-end latency and frames dropped. Written to OUT: report.json, snapshot_<cam>.png
 (skeletons projected on a camera image), court.png (top-down view), logs/, record/.
+report.json also has people_per_frame (people on /maem/poses per played frame),
+reprojection_px_mean (see demo_metrics.REPROJECTION_DEFINITION) and bone_length_cv.
+
+--backend mediapipe runs the frontends on the bag's images with multi-person BlazePose (the
+optional mediapipe extra; default params config/mediapipe.yaml, default rate 1/120: one bag
+frame of a 60 fps capture every 2 s, as four CPU frontends take 0.3-2.5 s per image each). A bag
+without ground truth is reported without the accuracy table.
 """
 from __future__ import annotations
 
@@ -63,7 +71,12 @@ DEFAULT_RATE = 1.0
 #: same moment and share 2 cores with the rest of the machine (0.2-0.4 s per frame here), so
 #: faster replays drop frames
 FRONTENDS_RATE = 0.05
-RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/diagnostics")
+#: --backend -> (default params file, default playback rate with frontends (None: FRONTENDS_RATE),
+#: association max_wait s). mediapipe: four CPU frontends at 0.3-2.5 s per image (machine load)
+#: share 2 cores, so one 60 fps frame is played every 2 s and the association waits up to 3 s
+#: for a frame's last camera
+BACKENDS = {"synthetic": ("demo.yaml", None, 1.0), "mediapipe": ("mediapipe.yaml", 1.0 / 120.0, 3.0)}
+RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/maem/clusters", "/diagnostics")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -86,11 +99,13 @@ def node_section(data: dict, node: str) -> dict:
 
 
 def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None,
-                 max_wait_s: float | None = 1.0, frontends: bool = True) -> Path:
+                 max_wait_s: float | None = 1.0, frontends: bool = True,
+                 backend: str | None = None) -> Path:
     """``base`` params file with the bag's rig for every node; with ``frontends``, for them
     compressed images and the bag's scene description (the synthetic backend regenerates from
     it); for the association ``max_wait_s`` (s, None = the params file's; the six frontends
-    share the CPU, so one frame's detections arrive spread over a few hundred ms)."""
+    share the CPU, so one frame's detections arrive spread over a few hundred ms); ``backend``
+    replaces the frontends' backend."""
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
     nodes = {name: node_section(data, name)
              for name in ("frontend", "association", "triangulation")}
@@ -100,6 +115,8 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
             section["rig"] = str(rig_path)
     fe = nodes["frontend"]
     fe["image_transport"] = "compressed"
+    if backend is not None:
+        fe["backend"] = backend
     if frontends and fe.get("backend", "synthetic") == "synthetic":
         if scene_config is None:
             raise ValueError("the bag has no scene description (/maem/scene): the synthetic "
@@ -356,14 +373,19 @@ def build_parser() -> argparse.ArgumentParser:
                    "missing; --make-bag DIR builds one elsewhere)")
     p.add_argument("--out", type=Path, default=Path("out/demo"),
                    help="output folder (default out/demo)")
-    p.add_argument("--params", default="demo.yaml", help="params file (default config/demo.yaml)")
+    p.add_argument("--params", default=None,
+                   help="params file (default config/demo.yaml; config/mediapipe.yaml with "
+                   "--backend mediapipe)")
+    p.add_argument("--backend", choices=sorted(BACKENDS), default="synthetic",
+                   help="frontend backend of the graph (default synthetic: the simulated "
+                   "detections of the bag's scene; mediapipe: BlazePose on the bag's images)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--frames", type=int, default=None, help="play only the first N frames")
     g.add_argument("--duration", type=float, default=None, metavar="S",
                    help="play only the first S seconds of bag time")
     p.add_argument("--rate", type=float, default=None,
                    help=f"playback rate (default {DEFAULT_RATE}, with --frontends "
-                        f"{FRONTENDS_RATE}; the bag is 30 fps)")
+                        f"{FRONTENDS_RATE}; the bag is 30 fps; 1/120 with --backend mediapipe)")
     p.add_argument("--keep-going", action="store_true",
                    help="finish the replay when a node crashes (reported at the end, exit 1)")
     mode = p.add_mutually_exclusive_group()
@@ -406,7 +428,15 @@ def prepare_out(out: Path) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
+    p = build_parser()
+    a = p.parse_args(argv)
+    if a.backend != "synthetic":
+        if a.no_graph:
+            p.error(f"--backend {a.backend} runs frontends on the bag's images; --no-graph has none")
+        a.frontends = True  # only the frontends see images
+    a.params = a.params or BACKENDS[a.backend][0]
+    if a.rate is None and a.frontends:
+        a.rate = BACKENDS[a.backend][1]
     if a.make_bag is not None:
         try:
             make_demo_bag(a.make_bag, frames=a.bag_frames)
@@ -448,24 +478,30 @@ def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
 def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: list[int]
                ) -> tuple[int, dict[int, Any], dict[str, Any]]:
     """The node graph replay: (exit code, recorded poses by stamp, report entries)."""
-    if a.frontends:
+    if a.frontends and a.backend == "synthetic":
         check_scene(demo)
-    elif not any(f"/{c}/detections" in demo.info.topics for c in demo.cameras):
+    elif not a.frontends and not any(f"/{c}/detections" in demo.info.topics for c in demo.cameras):
         raise ValueError(f"bag {str(demo.path)!r}: no recorded /<camera>/detections to play "
                          f"(use --frontends to run the synthetic frontends on its images)")
     n = len(stamps)
     play_bag = demo.path if n == len(demo.stamps) else trim_bag(demo, a.out / "input", n)
     params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(), demo.scene_config,
-                          max_wait_s=1.0 if a.frontends else None, frontends=a.frontends)
+                          max_wait_s=BACKENDS[a.backend][2] if a.frontends else None,
+                          frontends=a.frontends, backend=a.backend if a.frontends else None)
     run = run_graph(play_bag, demo, stamps, params, a.out, a.rate, a.keep_going,
                     startup_timeout_s=a.startup_timeout, frontends=a.frontends)
     poses = recorded_poses(run.record)
     diags = recorded_diagnostics(run.record)
-    metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
+    metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()}) \
+        if demo.gt else {}
     assoc = next((kv for name, kv in diags.items() if name.strip("/") == "association"), {})
     metrics["association_ms_median"] = float(assoc.get("time_ms/associate/median", "nan"))
-    print_accuracy("graph (maem-play -> frontends -> nodes)" if a.frontends
-                   else "graph (maem-play detections -> nodes)", metrics)
+    if demo.gt:
+        print_accuracy("graph (maem-play -> frontends -> nodes)" if a.frontends
+                       else "graph (maem-play detections -> nodes)", metrics)
+    else:
+        print("\nthe bag has no ground truth (/maem/gt_poses): no accuracy table")
+    quality = real_capture_measures(run.record, Rig.load(rig_path), params, stamps, poses)
     rows = stage_timing(diags)
     print("\nper-stage timing (last /diagnostics of each node, over its last <= 200 frames):")
     print(format_timing(rows) if rows else "  no /diagnostics recorded")
@@ -480,7 +516,7 @@ def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: lis
                                    "dropped"), r)) for r in rows],
               "latency_ms_median": float(np.median(lat)) if len(lat) else None,
               "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
-              "frames_dropped": len(dropped), "exit_codes": run.exit_codes,
+              "frames_dropped": len(dropped), "exit_codes": run.exit_codes, **quality,
               "crashed": run.crashed, "record": str(run.record), "replay_wall_s": run.wall_s}
     if run.crashed:
         print("\nNODE FAILURES:")
@@ -500,6 +536,35 @@ def open_demo_bag(a: argparse.Namespace) -> DemoBag:
         raise InputError(str(e), "bad_bag") from None
 
 
+def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence[int],
+                          poses: dict[int, Any]) -> dict[str, Any]:
+    """people_per_frame, reprojection and bone-length stability of the recorded run (printed)."""
+    from maem_ros.core.skeleton import get_convention
+    from maem_ros.params import load_node_params
+    from maem_ros.tools import demo_metrics as dm
+    _, tri = load_params(str(params))
+    conv = get_convention(load_node_params(params, "triangulation")
+                          .get("output_convention", "sportcenter_13"))
+    people = dm.people_per_frame(stamps, poses)
+    reproj = dm.reprojection_summary(dm.reprojection_errors(record, rig, tri, stamps), tri.tau_kps)
+    bones = dm.bone_length_cv(poses, conv)
+    counts = np.bincount(people) if people else np.zeros(1, int)
+    print("\npeople per frame (/maem/poses): " + ", ".join(
+        f"{k}: {c} frames" for k, c in enumerate(counts) if c))
+    if reproj["reprojection_pairs"]:
+        print(f"reprojection error of the triangulated joints in their clusters' views: mean "
+              f"{reproj['reprojection_px_mean']:.1f} px, median "
+              f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
+              f"{reproj['reprojection_px_mean_inliers']:.1f} px "
+              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "
+              f"{reproj['reprojection_pairs']} joint-views)")
+    if bones["bone_length_cv"]:
+        print(f"bone length coefficient of variation over {bones['bone_length_tracks']} tracks: "
+              + ", ".join(f"{b} {100 * v:.1f} %" for b, v in bones["bone_length_cv"].items()))
+    return {"people_per_frame": people, **reproj, **bones,
+            "reprojection_definition": dm.REPROJECTION_DEFINITION}
+
+
 def run_demo(a: argparse.Namespace, t_start: float) -> int:
     load_node_params(a.params, "association")  # a bad params file: one line before any work
     demo = open_demo_bag(a)
@@ -516,7 +581,8 @@ def run_demo(a: argparse.Namespace, t_start: float) -> int:
                                                                             stamps)
     code, poses, entries = mode
     pictures = write_pictures(a.out, demo, rig, stamps, poses)
-    report = {"bag": str(bag), "frames_played": len(stamps), "cameras": demo.cameras,
+    report = {"bag": str(bag), "backend": a.backend, "frames_played": len(stamps),
+              "cameras": demo.cameras,
               "mode": "offline" if a.no_graph else "graph", "rate": a.rate, **entries,
               "pictures": [str(p) for p in pictures], "wall_s": time.monotonic() - t_start}
     (a.out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))

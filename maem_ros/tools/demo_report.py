@@ -177,7 +177,8 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
         tracked = int(pid) != UNTRACKED_ID
         draw(joints, id_bgr8(int(pid)) if tracked else (128, 128, 128), 2,
              f"#{int(pid)}" if tracked else None)
-    title = f"{cam}  stamp {stamp}  white = ground truth, colour = /maem/poses (track id)"
+    title = f"{cam}  stamp {stamp}  " + ("white = ground truth, " if demo.gt else "") + \
+        "colour = /maem/poses (track id)"
     (tw, th), _ = cv2.getTextSize(title, cv2.FONT_HERSHEY_SIMPLEX, 0.8, 2)
     cv2.rectangle(img, (10, 10), (30 + tw, 30 + th), (0, 0, 0), cv2.FILLED)
     cv2.putText(img, title, (20, 20 + th), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2,
@@ -189,13 +190,16 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
 
 def write_pictures(out: Path, demo: DemoBag, rig, stamps: Sequence[int], poses: dict[int, Any]
                    ) -> list[Path]:
-    """snapshot_<cam>.png and court.png at the middle played frame that has poses."""
-    with_poses = [s for s in stamps if s in poses and s in demo.gt]
+    """snapshot_<cam>.png and court.png at the middle played frame that has poses (and ground
+    truth, when the bag has any; a bag without it, e.g. a real capture, gets a snapshot of every
+    camera)."""
+    with_poses = [s for s in stamps if s in poses and (s in demo.gt or not demo.gt)]
     if not with_poses:
         return []
     stamp = with_poses[len(with_poses) // 2]
     pred = poses[stamp]
-    cam = demo.cameras[0]
+    cams = demo.cameras if not demo.gt else demo.cameras[:1]
     frame = demo.stamps.index(stamp)
-    return [snapshot_png(out / f"snapshot_{cam}.png", demo, rig, cam, stamp, pred),
-            plot_court(out / "court.png", frame, demo.gt[stamp], pred.joints, rig)]
+    gt = demo.gt.get(stamp, np.zeros((0, SPORTCENTER_13.num_joints, 3)))
+    return [snapshot_png(out / f"snapshot_{cam}.png", demo, rig, cam, stamp, pred)
+            for cam in cams] + [plot_court(out / "court.png", frame, gt, pred.joints, rig)]

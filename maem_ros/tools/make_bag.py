@@ -1,14 +1,19 @@
 """maem-make-bag: build a rosbag2 (MCAP) bag from dataset frames or a maem-sim scene folder.
 
     maem-make-bag OUT --frames-dir DIR --rig RIG --fps F [--dets DIR] [--gt gt.npz] [--start-stamp NS]
+    maem-make-bag OUT --videos DIR --rig CALIB [--fps F] [--jpeg-quality Q] [--start-stamp NS]
     maem-make-bag OUT --scene SCENE_DIR
 
 Per camera <cam> of the rig and frame k (stamp = start + round(k * 1e9 / fps) ns, also the bag
 log time): /<cam>/camera_info, /<cam>/image_raw/compressed (the image file's bytes unchanged,
-format "jpeg"/"png"), /<cam>/detections (MAEM npz -> rectified detections, DESIGN §4 layout);
+format "jpeg"/"png"; from --videos, frame k of
+<cam>.mp4|avi|mov|mkv decoded and JPEG-encoded at --jpeg-quality), /<cam>/detections (MAEM npz -> rectified detections, DESIGN §4 layout);
 per frame /maem/gt_poses (Poses layout, id = GT person index, NaN = masked joint, views 0,
 score 1). A scene folder adds its scene.json as a latched /maem/scene std_msgs/String at the first
 stamp and in metadata custom_data (``maem.scene``); the rig YAML is stored as ``maem.rig``.
+--rig takes a rig YAML, a folder of MAEM camera JSONs, a Qualisys .qca.txt, a Pose2Sim Calib*.toml
+or a shipped rig name; video files are matched to its camera names by file stem, and every
+video frame must have the calibration's size (a rotated or rescaled video is an error, exit 2).
 """
 from __future__ import annotations
 
@@ -34,6 +39,8 @@ from maem_ros.ros import wire
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 IMAGE_FORMATS = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
+DEFAULT_JPEG_QUALITY = 90
 GT_FRAME_ID = "world"
 
 
@@ -58,6 +65,7 @@ class Sources:
     dets_dir: Path | None = None
     gt_path: Path | None = None
     scene: dict | None = None
+    videos: dict[str, Path] = field(default_factory=dict)  # camera -> video file
 
 
 @dataclass
@@ -127,6 +135,78 @@ def sources_from_scene(root: Path, report: Report) -> Sources:
                    root / "gt.npz" if folder.has_gt else None, folder.info or None)
 
 
+def video_files(videos_dir: Path, rig: Rig, report: Report) -> dict[str, Path]:
+    """camera -> <camera>.mp4|avi|mov|mkv in ``videos_dir``; videos not in the rig skipped."""
+    out: dict[str, Path] = {}
+    for f in sorted(videos_dir.iterdir(), key=lambda f: natural_key(f.name)):
+        if not (f.is_file() and f.suffix.lower() in VIDEO_SUFFIXES):
+            continue
+        if f.stem not in rig:
+            warn(f"video {str(f)!r}: camera {f.stem!r} has no calibration in the rig "
+                 f"(known: {rig.names}); skipped")
+            report.skip("video without calibration", f.name)
+        elif f.stem in out:
+            raise ValueError(f"--videos {str(videos_dir)!r}: two videos for camera {f.stem!r} "
+                             f"({out[f.stem].name}, {f.name})")
+        else:
+            out[f.stem] = f
+    return out
+
+
+class VideoReader:
+    """Sequential frames of one camera's video, checked against its calibrated size."""
+
+    def __init__(self, path: Path, camera: Camera):
+        self.path, self.camera = path, camera
+        self.cap = cv2.VideoCapture(str(path))
+        if not self.cap.isOpened():
+            raise ValueError(f"video {str(path)!r}: cannot be opened (not a video OpenCV decodes)")
+        self.frames = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.fps = float(self.cap.get(cv2.CAP_PROP_FPS))
+        w = int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        h = int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        if (w, h) != (camera.width, camera.height):
+            self.cap.release()
+            raise ValueError(f"video {str(path)!r}: frames are {w}x{h} but camera "
+                             f"{camera.name!r} is calibrated at {camera.width}x{camera.height}")
+
+    def read(self) -> np.ndarray | None:
+        """The next frame (BGR), None at the end or when it cannot be decoded."""
+        ok, frame = self.cap.read()
+        return frame if ok else None
+
+    def close(self) -> None:
+        self.cap.release()
+
+
+def sources_from_videos(videos_dir: Path, rig_path: str, fps: float | None, start_ns: int,
+                        report: Report) -> Sources:
+    """One video per rig camera; frame k of every video is frame k of the bag."""
+    if not videos_dir.is_dir():
+        raise ValueError(f"--videos {str(videos_dir)!r}: no such folder")
+    rig = Rig.load(rig_path)
+    videos = video_files(videos_dir, rig, report)
+    if not videos:
+        raise ValueError(f"--videos {str(videos_dir)!r}: no <camera>{'|'.join(VIDEO_SUFFIXES)} "
+                         f"named after the rig's cameras {rig.names}")
+    readers = [VideoReader(path, rig[cam]) for cam, path in videos.items()]
+    for r in readers:
+        r.close()
+    rates = {r.path.name: r.fps for r in readers}
+    if fps is None:
+        good = [f for f in rates.values() if f > 0]
+        if not good:
+            raise ValueError(f"--videos {str(videos_dir)!r}: the videos give no frame rate; pass --fps")
+        fps = float(np.median(good))
+    if any(f > 0 and abs(f - fps) > 0.01 * fps for f in rates.values()):
+        warn(f"video frame rates {rates} differ from the bag's {fps:g} fps; frame k of every "
+             f"video gets stamp start + k / {fps:g} s")
+    num = max(r.frames for r in readers)
+    if num <= 0:
+        raise ValueError(f"--videos {str(videos_dir)!r}: the videos report no frames")
+    return Sources(rig, fps, start_ns, [f"{k:06d}" for k in range(num)], {}, videos=videos)
+
+
 # ---- per-message helpers ---------------------------------------------------------------------
 def stamp_ns(start_ns: int, fps: float, k: int) -> int:
     """Frame k's stamp (same rounding as SceneFolder.stamp_ns)."""
@@ -188,7 +268,7 @@ def active_cameras(src: Sources, report: Report) -> list[str]:
     cams = []
     for cam in src.rig.names:
         has_dets = src.dets_dir is not None and (src.dets_dir / cam).is_dir()
-        if cam in src.images or has_dets:
+        if cam in src.images or cam in src.videos or has_dets:
             cams.append(cam)
         else:
             report.skip("rig camera without images or detections", cam)
@@ -211,13 +291,29 @@ def load_gt(src: Sources, report: Report) -> tuple[np.ndarray, np.ndarray, str] 
     return pose, mask, convention
 
 
+def video_frame_message(reader: VideoReader, t: int, quality: int, stem: str, report: Report):
+    """The reader's next frame as a JPEG CompressedImage, None (reported) past its end."""
+    frame = reader.read()
+    if frame is None:
+        report.skip(f"missing video frame of camera {reader.camera.name}", stem)
+        return None
+    try:
+        return wire.bgr_to_compressed(frame, t, reader.camera.name, quality)
+    except ValueError as e:
+        raise ValueError(f"video {str(reader.path)!r} frame {stem}: {e}") from None
+
+
 def write_frame(w: bagio.BagWriter, src: Sources, cams: Sequence[str], k: int, gt, opts,
-                report: Report) -> None:
+                report: Report, readers: dict[str, VideoReader] | None = None) -> None:
     """All messages of frame k: per camera camera_info, image, detections; then GT."""
     stem, t = src.frames[k], stamp_ns(src.start_ns, src.fps, k)
     for cam in cams:
         camera = src.rig[cam]
         msgs = []
+        if readers and cam in readers:
+            msg = video_frame_message(readers[cam], t, opts.jpeg_quality, stem, report)
+            if msg is not None:
+                msgs.append((f"/{cam}/image_raw/compressed", msg))
         img = src.images.get(cam, {}).get(stem)
         if cam in src.images:
             if img is None:
@@ -255,6 +351,8 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
     if not cams:
         raise ValueError("no camera has both a calibration and images or detections")
     gt = load_gt(src, report)
+    readers = {cam: VideoReader(path, src.rig[cam]) for cam, path in src.videos.items()
+               if cam in cams}
     w = bagio.BagWriter(out, compress=opts.compress)
     try:
         w.set_custom(bagio.CUSTOM_RIG, rig_yaml(src.rig))
@@ -270,9 +368,11 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
                 src.start_ns, bagio.QOS_LATCHED)
         for k in tqdm(range(len(src.frames)), desc="maem-make-bag", unit="frame",
                       disable=opts.quiet):
-            write_frame(w, src, cams, k, gt, opts, report)
+            write_frame(w, src, cams, k, gt, opts, report, readers)
     finally:
         w.close()
+        for r in readers.values():
+            r.close()
     return w
 
 
@@ -286,8 +386,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scene", type=Path, help="maem-sim scene folder (uses its cameras/, images/, "
                    "dets/, gt.npz, scene.json)")
     p.add_argument("--frames-dir", type=Path, help="folder of <camera>/*.jpg|png image folders")
-    p.add_argument("--rig", help="rig YAML, folder of MAEM camera JSONs, or shipped rig name")
-    p.add_argument("--fps", type=float, help="frame rate for the stamps (frame k at start + k/fps)")
+    p.add_argument("--videos", type=Path, help="folder of one video per camera, "
+                   "<camera>.mp4|avi|mov|mkv (camera = name in --rig)")
+    p.add_argument("--rig", help="rig YAML, folder of MAEM camera JSONs, Qualisys .qca.txt, "
+                   "Pose2Sim Calib*.toml, or shipped rig name")
+    p.add_argument("--fps", type=float, help="frame rate for the stamps (frame k at start + k/fps; "
+                   "with --videos default: the videos' rate)")
+    p.add_argument("--jpeg-quality", type=int, default=DEFAULT_JPEG_QUALITY, metavar="Q",
+                   help=f"JPEG quality of --videos frames (default {DEFAULT_JPEG_QUALITY})")
     p.add_argument("--dets", type=Path, help="MAEM npz folder dets/<camera>/<frame>.npz")
     p.add_argument("--gt", type=Path, help="xrmocap keypoints3d gt.npz (row k = frame k)")
     p.add_argument("--start-stamp", type=int, default=None, metavar="NS",
@@ -301,18 +407,29 @@ def build_parser() -> argparse.ArgumentParser:
 
 def resolve_sources(a: argparse.Namespace, p: argparse.ArgumentParser, report: Report) -> Sources:
     if a.scene is not None:
-        if a.frames_dir or a.rig or a.fps or a.start_stamp is not None:
+        if a.frames_dir or a.videos or a.rig or a.fps or a.start_stamp is not None:
             p.error("--scene takes frames, rig, fps and stamps from the scene folder; do not combine "
                     "it with --frames-dir/--rig/--fps/--start-stamp")
         src = sources_from_scene(a.scene, report)
         src.dets_dir = a.dets or src.dets_dir
         src.gt_path = a.gt or src.gt_path
         return src
-    if not (a.frames_dir and a.rig and a.fps):
-        p.error("give --scene DIR, or --frames-dir, --rig and --fps")
-    if not a.fps > 0:
-        p.error(f"--fps: must be > 0, got {a.fps}")
     from maem_ros.params import resolve_rig_path
+    if a.fps is not None and not a.fps > 0:
+        p.error(f"--fps: must be > 0, got {a.fps}")
+    if a.videos is not None:
+        if a.frames_dir or a.dets or a.gt:
+            p.error("--videos takes the images from the videos; do not combine it with "
+                    "--frames-dir/--dets/--gt")
+        if not a.rig:
+            p.error("--videos needs --rig (the calibration whose camera names the videos carry)")
+        if not 1 <= a.jpeg_quality <= 100:
+            p.error(f"--jpeg-quality: must be 1..100, got {a.jpeg_quality}")
+        return sources_from_videos(a.videos, str(resolve_rig_path(a.rig)), a.fps,
+                                   DEFAULT_START_NS if a.start_stamp is None else a.start_stamp,
+                                   report)
+    if not (a.frames_dir and a.rig and a.fps):
+        p.error("give --scene DIR, --videos DIR and --rig, or --frames-dir, --rig and --fps")
     return sources_from_frames(a.frames_dir, str(resolve_rig_path(a.rig)), a.fps,
                                DEFAULT_START_NS if a.start_stamp is None else a.start_stamp,
                                a.dets, a.gt, report)
