@@ -326,22 +326,26 @@ def match_players(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndar
     return r[keep], c[keep], cost[r, c][keep]
 
 
-def offline(scene, frames: range):
-    """The core pipeline run directly on the wire-roundtripped detections (what the nodes see)."""
-    from maem_ros.core.association import AssociationParams, associate
+def offline(scene, frames: range, temporal: bool = False):
+    """The core pipeline run directly on the wire-roundtripped detections (what the nodes see):
+    track-assisted association with its track ids, or per-frame + the post-hoc tracker."""
+    from maem_ros.core.association import AssociationParams
+    from maem_ros.core.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.tracking import Tracker
     from maem_ros.core.triangulation import TriangulationParams, triangulate
 
     ap = AssociationParams.from_mapping(ASSOC)
+    stage = TemporalAssociator(scene.rig, ap, TemporalParams(temporal=temporal))
     tracker = Tracker(gate_m=0.5, min_hits=3, timeout_s=1.0)
     out = []
     for f in frames:
         dets = {c: wire.msg_to_detections(wire.detections_to_msg(scene.detections(c, f)), "t")
                 for c in scene.rig.names}
-        res = associate(scene.rig, dets, ap)
+        res = stage.step(dets, scene.stamp_ns(f))
         poses = triangulate(scene.rig, dets, res.clusters, TriangulationParams(tau_kps=20.0))
         joints = SPORTCENTER_13.select(poses.joints)
-        out.append((res.clusters, joints, tracker.update(scene.stamp_ns(f), joints)))
+        ids = res.track_ids if temporal else tracker.update(scene.stamp_ns(f), joints)
+        out.append((res.clusters, joints, ids))
     return out
 
 

@@ -61,7 +61,8 @@ def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump({
         "/**": {"ros__parameters": {"rig": "sportcenter6", "diagnostics_period": 0.5}},
-        "/**/association": {"ros__parameters": {"tau_det": 0.5, "max_wait": 1.0}},
+        "/**/association": {"ros__parameters": {"tau_det": 0.5, "max_wait": 1.0,
+                                                "confirm_hits": 1}},  # ids from frame 0 on
         "/**/triangulation": {"ros__parameters": {"track_min_hits": 1, "publish_tentative": False}},
     }))
     override = tmp_path / "override.yaml"

@@ -20,8 +20,9 @@ from helpers_ros import (Recorder, match_players, offline, pipeline_params, play
 pytestmark = pytest.mark.timeout(150)
 
 
-def test_poses_match_ground_truth_with_stable_ids(graph, scene):
-    g = start_pipeline(graph)
+@pytest.mark.parametrize("temporal", [False, True], ids=["temporal_off", "temporal_on"])
+def test_poses_match_ground_truth_with_stable_ids(graph, scene, temporal):
+    g = start_pipeline(graph, association={"temporal": temporal})
     frames = range(scene.num_frames)
     stamps = play(g, scene, frames)
     assert wait_for(lambda: all(g["poses"].has(s) for s in stamps), 30.0, graph), \
@@ -29,10 +30,14 @@ def test_poses_match_ground_truth_with_stable_ids(graph, scene):
     assert wait_for(lambda: all(g["markers"].has(s) for s in stamps[2:]), 10.0, graph)
 
     # exactly what the core pipeline gives on the same input
-    for f, (clusters, joints, ids) in zip(frames, offline(scene, frames)):
+    for f, (clusters, joints, ids) in zip(frames, offline(scene, frames, temporal)):
         cf = g["clusters"].by_stamp[stamps[f]]
         rows = [(k, c, d) for k, cl in enumerate(clusters) for c, d in cl.members]
         assert list(zip(cf.cluster, cf.camera, cf.detection)) == rows, f"frame {f}"
+        if temporal:  # clusters carry the track ids, poses publish them
+            np.testing.assert_array_equal(cf.cluster_tracks(), ids)
+        else:
+            assert cf.track is None
         pf = g["poses"].by_stamp[stamps[f]]
         np.testing.assert_allclose(pf.joints, joints, atol=2e-4, err_msg=f"frame {f}")
         np.testing.assert_array_equal(pf.ids, np.where(ids < 0, wire.UNTRACKED_ID, ids))

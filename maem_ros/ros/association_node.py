@@ -10,9 +10,12 @@ is not waited for (``max_lag`` compensates a known lag); one camera's stale/futu
 dropped for that camera, a jump of most cameras or of /clock resets the queues; every dropped
 message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message or
 pixels beyond ``pixel_margin`` are rejected),
-runs core.association.associate with the paper's thresholds and publishes ``/maem/clusters``
-(PointCloud2, one point per (cluster, member view), see wire.py; an empty cloud for a frame set
-without clusters, so downstream still sees every frame).
+runs core.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
+tracks' predictions first, core.association.associate on the rest; clusters carry track ids) or
+core.association.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
+thresholds and publishes ``/maem/clusters`` (PointCloud2, one point per (cluster, member view), see
+wire.py; an empty cloud for a frame set without clusters, so downstream still sees every frame).
+A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all tracks.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core.association import AssociationParams
+from maem_ros.core.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
@@ -77,7 +81,10 @@ class AssociationNodeParams(NodeParams):
                                    "local) at start")
 
 
-PARAMS = param_specs(AssociationNodeParams, AssociationParams)
+PARAMS = param_specs(AssociationNodeParams, AssociationParams, TemporalParams)
+#: core.temporal stats reported as cumulative counts in /diagnostics
+TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_ended",
+                "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
 
 
 class AssociationNode(Node):
@@ -94,12 +101,13 @@ class AssociationNode(Node):
                               f"({self.rig.names})")
         if p["min_cameras"] > len(cams):
             raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
-        from maem_ros.core.association import associate
+        from maem_ros.core.temporal import TemporalAssociator
         try:
             self.params = AssociationParams.from_mapping(p)
+            self.temporal = TemporalAssociator(self.rig, self.params,
+                                               TemporalParams.from_mapping(p))
         except ValueError as e:
             raise ConfigError(str(e)) from None
-        self._associate = associate
         if self.params.backend != "numpy" and self.params.epipolar_gate != "none":
             from maem_ros.core import epipolar
             epipolar.warmup()  # compile/load the numba kernels now, not on the first frame
@@ -191,16 +199,27 @@ class AssociationNode(Node):
             self.diag.set("missing_cameras_last", "")
         with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
             with Stopwatch(self.diag, "associate"):
-                result = self._associate(self.rig, fs.items, self.params)
+                result = self.temporal.step(fs.items, fs.stamp_ns)
+            tracked = self.temporal.tp.temporal
             with Stopwatch(self.diag, "encode"):
                 out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, fs.items,
-                                           result.clusters)
+                                           result.clusters,
+                                           result.track_ids if tracked else None,
+                                           result.flags if tracked else None)
         if step.failed:
             return
         self.pub.publish(out)
         self.diag.ok()
         self.diag.add_counts(result.stats, GATE_COUNTS)
-        for key, stage in STAGE_TIMES.items():
+        if tracked:
+            self.diag.add_counts(result.stats, TRACK_COUNTS)
+            if result.stats.get("track_resets"):
+                self.get_logger().warning(f"frame set {fs.stamp_ns}: stamp went back or jumped "
+                                          f"beyond max_gap_s; all tracks ended")
+            self.diag.set("last_tracks", int(result.stats["tracks"]))
+            self.diag.set("last_tracks_confirmed", int(result.stats["tracks_confirmed"]))
+        stages = {**STAGE_TIMES, "t_track_ms": "track"} if tracked else STAGE_TIMES
+        for key, stage in stages.items():
             if key in result.stats:
                 self.diag.time(stage, float(result.stats[key]))
         self.diag.set("last_clusters", len(result.clusters))

@@ -6,8 +6,9 @@
 Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2, one point per
 person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and ``/maem/skeletons``
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
-frontends) to ``output_convention`` (default sportcenter_13). Ids come from core.tracking.Tracker
-on the converted joints; a person whose track is not confirmed yet has id 4294967295 in poses
+frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
+the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they
+come from core.tracking.Tracker on the converted joints (post-hoc, 3D proximity). A person whose track is not confirmed yet has id 4294967295 in poses
 (dropped unless ``publish_tentative``) and no markers. A stamp that steps back or far ahead is
 held until the next frames confirm the jump (then a stamp going back resets the tracker) or
 refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``max_people``
@@ -158,7 +159,9 @@ class TriangulationNode(Node):
             return
         with RejectErrors(self.diag, f"{self.topic} {cf.stamp_ns}", "publish_error") as step:
             with Stopwatch(self.diag, "track"):
-                ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
+                ids = cf.cluster_tracks()
+                if ids is None:
+                    ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
             self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views),
                          np.asarray(poses.scores))
         if not step.failed:

@@ -18,6 +18,8 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   the frame) ``camera``(uint16, index in the rig's camera order) ``detection``(uint16, index in
   that camera's detections message) ``score``(f32) ``cost``(f32, mean PA-MPJPE m to the rest of
   the cluster, NaN if alone) ``kpts2d``(f32 x 2J rectified px). header.stamp = frame-set stamp.
+  With temporal association also ``track``(uint32 track id, 4294967295 = tentative) and
+  ``track_flags``(uint8, core.temporal FLAG_* bits: 1 tracked, 2 fewer than k_min views).
 * poses (``/maem/poses``), one point per person: ``id``(uint32 track id, 4294967295 = not yet
   confirmed) ``joints``(f32 x 3J world m, NaN = missing) ``views``(uint16) ``score``(f32).
 
@@ -74,6 +76,9 @@ WIRE_VERTICES = ("f32", "q4")
 Q4_SCALE, Q4_MISSING = 16.0, 65535
 CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, "cost": F32,
                  "kpts2d": F32}
+#: optional cluster fields, written with temporal association: ``track``(uint32 track id,
+#: UNTRACKED_ID = tentative) ``track_flags``(uint8, core.temporal FLAG_* bits)
+CLUSTER_TRACK_TYPES = {"track": U32, "track_flags": PointField.UINT8}
 POSE_TYPES = {"id": U32, "joints": F32, "views": U16, "score": F32}
 
 
@@ -166,12 +171,16 @@ def _set_data(msg: PointCloud2, rec: np.ndarray) -> PointCloud2:
     return msg
 
 
-def _view_cloud(msg: PointCloud2, topic: str, expected: Mapping[str, int]) -> np.ndarray:
+def _view_cloud(msg: PointCloud2, topic: str, expected: Mapping[str, int],
+                optional: Mapping[str, int] | None = None) -> np.ndarray:
     """Validate layout and return a structured (N,) view of msg.data (zero-copy).
 
-    ``expected`` maps every required field name to its PointField datatype; any other field is
-    an error. Each field's count is returned as the subarray length (count 1 -> shape (N,1)).
+    ``expected`` maps every required field name to its PointField datatype, ``optional`` the
+    fields that may be absent; any other field is an error. Each field's count is returned as
+    the subarray length (count 1 -> shape (N,1)).
     """
+    present = {k: v for k, v in (optional or {}).items() if any(f.name == k for f in msg.fields)}
+    expected = {**expected, **present}
     seen: dict[str, PointField] = {}
     for f in msg.fields:
         label = f.name or "''"
@@ -461,6 +470,8 @@ class ClusterFrame:
     score: np.ndarray
     cost: np.ndarray
     kpts2d: np.ndarray
+    track: np.ndarray | None = None  # (M,) int64 track id per row, -1 = tentative; None = untracked
+    track_flags: np.ndarray | None = None  # (M,) uint8 core.temporal FLAG_* bits
 
     @property
     def num_joints(self) -> int:
@@ -473,20 +484,39 @@ class ClusterFrame:
         return pad_members(self.cluster, self.camera.astype(np.int64),
                            self.kpts2d.astype(np.float64), self.score.astype(np.float64))
 
+    def cluster_tracks(self) -> np.ndarray | None:
+        """(C,) track id per cluster in to_core order (-1 = tentative), None without tracks."""
+        if self.track is None:
+            return None
+        _, first = np.unique(self.cluster, return_index=True)
+        return self.track[np.sort(first)]
+
 
 def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
-                    frames: Mapping[str, FrameDetections], clusters: Sequence) -> PointCloud2:
+                    frames: Mapping[str, FrameDetections], clusters: Sequence,
+                    track_ids: Sequence[int] | None = None,
+                    track_flags: Sequence[int] | None = None) -> PointCloud2:
     """core Clusters (members = (camera index, detection index)) -> PointCloud2.
 
     ``frames`` are the FrameDetections the clusters index into, keyed by camera name; J is
-    taken from them (0 points and J of any frame when there are no clusters).
+    taken from them (0 points and J of any frame when there are no clusters). With
+    ``track_ids`` (one per cluster, < 0 = tentative) the optional ``track`` and ``track_flags``
+    fields are written too.
     """
     j = next((f.num_joints for f in frames.values()), 0)
     rows = [(k, int(c), int(d), float(cost)) for k, cl in enumerate(clusters)
             for (c, d), cost in zip(np.asarray(cl.members), np.asarray(cl.costs))]
     fields = [("cluster", U32, 1), ("camera", U16, 1), ("detection", U16, 1), ("score", F32, 1),
               ("cost", F32, 1), ("kpts2d", F32, 2 * j)]
+    if track_ids is not None:
+        fields += [(name, dt, 1) for name, dt in CLUSTER_TRACK_TYPES.items()]
     msg, rec = _new_cloud(stamp_ns, frame_id, fields, len(rows))
+    if track_ids is not None and rows:
+        per_row = np.array([k for k, *_ in rows])
+        ids = np.asarray(track_ids, np.int64)[per_row]
+        rec["track"] = np.where(ids < 0, UNTRACKED_ID, ids).astype(np.uint32)
+        flags = np.zeros(len(clusters), np.uint8) if track_flags is None else track_flags
+        rec["track_flags"] = np.asarray(flags, np.uint8)[per_row]
     names = rig.names
     for i, (k, c, d, cost) in enumerate(rows):
         f = frames[names[c]]
@@ -501,8 +531,13 @@ def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
 
 def msg_to_clusters(msg: PointCloud2, topic: str, num_cameras: int) -> ClusterFrame:
     """PointCloud2 -> ClusterFrame, validated (camera index < num_cameras, unique members)."""
-    rec = _view_cloud(msg, topic, CLUSTER_TYPES)
-    for name in ("cluster", "camera", "detection", "score", "cost"):
+    rec = _view_cloud(msg, topic, CLUSTER_TYPES, CLUSTER_TRACK_TYPES)
+    tracked = "track" in rec.dtype.names
+    if tracked != ("track_flags" in rec.dtype.names):
+        raise WireError(topic, "track" if not tracked else "track_flags",
+                        "missing field (track and track_flags come together)", "missing_field")
+    for name in ("cluster", "camera", "detection", "score", "cost") + (
+            tuple(CLUSTER_TRACK_TYPES) if tracked else ()):
         if _count(msg, name) != 1:
             raise WireError(topic, name, f"count {_count(msg, name)}, expected 1", "bad_count")
     c2 = _count(msg, "kpts2d")
@@ -522,7 +557,18 @@ def msg_to_clusters(msg: PointCloud2, topic: str, num_cameras: int) -> ClusterFr
     _check_finite(topic, "score", f["score"], "member")
     _check_finite(topic, "cost", f["cost"], "member", allow_nan=True)
     _check_score(topic, f["score"][:, 0], "member")
-    return ClusterFrame(stamp_ns=checked_stamp_ns(msg.header.stamp, topic), frame_id=msg.header.frame_id,
+    track = flags = None
+    if tracked:
+        raw = _field(rec, "track")[:, 0].astype(np.int64)
+        track = np.where(raw == UNTRACKED_ID, -1, raw)
+        flags = _field(rec, "track_flags")[:, 0].astype(np.uint8)
+        cluster = f["cluster"][:, 0].astype(np.int64)
+        _, first, inverse = np.unique(cluster, return_index=True, return_inverse=True)
+        if np.any(track != track[first][inverse]):
+            raise WireError(topic, "track", "members of one cluster carry different track ids",
+                            "bad_track")
+    return ClusterFrame(track=track, track_flags=flags,
+                        stamp_ns=checked_stamp_ns(msg.header.stamp, topic), frame_id=msg.header.frame_id,
                         cluster=f["cluster"][:, 0].astype(np.int64), camera=camera,
                         detection=f["detection"][:, 0].astype(np.int64),
                         score=f["score"][:, 0].astype(np.float64),

@@ -16,6 +16,12 @@ pixels, per-pair distances), and checks both give identical clusters.
     maem-bench --live [--wire q4] [--bag BAG]   # camera-rate run through the node graph
                                                 # (tools/live.py)
 
+Temporal on/off (same run): the load in motion (tools/bench_load.make_sequence: the same people
+walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.temporal's
+track-assisted association and through the per-frame association; per-frame times after the
+first frame (steady state: tracks explain the known people, cross-view association runs on the
+rest), the first frame apart, and the detections left to the cross-view stage.
+
 Targets (reported, not enforced): standard load association median <= 6.5 ms/frame,
 triangulation median <= 1.5 ms for 10 people, speedup >= 50; large load association median
 <= 33 ms. Timings on a shared machine are noisy: ``min`` beside the median says how much.
@@ -69,6 +75,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="detections layout the load is decoded from (as the node receives it)")
     p.add_argument("--backend", default="auto", choices=("auto", "numba", "numpy"),
                    help="epipolar kernel of the fast path")
+    p.add_argument("--temporal-frames", type=int, default=30,
+                   help="frames of the temporal on/off comparison (0 = skip it)")
     p.add_argument("--seed", type=int, default=0)
     from .live import add_live_arguments
     add_live_arguments(p)
@@ -114,8 +122,8 @@ def run(args: argparse.Namespace) -> dict:
     for name in ("vertices", "keypoints", "players", "frames", "repeats"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name}: must be >= 1, got {getattr(args, name)}")
-    if args.extras < 0 or args.straightforward_frames < 0:
-        raise ValueError("--extras/--straightforward-frames: must be >= 0")
+    if args.extras < 0 or args.straightforward_frames < 0 or args.temporal_frames < 0:
+        raise ValueError("--extras/--straightforward-frames/--temporal-frames: must be >= 0")
     cv2.setNumThreads(1)
     with threadpool_limits(limits=1):
         rig = load_bench_rig(args.rig)
@@ -201,7 +209,43 @@ def run(args: argparse.Namespace) -> dict:
     }
     out["targets"] = {k: {"target": v, "met": bool(out[k] >= v if k == "speedup" else out[k] <= v)}
                       for k, v in TARGETS[args.load].items()}
+    if args.temporal_frames:
+        with threadpool_limits(limits=1):
+            out["temporal"] = _temporal(args, rig, aparams, template)
     return out
+
+
+def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
+    """Temporal on vs off on the load in motion (module docstring)."""
+    import numpy as np
+
+    from ..core.association import associate
+    from ..core.temporal import TemporalAssociator, TemporalParams
+    from .bench_load import make_sequence
+
+    seq = make_sequence(rig, template, np.random.default_rng(args.seed + 1), args.players,
+                        args.extras, args.temporal_frames)
+    on, off, first, left = [], [], [], []
+    for _ in range(max(1, args.repeats // 5)):  # whole sequences: the tracker is stateful
+        stage = TemporalAssociator(rig, aparams, TemporalParams())
+        for f, fr in enumerate(seq):
+            t = time.perf_counter()
+            res = stage.step(fr.frames, fr.frames[rig.names[0]].stamp_ns)
+            ms = (time.perf_counter() - t) * 1e3
+            (first if f == 0 else on).append(ms)
+            if f:
+                left.append(res.stats["detections_left"])
+            t = time.perf_counter()
+            associate(rig, fr.frames, aparams)
+            off.append((time.perf_counter() - t) * 1e3)
+    found = len(set(seq[-1].truth) & set(_as_sets([c.members for c in res.clusters])))
+    on_med, off_med = _percentile(on, 50), _percentile(off, 50)
+    return {"frames": len(seq), "on_ms_median": on_med, "on_ms_p90": _percentile(on, 90),
+            "on_first_frame_ms_median": _percentile(first, 50), "off_ms_median": off_med,
+            "off_ms_p90": _percentile(off, 90), "off_over_on": off_med / on_med,
+            "detections_left_median": _percentile(left, 50),
+            "detections_per_frame": len(rig) * (args.players + args.extras),
+            "true_clusters_last_frame": found, "players": args.players}
 
 
 def _finite_or_null(x):
@@ -236,6 +280,15 @@ def _print_human(r: dict) -> None:
     print(f"true clusters recovered: {r['true_clusters_recovered']}/{r['true_clusters']}")
     for k, t in r["targets"].items():
         print(f"target {k}: {t['target']} -> {'met' if t['met'] else 'NOT met'}")
+    t = r.get("temporal")
+    if t:
+        print(f"temporal on  median {t['on_ms_median']:8.2f} ms   p90 {t['on_ms_p90']:8.2f} ms"
+              f"   (first frame {t['on_first_frame_ms_median']:.2f} ms; "
+              f"{t['detections_left_median']:.0f}/{t['detections_per_frame']} detections left "
+              f"to cross-view association)")
+        print(f"temporal off median {t['off_ms_median']:8.2f} ms   p90 {t['off_ms_p90']:8.2f} ms"
+              f"   -> off/on {t['off_over_on']:.1f}x over {t['frames']} moving frames; "
+              f"true clusters in the last frame {t['true_clusters_last_frame']}/{t['players']}")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -154,9 +154,31 @@ def _detect(cam: Camera, verts: np.ndarray, joints: np.ndarray, rng, px_noise: f
 def make_frame(rig: Rig, template, rng: np.random.Generator, players: int = 10, extras: int = 2,
                px_noise: float = 0.5, stamp_ns: int = 0) -> BenchFrame:
     """One frame of the standard load (detection order within a camera is shuffled)."""
+    return _detect_people(rig, _people(rig, template, rng, players, extras), rng, px_noise,
+                          stamp_ns, players)
+
+
+def make_sequence(rig: Rig, template, rng: np.random.Generator, players: int = 10,
+                  extras: int = 2, frames: int = 30, fps: float = 30.0, px_noise: float = 0.5,
+                  speed: float = 1.5) -> list[BenchFrame]:
+    """The standard load in motion: the same people (placed as in make_frame) walking at
+    ``speed`` m/s in random directions for ``frames`` frames at ``fps`` (the temporal bench)."""
+    people = _people(rig, template, rng, players, extras)
+    heading = rng.uniform(0, 2 * np.pi, len(people))
+    vel = speed * np.stack([np.cos(heading), np.sin(heading), np.zeros(len(people))], axis=1)
+    out = []
+    for f in range(frames):
+        shift = vel * f / fps  # (persons, 3)
+        moved = [(v + d, j + d, cams, player) for (v, j, cams, player), d in zip(people, shift)]
+        out.append(_detect_people(rig, moved, rng, px_noise, int(round(f * 1e9 / fps)), players))
+    return out
+
+
+def _people(rig: Rig, template, rng: np.random.Generator, players: int, extras: int) -> list:
+    """(verts, joints, camera indices that see it, is player) per person, players first."""
     cams = rig.cameras
     taken: list[np.ndarray] = []
-    people = []  # (verts, joints, camera indices that see it, is player)
+    people = []
     for _ in range(players):
         v, j = _person(template, rng)
         p = _place(cams, rng, taken)
@@ -166,8 +188,14 @@ def make_frame(rig: Rig, template, rng: np.random.Generator, players: int = 10, 
             v, j = _person(template, rng)
             p = _place([cams[c]], rng, taken)
             people.append((v + p, j + p, [c], False))
+    return people
+
+
+def _detect_people(rig: Rig, people: list, rng: np.random.Generator, px_noise: float,
+                   stamp_ns: int, players: int) -> BenchFrame:
+    """Every camera's detections of ``people`` (shuffled order) and the true player clusters."""
     frames, raw, truth = {}, {}, {k: set() for k in range(players)}
-    for c, cam in enumerate(cams):
+    for c, cam in enumerate(rig.cameras):
         seen = [k for k, person in enumerate(people) if c in person[2]]
         order = rng.permutation(len(seen))
         dets = [_detect(cam, people[seen[o]][0], people[seen[o]][1], rng, px_noise) for o in order]

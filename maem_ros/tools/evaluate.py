@@ -2,6 +2,7 @@
 
     maem-eval SCENE_DIR --params config/sportcenter.yaml [--json OUT.json] [--plots DIR]
               [--ablation] [--oracle] [--explain] [--pred OUT.npz] [--frames N]
+              [--temporal on|off]
 """
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ from ..core.skeleton import SPORTCENTER_13, convert, get_convention
 from ..params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
-               "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames")
+               "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames",
+               "idf1", "idf1_all_hyp", "idp", "idr", "id_switches")
 
 #: the paper's ablation rows (gates, with the configured clustering), the paper's pipeline and
 #: its PA-MPJPE matching baseline: association-parameter overrides on top of the params file;
@@ -81,7 +83,16 @@ Input handling (never a crash mid-sequence; every case is counted and reported a
                  triangulation (a pure cluster exists, no pose matched). Counts sum to the
                  lost person-frames.
 --pred writes pose (F,K,13,3) world metres in sportcenter_13 (NaN = joint not triangulated),
-valid (F,K) bool, score (F,K); F = scene frames considered, K = most people in one frame.
+valid (F,K) bool, score (F,K), id (F,K) int64 track id (-1 = none: tentative track or no
+prediction); F = scene frames considered, K = most people in one frame.
+Identities: with temporal on (the params file's 'temporal', on when absent, or --temporal) ids
+are the association's track ids (core/temporal.py), with temporal off those of the post-hoc 3D
+tracker (core/tracking.py, the triangulation node's track_* params; also for the oracle row).
+IDF1 / IDP / IDR and ID switches (core/id_metrics.py: Ristani et al. 2016; CLEAR MOT switches)
+are scored against the GT persons of gt.npz (column = identity), MPJPE < 500 mm as a match;
+hypotheses matching no GT person of their frame (e.g. tracked referees) are left out ("players
+only"; idf1_all_hyp keeps them). --explain breaks down the per-frame association, so it implies
+--temporal off.
 """
 
 
@@ -133,6 +144,8 @@ class Run:
     assoc_ms: list[float] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
     causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
+    ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
+    tracker: Any = None  # core.temporal.TemporalAssociator, or core.tracking.Tracker (post-hoc)
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
@@ -181,14 +194,19 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
 
     Returns the AssociationResult (None for the oracle or when the pipeline raised)."""
     from ..core.association import associate
+    from ..core.temporal import TemporalAssociator
     from ..core.triangulation import triangulate
     from .explain import oracle_clusters
-    result = None
+    result = ids = None
+    stamp = min(fd.stamp_ns for fd in frames.values())
     try:
         t0 = time.perf_counter()
         if run.oracle:
             clusters = oracle_clusters(rig.names, frames, det_ids or {}, run.assoc.tau_det,
                                        run.assoc.k_min)
+        elif isinstance(run.tracker, TemporalAssociator):
+            step = run.tracker.step(frames, stamp)
+            clusters, ids = step.clusters, step.track_ids
         else:
             result = associate(rig, frames, run.assoc)
             clusters = result.clusters
@@ -197,13 +215,17 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
         joints = np.asarray(poses.joints, dtype=np.float64)
         joints = (to_sportcenter13(joints) if len(joints)
                   else np.zeros((0, SPORTCENTER_13.num_joints, 3)))
+        if ids is None:  # post-hoc 3D tracker, as the triangulation node with temporal off
+            ids = run.tracker.update(stamp, joints)
         valid = np.isfinite(joints).all(-1).any(-1)
         run.preds.append(joints[valid])
         run.scores.append(np.asarray(poses.scores, dtype=np.float64)[valid])
+        run.ids.append(np.asarray(ids, np.int64)[valid])
     except ValueError as e:
         skips.add("pipeline_error", f"{run.name}, frame {frame}: {e}")
         run.preds.append(np.zeros((0, SPORTCENTER_13.num_joints, 3)))
         run.scores.append(np.zeros(0))
+        run.ids.append(np.zeros(0, np.int64))
     return result
 
 
@@ -239,9 +261,12 @@ def format_causes(runs: Sequence[Run]) -> str:
     return "\n".join([fmt_row(head), "  ".join("-" * w for w in widths)] + [fmt_row(r) for r in body])
 
 
-def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray]) -> dict[str, Any]:
+def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
+              gt_ids: list[np.ndarray] | None = None) -> dict[str, Any]:
     from ..core.metrics import evaluate_sequence
     m = dict(evaluate_sequence(run.preds, run.scores, gts, gt_masks))
+    if gt_ids is not None:
+        m.update(score_ids(run, gts, gt_masks, gt_ids))
     m["association_ms_median"] = float(np.median(run.assoc_ms)) if run.assoc_ms else float("nan")
     m["frames"] = len(run.preds)
     return m
@@ -271,19 +296,48 @@ def format_table(rows: Sequence[tuple[str, Mapping[str, Any]]]) -> str:
     return "\n".join([fmt_row(head), "  ".join("-" * w for w in widths)] + [fmt_row(r) for r in body])
 
 
+def score_ids(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
+              gt_ids: list[np.ndarray]) -> dict[str, Any]:
+    """IDF1 / IDP / IDR / ID switches of the run's track ids (players only, and all hypotheses)."""
+    from ..core.id_metrics import identity_metrics
+    m = identity_metrics(gt_ids, gts, gt_masks, run.ids, run.preds, players_only=True)
+    everything = identity_metrics(gt_ids, gts, gt_masks, run.ids, run.preds, players_only=False)
+    m["idf1_all_hyp"] = everything["idf1"]
+    return m
+
+
+def format_id_lines(runs: Sequence[Run]) -> list[str]:
+    """One line per configuration: identity source, IDF1 (players only / all), IDP, IDR, switches."""
+    from ..core.temporal import TemporalAssociator
+    out = []
+    for r in runs:
+        m = r.metrics
+        if "idf1" not in m:
+            continue
+        source = ("track-assisted association" if isinstance(r.tracker, TemporalAssociator)
+                  else "post-hoc 3D tracker")
+        out.append(f"  {r.name} ({source}): IDF1 {_fmt(m.get('idf1'), 100)}%  "
+                   f"(all hyp. {_fmt(m.get('idf1_all_hyp'), 100)}%)  IDP {_fmt(m.get('idp'), 100)}%"
+                   f"  IDR {_fmt(m.get('idr'), 100)}%  ID switches {m.get('id_switches', '-')}")
+    return out
+
+
 def write_pred(path: Path, run: Run, frame_ids: Sequence[int], num_frames: int) -> None:
-    """pose (F,K,13,3) world m (NaN = missing), valid (F,K), score (F,K); F = frames considered."""
+    """pose (F,K,13,3) world m (NaN = missing), valid (F,K), score (F,K), id (F,K) int64 track id
+    (-1 = none); F = frames considered."""
     k = max([len(p) for p in run.preds], default=0)
     pose = np.full((num_frames, k, SPORTCENTER_13.num_joints, 3), np.nan)
     valid = np.zeros((num_frames, k), bool)
     score = np.zeros((num_frames, k))
-    for f, p, s in zip(frame_ids, run.preds, run.scores):
+    ids = np.full((num_frames, k), -1, np.int64)
+    for f, p, s, i in zip(frame_ids, run.preds, run.scores, run.ids):
         pose[f, :len(p)] = p
         valid[f, :len(p)] = True
         score[f, :len(p)] = s
+        ids[f, :len(p)] = i
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as fh:
-        np.savez_compressed(fh, pose=pose, valid=valid, score=score,
+        np.savez_compressed(fh, pose=pose, valid=valid, score=score, id=ids,
                             convention=np.array(SPORTCENTER_13.name))
 
 
@@ -323,6 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the first cause of every lost GT person-frame (needs det_ids.npz)")
     p.add_argument("--pred", type=Path, help="write predictions (full configuration) to this npz")
     p.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
+    p.add_argument("--temporal", choices=("on", "off"), default=None,
+                   help="track-assisted association on/off (default: the params file's 'temporal', "
+                        "on when absent; off with --explain); off = per-frame association + the "
+                        "post-hoc 3D tracker")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -333,6 +391,22 @@ def load_params(path: str):
     assoc = AssociationParams.from_mapping(load_node_params(path, "association"))
     tri = TriangulationParams.from_mapping(load_node_params(path, "triangulation"))
     return assoc, tri
+
+
+def make_tracker(rig, assoc, params_path: str, temporal: str | None):
+    """The run's identity source: TemporalAssociator (temporal on) or the post-hoc Tracker with
+    the triangulation node's track_* parameters (temporal off)."""
+    from ..core.temporal import TemporalAssociator, TemporalParams
+    from ..core.tracking import Tracker
+    section = dict(load_node_params(params_path, "association"))
+    if temporal is not None:
+        section["temporal"] = temporal == "on"
+    tp = TemporalParams.from_mapping(section)
+    if tp.temporal:
+        return TemporalAssociator(rig, assoc, tp)
+    tri = load_node_params(params_path, "triangulation")
+    return Tracker(gate_m=tri.get("track_gate", 0.5), min_hits=tri.get("track_min_hits", 3),
+                   timeout_s=tri.get("track_timeout", 1.0))
 
 
 def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
@@ -354,7 +428,11 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     n = total if args.frames is None else min(args.frames, total)
     configs = ([(name, dataclasses.replace(assoc, **o)) for name, o in ABLATION] if args.ablation
                else [("full", assoc)])
-    runs = [Run(name, a) for name, a in configs]
+    if args.explain and args.temporal == "on":
+        raise ValueError("--explain breaks down the per-frame association: use --temporal off")
+    temporal = "off" if args.explain else args.temporal
+    runs = [Run(name, a, tracker=make_tracker(rig, a, args.params, temporal))
+            for name, a in configs]
     det_ids = None
     if args.oracle or args.explain:
         if not folder.has_det_ids:
@@ -362,8 +440,9 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
                              "(the GT person of every detection, as maem-sim writes it)")
         det_ids = folder.det_ids()
     if args.oracle:
-        runs.insert(0, Run("oracle (GT association)", assoc, oracle=True))
-    frame_ids, gts, gt_masks = [], [], []
+        runs.insert(0, Run("oracle (GT association)", assoc, oracle=True,
+                           tracker=make_tracker(rig, assoc, args.params, "off")))
+    frame_ids, gts, gt_masks, gt_ids = [], [], [], []
     for f in tqdm(range(n), desc="maem-eval", unit="frame", disable=args.quiet, file=sys.stderr):
         if gt is not None and f >= gt[0].shape[0]:
             skips.add("frame_without_gt", f"frame {f} >= {gt[0].shape[0]} GT frames")
@@ -379,6 +458,7 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             present = gt[1][f].any(-1)
             gts.append(gt[0][f, present])
             gt_masks.append(gt[1][f, present])
+            gt_ids.append(np.flatnonzero(present))  # gt.npz column = identity
             masked = int((~gt[1][f, present]).sum())
             if masked:
                 skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
@@ -396,7 +476,7 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         report["frames"] = len(frame_ids)
     else:
         for run in runs:
-            run.metrics = score_run(run, gts, gt_masks)
+            run.metrics = score_run(run, gts, gt_masks, gt_ids)
         main_run = runs[-1]
         report.update({k: main_run.metrics.get(k) for k in METRIC_KEYS})
         report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
@@ -406,6 +486,9 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
             f"{len(frame_ids)}/{n} frames evaluated, params {args.params}")
         log(format_table([(r.name, r.metrics) for r in runs]))
+        log("identities:")
+        for line in format_id_lines(runs):
+            log(line)
         if args.oracle:
             report["oracle"] = {k: runs[0].metrics.get(k) for k in METRIC_KEYS}
         if args.explain:
