@@ -78,7 +78,7 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
             f"frame {f}: {len(pairs)}/{len(players)}; {client.diagnostics}"
         errors += e
         for r, c in pairs:
-            if f >= 2:
+            if f >= 3:  # confirmed after 3 hits; one partial start-up set may delay that
                 assert pf.ids[r] != wire.UNTRACKED_ID
                 ids.setdefault(c, set()).add(int(pf.ids[r]))
     assert 1e3 * np.mean(errors) < 60.0, 1e3 * np.mean(errors)
