@@ -8,6 +8,7 @@ the stamp), checks /maem/poses against the scene's ground truth, and stops every
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -66,6 +67,8 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
         if client is not None:
             client.close()
     assert all(c == 0 for c in codes.values()), f"{codes}\n{graph.logs()}"
+    if graph.group.forced_exits():  # stopped, but by the watchdog: the log has the stacks
+        warnings.warn(f"shutdown watchdog ended {graph.group.forced_exits()}:\n{graph.logs()}")
 
     players = np.flatnonzero(scene.is_player)
     errors, ids = [], {}

@@ -2,10 +2,13 @@
 arguments and handle SIGINT/SIGTERM themselves. No rclpy import here (``--help`` stays fast)."""
 from __future__ import annotations
 
+import faulthandler
+import os
 import re
 import signal
 import sys
 import threading
+import time
 from typing import Sequence
 
 #: exit code of a command whose input (arguments, params file, bag) is invalid
@@ -23,13 +26,42 @@ def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
     return argv[1:cut], argv[:1] + argv[cut:]
 
 
-def stop_on_signals() -> threading.Event:
+#: s a node may take from SIGINT/SIGTERM to exit before its watchdog ends the process
+SHUTDOWN_GRACE_S = 10.0
+#: what the watchdog's line says (tools/processes.py looks for it in the logs)
+SHUTDOWN_STALLED = "shutdown did not finish"
+
+
+def stop_on_signals(name: str = "", grace_s: float | None = SHUTDOWN_GRACE_S) -> threading.Event:
     """An Event set by SIGINT or SIGTERM (the caller then finishes cleanly: rclpy is initialised
-    with ``SignalHandlerOptions.NO``)."""
+    with ``SignalHandlerOptions.NO``).
+
+    SIGUSR1 dumps every thread's Python stack to stderr (faulthandler), so a process that does
+    not stop can be asked where it is. With ``grace_s``, a watchdog thread ends the process
+    ``grace_s`` seconds after the signal if it is still running (a callback or the middleware's
+    teardown stalled): it prints one line and the stacks, then exits with code 0, as a stop was
+    requested and every processed message has been published by then. The recorder passes
+    None: its bag must be finalised whatever it takes.
+    """
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
+    if grace_s is not None:
+        threading.Thread(target=_exit_after_grace, args=(stop, name, grace_s), daemon=True,
+                         name="shutdown-watchdog").start()
     return stop
+
+
+def _exit_after_grace(stop: threading.Event, name: str, grace_s: float) -> None:
+    stop.wait()
+    time.sleep(grace_s)
+    print(f"[{name}] {SHUTDOWN_STALLED} {grace_s:g} s after the stop signal; exiting "
+          f"without it (stacks follow)", file=sys.stderr, flush=True)
+    faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+    sys.stderr.flush()
+    os._exit(0)
 
 
 def rcl_error_line(e: Exception) -> str:

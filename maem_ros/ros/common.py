@@ -432,7 +432,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
     if wants_help(args):
         print_help(name, doc, specs)
         return 0
-    stop = stop_on_signals()
+    stop = stop_on_signals(name)
     use_shipped_dds_profile()
     if not init_ros(args, name):
         return EXIT_CONFIG_ERROR

@@ -283,7 +283,7 @@ def main(args: Sequence[str] | None = None) -> int:
     except bagio.BagError as e:
         print(f"maem-play: {e}", file=sys.stderr, flush=True)
         return EXIT_BAD_INPUT
-    stop = stop_on_signals()
+    stop = stop_on_signals("maem-play")
     if not init_ros(ros_args, "maem-play"):
         return EXIT_BAD_INPUT
     node = rclpy.create_node("maem_player")

@@ -155,7 +155,7 @@ def main(args: Sequence[str] | None = None) -> int:
 
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-record", *args])
     opts = parse_args(ours)
-    stop = stop_on_signals()
+    stop = stop_on_signals("maem-record", grace_s=None)  # the bag is finalised whatever it takes
     # ROS first: a bad --ros-args must not leave a half-written bag behind
     if not init_ros(ros_args, "maem-record"):
         return EXIT_BAD_INPUT

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+from maem_ros.ros.cli import SHUTDOWN_STALLED
+
 #: node kind -> module run with ``python -m`` (works without installing the console scripts)
 NODE_MODULES = {"frontend": "maem_ros.ros.frontend_node",
                 "association": "maem_ros.ros.association_node",
@@ -89,10 +91,27 @@ class ProcessGroup:
             try:
                 codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait(timeout=5)
-                codes[n] = None
+                codes[n] = self._kill_with_stacks(p)
         return codes
+
+    @staticmethod
+    def _kill_with_stacks(p: subprocess.Popen) -> None:
+        """SIGUSR1 first (the nodes dump their Python stacks into their log, see
+        ros/cli.stop_on_signals), then SIGKILL; None, the exit code of a killed process."""
+        if hasattr(signal, "SIGUSR1"):
+            p.send_signal(signal.SIGUSR1)
+            try:
+                p.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                pass
+        if p.poll() is None:
+            p.kill()
+            p.wait(timeout=5)
+        return None
+
+    def forced_exits(self) -> list[str]:
+        """Names of the processes whose shutdown watchdog ended them (see ros/cli.py)."""
+        return [p.name for p in self.procs.values() if SHUTDOWN_STALLED in p.tail(100_000)]
 
     def shutdown(self) -> None:
         """SIGINT whatever still runs (recorder last, so it keeps what it received), then kill."""
