@@ -183,13 +183,24 @@ class ApproximateTimeSync:
             self.stats.dropped[reason] += n
 
     # -- input ----------------------------------------------------------------------------
-    def add(self, camera: str, stamp_ns: int, item: Any, now_ns: int) -> list[FrameSet]:
-        """Queue one message and return the frame sets that became complete."""
+    def add(self, camera: str, stamp_ns: int, item: Any, now_ns: int,
+            arrival_ns: int | None = None, poll: bool = True) -> list[FrameSet]:
+        """Queue one message and return the frame sets that became complete.
+
+        ``arrival_ns`` (same clock as ``now_ns``, at most ``now_ns``): when the message reached
+        this process, if it waited before the caller took it (a busy node: the transport's
+        receive time); the ``max_wait`` deadline and the lag are measured from it. Default
+        ``now_ns``. ``poll=False`` only queues (the caller takes every other pending message
+        first and then calls :meth:`poll` once, so no set is declared partial while a message
+        of it is already waiting to be taken); sets a stream reset replays are still returned.
+        """
         if camera not in self._queues:
             raise ValueError(f"camera: unknown camera {camera!r}; expected one of {self.cameras}")
+        now_ns = int(now_ns)
+        arrival_ns = now_ns if arrival_ns is None else min(int(arrival_ns), now_ns)
         self.stats.received += 1
-        out = self._accept(camera, _Msg(int(stamp_ns), int(now_ns), item))
-        return out + self.poll(int(now_ns))
+        out = self._accept(camera, _Msg(int(stamp_ns), arrival_ns, item))
+        return out + self.poll(now_ns) if poll else out
 
     def _baseline(self, camera: str) -> int | None:
         """Median latency of the other cameras that are alive (None without any)."""

@@ -36,8 +36,8 @@ from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, ConfigError, Diagnostics, NodeParams, RejectErrors,
-                                 Stopwatch, declare_params, load_rig_param,
-                                 publish_rig_tf, run_node, subscribe_counted)
+                                 Stopwatch, arrival_ns, declare_params, load_rig_param,
+                                 publish_rig_tf, run_node, subscribe_counted, take_pending)
 
 NODE_NAME = "association"
 
@@ -111,6 +111,7 @@ class AssociationNode(Node):
         if self.params.backend != "numpy" and self.params.epipolar_gate != "none":
             from maem_ros.core import epipolar
             epipolar.warmup()  # compile/load the numba kernels now, not on the first frame
+        wire.warm_cdr_decoder()
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]
         try:
@@ -126,10 +127,13 @@ class AssociationNode(Node):
         self.diag = Diagnostics(self, p["diagnostics_period"])
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
+        self._ready: list = []  # sets a stream reset replayed while receiving
+        self._taking = False  # inside take_pending: receive only, decide afterwards
         for cam in self.cameras:
             topic = self.resolve_topic_name(f"{cam}/detections")
             self.subs.append(subscribe_counted(self, self.diag, PointCloud2, topic,
-                                               partial(self.on_detections, cam, topic), DATA_QOS))
+                                               partial(self.on_detections, cam, topic),
+                                               DATA_QOS, raw=True, with_info=True))
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
         self.tf_pub = publish_rig_tf(self, self.rig, self.frame_id) if p["publish_tf"] else None
         if p["reset_on_clock_jump"]:
@@ -142,17 +146,42 @@ class AssociationNode(Node):
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def on_detections(self, cam: str, topic: str, msg: PointCloud2) -> None:
+    def on_detections(self, cam: str, topic: str, data: bytes, info) -> None:
+        """One serialized detections message: decode and queue it; then (unless called from
+        _decide) take every other pending message and let the synchroniser decide."""
+        self._receive(cam, topic, data, info)
+        if not self._taking:
+            self._decide()
+
+    def _receive(self, cam: str, topic: str, data: bytes, info) -> None:
         with RejectErrors(self.diag, topic, "bad_detections") as step:
             with Stopwatch(self.diag, "decode"):
-                dets = wire.msg_to_detections(msg, topic, self.rig.names, expected_camera=cam)
+                dets = wire.msg_to_detections(wire.cdr_to_cloud(data, topic), topic,
+                                              self.rig.names, expected_camera=cam)
                 check_detections(dets, self.rig, self.limits, topic)
         if step.failed:
             return
-        self._handle(self.sync.add(cam, dets.stamp_ns, dets, self._now_ns()))
+        now = self._now_ns()
+        self._ready += self.sync.add(cam, dets.stamp_ns, dets, now, arrival_ns(now, info),
+                                     poll=False)
+
+    def _decide(self) -> None:
+        """Take every message already waiting in the DDS queues (the executor runs the poll
+        timer before them and takes one per subscription and wait), then poll: a frame set is
+        declared partial only when its missing camera's message has not reached this process
+        within max_wait of the reference's arrival (rmw receive time), never because the node
+        was busy. Waiting messages also stop being overwritten in the keep-last history."""
+        self._taking = True
+        try:
+            for sub in self.subs:
+                take_pending(sub)
+        finally:
+            self._taking = False
+        ready, self._ready = self._ready, []
+        self._handle(ready + self.sync.poll(self._now_ns()))
 
     def on_timer(self) -> None:
-        self._handle(self.sync.poll(self._now_ns()))
+        self._decide()
 
     def on_clock_jump(self, jump) -> None:
         """/clock went back (use_sim_time, bag replayed again): start over, counted once."""

@@ -22,8 +22,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import (InvalidParameterTypeException, InvalidParameterValueException,
-                              ParameterException)
+from rclpy.exceptions import (InvalidHandle, InvalidParameterTypeException,
+                              InvalidParameterValueException, ParameterException)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -340,9 +340,14 @@ class SequenceGaps:
 
 
 def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
-                      callback: Callable[[Any], None], qos: QoSProfile):
+                      callback: Callable[..., None], qos: QoSProfile, raw: bool = False,
+                      with_info: bool = False):
     """create_subscription whose callback first records the input in ``diag`` and counts
-    messages lost before the node took them (``dropped/dds_lost``, see SequenceGaps)."""
+    messages lost before the node took them (``dropped/dds_lost``, see SequenceGaps).
+
+    ``raw``: the callback gets the serialized message (bytes), for decoders that read it in
+    place (wire.cdr_to_cloud); ``with_info``: it gets ``(msg, info)``, the rmw message info
+    (``received_timestamp`` etc., see :func:`arrival_ns`)."""
     gaps = SequenceGaps()
     sub = None
 
@@ -352,10 +357,45 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         if lost:
             diag.reject("dds_lost", f"{topic}: {lost} message(s) overwritten in the DDS history "
                         f"before this node took them (node too slow for the input rate)", n=lost)
-        callback(msg)
+        if with_info:
+            callback(msg, info)
+        else:
+            callback(msg)
 
-    sub = node.create_subscription(msg_type, topic, on_message, qos)
+    sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
     return sub
+
+
+def take_pending(sub, limit: int = 1000) -> int:
+    """Run ``sub``'s callback on every sample already waiting in its DDS reader queue, now,
+    without waiting (at most ``limit``); returns how many were taken.
+
+    The executor takes one sample per subscription per wait and runs ready timers first, so a
+    node busy with earlier work sees a timer before messages that arrived meanwhile. A node
+    that decides on what it has received (the association's synchroniser: is a frame set
+    complete, or has it waited long enough?) takes everything pending first."""
+    taken = 0
+    while taken < limit:
+        try:
+            with sub.handle:
+                got = sub.handle.take_message(sub.msg_type, sub.raw)
+        except InvalidHandle:  # destroyed during shutdown
+            return taken
+        if got is None:
+            return taken
+        sub.callback(*got)
+        taken += 1
+    return taken
+
+
+def arrival_ns(now_ns: int, info: Mapping[str, Any] | None) -> int:
+    """When a message reached this process, on the caller's clock (``now_ns``): now minus the
+    time it waited in the DDS queue, from the rmw ``received_timestamp`` (system clock, ns;
+    ``now_ns`` itself when the rmw does not fill it in)."""
+    received = (info or {}).get("received_timestamp")
+    if not isinstance(received, int) or received <= 0:
+        return int(now_ns)
+    return int(now_ns) - max(0, time.time_ns() - received)
 
 
 class Stopwatch:

@@ -313,6 +313,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
                                   if k.startswith("missing/")},
         "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
+        "association_stage_ms_median": {k.split("/")[1]: float(v) for k, v in assoc.items()
+                                        if k.startswith("time_ms/") and k.endswith("/median")},
         "recall_live": recall(live, gt, stamps),
         "recall_offline": recall(offline_poses(rig, params, messages), gt, stamps),
         "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
