@@ -411,3 +411,63 @@ def test_lag_fluctuating_around_the_window_does_not_flap() -> None:
     kinds = [e.kind for e in s.take_events()]
     assert kinds.count("lagging") == 1 and "rejoined" not in kinds
     assert s.stats.timeouts <= 6 and len(sets) == 63
+
+
+def busy_node(drain: bool, frames: int = 40, stall_at: int = 10, stall_ms: int = 400,
+              work_ms: int = 20) -> tuple[ApproximateTimeSync, list[FrameSet]]:
+    """A node modelled as its executor runs it: camera i's message of frame k reaches the
+    process at stamp + 2 + i ms (the rmw receive time); the node takes messages only when it
+    is idle; each set costs ``work_ms`` of association, set ``stall_at`` stalls ``stall_ms``
+    (CPU starvation). ``drain``: take every received message (``poll=False``), then poll once;
+    else take one message and poll (the synchroniser decides with messages still queued)."""
+    s = make()
+    msgs = sorted((T0 + k * PERIOD + (2 + i) * MS, cam, T0 + k * PERIOD)
+                  for k in range(frames) for i, cam in enumerate(CAMS))
+    sets: list[FrameSet] = []
+    now, idx = msgs[0][0], 0
+    while idx < len(msgs):
+        now = max(now, msgs[idx][0])  # idle until the next message arrives
+        out: list[FrameSet] = []
+        if drain:
+            while idx < len(msgs) and msgs[idx][0] <= now:
+                received, cam, stamp = msgs[idx]
+                out += s.add(cam, stamp, (cam, stamp), now, arrival_ns=received, poll=False)
+                idx += 1
+            out += s.poll(now)
+        else:
+            received, cam, stamp = msgs[idx]
+            out += s.add(cam, stamp, (cam, stamp), now, arrival_ns=received)
+            idx += 1
+        for fs in out:
+            sets.append(fs)
+            now += (stall_ms if len(sets) == stall_at else work_ms) * MS
+    return s, sets + s.poll(now + 10**10)
+
+
+def test_busy_node_that_takes_everything_pending_first_loses_no_camera() -> None:
+    """After a 400 ms stall twelve frames wait in the queues, their receive times long past
+    max_wait: taken all before the decision, every set is complete."""
+    s, sets = busy_node(drain=True)
+    assert [fs.stamp_ns for fs in sets] == [T0 + k * PERIOD for k in range(40)]
+    assert all(fs.missing == [] for fs in sets)
+    assert s.stats.total_dropped == 0 and s.stats.timeouts == 0 and s.lagging() == {}
+
+
+def test_busy_node_deciding_between_takes_loses_the_backlog() -> None:
+    """The same stall, deciding after every message taken: each queued frame's first message
+    is already older than max_wait, its set goes out with that camera alone (too few) or
+    partial. This is why the node drains before it polls."""
+    s, sets = busy_node(drain=False)
+    lost = 40 - sum(not fs.missing for fs in sets)
+    assert lost >= 5
+    assert s.stats.dropped[SyncDrop.TOO_FEW_CAMERAS] + s.stats.partial_sets >= 5
+
+
+def test_arrival_after_now_is_clamped_to_now() -> None:
+    """A receive time later than the caller's clock (clock mismatch) counts as now: the set
+    still waits max_wait from there."""
+    s = make()
+    for cam in CAMS[:3]:
+        s.add(cam, T0, cam, T0, arrival_ns=T0 + 10**9)
+    assert s.poll(T0 + 149 * MS) == []
+    assert [fs.missing for fs in s.poll(T0 + 150 * MS)] == [["cam3"]]

@@ -172,28 +172,37 @@ def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[in
 
 def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, bytes]]]
                   ) -> dict[int, np.ndarray]:
-    """Core association + triangulation of the same messages in this process (the reference
-    recall): stamp -> (P,13,3) world m."""
-    from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import PointCloud2
-
-    from maem_ros.core.association import AssociationParams, associate
+    """The nodes' pipeline on the same messages in this process, every frame set complete
+    (the reference recall): the association node's TemporalAssociator (track-assisted or the
+    per-frame pipeline, as ``params_file`` says), triangulation, and the triangulation node's
+    ``publish_tentative`` rule; stamp -> (P,13,3) world m."""
+    from maem_ros.core.association import AssociationParams
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
+    from maem_ros.core.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.triangulation import TriangulationParams, triangulate
     from maem_ros.params import load_node_params
     from maem_ros.ros import wire
+    from maem_ros.ros.triangulation_node import PARAMS as TRIANGULATION_PARAMS
 
-    ap = AssociationParams.from_mapping(load_node_params(params_file, "association"))
-    tp = TriangulationParams.from_mapping(load_node_params(params_file, "triangulation"))
+    assoc = load_node_params(params_file, "association")
+    tri = {s.name: s.default for s in TRIANGULATION_PARAMS}
+    tri.update(load_node_params(params_file, "triangulation"))
+    temporal = TemporalAssociator(rig, AssociationParams.from_mapping(assoc),
+                                  TemporalParams.from_mapping(assoc))
+    tp = TriangulationParams.from_mapping(tri)
     by_stamp: dict[int, dict] = {}
     for cam, msgs in messages.items():
         for stamp, data in msgs:
             by_stamp.setdefault(stamp, {})[cam] = wire.msg_to_detections(
-                deserialize_message(data, PointCloud2), f"/{cam}/detections")
+                wire.cdr_to_cloud(data, f"/{cam}/detections"), f"/{cam}/detections")
     out = {}
     for stamp, frames in sorted(by_stamp.items()):
-        res = associate(rig, frames, ap)
-        joints = np.asarray(triangulate(rig, frames, res.clusters, tp).joints, np.float64)
+        res = temporal.step(frames, stamp)
+        keep = np.ones(len(res.clusters), bool)
+        if temporal.tp.temporal and not tri["publish_tentative"]:
+            keep = np.asarray(res.track_ids) >= 0
+        clusters = [c for c, k in zip(res.clusters, keep) if k]
+        joints = np.asarray(triangulate(rig, frames, clusters, tp).joints, np.float64)
         out[stamp] = convert(joints, SPORTCENTER_13) if len(joints) else np.zeros((0, 13, 3))
     return out
 
@@ -293,6 +302,7 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
     live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
     assoc = next((kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
+    tri = next((kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
     size = np.median([len(d) for m in messages.values() for _, d in m])
     report = {
         "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
@@ -313,8 +323,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
                                   if k.startswith("missing/")},
         "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
-        "association_stage_ms_median": {k.split("/")[1]: float(v) for k, v in assoc.items()
-                                        if k.startswith("time_ms/") and k.endswith("/median")},
+        "association_stage_ms_median": _stage_medians(assoc),
+        "triangulation_stage_ms_median": _stage_medians(tri),
         "recall_live": recall(live, gt, stamps),
         "recall_offline": recall(offline_poses(rig, params, messages), gt, stamps),
         "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
@@ -322,6 +332,12 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         "work_dir": str(work),
     }
     return report
+
+
+def _stage_medians(diagnostics: dict[str, str]) -> dict[str, float]:
+    """stage -> median ms from a node's /diagnostics (``time_ms/<stage>/median``)."""
+    return {k.split("/")[1]: float(v) for k, v in diagnostics.items()
+            if k.startswith("time_ms/") and k.endswith("/median")}
 
 
 def _fewer_views(poses: dict[int, Any], stamps: Sequence[int]) -> list[int]:

@@ -1,0 +1,145 @@
+"""The association node's receive path (issue 14): serialized detections taken raw and decoded
+in place, every pending message taken before the synchroniser decides, rmw receive times."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from rclpy.duration import Duration
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import PointCloud2
+
+from helpers_ros import start_pipeline, wait_for
+from maem_ros.core.camera import Rig
+from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
+from maem_ros.ros import wire
+from maem_ros.ros.common import arrival_ns
+
+
+def stall(graph, release: threading.Event) -> threading.Event:
+    """Block the graph's executor (one callback that waits for ``release``): the node under
+    test is busy, as under CPU starvation, while DDS keeps receiving. Returns an Event set once
+    the executor is blocked."""
+    started = threading.Event()
+    node = graph.client("stall")
+    timer = None
+
+    def block() -> None:
+        timer.cancel()
+        started.set()
+        release.wait(30.0)
+
+    timer = node.create_timer(0.01, block)
+    return started
+
+
+def test_busy_node_takes_every_pending_message_before_a_set_goes_partial(graph, scene):
+    """While the executor is blocked, three frames of all six cameras reach the node's DDS
+    queues (acknowledged) and wait there far longer than max_wait. Once the node runs again its
+    poll timer is served first; taking every pending message before deciding, all three sets
+    are complete."""
+    g = start_pipeline(graph, association={"max_wait": 0.001, "poll_period": 0.005})
+    release = threading.Event()
+    started = stall(graph, release)
+    assert wait_for(started.is_set, 10.0)
+    cams = g["assoc"].rig.names
+    try:
+        for f in range(3):
+            for cam in cams:
+                g["player"].publish(scene.detections(cam, f))
+        for pub in g["player"].pubs.values():
+            assert pub.wait_for_all_acked(Duration(seconds=10))
+    finally:
+        release.set()
+    stamps = [scene.stamp_ns(f) for f in range(3)]
+    assert wait_for(lambda: all(g["clusters"].has(s) for s in stamps), 20.0, graph)
+    d = g["diags"]
+    d.wait_value("/association", "count/sync_sets", lambda v: v == 3, graph=graph)
+    kv = d.get("/association")
+    assert kv.get("count/sync_partial_sets", "0") == "0", kv
+    assert kv["frames_dropped"] == "0" and int(kv["received/camera_0/detections"]) == 3, kv
+    assert {int(c) for c in g["clusters"].by_stamp[stamps[0]].camera} == set(range(len(cams)))
+
+
+def test_raw_detections_garbage_is_dropped_as_bad_cdr_and_the_node_goes_on(graph, scene):
+    """Bytes that are no serialized PointCloud2 (published as a PointCloud2 whose CDR is cut)
+    are counted under bad_cdr; the next frame goes through."""
+    g = start_pipeline(graph)
+    pub = g["player"].pubs["camera_0"]
+    msg = wire.detections_to_msg(scene.detections("camera_0", 0))
+    data = bytes(serialize_message(msg))
+    pub.publish(data[:200])  # rclpy publishes serialized bytes as they are
+    g["diags"].wait_value("/association", "dropped/bad_cdr", lambda v: v == 1, graph=graph)
+    for cam in g["assoc"].rig.names:
+        g["player"].publish(scene.detections(cam, 1))
+    assert wait_for(lambda: g["poses"].has(scene.stamp_ns(1)), 20.0, graph)
+
+
+def test_cdr_decoder_reads_the_payload_in_place(scene):
+    """cdr_to_cloud + msg_to_detections: the same detections as rclpy's deserialisation, the
+    vertices a view of the received bytes."""
+    from rclpy.serialization import deserialize_message
+    dets = scene.detections("camera_2", 4)
+    for layout in wire.WIRE_VERTICES:
+        data = bytes(serialize_message(wire.detections_to_msg(dets, layout)))
+        fast = wire.msg_to_detections(wire.cdr_to_cloud(data, "/t"), "/t")
+        ref = wire.msg_to_detections(deserialize_message(data, PointCloud2), "/t")
+        assert fast.stamp_ns == ref.stamp_ns and fast.camera == ref.camera
+        for name in ("bboxes", "scores", "kpts2d", "kpts3d", "verts2d"):
+            np.testing.assert_array_equal(getattr(fast, name), getattr(ref, name))
+    fast = wire.msg_to_detections(wire.cdr_to_cloud(data := bytes(serialize_message(
+        wire.detections_to_msg(dets))), "/t"), "/t")
+    assert np.shares_memory(fast.verts2d, np.frombuffer(data, np.uint8))
+    for bad in (b"", b"\x00\x01\x00\x00", data[: len(data) // 2]):
+        with pytest.raises(wire.WireError) as e:
+            wire.cdr_to_cloud(bad, "/camera_2/detections")
+        assert e.value.reason == "bad_cdr" and "/camera_2/detections: data:" in str(e.value)
+
+
+def test_arrival_is_now_minus_the_time_in_the_queue() -> None:
+    import time
+    now = 5_000_000_000
+    waited = 0.2e9
+    info = {"received_timestamp": time.time_ns() - int(waited)}
+    got = arrival_ns(now, info)
+    assert now - waited - 0.5e9 < got <= now - waited  # within the time this line took
+    assert arrival_ns(now, {"received_timestamp": time.time_ns() + 10**9}) == now
+    assert arrival_ns(now, {}) == now and arrival_ns(now, None) == now
+
+
+@pytest.mark.parametrize("margin", [0.0, 0.3, 1.0])
+def test_pixel_limits_fast_path_agrees_with_the_elementwise_check(margin: float) -> None:
+    """The reductions that accept a message decide as the elementwise comparison does: per
+    axis (x against width, y against height), NaN ignored, the first offending value named."""
+    rng = np.random.default_rng(7)
+    lo, hi = -margin * np.array([1920.0, 1080.0]), (1 + margin) * np.array([1920.0, 1080.0])
+    for trial in range(300):
+        pts = rng.uniform(-0.2, 1.2, (3, 50, 2)).astype(np.float32) * np.float32([1920, 1080])
+        pts[rng.random(pts.shape) < 0.1] = np.nan
+        if trial % 3 == 0:
+            pts = np.clip(pts, lo, hi).astype(np.float32)
+        if trial % 7 == 0:
+            pts[:] = np.nan
+        with np.errstate(invalid="ignore"):
+            bad = (pts < lo) | (pts > hi)
+        want = float(pts[bad].flat[0]) if bad.any() else None
+        assert _first_outside(pts, lo, hi) == want
+
+
+def test_pixel_limits_on_a_strided_vertex_view(scene) -> None:
+    """A decoded f32 message (vertices a strided view of the payload): in bounds passes; one
+    vertex beyond the image by more than the margin is named."""
+    rig: Rig = scene.rig
+    dets = scene.detections("camera_1", 2)
+    fd = wire.msg_to_detections(wire.cdr_to_cloud(bytes(serialize_message(
+        wire.detections_to_msg(dets))), "/t"), "/t")
+    assert not fd.verts2d.flags["C_CONTIGUOUS"]
+    check_detections(fd, rig, InputLimits(), "/t")
+    far = dets.verts2d.copy()
+    far[1, 17, 1] = 3.5 * rig["camera_1"].height
+    dets.verts2d = far
+    fd = wire.msg_to_detections(wire.cdr_to_cloud(bytes(serialize_message(
+        wire.detections_to_msg(dets))), "/t"), "/t")
+    with pytest.raises(LimitError, match="verts2d"):
+        check_detections(fd, rig, InputLimits(), "/t")
