@@ -166,3 +166,11 @@ def test_q4_decode_equals_the_straightforward_formula(dtype, shape) -> None:
     plain = wire.decode_q4(code, dtype)
     assert np.array_equal(plain, np.where(code == wire.Q4_MISSING, np.nan,
                                           code.astype(dtype) / dtype(16)), equal_nan=True)
+
+
+def test_bench_live_rejects_a_negative_vertex_count() -> None:
+    import subprocess
+    import sys
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", "--live",
+                           "--vertex-count", "-1"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "--vertex-count" in proc.stderr, proc.stderr

@@ -336,6 +336,9 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         "recall_live": recall(live, gt, stamps),
         "recall_offline": recall(offline_poses(rig, params, messages), gt, stamps),
         "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
+        # CPU time per published frame: what a process needs of one core at this rate (< 1000 /
+        # rate ms to keep up), less dependent on what else loads the machine than the latency
+        "cpu_ms_per_frame": {n: round(1e3 * (cpu1[n] - cpu0[n]) / len(stamps), 2) for n in cpu0},
         "exit_codes": codes,
         "work_dir": str(work),
     }
