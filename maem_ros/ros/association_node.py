@@ -3,8 +3,12 @@
     ros2 run maem_ros association --ros-args --params-file config/sportcenter.yaml
     maem-association --ros-args --params-file config/demo.yaml
 
-Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10), groups them with
-core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer polls every
+Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10; taken serialized
+and decoded in place, wire.cdr_to_cloud: rclpy's own deserialisation of a 1.8 MB full-mesh message
+costs more than its association), takes every pending message of all cameras before the
+synchroniser decides (a busy executor would run the poll timer first and leave messages of the
+frame in the DDS queues) and counts ``max_wait`` and lags from each message's rmw receive time,
+groups them with core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer polls every
 ``poll_period`` so a silent camera never stalls the graph; a camera lagging beyond ``max_wait``
 is not waited for (``max_lag`` compensates a known lag); one camera's stale/future stamps are
 dropped for that camera, a jump of most cameras or of /clock resets the queues; every dropped
@@ -171,14 +175,18 @@ class AssociationNode(Node):
         declared partial only when its missing camera's message has not reached this process
         within max_wait of the reference's arrival (rmw receive time), never because the node
         was busy. Waiting messages also stop being overwritten in the keep-last history."""
+        self._take_all()
+        ready, self._ready = self._ready, []
+        self._handle(ready + self.sync.poll(self._now_ns()))
+
+    def _take_all(self) -> None:
+        """Receive (decode and queue) every message waiting in the DDS queues, decide nothing."""
         self._taking = True
         try:
             for sub in self.subs:
                 take_pending(sub)
         finally:
             self._taking = False
-        ready, self._ready = self._ready, []
-        self._handle(ready + self.sync.poll(self._now_ns()))
 
     def on_timer(self) -> None:
         self._decide()
@@ -195,6 +203,8 @@ class AssociationNode(Node):
         self._sync_counters()
         for fs in sets:
             self.process(fs)
+            if len(sets) > 1:  # a backlog: keep the DDS history from overwriting what arrived
+                self._take_all()
 
     def _sync_counters(self) -> None:
         """Report the synchroniser's drops (``sync_<reason>``), resets and state changes."""
