@@ -299,7 +299,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         if listener is not None:
             listener.close()
     sent = {s: t0 + f / a.rate for f, s in enumerate(stamps)}
-    lat = np.array([(poses[s][0] - t) * 1e3 for s, t in sent.items() if s in poses])
+    lat_by_frame = {f: (poses[s][0] - sent[s]) * 1e3 for f, s in enumerate(stamps) if s in poses}
+    lat = np.array(list(lat_by_frame.values()))
     gt = ground_truth(params, a.bag, stamps)
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
     live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
@@ -323,6 +324,9 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         "latency_ms_median": float(np.median(lat)) if len(lat) else None,
         "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
         "latency_ms_max": float(lat.max()) if len(lat) else None,
+        # where the tail is: (frame index, ms) of the five slowest frames
+        "slowest_frames": [(f, round(ms, 1)) for f, ms in
+                           sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]],
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
         "partial_sets": int(float(assoc.get("count/sync_partial_sets", 0))),
         # where they happen: frames whose best-seen person has fewer views than the run's best
