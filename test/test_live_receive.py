@@ -62,6 +62,33 @@ def test_busy_node_takes_every_pending_message_before_a_set_goes_partial(graph, 
     assert {int(c) for c in g["clusters"].by_stamp[stamps[0]].camera} == set(range(len(cams)))
 
 
+def test_node_that_fell_behind_skips_sets_beyond_max_backlog(graph, scene):
+    """Five frames wait while the executor is blocked; with max_backlog 50 ms the node
+    processes the newest two (within 50 ms of frame 4 at 30 fps) and counts three
+    dropped/behind, instead of working through all five at growing latency."""
+    g = start_pipeline(graph, association={"max_backlog": 0.05})
+    release = threading.Event()
+    started = stall(graph, release)
+    assert wait_for(started.is_set, 10.0)
+    period = 33_333_333
+    stamp = lambda f: scene.stamp_ns(0) + f * period  # noqa: E731 - 30 fps stamps
+    try:
+        for f in range(5):
+            for cam in g["assoc"].rig.names:
+                dets = scene.detections(cam, f)
+                dets.stamp_ns = stamp(f)
+                g["player"].publish(dets)
+        for pub in g["player"].pubs.values():
+            assert pub.wait_for_all_acked(Duration(seconds=10))
+    finally:
+        release.set()
+    assert wait_for(lambda: g["clusters"].has(stamp(4)), 20.0, graph)
+    d = g["diags"]
+    d.wait_value("/association", "dropped/behind", lambda v: v == 3, graph=graph)
+    assert d.value("/association", "frames_processed") == 2
+    assert sorted(g["clusters"].by_stamp) == [stamp(3), stamp(4)]
+
+
 def test_raw_detections_garbage_is_dropped_as_bad_cdr_and_the_node_goes_on(graph, scene):
     """Bytes that are no serialized PointCloud2 (published as a PointCloud2 whose CDR is cut)
     are counted under bad_cdr; the next frame goes through."""

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.sync import ApproximateTimeSync, FrameSet, SyncDrop
+from maem_ros.core.sync import ApproximateTimeSync, FrameSet, SyncDrop, skip_behind
 
 MS = 1_000_000
 PERIOD = 33 * MS
@@ -471,3 +471,13 @@ def test_arrival_after_now_is_clamped_to_now() -> None:
         s.add(cam, T0, cam, T0, arrival_ns=T0 + 10**9)
     assert s.poll(T0 + 149 * MS) == []
     assert [fs.missing for fs in s.poll(T0 + 150 * MS)] == [["cam3"]]
+
+
+def test_skip_behind_keeps_the_sets_within_the_backlog_of_the_newest() -> None:
+    sets = [FrameSet(T0 + k * PERIOD, {"cam0": k}) for k in range(5)]
+    kept, skipped = skip_behind(sets, 50 * MS)
+    assert [fs.stamp_ns for fs in kept] == [T0 + 3 * PERIOD, T0 + 4 * PERIOD]
+    assert [fs.stamp_ns for fs in skipped] == [T0 + k * PERIOD for k in range(3)]
+    assert skip_behind(sets, 0) == (sets, [])
+    assert skip_behind(sets[:1], MS) == (sets[:1], [])
+    assert skip_behind([], MS) == ([], [])

@@ -361,6 +361,20 @@ class ApproximateTimeSync:
         return FrameSet(stamp_ns, items, missing)
 
 
+def skip_behind(sets: Sequence[FrameSet], max_backlog_ns: int
+                ) -> tuple[list[FrameSet], list[FrameSet]]:
+    """(kept, skipped): of frame sets ready together (a node that fell behind), those whose
+    stamp is more than ``max_backlog_ns`` older than the newest are skipped, so a live node
+    catches up at once instead of working through stale frames at growing latency (each
+    skipped set is a frame the caller counts as dropped). ``max_backlog_ns`` 0 keeps all."""
+    sets = list(sets)
+    if max_backlog_ns <= 0 or len(sets) < 2:
+        return sets, []
+    newest = max(fs.stamp_ns for fs in sets)
+    kept = [fs for fs in sets if newest - fs.stamp_ns <= max_backlog_ns]
+    return kept, [fs for fs in sets if newest - fs.stamp_ns > max_backlog_ns]
+
+
 @dataclass
 class GuardResult:
     """What :meth:`StampGuard.push` decided: items to process now (in order), items dropped

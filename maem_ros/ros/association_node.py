@@ -37,7 +37,7 @@ from maem_ros.core.association import AssociationParams
 from maem_ros.core.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
-from maem_ros.core.sync import ApproximateTimeSync, SyncStats
+from maem_ros.core.sync import ApproximateTimeSync, SyncStats, skip_behind
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, ConfigError, Diagnostics, NodeParams, RejectErrors,
                                  Stopwatch, arrival_ns, declare_params, load_rig_param,
@@ -68,6 +68,9 @@ class AssociationNodeParams(NodeParams):
     max_wait: float = param(0.15, "s, emit a partial frame set after waiting this long",
                             minimum=0.0, exclusive_minimum=True)
     min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
+    max_backlog: float = param(0.0, "s, of frame sets ready at once (the node fell behind) skip "
+                                    "those older than this behind the newest, counted "
+                                    "dropped/behind (0 = process every set)", minimum=0.0)
     poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0,
                                exclusive_minimum=True)
     max_lag: float = param(0.0, "s, wait up to this lag (+ max_wait) for a camera that lags the "
@@ -128,6 +131,7 @@ class AssociationNode(Node):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self._sync_seen = SyncStats()
+        self.max_backlog_ns = int(round(p["max_backlog"] * 1e9))
         self.diag = Diagnostics(self, p["diagnostics_period"])
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
@@ -177,7 +181,12 @@ class AssociationNode(Node):
         was busy. Waiting messages also stop being overwritten in the keep-last history."""
         self._take_all()
         ready, self._ready = self._ready, []
-        self._handle(ready + self.sync.poll(self._now_ns()))
+        sets, skipped = skip_behind(ready + self.sync.poll(self._now_ns()), self.max_backlog_ns)
+        if skipped:
+            self.diag.reject("behind", f"{len(skipped)} frame set(s) more than max_backlog "
+                             f"{self.max_backlog_ns / 1e9:g} s behind the newest skipped (node "
+                             f"too slow for the input rate)", n=len(skipped))
+        self._handle(sets)
 
     def _take_all(self) -> None:
         """Receive (decode and queue) every message waiting in the DDS queues, decide nothing."""

@@ -224,7 +224,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
     from maem_ros.tools.processes import ProcessGroup, module_command, node_command
 
     work = Path(tempfile.mkdtemp(prefix="maem_live_"))
-    assoc_over = {"max_wait": a.max_wait} if a.max_wait else None
+    assoc_over = {**({"max_wait": a.max_wait} if a.max_wait else {}),
+                  **({"max_backlog": a.max_backlog} if a.max_backlog else {})} or None
     params = write_params(a.params, work / "params.yaml",
                           frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
                           association=assoc_over)
@@ -312,6 +313,7 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
     report = {
         "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
         "wire": a.wire, "vertex_stride": a.vertex_stride, "vertex_count": a.vertex_count,
+        "max_backlog_s": a.max_backlog or 0.0,
         "publisher_netns": a.publisher_netns,
         "message_mb": round(float(size) / 1e6, 3),
         "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
@@ -377,6 +379,9 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
                    help="--live: send this many of those vertices, spread evenly (announced "
                         "subset; 0 = all)")
     g.add_argument("--max-wait", type=float, default=None, help="--live: association max_wait, s")
+    g.add_argument("--max-backlog", type=float, default=None,
+                   help="--live: association max_backlog, s (skip frame sets that far behind "
+                        "the newest when the node fell behind)")
     g.add_argument("--drain", type=float, default=3.0,
                    help="--live: seconds to wait for the last poses")
     g.add_argument("--startup-timeout", type=float, default=180.0,
@@ -393,6 +398,8 @@ def check_live_arguments(a: argparse.Namespace) -> None:
         raise ValueError(f"--rate: must be > 0, got {a.rate}")
     if a.vertex_stride < 1:
         raise ValueError(f"--vertex-stride: must be >= 1, got {a.vertex_stride}")
+    if a.max_backlog is not None and a.max_backlog < 0:
+        raise ValueError(f"--max-backlog: must be >= 0, got {a.max_backlog}")
     if a.vertex_count < 0:
         raise ValueError(f"--vertex-count: must be >= 0, got {a.vertex_count}")
     if a.bag is not None and not Path(a.bag).exists():
