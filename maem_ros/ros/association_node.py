@@ -4,16 +4,17 @@
     maem-association --ros-args --params-file config/demo.yaml
 
 Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10; taken serialized
-and decoded in place, wire.cdr_to_cloud: rclpy's own deserialisation of a 1.8 MB full-mesh message
-costs more than its association), takes every pending message of all cameras before the
+and decoded in place, wire.cdr_to_cloud: rclpy's own deserialisation of a 1.8 MB full-mesh
+message costs more than its association), takes every pending message of all cameras before the
 synchroniser decides (a busy executor would run the poll timer first and leave messages of the
 frame in the DDS queues) and counts ``max_wait`` and lags from each message's rmw receive time,
-groups them with core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer polls every
-``poll_period`` so a silent camera never stalls the graph; a camera lagging beyond ``max_wait``
-is not waited for (``max_lag`` compensates a known lag); one camera's stale/future stamps are
-dropped for that camera, a jump of most cameras or of /clock resets the queues; every dropped
-message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message or
-pixels beyond ``pixel_margin`` are rejected),
+groups them with core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer
+polls every ``poll_period`` so a silent camera never stalls the graph; a camera lagging beyond
+``max_wait`` is not waited for (``max_lag`` compensates a known lag); one camera's stale/future
+stamps are dropped for that camera, a jump of most cameras or of /clock resets the queues; every
+dropped message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message
+or pixels beyond ``pixel_margin`` are rejected; with ``max_backlog`` a node that fell behind skips
+the stale sets, ``dropped/behind``),
 runs core.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
 tracks' predictions first, core.association.associate on the rest; clusters carry track ids) or
 core.association.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
