@@ -685,30 +685,43 @@ def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int], joints: n
     life = Duration(sec=sec, nanosec=nsec)
     out = MarkerArray(markers=[Marker(header=header, ns=NS_DELETE_ALL, id=0,
                                       action=Marker.DELETEALL)])
-    for pid, pj in zip(ids, np.asarray(joints, dtype=np.float64)):
-        finite = np.all(np.isfinite(pj), axis=1)
-        if pid < 0 or not finite.any():
-            continue
-        color = id_color(pid)
-        pts = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in pj[finite]]
-        joint_m = Marker(header=header, ns=NS_JOINTS, id=int(pid), type=Marker.SPHERE_LIST,
-                         action=Marker.ADD, lifetime=life, points=pts, color=color)
+    if len(ids) == 0:
+        return out
+    pj = np.asarray(joints, dtype=np.float64)  # (P, J, 3)
+    pid = np.asarray(ids, dtype=np.int64)
+    finite = np.isfinite(pj).all(axis=2)  # (P, J)
+    ends = np.asarray(bones, dtype=np.intp).reshape(-1, 2)
+    bone_ok = finite[:, ends[:, 0]] & finite[:, ends[:, 1]]  # (P, B)
+    segments = pj[:, ends]  # (P, B, 2, 3)
+    height = np.where(finite, pj[..., 2], -np.inf)
+    top = pj[np.arange(len(pj)), np.argmax(height, axis=1)] if pj.shape[1] else pj[:, :0]
+    # the message types need one Point object per point: built from plain lists (the
+    # selection above is vectorised; per-point work is only the object construction)
+    for p in np.flatnonzero((pid >= 0) & finite.any(axis=1)):
+        color, mid = id_color(int(pid[p])), int(pid[p])
+        joint_m = Marker(header=header, ns=NS_JOINTS, id=mid, type=Marker.SPHERE_LIST,
+                         action=Marker.ADD, lifetime=life, color=color,
+                         points=_points(pj[p][finite[p]]))
         joint_m.pose.orientation.w = 1.0
         joint_m.scale.x = joint_m.scale.y = joint_m.scale.z = joint_diameter
-        seg = [Point(x=float(x), y=float(y), z=float(z))
-               for a, b in bones if finite[a] and finite[b] for x, y, z in (pj[a], pj[b])]
-        bone_m = Marker(header=header, ns=NS_BONES, id=int(pid), type=Marker.LINE_LIST,
-                        action=Marker.ADD, lifetime=life, points=seg, color=color)
+        bone_m = Marker(header=header, ns=NS_BONES, id=mid, type=Marker.LINE_LIST,
+                        action=Marker.ADD, lifetime=life, color=color,
+                        points=_points(segments[p][bone_ok[p]].reshape(-1, 3)))
         bone_m.pose.orientation.w = 1.0
         bone_m.scale.x = bone_width
-        top = pj[finite][np.argmax(pj[finite][:, 2])]
-        text_m = Marker(header=header, ns=NS_LABELS, id=int(pid), type=Marker.TEXT_VIEW_FACING,
-                        action=Marker.ADD, lifetime=life, text=str(int(pid)), color=color)
-        text_m.pose.position = Point(x=float(top[0]), y=float(top[1]), z=float(top[2]) + 0.3)
+        text_m = Marker(header=header, ns=NS_LABELS, id=mid, type=Marker.TEXT_VIEW_FACING,
+                        action=Marker.ADD, lifetime=life, text=str(mid), color=color)
+        x, y, z = top[p].tolist()
+        text_m.pose.position = Point(x=x, y=y, z=z + 0.3)
         text_m.pose.orientation.w = 1.0
         text_m.scale.z = 0.25
         out.markers.extend([joint_m, bone_m, text_m])
     return out
+
+
+def _points(xyz: np.ndarray) -> list[Point]:
+    """(N, 3) -> geometry_msgs/Point list."""
+    return [Point(x=x, y=y, z=z) for x, y, z in xyz.tolist()]
 
 
 # ---------------------------------------------------------------------------------------------
