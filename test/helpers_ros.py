@@ -374,7 +374,7 @@ def bad_messages(scene) -> list[tuple[str, PointCloud2]]:
                            count=f.count + (3 if f.name == "kpts3d" else 0)) for f in m.fields]
     out.append(("bad_layout", m))  # kpts3d now runs into verts2d
     d = fresh_detections(scene, "camera_0", 1)
-    d.kpts2d[0, 3, 1] = np.nan
+    d.kpts2d[0, 3, 1] = np.inf  # NaN would be a keypoint not seen
     out.append(("nonfinite", wire.detections_to_msg(d)))
     m = base()
     m.data = array.array("B")

@@ -302,7 +302,7 @@ def _set(a: np.ndarray, index, value) -> np.ndarray:
     (lambda: detections(kpts2d=np.zeros((2, 4, 3))), "kpts2d"),
     (lambda: detections(kpts3d=np.zeros((2, 5, 3))), "kpts3d"),
     (lambda: detections(verts2d=np.zeros((1, 3, 2))), "verts2d"),
-    (lambda: _with("kpts2d", lambda a: _set(a, (1, 2, 0), np.nan)), "kpts2d"),
+    (lambda: _with("kpts2d", lambda a: _set(a, (1, 2, 0), np.inf)), "kpts2d"),  # NaN = not seen
     (lambda: _with("kpts3d", lambda a: _set(a, (0, 0, 2), np.inf)), "kpts3d"),
     (lambda: _with("verts2d", lambda a: _set(a, (1, 0, 1), np.inf)), "verts2d"),  # NaN = missing
     (lambda: _with("bboxes", lambda a: _set(a, (0, 0), np.inf)), "bbox"),
@@ -317,8 +317,15 @@ def test_bad_detections_name_field(make, field: str) -> None:
 
 
 def test_nan_reports_detection_index() -> None:
-    with pytest.raises(ValueError, match="kpts2d: NaN or inf in detection 1"):
-        _with("kpts2d", lambda a: _set(a, (1, 2, 0), np.nan)).validate()
+    with pytest.raises(ValueError, match="kpts2d: inf in detection 1"):
+        _with("kpts2d", lambda a: _set(a, (1, 2, 0), np.inf)).validate()
+    with pytest.raises(ValueError, match="kpts3d: NaN or inf in detection 1"):
+        _with("kpts3d", lambda a: _set(a, (1, 2, 0), np.nan)).validate()
+
+
+def test_keypoint_not_seen_is_nan() -> None:
+    d = _with("kpts2d", lambda a: _set(a, (1, 2, 0), np.nan))
+    assert d.validate() is d
 
 
 def test_unknown_camera() -> None:

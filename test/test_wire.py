@@ -210,7 +210,7 @@ def test_detections_decoder_rejects(case):
 
 
 @pytest.mark.parametrize("field,index,value,name,reason", [
-    ("kpts2d", (1, 2, 0), np.nan, "kpts2d", "nonfinite"),
+    ("kpts2d", (1, 2, 0), np.inf, "kpts2d", "nonfinite"),  # NaN = keypoint not seen
     ("verts2d", (2, 3, 1), np.inf, "verts2d", "nonfinite"),
     ("kpts3d", (0, 0, 2), -np.inf, "kpts3d", "nonfinite"),
     ("bboxes", (1, 2), -5.0, "bbox", "inverted_bbox"),

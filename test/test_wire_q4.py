@@ -85,19 +85,25 @@ def _q4_message(n=2, j=3, v=4):
     return wire.detections_to_msg(make_dets(n, j, v, hi=1000.0), vertices="q4", keypoints="q4")
 
 
-def test_q4_out_of_range_and_missing_keypoints_are_wire_errors():
+def test_q4_out_of_range_keypoints_go_f32_and_unseen_ones_are_nan():
     dets = make_dets(2, 3, 4)
     dets.kpts2d[1, 0, 0] = -3.0  # q4 cannot carry it: this message sends f32 keypoints
     back = wire.msg_to_detections(wire.detections_to_msg(dets, keypoints="q4"), TOPIC)
     np.testing.assert_array_equal(back.kpts2d, dets.kpts2d.astype(np.float32))
+    dets = make_dets(2, 3, 4)
+    dets.kpts2d[1, 2] = np.nan  # not seen: stays q4, 65535, and comes back NaN
+    msg = wire.detections_to_msg(dets, keypoints="q4")
+    assert "kpts2d_q4" in [f.name for f in msg.fields]
+    back = wire.msg_to_detections(msg, TOPIC)
+    assert np.isnan(back.kpts2d[1, 2]).all() and np.isfinite(back.kpts2d[1, :2]).all()
+    np.testing.assert_allclose(back.kpts2d[0], dets.kpts2d[0], atol=1 / 32)
     msg = _q4_message()
     rec = np.frombuffer(msg.data, dtype=np.uint8).copy()
     off = next(f.offset for f in msg.fields if f.name == "kpts2d_q4") + msg.point_step
-    rec[off:off + 2] = 255  # detection 1, keypoint 0 u = 65535
+    rec[off:off + 2] = 255  # detection 1, keypoint 0 u = 65535: not seen
     msg.data = rec.tobytes()
-    with pytest.raises(wire.WireError, match="kpts2d_q4: missing keypoint .* detection 1") as e:
-        wire.msg_to_detections(msg, TOPIC)
-    assert e.value.reason == "missing_value"
+    back = wire.msg_to_detections(msg, TOPIC)
+    assert np.isnan(back.kpts2d[1, 0, 0]) and np.isfinite(back.kpts2d[0]).all()
     with pytest.raises(ValueError, match="vertices: expected one of"):
         wire.detections_to_msg(make_dets(1, 1, 1), vertices="q8")
 

@@ -19,7 +19,8 @@ from .errors import InputError
 class FrameDetections:
     """N detections of one camera at one stamp (J keypoints, V mesh vertices each).
 
-    bboxes (N,4) x1 y1 x2 y2 px; scores (N,); kpts2d (N,J,2) px; kpts3d (N,J,3) m;
+    bboxes (N,4) x1 y1 x2 y2 px; scores (N,); kpts2d (N,J,2) px (NaN = keypoint not seen, e.g.
+    under the estimator's visibility threshold); kpts3d (N,J,3) m;
     verts2d (N,V,2) px, float32 (V may be 0 when no mesh is available; NaN = vertex missing,
     e.g. outside what the compact wire layout can carry). ``stamp_ns`` is the image capture
     time in integer nanoseconds. ``mesh_subset`` = (mesh vertices, stride, count) when verts2d
@@ -153,11 +154,12 @@ class FrameDetections:
                                  f"vertices, verts2d has {self.verts2d.shape[1]}")
         for name, arr in (("bbox", self.bboxes), ("score", self.scores), ("kpts2d", self.kpts2d),
                           ("kpts3d", self.kpts3d), ("verts2d", self.verts2d)):
-            # a missing vertex is NaN; inf is never a coordinate
-            bad = np.isinf(arr) if name == "verts2d" else ~np.isfinite(arr)
+            # a missing vertex or keypoint (not seen) is NaN; inf is never a coordinate
+            missing_ok = name in ("verts2d", "kpts2d")
+            bad = np.isinf(arr) if missing_ok else ~np.isfinite(arr)
             if bad.any():
                 det = int(np.argwhere(bad)[0][0]) if arr.ndim > 1 else int(np.argmax(bad))
-                what = "inf" if name == "verts2d" else "NaN or inf"
+                what = "inf" if missing_ok else "NaN or inf"
                 raise ValueError(f"{where}: {name}: {what} in detection {det}")
         inverted = (self.bboxes[:, 2] < self.bboxes[:, 0]) | (self.bboxes[:, 3] < self.bboxes[:, 1])
         if inverted.any():

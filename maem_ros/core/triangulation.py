@@ -45,6 +45,11 @@ class TriangulationParams(Params):
     min_views: int = param(2, "inlier views needed per keypoint", minimum=2)
     left_right: bool = param(False, "relabel each cluster's views left/right consistently before "
                                     "the RANSAC (monocular left/right swaps; off = the paper)")
+    tau_member: float = param(0.0, "px, from three views on leave out (and re-triangulate "
+                                   "without) each member whose median reprojection error over "
+                                   "the triangulated joints is >= this: a wrong detection as a "
+                                   "whole, e.g. a body mixed from two people (0 = off, the paper)",
+                              minimum=0.0)
 
 
 @dataclass
@@ -54,7 +59,9 @@ class Poses:
     joints (P,J,3) world metres (NaN = missing); views (P,) member views per cluster;
     inliers (P,J) inlier views used per joint (0 where NaN); scores (P,) mean detection
     score of the members; mirrored (P,M) True where member m's left/right labels were swapped
-    (``left_right``; member order of the cluster, M = most members of any cluster), else None.
+    (``left_right``; member order of the cluster, M = most members of any cluster), else None;
+    rejected (P,M) True where member m was left out as a whole (``tau_member``), else None.
+    ``views`` counts the members used (rejected ones excluded).
     """
 
     joints: np.ndarray
@@ -62,6 +69,7 @@ class Poses:
     inliers: np.ndarray
     scores: np.ndarray
     mirrored: np.ndarray | None = None
+    rejected: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.joints.shape[0])
@@ -143,6 +151,39 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
     if C == 0:
         return Poses(np.zeros((0, J, 3)), np.zeros(0, np.int64), np.zeros((0, J), np.int64),
                      np.zeros(0))
+    poses = _ransac_members(P_rig, cam, uv, score, present, params)
+    if params.tau_member > 0:
+        rejected = _rejected_members(P_rig[cam], uv, present, poses, params.tau_member)
+        if rejected.any():
+            kept = _ransac_members(P_rig, cam, uv, score, present & ~rejected, params)
+            kept.rejected = rejected
+            return kept
+        poses.rejected = rejected
+    return poses
+
+
+def _rejected_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray, poses: Poses,
+                      tau: float) -> np.ndarray:
+    """(C,M) members whose median reprojection error (px) over the cluster's triangulated joints
+    is >= tau, in clusters that keep two members or more without them (else none)."""
+    if poses.mirrored is not None:  # compare each view with the labels the RANSAC used
+        J = uv.shape[2]
+        uv = np.where(poses.mirrored[:, :, None, None], uv[:, :, mirror_permutation(J)], uv)
+    err = reprojection_error(P, poses.joints[:, None], uv)[:, :, 0]  # (C,M,J), inf if unusable
+    err = np.where(np.isfinite(err), err, np.nan)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a member with no usable joint
+        med = np.nanmedian(err, axis=-1)
+    bad = present & (med >= tau)
+    enough = (present & ~bad).sum(1) >= 2
+    return bad & enough[:, None]
+
+
+def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: np.ndarray,
+                    present: np.ndarray, params: TriangulationParams) -> Poses:
+    """The per-keypoint RANSAC of triangulate_members on the present members."""
+    C, M = present.shape
+    J = uv.shape[2]
     P = P_rig[cam]  # (C,M,3,4)
     mirrored = None
     if params.left_right:

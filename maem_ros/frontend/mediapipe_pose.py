@@ -8,8 +8,10 @@ uses (``mp.solutions.pose.Pose``) finds ONE person per call (the Tasks API's ``n
 found person's segmentation mask (dilated) and run again, up to ``max_people`` passes or until no
 person is found. Per person:
 
-* kpts2d: the 33 image landmarks (rectified px; the node passes the rectified image);
-* kpts3d: the 33 ``pose_world_landmarks`` (metres, hip-centred, model axes) moved into the
+* kpts2d: the 33 image landmarks (rectified px; the node passes the rectified image); a landmark
+  whose visibility is under ``min_visibility`` is NaN (not seen: BlazePose places occluded
+  landmarks anyway, and such guesses are what disagrees most between views);
+* kpts3d: the 33 ``pose_world_landmarks`` (all of them: the association compares whole bodies) (metres, hip-centred, model axes) moved into the
   camera frame (OpenCV axes, metres) by the pose that best projects them onto the image
   landmarks (cv2.solvePnP, SQPnP, on the landmarks with visibility >= ``pnp_min_visibility``);
 * score: mean landmark visibility over the body joints (shoulders, elbows, wrists, hips, knees,
@@ -39,6 +41,7 @@ Options (frontend parameters; unknown keys are ignored):
   duplicate_overlap      fraction of a new person's landmarks inside earlier masks that makes it
                          a duplicate (default 0.6)
   pnp_min_visibility     landmarks used to place the 3D pose (default 0.5)
+  min_visibility         landmarks under this visibility are published as NaN (default 0 = all)
   keypoint_convention    blazepose_33 | sportcenter_13 | coco_17 (default blazepose_33)
   pose_factory           callable(options) -> object with ``process(rgb)`` like mp Pose (tests)
 """
@@ -127,8 +130,9 @@ class MediapipeEstimator(Estimator):
         self.mask_dilate = option_int(options, "mask_dilate", 15, minimum=0)
         self.duplicate_overlap = option_float(options, "duplicate_overlap", 0.6)
         self.pnp_min_visibility = option_float(options, "pnp_min_visibility", 0.5)
+        self.min_visibility = option_float(options, "min_visibility", 0.0)
         for key in ("mask_threshold", "duplicate_overlap", "pnp_min_visibility",
-                    "min_detection_confidence"):
+                    "min_detection_confidence", "min_visibility"):
             value = option_float(options, key, 0.5)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"frontend option {key!r}: must be in [0, 1], got {value}")
@@ -213,7 +217,8 @@ class MediapipeEstimator(Estimator):
         if X is None:
             self.stats["dropped_pnp"] += 1
             return None
-        return bbox, uv, X, float(np.clip(vis[_SCORE_JOINTS].mean(), 0.0, 1.0))
+        seen = np.where((vis >= self.min_visibility)[:, None], uv, np.nan)
+        return bbox, seen, X, float(np.clip(vis[_SCORE_JOINTS].mean(), 0.0, 1.0))
 
     def _detections(self, camera: Camera, stamp_ns: int, people) -> FrameDetections:
         conv = self.convention

@@ -102,6 +102,8 @@ class FrontendNodeParams(NodeParams):
                                      minimum=0.0, maximum=1.0)
     pnp_min_visibility: float = param(0.5, "mediapipe: landmark visibility used to place the 3D "
                                            "pose in the camera", minimum=0.0, maximum=1.0)
+    min_visibility: float = param(0.0, "mediapipe: landmarks under this visibility are sent as "
+                                       "NaN (not seen)", minimum=0.0, maximum=1.0)
 
 
 PARAMS = FrontendNodeParams.specs()
@@ -110,7 +112,7 @@ SAM3D_KEYS = ("checkpoint_path", "mhr_path", "hf_repo_id", "repo_path", "device"
               "detector", "bbox_thr", "inference_type", "keypoint_convention")
 MEDIAPIPE_KEYS = ("keypoint_convention", "max_people", "min_detection_confidence",
                   "min_bbox_height", "mask_threshold", "mask_dilate", "duplicate_overlap",
-                  "pnp_min_visibility")
+                  "pnp_min_visibility", "min_visibility")
 
 
 def backend_options(p: dict[str, Any]) -> dict[str, Any]:

@@ -3,7 +3,8 @@
 PointCloud2 layouts (one point per row, little-endian, packed, height 1):
 
 * detections (``/<cam>/detections``), one point per detection, all float32:
-  ``bbox``(4: x1 y1 x2 y2 rectified px) ``score``(1) ``kpts2d``(2J rectified px, u v per joint)
+  ``bbox``(4: x1 y1 x2 y2 rectified px) ``score``(1) ``kpts2d``(2J rectified px, u v per joint,
+  NaN = keypoint not seen, e.g. under the frontend's visibility threshold)
   ``kpts3d``(3J m, camera-relative) ``verts2d``(2V rectified px). header.frame_id = camera name,
   header.stamp = image capture stamp. J and V come from the counts.
   Compact variant (:data:`WIRE_VERTICES` ``q4``): ``verts2d_q4`` (uint16 x 2V) instead of
@@ -11,7 +12,7 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   65535 = missing (outside that range); ``verts2d_q4_origin`` (f32 x 2, optional, default 0 0)
   is the detection's origin in px: the encoder puts it at the floor of the detection's smallest
   vertex coordinates, so people whose rectified vertices are negative or beyond 4096 px (wide,
-  strongly distorted cameras) lose nothing; optionally ``kpts2d_q4`` (uint16 x 2J, no missing keypoint) instead
+  strongly distorted cameras) lose nothing; optionally ``kpts2d_q4`` (uint16 x 2J, 65535 = not seen) instead
   of ``kpts2d``. A vertex subset is announced by ``verts2d_subset`` (uint32 x 3: full mesh
   vertices, stride, count; core.epipolar.vertex_subset gives the ids) in every point.
 * clusters (``/maem/clusters``), one point per (cluster, member view): ``cluster``(uint32, index in
@@ -331,7 +332,8 @@ def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
 
     ``vertices`` / ``keypoints``: ``f32`` (verts2d / kpts2d float32) or ``q4`` (verts2d_q4 /
     kpts2d_q4 uint16, 1/16 px). A vertex outside 0 .. 4095.875 px is sent as missing (65535);
-    keypoints are never dropped: a message with a keypoint q4 cannot carry sends kpts2d as f32.
+    a seen keypoint is never dropped: a message with a keypoint q4 cannot carry sends kpts2d as
+    f32 (a keypoint not seen, NaN, is 65535 in q4).
     A vertex subset held by ``dets`` (mesh_subset) is announced in verts2d_subset.
     """
     for name, value in (("vertices", vertices), ("keypoints", keypoints)):
@@ -340,7 +342,7 @@ def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
     n, j, v = dets.n, dets.num_joints, dets.num_vertices
     kp = dets.kpts2d.reshape(n, 2 * j)
     k_code = encode_q4(kp) if keypoints == "q4" else None
-    if k_code is not None and (k_code == Q4_MISSING).any():
+    if k_code is not None and ((k_code == Q4_MISSING) & ~np.isnan(kp)).any():
         k_code = None  # a keypoint outside 0 .. 4095.875 px: this message carries f32 keypoints
     k_field = ("kpts2d_q4", U16) if k_code is not None else ("kpts2d", F32)
     v_field = ("verts2d_q4", U16) if vertices == "q4" else ("verts2d", F32)
@@ -452,15 +454,12 @@ def msg_to_detections(msg: PointCloud2, topic: str,
                         f"vertices, stride, count)", "bad_count")
     n, v = len(rec), counts[vname] // 2
     fields = {name: _field(rec, name) for name in layout}
-    for name in ("bbox", "score", "kpts3d") + (("kpts2d",) if kname == "kpts2d" else ()):
+    for name in ("bbox", "score", "kpts3d"):
         _check_finite(topic, name, fields[name])
-    if kname == "kpts2d_q4":
-        missing = fields[kname] == Q4_MISSING
-        if missing.any():
-            raise WireError(topic, kname, f"missing keypoint (65535) in detection "
-                            f"{int(np.argwhere(missing)[0][0])}", "missing_value")
+    if kname == "kpts2d_q4":  # 65535 = keypoint missing (NaN), as for vertices
         kpts2d = decode_q4(fields[kname], np.float64)
     else:
+        _check_finite(topic, "kpts2d", fields["kpts2d"], allow_nan=True)  # NaN = not seen
         kpts2d = fields["kpts2d"]
     if vname == "verts2d_q4":
         origin = fields.get(ORIGIN_FIELD)
@@ -586,7 +585,7 @@ def msg_to_clusters(msg: PointCloud2, topic: str, num_cameras: int) -> ClusterFr
     if len(np.unique(pairs)) != n:
         raise WireError(topic, "detection", "a (camera, detection) pair appears twice",
                         "duplicate_member")
-    _check_finite(topic, "kpts2d", f["kpts2d"], "member")
+    _check_finite(topic, "kpts2d", f["kpts2d"], "member", allow_nan=True)  # NaN = not seen
     _check_finite(topic, "score", f["score"], "member")
     _check_finite(topic, "cost", f["cost"], "member", allow_nan=True)
     _check_score(topic, f["score"][:, 0], "member")

@@ -7,6 +7,7 @@ measured the same way as the simulator's bag.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -23,11 +24,15 @@ CLUSTERS_TOPIC = "/maem/clusters"
 REPROJECTION_DEFINITION = (
     "reprojection error = distance (rectified px) between a triangulated joint projected into a "
     "member view of its cluster and that view's 2D keypoint, over every (joint, view) with both "
-    "finite; the clusters are the recorded /maem/clusters, triangulated again with the "
-    "triangulation node's parameters (the same core function, so the same joints; a view "
-    "relabelled left/right by left_right is compared with its relabelled keypoints). "
-    "reprojection_px_mean averages every such pair; _inliers only pairs under tau_kps (the views "
-    "the per-keypoint RANSAC keeps)")
+    "finite (a landmark the frontend marked missing, e.g. mediapipe's visibility under "
+    "min_visibility, is NaN and takes no part); the clusters are the recorded /maem/clusters, "
+    "triangulated again with the triangulation node's parameters (the same core function, so the "
+    "same joints; a view relabelled left/right by left_right is compared with its relabelled "
+    "keypoints). reprojection_px_mean averages every such pair over the members the "
+    "triangulation kept; members it left out as a whole (tau_member: median error over the "
+    "person's joints >= tau_member px, e.g. a body mixed from two people) are counted in "
+    "reprojection_members_rejected and included only in reprojection_px_mean_all_members; "
+    "_inliers averages only pairs under tau_kps (the views the per-keypoint RANSAC used)")
 #: bones whose length is checked over time (both sides), by joint name
 STABLE_BONES = (("shoulder", "elbow"), ("elbow", "wrist"), ("hip", "knee"), ("knee", "ankle"))
 #: a track needs this many frames with the bone for its length CV to count
@@ -44,27 +49,48 @@ def people_per_frame(stamps: Sequence[int], poses: Mapping[int, Any]) -> list[in
 
 
 def reprojection_errors(record: Path, rig: Rig, params: TriangulationParams,
-                        stamps: Sequence[int]) -> np.ndarray:
-    """(E,) px: every finite (joint, member view) reprojection error of the recorded clusters."""
+                        stamps: Sequence[int]) -> "MemberErrors":
+    """Every finite (joint, member view) reprojection error (px) of the recorded clusters."""
+    errs = MemberErrors()
     if not (record / "metadata.yaml").is_file():
-        return np.zeros(0)
+        return errs
     wanted = set(stamps)
-    errs = []
     P_rig = np.stack([c.P for c in rig])
     for m in bagio.read_messages(record, [CLUSTERS_TOPIC]):
         cf = msg_to_clusters(m.decode(), m.topic, len(rig))
         if cf.stamp_ns not in wanted or not len(cf.cluster):
             continue
         wanted.discard(cf.stamp_ns)  # first message per stamp, as the poses
-        errs.append(member_reprojection_errors(P_rig, *cf.dense(), params)[1])
-    return np.concatenate(errs) if errs else np.zeros(0)
+        errs.add(member_reprojection_errors(P_rig, *cf.dense(), params)[1])
+    return errs
+
+
+@dataclass
+class MemberErrors:
+    """Reprojection errors (px) collected over frames: of the members the triangulation kept,
+    of the members it rejected as a whole (tau_member), and the member counts."""
+
+    kept: list[np.ndarray] = field(default_factory=list)
+    rejected: list[np.ndarray] = field(default_factory=list)
+    members: int = 0
+    members_rejected: int = 0
+
+    def add(self, other: "MemberErrors") -> None:
+        self.kept += other.kept
+        self.rejected += other.rejected
+        self.members += other.members
+        self.members_rejected += other.members_rejected
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        cat = lambda a: np.concatenate(a) if a else np.zeros(0)  # noqa: E731
+        return cat(self.kept), cat(self.rejected)
 
 
 def member_reprojection_errors(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray,
                                score: np.ndarray, present: np.ndarray,
-                               params: TriangulationParams) -> tuple[Any, np.ndarray]:
+                               params: TriangulationParams) -> tuple[Any, MemberErrors]:
     """Triangulate dense member arrays (core.triangulation.pad_members) and measure: (Poses,
-    (E,) px errors of every finite joint in every member view)."""
+    px errors of every finite joint in every member view, split by kept / rejected member)."""
     poses = triangulate_members(P_rig, cam, uv, score, present, params)
     if poses.mirrored is not None:  # views relabelled left/right are compared as such
         uv = np.where(poses.mirrored[:, :, None, None],
@@ -74,17 +100,28 @@ def member_reprojection_errors(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarra
     proj = np.einsum("cmij,ckj->cmki", P_rig[cam], Xh)  # (C,M,J,3)
     with np.errstate(divide="ignore", invalid="ignore"):
         e = np.linalg.norm(proj[..., :2] / proj[..., 2:] - uv, axis=-1)  # (C,M,J)
-    keep = present[:, :, None] & np.isfinite(e) & (proj[..., 2] > 0)
-    return poses, e[keep]
+    valid = np.isfinite(e) & (proj[..., 2] > 0)
+    rejected = (poses.rejected if poses.rejected is not None
+                else np.zeros(present.shape, bool))
+    kept = present & ~rejected
+    return poses, MemberErrors([e[kept[:, :, None] & valid]], [e[rejected[:, :, None] & valid]],
+                               int(present.sum()), int(rejected.sum()))
 
 
-def reprojection_summary(errors: np.ndarray, tau_kps: float) -> dict[str, float | int | None]:
-    inl = errors[errors < tau_kps]
-    return {"reprojection_px_mean": float(errors.mean()) if errors.size else None,
-            "reprojection_px_median": float(np.median(errors)) if errors.size else None,
-            "reprojection_px_mean_inliers": float(inl.mean()) if inl.size else None,
-            "reprojection_inlier_fraction": float(inl.size / errors.size) if errors.size else None,
-            "reprojection_pairs": int(errors.size)}
+def reprojection_summary(errors: MemberErrors, tau_kps: float) -> dict[str, float | int | None]:
+    """report.json's reprojection entries (see REPROJECTION_DEFINITION)."""
+    kept, rejected = errors.arrays()
+    inl = kept[kept < tau_kps]
+    every = np.concatenate([kept, rejected])
+    mean = lambda a: float(a.mean()) if a.size else None  # noqa: E731
+    return {"reprojection_px_mean": mean(kept),
+            "reprojection_px_median": float(np.median(kept)) if kept.size else None,
+            "reprojection_px_mean_inliers": mean(inl),
+            "reprojection_inlier_fraction": float(inl.size / kept.size) if kept.size else None,
+            "reprojection_pairs": int(kept.size),
+            "reprojection_px_mean_all_members": mean(every),
+            "reprojection_members": errors.members,
+            "reprojection_members_rejected": errors.members_rejected}
 
 
 def bone_length_cv(poses: Mapping[int, Any], convention: KeypointConvention,

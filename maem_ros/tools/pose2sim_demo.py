@@ -121,7 +121,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     caps = {c.name: cv2.VideoCapture(str(root / "videos" / f"{c.name}.mp4")) for c in rig}
     fps = caps[rig.names[0]].get(cv2.CAP_PROP_FPS) or 60.0
     P_rig = np.stack([c.P for c in rig])
-    poses_by_stamp, errs, stamps, k = {}, [], [], 0
+    poses_by_stamp, errs, stamps, k = {}, dm.MemberErrors(), [], 0
     while frames is None or k < frames:
         images = {name: cap.read() for name, cap in caps.items()}
         if not all(ok for ok, _ in images.values()):
@@ -137,7 +137,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
             sc = np.array([dets[rig.names[c]].scores[d] for c, d in zip(cam, det)])
             poses, e = dm.member_reprojection_errors(P_rig, *pad_members(which, cam, kp, sc), tri)
             joints = convert_joints(np.asarray(poses.joints), out_conv)
-            errs.append(e)
+            errs.add(e)
         else:
             joints = np.zeros((0, out_conv.num_joints, 3))
         ids = np.asarray(tracker.update(stamp, joints), np.int64)
@@ -149,9 +149,8 @@ def run_offline(root: Path, frames: int | None) -> dict:
     for cap in caps.values():
         cap.release()
     people = dm.people_per_frame(stamps, poses_by_stamp)
-    errors = np.concatenate(errs) if errs else np.zeros(0)
     return {"mode": "offline", "frames": len(stamps), "people_per_frame": people,
-            **dm.reprojection_summary(errors, tri.tau_kps),
+            **dm.reprojection_summary(errs, tri.tau_kps),
             **dm.bone_length_cv(poses_by_stamp, out_conv),
             "frontend_stats": {n: e.stats for n, e in ests.items()},
             "reprojection_definition": dm.REPROJECTION_DEFINITION}
