@@ -6,7 +6,7 @@ Run one per camera, in the camera's namespace::
     maem-frontend --ros-args -p rig:=sportcenter6 -p backend:=synthetic -r __ns:=/camera_0
 
 Subscribes ``image_raw`` (sensor_msgs/Image) or ``image_raw/compressed`` (CompressedImage), best
-effort; publishes ``detections`` (reliable, keep last 10) stamped with the image stamp, and with
+effort (``image_reliability: reliable`` for a replay that must not lose an image); publishes ``detections`` (reliable, keep last 10) stamped with the image stamp, and with
 ``publish_overlay`` ``detections/overlay`` (Image bgr8, the rectified image with the detections).
 The image is decoded (and rectified) only when the backend or the overlay needs it.
 ``max_rate`` decimates on the stamp grid (one image per 1/max_rate s interval of the stamp), so
@@ -25,7 +25,7 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
+from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
                                  RejectErrors, Stopwatch, declare_params, default_camera_name,
                                  load_rig_param, run_node, subscribe_counted)
 
@@ -42,6 +42,11 @@ class FrontendNodeParams(NodeParams):
                          choices=("synthetic", "npz", "sam3d_body", "mediapipe"))
     image_transport: str = param("raw", "subscribe image_raw (raw) or image_raw/compressed",
                                  choices=("raw", "compressed"))
+    image_reliability: str = param("best_effort", "image subscription QoS: best_effort (sensor "
+                                                  "data, matches every camera driver) or reliable "
+                                                  "(keep last 10: no image lost from a reliable "
+                                                  "publisher, e.g. maem-play --reliable-images)",
+                                   choices=("best_effort", "reliable"))
     publish_overlay: bool = param(False, "also publish detections/overlay (rectified image + "
                                          "drawing)")
     vertex_stride: int = param(1, "keep every n-th mesh vertex in verts2d (announced on the "
@@ -172,8 +177,9 @@ class FrontendNode(Node):
         compressed = p["image_transport"] == "compressed"
         self.image_topic = self.resolve_topic_name(
             f"{prefix}image_raw/compressed" if compressed else f"{prefix}image_raw")
+        qos = IMAGE_QOS if p["image_reliability"] == "best_effort" else RELIABLE_IMAGE_QOS
         self.sub = subscribe_counted(self, self.diag, CompressedImage if compressed else Image,
-                                     self.image_topic, self.on_image, IMAGE_QOS)
+                                     self.image_topic, self.on_image, qos)
         self.get_logger().info(f"camera {self.camera_name!r}: {self.image_topic} -> "
                                f"{self.pub.topic_name} (backend {p['backend']})")
 

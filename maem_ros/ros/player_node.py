@@ -2,6 +2,13 @@
 
 Messages are published as the serialized CDR bytes stored in the bag (no decode/re-encode).
 Timing: message with log time t is published at wall time w0 + (t - t0) / rate.
+--lockstep TOPIC...: after each camera frame (the images sharing one log time) the player waits
+until every TOPIC (patterns resolved on the live graph, any message type whose first field is a
+std_msgs/Header, e.g. /maem/clusters) has delivered a message stamped at or after that frame's
+image stamp, at most --lockstep-timeout s, then goes on at --rate from there: a bag replayed
+into frontends slower than the recording loses no frame to queue overflow or sync timeouts.
+--reliable-images publishes the images reliable (keep last 10) instead of best effort, so a
+frontend subscribing reliable (image_reliability: reliable) receives every one.
 Looping replays the same bytes, so header stamps are NOT rewritten: they jump back at each
 loop start (the association node resets its queues when stamps go backwards). With --clock,
 /clock follows bag log time (also jumping back on loop) for nodes run with use_sim_time.
@@ -38,6 +45,9 @@ class PlayOptions:
     wait_subscribers_s: float = 0.0
     wait_topics: list[str] = field(default_factory=list)
     min_subscribers: int = 1
+    lockstep: list[str] = field(default_factory=list)
+    lockstep_timeout_s: float = 30.0
+    reliable_images: bool = False
 
 
 def parse_args(argv: Sequence[str]) -> PlayOptions:
@@ -67,7 +77,17 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
                    "a subscriber, e.g. '/*/image_raw/compressed' (default all)")
     p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
                    help="with --wait-subscribers: wait until each awaited topic has N subscribers")
+    p.add_argument("--lockstep", nargs="+", default=[], metavar="TOPIC",
+                   help="after each camera frame wait until every TOPIC (patterns allowed, "
+                   "matched on the live graph, e.g. /maem/clusters) has a message stamped at or "
+                   "after the frame, at most --lockstep-timeout s")
+    p.add_argument("--lockstep-timeout", type=float, default=30.0, metavar="S",
+                   help="with --lockstep: longest wait per frame (default 30 s)")
+    p.add_argument("--reliable-images", action="store_true",
+                   help="publish images reliable, keep last 10 (default best effort, keep last 2)")
     a = p.parse_args(list(argv))
+    if not a.lockstep_timeout > 0:
+        p.error(f"--lockstep-timeout: must be > 0, got {a.lockstep_timeout}")
     if not a.rate > 0:
         p.error(f"--rate: must be > 0, got {a.rate}")
     if a.start < 0:
@@ -84,7 +104,9 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
                        exclude=a.exclude,
                        remap=remap, clock=a.clock is not None, clock_hz=a.clock or 40.0,
                        delay_s=max(0.0, a.delay), wait_subscribers_s=max(0.0, a.wait_subscribers),
-                       wait_topics=a.wait_topics, min_subscribers=max(1, a.min_subscribers))
+                       wait_topics=a.wait_topics, min_subscribers=max(1, a.min_subscribers),
+                       lockstep=a.lockstep, lockstep_timeout_s=a.lockstep_timeout,
+                       reliable_images=a.reliable_images)
 
 
 def select_topics(available: Sequence[str], topics: Sequence[str] | None,
@@ -112,13 +134,13 @@ def message_class(msgtype: str):
                          "(install its ROS message package)") from None
 
 
-def topic_qos(topic: str, msgtype: str, recorded: Sequence = ()):
-    """Publisher QoS: images as the camera nodes publish them (common.IMAGE_QOS, best effort);
-    latched (transient local) for /maem/scene or when recorded so; everything else reliable,
-    keep last 10."""
+def topic_qos(topic: str, msgtype: str, recorded: Sequence = (), reliable_images: bool = False):
+    """Publisher QoS: images as the camera nodes publish them (common.IMAGE_QOS, best effort;
+    ``reliable_images``: reliable, keep last 10); latched (transient local) for /maem/scene or
+    when recorded so; everything else reliable, keep last 10."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from maem_ros.ros.common import IMAGE_QOS
+    from maem_ros.ros.common import IMAGE_QOS, RELIABLE_IMAGE_QOS
     latched = topic == bagio.SCENE_TOPIC or any(
         q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in recorded)
     if latched:
@@ -126,7 +148,7 @@ def topic_qos(topic: str, msgtype: str, recorded: Sequence = ()):
                           reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if msgtype in _IMAGE_TYPES:
-        return IMAGE_QOS
+        return RELIABLE_IMAGE_QOS if reliable_images else IMAGE_QOS
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
@@ -190,14 +212,15 @@ class BagPlayer:
                 node.get_logger().error(f"topic {t!r} skipped: {e}")
                 continue
             out = opts.remap.get(t, t)
-            self.pubs[t] = node.create_publisher(cls, out, topic_qos(t, msgtype,
-                                                                     self.info.qos.get(t, ())))
+            self.pubs[t] = node.create_publisher(cls, out, topic_qos(
+                t, msgtype, self.info.qos.get(t, ()), opts.reliable_images))
         self.clock_pub = None
         if opts.clock:
             from rosgraph_msgs.msg import Clock
             from rclpy.qos import QoSProfile
             self.clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         self.published = 0
+        self.lockstep: Lockstep | None = None
 
     def publish_clock(self, bag_ns: int) -> None:
         if self.clock_pub is not None:
@@ -217,6 +240,8 @@ class BagPlayer:
             self.stop.wait(0.02)
         if self.opts.delay_s:
             self.stop.wait(self.opts.delay_s)
+        if self.opts.lockstep:
+            self.lockstep = Lockstep(self.node, self.opts.lockstep, self.stop)
 
     def wait_delivered(self, timeout_s: float = 3.0) -> bool:
         """Before exiting: wait (bounded) until subscribers acknowledged every reliable message,
@@ -257,20 +282,101 @@ class BagPlayer:
         while not self.stop.is_set():
             first = None
             last = start_ns
+            frame: tuple[int, int] | None = None  # (log time, image stamp) of the last images
             for m in self._messages(start_ns):
                 if first is None:
                     first = m.log_time_ns
                     pacer.anchor(first, wall0)
+                if frame is not None and m.log_time_ns > frame[0]:
+                    if self.lockstep is not None:
+                        self.lockstep.wait(frame[1], self.opts.lockstep_timeout_s)
+                        pacer.anchor(m.log_time_ns)  # go on at --rate from here
+                    frame = None
                 if not pacer.wait_until(m.log_time_ns):
                     return self.published
                 self.publish_clock(m.log_time_ns)
                 self.pubs[m.topic].publish(m.data)
                 self.published += 1
                 last = m.log_time_ns
+                if self.lockstep is not None and self.info.topics[m.topic] in _IMAGE_TYPES:
+                    frame = (m.log_time_ns, _stamp_ns(m.data))
+            if frame is not None and self.lockstep is not None:  # the last frame too
+                self.lockstep.wait(frame[1], self.opts.lockstep_timeout_s)
             if not self.opts.loop or first is None:
                 break
             wall0 = pacer.wall_target(last + gap)  # next pass starts one period after the last
         return self.published
+
+
+def _stamp_ns(data: bytes) -> int:
+    from maem_ros.ros.wire import cdr_header_stamp_ns
+    return cdr_header_stamp_ns(bytes(data))
+
+
+class Lockstep:
+    """Waits until every topic matching the patterns delivered a message stamped at or after a
+    given stamp (raw subscriptions: only the CDR header stamp is read; spun in a thread)."""
+
+    def __init__(self, node, patterns: Sequence[str], stop: threading.Event):
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        self.node, self.stop = node, stop
+        self.latest: dict[str, int] = {}
+        self.cond = threading.Condition()
+        self.timeouts = 0
+        graph = dict(node.get_topic_names_and_types())
+        self.topics = sorted(t for t in graph if any(fnmatch.fnmatchcase(t, p) for p in patterns))
+        missing = [p for p in patterns if not any(fnmatch.fnmatchcase(t, p) for t in graph)]
+        if missing:
+            raise ValueError(f"--lockstep: {missing} match no topic on the graph (is the "
+                             f"consumer running?); topics: {sorted(graph)}")
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                         reliability=ReliabilityPolicy.RELIABLE)
+        self.subs = [node.create_subscription(message_class(graph[t][0]), t,
+                                              self._on(t), qos, raw=True) for t in self.topics]
+        self.executor = SingleThreadedExecutor(context=node.context)
+        self.executor.add_node(node)
+        self._done = threading.Event()
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self) -> None:
+        while not (self._done.is_set() or self.stop.is_set()):
+            self.executor.spin_once(timeout_sec=0.1)
+
+    def close(self) -> None:
+        """Stop the spin thread (before the node is destroyed)."""
+        self._done.set()
+        self.thread.join(timeout=5.0)
+        self.executor.remove_node(self.node)
+
+    def _on(self, topic: str):
+        def callback(data: bytes) -> None:
+            try:
+                stamp = _stamp_ns(data)
+            except ValueError:
+                return  # not header-first: never counts as delivered
+            with self.cond:
+                self.latest[topic] = max(stamp, self.latest.get(topic, -1))
+                self.cond.notify_all()
+        return callback
+
+    def wait(self, stamp_ns: int, timeout_s: float) -> bool:
+        """True when every topic reached ``stamp_ns``; False on timeout (counted) or stop."""
+        deadline = time.monotonic() + timeout_s
+        with self.cond:
+            while not all(self.latest.get(t, -1) >= stamp_ns for t in self.topics):
+                left = deadline - time.monotonic()
+                if left <= 0 or self.stop.is_set():
+                    self.timeouts += not self.stop.is_set()
+                    if not self.stop.is_set():
+                        late = [t for t in self.topics if self.latest.get(t, -1) < stamp_ns]
+                        self.node.get_logger().warning(
+                            f"--lockstep: no message stamped >= {stamp_ns} on {late} within "
+                            f"{timeout_s:g} s; going on")
+                    return False
+                self.cond.wait(min(left, 0.1))
+        return True
 
 
 def main(args: Sequence[str] | None = None) -> int:
@@ -289,6 +395,7 @@ def main(args: Sequence[str] | None = None) -> int:
     node = rclpy.create_node("maem_player")
     log = node.get_logger()
     code = 0
+    player = None
     try:
         player = BagPlayer(node, opts, stop)
         if not player.pubs:
@@ -301,6 +408,9 @@ def main(args: Sequence[str] | None = None) -> int:
         elapsed = time.monotonic() - t0
         if not stop.is_set() and not player.wait_delivered():
             log.warning("some reliable messages were not acknowledged by all subscribers")
+        if player.lockstep is not None:
+            log.info(f"lockstep on {player.lockstep.topics}: {player.lockstep.timeouts} "
+                     f"frame(s) timed out")
         log.info(f"published {n} messages in {elapsed:.2f} s"
                  f"{' (interrupted)' if stop.is_set() else ''}"
                  f"{f'; skipped topics: {sorted(player.skipped)}' if player.skipped else ''}")
@@ -308,6 +418,8 @@ def main(args: Sequence[str] | None = None) -> int:
         log.error(str(e))
         code = EXIT_BAD_INPUT
     finally:
+        if player is not None and player.lockstep is not None:
+            player.lockstep.close()
         node.destroy_node()
         rclpy.try_shutdown()
     return code

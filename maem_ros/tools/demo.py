@@ -25,9 +25,13 @@ report.json also has people_per_frame (people on /maem/poses per played frame),
 reprojection_px_mean (see demo_metrics.REPROJECTION_DEFINITION) and bone_length_cv.
 
 --backend mediapipe runs the frontends on the bag's images with multi-person BlazePose (the
-optional mediapipe extra; default params config/mediapipe.yaml, default rate 1/120: one bag
-frame of a 60 fps capture every 2 s, as four CPU frontends take 0.3-2.5 s per image each). A bag
-without ground truth is reported without the accuracy table.
+optional mediapipe extra; default params config/mediapipe.yaml). Four CPU frontends take
+0.3-2.5 s per image each, far slower than the 60 fps capture, so the replay goes in lockstep:
+maem-play publishes the next frame as soon as /maem/clusters has the last one (--lockstep,
+at most 60 s per frame), at --rate (default 1) from there, and the images go reliable
+(--reliable-images, frontends image_reliability: reliable): no image is lost to a full
+best-effort queue and no frame set to the association's max_wait. A bag without ground truth
+is reported without the accuracy table.
 """
 from __future__ import annotations
 
@@ -75,7 +79,14 @@ FRONTENDS_RATE = 0.05
 #: association max_wait s). mediapipe: four CPU frontends at 0.3-2.5 s per image (machine load)
 #: share 2 cores, so one 60 fps frame is played every 2 s and the association waits up to 3 s
 #: for a frame's last camera
-BACKENDS = {"synthetic": ("demo.yaml", None, 1.0), "mediapipe": ("mediapipe.yaml", 1.0 / 120.0, 3.0)}
+BACKENDS = {"synthetic": ("demo.yaml", None, 1.0), "mediapipe": ("mediapipe.yaml", 1.0, 3.0)}
+#: backends whose replay goes in lockstep with the graph (the player publishes the next frame
+#: when /maem/clusters has the last one, images reliable): CPU frontends slower than the
+#: recording would otherwise lose images (best-effort queues) or miss their frame set
+LOCKSTEP_BACKENDS = ("mediapipe",)
+LOCKSTEP_TOPIC = "/maem/clusters"
+#: longest lockstep wait per frame (s): four frontends at up to a few s per image each
+LOCKSTEP_TIMEOUT_S = 60.0
 RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/maem/clusters", "/diagnostics")
 
 
@@ -117,6 +128,8 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
     fe["image_transport"] = "compressed"
     if backend is not None:
         fe["backend"] = backend
+    if backend in LOCKSTEP_BACKENDS:  # the player publishes them reliable: lose none
+        fe["image_reliability"] = "reliable"
     if frontends and fe.get("backend", "synthetic") == "synthetic":
         if scene_config is None:
             raise ValueError("the bag has no scene description (/maem/scene): the synthetic "
@@ -183,9 +196,10 @@ def _crash_text(proc: Proc, code: int | None) -> str:
 
 def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out: Path,
               rate: float, keep_going: bool, startup_timeout_s: float = 60.0,
-              drain_s: float = 5.0, frontends: bool = False) -> GraphRun:
+              drain_s: float = 5.0, frontends: bool = False, lockstep: bool = False) -> GraphRun:
     """Start recorder + nodes, wait until wired, play ``bag`` (whose frames are ``stamps``:
-    its recorded detections, or with ``frontends`` its images), wait until every frame has
+    its recorded detections, or with ``frontends`` its images; ``lockstep``: one frame at a
+    time, each when the last one's clusters came, images reliable), wait until every frame has
     poses (or none came for ``drain_s``), SIGINT everything."""
     warm_numba_cache()
     group = ProcessGroup(out / "logs", child_env())
@@ -219,7 +233,9 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
             "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
             "--wait-subscribers", f"{startup_timeout_s:g}", "--wait-topics", played,
             "--min-subscribers", "2",  # the frontend / association and this process's listener
-            "--exclude", dropped, bagio.GT_TOPIC))
+            "--exclude", dropped, bagio.GT_TOPIC,
+            *(("--lockstep", LOCKSTEP_TOPIC, "--lockstep-timeout", f"{LOCKSTEP_TIMEOUT_S:g}",
+               "--reliable-images") if lockstep else ())))
         crashed.update(_watch_play(group, nodes + ["recorder"], keep_going,
                                    _progress(listener, len(stamps))))
         _drain(group, listener, stamps, drain_s, nodes, crashed, keep_going)
@@ -385,7 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="play only the first S seconds of bag time")
     p.add_argument("--rate", type=float, default=None,
                    help=f"playback rate (default {DEFAULT_RATE}, with --frontends "
-                        f"{FRONTENDS_RATE}; the bag is 30 fps; 1/120 with --backend mediapipe)")
+                        f"{FRONTENDS_RATE}; the bag is 30 fps; 1 with --backend mediapipe, in lockstep "
+                        "with the graph)")
     p.add_argument("--keep-going", action="store_true",
                    help="finish the replay when a node crashes (reported at the end, exit 1)")
     mode = p.add_mutually_exclusive_group()
@@ -488,8 +505,10 @@ def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: lis
     params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(), demo.scene_config,
                           max_wait_s=BACKENDS[a.backend][2] if a.frontends else None,
                           frontends=a.frontends, backend=a.backend if a.frontends else None)
+    lockstep = a.frontends and a.backend in LOCKSTEP_BACKENDS
     run = run_graph(play_bag, demo, stamps, params, a.out, a.rate, a.keep_going,
-                    startup_timeout_s=a.startup_timeout, frontends=a.frontends)
+                    startup_timeout_s=a.startup_timeout, frontends=a.frontends,
+                    lockstep=lockstep)
     poses = recorded_poses(run.record)
     diags = recorded_diagnostics(run.record)
     metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()}) \
