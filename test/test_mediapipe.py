@@ -140,6 +140,29 @@ def test_duplicates_small_people_and_convention():
     assert est.stats["dropped_duplicate"] == 1 and est.stats["dropped_small"] == 1
 
 
+def test_low_visibility_landmarks_are_nan_and_cross_the_wire():
+    """min_visibility: landmarks BlazePose is less sure of are NaN (not seen) in kpts2d, still
+    placed in 3D (kpts3d stays the whole body), and the detections message carries them."""
+    from maem_ros.ros import wire
+    cam = _camera()
+    vis = np.full(33, 0.95)
+    vis[[15, 16, 27]] = [0.3, 0.79, 0.1]  # both wrists, the left ankle
+    people = [(_body(0), _rot(0.2), np.array([0.0, 0.1, 4.0]), vis)]
+    est = make_estimator("mediapipe", {"pose_factory": lambda o: ScriptedPose(people, cam),
+                                       "min_visibility": 0.8}, Rig([cam]))
+    dets = est.estimate(cam, 7, np.full((480, 640, 3), 200, np.uint8)).validate(["cam0"])
+    unseen = np.isnan(dets.kpts2d[0]).any(-1)
+    np.testing.assert_array_equal(np.flatnonzero(unseen), [15, 16, 27])
+    assert np.isfinite(dets.kpts3d).all()
+    for layout in ("f32", "q4"):
+        back = wire.msg_to_detections(wire.detections_to_msg(dets, keypoints=layout), "/cam0/d")
+        np.testing.assert_array_equal(np.isnan(back.kpts2d[0]).any(-1), unseen)
+        np.testing.assert_allclose(back.kpts2d[0][~unseen], dets.kpts2d[0][~unseen], atol=1 / 16)
+    with pytest.raises(ValueError, match="'min_visibility': must be in"):
+        make_estimator("mediapipe", {"pose_factory": lambda o: None, "min_visibility": 1.5},
+                       Rig([cam]))
+
+
 def test_bad_image_and_options():
     cam = _camera()
     est = make_estimator("mediapipe", {"pose_factory": lambda o: ScriptedPose([], cam)}, Rig([cam]))

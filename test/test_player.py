@@ -179,3 +179,74 @@ def test_bad_bag_and_topics_exit_with_message(tmp_path: Path, bag: Path):
                            "/nothing", "--delay", "0"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2
     assert "no topic to play" in proc.stdout + proc.stderr
+
+
+def _image_bag(path: Path, frames: int, cameras=("c0", "c1")) -> Path:
+    """Tiny CompressedImage frames 10 ms apart (bag time), every camera at the same log time."""
+    from sensor_msgs.msg import CompressedImage
+    from maem_ros.ros.wire import make_header
+    with bagio.BagWriter(path) as w:
+        for k in range(frames):
+            t = T0 + k * 10_000_000
+            for c in cameras:
+                msg = CompressedImage(header=make_header(t, c), format="jpeg",
+                                      data=bytes(range(256)) * 40)
+                w.write(f"/{c}/image_raw/compressed", msg, t)
+    return path
+
+
+def test_lockstep_waits_for_the_consumer_and_images_are_reliable(tmp_path: Path, ros):
+    """A slow consumer (0.4 s per frame, like a CPU frontend) that acknowledges each frame on
+    /ack: maem-play --lockstep /ack --reliable-images sends the next frame only after the last
+    one's ack, so every image arrives (reliable subscription) and none waits in a queue."""
+    from sensor_msgs.msg import CompressedImage
+    from std_msgs.msg import Header
+    from maem_ros.ros.common import RELIABLE_IMAGE_QOS
+    from maem_ros.ros.wire import ns_to_stamp
+    node, ex = ros
+    frames = 4
+    bag = _image_bag(tmp_path / "bag", frames)
+    ack = node.create_publisher(Header, "/ack", RELIABLE)
+    arrivals: dict[int, list[float]] = {}
+    acked: dict[int, float] = {}
+    pending: list[tuple[float, int]] = []
+
+    def on_image(msg) -> None:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        arrivals.setdefault(stamp, []).append(time.monotonic())
+        if len(arrivals[stamp]) == 2:  # both cameras in: "process" for 0.4 s, then ack
+            pending.append((time.monotonic() + 0.4, stamp))
+
+    for c in ("c0", "c1"):
+        node.create_subscription(CompressedImage, f"/{c}/image_raw/compressed", on_image,
+                                 RELIABLE_IMAGE_QOS)
+
+    def tick() -> bool:
+        now = time.monotonic()
+        for due, stamp in [p for p in pending if p[0] <= now]:
+            pending.remove((due, stamp))
+            ack.publish(Header(stamp=ns_to_stamp(stamp)))
+            acked[stamp] = now
+        return len(acked) == frames
+
+    with killed_on_exit(_play(bag, "--lockstep", "/ack", "--lockstep-timeout", "20",
+                              "--reliable-images", "--min-subscribers", "1")) as proc:
+        assert wait_for(tick, 40.0, ex), (arrivals, acked)
+        out, _ = proc.communicate(timeout=20)
+    assert proc.returncode == 0, out
+    assert "lockstep on ['/ack']: 0 frame(s) timed out" in out
+    stamps = sorted(arrivals)
+    assert len(stamps) == frames and all(len(arrivals[s]) == 2 for s in stamps)
+    for prev, nxt in zip(stamps, stamps[1:]):  # frame k+1 only after frame k's ack
+        assert min(arrivals[nxt]) >= acked[prev], (prev, nxt)
+
+
+def test_lockstep_without_the_topic_is_a_clear_error(tmp_path: Path):
+    bag = _image_bag(tmp_path / "bag", 1)
+    done = subprocess.run([sys.executable, "-m", "maem_ros.ros.player_node", str(bag),
+                           "--delay", "0", "--lockstep", "/nobody/acks"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    assert "--lockstep: ['/nobody/acks'] match no topic on the graph" in done.stderr + done.stdout
+    with pytest.raises(SystemExit):
+        parse_args([str(bag), "--lockstep", "/a", "--lockstep-timeout", "0"])

@@ -28,21 +28,24 @@ def test_mediapipe_graph_on_real_frames(tmp_path, pose2sim_demo, mediapipe_insta
     info = bagio.bag_info(bag)
     assert {f"/cam0{k}/image_raw/compressed" for k in range(1, 5)} <= set(info.topics)
     out = tmp_path / "out"
-    # 3 frames, one every 8 s of wall time: four CPU frontends keep up even on a loaded machine
+    # the default replay: lockstep on /maem/clusters, images reliable, so however slow the four
+    # CPU frontends are on this machine, each of them gets every image of the 3 frames
     done = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", "--bag", str(bag),
-                           "--backend", "mediapipe", "--out", str(out), "--frames", "3",
-                           "--rate", str(1 / 480)], cwd=REPO, capture_output=True, text=True,
+                           "--backend", "mediapipe", "--out", str(out), "--frames", "3"],
+                          cwd=REPO, capture_output=True, text=True,
                           timeout=280, env=dict(os.environ, PYTHONUNBUFFERED="1"))
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     report = json.loads((out / "report.json").read_text())
     assert report["backend"] == "mediapipe"
     assert len(report["people_per_frame"]) == 3
-    assert max(report["people_per_frame"]) >= 2, report["people_per_frame"]
+    assert min(report["people_per_frame"]) >= 2, report["people_per_frame"]
     assert report["reprojection_px_mean_inliers"] < 10.0
-    assert np.isfinite(report["reprojection_px_mean"])
+    assert report["reprojection_px_mean"] <= report["reprojection_px_mean_all_members"]
+    assert 0 <= report["reprojection_members_rejected"] < report["reprojection_members"]
+    assert "reprojection_px_mean averages" in report["reprojection_definition"]
     for cam in ("cam01", "cam02", "cam03", "cam04"):
         assert (out / f"snapshot_{cam}.png").is_file()
     assert "no accuracy table" in done.stdout
     frontend = [r for r in report["timing"] if r["node"].startswith("frontend")
                 and r["stage"] == "estimate"]
-    assert frontend and frontend[0]["processed"] >= 3
+    assert frontend and frontend[0]["processed"] == 4 * 3  # no image lost on the way

@@ -314,3 +314,28 @@ def test_simulated_scene_exact_without_noise() -> None:
     np.testing.assert_allclose(out.joints, gt, atol=1e-6)
     res = evaluate_sequence([out.joints], [out.scores], [gt], [np.ones(gt.shape[:2], bool)])
     assert res["recall"] == 1.0 and res["ap75"] == 1.0 and res["mpjpe_mean"] < 1e-3
+
+
+def test_tau_member_leaves_out_a_wrong_detection_as_a_whole() -> None:
+    """Four views of person 0; cam2's detection is mostly person 1 (a body mixed from two
+    overlapping people: 8 of 12 joints theirs). Per-keypoint RANSAC alone keeps the right
+    joints but the cluster still lists cam2; tau_member drops it and re-triangulates."""
+    rig = ring_rig(4)
+    X = people(2, 12, seed=3)
+    frames = make_frames(rig, X, noise_px=0.5, seed=1)
+    frames["cam2"].kpts2d[0, :8] = frames["cam2"].kpts2d[1, :8]
+    cl = [cluster((0, 0), (1, 0), (2, 0), (3, 0))]
+    paper = triangulate(rig, frames, cl, TriangulationParams())
+    assert paper.rejected is None and paper.views[0] == 4
+    out = triangulate(rig, frames, cl, TriangulationParams(tau_member=15.0))
+    np.testing.assert_array_equal(out.rejected, [[False, False, True, False]])
+    assert out.views[0] == 3 and (out.inliers[0] == 3).all()
+    np.testing.assert_allclose(out.joints[0], X[0], atol=0.02)
+    # a good cluster loses nothing; two views are never split (no third view to vote)
+    clean = make_frames(rig, X, noise_px=0.5, seed=1)
+    good = triangulate(rig, clean, cl, TriangulationParams(tau_member=15.0))
+    assert not good.rejected.any() and good.views[0] == 4
+    two = triangulate(rig, frames, [cluster((1, 0), (2, 0))], TriangulationParams(tau_member=15.0))
+    assert not two.rejected.any() and two.views[0] == 2
+    with pytest.raises(ValueError, match="tau_member"):
+        TriangulationParams(tau_member=-1.0)
