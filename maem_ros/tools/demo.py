@@ -567,6 +567,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
     people = dm.people_per_frame(stamps, poses)
     reproj = dm.reprojection_summary(dm.reprojection_errors(record, rig, tri, stamps), tri.tau_kps)
     bones = dm.bone_length_cv(poses, conv)
+    found = dm.joints_found(poses, conv)
     counts = np.bincount(people) if people else np.zeros(1, int)
     print("\npeople per frame (/maem/poses): " + ", ".join(
         f"{k}: {c} frames" for k, c in enumerate(counts) if c))
@@ -576,11 +577,17 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
               f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
               f"{reproj['reprojection_px_mean_inliers']:.1f} px "
               f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "
-              f"{reproj['reprojection_pairs']} joint-views)")
+              f"{reproj['reprojection_pairs']} joint-views); all members "
+              f"{reproj['reprojection_px_mean_all_members']:.1f} px "
+              f"({reproj['reprojection_members_rejected']} of {reproj['reprojection_members']} "
+              f"members left out by tau_member)")
+    if found["joints_found"]:
+        print("joints found per published person: " + ", ".join(
+            f"{j} {100 * v:.0f} %" for j, v in found["joints_found"].items()))
     if bones["bone_length_cv"]:
         print(f"bone length coefficient of variation over {bones['bone_length_tracks']} tracks: "
               + ", ".join(f"{b} {100 * v:.1f} %" for b, v in bones["bone_length_cv"].items()))
-    return {"people_per_frame": people, **reproj, **bones,
+    return {"people_per_frame": people, **reproj, **bones, **found,
             "reprojection_definition": dm.REPROJECTION_DEFINITION}
 
 

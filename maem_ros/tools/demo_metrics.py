@@ -124,6 +124,16 @@ def reprojection_summary(errors: MemberErrors, tau_kps: float) -> dict[str, floa
             "reprojection_members_rejected": errors.members_rejected}
 
 
+def joints_found(poses: Mapping[int, Any], convention: KeypointConvention) -> dict[str, Any]:
+    """Per joint name, the fraction of published people (every frame) with that joint finite."""
+    rows = [pf.joints for pf in poses.values() if len(pf.joints)]
+    if not rows:
+        return {"joints_found": {}, "joints_found_mean": None}
+    found = np.isfinite(np.concatenate(rows)).all(-1).mean(0)
+    return {"joints_found": {n: float(f) for n, f in zip(convention.names, found)},
+            "joints_found_mean": float(found.mean())}
+
+
 def bone_length_cv(poses: Mapping[int, Any], convention: KeypointConvention,
                    min_frames: int = MIN_TRACK_FRAMES) -> dict[str, Any]:
     """Coefficient of variation (std / mean) of each stable bone's length over each track's

@@ -152,6 +152,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     return {"mode": "offline", "frames": len(stamps), "people_per_frame": people,
             **dm.reprojection_summary(errs, tri.tau_kps),
             **dm.bone_length_cv(poses_by_stamp, out_conv),
+            **dm.joints_found(poses_by_stamp, out_conv),
             "frontend_stats": {n: e.stats for n, e in ests.items()},
             "reprojection_definition": dm.REPROJECTION_DEFINITION}
 
@@ -239,7 +240,8 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{report['reprojection_px_median']:.1f} px, under tau_kps "
               f"{report['reprojection_px_mean_inliers']:.1f} px; bone length CV mean "
               f"{100 * (report['bone_length_cv_mean'] or 0):.1f} %, max "
-              f"{100 * (report['bone_length_cv_max'] or 0):.1f} %; wrote "
+              f"{100 * (report['bone_length_cv_max'] or 0):.1f} %; joints found "
+              f"{100 * (report['joints_found_mean'] or 0):.0f} %; wrote "
               f"{a.out / 'report_offline.json'}")
         return 0
     bag = a.out / "bag"
