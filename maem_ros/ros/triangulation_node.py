@@ -152,6 +152,8 @@ class TriangulationNode(Node):
                 poses = self._triangulate(self._P, *cf.dense(), self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(poses), cf.num_joints, 3))
+            if poses.rejected is not None and poses.rejected.any():  # tau_member
+                self.diag.count("members_rejected", int(poses.rejected.sum()))
             far = mask_far_joints(joints, self.limits)
             if far:
                 self.diag.count("joints_beyond_world_extent", far)
