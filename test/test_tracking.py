@@ -121,3 +121,31 @@ def test_bad_input() -> None:
     tr.update(0, at((0, 0)))
     with pytest.raises(ValueError, match="joints"):
         tr.update(1, np.zeros((1, J + 1, 3)))
+
+
+def test_bone_filter_marks_implausible_limb_joints_only():
+    """core.bone_filter: a wrist 60 % off the track's forearm length becomes NaN, the rest of
+    the body and untracked people are untouched; a wrong elbow does not condemn its wrist."""
+    from maem_ros.core.bone_filter import BoneLengthFilter
+    from maem_ros.core.skeleton import SPORTCENTER_13
+    names = list(SPORTCENTER_13.names)
+    ix = {n: i for i, n in enumerate(names)}
+    rng = np.random.default_rng(0)
+    body = rng.uniform(-1, 1, (13, 3))
+    f = BoneLengthFilter(names, tolerance=0.25, min_samples=5)
+    for k in range(8):  # a steady person, slightly noisy
+        J = (body + rng.normal(0, 0.002, body.shape))[None]
+        assert f.apply(np.array([4]), J) == 0 and np.isfinite(J).all()
+    J = body[None].copy()
+    lw, le, ls = ix["left_wrist"], ix["left_elbow"], ix["left_shoulder"]
+    J[0, lw] = J[0, le] + 1.6 * (body[lw] - body[le])  # forearm 60 % too long
+    other = J.copy()
+    assert f.apply(np.array([4]), J) == 1
+    assert np.isnan(J[0, lw]).all() and np.isfinite(np.delete(J[0], lw, axis=0)).all()
+    assert f.apply(np.array([-1]), other) == 0 and np.isfinite(other).all()  # untracked
+    J = body[None].copy()
+    J[0, le] = J[0, ls] + 2.0 * (body[le] - body[ls])  # upper arm twice as long
+    assert f.apply(np.array([4]), J) == 1
+    assert np.isnan(J[0, le]).all() and np.isfinite(J[0, lw]).all()
+    with pytest.raises(ValueError, match="bone_tolerance"):
+        BoneLengthFilter(names, tolerance=0.0)

@@ -283,6 +283,8 @@ class BagPlayer:
             first = None
             last = start_ns
             frame: tuple[int, int] | None = None  # (log time, image stamp) of the last images
+            if self.lockstep is not None:
+                self.lockstep.restart()  # a loop pass replays the same stamps
             for m in self._messages(start_ns):
                 if first is None:
                     first = m.log_time_ns
@@ -360,6 +362,11 @@ class Lockstep:
                 self.latest[topic] = max(stamp, self.latest.get(topic, -1))
                 self.cond.notify_all()
         return callback
+
+    def restart(self) -> None:
+        """Forget the stamps seen (the bag starts again from its first frame)."""
+        with self.cond:
+            self.latest.clear()
 
     def wait(self, stamp_ns: int, timeout_s: float) -> bool:
         """True when every topic reached ``stamp_ns``; False on timeout (counted) or stop."""

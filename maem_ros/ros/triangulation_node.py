@@ -13,7 +13,9 @@ come from core.tracking.Tracker on the converted joints (post-hoc, 3D proximity)
 held until the next frames confirm the jump (then a stamp going back resets the tracker) or
 refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``max_people``
 clusters or member pixels beyond ``pixel_margin`` reject the frame; joints beyond
-``world_extent`` become NaN (counted ``joints_beyond_world_extent``).
+``world_extent`` become NaN (counted ``joints_beyond_world_extent``). With ``bone_tolerance`` a
+tracked person's limb joint whose bone length leaves the track's recent median by more than that
+fraction is NaN (core.bone_filter, counted ``joints_bone_implausible``).
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from maem_ros.core.bone_filter import BoneLengthFilter
 from maem_ros.core.limits import InputLimits, check_clusters, mask_far_joints
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
@@ -67,6 +70,10 @@ class TriangulationNodeParams(NodeParams):
                                 minimum=0.0)
     world_extent: float = param(200.0, "m, joints farther from the world origin become NaN",
                                 minimum=0.0, exclusive_minimum=True)
+    bone_tolerance: float = param(0.0, "fraction: a tracked person's elbow, wrist, knee or ankle "
+                                       "whose limb bone differs from the track's median length "
+                                       "by more than this is published NaN (core.bone_filter; "
+                                       "0 = off, the paper)", minimum=0.0)
     jump_tolerance: float = param(1.0, "s, a stamp this far ahead (beyond the time since the "
                                   "previous message) or any step back is held until the next "
                                   "messages confirm the jump", minimum=0.0,
@@ -92,6 +99,9 @@ class TriangulationNode(Node):
             self.limits = InputLimits(max_people=p["max_people"], pixel_margin=p["pixel_margin"],
                                       world_extent_m=p["world_extent"])
             self.guard = StampGuard(int(round(p["jump_tolerance"] * 1e9)))
+            self.bone_filter = (BoneLengthFilter(get_convention(p["output_convention"]).names,
+                                                 p["bone_tolerance"])
+                                if p["bone_tolerance"] > 0 else None)
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self._triangulate = triangulate_members
@@ -138,6 +148,8 @@ class TriangulationNode(Node):
                              f"stream (last {self.guard.last}); frame ignored")
         if verdict.jumped_back:
             self.tracker.reset()
+            if self.bone_filter is not None:
+                self.bone_filter.reset()
             self.diag.count("tracker_resets")
             self.diag.log_throttled("tracker_reset", f"{self.topic}: stamps went back to "
                                     f"{verdict.accepted[0][0]} (confirmed by the next "
@@ -164,6 +176,10 @@ class TriangulationNode(Node):
                 ids = cf.cluster_tracks()
                 if ids is None:
                     ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
+                if self.bone_filter is not None:
+                    implausible = self.bone_filter.apply(ids, joints)
+                    if implausible:
+                        self.diag.count("joints_bone_implausible", implausible)
             self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views),
                          np.asarray(poses.scores))
         if not step.failed:

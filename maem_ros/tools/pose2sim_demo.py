@@ -97,6 +97,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     import numpy as np
 
     from maem_ros.core.association import AssociationParams, associate
+    from maem_ros.core.bone_filter import BoneLengthFilter
     from maem_ros.core.camera import Rig
     from maem_ros.core.skeleton import get_convention
     from maem_ros.core.skeleton import convert as convert_joints
@@ -116,6 +117,8 @@ def run_offline(root: Path, frames: int | None) -> dict:
     tracker = Tracker(node["triangulation"].get("track_gate", 0.5),
                       node["triangulation"].get("track_min_hits", 3),
                       node["triangulation"].get("track_timeout", 1.0))
+    tolerance = float(node["triangulation"].get("bone_tolerance", 0.0))
+    bone_filter = BoneLengthFilter(out_conv.names, tolerance) if tolerance > 0 else None
     ests = {c.name: make_estimator("mediapipe", node["frontend"], rig) for c in rig}
     rects = {c.name: Rectifier(c) for c in rig}
     caps = {c.name: cv2.VideoCapture(str(root / "videos" / f"{c.name}.mp4")) for c in rig}
@@ -141,6 +144,8 @@ def run_offline(root: Path, frames: int | None) -> dict:
         else:
             joints = np.zeros((0, out_conv.num_joints, 3))
         ids = np.asarray(tracker.update(stamp, joints), np.int64)
+        if bone_filter is not None:
+            bone_filter.apply(ids, joints)  # the triangulation node's bone_tolerance
         ids = np.where(ids >= 0, ids, UNTRACKED_ID)
         poses_by_stamp[stamp] = PoseFrame(stamp, "world", ids, joints, np.zeros(len(ids)),
                                           np.ones(len(ids)))
