@@ -16,10 +16,12 @@ from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
 V, J = 400, 24
 PAPER = PAPER_PIPELINE
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
-#: (backend, precision, rtol of an accepted pair's mean): numba "mixed" sums float32 distances
-#: (decisions still exact: its error bound settles them or the pair is redone in float64)
-VARIANTS = [("numpy", "float64", 1e-9)] + ([("numba", "float64", 1e-9), ("numba", "mixed", 1e-5)]
-                                           if epipolar.have_numba() else [])
+#: (backend, precision, rtol and atol (px) of an accepted pair's mean): numba "mixed" sums
+#: float32 distances (decisions still exact: its error bound settles them or the pair is redone
+#: in float64); its means are ~1e-7 relative on full meshes, ~1e-5 px on a few points
+VARIANTS = [("numpy", "float64", 1e-9, 0.0)] + (
+    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", 1e-5, 1e-4)]
+    if epipolar.have_numba() else [])
 
 
 # ---------------------------------------------------------------------------------------
@@ -357,7 +359,7 @@ def test_early_exit_decisions_equal_the_full_mean(seed, n, symmetric, tau):
     full_mean = epipolar.point_distances(xa[ia], xb[jb], F, symmetric).mean(axis=1)
     reference = full_mean >= tau
     near_tie = np.abs(full_mean - tau) < 1e-9 * tau
-    for backend, precision, rtol in VARIANTS:
+    for backend, precision, rtol, atol in VARIANTS:
         for early in (True, False):
             sums, used = epipolar.epipolar_sums(xa, xb, F, ia, jb, tau, symmetric, early, backend,
                                                 precision)
@@ -365,7 +367,7 @@ def test_early_exit_decisions_equal_the_full_mean(seed, n, symmetric, tau):
             assert np.array_equal(reject[~near_tie], reference[~near_tie])
             assert np.all(used[~reject] == n)  # accepted pairs are always summed in full
             if not early:
-                np.testing.assert_allclose(sums / n, full_mean, rtol=rtol)
+                np.testing.assert_allclose(sums / n, full_mean, rtol=rtol, atol=atol)
 
 
 def test_early_exit_stops_wrong_pairs_after_few_points():

@@ -54,18 +54,19 @@ def test_kernel_decisions_equal_the_reference_and_the_full_mean(seed, n, symmetr
     mean, count = _full_mean(xa, xb, F, ia, jb, symmetric)
     reference = ~(mean < tau)  # no common point (NaN mean) rejects
     near_tie = np.abs(mean - tau) < 1e-9 * tau
-    for backend, precision, rtol in VARIANTS:
+    for backend, precision, rtol, atol in VARIANTS:
         for early in (True, False):
             sums, used = epipolar.epipolar_sums(xa, xb, F, ia, jb, tau, symmetric, early, backend,
                                                 precision)
             reject = ~(sums < tau * used)
             assert np.array_equal(reject[~near_tie], reference[~near_tie]), (backend, precision)
             assert np.array_equal(used[~reject], count[~reject])  # accepted: summed in full
-            np.testing.assert_allclose(sums[~reject] / used[~reject], mean[~reject], rtol=rtol)
+            np.testing.assert_allclose(sums[~reject] / used[~reject], mean[~reject], rtol=rtol,
+                                       atol=atol)
             if not early:
                 assert np.array_equal(used, count)
                 ok = count > 0
-                np.testing.assert_allclose(sums[ok] / used[ok], mean[ok], rtol=rtol)
+                np.testing.assert_allclose(sums[ok] / used[ok], mean[ok], rtol=rtol, atol=atol)
 
 
 @settings(max_examples=25, deadline=None)
@@ -94,7 +95,7 @@ def test_mixed_precision_decides_like_float64_at_the_threshold(seed, n, symmetri
         # the mixed kernel falls back to; otherwise with the numpy reference
         want = epipolar.epipolar_sums(xa, xb, F, *pair, backend="numpy" if rel else "numba",
                                       precision="float64")
-        for backend, precision, _ in VARIANTS[1:]:
+        for backend, precision, *_ in VARIANTS[1:]:
             got = epipolar.epipolar_sums(xa, xb, F, *pair, backend=backend, precision=precision)
             assert (got[0] < tau * got[1]) == (want[0] < tau * want[1]), (precision, rel)
 
@@ -144,7 +145,7 @@ def test_wrong_pairs_with_missing_points_exit_early_and_all_missing_rejects():
     xa = rng.uniform(0, 1000, (1, 18439, 2)).astype(np.float32)
     xb = rng.uniform(0, 1000, (1, 18439, 2)).astype(np.float32)
     xb[0, ::2] = np.nan
-    for backend, precision, _ in VARIANTS:
+    for backend, precision, *_ in VARIANTS:
         sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend,
                                             precision=precision)
         assert sums[0] >= 8.0 * used[0] and 0 < used[0] <= epipolar.BLOCK
@@ -162,7 +163,7 @@ def test_points_at_the_epipole_reject_in_both_backends():
     e_a = np.linalg.svd(F)[2][-1]  # a's epipole: F's right null space
     xa_epi = np.tile(e_a[:2] / e_a[2], (1, 1100, 1))
     assert np.abs(F @ e_a).max() < 1e-12
-    for backend, precision, _ in VARIANTS:
+    for backend, precision, *_ in VARIANTS:
         sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend,
                                             precision=precision)
         assert sums[0] < 1e-6 * used[0] and used[0] == 1100  # a perfect pair passes
@@ -177,7 +178,7 @@ def test_points_at_the_epipole_reject_in_both_backends():
     for symmetric in (True, False):
         for early in (True, False):
             want = epipolar.epipolar_sums(xa32, xb32, F, [0], [0], 8.0, symmetric, early, "numpy")
-            for backend, precision, _ in VARIANTS[1:]:
+            for backend, precision, *_ in VARIANTS[1:]:
                 got = epipolar.epipolar_sums(xa32, xb32, F, [0], [0], 8.0, symmetric, early,
                                              backend, precision)
                 assert (got[0] < 8.0 * got[1]) == (want[0] < 8.0 * want[1])

@@ -35,7 +35,7 @@ from . import clustering, epipolar
 from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet, camera_pair_groups)
-from .geometry import reprojection_errors
+from .geometry import pair_reprojection_errors
 from .paramspec import Params, param
 from .procrustes import pa_mpjpe_finite
 from .skeleton import joint_subset
@@ -185,9 +185,8 @@ def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
 
 def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, P: np.ndarray,
                        params: AssociationParams) -> np.ndarray:
-    uv = np.stack([table.centers[i], table.centers[j]], axis=1)
-    Ps = np.stack([P[table.cam[i]], P[table.cam[j]]], axis=1)
-    return reprojection_errors(Ps, uv, params.reproj_reduce) < params.tau_reproj_bbox
+    errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, params.reproj_reduce)
+    return errors < params.tau_reproj_bbox
 
 
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams

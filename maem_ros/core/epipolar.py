@@ -385,19 +385,21 @@ def _numba_kernel():
         if ranges[r, 0] == ranges[r, 0]:
             return ranges[r, 0], ranges[r, 1]
         bits = x.view(np.int32)
-        lo = 2147483647
-        hi = -2147483648
+        lo = np.int32(2147483647)
+        hi = np.int32(-2147483648)
+        low31 = np.int32(0x7FFFFFFF)
         for k in range(bits.shape[0]):
-            key = np.int64(bits[k])
-            key ^= (key >> 31) & 0x7FFFFFFF
-            lo = min(lo, key)
-            hi = max(hi, key)
+            b = bits[k]
+            # int32 throughout and selects, not min(): the loop vectorises
+            key = np.int32(b ^ (np.int32(b >> np.int32(31)) & low31))
+            lo = key if key < lo else lo
+            hi = key if key > hi else hi
         if lo <= _KEY_NEG_INF or hi >= _KEY_POS_INF:
             ranges[r, 0], ranges[r, 1] = np.inf, -np.inf
         else:
             keys = np.empty(2, dtype=np.int32)
-            keys[0] = lo ^ ((lo >> 31) & 0x7FFFFFFF)
-            keys[1] = hi ^ ((hi >> 31) & 0x7FFFFFFF)
+            keys[0] = lo ^ ((lo >> 31) & low31)
+            keys[1] = hi ^ ((hi >> 31) & low31)
             vals = keys.view(np.float32)
             ranges[r, 0], ranges[r, 1] = vals[0], vals[1]
         return ranges[r, 0], ranges[r, 1]

@@ -99,14 +99,36 @@ def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarr
 def reprojection_errors(P: np.ndarray, uv: np.ndarray, reduce: str = "mean") -> np.ndarray:
     """(S,) px bbox-centre reprojection error of S two-view pairs.
 
-    P (S,2,3,4) world -> rectified px; uv (S,2,2) the two centres. The centres are
-    DLT-triangulated (dlt) and reprojected into both views; the two errors
+    P (S,2,3,4) world -> rectified px; uv (S,2,2) the two centres. See pair_reprojection_errors.
+    """
+    S = P.shape[0]
+    first = np.arange(0, 2 * S, 2)
+    return pair_reprojection_errors(P.reshape(2 * S, 3, 4), uv.reshape(2 * S, 2), first,
+                                    first + 1, reduce)
+
+
+def pair_reprojection_errors(P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np.ndarray,
+                             reduce: str = "mean") -> np.ndarray:
+    """(S,) px reprojection error of the two-view pairs (i[s], j[s]) of N single views.
+
+    P (N,3,4) world -> rectified px and uv (N,2) px of each view (e.g. one detection's bbox
+    centre in its camera). Each pair's point is DLT-triangulated (dlt, from the two views'
+    normal entries, computed once per view) and reprojected into both views; the two errors
     are reduced by ``mean`` or ``max``. Inf when the point is behind either camera or the
     rays are degenerate.
     """
-    X = dlt(P, uv)  # (S,3)
-    h = np.einsum("svij,sj->svi", P[..., :3], X) + P[..., 3]  # (S,2,3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm(h[..., :2] / h[..., 2:3] - uv, axis=-1)
-    err = np.where((h[..., 2] > 0) & np.isfinite(err), err, np.inf)
-    return err.mean(axis=1) if reduce == "mean" else err.max(axis=1)
+    usable = np.isfinite(uv).all(-1)
+    E = normal_entries(P, uv, usable)  # (9,N): one view's share of every pair's system
+    X = solve_normal(E[:, i] + E[:, j])  # (S,3)
+    X[~(usable[i] & usable[j])] = np.nan
+    errors = []
+    for view in (i, j):
+        Q = P[view]  # (S,3,4)
+        h = (Q[:, :, 0] * X[:, 0:1] + Q[:, :, 1] * X[:, 1:2] + Q[:, :, 2] * X[:, 2:3]
+             + Q[:, :, 3])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            du = h[:, 0] / h[:, 2] - uv[view, 0]
+            dv = h[:, 1] / h[:, 2] - uv[view, 1]
+            err = np.sqrt(du * du + dv * dv)
+        errors.append(np.where((h[:, 2] > 0) & np.isfinite(err), err, np.inf))
+    return 0.5 * (errors[0] + errors[1]) if reduce == "mean" else np.maximum(*errors)
