@@ -60,8 +60,9 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     per-matrix LAPACK calls cost microseconds each, far too slow for ~10^4 systems).
     NaN where the 3x3 block is (near) singular, e.g. fewer than two distinct rays.
     """
+    shape = E.shape[1:]
+    E = E.reshape(9, -1)
     n00, n01, n02, n11, n12, n22 = E[0], E[1], E[2], E[3], E[4], E[5]
-    r0, r1, r2 = -E[6], -E[7], -E[8]
     c00 = n11 * n22 - n12 * n12
     c01 = n02 * n12 - n01 * n22
     c02 = n01 * n12 - n02 * n11
@@ -69,13 +70,18 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     c12 = n01 * n02 - n00 * n12
     c22 = n00 * n11 - n01 * n01
     det = n00 * c00 + n01 * c01 + n02 * c02
-    singular = ~(np.abs(det) > _SINGULAR * (n00 + n11 + n22) ** 3)
-    inv_det = np.where(singular, np.nan, 1.0 / np.where(singular, 1.0, det))
-    X = np.empty(E.shape[1:] + (3,))
-    X[..., 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
-    X[..., 1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
-    X[..., 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
-    return X
+    trace = n00 + n11 + n22
+    singular = ~(np.abs(det) > _SINGULAR * trace * trace * trace)
+    det[singular] = np.nan
+    # X = -adj(N) r / det, computed coordinate-first (contiguous) and returned as a (...,3) view
+    X = np.empty((3, E.shape[1]))
+    for k, (a, b, c) in enumerate(((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))):
+        np.multiply(a, E[6], out=X[k])
+        X[k] += b * E[7]
+        X[k] += c * E[8]
+        X[k] /= det
+    np.negative(X, out=X)
+    return np.moveaxis(X.reshape((3,) + shape), 0, -1)
 
 
 def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -85,15 +91,28 @@ def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarr
     """
     C, M = P.shape[:2]
     Q, J = X.shape[1:3]
-    # one batched GEMM per cluster for all projections: (C, M*3, 3) @ (C, 3, Q*J)
-    h = np.matmul(P[..., :3].reshape(C, M * 3, 3), X.reshape(C, Q * J, 3).transpose(0, 2, 1))
-    h = h.reshape(C, M, 3, Q, J) + P[:, :, :, 3, None, None]
+    # homogeneous points coordinate-first (solve_normal's layout: no copy there), then one
+    # batched GEMM per image coordinate: (C,M,4) @ (C,4,Q*J), contiguous results
+    Xh = np.empty((4, C, Q, J))
+    Xh[:3] = np.moveaxis(X, -1, 0)
+    Xh[3] = 1.0
+    Xh = Xh.reshape(4, C, Q * J).transpose(1, 0, 2)
+    Pk = np.moveaxis(P, 2, 0)  # (3,C,M,4)
+    z = np.matmul(Pk[2], Xh).reshape(C, M, Q, J)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = 1.0 / h[:, :, 2]
-        du = h[:, :, 0] * inv_z - uv[:, :, None, :, 0]
-        dv = h[:, :, 1] * inv_z - uv[:, :, None, :, 1]
-        err = np.sqrt(du * du + dv * dv)
-    return np.where((h[:, :, 2] > 0) & np.isfinite(err), err, np.inf)
+        inv_z = 1.0 / z
+        err = np.matmul(Pk[0], Xh).reshape(C, M, Q, J)
+        err *= inv_z
+        err -= uv[:, :, None, :, 0]
+        err *= err
+        dv = np.matmul(Pk[1], Xh).reshape(C, M, Q, J)
+        dv *= inv_z
+        dv -= uv[:, :, None, :, 1]
+        dv *= dv
+        err += dv
+        np.sqrt(err, out=err)
+    err[~((z > 0) & np.isfinite(err))] = np.inf
+    return err
 
 
 def reprojection_errors(P: np.ndarray, uv: np.ndarray, reduce: str = "mean") -> np.ndarray:
