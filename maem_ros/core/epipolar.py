@@ -490,59 +490,68 @@ def _numba_kernel():
         hb = 0.5 if symmetric else 0.0
         sums = np.zeros(S)
         used = np.zeros(S, dtype=np.int64)
-        g = np.empty(9, dtype=np.float32)
-        G = np.empty((3, 3))
-        c = np.empty(4, dtype=np.float32)
-        for s in range(S):
-            i = ia[s]
-            j = jb[s]
-            a = fa[rows_a[i]:rows_a[i] + 2 * n]
-            b = fb[rows_b[j]:rows_b[j] + 2 * n]
-            if not mixed:
+        if not mixed:
+            for s in range(S):
+                a = fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n]
+                b = fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n]
                 sums[s], used[s] = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
-                continue
-            ca0, ca1 = centre(a, n)
-            cb0, cb1 = centre(b, n)
-            c[0], c[1], c[2], c[3] = ca0, ca1, cb0, cb1
-            epi = EPIPOLE_NORM / centred_f(F, ca0, ca1, cb0, cb1, g, G)
-            total = 0.0
-            err = 0.0
-            count = 0
-            seen = 0
-            exited = False
-            for r in range(blocks.shape[0]):
-                lo = blocks[r, 0]
-                hi = blocks[r, 1]
-                ab = a[2 * lo:2 * hi]
-                bb = b[2 * lo:2 * hi]
+            return sums, used
+        # each pair's centred float32 F, then the blocks outermost: one block of every
+        # detection of the camera pair (4 KB each) stays in cache while all its candidate
+        # pairs read it, instead of each pair streaming whole detections from memory
+        g = np.empty((S, 9), dtype=np.float32)
+        G = np.empty((S, 3, 3))
+        c = np.empty((S, 4), dtype=np.float32)
+        epi = np.empty(S)
+        for s in range(S):
+            ca0, ca1 = centre(fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n], n)
+            cb0, cb1 = centre(fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n], n)
+            c[s, 0], c[s, 1], c[s, 2], c[s, 3] = ca0, ca1, cb0, cb1
+            epi[s] = EPIPOLE_NORM / centred_f(F, ca0, ca1, cb0, cb1, g[s], G[s])
+        err = np.zeros(S)
+        alive = np.ones(S, dtype=np.bool_)  # not rejected early
+        seen = 0
+        for r in range(blocks.shape[0]):
+            lo = blocks[r, 0]
+            hi = blocks[r, 1]
+            seen += hi - lo
+            for s in range(S):
+                if not alive[s]:
+                    continue
+                i = ia[s]
+                j = jb[s]
+                ab = fa[rows_a[i] + 2 * lo:rows_a[i] + 2 * hi]
+                bb = fb[rows_b[j] + 2 * lo:rows_b[j] + 2 * hi]
                 p = np.inf
                 e = np.inf
                 lo_a, hi_a = block_range(ab, ranges_a[i], r)
                 lo_b, hi_b = block_range(bb, ranges_b[j], r)
                 if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
-                    p, e = block_bound(G, epi, max(abs(hi_a - ca0), abs(lo_a - ca0)),
+                    ca0, ca1, cb0, cb1 = c[s, 0], c[s, 1], c[s, 2], c[s, 3]
+                    p, e = block_bound(G[s], epi[s], max(abs(hi_a - ca0), abs(lo_a - ca0)),
                                        max(abs(hi_a - ca1), abs(lo_a - ca1)),
                                        max(abs(hi_b - cb0), abs(lo_b - cb0)),
                                        max(abs(hi_b - cb1), abs(lo_b - cb1)),
-                                       block32(ab, bb, c, g, symmetric), ha, hb)
+                                       block32(ab, bb, c[s], g[s], symmetric), ha, hb)
                 if p < np.inf and e < np.inf:
-                    total += p
-                    err += e
-                    count += hi - lo
+                    sums[s] += p
+                    err[s] += e
+                    used[s] += hi - lo
                 else:  # missing points, a point at (or very near) the epipole: float64
                     p, k = block64(ab, bb, f, ha, symmetric)
-                    total += p if p == p else np.inf
-                    count += k
-                seen += hi - lo
-                # exact: total - err is below the exact partial sum
-                if early_exit and total - err >= tau * (count + (n - seen)):
-                    exited = True
-                    break
-            if not exited and not (total + err < tau * count) and not (total - err >= tau * count):
+                    sums[s] += p if p == p else np.inf
+                    used[s] += k
+                # exact: sum - err is below the exact partial sum
+                if early_exit and sums[s] - err[s] >= tau * (used[s] + (n - seen)):
+                    alive[s] = False
+        for s in range(S):
+            total = sums[s]
+            if alive[s] and not (total + err[s] < tau * used[s]) \
+                    and not (total - err[s] >= tau * used[s]):
                 # the bound does not settle the decision: float64 throughout
-                total, count = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
-            sums[s] = total
-            used[s] = count
+                a = fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n]
+                b = fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n]
+                sums[s], used[s] = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
         return sums, used
 
     return sums_kernel
