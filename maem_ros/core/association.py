@@ -53,7 +53,9 @@ class AssociationParams(Params):
     from params files and declared, with --help, by the node).
 
     ``backend`` selects the epipolar kernel (auto = numba when installed, else numpy); both
-    give the same decisions. ``cost_joints``: "body" (the 13 sportcenter body joints of the
+    give the same decisions. ``epipolar_precision`` (numba): ``mixed`` float32 distances with
+    a rigorous rounding-error bound (undecided pairs redone in float64; means ~1e-7
+    relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
     detections' keypoint convention), "all", or comma-separated keypoint indices.
     ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).
     ``cost_epipolar_weight`` (m) adds the pair's mean epipolar distance, as a fraction of
@@ -77,6 +79,9 @@ class AssociationParams(Params):
     early_exit: bool = param(True, "stop the mesh distance early once a pair cannot pass")
     backend: str = param("auto", "epipolar kernel (auto = numba when installed, else numpy)",
                          choices=epipolar.BACKENDS)
+    epipolar_precision: str = param("mixed", "numba kernel arithmetic: mixed (float32 SIMD with "
+                                             "a rounding-error bound, float64 decisions) or "
+                                             "float64", choices=epipolar.PRECISIONS)
     clustering: str = param("consistent", "consistent (verified best-first merges), paper "
                                           "(Hungarian + union-find) or spectral (PA-MPJPE "
                                           "matching baseline)", choices=clustering.METHODS)
@@ -243,7 +248,8 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
         sums, used = epipolar.epipolar_sums(
             points[a], points[b], F[(a, b)], table.det[i[idx]], table.det[j[idx]],
             params.tau_mesh, symmetric=params.epipolar_distance == "symmetric",
-            early_exit=params.early_exit, backend=params.backend)
+            early_exit=params.early_exit, backend=params.backend,
+            precision=params.epipolar_precision)
         # mean over the points both detections have (missing vertices take no part)
         keep[idx] = sums < params.tau_mesh * used
         with np.errstate(invalid="ignore", divide="ignore"):
