@@ -206,6 +206,7 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
     mixed = precision == "mixed" and fa.dtype == np.float32
     scale = np.linalg.norm(F)  # distances do not depend on F's scale; unit norm for the bounds
     F = F / scale if scale > 0 else F
+    mixed = mixed and _rsqrt_within_bound()
     return _numba_kernel()(fa, ra.rows, fb, rb.rows, ra.ranges, rb.ranges, F, ia, jb,
                            block_order(n), n, float(tau), bool(early_exit), bool(symmetric),
                            mixed)
@@ -289,6 +290,27 @@ _BOUND_SLACK = 1e-3
 #: float32 bit patterns mapped to ordered int32 keys: keys of -inf and +inf (finite in between)
 _KEY_NEG_INF = -2139095041
 _KEY_POS_INF = 2139095040
+
+
+@lru_cache(maxsize=1)
+def _rsqrt_within_bound() -> bool:
+    """Whether the compiled float32 1/sqrt (the instructions LLVM picks for this CPU) is within
+    _RSQRT_ERR of the exact value over a sweep of arguments; if not, the mixed kernel's error
+    bound would not hold, and "mixed" runs in float64 instead."""
+    nb = _numba
+    flags = {"reassoc", "contract", "arcp", "nsz", "afn"}  # block32's
+
+    @nb.njit(fastmath=flags, error_model="numpy", boundscheck=False, cache=True)
+    def rsqrt32(q, out):
+        for k in range(q.shape[0]):  # the same vectorised form as in block32
+            out[k] = np.float32(1.0) / np.sqrt(q[k])
+
+    q = np.geomspace(1e-30, 1e30, 200_003).astype(np.float32)
+    q = np.concatenate([q, np.random.default_rng(0).uniform(0.5, 2.0, 100_000).astype(np.float32)])
+    got = np.empty_like(q)
+    rsqrt32(q, got)
+    exact = 1.0 / np.sqrt(q.astype(np.float64))
+    return bool(np.max(np.abs(got / exact - 1.0)) <= _RSQRT_ERR / 2)
 
 
 @lru_cache(maxsize=1)
