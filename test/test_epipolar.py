@@ -182,3 +182,19 @@ def test_points_at_the_epipole_reject_in_both_backends():
                 got = epipolar.epipolar_sums(xa32, xb32, F, [0], [0], 8.0, symmetric, early,
                                              backend, precision)
                 assert (got[0] < 8.0 * got[1]) == (want[0] < 8.0 * want[1])
+
+
+def test_mixed_runs_in_float64_when_the_float32_rsqrt_is_outside_the_bound(monkeypatch):
+    """The error bound assumes the compiled float32 1/sqrt is within 2^-20; where the check at
+    first use fails, "mixed" must give the float64 sums."""
+    if not epipolar.have_numba():
+        return
+    assert epipolar._rsqrt_within_bound()  # on this machine the float32 path is taken
+    F, xa, xb, _ = _scene(5, 1500, 8.0, 3, 3)
+    xa, xb = xa.astype(np.float32), xb.astype(np.float32)
+    ia = jb = np.arange(3)
+    exact = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="float64")
+    monkeypatch.setattr(epipolar, "_rsqrt_within_bound", lambda: False)
+    got = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="mixed")
+    np.testing.assert_array_equal(got[0], exact[0])
+    np.testing.assert_array_equal(got[1], exact[1])
