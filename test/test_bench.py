@@ -15,7 +15,8 @@ from maem_ros.tools.bench_load import (body_template, make_frame, pa_mpjpe_one,
 
 KEYS = ("cameras", "detections_per_camera", "vertices", "association_ms_median",
         "association_ms_p90", "triangulation_ms_median", "straightforward_association_ms_median",
-        "speedup")
+        "speedup", "association_cpu_ms_median", "association_cpu_ms_min",
+        "triangulation_cpu_ms_median", "triangulation_cpu_ms_min")
 
 
 def _bench(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
@@ -38,6 +39,8 @@ def test_bench_json_reduced_load():
     assert out["speedup"] == pytest.approx(out["straightforward_association_ms_median"]
                                            / out["paper_association_ms_median"])
     assert out["clustering"] == "consistent"
+    assert out["association_cpu_ms_min"] <= out["association_cpu_ms_median"]
+    assert out["load_average_1min"] >= 0.0
     assert set(out["targets"]) == {"association_ms_median", "speedup", "triangulation_ms_median"}
 
 

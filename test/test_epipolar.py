@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from maem_ros.core import epipolar
 from maem_ros.core.camera import fundamental_matrix
-from test_association import two_facing_cameras
+from test_association import VARIANTS, two_facing_cameras
 
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 
@@ -54,17 +54,65 @@ def test_kernel_decisions_equal_the_reference_and_the_full_mean(seed, n, symmetr
     mean, count = _full_mean(xa, xb, F, ia, jb, symmetric)
     reference = ~(mean < tau)  # no common point (NaN mean) rejects
     near_tie = np.abs(mean - tau) < 1e-9 * tau
-    for backend in BACKENDS:
+    for backend, precision, rtol, atol in VARIANTS:
         for early in (True, False):
-            sums, used = epipolar.epipolar_sums(xa, xb, F, ia, jb, tau, symmetric, early, backend)
+            sums, used = epipolar.epipolar_sums(xa, xb, F, ia, jb, tau, symmetric, early, backend,
+                                                precision)
             reject = ~(sums < tau * used)
-            assert np.array_equal(reject[~near_tie], reference[~near_tie]), backend
+            assert np.array_equal(reject[~near_tie], reference[~near_tie]), (backend, precision)
             assert np.array_equal(used[~reject], count[~reject])  # accepted: summed in full
-            np.testing.assert_allclose(sums[~reject] / used[~reject], mean[~reject], rtol=1e-9)
+            np.testing.assert_allclose(sums[~reject] / used[~reject], mean[~reject], rtol=rtol,
+                                       atol=atol)
             if not early:
                 assert np.array_equal(used, count)
                 ok = count > 0
-                np.testing.assert_allclose(sums[ok] / used[ok], mean[ok], rtol=1e-9)
+                np.testing.assert_allclose(sums[ok] / used[ok], mean[ok], rtol=rtol, atol=atol)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 3000), symmetric=st.booleans(),
+       rel=st.sampled_from([1e-3, 1e-5, 1e-7, 1e-9, 0.0]), above=st.booleans(),
+       offset=st.sampled_from([0.0, 1500.0, -700.0]))
+def test_mixed_precision_decides_like_float64_at_the_threshold(seed, n, symmetric, rel, above,
+                                                                offset):
+    if not epipolar.have_numba():
+        return
+    """tau placed within rel of each pair's exact mean (below or above): the float32 sums
+    cannot tell, so the error bound must send the pair to float64 and still decide exactly;
+    points far from the image origin (offset) test the centring."""
+    F, xa, xb, rng = _scene(seed, n, 8.0, 5, 7)
+    shift = np.array([offset, -0.5 * offset])
+    T = np.array([[1.0, 0, -shift[0]], [0, 1, -shift[1]], [0, 0, 1]])
+    F = T.T @ F @ T  # the same geometry for points moved by shift in both images
+    xa = (xa + shift).astype(np.float32)
+    xb = (xb + shift).astype(np.float32)
+    ia, jb = np.arange(5).repeat(7), np.tile(np.arange(7), 5)
+    mean, _ = _full_mean(xa, xb, F, ia, jb, symmetric)
+    for s in range(ia.size):
+        tau = mean[s] * (1 + rel) if above else mean[s] * (1 - rel)
+        pair = (ia[s:s + 1], jb[s:s + 1], tau, symmetric)
+        # at an exact tie (rel 0) float64 roundings decide: compare with the numba float64 sums
+        # the mixed kernel falls back to; otherwise with the numpy reference
+        want = epipolar.epipolar_sums(xa, xb, F, *pair, backend="numpy" if rel else "numba",
+                                      precision="float64")
+        for backend, precision, *_ in VARIANTS[1:]:
+            got = epipolar.epipolar_sums(xa, xb, F, *pair, backend=backend, precision=precision)
+            assert (got[0] < tau * got[1]) == (want[0] < tau * want[1]), (precision, rel)
+
+
+def test_mixed_precision_runs_in_float32_and_stays_close():
+    """On a well-conditioned scene the float32 path is taken (sums differ from float64 in the
+    last digits) and accepted means agree with float64 far inside the tolerance."""
+    if not epipolar.have_numba():
+        return
+    F, xa, xb, _ = _scene(3, 4000, 8.0, 4, 4)
+    xa, xb = xa.astype(np.float32), xb.astype(np.float32)
+    ia = jb = np.arange(4)
+    fast = epipolar.epipolar_sums(xa, xb, F, ia, jb, 1e3, backend="numba", precision="mixed")
+    exact = epipolar.epipolar_sums(xa, xb, F, ia, jb, 1e3, backend="numba", precision="float64")
+    assert not np.array_equal(fast[0], exact[0])
+    np.testing.assert_allclose(fast[0], exact[0], rtol=1e-6)
+    assert np.array_equal(fast[1], exact[1])
 
 
 def test_strided_message_views_are_read_in_place():
@@ -97,9 +145,10 @@ def test_wrong_pairs_with_missing_points_exit_early_and_all_missing_rejects():
     xa = rng.uniform(0, 1000, (1, 18439, 2)).astype(np.float32)
     xb = rng.uniform(0, 1000, (1, 18439, 2)).astype(np.float32)
     xb[0, ::2] = np.nan
-    for backend in BACKENDS:
-        sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend)
-        assert sums[0] >= 8.0 * used[0] and 0 < used[0] <= epipolar.BLOCK * epipolar.CHUNK_BLOCKS
+    for backend, precision, *_ in VARIANTS:
+        sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend,
+                                            precision=precision)
+        assert sums[0] >= 8.0 * used[0] and 0 < used[0] <= epipolar.BLOCK
         none = np.full((1, 600, 2), np.nan, np.float32)
         sums, used = epipolar.epipolar_sums(none, xb[:1, :600], F, [0], [0], 8.0, backend=backend)
         assert used[0] == 0 and not sums[0] < 8.0 * used[0]
@@ -114,10 +163,38 @@ def test_points_at_the_epipole_reject_in_both_backends():
     e_a = np.linalg.svd(F)[2][-1]  # a's epipole: F's right null space
     xa_epi = np.tile(e_a[:2] / e_a[2], (1, 1100, 1))
     assert np.abs(F @ e_a).max() < 1e-12
-    for backend in BACKENDS:
-        sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend)
+    for backend, precision, *_ in VARIANTS:
+        sums, used = epipolar.epipolar_sums(xa, xb, F, [0], [0], 8.0, backend=backend,
+                                            precision=precision)
         assert sums[0] < 1e-6 * used[0] and used[0] == 1100  # a perfect pair passes
         for symmetric in (True, False):
             sums, used = epipolar.epipolar_sums(xa_epi, xb, F, [0], [0], 8.0, symmetric,
-                                                backend=backend)
+                                                backend=backend, precision=precision)
             assert not sums[0] < 8.0 * used[0]
+    # float32 points (the mixed kernel's input): a few points at (float32-rounded) epipole
+    # among correct ones decide like the float64 reference, with and without early exit
+    xa32, xb32 = xa.astype(np.float32), xb.astype(np.float32)
+    xa32[0, ::97] = e_a[:2] / e_a[2]
+    for symmetric in (True, False):
+        for early in (True, False):
+            want = epipolar.epipolar_sums(xa32, xb32, F, [0], [0], 8.0, symmetric, early, "numpy")
+            for backend, precision, *_ in VARIANTS[1:]:
+                got = epipolar.epipolar_sums(xa32, xb32, F, [0], [0], 8.0, symmetric, early,
+                                             backend, precision)
+                assert (got[0] < 8.0 * got[1]) == (want[0] < 8.0 * want[1])
+
+
+def test_mixed_runs_in_float64_when_the_float32_rsqrt_is_outside_the_bound(monkeypatch):
+    """The error bound assumes the compiled float32 1/sqrt is within 2^-20; where the check at
+    first use fails, "mixed" must give the float64 sums."""
+    if not epipolar.have_numba():
+        return
+    assert epipolar._rsqrt_within_bound()  # on this machine the float32 path is taken
+    F, xa, xb, _ = _scene(5, 1500, 8.0, 3, 3)
+    xa, xb = xa.astype(np.float32), xb.astype(np.float32)
+    ia = jb = np.arange(3)
+    exact = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="float64")
+    monkeypatch.setattr(epipolar, "_rsqrt_within_bound", lambda: False)
+    got = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="mixed")
+    np.testing.assert_array_equal(got[0], exact[0])
+    np.testing.assert_array_equal(got[1], exact[1])

@@ -35,7 +35,7 @@ from . import clustering, epipolar
 from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet, camera_pair_groups)
-from .geometry import reprojection_errors
+from .geometry import pair_reprojection_errors
 from .paramspec import Params, param
 from .procrustes import pa_mpjpe_finite
 from .skeleton import joint_subset
@@ -53,7 +53,9 @@ class AssociationParams(Params):
     from params files and declared, with --help, by the node).
 
     ``backend`` selects the epipolar kernel (auto = numba when installed, else numpy); both
-    give the same decisions. ``cost_joints``: "body" (the 13 sportcenter body joints of the
+    give the same decisions. ``epipolar_precision`` (numba): ``mixed`` float32 distances with
+    a rigorous rounding-error bound (undecided pairs redone in float64; means ~1e-7
+    relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
     detections' keypoint convention), "all", or comma-separated keypoint indices.
     ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).
     ``cost_epipolar_weight`` (m) adds the pair's mean epipolar distance, as a fraction of
@@ -77,6 +79,9 @@ class AssociationParams(Params):
     early_exit: bool = param(True, "stop the mesh distance early once a pair cannot pass")
     backend: str = param("auto", "epipolar kernel (auto = numba when installed, else numpy)",
                          choices=epipolar.BACKENDS)
+    epipolar_precision: str = param("mixed", "numba kernel arithmetic: mixed (float32 SIMD with "
+                                             "a rounding-error bound, float64 decisions) or "
+                                             "float64", choices=epipolar.PRECISIONS)
     clustering: str = param("consistent", "consistent (verified best-first merges), paper "
                                           "(Hungarian + union-find) or spectral (PA-MPJPE "
                                           "matching baseline)", choices=clustering.METHODS)
@@ -185,9 +190,8 @@ def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
 
 def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, P: np.ndarray,
                        params: AssociationParams) -> np.ndarray:
-    uv = np.stack([table.centers[i], table.centers[j]], axis=1)
-    Ps = np.stack([P[table.cam[i]], P[table.cam[j]]], axis=1)
-    return reprojection_errors(Ps, uv, params.reproj_reduce) < params.tau_reproj_bbox
+    errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, params.reproj_reduce)
+    return errors < params.tau_reproj_bbox
 
 
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
@@ -244,7 +248,8 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
         sums, used = epipolar.epipolar_sums(
             points[a], points[b], F[(a, b)], table.det[i[idx]], table.det[j[idx]],
             params.tau_mesh, symmetric=params.epipolar_distance == "symmetric",
-            early_exit=params.early_exit, backend=params.backend)
+            early_exit=params.early_exit, backend=params.backend,
+            precision=params.epipolar_precision)
         # mean over the points both detections have (missing vertices take no part)
         keep[idx] = sums < params.tau_mesh * used
         with np.errstate(invalid="ignore", divide="ignore"):

@@ -195,7 +195,7 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
     ok = pairs.passed
     ei, ej = pairs.i[ok], pairs.j[ok]  # merge candidates: linked by a pair that passed all
     gi, gj = np.nonzero(np.triu(gated, 1))  # support: pairs that passed the geometric gates
-    refused: set[tuple[int, int, int, int]] = set()
+    refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     N = label.size
     while True:
         la, lb = label[ei], label[ej]
@@ -220,8 +220,10 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         disjoint = ~(camset[A] & camset[B]).any(1)
         support = count / (size[A] * size[B])
         allowed = disjoint & (support >= params.min_support) & (g > 0)
-        allowed &= np.array([(int(x), int(y), int(size[x]), int(size[y])) not in refused
-                             for x, y in zip(A, B)], bool) if refused else True
+        # a refused merge stays refused while neither cluster changed (same labels and sizes)
+        codes = ((A * N + B) * (N + 1) + size[A]) * (N + 1) + size[B]
+        if refused:
+            allowed &= ~np.isin(codes, np.fromiter(refused, np.int64, len(refused)))
         cand = np.flatnonzero(allowed)
         if cand.size == 0:
             return label
@@ -229,23 +231,21 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         passed = np.ones(cand.size, bool)
         if need.any():
             passed[need] = verify(members_ab[cand[need]])
-        for k in cand[~passed]:
-            refused.add((int(A[k]), int(B[k]), int(size[A[k]]), int(size[B[k]])))
+        refused.update(codes[cand[~passed]].tolist())
         stats["merges_rejected"] += float(np.count_nonzero(~passed))
         cand = cand[passed]
         if cand.size == 0:
             return label
         cand = cand[np.argsort(-g[cand], kind="stable")]
-        used = np.zeros(N, bool)
-        merged = 0
-        for k in cand:  # one loop over candidate merges (not over vertices or joints)
-            x, y = int(A[k]), int(B[k])
-            if used[x] or used[y]:
+        used: set[int] = set()
+        into = np.arange(N)
+        for x, y in zip(A[cand].tolist(), B[cand].tolist()):  # candidate merges, best first
+            if x in used or y in used:
                 continue
-            used[x] = used[y] = True
-            label[label == y] = x
-            merged += 1
-        stats["merges"] += float(merged)
+            used.update((x, y))
+            into[y] = x
+        label = into[label]  # the applied merges touch disjoint clusters: one relabelling
+        stats["merges"] += float(len(used) // 2)
 
 
 def _cross_gain(gain: np.ndarray, members: np.ndarray, split: np.ndarray) -> np.ndarray:

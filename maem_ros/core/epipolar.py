@@ -10,24 +10,40 @@ A point missing in either detection (NaN coordinate; q4 wire code 65535) takes n
 pair's mean is over the ``used`` points both detections have, and a pair is rejected when
 ``sum_k d_k >= tau * used`` (mean >= tau px; no common point at all rejects it).
 
-Exact early exit: d_k >= 0, so once a partial sum (points walked in one fixed shuffled order,
-in chunks) reaches ``tau * (n - missing so far)`` -- an upper bound of tau * used -- the full
-sum reaches tau * used too and the pair is rejected; accepted pairs are always summed
-completely (their sum / used is the exact mean). Floating-point addition of non-negative
-numbers is monotone, so with the same chunking the decision equals the full sum's.
+Exact early exit: d_k >= 0, so once a partial sum (points walked in fixed blocks of BLOCK
+points, the blocks in one fixed shuffled order) reaches ``tau * (n - missing so far)`` -- an
+upper bound of tau * used -- the full sum reaches tau * used too and the pair is rejected;
+accepted pairs are always summed completely. Floating-point addition of non-negative numbers is
+monotone, so the decision equals the full sum's.
 
-The numba kernel computes each point's inverse line norms once per detection and camera pair
-(lazily, per block, on the first candidate pair that walks the block) and reuses them for every
-other candidate of that detection, so a pair costs one bilinear form per point. It reads each
-camera's points where they are (:class:`PointRows`: a strided PointCloud2 field or a
-contiguous array, float32 or float64), without copies. The numpy reference uses the same
-order and chunking. A point at the epipole has an undefined line: its distance is inf (or NaN,
-mapped to inf), which rejects the pair.
+The numpy reference computes every distance in float64. The numba kernel fuses everything per
+point (the line, both norms and the distance: a detection takes part in ~1.4 candidate pairs
+per camera pair, too few for cached line norms to pay) and, by default (``precision
+"mixed"``), runs float32 SIMD (twice the lanes of float64) on points centred on each
+detection (u - c, integer c; the bilinear form loses no digits to the px offset) with a
+rigorous bound E of the block sum's rounding error, from float32 unit roundoff u = 2^-24:
+
+    E = (1 + 1e-3) [10 u B (h_a sum w_a + h_b sum w_b)
+                    + 8 u (h_a L_a sum |e| w_a^2 + h_b L_b sum |e| w_b^2)
+                    + (2^-20 + 520 u) sum d]
+
+(e the bilinear form of the centred points under the float32 F', B = [|u_b|,|v_b|,1] |F'|
+[|u_a|,|v_a|,1]^T from the block's coordinate range, L_a, L_b the same bound of the lines'
+first two coefficients; terms: rounding of e, of the line norms (through their
+coefficients and the 2^-20 reciprocal square root), and of 512 float32 additions). A pair is
+rejected early when ``sum - E >= tau * (used + still to come)``, accepted when ``sum + E <
+tau * used``, rejected when ``sum - E >= tau * used``; otherwise (the bound cannot settle it;
+in practice never) it is recomputed in float64. Blocks with a missing point or a point at
+(or very near) the epipole are summed in float64. So the decisions are those of the float64
+sums; an accepted pair's mean carries an error below E / used (~1e-7 relative in practice;
+``precision "float64"`` gives it to ~1e-13). The kernel reads each camera's points where
+they are (:class:`PointRows`: a strided PointCloud2 field or a contiguous array, float32 or
+float64; float64 points are summed in float64), without copies. A point at the epipole has an
+undefined line: its distance is inf (or NaN, mapped to inf), which rejects the pair.
 """
 from __future__ import annotations
 
-import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
@@ -35,8 +51,10 @@ import numpy as np
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
 #: small); blocks are visited in a fixed shuffled order
 BLOCK = 512
-#: blocks per early-exit check (512 points)
-CHUNK_BLOCKS = 1
+#: a point whose line has ||(F x)_12|| <= EPIPOLE_NORM ||F|| is at the epipole (its line is
+#: rounding noise): distance inf, the pair is rejected. ~1e-6 px from the epipole of a
+#: typical pixel F; one definition for every backend and precision
+EPIPOLE_NORM = 1e-12
 #: seed of the fixed block order (any fixed value; part of the definition of "the order")
 ORDER_SEED = 20240611
 
@@ -46,6 +64,7 @@ except ImportError:  # pragma: no cover - exercised only without numba
     _numba = None
 
 BACKENDS = ("auto", "numba", "numpy")
+PRECISIONS = ("mixed", "float64")
 
 
 def have_numba() -> bool:
@@ -79,11 +98,9 @@ def block_order(n: int) -> np.ndarray:
 
 
 @lru_cache(maxsize=32)
-def _chunk_indices(n: int) -> tuple[np.ndarray, ...]:
-    """Point indices of each early-exit chunk (numpy reference path)."""
-    blocks = block_order(n)
-    return tuple(np.concatenate([np.arange(s, e) for s, e in blocks[c:c + CHUNK_BLOCKS]])
-            for c in range(0, len(blocks), CHUNK_BLOCKS))
+def _block_indices(n: int) -> tuple[np.ndarray, ...]:
+    """Point indices of each block of :func:`block_order` (numpy reference path)."""
+    return tuple(np.arange(s, e) for s, e in block_order(n))
 
 
 @dataclass(frozen=True)
@@ -92,12 +109,20 @@ class PointRows:
     ``(flat[rows[i] + 2k], flat[rows[i] + 2k + 1])`` rectified px (NaN = missing).
 
     flat: 1D C-contiguous float32/float64 (may span other message fields between rows, never
-    read); rows (N,) int64 element offsets; n points per detection.
+    read); rows (N,) int64 element offsets; n points per detection. ranges (N, blocks, 2):
+    the numba kernel's cache of each detection's coordinate range (min, max) per block of
+    :func:`block_order`, filled on first use (NaN = not yet), shared by every camera pair.
     """
 
     flat: np.ndarray
     rows: np.ndarray
     n: int
+    ranges: np.ndarray = field(default=None, compare=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.ranges is None:
+            blocks = len(block_order(self.n)) if self.n else 0
+            object.__setattr__(self, "ranges", np.full((self.rows.size, blocks, 2), np.nan))
 
     @property
     def count(self) -> int:
@@ -131,7 +156,7 @@ def point_rows(x: np.ndarray | PointRows) -> PointRows:
 
 def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.ndarray,
                   ia: np.ndarray, jb: np.ndarray, tau: float, symmetric: bool = True,
-                  early_exit: bool = True, backend: str = "auto"
+                  early_exit: bool = True, backend: str = "auto", precision: str = "mixed"
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Distance sums of the detection pairs (ia[s] in a, jb[s] in b).
 
@@ -141,9 +166,17 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
     ``sums >= tau * used`` (identical with or without early exit). An accepted pair's sum is
     complete (sum / used = its mean distance); with early exit a rejected pair's sum and count
     are partial.
+
+    precision (numba backend, float32 points): ``mixed`` sums float32 SIMD distances with a
+    rigorous bound of their rounding error and re-runs in float64 any pair whose decision the
+    bound cannot settle, so the decisions are the float64 ones; an accepted pair's sum is then
+    within its bound (~1e-7 relative in practice) of the exact one. ``float64``: every distance
+    in float64 (sums to ~1e-13).
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
     ra, rb = point_rows(xa), point_rows(xb)
     if ra.n != rb.n:
         raise ValueError(f"epipolar points: expected (Na,n,2) and (Nb,n,2), got n={ra.n} "
@@ -159,36 +192,24 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
     # the kernel runs without bounds checks
     if ia.min() < 0 or ia.max() >= ra.count or jb.min() < 0 or jb.max() >= rb.count:
         raise ValueError("epipolar pairs: detection index out of range")
-    tau_eff = float(tau) if early_exit else np.inf
     F = np.ascontiguousarray(F, dtype=np.float64)
     use_numba = backend == "numba" or (backend == "auto" and _numba is not None)
     if not use_numba:
-        return _numpy_sums(ra, rb, F, ia, jb, tau_eff, bool(symmetric))
+        return _numpy_sums(ra, rb, F, ia, jb, float(tau) if early_exit else np.inf,
+                           bool(symmetric))
     if _numba is None:
         raise ValueError("backend: 'numba' requested but numba is not installed")
     fa, fb = ra.flat, rb.flat
     if fa.dtype != fb.dtype:
         fa, fb = fa.astype(np.float64), fb.astype(np.float64)
-    blocks = block_order(n)
-    scale = np.linalg.norm(F)  # distances do not depend on F's scale; unit norm for inv_sqrt
+    # float64 points (keypoints: few per detection) always take the float64 path
+    mixed = precision == "mixed" and fa.dtype == np.float32
+    scale = np.linalg.norm(F)  # distances do not depend on F's scale; unit norm for the bounds
     F = F / scale if scale > 0 else F
-    wa, wb, done_a, done_b = _workspace(ra.count, rb.count, n, len(blocks))
-    return _numba_kernel()(fa, ra.rows, fb, rb.rows, F.ravel(), ia, jb, blocks, CHUNK_BLOCKS,
-                           tau_eff, bool(symmetric), wa, wb, done_a, done_b)
-
-
-_LOCAL = threading.local()
-
-
-def _workspace(na: int, nb: int, n: int, nblocks: int):
-    """Per-thread reusable weight caches (no page faults per call) and fresh 'done' flags."""
-    buf = getattr(_LOCAL, "weights", None)
-    need = (na + nb) * n
-    if buf is None or buf.size < need:
-        buf = _LOCAL.weights = np.empty(max(need, 1))
-    wa = buf[:na * n].reshape(na, n)
-    wb = buf[na * n:need].reshape(nb, n)
-    return wa, wb, np.zeros((na, nblocks), np.bool_), np.zeros((nb, nblocks), np.bool_)
+    mixed = mixed and _rsqrt_within_bound()
+    return _numba_kernel()(fa, ra.rows, fb, rb.rows, ra.ranges, rb.ranges, F, ia, jb,
+                           block_order(n), n, float(tau), bool(early_exit), bool(symmetric),
+                           mixed)
 
 
 def warmup() -> None:
@@ -200,41 +221,48 @@ def warmup() -> None:
     one = np.zeros(1, dtype=np.int64)
     for dtype in (np.float32, np.float64):
         x = np.ones((1, BLOCK, 2), dtype=dtype)
-        for symmetric in (True, False):
-            epipolar_sums(x, x, F, one, one, 1.0, symmetric, True, "numba")
+        for precision in PRECISIONS:
+            epipolar_sums(x, x, F, one, one, 1.0, True, True, "numba", precision)
 
 
 def point_distances(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, symmetric: bool) -> np.ndarray:
     """(...,n) per-point distances (px) of corresponding points xa, xb (...,n,2) under F (a->b).
 
-    NaN where either point is missing (a NaN coordinate); inf for a point at the epipole.
+    NaN where either point is missing (a NaN coordinate); inf for a point at the epipole
+    (EPIPOLE_NORM).
     """
     xa = np.asarray(xa, dtype=np.float64)
     xb = np.asarray(xb, dtype=np.float64)
+    F = np.asarray(F, dtype=np.float64)
+    F = F / np.linalg.norm(F)
     ua, va, ub, vb = xa[..., 0], xa[..., 1], xb[..., 0], xb[..., 1]
     l0 = F[0, 0] * ua + F[0, 1] * va + F[0, 2]
     l1 = F[1, 0] * ua + F[1, 1] * va + F[1, 2]
     l2 = F[2, 0] * ua + F[2, 1] * va + F[2, 2]
     e = np.abs(ub * l0 + vb * l1 + l2)
+    q = l0 * l0 + l1 * l1
+    at_epipole = q <= EPIPOLE_NORM ** 2
     with np.errstate(divide="ignore", invalid="ignore"):
-        d = e / np.sqrt(l0 * l0 + l1 * l1)
+        d = e / np.sqrt(q)
         if symmetric:
             m0 = F[0, 0] * ub + F[1, 0] * vb + F[2, 0]
             m1 = F[0, 1] * ub + F[1, 1] * vb + F[2, 1]
-            d = 0.5 * (d + e / np.sqrt(m0 * m0 + m1 * m1))
+            qb = m0 * m0 + m1 * m1
+            at_epipole |= qb <= EPIPOLE_NORM ** 2
+            d = 0.5 * (d + e / np.sqrt(qb))
     missing = np.isnan(ua + va + ub + vb)
-    return np.where(missing, np.nan, np.where(np.isnan(d), np.inf, d))
+    return np.where(missing, np.nan, np.where(at_epipole | np.isnan(d), np.inf, d))
 
 
 def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb: np.ndarray,
                 tau: float, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Reference path: all pairs of a chunk at once, chunks in the fixed order, early exit."""
+    """Reference path: all pairs of a block at once, blocks in the fixed order, early exit."""
     S = ia.size
     sums = np.zeros(S)
     used = np.zeros(S, dtype=np.int64)
     seen = 0
     alive = np.arange(S)
-    for idx in _chunk_indices(ra.n):
+    for idx in _block_indices(ra.n):
         cols = 2 * idx[None, :]
         oa, ob = ra.rows[ia[alive], None] + cols, rb.rows[jb[alive], None] + cols
         A = np.stack([ra.flat[oa], ra.flat[oa + 1]], axis=-1)
@@ -252,57 +280,73 @@ def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb:
     return sums, used
 
 
+#: float32 unit roundoff
+_U32 = 2.0 ** -24
+#: relative error bound of a float32 1/sqrt (hardware estimate, |rel err| <= 1.5 * 2^-12, plus
+#: one Newton step in float32: ~3 * 2^-24 + 1.7 * 2^-24; 2^-20 leaves a margin of ~3)
+_RSQRT_ERR = 2.0 ** -20
+#: relative slack on the error bound for its own (second-order) rounding
+_BOUND_SLACK = 1e-3
+#: float32 bit patterns mapped to ordered int32 keys: keys of -inf and +inf (finite in between)
+_KEY_NEG_INF = -2139095041
+_KEY_POS_INF = 2139095040
+
+
+@lru_cache(maxsize=1)
+def _rsqrt_within_bound() -> bool:
+    """Whether the compiled float32 1/sqrt (the instructions LLVM picks for this CPU) is within
+    _RSQRT_ERR of the exact value over a sweep of arguments; if not, the mixed kernel's error
+    bound would not hold, and "mixed" runs in float64 instead."""
+    nb = _numba
+    flags = {"reassoc", "contract", "arcp", "nsz", "afn"}  # block32's
+
+    @nb.njit(fastmath=flags, error_model="numpy", boundscheck=False, cache=True)
+    def rsqrt32(q, out):
+        for k in range(q.shape[0]):  # the same vectorised form as in block32
+            out[k] = np.float32(1.0) / np.sqrt(q[k])
+
+    q = np.geomspace(1e-30, 1e30, 200_003).astype(np.float32)
+    q = np.concatenate([q, np.random.default_rng(0).uniform(0.5, 2.0, 100_000).astype(np.float32)])
+    got = np.empty_like(q)
+    rsqrt32(q, got)
+    exact = 1.0 / np.sqrt(q.astype(np.float64))
+    return bool(np.max(np.abs(got / exact - 1.0)) <= _RSQRT_ERR / 2)
+
+
 @lru_cache(maxsize=1)
 def _numba_kernel():
-    """Compile (or load from the on-disk cache) the numba kernel on first use."""
+    """Compile (or load from the on-disk cache) the numba kernels on first use."""
     nb = _numba
     # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
-    # survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD
+    # survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
+    # reassoc lets the sums vectorise
     flags = {"reassoc", "contract", "arcp", "nsz"}
-    jit = nb.njit(cache=True, fastmath=flags, error_model="numpy", boundscheck=False,
-                  nogil=True)
+    opts = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
+    jit = nb.njit(fastmath=flags, **opts)
+    # afn: float32 1/sqrt as the hardware estimate + one Newton step (bounded by _RSQRT_ERR)
+    jit32 = nb.njit(fastmath=flags | {"afn"}, **opts)
+    plain = nb.njit(**opts)
+
+    q_epipole = EPIPOLE_NORM ** 2
 
     @jit
     def inv_sqrt(q):
-        """1/sqrt(q) to ~1e-13 relative: a float32 estimate (the float64 sqrt and division
-        units are the kernel's bottleneck; float32 ones do twice the lanes) refined by one
-        Newton step in float64. inf at q = 0 (the epipole), NaN for NaN (a missing point).
-        F has unit norm, so q < 1e7 and the estimate is exact to float32 precision down to
-        q = 1e-37 (a point ~1e-15 px from the epipole); smaller q are clamped there."""
-        y = np.float64(np.float32(1.0) / np.sqrt(np.float32(max(q, 1e-37))))
+        """1/sqrt(q) to ~1e-13 relative: a float32 estimate refined by one Newton step in
+        float64 (float64 sqrt and division are the slow units). inf at the epipole
+        (q <= EPIPOLE_NORM^2; F has unit norm, so the float32 estimate is in range), NaN for
+        NaN."""
+        y = np.float64(np.float32(1.0) / np.sqrt(np.float32(max(q, q_epipole))))
         y = y * (1.5 - 0.5 * q * y * y)
-        return y if q != 0.0 else np.inf
+        return y if q > q_epipole else np.inf
 
     @jit
-    def fill_a(a, f, w, half):
-        """w[k] = half / ||(F x_a)_12|| for a block's points a (2m,) (NaN where x_a is missing)."""
-        for k in range(w.shape[0]):
-            ua = np.float64(a[2 * k])
-            va = np.float64(a[2 * k + 1])
-            l0 = f[0] * ua + f[1] * va + f[2]
-            l1 = f[3] * ua + f[4] * va + f[5]
-            w[k] = half * inv_sqrt(l0 * l0 + l1 * l1)
-
-    @jit
-    def fill_b(b, f, w, symmetric):
-        """w[k] = 0.5 / ||(F^T x_b)_12|| (symmetric) or 0 (forward), NaN where x_b is missing."""
-        if symmetric:
-            for k in range(w.shape[0]):
-                ub = np.float64(b[2 * k])
-                vb = np.float64(b[2 * k + 1])
-                m0 = f[0] * ub + f[3] * vb + f[6]
-                m1 = f[1] * ub + f[4] * vb + f[7]
-                w[k] = 0.5 * inv_sqrt(m0 * m0 + m1 * m1)
-        else:
-            for k in range(w.shape[0]):
-                w[k] = (np.float64(b[2 * k]) + np.float64(b[2 * k + 1])) * 0.0  # 0 or NaN
-
-    @jit
-    def block_pair(a, b, f, wa, wb):
-        """(sum of d_k, points used) over a block; d_k = |x_b^T F x_a| (wa_k + wb_k)."""
+    def block64(a, b, f, ha, symmetric):
+        """(sum of d_k, points used) of a block, float64: points a, b (2m,) rectified px, f (9,)
+        unit F; missing points (NaN) take no part; a point at the epipole makes the sum
+        NaN or inf."""
         part = 0.0
         used = 0
-        for k in range(wa.shape[0]):
+        for k in range(a.shape[0] // 2):
             ua = np.float64(a[2 * k])
             va = np.float64(a[2 * k + 1])
             ub = np.float64(b[2 * k])
@@ -310,58 +354,226 @@ def _numba_kernel():
             l0 = f[0] * ua + f[1] * va + f[2]
             l1 = f[3] * ua + f[4] * va + f[5]
             l2 = f[6] * ua + f[7] * va + f[8]
-            w = wa[k] + wb[k]
+            w = ha * inv_sqrt(l0 * l0 + l1 * l1)
+            if symmetric:
+                m0 = f[0] * ub + f[3] * vb + f[6]
+                m1 = f[1] * ub + f[4] * vb + f[7]
+                w += 0.5 * inv_sqrt(m0 * m0 + m1 * m1)
             d = abs(ub * l0 + vb * l1 + l2) * w
-            # w is NaN iff a point is missing; at the epipole it is inf and d NaN or inf
-            present = w == w
+            s = ua + va + ub + vb
+            present = s == s
             part += d if present else 0.0
             used += np.int64(present)  # an int64, not a bool, keeps the loop vectorised
         return part, used
 
-    @nb.njit(cache=True, error_model="numpy", boundscheck=False, nogil=True)
-    def sums_kernel(fa, rows_a, fb, rows_b, f, ia, jb, blocks, chunk_blocks, tau, symmetric,
-                    wa, wb, done_a, done_b):
+    @jit32
+    def block32(a, b, c, g, symmetric):
+        """float32 sums over a block of complete points, centred (u - c[0], v - c[1]) in a,
+        (u - c[2], v - c[3]) in b, g (9,) float32 F of the centred points:
+        (sum |e| wa, sum |e| wb, sum wa, sum wb, sum |e| wa^2, sum |e| wb^2) with
+        e = x_b^T g x_a, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12|| (wb terms 0 when not
+        symmetric)."""
+        pa = pb = sa = sb = qa = qb = np.float32(0.0)
+        for k in range(a.shape[0] // 2):
+            ua = a[2 * k] - c[0]
+            va = a[2 * k + 1] - c[1]
+            ub = b[2 * k] - c[2]
+            vb = b[2 * k + 1] - c[3]
+            l0 = g[0] * ua + g[1] * va + g[2]
+            l1 = g[3] * ua + g[4] * va + g[5]
+            l2 = g[6] * ua + g[7] * va + g[8]
+            e = abs(ub * l0 + vb * l1 + l2)
+            wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
+            ea = e * wa
+            pa += ea
+            sa += wa
+            qa += ea * wa
+            if symmetric:
+                m0 = g[0] * ub + g[3] * vb + g[6]
+                m1 = g[1] * ub + g[4] * vb + g[7]
+                wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+                eb = e * wb
+                pb += eb
+                sb += wb
+                qb += eb * wb
+        return (np.float64(pa), np.float64(pb), np.float64(sa), np.float64(sb),
+                np.float64(qa), np.float64(qb))
+
+    @plain
+    def block_range(x, ranges, r):
+        """(min, max) of all coordinates of a block's float32 points (2m,), cached in
+        ranges[r]; (inf, -inf) if one is NaN or inf. Ordered integer keys of the float bits,
+        so the min/max reductions vectorise."""
+        if ranges[r, 0] == ranges[r, 0]:
+            return ranges[r, 0], ranges[r, 1]
+        bits = x.view(np.int32)
+        lo = np.int32(2147483647)
+        hi = np.int32(-2147483648)
+        low31 = np.int32(0x7FFFFFFF)
+        for k in range(bits.shape[0]):
+            b = bits[k]
+            # int32 throughout and selects, not min(): the loop vectorises
+            key = np.int32(b ^ (np.int32(b >> np.int32(31)) & low31))
+            lo = key if key < lo else lo
+            hi = key if key > hi else hi
+        if lo <= _KEY_NEG_INF or hi >= _KEY_POS_INF:
+            ranges[r, 0], ranges[r, 1] = np.inf, -np.inf
+        else:
+            keys = np.empty(2, dtype=np.int32)
+            keys[0] = lo ^ ((lo >> 31) & low31)
+            keys[1] = hi ^ ((hi >> 31) & low31)
+            vals = keys.view(np.float32)
+            ranges[r, 0], ranges[r, 1] = vals[0], vals[1]
+        return ranges[r, 0], ranges[r, 1]
+
+    @plain
+    def centre(x, n):
+        """Integer px near a detection's points (its first complete point; 0 if none)."""
+        for k in range(n):
+            if x[2 * k] == x[2 * k] and x[2 * k + 1] == x[2 * k + 1]:
+                return np.floor(np.float64(x[2 * k]) + 0.5), np.floor(np.float64(x[2 * k + 1]) + 0.5)
+        return 0.0, 0.0
+
+    @plain
+    def centred_f(F, ca0, ca1, cb0, cb1, g, G):
+        """g (9,) float32 unit-norm F of the centred points T_b^T F T_a; G (3,3) = |g|.
+        Returns the norm of T_b^T F T_a: the line coefficients (first two) of g are F's
+        divided by it."""
+        h = np.empty((3, 3))
+        for r in range(3):
+            h[r, 0] = F[r, 0]
+            h[r, 1] = F[r, 1]
+            h[r, 2] = F[r, 0] * ca0 + F[r, 1] * ca1 + F[r, 2]
+        for col in range(3):
+            h[2, col] = cb0 * h[0, col] + cb1 * h[1, col] + h[2, col]
+        scale = np.sqrt((h * h).sum())
+        for r in range(3):
+            for col in range(3):
+                g[3 * r + col] = np.float32(h[r, col] / scale)
+                G[r, col] = abs(np.float64(g[3 * r + col]))
+        return scale
+
+    @plain
+    def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, ha, hb):
+        """(float32 block sum, upper bound (px) on its distance to the exact sum); xa0, xa1,
+        xb0, xb1 bound |u|, |v| of the centred points in a and b (module docstring); epi:
+        EPIPOLE_NORM in g's units. (inf, inf) when the block must be summed in float64."""
+        bil = 0.0
+        la = 0.0
+        lb = 0.0
+        xa = (xa0, xa1, 1.0)
+        xb = (xb0, xb1, 1.0)
+        for r in range(3):
+            for col in range(3):
+                bil += G[r, col] * xb[r] * xa[col]
+                if r < 2:
+                    la += G[r, col] * xa[col]
+                if col < 2:
+                    lb += G[r, col] * xb[r]
+        pa, pb, sa, sb, qa, qb = sums
+        # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM, i.e. <= epi / scale
+        # in g's units) has a float32 line norm within the rounding bound 6 u L of that:
+        # its weight, and so the block's weight sum, reaches 1 / (epi + 6 u L); such a block
+        # goes to float64 (part inf)
+        if sa * (epi + 6.0 * _U32 * la) * (1.0 + 2.0 * _RSQRT_ERR) >= 1.0:
+            return np.inf, np.inf
+        if hb != 0.0 and sb * (epi + 6.0 * _U32 * lb) * (1.0 + 2.0 * _RSQRT_ERR) >= 1.0:
+            return np.inf, np.inf
+        part = ha * pa + hb * pb
+        err = (10.0 * _U32 * bil * (ha * sa + hb * sb)
+               + 8.0 * _U32 * (ha * la * qa + hb * lb * qb)
+               + (_RSQRT_ERR + 520.0 * _U32) * part)
+        return part, err * (1.0 + _BOUND_SLACK)
+
+    @plain
+    def pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric):
+        """(sum, used) of one pair in float64, blocks in order, exact early exit."""
+        total = 0.0
+        count = 0
+        seen = 0
+        for r in range(blocks.shape[0]):
+            lo = blocks[r, 0]
+            hi = blocks[r, 1]
+            p, c = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], f, ha, symmetric)
+            total += p if p == p else np.inf  # NaN: undefined line -> cannot pass
+            count += c
+            seen += hi - lo
+            # count + points still to come bounds the final count from above
+            if early_exit and total >= tau * (count + (n - seen)):
+                break
+        return total, count
+
+    @plain
+    def sums_kernel(fa, rows_a, fb, rows_b, ranges_a, ranges_b, F, ia, jb, blocks, n, tau,
+                    early_exit, symmetric, mixed):
         S = ia.shape[0]
-        n = wa.shape[1]
-        half_a = 0.5 if symmetric else 1.0
+        f = F.ravel().copy()
+        ha = 0.5 if symmetric else 1.0
+        hb = 0.5 if symmetric else 0.0
         sums = np.zeros(S)
         used = np.zeros(S, dtype=np.int64)
-        nblocks = blocks.shape[0]
+        if not mixed:
+            for s in range(S):
+                a = fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n]
+                b = fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n]
+                sums[s], used[s] = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
+            return sums, used
+        # each pair's centred float32 F, then the blocks outermost: one block of every
+        # detection of the camera pair (4 KB each) stays in cache while all its candidate
+        # pairs read it, instead of each pair streaming whole detections from memory
+        g = np.empty((S, 9), dtype=np.float32)
+        G = np.empty((S, 3, 3))
+        c = np.empty((S, 4), dtype=np.float32)
+        epi = np.empty(S)
         for s in range(S):
-            i = ia[s]
-            j = jb[s]
-            a = fa[rows_a[i]:rows_a[i] + 2 * n]
-            b = fb[rows_b[j]:rows_b[j] + 2 * n]
-            total = 0.0
-            count = 0
-            seen = 0
-            q = 0
-            while q < nblocks:
-                qe = min(q + chunk_blocks, nblocks)
-                part = 0.0
-                for r in range(q, qe):
-                    lo = blocks[r, 0]
-                    hi = blocks[r, 1]
-                    if not done_a[i, r]:
-                        fill_a(a[2 * lo:2 * hi], f, wa[i, lo:hi], half_a)
-                        done_a[i, r] = True
-                    if not done_b[j, r]:
-                        fill_b(b[2 * lo:2 * hi], f, wb[j, lo:hi], symmetric)
-                        done_b[j, r] = True
-                    p, c = block_pair(a[2 * lo:2 * hi], b[2 * lo:2 * hi], f, wa[i, lo:hi],
-                                      wb[j, lo:hi])
-                    part += p
-                    count += c
-                    seen += hi - lo
-                if part != part:  # NaN: undefined line -> cannot pass
-                    part = np.inf
-                total += part
-                q = qe
-                # count + points still to come bounds the final count from above
-                if total >= tau * (count + (n - seen)):
-                    break
-            sums[s] = total
-            used[s] = count
+            ca0, ca1 = centre(fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n], n)
+            cb0, cb1 = centre(fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n], n)
+            c[s, 0], c[s, 1], c[s, 2], c[s, 3] = ca0, ca1, cb0, cb1
+            epi[s] = EPIPOLE_NORM / centred_f(F, ca0, ca1, cb0, cb1, g[s], G[s])
+        err = np.zeros(S)
+        alive = np.ones(S, dtype=np.bool_)  # not rejected early
+        seen = 0
+        for r in range(blocks.shape[0]):
+            lo = blocks[r, 0]
+            hi = blocks[r, 1]
+            seen += hi - lo
+            for s in range(S):
+                if not alive[s]:
+                    continue
+                i = ia[s]
+                j = jb[s]
+                ab = fa[rows_a[i] + 2 * lo:rows_a[i] + 2 * hi]
+                bb = fb[rows_b[j] + 2 * lo:rows_b[j] + 2 * hi]
+                p = np.inf
+                e = np.inf
+                lo_a, hi_a = block_range(ab, ranges_a[i], r)
+                lo_b, hi_b = block_range(bb, ranges_b[j], r)
+                if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
+                    ca0, ca1, cb0, cb1 = c[s, 0], c[s, 1], c[s, 2], c[s, 3]
+                    p, e = block_bound(G[s], epi[s], max(abs(hi_a - ca0), abs(lo_a - ca0)),
+                                       max(abs(hi_a - ca1), abs(lo_a - ca1)),
+                                       max(abs(hi_b - cb0), abs(lo_b - cb0)),
+                                       max(abs(hi_b - cb1), abs(lo_b - cb1)),
+                                       block32(ab, bb, c[s], g[s], symmetric), ha, hb)
+                if p < np.inf and e < np.inf:
+                    sums[s] += p
+                    err[s] += e
+                    used[s] += hi - lo
+                else:  # missing points, a point at (or very near) the epipole: float64
+                    p, k = block64(ab, bb, f, ha, symmetric)
+                    sums[s] += p if p == p else np.inf
+                    used[s] += k
+                # exact: sum - err is below the exact partial sum
+                if early_exit and sums[s] - err[s] >= tau * (used[s] + (n - seen)):
+                    alive[s] = False
+        for s in range(S):
+            total = sums[s]
+            if alive[s] and not (total + err[s] < tau * used[s]) \
+                    and not (total - err[s] >= tau * used[s]):
+                # the bound does not settle the decision: float64 throughout
+                a = fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n]
+                b = fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n]
+                sums[s], used[s] = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
         return sums, used
 
     return sums_kernel

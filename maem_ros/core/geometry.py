@@ -60,8 +60,9 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     per-matrix LAPACK calls cost microseconds each, far too slow for ~10^4 systems).
     NaN where the 3x3 block is (near) singular, e.g. fewer than two distinct rays.
     """
+    shape = E.shape[1:]
+    E = E.reshape(9, -1)
     n00, n01, n02, n11, n12, n22 = E[0], E[1], E[2], E[3], E[4], E[5]
-    r0, r1, r2 = -E[6], -E[7], -E[8]
     c00 = n11 * n22 - n12 * n12
     c01 = n02 * n12 - n01 * n22
     c02 = n01 * n12 - n02 * n11
@@ -69,13 +70,18 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     c12 = n01 * n02 - n00 * n12
     c22 = n00 * n11 - n01 * n01
     det = n00 * c00 + n01 * c01 + n02 * c02
-    singular = ~(np.abs(det) > _SINGULAR * (n00 + n11 + n22) ** 3)
-    inv_det = np.where(singular, np.nan, 1.0 / np.where(singular, 1.0, det))
-    X = np.empty(E.shape[1:] + (3,))
-    X[..., 0] = (c00 * r0 + c01 * r1 + c02 * r2) * inv_det
-    X[..., 1] = (c01 * r0 + c11 * r1 + c12 * r2) * inv_det
-    X[..., 2] = (c02 * r0 + c12 * r1 + c22 * r2) * inv_det
-    return X
+    trace = n00 + n11 + n22
+    singular = ~(np.abs(det) > _SINGULAR * trace * trace * trace)
+    det[singular] = np.nan
+    # X = -adj(N) r / det, computed coordinate-first (contiguous) and returned as a (...,3) view
+    X = np.empty((3, E.shape[1]))
+    for k, (a, b, c) in enumerate(((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))):
+        np.multiply(a, E[6], out=X[k])
+        X[k] += b * E[7]
+        X[k] += c * E[8]
+        X[k] /= det
+    np.negative(X, out=X)
+    return np.moveaxis(X.reshape((3,) + shape), 0, -1)
 
 
 def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -85,28 +91,63 @@ def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarr
     """
     C, M = P.shape[:2]
     Q, J = X.shape[1:3]
-    # one batched GEMM per cluster for all projections: (C, M*3, 3) @ (C, 3, Q*J)
-    h = np.matmul(P[..., :3].reshape(C, M * 3, 3), X.reshape(C, Q * J, 3).transpose(0, 2, 1))
-    h = h.reshape(C, M, 3, Q, J) + P[:, :, :, 3, None, None]
+    # homogeneous points coordinate-first (solve_normal's layout: no copy there), then one
+    # batched GEMM per image coordinate: (C,M,4) @ (C,4,Q*J), contiguous results
+    Xh = np.empty((4, C, Q, J))
+    Xh[:3] = np.moveaxis(X, -1, 0)
+    Xh[3] = 1.0
+    Xh = Xh.reshape(4, C, Q * J).transpose(1, 0, 2)
+    Pk = np.moveaxis(P, 2, 0)  # (3,C,M,4)
+    z = np.matmul(Pk[2], Xh).reshape(C, M, Q, J)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inv_z = 1.0 / h[:, :, 2]
-        du = h[:, :, 0] * inv_z - uv[:, :, None, :, 0]
-        dv = h[:, :, 1] * inv_z - uv[:, :, None, :, 1]
-        err = np.sqrt(du * du + dv * dv)
-    return np.where((h[:, :, 2] > 0) & np.isfinite(err), err, np.inf)
+        inv_z = 1.0 / z
+        err = np.matmul(Pk[0], Xh).reshape(C, M, Q, J)
+        err *= inv_z
+        err -= uv[:, :, None, :, 0]
+        err *= err
+        dv = np.matmul(Pk[1], Xh).reshape(C, M, Q, J)
+        dv *= inv_z
+        dv -= uv[:, :, None, :, 1]
+        dv *= dv
+        err += dv
+        np.sqrt(err, out=err)
+    err[~((z > 0) & np.isfinite(err))] = np.inf
+    return err
 
 
 def reprojection_errors(P: np.ndarray, uv: np.ndarray, reduce: str = "mean") -> np.ndarray:
     """(S,) px bbox-centre reprojection error of S two-view pairs.
 
-    P (S,2,3,4) world -> rectified px; uv (S,2,2) the two centres. The centres are
-    DLT-triangulated (dlt) and reprojected into both views; the two errors
+    P (S,2,3,4) world -> rectified px; uv (S,2,2) the two centres. See pair_reprojection_errors.
+    """
+    S = P.shape[0]
+    first = np.arange(0, 2 * S, 2)
+    return pair_reprojection_errors(P.reshape(2 * S, 3, 4), uv.reshape(2 * S, 2), first,
+                                    first + 1, reduce)
+
+
+def pair_reprojection_errors(P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np.ndarray,
+                             reduce: str = "mean") -> np.ndarray:
+    """(S,) px reprojection error of the two-view pairs (i[s], j[s]) of N single views.
+
+    P (N,3,4) world -> rectified px and uv (N,2) px of each view (e.g. one detection's bbox
+    centre in its camera). Each pair's point is DLT-triangulated (dlt, from the two views'
+    normal entries, computed once per view) and reprojected into both views; the two errors
     are reduced by ``mean`` or ``max``. Inf when the point is behind either camera or the
     rays are degenerate.
     """
-    X = dlt(P, uv)  # (S,3)
-    h = np.einsum("svij,sj->svi", P[..., :3], X) + P[..., 3]  # (S,2,3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        err = np.linalg.norm(h[..., :2] / h[..., 2:3] - uv, axis=-1)
-    err = np.where((h[..., 2] > 0) & np.isfinite(err), err, np.inf)
-    return err.mean(axis=1) if reduce == "mean" else err.max(axis=1)
+    usable = np.isfinite(uv).all(-1)
+    E = normal_entries(P, uv, usable)  # (9,N): one view's share of every pair's system
+    X = solve_normal(E[:, i] + E[:, j])  # (S,3)
+    X[~(usable[i] & usable[j])] = np.nan
+    errors = []
+    for view in (i, j):
+        Q = P[view]  # (S,3,4)
+        h = (Q[:, :, 0] * X[:, 0:1] + Q[:, :, 1] * X[:, 1:2] + Q[:, :, 2] * X[:, 2:3]
+             + Q[:, :, 3])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            du = h[:, 0] / h[:, 2] - uv[view, 0]
+            dv = h[:, 1] / h[:, 2] - uv[view, 1]
+            err = np.sqrt(du * du + dv * dv)
+        errors.append(np.where((h[:, 2] > 0) & np.isfinite(err), err, np.inf))
+    return 0.5 * (errors[0] + errors[1]) if reduce == "mean" else np.maximum(*errors)

@@ -501,7 +501,7 @@ class TemporalAssociator:
                 sums, used = epipolar.epipolar_sums(
                     xa, xb, self._F[(a, b)], da[s], db[s], p.tau_mesh,
                     symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
-                    backend=p.backend)
+                    backend=p.backend, precision=p.epipolar_precision)
                 ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)

@@ -198,10 +198,11 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
     hyp[~(usable[:, ia] & usable[:, ib])] = np.nan
     # reprojection of every hypothesis into every member view: (C,M,Q,J)
     err = reprojection_error(P, hyp, uv)
-    err = np.where(usable[:, :, None], err, np.inf)
     inlier = err < params.tau_kps
+    inlier &= usable[:, :, None]
     count = inlier.sum(1)  # (C,Q,J)
-    mean_err = np.where(inlier, err, 0.0).sum(1) / np.maximum(count, 1)
+    err[~inlier] = 0.0
+    mean_err = err.sum(1) / np.maximum(count, 1)
     # most inliers first; mean_err / (2 tau) < 0.5 breaks ties without crossing counts
     key = np.where(np.isfinite(hyp[..., 0]), count - mean_err / (2.0 * params.tau_kps), -1.0)
     best = np.argmax(key, axis=1)  # (C,J)
