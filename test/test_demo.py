@@ -26,7 +26,9 @@ def bag(tmp_path_factory) -> Path:
 
 
 def run_cli(args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
-    """maem-demo as a subprocess (killed by subprocess.run on timeout)."""
+    """maem-demo as a subprocess (killed by subprocess.run on timeout). The timeouts are
+    generous: a graph of up to 12 processes starts in 10-20 s on a quiet 2-core machine but took
+    over 100 s at load 17."""
     return subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=timeout_s,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
@@ -152,11 +154,11 @@ def test_offline_demo_accuracy(tmp_path, bag, capsys):
     assert (tmp_path / "court.png").is_file() and (tmp_path / "snapshot_camera_0.png").is_file()
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
     """The default: the bag's recorded detections at rate 1.0 -> association + triangulation."""
     out = tmp_path / "out"
-    r = run_cli(["--bag", str(bag), "--out", str(out), "--frames", "20"], timeout_s=100)
+    r = run_cli(["--bag", str(bag), "--out", str(out), "--frames", "20"], timeout_s=280)
     log = f"stdout:\n{r.stdout}\nstderr:\n{r.stderr}"
     assert r.returncode == 0, log
     report = json.loads((out / "report.json").read_text())
@@ -171,12 +173,12 @@ def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
     assert {"/association", "/triangulation"} <= nodes and "/camera_0/frontend" not in nodes
 
 
-@pytest.mark.timeout(120)
+@pytest.mark.timeout(300)
 def test_graph_demo_reduced(tmp_path, bag):
     """--frontends: the real node graph (9 processes + player + recorder) on 12 frames."""
     out = tmp_path / "out"
     r = run_cli(["--bag", str(bag), "--out", str(out), "--frames", "12", "--rate", "0.05",
-                 "--frontends"], timeout_s=100)
+                 "--frontends"], timeout_s=280)
     log = f"stdout:\n{r.stdout}\nstderr:\n{r.stderr}"
     assert r.returncode == 0, log
     report = json.loads((out / "report.json").read_text())
