@@ -1,0 +1,158 @@
+"""The track stage's straightforward implementation (a per-camera loop of small numpy calls,
+as core/temporal.py had it before it was batched over cameras), kept here only as the reference
+that test_temporal_equivalence.py compares the batched stage against, frame by frame."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from maem_ros.core import epipolar
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry import reprojection_errors
+from maem_ros.core.procrustes import pa_mpjpe_finite
+from maem_ros.core.skeleton import joint_subset
+from maem_ros.core.temporal import (FLAG_FEW_VIEWS, FLAG_ONE_VIEW, FLAG_TRACKED, _GATED,
+                                    TemporalAssociator, _depth, _nanmedian, _project,
+                                    _rays_nearest, _verify)
+
+
+class ReferenceTemporalAssociator(TemporalAssociator):
+    """TemporalAssociator with steps 2-4 computed camera by camera and pair gate by pair gate."""
+
+    def _explain(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                 used: dict[int, np.ndarray], stats: dict[str, float]) -> dict[int, list]:
+        """Steps 2-4: detections explained by the tracks' predictions, verified; then once more
+        against the projections of each verified cluster's own triangulation (this frame's
+        estimate, tighter than the prediction: a view where the prediction was ambiguous
+        between two people is re-assigned by the views that agree)."""
+        tracks = self.tracker.tracks
+        pred = np.stack([t.joints for t in tracks])  # (T,J,3)
+        sig = np.sqrt(np.stack([np.trace(t.Pc[:3, :3]) / 3.0 for t in tracks]))  # (T,) m
+        gate = np.stack([np.minimum(self.tp.gate_px + self.tp.gate_sigma * self._focal[c] * sig
+                                    / _depth(self._P[c], pred), self.tp.gate_max_px)
+                         for c in range(len(self.rig))], axis=1)  # (T,C) px
+        cam, det, present, keep, X = self._assign_verify(by_cam, body, pred, gate)
+        refit = keep.sum(1) >= 2
+        if refit.any() and self.tp.refine_px > 0:
+            gate = np.where(refit[:, None], self.tp.refine_px, gate)
+            cam, det, present, keep, X = self._assign_verify(
+                by_cam, body, np.where(refit[:, None, None], X, pred), gate)
+        stats["verify_dropped"] = float((present & ~keep).sum())
+        out: dict[int, list] = {}
+        for i, t in enumerate(tracks):  # one iteration per person
+            n = int(keep[i].sum())
+            need = self.tp.min_track_views if t.id >= 0 else self.params.k_min
+            if n >= max(need, 2):
+                members = np.stack([cam[i, keep[i]], det[i, keep[i]]], axis=1)
+                self.tracker.update(t, X[i])
+                few = n < self.params.k_min
+                stats["tracks_few_views"] += few
+                out[t.key] = [members, np.full(n, np.nan),
+                              FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
+            elif t.id >= 0 and present[i].any() and self.tp.one_view:
+                c, d = self._one_view(present[i], keep[i], cam[i], det[i])
+                view = by_cam[c].kpts2d[d][body]
+                self.tracker.update(t, _rays_nearest(self._P[c], self._centers[c], view,
+                                                     t.joints), meas_std=self.tp.one_view_std)
+                stats["tracks_one_view"] += 1
+                out[t.key] = [np.array([[c, d]]), np.full(1, np.nan),
+                              FLAG_TRACKED | FLAG_FEW_VIEWS | FLAG_ONE_VIEW]
+            else:
+                continue
+            for c, d in out[t.key][0].tolist():
+                used[c][d] = True
+        stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
+        return out
+
+    def _assign_verify(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                       joints: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per camera, Hungarian assignment of detections to the tracks' skeletons joints (T,J,3)
+        on the median 2D body-keypoint distance (px) under gate (T,C) px; then verification.
+        Returns members padded to (T,M): cam, det, present, kept, and joints X (T,J,3)."""
+        T = len(joints)
+        cand = np.full((T, len(self.rig)), -1, np.int64)
+        for c, fd in by_cam.items():
+            ok = np.flatnonzero(fd.scores >= self.params.tau_det)
+            if ok.size == 0:
+                continue
+            uv, _ = _project(self._P[c], joints)  # (T,J,2)
+            diff = np.linalg.norm(uv[:, None] - fd.kpts2d[ok][:, body][None], axis=-1)  # (T,N,J)
+            cost = _nanmedian(diff)  # (T,N)
+            okc = np.isfinite(cost) & (cost < gate[:, c, None])
+            if self.tp.pose_weight > 0:
+                cost = cost + self.tp.pose_weight * self._pose_cost(okc, joints,
+                                                                    fd.kpts3d[ok][:, body])
+            rows, cols = linear_sum_assignment(np.where(okc, cost, _GATED))
+            real = okc[rows, cols]
+            cand[rows[real], c] = ok[cols[real]]
+        has = cand >= 0  # members padded to (T,M), in camera order
+        M = max(int(has.sum(1).max()), 1)
+        order = np.argsort(~has, axis=1, kind="stable")[:, :M]
+        cam = np.take_along_axis(np.broadcast_to(np.arange(cand.shape[1]), cand.shape), order, 1)
+        det = np.take_along_axis(cand, order, 1)
+        present = det >= 0
+        uv = np.full((T, M, body.size, 2), np.nan)
+        for c, fd in by_cam.items():
+            sel = present & (cam == c)
+            uv[sel] = fd.kpts2d[det[sel]][:, body]
+        passes = self._pair_gates(by_cam, cam, det, present)
+        keep, X = _verify(self._P[cam], uv, present, passes, self.params.tau_verify,
+                          self.params.min_support)
+        return cam, det, present, keep, X
+
+    @staticmethod
+    def _pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray) -> np.ndarray:
+        """(T,N) PA-MPJPE (m) of each gated detection's 3D body pose aligned onto the track's
+        skeleton; 0 where not gated or the track has unseen joints (no preference)."""
+        out = np.zeros(okc.shape)
+        t, n = np.nonzero(okc & np.isfinite(joints).all((1, 2))[:, None])
+        if t.size:
+            out[t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[n], joints[t]))
+        return out
+
+    def _pair_gates(self, by_cam: dict[int, FrameDetections], cam: np.ndarray, det: np.ndarray,
+                    present: np.ndarray) -> np.ndarray:
+        """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
+        gates (bbox-centre reprojection, epipolar on mesh vertices or keypoints, PA-MPJPE cost
+        of the lower camera's 3D pose aligned onto the other's under tau_cost), the same tests
+        (core.geometry, core.epipolar, core.procrustes) the cross-view association applies, on
+        the few pairs inside the tracks' clusters only."""
+        T, M = present.shape
+        a_idx, b_idx = np.triu_indices(M, 1)
+        both = present[:, a_idx] & present[:, b_idx]  # members sorted by camera: ca < cb
+        t, q = np.nonzero(both)
+        ma, mb = a_idx[q], b_idx[q]
+        ca, cb, da, db = cam[t, ma], cam[t, mb], det[t, ma], det[t, mb]
+        ok = np.ones(t.size, bool)
+        p = self.params
+        if p.reproj_gate and t.size:
+            uv = np.empty((t.size, 2, 2))
+            for c, fd in by_cam.items():
+                uv[ca == c, 0] = fd.centers[da[ca == c]]
+                uv[cb == c, 1] = fd.centers[db[cb == c]]
+            Ps = np.stack([self._P[ca], self._P[cb]], axis=1)
+            ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
+        if self.tp.verify_epipolar != "none" and t.size:
+            key = ca * len(self.rig) + cb
+            for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
+                s = np.flatnonzero(ok & (key == k))
+                a, b = divmod(k, len(self.rig))
+                xa, xb = self._gate_points(by_cam[a]), self._gate_points(by_cam[b])
+                sums, used = epipolar.epipolar_sums(
+                    xa, xb, self._F[(a, b)], da[s], db[s], p.tau_mesh,
+                    symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
+                    backend=p.backend)
+                ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
+        if p.tau_cost > 0 and ok.any():
+            s = np.flatnonzero(ok)
+            J = next(fd.num_joints for fd in by_cam.values() if fd.n)
+            joints = joint_subset(p.cost_joints, J)
+            X = np.empty((s.size, joints.size, 3))
+            Y = np.empty_like(X)
+            for c, fd in by_cam.items():
+                X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
+                Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
+            ok[s] = pa_mpjpe_finite(X, Y) < p.tau_cost  # NaN (too few joints) fails
+        passes = np.zeros((T, M, M), bool)
+        passes[t, ma, mb] = passes[t, mb, ma] = ok
+        return passes
