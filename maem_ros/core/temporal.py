@@ -296,6 +296,63 @@ def _rays_nearest(cam_P: np.ndarray, center: np.ndarray, uv: np.ndarray, X_pred:
     return center + s[:, None] * d
 
 
+class _FrameView:
+    """One frame set as the track stage reads it, built once per frame and shared by both
+    assignment passes: every camera's detections padded to N rows (C = the rig's cameras;
+    absent cameras and padding rows are NaN and invalid), the epipolar point rows of each
+    camera (built on first use), and the pair-gate results already computed this frame."""
+
+    def __init__(self, stage: "TemporalAssociator", by_cam: dict[int, FrameDetections],
+                 body: np.ndarray):
+        self.stage, self.by_cam = stage, by_cam
+        C = len(stage.rig)
+        self.n = max([fd.n for fd in by_cam.values()] + [1])
+        self.kp2 = np.full((C, self.n, body.size, 2), np.nan)  # body keypoints, px
+        self.kp3 = np.full((C, self.n, body.size, 3), np.nan)  # body joints, camera m
+        self.centers = np.full((C, self.n, 2), np.nan)  # bbox centres, px
+        self.valid = np.zeros((C, self.n), bool)  # a detection scored >= tau_det
+        #: camera -> indices of its valid detections, for cameras with any
+        self.ok: dict[int, np.ndarray] = {}
+        for c, fd in by_cam.items():
+            self.kp2[c, :fd.n] = fd.kpts2d[:, body]
+            self.kp3[c, :fd.n] = fd.kpts3d[:, body]
+            self.centers[c, :fd.n] = fd.centers
+            ok = np.flatnonzero(fd.scores >= stage.params.tau_det)
+            self.valid[c, ok] = True
+            if ok.size:
+                self.ok[c] = ok
+        self._rows: dict[int, epipolar.PointRows] = {}
+        self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
+        self._known_ok = np.zeros(0, bool)
+
+    def points(self, c: int) -> "epipolar.PointRows":
+        """Camera c's points for the verification's epipolar gate, converted once per frame."""
+        if c not in self._rows:
+            self._rows[c] = epipolar.point_rows(self.stage._gate_points(self.by_cam[c]))
+        return self._rows[c]
+
+    def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
+                ) -> np.ndarray:
+        """(S,) bool pair gates of detection pairs, each distinct pair tested once per frame."""
+        C = len(self.stage.rig)
+        keys = ((ca * C + cb) * self.n + da) * self.n + db
+        pos = np.minimum(np.searchsorted(self._known_keys, keys), max(self._known_keys.size - 1, 0))
+        hit = self._known_keys.size > 0
+        hit = hit & (self._known_keys[pos] == keys) if hit else np.zeros(keys.size, bool)
+        ok = np.zeros(keys.size, bool)
+        ok[hit] = self._known_ok[pos[hit]]
+        new_keys, first = np.unique(keys[~hit], return_index=True)
+        if new_keys.size:
+            s = np.flatnonzero(~hit)[first]
+            new_ok = self.stage._gate_pairs(self, ca[s], cb[s], da[s], db[s])
+            ok[~hit] = new_ok[np.searchsorted(new_keys, keys[~hit])]
+            keys_all = np.concatenate([self._known_keys, new_keys])
+            order = np.argsort(keys_all, kind="stable")
+            self._known_keys = keys_all[order]
+            self._known_ok = np.concatenate([self._known_ok, new_ok])[order]
+        return ok
+
+
 # ---------------------------------------------------------------------------------------
 # the stage
 # ---------------------------------------------------------------------------------------
@@ -386,17 +443,19 @@ class TemporalAssociator:
         estimate, tighter than the prediction: a view where the prediction was ambiguous
         between two people is re-assigned by the views that agree)."""
         tracks = self.tracker.tracks
+        view = _FrameView(self, by_cam, body)
         pred = np.stack([t.joints for t in tracks])  # (T,J,3)
-        sig = np.sqrt(np.stack([np.trace(t.Pc[:3, :3]) / 3.0 for t in tracks]))  # (T,) m
-        gate = np.stack([np.minimum(self.tp.gate_px + self.tp.gate_sigma * self._focal[c] * sig
-                                    / _depth(self._P[c], pred), self.tp.gate_max_px)
-                         for c in range(len(self.rig))], axis=1)  # (T,C) px
-        cam, det, present, keep, X = self._assign_verify(by_cam, body, pred, gate)
+        sig = np.sqrt(np.stack([t.Pc[0, 0] + t.Pc[1, 1] + t.Pc[2, 2] for t in tracks]) / 3.0)
+        _, z = _project(self._P[:, None, None], pred[None])  # (C,T,J) m, all cameras at once
+        depth = _nanmedian(np.where(z > 0, z, np.nan))  # (C,T)
+        gate = np.minimum(self.tp.gate_px + self.tp.gate_sigma * self._focal[:, None] * sig
+                          / depth, self.tp.gate_max_px).T  # (T,C) px
+        cam, det, present, keep, X = self._assign_verify(view, pred, gate)
         refit = keep.sum(1) >= 2
         if refit.any() and self.tp.refine_px > 0:
             gate = np.where(refit[:, None], self.tp.refine_px, gate)
             cam, det, present, keep, X = self._assign_verify(
-                by_cam, body, np.where(refit[:, None, None], X, pred), gate)
+                view, np.where(refit[:, None, None], X, pred), gate)
         stats["verify_dropped"] = float((present & ~keep).sum())
         out: dict[int, list] = {}
         for i, t in enumerate(tracks):  # one iteration per person
@@ -411,9 +470,9 @@ class TemporalAssociator:
                               FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
             elif t.id >= 0 and present[i].any() and self.tp.one_view:
                 c, d = self._one_view(present[i], keep[i], cam[i], det[i])
-                view = by_cam[c].kpts2d[d][body]
-                self.tracker.update(t, _rays_nearest(self._P[c], self._centers[c], view,
-                                                     t.joints), meas_std=self.tp.one_view_std)
+                self.tracker.update(t, _rays_nearest(self._P[c], self._centers[c],
+                                                     view.kp2[c, d], t.joints),
+                                    meas_std=self.tp.one_view_std)
                 stats["tracks_one_view"] += 1
                 out[t.key] = [np.array([[c, d]]), np.full(1, np.nan),
                               FLAG_TRACKED | FLAG_FEW_VIEWS | FLAG_ONE_VIEW]
@@ -424,82 +483,85 @@ class TemporalAssociator:
         stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
         return out
 
-    def _assign_verify(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
-                       joints: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _assign_verify(self, view: "_FrameView", joints: np.ndarray, gate: np.ndarray
+                       ) -> tuple[np.ndarray, ...]:
         """Per camera, Hungarian assignment of detections to the tracks' skeletons joints (T,J,3)
         on the median 2D body-keypoint distance (px) under gate (T,C) px; then verification.
+        The distances of every track to every detection of every camera are one batched
+        computation (detections padded per camera); only the assignment runs per camera.
         Returns members padded to (T,M): cam, det, present, kept, and joints X (T,J,3)."""
-        T = len(joints)
-        cand = np.full((T, len(self.rig)), -1, np.int64)
-        for c, fd in by_cam.items():
-            ok = np.flatnonzero(fd.scores >= self.params.tau_det)
-            if ok.size == 0:
-                continue
-            uv, _ = _project(self._P[c], joints)  # (T,J,2)
-            diff = np.linalg.norm(uv[:, None] - fd.kpts2d[ok][:, body][None], axis=-1)  # (T,N,J)
-            cost = _nanmedian(diff)  # (T,N)
-            okc = np.isfinite(cost) & (cost < gate[:, c, None])
-            if self.tp.pose_weight > 0:
-                cost = cost + self.tp.pose_weight * self._pose_cost(okc, joints,
-                                                                    fd.kpts3d[ok][:, body])
-            rows, cols = linear_sum_assignment(np.where(okc, cost, _GATED))
-            real = okc[rows, cols]
+        T, C = len(joints), len(self.rig)
+        uv, _ = _project(self._P[:, None, None], joints[None])  # (C,T,J,2)
+        diff = np.linalg.norm(uv[:, :, None] - view.kp2[:, None], axis=-1)  # (C,T,N,J)
+        cost = _nanmedian(diff)  # (C,T,N)
+        okc = view.valid[:, None] & np.isfinite(cost) & (cost < gate.T[:, :, None])
+        if self.tp.pose_weight > 0:
+            cost = cost + self.tp.pose_weight * self._pose_cost(okc, joints, view.kp3)
+        cand = np.full((T, C), -1, np.int64)
+        for c, ok in view.ok.items():  # one Hungarian per camera
+            gated = okc[c][:, ok]
+            rows, cols = linear_sum_assignment(np.where(gated, cost[c][:, ok], _GATED))
+            real = gated[rows, cols]
             cand[rows[real], c] = ok[cols[real]]
         has = cand >= 0  # members padded to (T,M), in camera order
         M = max(int(has.sum(1).max()), 1)
         order = np.argsort(~has, axis=1, kind="stable")[:, :M]
-        cam = np.take_along_axis(np.broadcast_to(np.arange(cand.shape[1]), cand.shape), order, 1)
+        cam = np.take_along_axis(np.broadcast_to(np.arange(C), cand.shape), order, 1)
         det = np.take_along_axis(cand, order, 1)
         present = det >= 0
-        uv = np.full((T, M, body.size, 2), np.nan)
-        for c, fd in by_cam.items():
-            sel = present & (cam == c)
-            uv[sel] = fd.kpts2d[det[sel]][:, body]
-        passes = self._pair_gates(by_cam, cam, det, present)
+        uv = np.where(present[:, :, None, None], view.kp2[cam, np.maximum(det, 0)], np.nan)
+        passes = self._pair_gates(view, cam, det, present)
         keep, X = _verify(self._P[cam], uv, present, passes, self.params.tau_verify,
                           self.params.min_support)
         return cam, det, present, keep, X
 
     @staticmethod
     def _pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray) -> np.ndarray:
-        """(T,N) PA-MPJPE (m) of each gated detection's 3D body pose aligned onto the track's
-        skeleton; 0 where not gated or the track has unseen joints (no preference)."""
+        """(C,T,N) PA-MPJPE (m) of each gated detection's 3D body pose (kpts3d (C,N,J,3)) aligned
+        onto the track's skeleton joints (T,J,3), one batched alignment over all cameras; 0 where
+        not gated or the track has unseen joints (no preference)."""
         out = np.zeros(okc.shape)
-        t, n = np.nonzero(okc & np.isfinite(joints).all((1, 2))[:, None])
+        c, t, n = np.nonzero(okc & np.isfinite(joints).all((1, 2))[None, :, None])
         if t.size:
-            out[t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[n], joints[t]))
+            out[c, t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[c, n], joints[t]))
         return out
 
-    def _pair_gates(self, by_cam: dict[int, FrameDetections], cam: np.ndarray, det: np.ndarray,
+    def _pair_gates(self, view: "_FrameView", cam: np.ndarray, det: np.ndarray,
                     present: np.ndarray) -> np.ndarray:
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
-        gates (bbox-centre reprojection, epipolar on mesh vertices or keypoints, PA-MPJPE cost
-        of the lower camera's 3D pose aligned onto the other's under tau_cost), the same tests
-        (core.geometry, core.epipolar, core.procrustes) the cross-view association applies, on
-        the few pairs inside the tracks' clusters only."""
+        gates (:meth:`_gate_pairs`); a pair already tested this frame (the refinement pass
+        proposes mostly the same clusters) is looked up, not tested again."""
         T, M = present.shape
         a_idx, b_idx = np.triu_indices(M, 1)
         both = present[:, a_idx] & present[:, b_idx]  # members sorted by camera: ca < cb
         t, q = np.nonzero(both)
         ma, mb = a_idx[q], b_idx[q]
-        ca, cb, da, db = cam[t, ma], cam[t, mb], det[t, ma], det[t, mb]
-        ok = np.ones(t.size, bool)
+        ok = view.pair_ok(cam[t, ma], cam[t, mb], det[t, ma], det[t, mb])
+        passes = np.zeros((T, M, M), bool)
+        passes[t, ma, mb] = passes[t, mb, ma] = ok
+        return passes
+
+    def _gate_pairs(self, view: "_FrameView", ca: np.ndarray, cb: np.ndarray, da: np.ndarray,
+                    db: np.ndarray) -> np.ndarray:
+        """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
+        association's pair gates (bbox-centre reprojection, epipolar on mesh vertices or
+        keypoints, PA-MPJPE cost of the lower camera's 3D pose aligned onto the other's under
+        tau_cost), the same tests (core.geometry, core.epipolar, core.procrustes) the cross-view
+        association applies, on the few pairs inside the tracks' clusters only."""
+        by_cam = view.by_cam
+        ok = np.ones(ca.size, bool)
         p = self.params
-        if p.reproj_gate and t.size:
-            uv = np.empty((t.size, 2, 2))
-            for c, fd in by_cam.items():
-                uv[ca == c, 0] = fd.centers[da[ca == c]]
-                uv[cb == c, 1] = fd.centers[db[cb == c]]
+        if p.reproj_gate and ca.size:
+            uv = np.stack([view.centers[ca, da], view.centers[cb, db]], axis=1)  # (S,2,2)
             Ps = np.stack([self._P[ca], self._P[cb]], axis=1)
             ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
-        if self.tp.verify_epipolar != "none" and t.size:
+        if self.tp.verify_epipolar != "none" and ca.size:
             key = ca * len(self.rig) + cb
             for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
                 s = np.flatnonzero(ok & (key == k))
                 a, b = divmod(k, len(self.rig))
-                xa, xb = self._gate_points(by_cam[a]), self._gate_points(by_cam[b])
                 sums, used = epipolar.epipolar_sums(
-                    xa, xb, self._F[(a, b)], da[s], db[s], p.tau_mesh,
+                    view.points(a), view.points(b), self._F[(a, b)], da[s], db[s], p.tau_mesh,
                     symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
                     backend=p.backend, precision=p.epipolar_precision)
                 ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
@@ -513,9 +575,7 @@ class TemporalAssociator:
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
             ok[s] = pa_mpjpe_finite(X, Y) < p.tau_cost  # NaN (too few joints) fails
-        passes = np.zeros((T, M, M), bool)
-        passes[t, ma, mb] = passes[t, mb, ma] = ok
-        return passes
+        return ok
 
     def _gate_points(self, fd: FrameDetections) -> np.ndarray:
         """The (N,n,2) px the verification's epipolar gate compares (``verify_epipolar``):
