@@ -496,7 +496,11 @@ class TemporalAssociator:
         cost = _nanmedian(diff)  # (C,T,N)
         okc = view.valid[:, None] & np.isfinite(cost) & (cost < gate.T[:, :, None])
         if self.tp.pose_weight > 0:
-            cost = cost + self.tp.pose_weight * self._pose_cost(okc, joints, view.kp3)
+            # the pose term only orders the candidates of a track or of a detection with more
+            # than one gated partner in a camera: an isolated gated pair is assigned whatever
+            # its cost (any other choice for its row or column is gated)
+            contested = okc & ((okc.sum(2, keepdims=True) > 1) | (okc.sum(1, keepdims=True) > 1))
+            cost = cost + self.tp.pose_weight * self._pose_cost(contested, joints, view.kp3)
         cand = np.full((T, C), -1, np.int64)
         for c, ok in view.ok.items():  # one Hungarian per camera
             gated = okc[c][:, ok]
@@ -517,9 +521,9 @@ class TemporalAssociator:
 
     @staticmethod
     def _pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray) -> np.ndarray:
-        """(C,T,N) PA-MPJPE (m) of each gated detection's 3D body pose (kpts3d (C,N,J,3)) aligned
-        onto the track's skeleton joints (T,J,3), one batched alignment over all cameras; 0 where
-        not gated or the track has unseen joints (no preference)."""
+        """(C,T,N) PA-MPJPE (m) of each selected (okc) detection's 3D body pose (kpts3d (C,N,J,3))
+        aligned onto the track's skeleton joints (T,J,3), one batched alignment over all
+        cameras; 0 where not selected or the track has unseen joints (no preference)."""
         out = np.zeros(okc.shape)
         c, t, n = np.nonzero(okc & np.isfinite(joints).all((1, 2))[None, :, None])
         if t.size:
