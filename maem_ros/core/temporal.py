@@ -450,12 +450,14 @@ class TemporalAssociator:
         depth = _nanmedian(np.where(z > 0, z, np.nan))  # (C,T)
         gate = np.minimum(self.tp.gate_px + self.tp.gate_sigma * self._focal[:, None] * sig
                           / depth, self.tp.gate_max_px).T  # (T,C) px
-        cam, det, present, keep, X = self._assign_verify(view, pred, gate)
+        cand = self._assign(view, pred, gate)
+        cam, det, present, keep, X = self._verify_candidates(view, cand)
         refit = keep.sum(1) >= 2
         if refit.any() and self.tp.refine_px > 0:
             gate = np.where(refit[:, None], self.tp.refine_px, gate)
-            cam, det, present, keep, X = self._assign_verify(
-                view, np.where(refit[:, None, None], X, pred), gate)
+            again = self._assign(view, np.where(refit[:, None, None], X, pred), gate)
+            if not np.array_equal(again, cand):  # the same candidates verify the same way
+                cam, det, present, keep, X = self._verify_candidates(view, again)
         stats["verify_dropped"] = float((present & ~keep).sum())
         out: dict[int, list] = {}
         for i, t in enumerate(tracks):  # one iteration per person
@@ -483,13 +485,12 @@ class TemporalAssociator:
         stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
         return out
 
-    def _assign_verify(self, view: "_FrameView", joints: np.ndarray, gate: np.ndarray
-                       ) -> tuple[np.ndarray, ...]:
+    def _assign(self, view: "_FrameView", joints: np.ndarray, gate: np.ndarray) -> np.ndarray:
         """Per camera, Hungarian assignment of detections to the tracks' skeletons joints (T,J,3)
-        on the median 2D body-keypoint distance (px) under gate (T,C) px; then verification.
-        The distances of every track to every detection of every camera are one batched
-        computation (detections padded per camera); only the assignment runs per camera.
-        Returns members padded to (T,M): cam, det, present, kept, and joints X (T,J,3)."""
+        on the median 2D body-keypoint distance (px) under gate (T,C) px. The distances of
+        every track to every detection of every camera are one batched computation
+        (detections padded per camera); only the assignment runs per camera. Returns the
+        candidate detection (T,C) of each track in each camera (-1 = none)."""
         T, C = len(joints), len(self.rig)
         uv, _ = _project(self._P[:, None, None], joints[None])  # (C,T,J,2)
         diff = np.linalg.norm(uv[:, :, None] - view.kp2[:, None], axis=-1)  # (C,T,N,J)
@@ -507,6 +508,12 @@ class TemporalAssociator:
             rows, cols = linear_sum_assignment(np.where(gated, cost[c][:, ok], _GATED))
             real = gated[rows, cols]
             cand[rows[real], c] = ok[cols[real]]
+        return cand
+
+    def _verify_candidates(self, view: "_FrameView", cand: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Verification of the candidates (T,C) (module docstring, step 4). Returns members
+        padded to (T,M): cam, det, present, kept, and joints X (T,J,3)."""
+        T, C = cand.shape
         has = cand >= 0  # members padded to (T,M), in camera order
         M = max(int(has.sum(1).max()), 1)
         order = np.argsort(~has, axis=1, kind="stable")[:, :M]
