@@ -11,9 +11,8 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry import reprojection_errors
 from maem_ros.core.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.core.temporal import (FLAG_FEW_VIEWS, FLAG_ONE_VIEW, FLAG_TRACKED, _GATED,
-                                    TemporalAssociator, _depth, _nanmedian, _project,
-                                    _rays_nearest, _verify)
+from maem_ros.core.temporal import (_GATED, TemporalAssociator, _depth, _nanmedian, _project,
+                                    _verify)
 
 
 class ReferenceTemporalAssociator(TemporalAssociator):
@@ -37,32 +36,8 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             gate = np.where(refit[:, None], self.tp.refine_px, gate)
             cam, det, present, keep, X = self._assign_verify(
                 by_cam, body, np.where(refit[:, None, None], X, pred), gate)
-        stats["verify_dropped"] = float((present & ~keep).sum())
-        out: dict[int, list] = {}
-        for i, t in enumerate(tracks):  # one iteration per person
-            n = int(keep[i].sum())
-            need = self.tp.min_track_views if t.id >= 0 else self.params.k_min
-            if n >= max(need, 2):
-                members = np.stack([cam[i, keep[i]], det[i, keep[i]]], axis=1)
-                self.tracker.update(t, X[i])
-                few = n < self.params.k_min
-                stats["tracks_few_views"] += few
-                out[t.key] = [members, np.full(n, np.nan),
-                              FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
-            elif t.id >= 0 and present[i].any() and self.tp.one_view:
-                c, d = self._one_view(present[i], keep[i], cam[i], det[i])
-                view = by_cam[c].kpts2d[d][body]
-                self.tracker.update(t, _rays_nearest(self._P[c], self._centers[c], view,
-                                                     t.joints), meas_std=self.tp.one_view_std)
-                stats["tracks_one_view"] += 1
-                out[t.key] = [np.array([[c, d]]), np.full(1, np.nan),
-                              FLAG_TRACKED | FLAG_FEW_VIEWS | FLAG_ONE_VIEW]
-            else:
-                continue
-            for c, d in out[t.key][0].tolist():
-                used[c][d] = True
-        stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
-        return out
+        return self._take_explained(cam, det, present, keep, X,
+                                    lambda c, d: by_cam[c].kpts2d[d][body], used, stats)
 
     def _assign_verify(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
                        joints: np.ndarray, gate: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Callable, Mapping
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -458,6 +458,18 @@ class TemporalAssociator:
             again = self._assign(view, np.where(refit[:, None, None], X, pred), gate)
             if not np.array_equal(again, cand):  # the same candidates verify the same way
                 cam, det, present, keep, X = self._verify_candidates(view, again)
+        return self._take_explained(cam, det, present, keep, X,
+                                    lambda c, d: view.kp2[c, d], used, stats)
+
+    def _take_explained(self, cam: np.ndarray, det: np.ndarray, present: np.ndarray,
+                        keep: np.ndarray, X: np.ndarray,
+                        body_kpts: Callable[[int, int], np.ndarray], used: dict[int, np.ndarray],
+                        stats: dict[str, float]) -> dict[int, list]:
+        """Update every track from its verified members (padded (T,M) cam, det, present, keep;
+        joints X (T,J,3)), or from one view and its prediction; mark the members used.
+        body_kpts(c, d) -> (J,2) px body keypoints of detection d in camera c. Returns track key
+        -> [members, costs, flags]."""
+        tracks = self.tracker.tracks
         stats["verify_dropped"] = float((present & ~keep).sum())
         out: dict[int, list] = {}
         for i, t in enumerate(tracks):  # one iteration per person
@@ -473,7 +485,7 @@ class TemporalAssociator:
             elif t.id >= 0 and present[i].any() and self.tp.one_view:
                 c, d = self._one_view(present[i], keep[i], cam[i], det[i])
                 self.tracker.update(t, _rays_nearest(self._P[c], self._centers[c],
-                                                     view.kp2[c, d], t.joints),
+                                                     body_kpts(c, d), t.joints),
                                     meas_std=self.tp.one_view_std)
                 stats["tracks_one_view"] += 1
                 out[t.key] = [np.array([[c, d]]), np.full(1, np.nan),
