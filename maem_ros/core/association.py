@@ -41,9 +41,10 @@ from .procrustes import pa_mpjpe_finite
 from .skeleton import joint_subset
 
 #: overrides that give the MAEM paper's pipeline exactly: PA-MPJPE on every keypoint, no cost
-#: cap, per-pair Hungarian + union-find + conflict removal
+#: cap, every pair's mesh distance over all vertices (no screen), per-pair Hungarian +
+#: union-find + conflict removal
 PAPER_PIPELINE = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0,
-                  "cost_epipolar_weight": 0.0}
+                  "cost_epipolar_weight": 0.0, "screen_stride": 1}
 
 
 @dataclass
@@ -77,6 +78,12 @@ class AssociationParams(Params):
     vertex_stride: int = param(1, "use every n-th mesh vertex", minimum=1)
     vertex_count: int = param(0, "use at most this many vertices (0 = all)", minimum=0)
     early_exit: bool = param(True, "stop the mesh distance early once a pair cannot pass")
+    screen_stride: int = param(8, "mesh gate: decide pairs on 1/n of the gate vertices (runs "
+                                  "of 8 consecutive ones) first, on the full set only within "
+                                  "screen_margin of tau_mesh (1 = off: every pair on the full "
+                                  "set, the paper)", minimum=1)
+    screen_margin: float = param(1.0, "px, mesh gate: subset means within this of tau_mesh are "
+                                      "decided on the full set", minimum=0.0)
     backend: str = param("auto", "epipolar kernel (auto = numba when installed, else numpy)",
                          choices=epipolar.BACKENDS)
     epipolar_precision: str = param("mixed", "numba kernel arithmetic: mixed (float32 SIMD with "
@@ -195,15 +202,19 @@ def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, P: n
 
 
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
-                 ) -> dict[int, epipolar.PointRows]:
-    """Per camera, the points the epipolar gate compares (vertices or keypoints), in the layout
-    the kernel reads: built once per camera (not per camera pair), a view of the decoded
-    message when the gate uses every vertex it received."""
+                 ) -> dict[int, tuple[epipolar.PointRows, epipolar.PointRows | None]]:
+    """Per camera, the points the epipolar gate compares (vertices or keypoints) and their
+    screening subset (mesh gate, ``screen_stride``; None = no screen), in the layout the
+    kernel reads: built once per camera (not per camera pair), the full set a view of the
+    decoded message when the gate uses every vertex it received."""
     if params.epipolar_gate == "sparse":
-        return {c: epipolar.point_rows(fd.kpts2d) for c, fd in frames.items()}
+        return {c: (epipolar.point_rows(fd.kpts2d), None) for c, fd in frames.items()}
     columns = _gate_columns(frames, params)
-    return {c: epipolar.point_rows(fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]])
-            for c, fd in frames.items()}
+    out = {}
+    for c, fd in frames.items():
+        x = fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]]
+        out[c] = (epipolar.point_rows(x), epipolar.screen_rows(x, params.screen_stride))
+    return out
 
 
 def _gate_columns(frames: dict[int, FrameDetections], params: AssociationParams
@@ -245,19 +256,18 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
     mean = np.full(i.size, np.nan)
     budget = evaluated = 0
     for a, b, idx in camera_pair_groups(table.cam[i], table.cam[j]):
-        sums, used = epipolar.epipolar_sums(
-            points[a], points[b], F[(a, b)], table.det[i[idx]], table.det[j[idx]],
-            params.tau_mesh, symmetric=params.epipolar_distance == "symmetric",
-            early_exit=params.early_exit, backend=params.backend,
-            precision=params.epipolar_precision)
+        (full_a, screen_a), (full_b, screen_b) = points[a], points[b]
+        screen = None if screen_a is None or screen_b is None else (screen_a, screen_b)
         # mean over the points both detections have (missing vertices take no part)
-        keep[idx] = sums < params.tau_mesh * used
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean[idx] = sums / used
-        budget += idx.size * points[a].n
-        evaluated += int(used.sum())
+        keep[idx], mean[idx], used = epipolar.screened_means(
+            (full_a, full_b), screen, F[(a, b)], table.det[i[idx]], table.det[j[idx]],
+            params.tau_mesh, params.screen_margin,
+            symmetric=params.epipolar_distance == "symmetric", early_exit=params.early_exit,
+            backend=params.backend, precision=params.epipolar_precision)
+        budget += idx.size * full_a.n
+        evaluated += used
     stats["epipolar_points_fraction"] = evaluated / budget if budget else 0.0
-    return keep, np.where(keep, mean, np.nan)
+    return keep, mean
 
 
 def pose_costs(table: DetectionTable, i: np.ndarray, j: np.ndarray, joints: np.ndarray

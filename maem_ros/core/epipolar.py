@@ -577,3 +577,69 @@ def _numba_kernel():
         return sums, used
 
     return sums_kernel
+
+
+def screen_rows(x: np.ndarray, stride: int) -> PointRows | None:
+    """The screening subset of (N,n,2) points as the kernel reads them: runs of SCREEN_RUN
+    consecutive points, one run in every ``SCREEN_RUN * stride`` (1/stride of the points, the
+    same fixed-topology ids in every detection). One contiguous copy per camera, shared by
+    every camera pair; runs rather than single points so the copy reads 1/stride of the
+    cache lines (every other point of a strided subset shares a line with a skipped one).
+    None when the screen is off (stride 1) or would keep too few points to screen with."""
+    x = np.asarray(x)
+    N, n = int(x.shape[0]), int(x.shape[1])
+    period = SCREEN_RUN * stride
+    runs = n // period
+    if stride <= 1 or runs * SCREEN_RUN < SCREEN_MIN_POINTS:
+        return None
+    picked = x[:, :runs * period].reshape(N, runs, period, 2)[:, :, :SCREEN_RUN]
+    return point_rows(np.ascontiguousarray(picked).reshape(N, runs * SCREEN_RUN, 2))
+
+
+#: consecutive points per screening run (8 float32 (u, v) = one 64-byte cache line)
+SCREEN_RUN = 8
+#: fewest screening points worth a screen (below this the full set is cheap anyway)
+SCREEN_MIN_POINTS = 64
+
+
+def screened_means(full: tuple[PointRows, PointRows], screen: tuple[PointRows, PointRows] | None,
+                   F: np.ndarray, ia: np.ndarray, jb: np.ndarray, tau: float, margin: float,
+                   symmetric: bool = True, early_exit: bool = True, backend: str = "auto",
+                   precision: str = "mixed") -> tuple[np.ndarray, np.ndarray, int]:
+    """The epipolar gate of detection pairs (ia[s] in a, jb[s] in b): (keep (S,) bool,
+    mean (S,) px over the points the decision used, points evaluated).
+
+    Without a screen (None) every pair is decided on the full point sets (exact: the mean over
+    all points both detections have, ``keep = mean < tau``). With one (the same fixed-topology
+    subset in both views, :func:`screen_rows`), each pair's mean is first taken over the
+    subset; a pair whose subset mean is below ``tau - margin`` px is accepted with it, one at or
+    above ``tau + margin`` is rejected, and the pairs in between (or with fewer than half of the
+    subset's points present) are decided on the full sets. The subset mean of a regular subset
+    of a dense mesh is within a small fraction of a px of the full mean (the vertices oversample
+    the image), so the decisions are the full-set ones unless it errs by more than ``margin``.
+    """
+    kw = dict(symmetric=symmetric, early_exit=early_exit, backend=backend, precision=precision)
+    S = ia.size
+    keep = np.zeros(S, dtype=bool)
+    mean = np.full(S, np.nan)
+    todo = np.arange(S)
+    evaluated = 0
+    if screen is not None and S:
+        sums, used = epipolar_sums(screen[0], screen[1], F, ia, jb, tau + margin, **kw)
+        evaluated += int(used.sum())
+        with np.errstate(invalid="ignore", divide="ignore"):
+            m = sums / used
+        enough = used * 2 >= screen[0].n
+        rejected = enough & ~(sums < (tau + margin) * used)  # partial sums: early exit
+        accepted = enough & ~rejected & (m < tau - margin)
+        keep[accepted] = True
+        mean[accepted] = m[accepted]
+        todo = np.flatnonzero(~(accepted | rejected))
+    if todo.size:
+        sums, used = epipolar_sums(full[0], full[1], F, ia[todo], jb[todo], tau, **kw)
+        evaluated += int(used.sum())
+        ok = sums < tau * used
+        keep[todo] = ok
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean[todo[ok]] = sums[ok] / used[ok]
+    return keep, np.where(keep, mean, np.nan), evaluated

@@ -325,10 +325,14 @@ class _FrameView:
         self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
         self._known_ok = np.zeros(0, bool)
 
-    def points(self, c: int) -> "epipolar.PointRows":
-        """Camera c's points for the verification's epipolar gate, converted once per frame."""
+    def points(self, c: int) -> "tuple[epipolar.PointRows, epipolar.PointRows | None]":
+        """Camera c's points for the verification's epipolar gate and their screening subset
+        (None = no screen: keypoints, or ``screen_stride`` 1), converted once per frame."""
         if c not in self._rows:
-            self._rows[c] = epipolar.point_rows(self.stage._gate_points(self.by_cam[c]))
+            x = self.stage._gate_points(self.by_cam[c])
+            mesh = self.stage.tp.verify_epipolar == "mesh"
+            stride = self.stage.params.screen_stride if mesh else 1
+            self._rows[c] = (epipolar.point_rows(x), epipolar.screen_rows(x, stride))
         return self._rows[c]
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
@@ -583,11 +587,13 @@ class TemporalAssociator:
             for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
                 s = np.flatnonzero(ok & (key == k))
                 a, b = divmod(k, len(self.rig))
-                sums, used = epipolar.epipolar_sums(
-                    view.points(a), view.points(b), self._F[(a, b)], da[s], db[s], p.tau_mesh,
-                    symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
-                    backend=p.backend, precision=p.epipolar_precision)
-                ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
+                (full_a, screen_a), (full_b, screen_b) = view.points(a), view.points(b)
+                screen = None if screen_a is None or screen_b is None else (screen_a, screen_b)
+                ok[s] = epipolar.screened_means(  # missing (NaN) points are not counted
+                    (full_a, full_b), screen, self._F[(a, b)], da[s], db[s], p.tau_mesh,
+                    p.screen_margin, symmetric=p.epipolar_distance == "symmetric",
+                    early_exit=p.early_exit, backend=p.backend,
+                    precision=p.epipolar_precision)[0]
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)

@@ -1,0 +1,110 @@
+"""The screened mesh gate: pairs are decided on a fixed 1/stride subset of the vertices (runs of
+SCREEN_RUN consecutive ones) unless their subset mean is within the margin of tau, where the
+full set decides; screen_stride 1 is the paper's gate over every vertex."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from maem_ros.core import epipolar
+from maem_ros.core.association import AssociationParams, associate
+
+#: a rectified pair (b = a shifted along x): epipolar lines are image rows, so a vertex's
+#: (symmetric and forward) distance is exactly its row offset |v_b - v_a|
+F_ROWS = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+N = 4096
+STRIDE = 8
+TAU = 8.0
+MARGIN = 1.0
+
+
+def _screened_ids(n: int, stride: int) -> np.ndarray:
+    """The vertex ids screen_rows keeps: the first SCREEN_RUN of every SCREEN_RUN * stride."""
+    k = np.arange(n // (epipolar.SCREEN_RUN * stride) * epipolar.SCREEN_RUN * stride)
+    return k[k % (epipolar.SCREEN_RUN * stride) < epipolar.SCREEN_RUN]
+
+
+def _pair(on_screen: float, elsewhere: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """One detection in a and one in b whose vertices lie on_screen px off their epipolar lines
+    on the screened ids and elsewhere px off on the others."""
+    rng = np.random.default_rng(seed)
+    xa = rng.uniform(100, 900, (1, N, 2)).astype(np.float32)
+    offset = np.full(N, elsewhere, np.float32)
+    offset[_screened_ids(N, STRIDE)] = on_screen
+    xb = xa.copy()
+    xb[0, :, 0] += rng.uniform(-50, 50, N).astype(np.float32)  # along the line: no distance
+    xb[0, :, 1] += offset * rng.choice(np.float32([-1, 1]), N)
+    return xa, xb
+
+
+def _gate(xa, xb, stride: int = STRIDE, margin: float = MARGIN):
+    screen_a, screen_b = epipolar.screen_rows(xa, stride), epipolar.screen_rows(xb, stride)
+    screen = None if screen_a is None else (screen_a, screen_b)
+    one = np.zeros(1, np.int64)
+    return epipolar.screened_means((epipolar.point_rows(xa), epipolar.point_rows(xb)), screen,
+                                   F_ROWS, one, one, TAU, margin)
+
+
+def _full_mean(on_screen: float, elsewhere: float) -> float:
+    s = _screened_ids(N, STRIDE).size
+    return (on_screen * s + elsewhere * (N - s)) / N
+
+
+def test_screen_rows_keeps_runs_of_consecutive_points_one_in_every_stride():
+    x = np.arange(2 * N, dtype=np.float32).reshape(1, N, 2)
+    rows = epipolar.screen_rows(x, STRIDE)
+    ids = _screened_ids(N, STRIDE)
+    got = rows.flat[rows.rows[0]:rows.rows[0] + 2 * rows.n].reshape(-1, 2)
+    np.testing.assert_array_equal(got, x[0, ids])
+    assert rows.n == N // STRIDE
+    assert epipolar.screen_rows(x, 1) is None  # off
+    assert epipolar.screen_rows(x[:, :100], STRIDE) is None  # too few points to screen
+
+
+def test_a_clear_subset_mean_decides_and_is_the_pairs_distance():
+    keep, mean, evaluated = _gate(*_pair(5.0, 7.9))
+    assert keep[0] and mean[0] == pytest.approx(5.0, abs=1e-4)
+    assert evaluated == N // STRIDE  # the full set was not read
+    keep, mean, _ = _gate(*_pair(TAU + MARGIN + 0.5, 1.0))
+    assert not keep[0] and np.isnan(mean[0])  # rejected by the subset (full mean ~2 px)
+
+
+@pytest.mark.parametrize("on_screen, elsewhere", [(7.5, 9.0), (8.5, 7.0), (7.2, 8.1), (8.9, 7.95)])
+def test_a_subset_mean_within_the_margin_is_decided_on_the_full_set(on_screen, elsewhere):
+    keep, mean, evaluated = _gate(*_pair(on_screen, elsewhere))
+    full = _full_mean(on_screen, elsewhere)
+    assert keep[0] == (full < TAU)
+    if keep[0]:
+        assert mean[0] == pytest.approx(full, rel=1e-5)
+    assert evaluated > N // STRIDE
+
+
+def test_without_a_screen_every_pair_is_decided_on_the_full_set():
+    for on_screen, elsewhere in [(5.0, 7.9), (9.5, 1.0)]:
+        keep, mean, evaluated = _gate(*_pair(on_screen, elsewhere), stride=1)
+        full = _full_mean(on_screen, elsewhere)
+        assert keep[0] == (full < TAU) and evaluated == N
+        assert mean[0] == pytest.approx(full, rel=1e-5)
+
+
+def test_a_subset_with_most_points_missing_defers_to_the_full_set():
+    xa, xb = _pair(9.5, 1.0)  # the subset alone would reject
+    xa[0, _screened_ids(N, STRIDE)[::3]] = np.nan  # a third missing in a ...
+    xb[0, _screened_ids(N, STRIDE)[1::3], 1] = np.nan  # ... another third in b
+    keep, mean, _ = _gate(xa, xb)
+    assert keep[0]  # the full set's mean is ~1.3 px (the missing ones take no part)
+    assert 1.0 < mean[0] < TAU
+
+
+def test_screened_and_full_mesh_association_give_the_same_clusters(scene):
+    params = AssociationParams(k_min=2)
+    assert params.screen_stride > 1  # the default screens
+    full = dataclasses.replace(params, screen_stride=1)
+    for f in range(0, scene.config.frames, max(1, scene.config.frames // 4)):
+        frames = {c: scene.detections(c, f) for c in scene.rig.names}
+        fast, exact = associate(scene.rig, frames, params), associate(scene.rig, frames, full)
+        assert ([c.members.tolist() for c in fast.clusters]
+                == [c.members.tolist() for c in exact.clusters])
+        assert fast.stats["epipolar_points_fraction"] < exact.stats["epipolar_points_fraction"]
