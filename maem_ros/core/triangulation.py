@@ -30,6 +30,7 @@ from .camera import Rig
 from .detections import Cluster, DetectionTable, FrameDetections
 from .geometry import normal_entries, reprojection_error, solve_normal
 from .paramspec import Params, param
+from .triangulation_kernel import BACKENDS, ransac_keypoints, use_numba
 
 #: a view whose detection score is 0 still counts as a view, with this tiny DLT weight
 _MIN_WEIGHT = 1e-3
@@ -50,6 +51,8 @@ class TriangulationParams(Params):
                                    "the triangulated joints is >= this: a wrong detection as a "
                                    "whole, e.g. a body mixed from two people (0 = off, the paper)",
                               minimum=0.0)
+    ransac_backend: str = param("auto", "RANSAC kernel (auto = numba when installed, else the "
+                                        "numpy path; the same results)", choices=BACKENDS)
 
 
 @dataclass
@@ -182,7 +185,6 @@ def _rejected_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray, poses:
 def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: np.ndarray,
                     present: np.ndarray, params: TriangulationParams) -> Poses:
     """The per-keypoint RANSAC of triangulate_members on the present members."""
-    C, M = present.shape
     J = uv.shape[2]
     P = P_rig[cam]  # (C,M,3,4)
     mirrored = None
@@ -191,32 +193,43 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
         uv = np.where(mirrored[:, :, None, None], uv[:, :, mirror_permutation(J)], uv)
     usable = present[:, :, None] & np.isfinite(uv).all(-1)  # (C,M,J)
     weight = np.maximum(score, _MIN_WEIGHT)
+    if use_numba(params.ransac_backend):
+        X, n_inl = ransac_keypoints(P, uv, usable, weight, params.tau_kps, params.min_views)
+    else:
+        X, n_inl = _ransac_numpy(P, uv, usable, weight, params.tau_kps, params.min_views)
+    mean_score = (score * present).sum(1) / np.maximum(present.sum(1), 1)
+    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), mean_score,
+                 mirrored)
 
+
+def _ransac_numpy(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray,
+                  tau: float, min_views: int) -> tuple[np.ndarray, np.ndarray]:
+    """The numpy path of triangulation_kernel.ransac_keypoints (same arguments and results):
+    every hypothesis of every view pair reprojected into every view as (C,M,Q,J) arrays."""
+    M = usable.shape[1]
     E = normal_entries(P[:, :, None], uv, usable)  # (9,C,M,J)
     ia, ib = np.triu_indices(M, 1)  # view pairs (Q,)
     hyp = solve_normal(E[:, :, ia] + E[:, :, ib])  # (C,Q,J,3), unweighted two-view DLT
     hyp[~(usable[:, ia] & usable[:, ib])] = np.nan
     # reprojection of every hypothesis into every member view: (C,M,Q,J)
     err = reprojection_error(P, hyp, uv)
-    inlier = err < params.tau_kps
+    inlier = err < tau
     inlier &= usable[:, :, None]
     count = inlier.sum(1)  # (C,Q,J)
     err[~inlier] = 0.0
     mean_err = err.sum(1) / np.maximum(count, 1)
     # most inliers first; mean_err / (2 tau) < 0.5 breaks ties without crossing counts
-    key = np.where(np.isfinite(hyp[..., 0]), count - mean_err / (2.0 * params.tau_kps), -1.0)
+    key = np.where(np.isfinite(hyp[..., 0]), count - mean_err / (2.0 * tau), -1.0)
     best = np.argmax(key, axis=1)  # (C,J)
     best_inl = np.take_along_axis(inlier, best[:, None, None, :], axis=2)[:, :, 0]  # (C,M,J)
     n_inl = best_inl.sum(1)
-    ok = n_inl >= params.min_views
+    ok = n_inl >= min_views
 
     w2 = np.where(best_inl, weight[:, :, None] ** 2, 0.0)  # (C,M,J)
     X = solve_normal((E * w2).sum(2))  # (C,J,3) score-weighted DLT
     X = np.where(ok[..., None], X, np.nan)
     n_inl = np.where(np.isfinite(X).all(-1), n_inl, 0)
-    mean_score = (score * present).sum(1) / np.maximum(present.sum(1), 1)
-    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), mean_score,
-                 mirrored)
+    return X, n_inl.astype(np.int64)
 
 
 def mirror_permutation(num_joints: int) -> np.ndarray:
