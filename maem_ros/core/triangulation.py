@@ -27,7 +27,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .camera import Rig
-from .detections import Cluster, DetectionTable, FrameDetections
+from .detections import Cluster, FrameDetections
 from .geometry import normal_entries, reprojection_error, solve_normal
 from .paramspec import Params, param
 from .triangulation_kernel import BACKENDS, ransac_keypoints, use_numba
@@ -106,11 +106,13 @@ def triangulate(rig: Rig, frames: Mapping[str, FrameDetections], clusters: Seque
         c, d = allm[int(np.argmax(bad))]
         raise ValueError(f"clusters: members: detection {d} out of range for camera "
                          f"{names[c]!r} ({sizes[c]} detections)")
-    table = DetectionTable.build(by_index, len(rig))
-    rows = table.rows(allm)
+    kpts2d, score = np.empty((len(allm), J, 2)), np.empty(len(allm))
+    for ci, fd in by_index.items():  # one gather per camera of the members' rows
+        rows = np.flatnonzero(allm[:, 0] == ci)
+        kpts2d[rows] = fd.kpts2d[allm[rows, 1]]
+        score[rows] = fd.scores[allm[rows, 1]]
     which = np.repeat(np.arange(len(members)), [len(m) for m in members])
-    return triangulate_members(_rig_P(rig), *pad_members(which, table.cam[rows], table.kpts2d[rows],
-                                                         table.scores[rows]), params)
+    return triangulate_members(_rig_P(rig), *pad_members(which, allm[:, 0], kpts2d, score), params)
 
 
 def _rig_P(rig: Rig) -> np.ndarray:
@@ -191,7 +193,7 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
     if params.left_right:
         mirrored = consistent_left_right(P, uv, score, present, mirror_permutation(J))
         uv = np.where(mirrored[:, :, None, None], uv[:, :, mirror_permutation(J)], uv)
-    usable = present[:, :, None] & np.isfinite(uv).all(-1)  # (C,M,J)
+    usable = present[:, :, None] & np.isfinite(uv[..., 0]) & np.isfinite(uv[..., 1])  # (C,M,J)
     weight = np.maximum(score, _MIN_WEIGHT)
     if use_numba(params.ransac_backend):
         X, n_inl = ransac_keypoints(P, uv, usable, weight, params.tau_kps, params.min_views)

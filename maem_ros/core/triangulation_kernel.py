@@ -12,8 +12,6 @@ difference of ~1e-16 in the pixel errors; see test_triangulation_kernel.py.
 """
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 
 from .geometry import _SINGULAR
@@ -51,7 +49,7 @@ def ransac_keypoints(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: 
     X = np.empty((C, J, 3))
     n_inl = np.empty((C, J), np.int64)
     uv = np.asarray(uv, dtype=np.float64)
-    _kernel()(np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(uv[..., 0]),
+    _kernel(np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(uv[..., 0]),
               np.ascontiguousarray(uv[..., 1]), np.ascontiguousarray(usable, np.bool_),
               np.ascontiguousarray(weight, np.float64), float(tau), int(min_views), X, n_inl)
     return X, n_inl
@@ -65,138 +63,145 @@ def warmup() -> None:
                          np.ones((1, 2)), 1.0, 2)
 
 
-@lru_cache(maxsize=1)
-def _kernel():
-    """Compile (or load from the on-disk cache) the kernel on first use."""
-    jit = _numba.njit(cache=True, error_model="numpy", boundscheck=False, nogil=True)
-    singular_eps = _SINGULAR
+def _jit(fn):
+    """numba.njit with the on-disk cache (compiled on first call), or ``fn`` unchanged without
+    numba (then never called). Module-level functions, not closures: numba's cache key hashes
+    a closure's cells, and a captured dispatcher hashes differently in every process."""
+    if _numba is None:
+        return fn
+    return _numba.njit(cache=True, error_model="numpy", boundscheck=False, nogil=True)(fn)
 
-    # every loop below runs over the keypoints j innermost (contiguous, independent): LLVM
-    # vectorises them with exact SIMD division and square root, no fast-math needed
 
-    @jit
-    def entries(P, u, v, usable, E):
-        """geometry.normal_entries of one view for all keypoints: P (3,4), u, v, usable (J,)
-        -> E (9,J); rows r1 = u P3 - P1, r2 = v P3 - P2, uv = 0 where unusable."""
-        for j in range(u.shape[0]):
-            uu = u[j] if usable[j] else 0.0
-            vv = v[j] if usable[j] else 0.0
-            a0 = uu * P[2, 0] - P[0, 0]
-            a1 = uu * P[2, 1] - P[0, 1]
-            a2 = uu * P[2, 2] - P[0, 2]
-            a3 = uu * P[2, 3] - P[0, 3]
-            b0 = vv * P[2, 0] - P[1, 0]
-            b1 = vv * P[2, 1] - P[1, 1]
-            b2 = vv * P[2, 2] - P[1, 2]
-            b3 = vv * P[2, 3] - P[1, 3]
-            E[0, j] = a0 * a0 + b0 * b0
-            E[1, j] = a0 * a1 + b0 * b1
-            E[2, j] = a0 * a2 + b0 * b2
-            E[3, j] = a1 * a1 + b1 * b1
-            E[4, j] = a1 * a2 + b1 * b2
-            E[5, j] = a2 * a2 + b2 * b2
-            E[6, j] = a0 * a3 + b0 * b3
-            E[7, j] = a1 * a3 + b1 * b3
-            E[8, j] = a2 * a3 + b2 * b3
+# every loop below runs over the keypoints j innermost (contiguous, independent): LLVM
+# vectorises them with exact SIMD division and square root, no fast-math needed
 
-    @jit
-    def solve(n, X):
-        """geometry.solve_normal of the systems n (9,J) into X (3,J), NaN when singular."""
-        for j in range(n.shape[1]):
-            c00 = n[3, j] * n[5, j] - n[4, j] * n[4, j]
-            c01 = n[2, j] * n[4, j] - n[1, j] * n[5, j]
-            c02 = n[1, j] * n[4, j] - n[2, j] * n[3, j]
-            c11 = n[0, j] * n[5, j] - n[2, j] * n[2, j]
-            c12 = n[1, j] * n[2, j] - n[0, j] * n[4, j]
-            c22 = n[0, j] * n[3, j] - n[1, j] * n[1, j]
-            det = n[0, j] * c00 + n[1, j] * c01 + n[2, j] * c02
-            trace = n[0, j] + n[3, j] + n[5, j]
-            if not (abs(det) > singular_eps * trace * trace * trace):
-                det = np.nan
-            X[0, j] = -((c00 * n[6, j] + c01 * n[7, j] + c02 * n[8, j]) / det)
-            X[1, j] = -((c01 * n[6, j] + c11 * n[7, j] + c12 * n[8, j]) / det)
-            X[2, j] = -((c02 * n[6, j] + c12 * n[7, j] + c22 * n[8, j]) / det)
 
-    @jit
-    def score(P, X, u, v, usable, tau, inl, count, total):
-        """Inliers of hypotheses X (3,J) in one view (P (3,4), u, v, usable (J,)): inl (J,)
-        and the running count and error sum (px) per keypoint. An inlier has depth > 0 and
-        error < tau (geometry.reprojection_error's inf fails that test too)."""
-        for j in range(u.shape[0]):
-            z = P[2, 0] * X[0, j] + P[2, 1] * X[1, j] + P[2, 2] * X[2, j] + P[2, 3]
-            inv_z = 1.0 / z
-            du = (P[0, 0] * X[0, j] + P[0, 1] * X[1, j] + P[0, 2] * X[2, j] + P[0, 3]) * inv_z - u[j]
-            dv = (P[1, 0] * X[0, j] + P[1, 1] * X[1, j] + P[1, 2] * X[2, j] + P[1, 3]) * inv_z - v[j]
-            err = np.sqrt(du * du + dv * dv)
-            ok = usable[j] and z > 0 and err < tau
-            inl[j] = ok
-            count[j] += 1 if ok else 0
-            total[j] += err if ok else 0.0
+@_jit
+def _entries(P, u, v, usable, E):
+    """geometry.normal_entries of one view for all keypoints: P (3,4), u, v, usable (J,)
+    -> E (9,J); rows r1 = u P3 - P1, r2 = v P3 - P2, uv = 0 where unusable."""
+    for j in range(u.shape[0]):
+        uu = u[j] if usable[j] else 0.0
+        vv = v[j] if usable[j] else 0.0
+        a0 = uu * P[2, 0] - P[0, 0]
+        a1 = uu * P[2, 1] - P[0, 1]
+        a2 = uu * P[2, 2] - P[0, 2]
+        a3 = uu * P[2, 3] - P[0, 3]
+        b0 = vv * P[2, 0] - P[1, 0]
+        b1 = vv * P[2, 1] - P[1, 1]
+        b2 = vv * P[2, 2] - P[1, 2]
+        b3 = vv * P[2, 3] - P[1, 3]
+        E[0, j] = a0 * a0 + b0 * b0
+        E[1, j] = a0 * a1 + b0 * b1
+        E[2, j] = a0 * a2 + b0 * b2
+        E[3, j] = a1 * a1 + b1 * b1
+        E[4, j] = a1 * a2 + b1 * b2
+        E[5, j] = a2 * a2 + b2 * b2
+        E[6, j] = a0 * a3 + b0 * b3
+        E[7, j] = a1 * a3 + b1 * b3
+        E[8, j] = a2 * a3 + b2 * b3
 
-    @jit
-    def kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
-        C, M, J = usable.shape
-        E = np.empty((M, 9, J))
-        pair = np.empty((9, J))
-        hyp = np.empty((3, J))
-        inl = np.empty((M, J), np.bool_)
-        best_inl = np.empty((M, J), np.bool_)
-        best_key = np.empty(J)
-        best_count = np.empty(J, np.int64)
-        count = np.empty(J, np.int64)
-        total = np.empty(J)
-        better = np.empty(J, np.bool_)
-        for c in range(C):
-            for m in range(M):
-                entries(P[c, m], u[c, m], v[c, m], usable[c, m], E[m])
-            best_key[:] = -np.inf
-            best_count[:] = 0
-            best_inl[:] = False
-            for a in range(M):  # view pairs in np.triu_indices(M, 1) order
-                for b in range(a + 1, M):
-                    for e in range(9):
-                        for j in range(J):
-                            pair[e, j] = E[a, e, j] + E[b, e, j]
-                    solve(pair, hyp)
-                    for j in range(J):
-                        if not (usable[c, a, j] and usable[c, b, j]):
-                            hyp[0, j] = hyp[1, j] = hyp[2, j] = np.nan
-                    count[:] = 0
-                    total[:] = 0.0
-                    for m in range(M):
-                        score(P[c, m], hyp, u[c, m], v[c, m], usable[c, m], tau, inl[m], count,
-                              total)
-                    for j in range(J):
-                        # most inliers first; mean error / (2 tau) < 0.5 breaks ties
-                        key = (count[j] - (total[j] / max(count[j], 1)) / (2.0 * tau)
-                               if np.isfinite(hyp[0, j]) else -1.0)
-                        better[j] = key > best_key[j]  # strict: the first of equal keys
-                        if better[j]:
-                            best_key[j] = key
-                            best_count[j] = count[j]
-                    for m in range(M):
-                        for j in range(J):
-                            if better[j]:
-                                best_inl[m, j] = inl[m, j]
-            # score-weighted refit from the best hypothesis' inliers: weight^2 x entries
-            # summed in view order, as (E * w2).sum over views
-            pair[:] = 0.0
-            for m in range(M):
-                w2 = weight[c, m] * weight[c, m]
+
+@_jit
+def _solve(n, X):
+    """geometry.solve_normal of the systems n (9,J) into X (3,J), NaN when singular."""
+    for j in range(n.shape[1]):
+        c00 = n[3, j] * n[5, j] - n[4, j] * n[4, j]
+        c01 = n[2, j] * n[4, j] - n[1, j] * n[5, j]
+        c02 = n[1, j] * n[4, j] - n[2, j] * n[3, j]
+        c11 = n[0, j] * n[5, j] - n[2, j] * n[2, j]
+        c12 = n[1, j] * n[2, j] - n[0, j] * n[4, j]
+        c22 = n[0, j] * n[3, j] - n[1, j] * n[1, j]
+        det = n[0, j] * c00 + n[1, j] * c01 + n[2, j] * c02
+        trace = n[0, j] + n[3, j] + n[5, j]
+        if not (abs(det) > _SINGULAR * trace * trace * trace):
+            det = np.nan
+        X[0, j] = -((c00 * n[6, j] + c01 * n[7, j] + c02 * n[8, j]) / det)
+        X[1, j] = -((c01 * n[6, j] + c11 * n[7, j] + c12 * n[8, j]) / det)
+        X[2, j] = -((c02 * n[6, j] + c12 * n[7, j] + c22 * n[8, j]) / det)
+
+
+@_jit
+def _score(P, X, u, v, usable, tau, inl, count, total):
+    """Inliers of hypotheses X (3,J) in one view (P (3,4), u, v, usable (J,)): inl (J,)
+    and the running count and error sum (px) per keypoint. An inlier has depth > 0 and
+    error < tau (geometry.reprojection_error's inf fails that test too)."""
+    for j in range(u.shape[0]):
+        z = P[2, 0] * X[0, j] + P[2, 1] * X[1, j] + P[2, 2] * X[2, j] + P[2, 3]
+        inv_z = 1.0 / z
+        du = (P[0, 0] * X[0, j] + P[0, 1] * X[1, j] + P[0, 2] * X[2, j] + P[0, 3]) * inv_z - u[j]
+        dv = (P[1, 0] * X[0, j] + P[1, 1] * X[1, j] + P[1, 2] * X[2, j] + P[1, 3]) * inv_z - v[j]
+        err = np.sqrt(du * du + dv * dv)
+        ok = usable[j] and z > 0 and err < tau
+        inl[j] = ok
+        count[j] += 1 if ok else 0
+        total[j] += err if ok else 0.0
+
+
+@_jit
+def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
+    """ransac_keypoints on split coordinates u, v (C,M,J), into X_out (C,J,3), n_out (C,J)."""
+    C, M, J = usable.shape
+    E = np.empty((M, 9, J))
+    pair = np.empty((9, J))
+    hyp = np.empty((3, J))
+    inl = np.empty((M, J), np.bool_)
+    best_inl = np.empty((M, J), np.bool_)
+    best_key = np.empty(J)
+    best_count = np.empty(J, np.int64)
+    count = np.empty(J, np.int64)
+    total = np.empty(J)
+    better = np.empty(J, np.bool_)
+    for c in range(C):
+        for m in range(M):
+            _entries(P[c, m], u[c, m], v[c, m], usable[c, m], E[m])
+        best_key[:] = -np.inf
+        best_count[:] = 0
+        best_inl[:] = False
+        for a in range(M):  # view pairs in np.triu_indices(M, 1) order
+            for b in range(a + 1, M):
                 for e in range(9):
                     for j in range(J):
-                        if best_inl[m, j]:
-                            pair[e, j] += E[m, e, j] * w2
-            solve(pair, hyp)
-            for j in range(J):
-                finite = np.isfinite(hyp[0, j]) and np.isfinite(hyp[1, j]) and np.isfinite(hyp[2, j])
-                if best_count[j] >= min_views and finite:
-                    X_out[c, j, 0] = hyp[0, j]
-                    X_out[c, j, 1] = hyp[1, j]
-                    X_out[c, j, 2] = hyp[2, j]
-                    n_out[c, j] = best_count[j]
-                else:
-                    X_out[c, j, 0] = X_out[c, j, 1] = X_out[c, j, 2] = np.nan
-                    n_out[c, j] = 0
+                        pair[e, j] = E[a, e, j] + E[b, e, j]
+                _solve(pair, hyp)
+                for j in range(J):
+                    if not (usable[c, a, j] and usable[c, b, j]):
+                        hyp[0, j] = hyp[1, j] = hyp[2, j] = np.nan
+                count[:] = 0
+                total[:] = 0.0
+                for m in range(M):
+                    _score(P[c, m], hyp, u[c, m], v[c, m], usable[c, m], tau, inl[m], count,
+                           total)
+                for j in range(J):
+                    # most inliers first; mean error / (2 tau) < 0.5 breaks ties
+                    key = (count[j] - (total[j] / max(count[j], 1)) / (2.0 * tau)
+                           if np.isfinite(hyp[0, j]) else -1.0)
+                    better[j] = key > best_key[j]  # strict: the first of equal keys
+                    if better[j]:
+                        best_key[j] = key
+                        best_count[j] = count[j]
+                for m in range(M):
+                    for j in range(J):
+                        if better[j]:
+                            best_inl[m, j] = inl[m, j]
+        # score-weighted refit from the best hypothesis' inliers: weight^2 x entries
+        # summed in view order, as (E * w2).sum over views
+        pair[:] = 0.0
+        for m in range(M):
+            w2 = weight[c, m] * weight[c, m]
+            for e in range(9):
+                for j in range(J):
+                    if best_inl[m, j]:
+                        pair[e, j] += E[m, e, j] * w2
+        _solve(pair, hyp)
+        for j in range(J):
+            finite = np.isfinite(hyp[0, j]) and np.isfinite(hyp[1, j]) and np.isfinite(hyp[2, j])
+            if best_count[j] >= min_views and finite:
+                X_out[c, j, 0] = hyp[0, j]
+                X_out[c, j, 1] = hyp[1, j]
+                X_out[c, j, 2] = hyp[2, j]
+                n_out[c, j] = best_count[j]
+            else:
+                X_out[c, j, 0] = X_out[c, j, 1] = X_out[c, j, 2] = np.nan
+                n_out[c, j] = 0
 
-    return kernel

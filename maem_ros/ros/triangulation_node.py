@@ -91,7 +91,9 @@ class TriangulationNode(Node):
         p = declare_params(self, PARAMS)
         self.rig = load_rig_param(p["rig"])
         from maem_ros.core.tracking import Tracker
+        from maem_ros.core import triangulation_kernel
         from maem_ros.core.triangulation import triangulate_members
+        from maem_ros.core.triangulation_kernel import use_numba
         try:
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
@@ -102,6 +104,8 @@ class TriangulationNode(Node):
             self.bone_filter = (BoneLengthFilter(get_convention(p["output_convention"]).names,
                                                  p["bone_tolerance"])
                                 if p["bone_tolerance"] > 0 else None)
+            if use_numba(self.params.ransac_backend):
+                triangulation_kernel.warmup()  # load/compile the kernel now, not on frame 1
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self._triangulate = triangulate_members
