@@ -195,9 +195,11 @@ class TriangulationNode(Node):
         with Stopwatch(self.diag, "encode"):
             poses_msg = wire.poses_to_msg(stamp_ns, self.frame_id, ids[keep], joints[keep],
                                           views[keep], scores[keep])
+        # poses first: the markers (one Python object per point) must not delay them
+        self.pose_pub.publish(poses_msg)
+        with Stopwatch(self.diag, "markers"):
             markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
                                             self.output.bones, self.lifetime_s())
-        self.pose_pub.publish(poses_msg)
         self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))
         self.diag.set("last_tracked", int((ids >= 0).sum()))
