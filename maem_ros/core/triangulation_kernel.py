@@ -146,18 +146,14 @@ def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
     pair = np.empty((9, J))
     hyp = np.empty((3, J))
     inl = np.empty((M, J), np.bool_)
-    best_inl = np.empty((M, J), np.bool_)
+    best_hyp = np.empty((3, J))
     best_key = np.empty(J)
-    best_count = np.empty(J, np.int64)
     count = np.empty(J, np.int64)
     total = np.empty(J)
-    better = np.empty(J, np.bool_)
     for c in range(C):
         for m in range(M):
             _entries(P[c, m], u[c, m], v[c, m], usable[c, m], E[m])
         best_key[:] = -np.inf
-        best_count[:] = 0
-        best_inl[:] = False
         for a in range(M):  # view pairs in np.triu_indices(M, 1) order
             for b in range(a + 1, M):
                 for e in range(9):
@@ -176,31 +172,33 @@ def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
                     # most inliers first; mean error / (2 tau) < 0.5 breaks ties
                     key = (count[j] - (total[j] / max(count[j], 1)) / (2.0 * tau)
                            if np.isfinite(hyp[0, j]) else -1.0)
-                    better[j] = key > best_key[j]  # strict: the first of equal keys
-                    if better[j]:
+                    if key > best_key[j]:  # strict: the first of equal keys
                         best_key[j] = key
-                        best_count[j] = count[j]
-                for m in range(M):
-                    for j in range(J):
-                        if better[j]:
-                            best_inl[m, j] = inl[m, j]
-        # score-weighted refit from the best hypothesis' inliers: weight^2 x entries
-        # summed in view order, as (E * w2).sum over views
+                        best_hyp[0, j] = hyp[0, j]
+                        best_hyp[1, j] = hyp[1, j]
+                        best_hyp[2, j] = hyp[2, j]
+        # the best hypotheses' inliers again (the same operations: the same inliers), then the
+        # score-weighted refit from them: weight^2 x entries summed in view order, as
+        # (E * w2).sum over views
+        count[:] = 0
+        total[:] = 0.0
+        for m in range(M):
+            _score(P[c, m], best_hyp, u[c, m], v[c, m], usable[c, m], tau, inl[m], count, total)
         pair[:] = 0.0
         for m in range(M):
             w2 = weight[c, m] * weight[c, m]
             for e in range(9):
                 for j in range(J):
-                    if best_inl[m, j]:
+                    if inl[m, j]:
                         pair[e, j] += E[m, e, j] * w2
         _solve(pair, hyp)
         for j in range(J):
             finite = np.isfinite(hyp[0, j]) and np.isfinite(hyp[1, j]) and np.isfinite(hyp[2, j])
-            if best_count[j] >= min_views and finite:
+            if count[j] >= min_views and finite:
                 X_out[c, j, 0] = hyp[0, j]
                 X_out[c, j, 1] = hyp[1, j]
                 X_out[c, j, 2] = hyp[2, j]
-                n_out[c, j] = best_count[j]
+                n_out[c, j] = count[j]
             else:
                 X_out[c, j, 0] = X_out[c, j, 1] = X_out[c, j, 2] = np.nan
                 n_out[c, j] = 0
