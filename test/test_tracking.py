@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from maem_ros.core.tracking import Tracker
 
@@ -149,3 +150,79 @@ def test_bone_filter_marks_implausible_limb_joints_only():
     assert np.isnan(J[0, le]).all() and np.isfinite(J[0, lw]).all()
     with pytest.raises(ValueError, match="bone_tolerance"):
         BoneLengthFilter(names, tolerance=0.0)
+
+
+class _BoneFilterLoop:
+    """The bone filter read literally (one deque of lengths per track, one person at a time):
+    the reference of the batched core.bone_filter.BoneLengthFilter."""
+
+    def __init__(self, names, tolerance, history, min_samples, max_tracks):
+        from collections import deque
+
+        from maem_ros.core.bone_filter import limb_bones
+        self.bones, self.tol, self.min_samples, self.max_tracks = (limb_bones(names), tolerance,
+                                                                   min_samples, max_tracks)
+        self.new = lambda: deque(maxlen=history)
+        self.lengths = {}
+
+    def apply(self, ids, joints):
+        import warnings
+        prox, dist = self.bones[:, 0], self.bones[:, 1]
+        marked = 0
+        for p, pid in enumerate(ids.tolist()):
+            if pid < 0:
+                continue
+            past = self.lengths.pop(pid, None) or self.new()
+            self.lengths[pid] = past
+            length = np.linalg.norm(joints[p, dist] - joints[p, prox], axis=-1)
+            if len(past) >= self.min_samples:
+                with np.errstate(all="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    ref = np.nanmedian(np.stack(past), axis=0)
+                bad = np.abs(length - ref) > self.tol * ref
+                bad &= ~((prox[:, None] == dist[None, :]) & bad[None, :]).any(1)
+                joints[p, dist[bad]] = np.nan
+                marked += int(bad.sum())
+            past.append(length)
+        while len(self.lengths) > self.max_tracks:
+            del self.lengths[next(iter(self.lengths))]
+        return marked
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), history=st.integers(3, 12), min_samples=st.integers(1, 5))
+def test_bone_filter_equals_a_per_person_loop(seed, history, min_samples):
+    """Random crowds over many frames: ids coming and going (more than the filter keeps, so
+    the oldest are forgotten), untracked people, an id twice in a frame, missing joints and
+    wrong limbs: the same joints marked, the same counts."""
+    from maem_ros.core import bone_filter
+    from maem_ros.core.skeleton import SPORTCENTER_13
+    names = list(SPORTCENTER_13.names)
+    rng = np.random.default_rng(seed)
+    fast = bone_filter.BoneLengthFilter(names, 0.2, history, min_samples)
+    ref = _BoneFilterLoop(names, 0.2, history, min_samples, 6)
+    bodies = rng.uniform(-1, 1, (12, 13, 3))
+    marked = 0
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(bone_filter, "_MAX_TRACKS", 6)
+        marked = _run_bone_filters(fast, ref, bodies, rng)
+    assert marked > 0
+
+
+def _run_bone_filters(fast, ref, bodies, rng) -> int:
+    """Feed both filters the same 40 random frames; assert equal outputs; total marked."""
+    marked = 0
+    for frame in range(40):
+        ids = rng.choice(np.arange(-1, 12), size=rng.integers(0, 8))
+        J = bodies[np.maximum(ids, 0)] + rng.normal(0, 0.01, (len(ids), 13, 3))
+        J[rng.random(J.shape[:2]) < 0.1] = np.nan
+        wrong = rng.random(J.shape[:2]) < 0.1
+        J[wrong] += rng.normal(0, 0.5, (int(wrong.sum()), 3))
+        if frame == 20:
+            fast.reset(), ref.lengths.clear()
+        a, b = J.copy(), J.copy()
+        n = fast.apply(ids, a)
+        assert n == ref.apply(ids, b)
+        np.testing.assert_array_equal(a, b)
+        marked += n
+    return marked
