@@ -691,21 +691,26 @@ def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int], joints: n
     finite = np.isfinite(pj).all(axis=2)  # (P, J)
     ends = np.asarray(bones, dtype=np.intp).reshape(-1, 2)
     bone_ok = finite[:, ends[:, 0]] & finite[:, ends[:, 1]]  # (P, B)
-    segments = pj[:, ends]  # (P, B, 2, 3)
     height = np.where(finite, pj[..., 2], -np.inf)
     top = pj[np.arange(len(pj)), np.argmax(height, axis=1)] if pj.shape[1] else pj[:, :0]
-    # the message types need one Point object per point: built from plain lists (the
-    # selection above is vectorised; per-point work is only the object construction)
-    for p in np.flatnonzero((pid >= 0) & finite.any(axis=1)):
+    shown = np.flatnonzero((pid >= 0) & finite.any(axis=1))
+    # the message types need one Point object per point: one per shown finite joint, built
+    # from one plain list and shared by the joint and bone lists (same values on the wire)
+    seen = np.zeros_like(finite)
+    seen[shown] = finite[shown]
+    points = _points(pj[seen])
+    slot = np.cumsum(seen).reshape(seen.shape) - 1  # (P, J) index into points where seen
+    first = np.concatenate([[0], np.cumsum(seen.sum(1))])
+    for p in shown.tolist():
         color, mid = id_color(int(pid[p])), int(pid[p])
         joint_m = Marker(header=header, ns=NS_JOINTS, id=mid, type=Marker.SPHERE_LIST,
                          action=Marker.ADD, lifetime=life, color=color,
-                         points=_points(pj[p][finite[p]]))
+                         points=points[first[p]:first[p + 1]])
         joint_m.pose.orientation.w = 1.0
         joint_m.scale.x = joint_m.scale.y = joint_m.scale.z = joint_diameter
         bone_m = Marker(header=header, ns=NS_BONES, id=mid, type=Marker.LINE_LIST,
                         action=Marker.ADD, lifetime=life, color=color,
-                        points=_points(segments[p][bone_ok[p]].reshape(-1, 3)))
+                        points=[points[k] for k in slot[p][ends[bone_ok[p]]].ravel().tolist()])
         bone_m.pose.orientation.w = 1.0
         bone_m.scale.x = bone_width
         text_m = Marker(header=header, ns=NS_LABELS, id=mid, type=Marker.TEXT_VIEW_FACING,
