@@ -380,6 +380,24 @@ def test_skeleton_markers_well_formed():
     assert by[(wire.NS_JOINTS, 7)].color != by[(wire.NS_JOINTS, 12)].color
 
 
+def test_skeleton_marker_points_are_the_joints_and_bone_ends():
+    """Joint lists hold each shown person's finite joints in order, bone lists both ends of
+    every bone with two finite ends, whoever is skipped before them in the frame."""
+    rng = np.random.default_rng(2)
+    joints = rng.normal(0, 1, (4, 13, 3))
+    joints[rng.random((4, 13)) < 0.3] = np.nan
+    ids = [-1, 3, 9, 4]  # a tentative person first: not shown, its joints not in any list
+    arr = wire.skeleton_markers(0, "world", ids, joints, SPORTCENTER_13.bones, 0.5)
+    by = {(m.ns, m.id): m for m in arr.markers[1:]}
+    xyz = lambda m: np.array([[p.x, p.y, p.z] for p in m.points]).reshape(-1, 3)  # noqa: E731
+    for p, pid in enumerate(ids[1:], start=1):
+        finite = np.isfinite(joints[p]).all(-1)
+        np.testing.assert_array_equal(xyz(by[(wire.NS_JOINTS, pid)]), joints[p][finite])
+        ok = [(a, b) for a, b in SPORTCENTER_13.bones if finite[a] and finite[b]]
+        want = joints[p][np.array(ok, dtype=int).reshape(-1)].reshape(-1, 3)
+        np.testing.assert_array_equal(xyz(by[(wire.NS_BONES, pid)]), want)
+
+
 def test_image_helpers():
     import cv2
     img = np.random.default_rng(0).integers(0, 255, (6, 5, 3), dtype=np.uint8)
