@@ -36,6 +36,8 @@ def scene():
     # compile the epipolar kernel (numba) before any node runs: a first-frame stall longer than
     # max_wait would make the synchroniser treat every camera as dead for one frame
     associate(sc.rig, {c: sc.detections(c, 0) for c in sc.rig.names}, AssociationParams())
+    from maem_ros.core import triangulation_kernel
+    triangulation_kernel.warmup()  # the triangulation node's RANSAC kernel likewise
     return sc
 
 

@@ -50,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 import yaml
 
-from maem_ros.core import epipolar
+from maem_ros.core import epipolar, triangulation_kernel
 from maem_ros.core.association import associate
 from maem_ros.core.camera import Rig
 from maem_ros.core.errors import InputError
@@ -256,13 +256,14 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
 
 
 def warm_numba_cache() -> None:
-    """Compile the epipolar kernels here (numba's on-disk cache) so the association node loads
-    them at its first frame instead of compiling them for seconds while frames queue up."""
+    """Compile the epipolar and RANSAC kernels here (numba's on-disk cache) so the nodes load
+    them at start instead of compiling them for seconds while frames queue up."""
     t0 = time.monotonic()
     epipolar.warmup()
+    triangulation_kernel.warmup()
     dt = time.monotonic() - t0
     if dt > 1.0:
-        log(f"compiled the epipolar kernels in {dt:.1f} s (cached for the nodes)")
+        log(f"compiled the numba kernels in {dt:.1f} s (cached for the nodes)")
 
 
 def _progress(listener: ArrivalListener, total: int, period_s: float = 1.0):
