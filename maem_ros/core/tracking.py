@@ -15,8 +15,6 @@ normal update with dt = 0.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
@@ -25,21 +23,17 @@ _NO_MATCH = 1e9
 _VELOCITY_ALPHA = 0.5
 
 
-@dataclass
-class _Track:
-    joints: np.ndarray  # (J,3) world m, NaN = never seen
-    velocity: np.ndarray  # (3,) m/s of the joint centroid
-    stamp_ns: int
-    hits: int
-    id: int = -1
-
-
 def _centroid(joints: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    return np.where(mask[:, None], joints, 0.0).sum(0) / max(int(mask.sum()), 1)
+    """(K,3) mean of each pose's joints (K,J,3) where mask (K,J); 0 where none."""
+    return np.where(mask[..., None], joints, 0.0).sum(1) / np.maximum(mask.sum(1), 1)[:, None]
 
 
 class Tracker:
-    """Assign persistent ids to poses (P,J,3) arriving with increasing stamps."""
+    """Assign persistent ids to poses (P,J,3) arriving with increasing stamps.
+
+    The live tracks are rows of a few arrays (joints (T,J,3), velocity (T,3), stamp, hits,
+    id), so a frame's update is array operations over all its matched people.
+    """
 
     def __init__(self, gate_m: float = 0.5, min_hits: int = 3, timeout_s: float = 1.0):
         if not np.isfinite(gate_m) or gate_m <= 0:
@@ -51,20 +45,23 @@ class Tracker:
         self.gate_m = float(gate_m)
         self.min_hits = int(min_hits)
         self.timeout_ns = int(round(timeout_s * 1e9))
-        self._tracks: list[_Track] = []
         self._next_id = 0
-        self._last_stamp: int | None = None
         self.resets = 0
+        self.reset()
 
     @property
     def num_tracks(self) -> int:
         """Live tracks, tentative ones included."""
-        return len(self._tracks)
+        return int(self._stamp.size)
 
     def reset(self) -> None:
         """Forget all tracks (the id counter keeps counting: ids are never reused)."""
-        self._tracks = []
-        self._last_stamp = None
+        self._joints = np.zeros((0, 0, 3))  # (T,J,3) world m, NaN = never seen
+        self._velocity = np.zeros((0, 3))  # (T,3) m/s of the joint centroid
+        self._stamp = np.zeros(0, np.int64)  # (T,) ns of the last update
+        self._hits = np.zeros(0, np.int64)
+        self._id = np.zeros(0, np.int64)  # -1 until confirmed
+        self._last_stamp: int | None = None
 
     def update(self, stamp_ns: int, joints: np.ndarray) -> np.ndarray:
         """Feed the poses of one frame; return (P,) int64 ids, -1 = tentative or untrackable.
@@ -82,37 +79,32 @@ class Tracker:
             self.reset()
             self.resets += 1
         self._last_stamp = stamp_ns
-        self._tracks = [t for t in self._tracks if stamp_ns - t.stamp_ns <= self.timeout_ns]
-        if self._tracks and self._tracks[0].joints.shape[0] != joints.shape[1]:
+        self._keep(stamp_ns - self._stamp <= self.timeout_ns)
+        if self.num_tracks and self._joints.shape[1] != joints.shape[1]:
             raise ValueError(f"joints: {joints.shape[1]} joints per pose, tracks have "
-                             f"{self._tracks[0].joints.shape[0]}")
+                             f"{self._joints.shape[1]}")
 
         ids = np.full(joints.shape[0], -1, np.int64)
         rows, cols = self._assign(stamp_ns, joints)
-        for r, c in zip(rows, cols):  # one iteration per matched person
-            self._update_track(self._tracks[r], stamp_ns, joints[c])
-            ids[c] = self._tracks[r].id
+        self._update_tracks(rows, stamp_ns, joints[cols])
+        ids[cols] = self._id[rows]
         matched = np.zeros(joints.shape[0], bool)
         matched[cols] = True
-        trackable = np.isfinite(joints).all(-1).any(-1)
-        for c in np.nonzero(~matched & trackable)[0]:
-            track = _Track(joints[c].copy(), np.zeros(3), stamp_ns, 1)
-            self._confirm(track)
-            self._tracks.append(track)
-            ids[c] = track.id
+        new = np.flatnonzero(~matched & np.isfinite(joints).all(-1).any(-1))
+        ids[new] = self._add_tracks(stamp_ns, joints[new])
         return ids
+
+    def _keep(self, keep: np.ndarray) -> None:
+        self._joints, self._velocity = self._joints[keep], self._velocity[keep]
+        self._stamp, self._hits, self._id = self._stamp[keep], self._hits[keep], self._id[keep]
 
     def _predicted(self, stamp_ns: int) -> np.ndarray:
         """(T,J,3) track joints moved to stamp_ns at constant centroid velocity."""
-        if not self._tracks:
-            return np.zeros((0, 0, 3))
-        last = np.stack([t.joints for t in self._tracks])
-        vel = np.stack([t.velocity for t in self._tracks])
-        dt = np.array([(stamp_ns - t.stamp_ns) * 1e-9 for t in self._tracks])
-        return last + (vel * dt[:, None])[:, None, :]
+        dt = (stamp_ns - self._stamp) * 1e-9
+        return self._joints + (self._velocity * dt[:, None])[:, None, :]
 
     def _assign(self, stamp_ns: int, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if not self._tracks or joints.shape[0] == 0:
+        if not self.num_tracks or joints.shape[0] == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.int64)
         pred = self._predicted(stamp_ns)
         both = np.isfinite(pred).all(-1)[:, None] & np.isfinite(joints).all(-1)[None]  # (T,P,J)
@@ -126,22 +118,45 @@ class Tracker:
         keep = ok[rows, cols]
         return rows[keep], cols[keep]
 
-    def _update_track(self, track: _Track, stamp_ns: int, joints: np.ndarray) -> None:
-        seen = np.isfinite(joints).all(-1)
-        common = seen & np.isfinite(track.joints).all(-1)
-        dt = (stamp_ns - track.stamp_ns) * 1e-9
-        if dt > 0 and common.any():
-            v = (_centroid(joints, common) - _centroid(track.joints, common)) / dt
-            track.velocity = v if track.hits == 1 else (
-                _VELOCITY_ALPHA * v + (1 - _VELOCITY_ALPHA) * track.velocity)
+    def _update_tracks(self, rows: np.ndarray, stamp_ns: int, joints: np.ndarray) -> None:
+        """Tracks ``rows`` (K,) (ascending) take the matched poses joints (K,J,3)."""
+        if not rows.size:
+            return
+        last = self._joints[rows]
+        seen = np.isfinite(joints).all(-1)  # (K,J)
+        common = seen & np.isfinite(last).all(-1)
+        dt = (stamp_ns - self._stamp[rows]) * 1e-9
+        moved = (dt > 0) & common.any(-1)
+        with np.errstate(invalid="ignore", divide="ignore"):  # rows not moved: discarded
+            v = (_centroid(joints, common) - _centroid(last, common)) / dt[:, None]
+        smoothed = np.where((self._hits[rows] == 1)[:, None], v,
+                            _VELOCITY_ALPHA * v + (1 - _VELOCITY_ALPHA) * self._velocity[rows])
+        velocity = np.where(moved[:, None], smoothed, self._velocity[rows])
         # joints not seen now keep their last position, carried along by the velocity
-        carried = track.joints + track.velocity * max(dt, 0.0)
-        track.joints = np.where(seen[:, None], joints, carried)
-        track.stamp_ns = stamp_ns
-        track.hits += 1
-        self._confirm(track)
+        carried = last + velocity[:, None, :] * np.maximum(dt, 0.0)[:, None, None]
+        self._joints[rows] = np.where(seen[..., None], joints, carried)
+        self._velocity[rows] = velocity
+        self._stamp[rows] = stamp_ns
+        self._hits[rows] += 1
+        self._confirm(rows)
 
-    def _confirm(self, track: _Track) -> None:
-        if track.id < 0 and track.hits >= self.min_hits:
-            track.id = self._next_id
-            self._next_id += 1
+    def _add_tracks(self, stamp_ns: int, joints: np.ndarray) -> np.ndarray:
+        """New tentative tracks for poses joints (K,J,3), in order; returns their ids."""
+        K = joints.shape[0]
+        rows = np.arange(self.num_tracks, self.num_tracks + K)
+        if not self.num_tracks:
+            self._joints = np.zeros((0,) + joints.shape[1:])
+        self._joints = np.concatenate([self._joints, joints])
+        self._velocity = np.concatenate([self._velocity, np.zeros((K, 3))])
+        self._stamp = np.concatenate([self._stamp, np.full(K, stamp_ns, np.int64)])
+        self._hits = np.concatenate([self._hits, np.ones(K, np.int64)])
+        self._id = np.concatenate([self._id, np.full(K, -1, np.int64)])
+        self._confirm(rows)
+        return self._id[rows]
+
+    def _confirm(self, rows: np.ndarray) -> None:
+        """Give the tentative tracks among ``rows`` with min_hits updates the next ids, in
+        the order of ``rows``."""
+        now = rows[(self._id[rows] < 0) & (self._hits[rows] >= self.min_hits)]
+        self._id[now] = self._next_id + np.arange(now.size)
+        self._next_id += int(now.size)
