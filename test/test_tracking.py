@@ -254,7 +254,9 @@ class _TrackerLoop:
             ok = (both.sum(-1) > 0) & (cost < self.gate)
             rows, cols = linear_sum_assignment(np.where(ok, cost, 1e9))
             rows, cols = rows[ok[rows, cols]], cols[ok[rows, cols]]
-        centroid = lambda X, m: np.where(m[:, None], X, 0.0).sum(0) / max(int(m.sum()), 1)  # noqa: E731
+        def centroid(X, m):
+            return np.where(m[:, None], X, 0.0).sum(0) / max(int(m.sum()), 1)
+
         for r, c in zip(rows, cols):
             t, X = self.tracks[r], joints[c]
             seen = np.isfinite(X).all(-1)
@@ -268,7 +270,8 @@ class _TrackerLoop:
             ids[c] = self._confirm(t)
         matched = np.isin(np.arange(len(joints)), cols)
         for c in np.flatnonzero(~matched & np.isfinite(joints).all(-1).any(-1)):
-            t = {"joints": joints[c].copy(), "vel": np.zeros(3), "stamp": stamp, "hits": 1, "id": -1}
+            t = {"joints": joints[c].copy(), "vel": np.zeros(3), "stamp": stamp, "hits": 1,
+                 "id": -1}
             self.tracks.append(t)
             ids[c] = self._confirm(t)
         return ids

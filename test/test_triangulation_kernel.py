@@ -14,7 +14,8 @@ from maem_ros.core.triangulation import (TriangulationParams, _MIN_WEIGHT, _rans
                                          triangulate_members)
 from maem_ros.core.triangulation_kernel import ransac_keypoints
 
-needs_numba = pytest.mark.skipif(not triangulation_kernel.have_numba(), reason="numba not installed")
+needs_numba = pytest.mark.skipif(not triangulation_kernel.have_numba(),
+                                 reason="numba not installed")
 
 
 def ring_projections(k: int, rng: np.random.Generator) -> np.ndarray:
@@ -39,7 +40,8 @@ def random_members(seed: int, clusters: int, views: int, joints: int):
     rng = np.random.default_rng(seed)
     P_rig = ring_projections(views + 2, rng)
     cam = np.stack([rng.permutation(views + 2)[:views] for _ in range(clusters)])
-    X = rng.uniform([-3, -3, 0], [3, 3, 2], (clusters, 1, 3)) + rng.normal(0, 0.3, (clusters, joints, 3))
+    X = (rng.uniform([-3, -3, 0], [3, 3, 2], (clusters, 1, 3))
+         + rng.normal(0, 0.3, (clusters, joints, 3)))
     Xh = np.concatenate([X, np.ones(X.shape[:-1] + (1,))], -1)
     proj = np.einsum("cmik,cjk->cmji", P_rig[cam], Xh)
     uv = proj[..., :2] / proj[..., 2:] + rng.normal(0, 1.5, (clusters, views, joints, 2))
