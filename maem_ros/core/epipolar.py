@@ -43,8 +43,9 @@ undefined line: its distance is inf (or NaN, mapped to inf), which rejects the p
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
+from typing import Mapping
 
 import numpy as np
 
@@ -109,20 +110,12 @@ class PointRows:
     ``(flat[rows[i] + 2k], flat[rows[i] + 2k + 1])`` rectified px (NaN = missing).
 
     flat: 1D C-contiguous float32/float64 (may span other message fields between rows, never
-    read); rows (N,) int64 element offsets; n points per detection. ranges (N, blocks, 2):
-    the numba kernel's cache of each detection's coordinate range (min, max) per block of
-    :func:`block_order`, filled on first use (NaN = not yet), shared by every camera pair.
+    read); rows (N,) int64 element offsets; n points per detection.
     """
 
     flat: np.ndarray
     rows: np.ndarray
     n: int
-    ranges: np.ndarray = field(default=None, compare=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if self.ranges is None:
-            blocks = len(block_order(self.n)) if self.n else 0
-            object.__setattr__(self, "ranges", np.full((self.rows.size, blocks, 2), np.nan))
 
     @property
     def count(self) -> int:
@@ -147,7 +140,9 @@ def point_rows(x: np.ndarray | PointRows) -> PointRows:
                         and x.strides[0] >= 0 and x.ctypes.data % item == 0):
         x = np.ascontiguousarray(x)
     if N == 0 or n == 0:
-        return PointRows(np.zeros(max(2 * n, 1), dtype=x.dtype), np.zeros(N, dtype=np.int64), n)
+        flat = np.zeros(max(2 * n, 1), dtype=x.dtype)
+        flat.setflags(write=False)  # the kernel's one array type: read-only
+        return PointRows(flat, np.zeros(N, dtype=np.int64), n)
     step = x.strides[0] // item if N > 1 else 2 * n
     span = (N - 1) * step + 2 * n
     flat = np.lib.stride_tricks.as_strided(x, shape=(span,), strides=(item,), writeable=False)
@@ -158,11 +153,29 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
                   ia: np.ndarray, jb: np.ndarray, tau: float, symmetric: bool = True,
                   early_exit: bool = True, backend: str = "auto", precision: str = "mixed"
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Distance sums of the detection pairs (ia[s] in a, jb[s] in b).
+    """Distance sums of the detection pairs (ia[s] in a, jb[s] in b) of one camera pair.
 
     xa (Na,n,2), xb (Nb,n,2) rectified px (float32 or float64, point k = same body spot, NaN =
     missing) or their :class:`PointRows`; F (3,3) a->b; ia, jb (S,) int detection indices.
-    Returns (sums (S,) px, used (S,) int points summed). Reject a pair iff
+    Returns (sums (S,) px, used (S,) int points summed): :func:`frame_sums` of one camera pair.
+    """
+    ia = np.asarray(ia)
+    return frame_sums({0: point_rows(xa), 1: point_rows(xb)}, {(0, 1): F},
+                      np.zeros(ia.shape, np.int64), ia, np.ones(ia.shape, np.int64), jb, tau,
+                      symmetric, early_exit, backend, precision)
+
+
+def frame_sums(points: Mapping[int, np.ndarray | PointRows],
+               F: Mapping[tuple[int, int], np.ndarray], cam_a: np.ndarray, det_a: np.ndarray,
+               cam_b: np.ndarray, det_b: np.ndarray, tau: float, symmetric: bool = True,
+               early_exit: bool = True, backend: str = "auto", precision: str = "mixed"
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Distance sums of the detection pairs of every camera pair of a frame, in one kernel call.
+
+    points[c]: camera c's (N,n,2) rectified px (float32 or float64, point k = same body spot,
+    NaN = missing) or :class:`PointRows` (read in place); F[(a, b)] (3,3) with
+    ``x_b^T F x_a = 0``; pair s is detection det_a[s] of camera cam_a[s] against det_b[s] of
+    camera cam_b[s]. Returns (sums (S,) px, used (S,) int points summed). Reject a pair iff
     ``sums >= tau * used`` (identical with or without early exit). An accepted pair's sum is
     complete (sum / used = its mean distance); with early exit a rejected pair's sum and count
     are partial.
@@ -177,39 +190,94 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
         raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if precision not in PRECISIONS:
         raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
-    ra, rb = point_rows(xa), point_rows(xb)
-    if ra.n != rb.n:
-        raise ValueError(f"epipolar points: expected (Na,n,2) and (Nb,n,2), got n={ra.n} "
-                         f"and n={rb.n}")
-    ia = np.ascontiguousarray(ia, dtype=np.int64)
-    jb = np.ascontiguousarray(jb, dtype=np.int64)
-    n = ra.n
-    if ia.shape != jb.shape or ia.ndim != 1:
-        raise ValueError(f"epipolar pairs: ia, jb must be equal-length 1D, got {ia.shape}, "
-                         f"{jb.shape}")
-    if ia.size == 0 or n == 0:
-        return np.zeros(ia.size), np.zeros(ia.size, dtype=np.int64)
-    # the kernel runs without bounds checks
-    if ia.min() < 0 or ia.max() >= ra.count or jb.min() < 0 or jb.max() >= rb.count:
-        raise ValueError("epipolar pairs: detection index out of range")
-    F = np.ascontiguousarray(F, dtype=np.float64)
+    pairs = [np.ascontiguousarray(v, dtype=np.int64) for v in (cam_a, det_a, cam_b, det_b)]
+    if any(v.ndim != 1 or v.shape != pairs[0].shape for v in pairs):
+        raise ValueError(f"epipolar pairs: cameras and detections must be equal-length 1D, got "
+                         f"{[v.shape for v in pairs]}")
+    cam_a, det_a, cam_b, det_b = pairs
+    S = cam_a.size
+    cams = sorted(set(np.unique(cam_a).tolist()) | set(np.unique(cam_b).tolist()))
+    missing = [c for c in cams if c not in points]
+    if missing:
+        raise ValueError(f"epipolar pairs: no points for camera(s) {missing}")
+    rows = {c: point_rows(points[c]) for c in cams}
+    sizes = {rows[c].n for c in cams}
+    if len(sizes) > 1:
+        raise ValueError(f"epipolar points: expected (N,n,2) with one n for every camera, got "
+                         f"n={sorted(sizes)}")
+    n = sizes.pop() if sizes else 0
+    if S == 0 or n == 0:
+        return np.zeros(S), np.zeros(S, dtype=np.int64)
+    for cam, det in ((cam_a, det_a), (cam_b, det_b)):
+        count = np.array([rows[c].count for c in cams])[np.searchsorted(cams, cam)]
+        if det.min() < 0 or np.any(det >= count):  # the kernel runs without bounds checks
+            raise ValueError("epipolar pairs: detection index out of range")
+    groups = np.unique(cam_a * (max(cams) + 1) + cam_b, return_inverse=True)
+    keys, which = groups[0], groups[1].reshape(-1)
+    Fs = []
+    for k in keys.tolist():
+        a, b = divmod(k, max(cams) + 1)
+        if (a, b) not in F:
+            raise ValueError(f"epipolar pairs: no fundamental matrix for camera pair {(a, b)}")
+        Fs.append(np.asarray(F[(a, b)], dtype=np.float64))
     use_numba = backend == "numba" or (backend == "auto" and _numba is not None)
     if not use_numba:
-        return _numpy_sums(ra, rb, F, ia, jb, float(tau) if early_exit else np.inf,
-                           bool(symmetric))
+        sums = np.zeros(S)
+        used = np.zeros(S, dtype=np.int64)
+        for g, Fg in enumerate(Fs):
+            s = np.flatnonzero(which == g)
+            sums[s], used[s] = _numpy_sums(rows[int(cam_a[s[0]])], rows[int(cam_b[s[0]])],
+                                           Fg, det_a[s], det_b[s],
+                                           float(tau) if early_exit else np.inf, bool(symmetric))
+        return sums, used
     if _numba is None:
         raise ValueError("backend: 'numba' requested but numba is not installed")
-    fa, fb = ra.flat, rb.flat
-    if fa.dtype != fb.dtype:
-        fa, fb = fa.astype(np.float64), fb.astype(np.float64)
+    return _numba_frame_sums(rows, cams, Fs, which, cam_a, det_a, cam_b, det_b, n, float(tau),
+                             bool(symmetric), bool(early_exit), precision)
+
+
+def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.ndarray],
+                      which: np.ndarray, cam_a: np.ndarray, det_a: np.ndarray,
+                      cam_b: np.ndarray, det_b: np.ndarray, n: int, tau: float,
+                      symmetric: bool, early_exit: bool, precision: str
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """The numba kernel on the pairs of a frame: detections numbered once (each one's centre and
+    block ranges computed once for all its pairs), pairs ordered by their a-side detection."""
+    flats = [rows[c].flat for c in cams]
+    if len({f.dtype for f in flats}) > 1:  # mixed float32/float64 cameras: all in float64
+        flats = [f.astype(np.float64) for f in flats]
+        for f in flats:
+            f.setflags(write=False)
     # float64 points (keypoints: few per detection) always take the float64 path
-    mixed = precision == "mixed" and fa.dtype == np.float32
-    scale = np.linalg.norm(F)  # distances do not depend on F's scale; unit norm for the bounds
-    F = F / scale if scale > 0 else F
-    mixed = mixed and _rsqrt_within_bound()
-    return _numba_kernel()(fa, ra.rows, fb, rb.rows, ra.ranges, rb.ranges, F, ia, jb,
-                           block_order(n), n, float(tau), bool(early_exit), bool(symmetric),
-                           mixed)
+    mixed = (precision == "mixed" and flats[0].dtype == np.float32 and _rsqrt_within_bound())
+    slot = np.searchsorted(cams, np.concatenate([cam_a, cam_b]))
+    offsets = np.concatenate([[0], np.cumsum([rows[c].count for c in cams])])
+    key = offsets[slot] + np.concatenate([det_a, det_b])
+    dets, idx = np.unique(key, return_inverse=True)
+    det_slot = np.searchsorted(offsets, dets, side="right") - 1
+    det_row = np.concatenate([rows[c].rows for c in cams])[dets]
+    S = cam_a.size
+    pa, pb = idx[:S], idx[S:]
+    # distances do not depend on F's scale; unit norm for the error bounds
+    unit = np.stack([f / np.linalg.norm(f) if np.linalg.norm(f) > 0 else f for f in Fs])
+    order = np.lexsort((pb, pa))  # a detection's pairs one after another: its block stays hot
+    sums, used = _numba_kernel()(_numba_list(flats), det_slot, det_row, unit.reshape(-1, 9),
+                                 np.ascontiguousarray(which[order], dtype=np.int64),
+                                 np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]),
+                                 block_order(n), n, tau, early_exit, symmetric, mixed)
+    out_sums = np.empty(S)
+    out_used = np.empty(S, dtype=np.int64)
+    out_sums[order] = sums
+    out_used[order] = used
+    return out_sums, out_used
+
+
+def _numba_list(flats: list[np.ndarray]):
+    """The cameras' flat point arrays as one numba typed list (no copies)."""
+    out = _numba.typed.List()
+    for f in flats:
+        out.append(f)
+    return out
 
 
 def warmup() -> None:
@@ -370,10 +438,9 @@ def _numba_kernel():
     def block32(a, b, c, g, symmetric):
         """float32 sums over a block of complete points, centred (u - c[0], v - c[1]) in a,
         (u - c[2], v - c[3]) in b, g (9,) float32 F of the centred points:
-        (sum |e| wa, sum |e| wb, sum wa, sum wb, sum |e| wa^2, sum |e| wb^2) with
-        e = x_b^T g x_a, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12|| (wb terms 0 when not
-        symmetric)."""
-        pa = pb = sa = sb = qa = qb = np.float32(0.0)
+        (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and w = wa + wb (symmetric) or
+        wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||."""
+        p = s = q = np.float32(0.0)
         for k in range(a.shape[0] // 2):
             ua = a[2 * k] - c[0]
             va = a[2 * k + 1] - c[1]
@@ -383,21 +450,16 @@ def _numba_kernel():
             l1 = g[3] * ua + g[4] * va + g[5]
             l2 = g[6] * ua + g[7] * va + g[8]
             e = abs(ub * l0 + vb * l1 + l2)
-            wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
-            ea = e * wa
-            pa += ea
-            sa += wa
-            qa += ea * wa
+            w = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
             if symmetric:
                 m0 = g[0] * ub + g[3] * vb + g[6]
                 m1 = g[1] * ub + g[4] * vb + g[7]
-                wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
-                eb = e * wb
-                pb += eb
-                sb += wb
-                qb += eb * wb
-        return (np.float64(pa), np.float64(pb), np.float64(sa), np.float64(sb),
-                np.float64(qa), np.float64(qb))
+                w += np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+            ew = e * w
+            p += ew
+            s += w
+            q += ew * w
+        return np.float64(p), np.float64(s), np.float64(q)
 
     @plain
     def block_range(x, ranges, r):
@@ -435,15 +497,15 @@ def _numba_kernel():
         return 0.0, 0.0
 
     @plain
-    def centred_f(F, ca0, ca1, cb0, cb1, g, G):
-        """g (9,) float32 unit-norm F of the centred points T_b^T F T_a; G (3,3) = |g|.
-        Returns the norm of T_b^T F T_a: the line coefficients (first two) of g are F's
-        divided by it."""
+    def centred_f(f, ca0, ca1, cb0, cb1, g, G):
+        """g (9,) float32 unit-norm F of the centred points T_b^T F T_a (f (9,) row-major F);
+        G (3,3) = |g|. Returns the norm of T_b^T F T_a: the line coefficients (first two) of g
+        are F's divided by it."""
         h = np.empty((3, 3))
         for r in range(3):
-            h[r, 0] = F[r, 0]
-            h[r, 1] = F[r, 1]
-            h[r, 2] = F[r, 0] * ca0 + F[r, 1] * ca1 + F[r, 2]
+            h[r, 0] = f[3 * r]
+            h[r, 1] = f[3 * r + 1]
+            h[r, 2] = f[3 * r] * ca0 + f[3 * r + 1] * ca1 + f[3 * r + 2]
         for col in range(3):
             h[2, col] = cb0 * h[0, col] + cb1 * h[1, col] + h[2, col]
         scale = np.sqrt((h * h).sum())
@@ -454,10 +516,11 @@ def _numba_kernel():
         return scale
 
     @plain
-    def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, ha, hb):
+    def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, h):
         """(float32 block sum, upper bound (px) on its distance to the exact sum); xa0, xa1,
         xb0, xb1 bound |u|, |v| of the centred points in a and b (module docstring); epi:
-        EPIPOLE_NORM in g's units. (inf, inf) when the block must be summed in float64."""
+        EPIPOLE_NORM in g's units; h = 0.5 (symmetric) or 1. (inf, inf) when the block must be
+        summed in float64."""
         bil = 0.0
         la = 0.0
         lb = 0.0
@@ -470,18 +533,17 @@ def _numba_kernel():
                     la += G[r, col] * xa[col]
                 if col < 2:
                     lb += G[r, col] * xb[r]
-        pa, pb, sa, sb, qa, qb = sums
+        lmax = max(la, lb) if h != 1.0 else la
+        p, s, q = sums
         # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM, i.e. <= epi / scale
-        # in g's units) has a float32 line norm within the rounding bound 6 u L of that:
-        # its weight, and so the block's weight sum, reaches 1 / (epi + 6 u L); such a block
-        # goes to float64 (part inf)
-        if sa * (epi + 6.0 * _U32 * la) * (1.0 + 2.0 * _RSQRT_ERR) >= 1.0:
+        # in g's units) has a float32 line norm within the rounding bound 6 u L of that: its
+        # weight, and so the block's weight sum, reaches 1 / (epi + 6 u L); such a block goes
+        # to float64 (part inf)
+        if not s * (epi + 6.0 * _U32 * lmax) * (1.0 + 2.0 * _RSQRT_ERR) < 1.0:
             return np.inf, np.inf
-        if hb != 0.0 and sb * (epi + 6.0 * _U32 * lb) * (1.0 + 2.0 * _RSQRT_ERR) >= 1.0:
-            return np.inf, np.inf
-        part = ha * pa + hb * pb
-        err = (10.0 * _U32 * bil * (ha * sa + hb * sb)
-               + 8.0 * _U32 * (ha * la * qa + hb * lb * qb)
+        part = h * p
+        # sum |e| (wa^2 + wb^2) <= sum |e| w^2 bounds the line-norm term of both sides
+        err = (10.0 * _U32 * bil * h * s + 8.0 * _U32 * h * lmax * q
                + (_RSQRT_ERR + 520.0 * _U32) * part)
         return part, err * (1.0 + _BOUND_SLACK)
 
@@ -504,32 +566,43 @@ def _numba_kernel():
         return total, count
 
     @plain
-    def sums_kernel(fa, rows_a, fb, rows_b, ranges_a, ranges_b, F, ia, jb, blocks, n, tau,
-                    early_exit, symmetric, mixed):
-        S = ia.shape[0]
-        f = F.ravel().copy()
-        ha = 0.5 if symmetric else 1.0
-        hb = 0.5 if symmetric else 0.0
+    def sums_kernel(flats, det_slot, det_row, fs, fk, pa, pb, blocks, n, tau, early_exit,
+                    symmetric, mixed):
+        """(sums, used) of pairs s (detections pa[s], pb[s] under unit F fs[fk[s]]); detection
+        d's points are flats[det_slot[d]][det_row[d]:det_row[d] + 2n]."""
+        S = pa.shape[0]
+        D = det_row.shape[0]
+        h = 0.5 if symmetric else 1.0
         sums = np.zeros(S)
         used = np.zeros(S, dtype=np.int64)
         if not mixed:
             for s in range(S):
-                a = fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n]
-                b = fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n]
-                sums[s], used[s] = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
+                i = pa[s]
+                j = pb[s]
+                a = flats[det_slot[i]][det_row[i]:det_row[i] + 2 * n]
+                b = flats[det_slot[j]][det_row[j]:det_row[j] + 2 * n]
+                sums[s], used[s] = pair64(a, b, fs[fk[s]], blocks, n, tau, early_exit, h,
+                                          symmetric)
             return sums, used
+        # once per detection: its centre, its block ranges (filled on first use)
+        cen = np.empty((D, 2))
+        for d in range(D):
+            x = flats[det_slot[d]][det_row[d]:det_row[d] + 2 * n]
+            cen[d, 0], cen[d, 1] = centre(x, n)
+        ranges = np.full((D, blocks.shape[0], 2), np.nan)
         # each pair's centred float32 F, then the blocks outermost: one block of every
-        # detection of the camera pair (4 KB each) stays in cache while all its candidate
-        # pairs read it, instead of each pair streaming whole detections from memory
+        # detection of the frame (4 KB each) stays in cache while all its candidate pairs read
+        # it, instead of each pair streaming whole detections from memory
         g = np.empty((S, 9), dtype=np.float32)
         G = np.empty((S, 3, 3))
         c = np.empty((S, 4), dtype=np.float32)
         epi = np.empty(S)
         for s in range(S):
-            ca0, ca1 = centre(fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n], n)
-            cb0, cb1 = centre(fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n], n)
-            c[s, 0], c[s, 1], c[s, 2], c[s, 3] = ca0, ca1, cb0, cb1
-            epi[s] = EPIPOLE_NORM / centred_f(F, ca0, ca1, cb0, cb1, g[s], G[s])
+            i = pa[s]
+            j = pb[s]
+            c[s, 0], c[s, 1], c[s, 2], c[s, 3] = cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1]
+            epi[s] = EPIPOLE_NORM / centred_f(fs[fk[s]], cen[i, 0], cen[i, 1], cen[j, 0],
+                                              cen[j, 1], g[s], G[s])
         err = np.zeros(S)
         alive = np.ones(S, dtype=np.bool_)  # not rejected early
         seen = 0
@@ -540,27 +613,27 @@ def _numba_kernel():
             for s in range(S):
                 if not alive[s]:
                     continue
-                i = ia[s]
-                j = jb[s]
-                ab = fa[rows_a[i] + 2 * lo:rows_a[i] + 2 * hi]
-                bb = fb[rows_b[j] + 2 * lo:rows_b[j] + 2 * hi]
+                i = pa[s]
+                j = pb[s]
+                ab = flats[det_slot[i]][det_row[i] + 2 * lo:det_row[i] + 2 * hi]
+                bb = flats[det_slot[j]][det_row[j] + 2 * lo:det_row[j] + 2 * hi]
                 p = np.inf
                 e = np.inf
-                lo_a, hi_a = block_range(ab, ranges_a[i], r)
-                lo_b, hi_b = block_range(bb, ranges_b[j], r)
+                lo_a, hi_a = block_range(ab, ranges[i], r)
+                lo_b, hi_b = block_range(bb, ranges[j], r)
                 if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
                     ca0, ca1, cb0, cb1 = c[s, 0], c[s, 1], c[s, 2], c[s, 3]
                     p, e = block_bound(G[s], epi[s], max(abs(hi_a - ca0), abs(lo_a - ca0)),
                                        max(abs(hi_a - ca1), abs(lo_a - ca1)),
                                        max(abs(hi_b - cb0), abs(lo_b - cb0)),
                                        max(abs(hi_b - cb1), abs(lo_b - cb1)),
-                                       block32(ab, bb, c[s], g[s], symmetric), ha, hb)
+                                       block32(ab, bb, c[s], g[s], symmetric), h)
                 if p < np.inf and e < np.inf:
                     sums[s] += p
                     err[s] += e
                     used[s] += hi - lo
                 else:  # missing points, a point at (or very near) the epipole: float64
-                    p, k = block64(ab, bb, f, ha, symmetric)
+                    p, k = block64(ab, bb, fs[fk[s]], h, symmetric)
                     sums[s] += p if p == p else np.inf
                     used[s] += k
                 # exact: sum - err is below the exact partial sum
@@ -571,9 +644,12 @@ def _numba_kernel():
             if alive[s] and not (total + err[s] < tau * used[s]) \
                     and not (total - err[s] >= tau * used[s]):
                 # the bound does not settle the decision: float64 throughout
-                a = fa[rows_a[ia[s]]:rows_a[ia[s]] + 2 * n]
-                b = fb[rows_b[jb[s]]:rows_b[jb[s]] + 2 * n]
-                sums[s], used[s] = pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric)
+                i = pa[s]
+                j = pb[s]
+                a = flats[det_slot[i]][det_row[i]:det_row[i] + 2 * n]
+                b = flats[det_slot[j]][det_row[j]:det_row[j] + 2 * n]
+                sums[s], used[s] = pair64(a, b, fs[fk[s]], blocks, n, tau, early_exit, h,
+                                          symmetric)
         return sums, used
 
     return sums_kernel
