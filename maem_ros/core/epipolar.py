@@ -260,8 +260,13 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     pa, pb = idx[:S], idx[S:]
     # distances do not depend on F's scale; unit norm for the error bounds
     unit = np.stack([f / np.linalg.norm(f) if np.linalg.norm(f) > 0 else f for f in Fs])
-    order = np.lexsort((pb, pa))  # a detection's pairs one after another: its block stays hot
-    sums, used = _numba_kernel()(_numba_list(flats), det_slot, det_row, unit.reshape(-1, 9),
+    # a detection's pairs one after another (its block stays hot), those of one camera pair
+    # together (they share its lines)
+    order = np.lexsort((pb, which, pa))
+    # each detection's first coordinate as an address: flats stay referenced during the call
+    base = np.array([f.ctypes.data for f in flats], dtype=np.int64)
+    det_addr = base[det_slot] + det_row * flats[0].dtype.itemsize
+    sums, used = _numba_kernel()(flats[0], det_addr, unit.reshape(-1, 9),
                                  np.ascontiguousarray(which[order], dtype=np.int64),
                                  np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]),
                                  block_order(n), n, tau, early_exit, symmetric, mixed)
@@ -270,14 +275,6 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     out_sums[order] = sums
     out_used[order] = used
     return out_sums, out_used
-
-
-def _numba_list(flats: list[np.ndarray]):
-    """The cameras' flat point arrays as one numba typed list (no copies)."""
-    out = _numba.typed.List()
-    for f in flats:
-        out.append(f)
-    return out
 
 
 def warmup() -> None:
@@ -394,6 +391,24 @@ def _numba_kernel():
     # afn: float32 1/sqrt as the hardware estimate + one Newton step (bounded by _RSQRT_ERR)
     jit32 = nb.njit(fastmath=flags | {"afn"}, **opts)
     plain = nb.njit(**opts)
+    # per pair and block helpers: inlined, so the hot loop passes no array views through calls
+    inline = nb.njit(inline="always", **opts)
+
+    @nb.extending.intrinsic
+    def pointer_like(typingctx, like, address):
+        """The int64 address as a pointer to like's dtype."""
+        sig = nb.types.CPointer(like.dtype)(like, address)
+
+        def codegen(context, builder, signature, args):
+            return builder.inttoptr(args[1], context.get_value_type(signature.return_type))
+        return sig, codegen
+
+    @inline
+    def points(like, address, start, count):
+        """count coordinates from element start of the detection at address: a view without
+        reference counting (a typed list of the cameras' arrays costs ~20 ns per access in the
+        hot loop); the caller keeps the arrays alive."""
+        return nb.carray(pointer_like(like, address + start * like.itemsize), (count,))
 
     q_epipole = EPIPOLE_NORM ** 2
 
@@ -461,6 +476,43 @@ def _numba_kernel():
             q += ew * w
         return np.float64(p), np.float64(s), np.float64(q)
 
+    @jit32
+    def block32x2(a, b, d, ca, cb, cd, g, k, symmetric):
+        """block32 of two pairs (a, b) under g and (a, d) under k that share a's detection and
+        camera pair (g, k have equal rows 0-1): a's lines and weights computed once. ca, cb,
+        cd (2,) the centres; returns block32's three sums for each pair."""
+        p1 = s1 = q1 = p2 = s2 = q2 = np.float32(0.0)
+        for j in range(a.shape[0] // 2):
+            ua = a[2 * j] - ca[0]
+            va = a[2 * j + 1] - ca[1]
+            l0 = g[0] * ua + g[1] * va + g[2]
+            l1 = g[3] * ua + g[4] * va + g[5]
+            wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
+            ub = b[2 * j] - cb[0]
+            vb = b[2 * j + 1] - cb[1]
+            e = abs(ub * l0 + vb * l1 + (g[6] * ua + g[7] * va + g[8]))
+            m0 = g[0] * ub + g[3] * vb + g[6]
+            m1 = g[1] * ub + g[4] * vb + g[7]
+            wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+            w = wa + wb if symmetric else wa
+            ew = e * w
+            p1 += ew
+            s1 += w
+            q1 += ew * w
+            ud = d[2 * j] - cd[0]
+            vd = d[2 * j + 1] - cd[1]
+            e = abs(ud * l0 + vd * l1 + (k[6] * ua + k[7] * va + k[8]))
+            m0 = k[0] * ud + k[3] * vd + k[6]
+            m1 = k[1] * ud + k[4] * vd + k[7]
+            wd = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+            w = wa + wd if symmetric else wa  # the select keeps the loop branch-free
+            ew = e * w
+            p2 += ew
+            s2 += w
+            q2 += ew * w
+        return ((np.float64(p1), np.float64(s1), np.float64(q1)),
+                (np.float64(p2), np.float64(s2), np.float64(q2)))
+
     @plain
     def block_range(x, ranges, r):
         """(min, max) of all coordinates of a block's float32 points (2m,), cached in
@@ -498,9 +550,11 @@ def _numba_kernel():
 
     @plain
     def centred_f(f, ca0, ca1, cb0, cb1, g, G):
-        """g (9,) float32 unit-norm F of the centred points T_b^T F T_a (f (9,) row-major F);
-        G (3,3) = |g|. Returns the norm of T_b^T F T_a: the line coefficients (first two) of g
-        are F's divided by it."""
+        """g (9,) float32 T_b^T F T_a: F (f (9,) row-major, unit norm) of the points centred on
+        (ca0, ca1) in a and (cb0, cb1) in b; G (3,3) = |g|. Rows 0-1 depend on a's centre only
+        (a detection's pairs in one camera pair share them bit for bit), and (g x)_12 =
+        (F x)_12, so EPIPOLE_NORM applies in g's units as it is; the error bound does not
+        depend on g's scale."""
         h = np.empty((3, 3))
         for r in range(3):
             h[r, 0] = f[3 * r]
@@ -508,12 +562,10 @@ def _numba_kernel():
             h[r, 2] = f[3 * r] * ca0 + f[3 * r + 1] * ca1 + f[3 * r + 2]
         for col in range(3):
             h[2, col] = cb0 * h[0, col] + cb1 * h[1, col] + h[2, col]
-        scale = np.sqrt((h * h).sum())
         for r in range(3):
             for col in range(3):
-                g[3 * r + col] = np.float32(h[r, col] / scale)
+                g[3 * r + col] = np.float32(h[r, col])
                 G[r, col] = abs(np.float64(g[3 * r + col]))
-        return scale
 
     @plain
     def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, h):
@@ -521,24 +573,20 @@ def _numba_kernel():
         xb0, xb1 bound |u|, |v| of the centred points in a and b (module docstring); epi:
         EPIPOLE_NORM in g's units; h = 0.5 (symmetric) or 1. (inf, inf) when the block must be
         summed in float64."""
-        bil = 0.0
-        la = 0.0
-        lb = 0.0
-        xa = (xa0, xa1, 1.0)
-        xb = (xb0, xb1, 1.0)
-        for r in range(3):
-            for col in range(3):
-                bil += G[r, col] * xb[r] * xa[col]
-                if r < 2:
-                    la += G[r, col] * xa[col]
-                if col < 2:
-                    lb += G[r, col] * xb[r]
+        # rows of G times (xa0, xa1, 1), then xb's weights: no loops, no tuple indexing (this
+        # runs per pair and block)
+        r0 = G[0, 0] * xa0 + G[0, 1] * xa1 + G[0, 2]
+        r1 = G[1, 0] * xa0 + G[1, 1] * xa1 + G[1, 2]
+        r2 = G[2, 0] * xa0 + G[2, 1] * xa1 + G[2, 2]
+        bil = r0 * xb0 + r1 * xb1 + r2
+        la = r0 + r1
+        lb = (G[0, 0] + G[0, 1]) * xb0 + (G[1, 0] + G[1, 1]) * xb1 + G[2, 0] + G[2, 1]
         lmax = max(la, lb) if h != 1.0 else la
         p, s, q = sums
-        # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM, i.e. <= epi / scale
-        # in g's units) has a float32 line norm within the rounding bound 6 u L of that: its
-        # weight, and so the block's weight sum, reaches 1 / (epi + 6 u L); such a block goes
-        # to float64 (part inf)
+        # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM = epi in g's units)
+        # has a float32 line norm within the rounding bound 6 u L of that: its weight, and so
+        # the block's weight sum, reaches 1 / (epi + 6 u L); such a block goes to float64
+        # (part inf)
         if not s * (epi + 6.0 * _U32 * lmax) * (1.0 + 2.0 * _RSQRT_ERR) < 1.0:
             return np.inf, np.inf
         part = h * p
@@ -565,13 +613,58 @@ def _numba_kernel():
                 break
         return total, count
 
+    @inline
+    def pair_bound(G, ra, rb, c, sums3, h):
+        """block_bound of a pair from its blocks' coordinate ranges ra, rb (min, max) and its
+        centres c (4,)."""
+        return block_bound(G, EPIPOLE_NORM, max(abs(ra[1] - c[0]), abs(ra[0] - c[0])),
+                           max(abs(ra[1] - c[1]), abs(ra[0] - c[1])),
+                           max(abs(rb[1] - c[2]), abs(rb[0] - c[2])),
+                           max(abs(rb[1] - c[3]), abs(rb[0] - c[3])), sums3, h)
+
+    @inline
+    def settle(s, p, e, ab, bb, f, m, rest, h, symmetric, tau, early_exit, sums, err, used,
+               alive):
+        """Add pair s's block: the float32 sum p within e, or (e inf: missing points, a point
+        at or very near the epipole) the float64 sum of blocks ab, bb; then the exact early
+        exit, ``rest`` points still to come."""
+        if p < np.inf and e < np.inf:
+            sums[s] += p
+            err[s] += e
+            used[s] += m
+        else:
+            p, k = block64(ab, bb, f, h, symmetric)
+            sums[s] += p if p == p else np.inf
+            used[s] += k
+        # exact: sum - err is below the exact partial sum
+        if early_exit and sums[s] - err[s] >= tau * (used[s] + rest):
+            alive[s] = False
+
+    @inline
+    def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, f, h,
+               symmetric, tau, early_exit, sums, err, used, alive):
+        """Block r = points lo:hi of pair s alone."""
+        i = pa[s]
+        j = pb[s]
+        ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
+        bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
+        p = np.inf
+        e = np.inf
+        lo_a, hi_a = block_range(ab, ranges[i], r)
+        lo_b, hi_b = block_range(bb, ranges[j], r)
+        if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
+            p, e = pair_bound(G[s], ranges[i, r], ranges[j, r], c[s],
+                              block32(ab, bb, c[s], g[s], symmetric), h)
+        settle(s, p, e, ab, bb, f, hi - lo, rest, h, symmetric, tau, early_exit, sums, err,
+               used, alive)
+
     @plain
-    def sums_kernel(flats, det_slot, det_row, fs, fk, pa, pb, blocks, n, tau, early_exit,
+    def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                     symmetric, mixed):
         """(sums, used) of pairs s (detections pa[s], pb[s] under unit F fs[fk[s]]); detection
-        d's points are flats[det_slot[d]][det_row[d]:det_row[d] + 2n]."""
+        d's 2n coordinates start at address det_addr[d] (arrays of like's dtype)."""
         S = pa.shape[0]
-        D = det_row.shape[0]
+        D = det_addr.shape[0]
         h = 0.5 if symmetric else 1.0
         sums = np.zeros(S)
         used = np.zeros(S, dtype=np.int64)
@@ -579,15 +672,15 @@ def _numba_kernel():
             for s in range(S):
                 i = pa[s]
                 j = pb[s]
-                a = flats[det_slot[i]][det_row[i]:det_row[i] + 2 * n]
-                b = flats[det_slot[j]][det_row[j]:det_row[j] + 2 * n]
+                a = points(like, det_addr[i], 0, 2 * n)
+                b = points(like, det_addr[j], 0, 2 * n)
                 sums[s], used[s] = pair64(a, b, fs[fk[s]], blocks, n, tau, early_exit, h,
                                           symmetric)
             return sums, used
         # once per detection: its centre, its block ranges (filled on first use)
         cen = np.empty((D, 2))
         for d in range(D):
-            x = flats[det_slot[d]][det_row[d]:det_row[d] + 2 * n]
+            x = points(like, det_addr[d], 0, 2 * n)
             cen[d, 0], cen[d, 1] = centre(x, n)
         ranges = np.full((D, blocks.shape[0], 2), np.nan)
         # each pair's centred float32 F, then the blocks outermost: one block of every
@@ -596,13 +689,17 @@ def _numba_kernel():
         g = np.empty((S, 9), dtype=np.float32)
         G = np.empty((S, 3, 3))
         c = np.empty((S, 4), dtype=np.float32)
-        epi = np.empty(S)
         for s in range(S):
             i = pa[s]
             j = pb[s]
             c[s, 0], c[s, 1], c[s, 2], c[s, 3] = cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1]
-            epi[s] = EPIPOLE_NORM / centred_f(fs[fk[s]], cen[i, 0], cen[i, 1], cen[j, 0],
-                                              cen[j, 1], g[s], G[s])
+            centred_f(fs[fk[s]], cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1], g[s], G[s])
+        # run_end[s]: end of s's run, the pairs of its a-side detection in its camera pair
+        # (sorted together); their lines and weights in a are computed once, two pairs at a time
+        run_end = np.empty(S, dtype=np.int64)
+        for s in range(S - 1, -1, -1):
+            same = s + 1 < S and pa[s + 1] == pa[s] and fk[s + 1] == fk[s]
+            run_end[s] = run_end[s + 1] if same else s + 1
         err = np.zeros(S)
         alive = np.ones(S, dtype=np.bool_)  # not rejected early
         seen = 0
@@ -610,35 +707,47 @@ def _numba_kernel():
             lo = blocks[r, 0]
             hi = blocks[r, 1]
             seen += hi - lo
-            for s in range(S):
-                if not alive[s]:
-                    continue
-                i = pa[s]
-                j = pb[s]
-                ab = flats[det_slot[i]][det_row[i] + 2 * lo:det_row[i] + 2 * hi]
-                bb = flats[det_slot[j]][det_row[j] + 2 * lo:det_row[j] + 2 * hi]
-                p = np.inf
-                e = np.inf
-                lo_a, hi_a = block_range(ab, ranges[i], r)
-                lo_b, hi_b = block_range(bb, ranges[j], r)
-                if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
-                    ca0, ca1, cb0, cb1 = c[s, 0], c[s, 1], c[s, 2], c[s, 3]
-                    p, e = block_bound(G[s], epi[s], max(abs(hi_a - ca0), abs(lo_a - ca0)),
-                                       max(abs(hi_a - ca1), abs(lo_a - ca1)),
-                                       max(abs(hi_b - cb0), abs(lo_b - cb0)),
-                                       max(abs(hi_b - cb1), abs(lo_b - cb1)),
-                                       block32(ab, bb, c[s], g[s], symmetric), h)
-                if p < np.inf and e < np.inf:
-                    sums[s] += p
-                    err[s] += e
-                    used[s] += hi - lo
-                else:  # missing points, a point at (or very near) the epipole: float64
-                    p, k = block64(ab, bb, fs[fk[s]], h, symmetric)
-                    sums[s] += p if p == p else np.inf
-                    used[s] += k
-                # exact: sum - err is below the exact partial sum
-                if early_exit and sums[s] - err[s] >= tau * (used[s] + (n - seen)):
-                    alive[s] = False
+            s = 0
+            while s < S:
+                first = -1  # an alive pair of the run waiting for a second one
+                for t in range(s, run_end[s]):
+                    if not alive[t]:
+                        continue
+                    if first < 0:
+                        first = t
+                        continue
+                    i = pa[t]
+                    ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
+                    j = pb[first]
+                    bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
+                    j2 = pb[t]
+                    db = points(like, det_addr[j2], 2 * lo, 2 * (hi - lo))
+                    lo_a, hi_a = block_range(ab, ranges[i], r)
+                    lo_b, hi_b = block_range(bb, ranges[j], r)
+                    lo_d, hi_d = block_range(db, ranges[j2], r)
+                    if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
+                        one, two = block32x2(ab, bb, db, c[first, 0:2], c[first, 2:4],
+                                             c[t, 2:4], g[first], g[t], symmetric)
+                        p, e = pair_bound(G[first], ranges[i, r], ranges[j, r], c[first], one,
+                                          h)
+                        settle(first, p, e, ab, bb, fs[fk[first]], hi - lo, n - seen, h,
+                               symmetric, tau, early_exit, sums, err, used, alive)
+                        p, e = pair_bound(G[t], ranges[i, r], ranges[j2, r], c[t], two, h)
+                        settle(t, p, e, ab, db, fs[fk[t]], hi - lo, n - seen, h,
+                               symmetric, tau, early_exit, sums, err, used, alive)
+                    else:
+                        single(first, r, lo, hi, n - seen, like, det_addr, pa, pb,
+                               ranges, c, g, G, fs[fk[first]], h, symmetric, tau, early_exit,
+                               sums, err, used, alive)
+                        single(t, r, lo, hi, n - seen, like, det_addr, pa, pb,
+                               ranges, c, g, G, fs[fk[t]], h, symmetric, tau, early_exit,
+                               sums, err, used, alive)
+                    first = -1
+                if first >= 0:
+                    single(first, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges,
+                           c, g, G, fs[fk[first]], h, symmetric, tau, early_exit, sums, err,
+                           used, alive)
+                s = run_end[s]
         for s in range(S):
             total = sums[s]
             if alive[s] and not (total + err[s] < tau * used[s]) \
@@ -646,8 +755,8 @@ def _numba_kernel():
                 # the bound does not settle the decision: float64 throughout
                 i = pa[s]
                 j = pb[s]
-                a = flats[det_slot[i]][det_row[i]:det_row[i] + 2 * n]
-                b = flats[det_slot[j]][det_row[j]:det_row[j] + 2 * n]
+                a = points(like, det_addr[i], 0, 2 * n)
+                b = points(like, det_addr[j], 0, 2 * n)
                 sums[s], used[s] = pair64(a, b, fs[fk[s]], blocks, n, tau, early_exit, h,
                                           symmetric)
         return sums, used
