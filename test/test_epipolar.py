@@ -1,15 +1,17 @@
-"""The epipolar kernel: the numba kernel (line norms once per detection and camera pair, read in
-place) decides exactly like the numpy reference and the plain full mean, with missing points,
-shared detections, strided message views, early exit and points at the epipole."""
+"""The epipolar kernel: the numba kernel (every camera pair of a frame in one call, a
+detection's lines shared by its pairs, points read in place) decides exactly like the numpy
+reference and the plain full mean, with missing points, shared detections, strided message
+views, early exit and points at the epipole."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from maem_ros.core import epipolar
 from maem_ros.core.camera import fundamental_matrix
-from test_association import VARIANTS, two_facing_cameras
+from test_association import VARIANTS, ring_rig, two_facing_cameras
 
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 
@@ -90,14 +92,20 @@ def test_mixed_precision_decides_like_float64_at_the_threshold(seed, n, symmetri
     mean, _ = _full_mean(xa, xb, F, ia, jb, symmetric)
     for s in range(ia.size):
         tau = mean[s] * (1 + rel) if above else mean[s] * (1 - rel)
-        pair = (ia[s:s + 1], jb[s:s + 1], tau, symmetric)
+        # with a second pair of the same a-side detection: the two run in one shared loop
+        other = ia[s] * 7 + (jb[s] + 1) % 7
+        pair = (ia[[s, other]], jb[[s, other]], tau, symmetric)
         # at an exact tie (rel 0) float64 roundings decide: compare with the numba float64 sums
         # the mixed kernel falls back to; otherwise with the numpy reference
         want = epipolar.epipolar_sums(xa, xb, F, *pair, backend="numpy" if rel else "numba",
                                       precision="float64")
         for backend, precision, *_ in VARIANTS[1:]:
             got = epipolar.epipolar_sums(xa, xb, F, *pair, backend=backend, precision=precision)
-            assert (got[0] < tau * got[1]) == (want[0] < tau * want[1]), (precision, rel)
+            assert (got[0][0] < tau * got[1][0]) == (want[0][0] < tau * want[1][0]), \
+                (precision, rel)
+            got = epipolar.epipolar_sums(xa, xb, F, *(v[:1] for v in pair[:2]), tau, symmetric,
+                                         backend=backend, precision=precision)
+            assert (got[0][0] < tau * got[1][0]) == (want[0][0] < tau * want[1][0])
 
 
 def test_mixed_precision_runs_in_float32_and_stays_close():
@@ -198,3 +206,81 @@ def test_mixed_runs_in_float64_when_the_float32_rsqrt_is_outside_the_bound(monke
     got = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="mixed")
     np.testing.assert_array_equal(got[0], exact[0])
     np.testing.assert_array_equal(got[1], exact[1])
+
+
+def _ring_scene(seed: int, n: int, tau: float, per_cam: int, cams: int = 3):
+    """cams cameras seeing per_cam people each (person p in every camera), every vertex of a
+    camera's detection moved off the true spot by noise around tau / 2 px."""
+    rig = ring_rig(cams)
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-1, 1, (per_cam, n, 3)) * [0.3, 0.2, 0.9] + [0, 0, 1]
+    X[:, :, :2] += rng.uniform(-3, 3, (per_cam, 1, 2))
+    points = {}
+    for c, cam in enumerate(rig):
+        x = cam.project_rectified(X)
+        points[c] = x + rng.normal(0, 1, x.shape) * rng.uniform(0.2, 1.5, (per_cam, 1, 1)) * tau / 2
+    F = {(a, b): fundamental_matrix(rig.cameras[a], rig.cameras[b])
+         for a in range(cams) for b in range(a + 1, cams)}
+    return rig, points, F, rng
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 2600), symmetric=st.booleans(),
+       tau=st.floats(1.0, 12.0), missing=st.sampled_from([0.0, 0.01, 0.3]),
+       at_epipole=st.booleans(), early=st.booleans())
+def test_frame_sums_of_all_camera_pairs_decide_like_the_reference(seed, n, symmetric, tau, missing,
+                                                                  at_epipole, early):
+    """One call for the pairs of three camera pairs (each detection in several pairs, so runs of
+    pairs share their a-side lines) decides like the numpy reference per camera pair, sums
+    accepted pairs in full, with missing points and a detection at an epipole."""
+    rig, points, F, rng = _ring_scene(seed, n, tau, 4)
+    for c in points:
+        points[c][rng.random(points[c].shape[:2]) < missing] = np.nan
+    if at_epipole:  # camera 0's detection 1: some points at camera 0's epipole of pair (0, 1)
+        e_a = np.linalg.svd(F[(0, 1)])[2][-1]
+        points[0][1, ::3] = e_a[:2] / e_a[2]
+    points = {c: x.astype(np.float32) for c, x in points.items()}
+    pairs = [(a, b) for a, b in F for _ in range(6)]
+    ca = np.array([a for a, _ in pairs])
+    cb = np.array([b for _, b in pairs])
+    da = rng.integers(0, 4, ca.size)
+    db = np.where(rng.random(ca.size) < 0.5, da, rng.integers(0, 4, ca.size))
+    want_reject = np.zeros(ca.size, bool)
+    want_mean = np.zeros(ca.size)
+    for (a, b) in F:
+        s = np.flatnonzero((ca == a) & (cb == b))
+        mean, _ = _full_mean(points[a].astype(np.float64), points[b].astype(np.float64),
+                             F[(a, b)], da[s], db[s], symmetric)
+        want_reject[s] = ~(mean < tau)
+        want_mean[s] = mean
+    near_tie = np.abs(want_mean - tau) < 1e-9 * tau
+    for backend, precision, rtol, atol in VARIANTS:
+        sums, used = epipolar.frame_sums(points, F, ca, da, cb, db, tau, symmetric, early,
+                                         backend, precision)
+        reject = ~(sums < tau * used)
+        assert np.array_equal(reject[~near_tie], want_reject[~near_tie]), (backend, precision)
+        ok = ~reject
+        np.testing.assert_allclose(sums[ok] / used[ok], want_mean[ok], rtol=rtol, atol=atol)
+        # the per-camera-pair entry point gives the same numbers
+        for (a, b) in F:
+            s = np.flatnonzero((ca == a) & (cb == b))
+            one = epipolar.epipolar_sums(points[a], points[b], F[(a, b)], da[s], db[s], tau,
+                                         symmetric, early, backend, precision)
+            assert np.array_equal(~(one[0] < tau * one[1]), reject[s])
+            np.testing.assert_allclose(one[0][ok[s]], sums[s][ok[s]], rtol=1e-12)
+
+
+def test_frame_sums_rejects_bad_input_with_the_input_named():
+    x = np.zeros((2, 10, 2), np.float32)
+    F = {(0, 1): np.eye(3)[[1, 0, 2]]}
+    zero, one = np.array([0]), np.array([1])
+    with pytest.raises(ValueError, match=r"no points for camera\(s\) \[2\]"):
+        epipolar.frame_sums({0: x, 1: x}, F, zero, zero, np.array([2]), zero, 8.0)
+    with pytest.raises(ValueError, match=r"no fundamental matrix for camera pair \(1, 0\)"):
+        epipolar.frame_sums({0: x, 1: x}, F, one, zero, zero, zero, 8.0)
+    with pytest.raises(ValueError, match="one n for every camera"):
+        epipolar.frame_sums({0: x, 1: x[:, :5]}, F, zero, zero, one, zero, 8.0)
+    with pytest.raises(ValueError, match="detection index out of range"):
+        epipolar.frame_sums({0: x, 1: x}, F, zero, zero, one, np.array([2]), 8.0)
+    with pytest.raises(ValueError, match="equal-length 1D"):
+        epipolar.frame_sums({0: x, 1: x}, F, zero, zero, one, np.array([0, 1]), 8.0)

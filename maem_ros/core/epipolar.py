@@ -16,30 +16,34 @@ upper bound of tau * used -- the full sum reaches tau * used too and the pair is
 accepted pairs are always summed completely. Floating-point addition of non-negative numbers is
 monotone, so the decision equals the full sum's.
 
-The numpy reference computes every distance in float64. The numba kernel fuses everything per
-point (the line, both norms and the distance: a detection takes part in ~1.4 candidate pairs
-per camera pair, too few for cached line norms to pay) and, by default (``precision
-"mixed"``), runs float32 SIMD (twice the lanes of float64) on points centred on each
-detection (u - c, integer c; the bilinear form loses no digits to the px offset) with a
-rigorous bound E of the block sum's rounding error, from float32 unit roundoff u = 2^-24:
+The numpy reference computes every distance in float64. The numba kernel takes every pair of
+a frame in one call (:func:`frame_sums`: all camera pairs; each detection's centre and block
+coordinate ranges computed once), blocks outermost, so each detection's block is read from
+memory once for all its candidate pairs. It fuses everything per point (the line, both norms
+and the distance), and two pairs of one detection in one camera pair run in one loop that
+computes that detection's lines and weights once. By default (``precision "mixed"``) it runs
+float32 SIMD (twice the lanes of float64) on points centred on each detection (u - c,
+integer c; the bilinear form loses no digits to the px offset) with a rigorous bound E of the
+block sum's rounding error, from float32 unit roundoff u = 2^-24:
 
-    E = (1 + 1e-3) [10 u B (h_a sum w_a + h_b sum w_b)
-                    + 8 u (h_a L_a sum |e| w_a^2 + h_b L_b sum |e| w_b^2)
-                    + (2^-20 + 520 u) sum d]
+    E = (1 + 1e-3) [10 u B h sum w + 8 u h L sum |e| w^2 + (2^-20 + (BLOCK + 8) u) sum d]
 
-(e the bilinear form of the centred points under the float32 F', B = [|u_b|,|v_b|,1] |F'|
-[|u_a|,|v_a|,1]^T from the block's coordinate range, L_a, L_b the same bound of the lines'
-first two coefficients; terms: rounding of e, of the line norms (through their
-coefficients and the 2^-20 reciprocal square root), and of 512 float32 additions). A pair is
-rejected early when ``sum - E >= tau * (used + still to come)``, accepted when ``sum + E <
-tau * used``, rejected when ``sum - E >= tau * used``; otherwise (the bound cannot settle it;
-in practice never) it is recomputed in float64. Blocks with a missing point or a point at
-(or very near) the epipole are summed in float64. So the decisions are those of the float64
-sums; an accepted pair's mean carries an error below E / used (~1e-7 relative in practice;
-``precision "float64"`` gives it to ~1e-13). The kernel reads each camera's points where
-they are (:class:`PointRows`: a strided PointCloud2 field or a contiguous array, float32 or
-float64; float64 points are summed in float64), without copies. A point at the epipole has an
-undefined line: its distance is inf (or NaN, mapped to inf), which rejects the pair.
+(e the bilinear form of the centred points under the float32 F' = T_b^T F T_a (F of unit
+norm), w = w_a + w_b and h = 1/2 (symmetric) or w = w_a and h = 1 (forward), w_a, w_b the
+reciprocal line norms, B = [|u_b|,|v_b|,1] |F'| [|u_a|,|v_a|,1]^T from the block's coordinate
+range, L = max(L_a, L_b) the same bound of the lines' first two coefficients; terms: rounding
+of e, of the line norms (through their coefficients and the 2^-20 reciprocal square root;
+sum |e| (w_a^2 + w_b^2) <= sum |e| w^2), and of BLOCK float32 additions; E does not depend on
+F' 's scale). A pair is rejected early when ``sum - E >= tau * (used + still to come)``,
+accepted when ``sum + E < tau * used``, rejected when ``sum - E >= tau * used``; otherwise (the
+bound cannot settle it; in practice never) it is recomputed in float64. Blocks with a missing
+point or a point at (or very near) the epipole are summed in float64. So the decisions are
+those of the float64 sums; an accepted pair's mean carries an error below E / used (~1e-7
+relative in practice; ``precision "float64"`` gives it to ~1e-13). The kernel reads each
+camera's points where they are (:class:`PointRows`: a strided PointCloud2 field or a
+contiguous array, float32 or float64; float64 points are summed in float64), without copies.
+A point at the epipole has an undefined line: its distance is inf (or NaN, mapped to inf),
+which rejects the pair.
 """
 from __future__ import annotations
 
@@ -51,7 +55,7 @@ import numpy as np
 
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
 #: small); blocks are visited in a fixed shuffled order
-BLOCK = 512
+BLOCK = 1024
 #: a point whose line has ||(F x)_12|| <= EPIPOLE_NORM ||F|| is at the epipole (its line is
 #: rounding noise): distance inf, the pair is rejected. ~1e-6 px from the epipole of a
 #: typical pixel F; one definition for every backend and precision
@@ -140,9 +144,7 @@ def point_rows(x: np.ndarray | PointRows) -> PointRows:
                         and x.strides[0] >= 0 and x.ctypes.data % item == 0):
         x = np.ascontiguousarray(x)
     if N == 0 or n == 0:
-        flat = np.zeros(max(2 * n, 1), dtype=x.dtype)
-        flat.setflags(write=False)  # the kernel's one array type: read-only
-        return PointRows(flat, np.zeros(N, dtype=np.int64), n)
+        return PointRows(np.zeros(max(2 * n, 1), dtype=x.dtype), np.zeros(N, dtype=np.int64), n)
     step = x.strides[0] // item if N > 1 else 2 * n
     span = (N - 1) * step + 2 * n
     flat = np.lib.stride_tricks.as_strided(x, shape=(span,), strides=(item,), writeable=False)
@@ -246,8 +248,6 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     flats = [rows[c].flat for c in cams]
     if len({f.dtype for f in flats}) > 1:  # mixed float32/float64 cameras: all in float64
         flats = [f.astype(np.float64) for f in flats]
-        for f in flats:
-            f.setflags(write=False)
     # float64 points (keypoints: few per detection) always take the float64 path
     mixed = (precision == "mixed" and flats[0].dtype == np.float32 and _rsqrt_within_bound())
     slot = np.searchsorted(cams, np.concatenate([cam_a, cam_b]))
@@ -264,7 +264,7 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     # together (they share its lines)
     order = np.lexsort((pb, which, pa))
     # each detection's first coordinate as an address: flats stay referenced during the call
-    base = np.array([f.ctypes.data for f in flats], dtype=np.int64)
+    base = np.array([f.__array_interface__["data"][0] for f in flats], dtype=np.int64)
     det_addr = base[det_slot] + det_row * flats[0].dtype.itemsize
     sums, used = _numba_kernel()(flats[0], det_addr, unit.reshape(-1, 9),
                                  np.ascontiguousarray(which[order], dtype=np.int64),
@@ -592,7 +592,7 @@ def _numba_kernel():
         part = h * p
         # sum |e| (wa^2 + wb^2) <= sum |e| w^2 bounds the line-norm term of both sides
         err = (10.0 * _U32 * bil * h * s + 8.0 * _U32 * h * lmax * q
-               + (_RSQRT_ERR + 520.0 * _U32) * part)
+               + (_RSQRT_ERR + (BLOCK + 8) * _U32) * part)
         return part, err * (1.0 + _BOUND_SLACK)
 
     @plain
