@@ -34,7 +34,7 @@ import numpy as np
 from . import clustering, epipolar
 from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
-                         DetectionTable, FrameDetections, PairSet, camera_pair_groups)
+                         DetectionTable, FrameDetections, PairSet)
 from .geometry import pair_reprojection_errors
 from .paramspec import Params, param
 from .procrustes import pa_mpjpe_finite
@@ -252,20 +252,16 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
                    stats: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     """(keep (S,) bool, mean distance (S,) px, exact where kept) of pairs (i, j)."""
     points = _gate_points(table.frames, params)
-    keep = np.zeros(i.size, dtype=bool)
-    mean = np.full(i.size, np.nan)
-    budget = evaluated = 0
-    for a, b, idx in camera_pair_groups(table.cam[i], table.cam[j]):
-        (full_a, screen_a), (full_b, screen_b) = points[a], points[b]
-        screen = None if screen_a is None or screen_b is None else (screen_a, screen_b)
-        # mean over the points both detections have (missing vertices take no part)
-        keep[idx], mean[idx], used = epipolar.screened_means(
-            (full_a, full_b), screen, F[(a, b)], table.det[i[idx]], table.det[j[idx]],
-            params.tau_mesh, params.screen_margin,
-            symmetric=params.epipolar_distance == "symmetric", early_exit=params.early_exit,
-            backend=params.backend, precision=params.epipolar_precision)
-        budget += idx.size * full_a.n
-        evaluated += used
+    full = {c: rows for c, (rows, _) in points.items()}
+    screens = {c: rows for c, (_, rows) in points.items()}
+    # one kernel call for every camera pair of the frame (per pass): a detection's block is
+    # read once from memory for all its candidate pairs
+    keep, mean, evaluated = epipolar.frame_screened_means(
+        full, None if any(v is None for v in screens.values()) else screens, F, table.cam[i],
+        table.det[i], table.cam[j], table.det[j], params.tau_mesh, params.screen_margin,
+        symmetric=params.epipolar_distance == "symmetric", early_exit=params.early_exit,
+        backend=params.backend, precision=params.epipolar_precision)
+    budget = i.size * next(iter(full.values())).n if full else 0
     stats["epipolar_points_fraction"] = evaluated / budget if budget else 0.0
     return keep, mean
 

@@ -791,37 +791,57 @@ def screened_means(full: tuple[PointRows, PointRows], screen: tuple[PointRows, P
                    F: np.ndarray, ia: np.ndarray, jb: np.ndarray, tau: float, margin: float,
                    symmetric: bool = True, early_exit: bool = True, backend: str = "auto",
                    precision: str = "mixed") -> tuple[np.ndarray, np.ndarray, int]:
-    """The epipolar gate of detection pairs (ia[s] in a, jb[s] in b): (keep (S,) bool,
-    mean (S,) px over the points the decision used, points evaluated).
+    """The epipolar gate of detection pairs (ia[s] in a, jb[s] in b) of one camera pair:
+    :func:`frame_screened_means` of that camera pair."""
+    ia = np.asarray(ia)
+    return frame_screened_means(dict(enumerate(full)),
+                                None if screen is None else dict(enumerate(screen)),
+                                {(0, 1): F}, np.zeros(ia.shape, np.int64), ia,
+                                np.ones(ia.shape, np.int64), jb, tau, margin, symmetric,
+                                early_exit, backend, precision)
+
+
+def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, PointRows] | None,
+                         F: Mapping[tuple[int, int], np.ndarray], cam_a: np.ndarray,
+                         det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray, tau: float,
+                         margin: float, symmetric: bool = True, early_exit: bool = True,
+                         backend: str = "auto", precision: str = "mixed"
+                         ) -> tuple[np.ndarray, np.ndarray, int]:
+    """The epipolar gate of the detection pairs of a frame (as :func:`frame_sums`): (keep (S,)
+    bool, mean (S,) px over the points the decision used, points evaluated); one kernel call
+    for the screen and one for the full sets, every camera pair at once.
 
     Without a screen (None) every pair is decided on the full point sets (exact: the mean over
-    all points both detections have, ``keep = mean < tau``). With one (the same fixed-topology
-    subset in both views, :func:`screen_rows`), each pair's mean is first taken over the
-    subset; a pair whose subset mean is below ``tau - margin`` px is accepted with it, one at or
-    above ``tau + margin`` is rejected, and the pairs in between (or with fewer than half of the
-    subset's points present) are decided on the full sets. The subset mean of a regular subset
-    of a dense mesh is within a small fraction of a px of the full mean (the vertices oversample
-    the image), so the decisions are the full-set ones unless it errs by more than ``margin``.
+    all points both detections have, ``keep = mean < tau``). With one (screen[c]: the same
+    fixed-topology subset of every camera's points, :func:`screen_rows`), each pair's mean is
+    first taken over the subset; a pair whose subset mean is below ``tau - margin`` px is
+    accepted with it, one at or above ``tau + margin`` is rejected, and the pairs in between
+    (or with fewer than half of the subset's points present) are decided on the full sets. The
+    subset mean of a regular subset of a dense mesh is within a small fraction of a px of the
+    full mean (the vertices oversample the image), so the decisions are the full-set ones
+    unless it errs by more than ``margin``.
     """
     kw = dict(symmetric=symmetric, early_exit=early_exit, backend=backend, precision=precision)
-    S = ia.size
+    pairs = [np.asarray(v) for v in (cam_a, det_a, cam_b, det_b)]
+    S = pairs[0].size
     keep = np.zeros(S, dtype=bool)
     mean = np.full(S, np.nan)
     todo = np.arange(S)
     evaluated = 0
     if screen is not None and S:
-        sums, used = epipolar_sums(screen[0], screen[1], F, ia, jb, tau + margin, **kw)
+        sums, used = frame_sums(screen, F, *pairs, tau + margin, **kw)
         evaluated += int(used.sum())
         with np.errstate(invalid="ignore", divide="ignore"):
             m = sums / used
-        enough = used * 2 >= screen[0].n
+        n = next(iter(screen.values())).n
+        enough = used * 2 >= n
         rejected = enough & ~(sums < (tau + margin) * used)  # partial sums: early exit
         accepted = enough & ~rejected & (m < tau - margin)
         keep[accepted] = True
         mean[accepted] = m[accepted]
         todo = np.flatnonzero(~(accepted | rejected))
     if todo.size:
-        sums, used = epipolar_sums(full[0], full[1], F, ia[todo], jb[todo], tau, **kw)
+        sums, used = frame_sums(full, F, *(v[todo] for v in pairs), tau, **kw)
         evaluated += int(used.sum())
         ok = sums < tau * used
         keep[todo] = ok
