@@ -259,7 +259,9 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     S = cam_a.size
     pa, pb = idx[:S], idx[S:]
     # distances do not depend on F's scale; unit norm for the error bounds
-    unit = np.stack([f / np.linalg.norm(f) if np.linalg.norm(f) > 0 else f for f in Fs])
+    unit = np.stack(Fs)
+    norm = np.sqrt((unit * unit).sum(axis=(1, 2)))
+    unit = unit / np.where(norm > 0, norm, 1.0)[:, None, None]
     # a detection's pairs one after another (its block stays hot), those of one camera pair
     # together (they share its lines)
     order = np.lexsort((pb, which, pa))
