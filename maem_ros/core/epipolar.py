@@ -479,6 +479,17 @@ def _numba_kernel():
         return np.float64(p), np.float64(s), np.float64(q)
 
     @jit32
+    def b_terms(ub, vb, ua, va, l0, l1, wa, g, symmetric):
+        """(|e| w, w) of one point of a pair: centred b point (ub, vb), a point (ua, va) with
+        its line's first coefficients l0, l1 and weight wa, g (9,) the pair's centred F."""
+        e = abs(ub * l0 + vb * l1 + (g[6] * ua + g[7] * va + g[8]))
+        m0 = g[0] * ub + g[3] * vb + g[6]
+        m1 = g[1] * ub + g[4] * vb + g[7]
+        wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+        w = wa + wb if symmetric else wa  # the select keeps the loop branch-free
+        return e * w, w
+
+    @jit32
     def block32x2(a, b, d, ca, cb, cd, g, k, symmetric):
         """block32 of two pairs (a, b) under g and (a, d) under k that share a's detection and
         camera pair (g, k have equal rows 0-1): a's lines and weights computed once. ca, cb,
@@ -490,25 +501,13 @@ def _numba_kernel():
             l0 = g[0] * ua + g[1] * va + g[2]
             l1 = g[3] * ua + g[4] * va + g[5]
             wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
-            ub = b[2 * j] - cb[0]
-            vb = b[2 * j + 1] - cb[1]
-            e = abs(ub * l0 + vb * l1 + (g[6] * ua + g[7] * va + g[8]))
-            m0 = g[0] * ub + g[3] * vb + g[6]
-            m1 = g[1] * ub + g[4] * vb + g[7]
-            wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
-            w = wa + wb if symmetric else wa
-            ew = e * w
+            ew, w = b_terms(b[2 * j] - cb[0], b[2 * j + 1] - cb[1], ua, va, l0, l1, wa, g,
+                            symmetric)
             p1 += ew
             s1 += w
             q1 += ew * w
-            ud = d[2 * j] - cd[0]
-            vd = d[2 * j + 1] - cd[1]
-            e = abs(ud * l0 + vd * l1 + (k[6] * ua + k[7] * va + k[8]))
-            m0 = k[0] * ud + k[3] * vd + k[6]
-            m1 = k[1] * ud + k[4] * vd + k[7]
-            wd = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
-            w = wa + wd if symmetric else wa  # the select keeps the loop branch-free
-            ew = e * w
+            ew, w = b_terms(d[2 * j] - cd[0], d[2 * j + 1] - cd[1], ua, va, l0, l1, wa, k,
+                            symmetric)
             p2 += ew
             s2 += w
             q2 += ew * w
@@ -672,12 +671,9 @@ def _numba_kernel():
         used = np.zeros(S, dtype=np.int64)
         if not mixed:
             for s in range(S):
-                i = pa[s]
-                j = pb[s]
-                a = points(like, det_addr[i], 0, 2 * n)
-                b = points(like, det_addr[j], 0, 2 * n)
-                sums[s], used[s] = pair64(a, b, fs[fk[s]], blocks, n, tau, early_exit, h,
-                                          symmetric)
+                sums[s], used[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                          points(like, det_addr[pb[s]], 0, 2 * n), fs[fk[s]],
+                                          blocks, n, tau, early_exit, h, symmetric)
             return sums, used
         # once per detection: its centre, its block ranges (filled on first use)
         cen = np.empty((D, 2))
@@ -755,12 +751,9 @@ def _numba_kernel():
             if alive[s] and not (total + err[s] < tau * used[s]) \
                     and not (total - err[s] >= tau * used[s]):
                 # the bound does not settle the decision: float64 throughout
-                i = pa[s]
-                j = pb[s]
-                a = points(like, det_addr[i], 0, 2 * n)
-                b = points(like, det_addr[j], 0, 2 * n)
-                sums[s], used[s] = pair64(a, b, fs[fk[s]], blocks, n, tau, early_exit, h,
-                                          symmetric)
+                sums[s], used[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                          points(like, det_addr[pb[s]], 0, 2 * n), fs[fk[s]],
+                                          blocks, n, tau, early_exit, h, symmetric)
         return sums, used
 
     return sums_kernel
