@@ -1,0 +1,416 @@
+"""The numba kernels of core/epipolar.py (imported only when numba is installed).
+
+Every kernel is a module-level function so numba's on-disk cache (``cache=True``) finds it again
+in a new process: a kernel defined in a closure is hashed with the closure's compiled callees,
+whose identity changes from process to process, so each process recompiled them (~10 s per
+node start) and added new cache files. The arithmetic, its error bound and the decisions are
+documented in core/epipolar.py.
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U32, BLOCK,
+                       EPIPOLE_NORM)
+
+# no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
+# survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
+# no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
+# survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
+# reassoc lets the sums vectorise
+_FLAGS = {"reassoc", "contract", "arcp", "nsz"}
+_OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
+jit = nb.njit(fastmath=_FLAGS, **_OPTS)
+# afn: float32 1/sqrt as the hardware estimate + one Newton step (bounded by _RSQRT_ERR)
+jit32 = nb.njit(fastmath=_FLAGS | {"afn"}, **_OPTS)
+plain = nb.njit(**_OPTS)
+# per pair and block helpers: inlined, so the hot loop passes no array views through calls
+inline = nb.njit(inline="always", **_OPTS)
+
+
+@nb.extending.intrinsic
+def pointer_like(typingctx, like, address):
+    """The int64 address as a pointer to like's dtype."""
+    sig = nb.types.CPointer(like.dtype)(like, address)
+
+    def codegen(context, builder, signature, args):
+        return builder.inttoptr(args[1], context.get_value_type(signature.return_type))
+    return sig, codegen
+
+
+@inline
+def points(like, address, start, count):
+    """count coordinates from element start of the detection at address: a view without
+    reference counting (a typed list of the cameras' arrays costs ~20 ns per access in the
+    hot loop); the caller keeps the arrays alive."""
+    return nb.carray(pointer_like(like, address + start * like.itemsize), (count,))
+
+
+#: squared line norm at (or below) which a point is at the epipole (F of unit norm)
+_Q_EPIPOLE = EPIPOLE_NORM ** 2
+
+
+@jit
+def inv_sqrt(q):
+    """1/sqrt(q) to ~1e-13 relative: a float32 estimate refined by one Newton step in
+    float64 (float64 sqrt and division are the slow units). inf at the epipole
+    (q <= EPIPOLE_NORM^2; F has unit norm, so the float32 estimate is in range), NaN for
+    NaN."""
+    y = np.float64(np.float32(1.0) / np.sqrt(np.float32(max(q, _Q_EPIPOLE))))
+    y = y * (1.5 - 0.5 * q * y * y)
+    return y if q > _Q_EPIPOLE else np.inf
+
+
+@jit
+def block64(a, b, f, ha, symmetric):
+    """(sum of d_k, points used) of a block, float64: points a, b (2m,) rectified px, f (9,)
+    unit F; missing points (NaN) take no part; a point at the epipole makes the sum
+    NaN or inf."""
+    part = 0.0
+    used = 0
+    for k in range(a.shape[0] // 2):
+        ua = np.float64(a[2 * k])
+        va = np.float64(a[2 * k + 1])
+        ub = np.float64(b[2 * k])
+        vb = np.float64(b[2 * k + 1])
+        l0 = f[0] * ua + f[1] * va + f[2]
+        l1 = f[3] * ua + f[4] * va + f[5]
+        l2 = f[6] * ua + f[7] * va + f[8]
+        w = ha * inv_sqrt(l0 * l0 + l1 * l1)
+        if symmetric:
+            m0 = f[0] * ub + f[3] * vb + f[6]
+            m1 = f[1] * ub + f[4] * vb + f[7]
+            w += 0.5 * inv_sqrt(m0 * m0 + m1 * m1)
+        d = abs(ub * l0 + vb * l1 + l2) * w
+        s = ua + va + ub + vb
+        present = s == s
+        part += d if present else 0.0
+        used += np.int64(present)  # an int64, not a bool, keeps the loop vectorised
+    return part, used
+
+
+@jit32
+def block32(a, b, c, g, symmetric):
+    """float32 sums over a block of complete points, centred (u - c[0], v - c[1]) in a,
+    (u - c[2], v - c[3]) in b, g (9,) float32 F of the centred points:
+    (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and w = wa + wb (symmetric) or
+    wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||."""
+    p = s = q = np.float32(0.0)
+    for k in range(a.shape[0] // 2):
+        ua = a[2 * k] - c[0]
+        va = a[2 * k + 1] - c[1]
+        ub = b[2 * k] - c[2]
+        vb = b[2 * k + 1] - c[3]
+        l0 = g[0] * ua + g[1] * va + g[2]
+        l1 = g[3] * ua + g[4] * va + g[5]
+        l2 = g[6] * ua + g[7] * va + g[8]
+        e = abs(ub * l0 + vb * l1 + l2)
+        w = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
+        if symmetric:
+            m0 = g[0] * ub + g[3] * vb + g[6]
+            m1 = g[1] * ub + g[4] * vb + g[7]
+            w += np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+        ew = e * w
+        p += ew
+        s += w
+        q += ew * w
+    return np.float64(p), np.float64(s), np.float64(q)
+
+
+@jit32
+def b_terms(ub, vb, ua, va, l0, l1, wa, g, symmetric):
+    """(|e| w, w) of one point of a pair: centred b point (ub, vb), a point (ua, va) with
+    its line's first coefficients l0, l1 and weight wa, g (9,) the pair's centred F."""
+    e = abs(ub * l0 + vb * l1 + (g[6] * ua + g[7] * va + g[8]))
+    m0 = g[0] * ub + g[3] * vb + g[6]
+    m1 = g[1] * ub + g[4] * vb + g[7]
+    wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
+    w = wa + wb if symmetric else wa  # the select keeps the loop branch-free
+    return e * w, w
+
+
+@jit32
+def block32x2(a, b, d, ca, cb, cd, g, k, symmetric):
+    """block32 of two pairs (a, b) under g and (a, d) under k that share a's detection and
+    camera pair (g, k have equal rows 0-1): a's lines and weights computed once. ca, cb,
+    cd (2,) the centres; returns block32's three sums for each pair."""
+    p1 = s1 = q1 = p2 = s2 = q2 = np.float32(0.0)
+    for j in range(a.shape[0] // 2):
+        ua = a[2 * j] - ca[0]
+        va = a[2 * j + 1] - ca[1]
+        l0 = g[0] * ua + g[1] * va + g[2]
+        l1 = g[3] * ua + g[4] * va + g[5]
+        wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
+        ew, w = b_terms(b[2 * j] - cb[0], b[2 * j + 1] - cb[1], ua, va, l0, l1, wa, g,
+                        symmetric)
+        p1 += ew
+        s1 += w
+        q1 += ew * w
+        ew, w = b_terms(d[2 * j] - cd[0], d[2 * j + 1] - cd[1], ua, va, l0, l1, wa, k,
+                        symmetric)
+        p2 += ew
+        s2 += w
+        q2 += ew * w
+    return ((np.float64(p1), np.float64(s1), np.float64(q1)),
+            (np.float64(p2), np.float64(s2), np.float64(q2)))
+
+
+@plain
+def block_range(x, ranges, r):
+    """(min, max) of all coordinates of a block's float32 points (2m,), cached in
+    ranges[r]; (inf, -inf) if one is NaN or inf. Ordered integer keys of the float bits,
+    so the min/max reductions vectorise."""
+    if ranges[r, 0] == ranges[r, 0]:
+        return ranges[r, 0], ranges[r, 1]
+    bits = x.view(np.int32)
+    lo = np.int32(2147483647)
+    hi = np.int32(-2147483648)
+    low31 = np.int32(0x7FFFFFFF)
+    for k in range(bits.shape[0]):
+        b = bits[k]
+        # int32 throughout and selects, not min(): the loop vectorises
+        key = np.int32(b ^ (np.int32(b >> np.int32(31)) & low31))
+        lo = key if key < lo else lo
+        hi = key if key > hi else hi
+    if lo <= _KEY_NEG_INF or hi >= _KEY_POS_INF:
+        ranges[r, 0], ranges[r, 1] = np.inf, -np.inf
+    else:
+        keys = np.empty(2, dtype=np.int32)
+        keys[0] = lo ^ ((lo >> 31) & low31)
+        keys[1] = hi ^ ((hi >> 31) & low31)
+        vals = keys.view(np.float32)
+        ranges[r, 0], ranges[r, 1] = vals[0], vals[1]
+    return ranges[r, 0], ranges[r, 1]
+
+
+@plain
+def centre(x, n):
+    """Integer px near a detection's points (its first complete point; 0 if none)."""
+    for k in range(n):
+        if x[2 * k] == x[2 * k] and x[2 * k + 1] == x[2 * k + 1]:
+            return np.floor(np.float64(x[2 * k]) + 0.5), np.floor(np.float64(x[2 * k + 1]) + 0.5)
+    return 0.0, 0.0
+
+
+@plain
+def centred_f(f, ca0, ca1, cb0, cb1, g, G):
+    """g (9,) float32 T_b^T F T_a: F (f (9,) row-major, unit norm) of the points centred on
+    (ca0, ca1) in a and (cb0, cb1) in b; G (3,3) = |g|. Rows 0-1 depend on a's centre only
+    (a detection's pairs in one camera pair share them bit for bit), and (g x)_12 =
+    (F x)_12, so EPIPOLE_NORM applies in g's units as it is; the error bound does not
+    depend on g's scale."""
+    h = np.empty((3, 3))
+    for r in range(3):
+        h[r, 0] = f[3 * r]
+        h[r, 1] = f[3 * r + 1]
+        h[r, 2] = f[3 * r] * ca0 + f[3 * r + 1] * ca1 + f[3 * r + 2]
+    for col in range(3):
+        h[2, col] = cb0 * h[0, col] + cb1 * h[1, col] + h[2, col]
+    for r in range(3):
+        for col in range(3):
+            g[3 * r + col] = np.float32(h[r, col])
+            G[r, col] = abs(np.float64(g[3 * r + col]))
+
+
+@plain
+def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, h):
+    """(float32 block sum, upper bound (px) on its distance to the exact sum); xa0, xa1,
+    xb0, xb1 bound |u|, |v| of the centred points in a and b (module docstring); epi:
+    EPIPOLE_NORM in g's units; h = 0.5 (symmetric) or 1. (inf, inf) when the block must be
+    summed in float64."""
+    # rows of G times (xa0, xa1, 1), then xb's weights: no loops, no tuple indexing (this
+    # runs per pair and block)
+    r0 = G[0, 0] * xa0 + G[0, 1] * xa1 + G[0, 2]
+    r1 = G[1, 0] * xa0 + G[1, 1] * xa1 + G[1, 2]
+    r2 = G[2, 0] * xa0 + G[2, 1] * xa1 + G[2, 2]
+    bil = r0 * xb0 + r1 * xb1 + r2
+    la = r0 + r1
+    lb = (G[0, 0] + G[0, 1]) * xb0 + (G[1, 0] + G[1, 1]) * xb1 + G[2, 0] + G[2, 1]
+    lmax = max(la, lb) if h != 1.0 else la
+    p, s, q = sums
+    # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM = epi in g's units)
+    # has a float32 line norm within the rounding bound 6 u L of that: its weight, and so
+    # the block's weight sum, reaches 1 / (epi + 6 u L); such a block goes to float64
+    # (part inf)
+    if not s * (epi + 6.0 * _U32 * lmax) * (1.0 + 2.0 * _RSQRT_ERR) < 1.0:
+        return np.inf, np.inf
+    part = h * p
+    # sum |e| (wa^2 + wb^2) <= sum |e| w^2 bounds the line-norm term of both sides
+    err = (10.0 * _U32 * bil * h * s + 8.0 * _U32 * h * lmax * q
+           + (_RSQRT_ERR + (BLOCK + 8) * _U32) * part)
+    return part, err * (1.0 + _BOUND_SLACK)
+
+
+@plain
+def pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric):
+    """(sum, used) of one pair in float64, blocks in order, exact early exit."""
+    total = 0.0
+    count = 0
+    seen = 0
+    for r in range(blocks.shape[0]):
+        lo = blocks[r, 0]
+        hi = blocks[r, 1]
+        p, c = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], f, ha, symmetric)
+        total += p if p == p else np.inf  # NaN: undefined line -> cannot pass
+        count += c
+        seen += hi - lo
+        # count + points still to come bounds the final count from above
+        if early_exit and total >= tau * (count + (n - seen)):
+            break
+    return total, count
+
+
+@inline
+def pair_bound(G, ra, rb, c, sums3, h):
+    """block_bound of a pair from its blocks' coordinate ranges ra, rb (min, max) and its
+    centres c (4,)."""
+    return block_bound(G, EPIPOLE_NORM, max(abs(ra[1] - c[0]), abs(ra[0] - c[0])),
+                       max(abs(ra[1] - c[1]), abs(ra[0] - c[1])),
+                       max(abs(rb[1] - c[2]), abs(rb[0] - c[2])),
+                       max(abs(rb[1] - c[3]), abs(rb[0] - c[3])), sums3, h)
+
+
+@inline
+def settle(s, p, e, ab, bb, f, m, rest, h, symmetric, tau, early_exit, sums, err, used,
+           alive):
+    """Add pair s's block: the float32 sum p within e, or (e inf: missing points, a point
+    at or very near the epipole) the float64 sum of blocks ab, bb; then the exact early
+    exit, ``rest`` points still to come."""
+    if p < np.inf and e < np.inf:
+        sums[s] += p
+        err[s] += e
+        used[s] += m
+    else:
+        p, k = block64(ab, bb, f, h, symmetric)
+        sums[s] += p if p == p else np.inf
+        used[s] += k
+    # exact: sum - err is below the exact partial sum
+    if early_exit and sums[s] - err[s] >= tau * (used[s] + rest):
+        alive[s] = False
+
+
+@inline
+def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, f, h,
+           symmetric, tau, early_exit, sums, err, used, alive):
+    """Block r = points lo:hi of pair s alone."""
+    i = pa[s]
+    j = pb[s]
+    ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
+    bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
+    p = np.inf
+    e = np.inf
+    lo_a, hi_a = block_range(ab, ranges[i], r)
+    lo_b, hi_b = block_range(bb, ranges[j], r)
+    if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
+        p, e = pair_bound(G[s], ranges[i, r], ranges[j, r], c[s],
+                          block32(ab, bb, c[s], g[s], symmetric), h)
+    settle(s, p, e, ab, bb, f, hi - lo, rest, h, symmetric, tau, early_exit, sums, err,
+           used, alive)
+
+
+@plain
+def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
+                symmetric, mixed):
+    """(sums, used) of pairs s (detections pa[s], pb[s] under unit F fs[fk[s]]); detection
+    d's 2n coordinates start at address det_addr[d] (arrays of like's dtype)."""
+    S = pa.shape[0]
+    D = det_addr.shape[0]
+    h = 0.5 if symmetric else 1.0
+    sums = np.zeros(S)
+    used = np.zeros(S, dtype=np.int64)
+    if not mixed:
+        for s in range(S):
+            sums[s], used[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                      points(like, det_addr[pb[s]], 0, 2 * n), fs[fk[s]],
+                                      blocks, n, tau, early_exit, h, symmetric)
+        return sums, used
+    # once per detection: its centre, its block ranges (filled on first use)
+    cen = np.empty((D, 2))
+    for d in range(D):
+        x = points(like, det_addr[d], 0, 2 * n)
+        cen[d, 0], cen[d, 1] = centre(x, n)
+    ranges = np.full((D, blocks.shape[0], 2), np.nan)
+    # each pair's centred float32 F, then the blocks outermost: one block of every
+    # detection of the frame (4 KB each) stays in cache while all its candidate pairs read
+    # it, instead of each pair streaming whole detections from memory
+    g = np.empty((S, 9), dtype=np.float32)
+    G = np.empty((S, 3, 3))
+    c = np.empty((S, 4), dtype=np.float32)
+    for s in range(S):
+        i = pa[s]
+        j = pb[s]
+        c[s, 0], c[s, 1], c[s, 2], c[s, 3] = cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1]
+        centred_f(fs[fk[s]], cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1], g[s], G[s])
+    # run_end[s]: end of s's run, the pairs of its a-side detection in its camera pair
+    # (sorted together); their lines and weights in a are computed once, two pairs at a time
+    run_end = np.empty(S, dtype=np.int64)
+    for s in range(S - 1, -1, -1):
+        same = s + 1 < S and pa[s + 1] == pa[s] and fk[s + 1] == fk[s]
+        run_end[s] = run_end[s + 1] if same else s + 1
+    err = np.zeros(S)
+    alive = np.ones(S, dtype=np.bool_)  # not rejected early
+    seen = 0
+    for r in range(blocks.shape[0]):
+        lo = blocks[r, 0]
+        hi = blocks[r, 1]
+        seen += hi - lo
+        s = 0
+        while s < S:
+            first = -1  # an alive pair of the run waiting for a second one
+            for t in range(s, run_end[s]):
+                if not alive[t]:
+                    continue
+                if first < 0:
+                    first = t
+                    continue
+                i = pa[t]
+                ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
+                j = pb[first]
+                bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
+                j2 = pb[t]
+                db = points(like, det_addr[j2], 2 * lo, 2 * (hi - lo))
+                lo_a, hi_a = block_range(ab, ranges[i], r)
+                lo_b, hi_b = block_range(bb, ranges[j], r)
+                lo_d, hi_d = block_range(db, ranges[j2], r)
+                if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
+                    one, two = block32x2(ab, bb, db, c[first, 0:2], c[first, 2:4],
+                                         c[t, 2:4], g[first], g[t], symmetric)
+                    p, e = pair_bound(G[first], ranges[i, r], ranges[j, r], c[first], one,
+                                      h)
+                    settle(first, p, e, ab, bb, fs[fk[first]], hi - lo, n - seen, h,
+                           symmetric, tau, early_exit, sums, err, used, alive)
+                    p, e = pair_bound(G[t], ranges[i, r], ranges[j2, r], c[t], two, h)
+                    settle(t, p, e, ab, db, fs[fk[t]], hi - lo, n - seen, h,
+                           symmetric, tau, early_exit, sums, err, used, alive)
+                else:
+                    single(first, r, lo, hi, n - seen, like, det_addr, pa, pb,
+                           ranges, c, g, G, fs[fk[first]], h, symmetric, tau, early_exit,
+                           sums, err, used, alive)
+                    single(t, r, lo, hi, n - seen, like, det_addr, pa, pb,
+                           ranges, c, g, G, fs[fk[t]], h, symmetric, tau, early_exit,
+                           sums, err, used, alive)
+                first = -1
+            if first >= 0:
+                single(first, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges,
+                       c, g, G, fs[fk[first]], h, symmetric, tau, early_exit, sums, err,
+                       used, alive)
+            s = run_end[s]
+    for s in range(S):
+        total = sums[s]
+        if alive[s] and not (total + err[s] < tau * used[s]) \
+                and not (total - err[s] >= tau * used[s]):
+            # the bound does not settle the decision: float64 throughout
+            sums[s], used[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                      points(like, det_addr[pb[s]], 0, 2 * n), fs[fk[s]],
+                                      blocks, n, tau, early_exit, h, symmetric)
+    return sums, used
+
+
+
+@jit32
+def rsqrt32(q, out):
+    """out[k] = 1/sqrt(q[k]) in float32, in the vectorised form block32 uses (the probe of
+    epipolar._rsqrt_within_bound)."""
+    for k in range(q.shape[0]):
+        out[k] = np.float32(1.0) / np.sqrt(q[k])
