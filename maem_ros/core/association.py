@@ -35,9 +35,9 @@ from . import clustering, epipolar
 from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet)
-from .geometry import pair_reprojection_errors
+from .geometry import pair_reprojection_bound, pair_reprojection_errors
 from .paramspec import Params, param
-from .procrustes import pa_mpjpe_finite
+from .procrustes import pa_mpjpe_columns
 from .skeleton import joint_subset
 
 #: overrides that give the MAEM paper's pipeline exactly: PA-MPJPE on every keypoint, no cost
@@ -136,16 +136,30 @@ _GEOMETRY: "weakref.WeakKeyDictionary[Rig, tuple]" = weakref.WeakKeyDictionary()
 
 def rig_geometry(rig: Rig) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
     """(P (C,3,4) rectified world->px, F[(a,b)] with x_b^T F x_a = 0) for the rig."""
+    hit = _rig_cache(rig)
+    return hit[1], hit[2]
+
+
+def _fundamental_stack(rig: Rig) -> np.ndarray:
+    """(C,C,3,3) F[a, b] with x_b^T F[a, b] x_a = 0 for every camera pair (F[b, a] = F[a, b]^T,
+    zero diagonal), for the reprojection gate's bound."""
+    return _rig_cache(rig)[3]
+
+
+def _rig_cache(rig: Rig) -> tuple:
     key = tuple((c.name, c.K_rect.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in rig)
     hit = _GEOMETRY.get(rig)
     if hit is not None and hit[0] == key:
-        return hit[1], hit[2]
+        return hit
     cams = rig.cameras
     P = np.stack([c.P for c in cams])
     F = {(a, b): fundamental_matrix(cams[a], cams[b])
          for a in range(len(cams)) for b in range(a + 1, len(cams))}
-    _GEOMETRY[rig] = (key, P, F)
-    return P, F
+    stack = np.zeros((len(cams), len(cams), 3, 3))
+    for (a, b), f in F.items():
+        stack[a, b], stack[b, a] = f, f.T
+    _GEOMETRY[rig] = hit = (key, P, F, stack)
+    return hit
 
 
 # ---------------------------------------------------------------------------------------
@@ -187,18 +201,42 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
 # candidate pairs and gates
 # ---------------------------------------------------------------------------------------
 def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
-    """Rows (i, j) of every kept x kept pair of every camera pair a < b."""
-    i, j = np.triu_indices(len(table), 1)
-    other = table.cam[i] != table.cam[j]
-    i, j = i[other].astype(np.int64), j[other].astype(np.int64)
-    order = np.lexsort((j, i, table.cam[j], table.cam[i]))  # grouped by camera pair
-    return i[order], j[order]
+    """Rows (i, j) of every kept x kept pair of every camera pair a < b, grouped by camera pair
+    in order, each group row-major (i, then j)."""
+    sizes = np.diff(table.offsets)
+    a, b = np.triu_indices(sizes.size, 1)
+    count = sizes[a] * sizes[b]
+    some = count > 0
+    a, b, count = a[some], b[some], count[some]
+    group = np.repeat(np.arange(count.size), count)
+    k = np.arange(int(count.sum())) - (np.cumsum(count) - count)[group]
+    width = sizes[b][group]
+    return table.offsets[a][group] + k // width, table.offsets[b][group] + k % width
 
 
-def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, P: np.ndarray,
+def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, rig: Rig,
                        params: AssociationParams) -> np.ndarray:
-    errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, params.reproj_reduce)
-    return errors < params.tau_reproj_bbox
+    """(S,) pairs whose bbox-centre reprojection error is under tau_reproj_bbox.
+
+    The epipolar lower bound of the error (geometry.pair_reprojection_bound) rejects most
+    pairs of different people without triangulating; the rest get the DLT. The bound keeps a
+    relative margin for rounding, so the decisions are exactly the DLT's.
+    """
+    P, _ = rig_geometry(rig)
+    bound = pair_reprojection_bound(_fundamental_stack(rig), table.cam, table.centers, i, j,
+                                    params.reproj_reduce)
+    ok = np.zeros(i.size, bool)
+    todo = np.flatnonzero(~(bound > params.tau_reproj_bbox * (1.0 + _BOUND_MARGIN)))
+    if todo.size:
+        errors = pair_reprojection_errors(P[table.cam], table.centers, i[todo], j[todo],
+                                          params.reproj_reduce)
+        ok[todo] = errors < params.tau_reproj_bbox
+    return ok
+
+
+#: relative margin of the reprojection bound over tau_reproj_bbox before it rejects alone
+#: (its own rounding is ~1e-13 relative)
+_BOUND_MARGIN = 1e-6
 
 
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
@@ -266,26 +304,41 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
     return keep, mean
 
 
-def pose_costs(table: DetectionTable, i: np.ndarray, j: np.ndarray, joints: np.ndarray
-               ) -> np.ndarray:
-    """(S,) PA-MPJPE (m) on ``joints`` of detection row i aligned onto row j."""
-    if i.size == 0:
-        return np.zeros(0)
-    X = table.kpts3d[:, joints]
-    return pa_mpjpe_finite(X[i], X[j])
+class PoseCosts:
+    """Pair costs (m) of one frame set: PA-MPJPE on ``joints`` of table row a aligned onto row
+    b, each pair computed once (the gates', the clustering's and the clusters' costs share it).
+
+    The rows' 3D keypoints are laid out once coordinate-first (3,J,N), the layout the batched
+    closed-form Procrustes (core/procrustes.py) computes on.
+    """
+
+    def __init__(self, table: DetectionTable, joints: np.ndarray):
+        self.columns = np.ascontiguousarray(table.kpts3d[:, joints].transpose(2, 1, 0))
+        self.known = np.full((len(table), len(table)), np.nan)
+
+    def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(S,) costs of rows a onto rows b."""
+        out = self.known[a, b]
+        todo = np.flatnonzero(np.isnan(out))
+        if todo.size:
+            out[todo] = pa_mpjpe_columns(self.columns[:, :, a[todo]],
+                                         self.columns[:, :, b[todo]])
+            self.known[a[todo], b[todo]] = out[todo]
+        return out
 
 
 def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
-               stats: dict[str, float]) -> PairSet:
-    """Steps 2-4 of the method on every kept pair: gates, costs, the cost cap."""
-    P, F = rig_geometry(rig)
+               stats: dict[str, float], costs: PoseCosts | None = None) -> PairSet:
+    """Steps 2-4 of the method on every kept pair: gates, costs (computed by ``costs``, by
+    default a new PoseCosts of the table), the cost cap."""
+    _, F = rig_geometry(rig)
     i, j = _enumerate_pairs(table)
     S = i.size
     stage = np.full(S, PASSED, np.int8)
     alive = np.arange(S)
     t = time.perf_counter()
     if params.reproj_gate and S:
-        ok = _reprojection_gate(table, i, j, P, params)
+        ok = _reprojection_gate(table, i, j, rig, params)
         stage[alive[~ok]] = REJECTED_REPROJ
         alive = alive[ok]
     stats["rejected_reproj"] = float(S - alive.size)
@@ -303,8 +356,9 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
 
     pose = np.full(S, np.nan)
     if alive.size:
-        joints = joint_subset(params.cost_joints, table.num_joints)
-        pose[alive] = pose_costs(table, i[alive], j[alive], joints)
+        if costs is None:
+            costs = PoseCosts(table, joint_subset(params.cost_joints, table.num_joints))
+        pose[alive] = costs(i[alive], j[alive])
     # relative to the gate threshold, so one default fits dense-mesh px and keypoint px
     weight = (params.cost_epipolar_weight / params.tau_mesh if params.epipolar_gate != "none"
               else 0.0)
@@ -348,23 +402,12 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     stats["pairs_considered"] = float((n_all.sum() ** 2 - (n_all ** 2).sum()) / 2)
     stats["rejected_score"] = stats["pairs_considered"] - float(
         (n_kept.sum() ** 2 - (n_kept ** 2).sum()) / 2)
-    pairs = gate_pairs(rig, table, params, stats)
+    joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
+    pair_cost = PoseCosts(table, joints) if len(table) else None
+    pairs = gate_pairs(rig, table, params, stats, pair_cost)
 
     t = time.perf_counter()
     P, _ = rig_geometry(rig)
-    joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
-
-    known = np.full((len(table), len(table)), np.nan)  # pose costs the gates already computed
-    known[pairs.i, pairs.j] = pairs.pose
-
-    def pair_cost(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Pose costs of rows a onto b, reusing those of the gated pairs."""
-        out = known[a, b]
-        todo = np.flatnonzero(np.isnan(out))
-        if todo.size:
-            out[todo] = pose_costs(table, a[todo], b[todo], joints)
-        return out
-
     found = clustering.cluster(table, pairs, P, joints, params, stats, pair_cost)
     stats["t_cluster_ms"], _ = _lap(t)
 

@@ -1,8 +1,10 @@
 """Multi-view geometry shared by association and triangulation (rectified pinhole px, world m).
 
 Batched inhomogeneous DLT (X4 = 1) with a closed-form 3x3 normal-equation solve, two-view
-reprojection errors for the association's bbox-centre gate, and the reprojection errors of
-point hypotheses in member views used by the RANSAC triangulation and the cluster check.
+reprojection errors for the association's bbox-centre gate (and a rigorous lower bound of
+them from the epipolar geometry, which settles most pairs without triangulating), and the
+reprojection errors of point hypotheses in member views used by the RANSAC triangulation and
+the cluster check.
 """
 from __future__ import annotations
 
@@ -151,3 +153,32 @@ def pair_reprojection_errors(P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np
             err = np.sqrt(du * du + dv * dv)
         errors.append(np.where((h[:, 2] > 0) & np.isfinite(err), err, np.inf))
     return 0.5 * (errors[0] + errors[1]) if reduce == "mean" else np.maximum(*errors)
+
+
+def pair_reprojection_bound(F: np.ndarray, cam: np.ndarray, uv: np.ndarray, i: np.ndarray,
+                            j: np.ndarray, reduce: str = "mean") -> np.ndarray:
+    """(S,) px lower bound of :func:`pair_reprojection_errors` of the pairs (i[s], j[s]).
+
+    F (C,C,3,3): F[a, b] the fundamental matrix with x_b^T F[a, b] x_a = 0 (F[b, a] its
+    transpose); cam (N,) each view's camera, uv (N,2) px. Any 3D point (the pair's DLT point
+    among them) reprojects to a pair of image points that satisfies the epipolar constraint,
+    so the pair's two reprojection errors e_a, e_b move the observations (x_a, x_b) onto the
+    constraint surface g = x_b^T F x_a = 0 and sqrt(e_a^2 + e_b^2) >= d, the distance of
+    (x_a, x_b) to that surface. g is bilinear, so exactly
+    |g| <= |grad g| d + |F_2x2| d^2 / 2 (|F_2x2| the Frobenius norm of the px block, >= its
+    spectral norm), which bounds d from below; the mean (max) of e_a, e_b is >= d/2 (d/sqrt 2).
+    NaN (no bound) where the geometry is degenerate; a pair behind a camera is unbounded.
+    """
+    N, C = cam.size, F.shape[0]
+    xh = np.concatenate([uv, np.ones((N, 1))], axis=1)
+    # every view's epipolar line in every camera, coordinate-first: lines[:, n * C + c]
+    lines = np.einsum("ncij,nj->inc", F[cam], xh).reshape(3, N * C)
+    ci, cj = cam[i], cam[j]
+    la = lines[:, i * C + cj]  # F x_a in b: g and its gradient in x_b
+    lb = lines[:2, j * C + ci]  # F^T x_b in a: the gradient in x_a
+    g = np.abs(la[0] * uv[j, 0] + la[1] * uv[j, 1] + la[2])
+    grad = np.sqrt(la[0] * la[0] + la[1] * la[1] + lb[0] * lb[0] + lb[1] * lb[1])
+    cross = np.sqrt((F[..., :2, :2] ** 2).sum((-2, -1)))[ci, cj]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = 2.0 * g / (grad + np.sqrt(grad * grad + 2.0 * cross * g))  # root of the bound
+    return d * (0.5 if reduce == "mean" else np.sqrt(0.5))

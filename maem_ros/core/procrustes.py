@@ -90,13 +90,209 @@ def pa_mpjpe_finite(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
     The same Umeyama alignment as pa_mpjpe (rotation with reflection guard,
     translation, uniform scale) without its mask/NaN handling, which validated detections do
-    not need: one stacked SVD of the 3x3 covariances. Fewer than 3 joints do not fix a
-    similarity (any two point pairs align exactly), so the cost is NaN (= gated) then.
+    not need. Fewer than 3 joints do not fix a similarity (any two point pairs align exactly),
+    so the cost is NaN (= gated) then. See :func:`pa_mpjpe_columns` (the same on
+    coordinate-first arrays, which it computes on).
     """
-    if X.shape[1] < 3:
-        return np.full(X.shape[0], np.nan)
-    Xc = X - X.mean(axis=1, keepdims=True)
-    Yc = Y - Y.mean(axis=1, keepdims=True)
+    X = np.asarray(X, dtype=np.float64)
+    Y = np.asarray(Y, dtype=np.float64)
+    return pa_mpjpe_columns(X.transpose(2, 1, 0), Y.transpose(2, 1, 0))
+
+
+#: relative eigenvalue gap (product of the three gaps over ||H||_F^3) under which the closed
+#: form hands a pair to the SVD: its rotation is then ill-determined (near-degenerate poses)
+#: and the quaternion's rounding error would grow as 1/gap (realistic body poses: >= 0.9)
+_QCP_MIN_GAP = 1e-6
+#: Newton steps on the characteristic quartic (from an upper bound, monotone: 4-6 are used on
+#: detections of one person, ~15 on unrelated random poses)
+_QCP_MAX_STEPS = 60
+
+
+def pa_mpjpe_columns(Xt: np.ndarray, Yt: np.ndarray) -> np.ndarray:
+    """(S,) PA-MPJPE of Xt onto Yt given coordinate-first (3,J,S) float64, finite (any strides).
+
+    Closed form per pair, vectorised over S (one stacked LAPACK SVD costs ~2-3 us per 3x3
+    matrix, dominating the association's cost stage): the optimal rotation is the unit
+    quaternion of the largest eigenvalue of Horn's 4x4 key matrix of the cross-covariance
+    (quaternion characteristic polynomial, Theobald 2005 / Liu et al. 2010): the eigenvalue by
+    Newton from an upper bound, the eigenvector from the adjugate of (K - lambda I). The
+    eigenvalue equals the SVD's trace term s1 + s2 + d s3 (d: reflection guard), so the scale,
+    rotation and cost equal the SVD path's to rounding; pairs with a near-degenerate
+    eigenvalue gap take the SVD path itself (_umeyama_svd).
+    """
+    S = Xt.shape[-1]
+    if Xt.shape[1] < MIN_JOINTS:
+        return np.full(S, np.nan)
+    if S == 1:  # numpy sums a lone pair's joints in another order: keep results batch-free
+        return pa_mpjpe_columns(np.repeat(Xt, 2, axis=2), np.repeat(Yt, 2, axis=2))[:1]
+    # centred copies, contiguous per coordinate: every later step runs on (J,S) / (S,) rows
+    Xc = np.array(Xt, dtype=np.float64, order="C")
+    Xc -= Xc.mean(axis=1, keepdims=True)
+    Yc = np.array(Yt, dtype=np.float64, order="C")
+    Yc -= Yc.mean(axis=1, keepdims=True)
+    H = np.einsum("ajs,bjs->abs", Xc, Yc)  # sum_j x_a y_b (Horn's S_ab, x aligned onto y)
+    gx = np.einsum("ajs,ajs->s", Xc, Xc)
+    lam, ok = _qcp_eigenvalue(H, gx, np.einsum("ajs,ajs->s", Yc, Yc))
+    R = _qcp_rotation(H, lam)  # (3,3,S), R x ~ y
+    with np.errstate(divide="ignore", invalid="ignore"):
+        R *= np.where(gx > 0, lam / gx, 0.0)  # times the scale
+    sq = np.zeros_like(Xc[0])
+    for a in range(3):
+        r = R[a, 0] * Xc[0]
+        r += R[a, 1] * Xc[1]
+        r += R[a, 2] * Xc[2]
+        r -= Yc[a]
+        r *= r
+        sq += r
+    out = np.sqrt(sq, out=sq).mean(axis=0)
+    bad = np.flatnonzero(~ok)
+    if bad.size:
+        out[bad] = _umeyama_svd(Xc[..., bad].transpose(2, 1, 0), Yc[..., bad].transpose(2, 1, 0))
+    return out
+
+
+def _qcp_eigenvalue(H: np.ndarray, gx: np.ndarray, gy: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(largest eigenvalue of Horn's key matrix (S,), well separated (S,) bool) of H (3,3,S).
+
+    The characteristic polynomial of the traceless key matrix K is
+    l^4 - 2 ||H||_F^2 l^2 - 8 det(H) l + det(K); Newton from min(sqrt(gx gy), sqrt(3) ||H||_F)
+    (both bound the nuclear norm of H, hence the largest root) converges monotonically.
+    """
+    f2 = np.einsum("abs,abs->s", H, H)
+    c2 = -2.0 * f2
+    c1 = -8.0 * _det3(H)
+    c0 = _det4(_key_matrix(H))
+    frob = np.sqrt(f2)
+    lam = np.minimum(np.sqrt(gx * gy), np.sqrt(3.0) * frob)
+    tol = 1e-13 * frob
+    active = np.ones(lam.shape, bool)  # a converged pair stops: its result is its own
+    for _ in range(_QCP_MAX_STEPS):
+        l2 = lam * lam
+        p = (l2 + c2) * l2 + c1 * lam + c0
+        dp = (4.0 * l2 + 2.0 * c2) * lam + c1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.where(active & (dp > 0), p / dp, 0.0)
+        lam -= step
+        active &= np.abs(step) > tol
+        if not active.any():
+            break
+    l2 = lam * lam
+    dp = (4.0 * l2 + 2.0 * c2) * lam + c1  # = product of the gaps to the other eigenvalues
+    return lam, ~active & (dp > _QCP_MIN_GAP * f2 * frob)
+
+
+def _adjugate_table() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each 4x4 adjugate entry as three signed products (matrix entry) x (2x2 minor of rows
+    (0,1): 0-5, or of rows (2,3): 6-11; columns 01 02 03 12 13 23): (entries (16,3), minors
+    (16,3), signs (16,3))."""
+    s0, s1, s2, s3, s4, s5, c0, c1, c2, c3, c4, c5 = range(12)
+    terms = [  # adj[r][c] = sum sign * a[i][j] * minor, row-major over (r, c)
+        [(+1, 1, 1, c5), (-1, 1, 2, c4), (+1, 1, 3, c3)],
+        [(-1, 0, 1, c5), (+1, 0, 2, c4), (-1, 0, 3, c3)],
+        [(+1, 3, 1, s5), (-1, 3, 2, s4), (+1, 3, 3, s3)],
+        [(-1, 2, 1, s5), (+1, 2, 2, s4), (-1, 2, 3, s3)],
+        [(-1, 1, 0, c5), (+1, 1, 2, c2), (-1, 1, 3, c1)],
+        [(+1, 0, 0, c5), (-1, 0, 2, c2), (+1, 0, 3, c1)],
+        [(-1, 3, 0, s5), (+1, 3, 2, s2), (-1, 3, 3, s1)],
+        [(+1, 2, 0, s5), (-1, 2, 2, s2), (+1, 2, 3, s1)],
+        [(+1, 1, 0, c4), (-1, 1, 1, c2), (+1, 1, 3, c0)],
+        [(-1, 0, 0, c4), (+1, 0, 1, c2), (-1, 0, 3, c0)],
+        [(+1, 3, 0, s4), (-1, 3, 1, s2), (+1, 3, 3, s0)],
+        [(-1, 2, 0, s4), (+1, 2, 1, s2), (-1, 2, 3, s0)],
+        [(-1, 1, 0, c3), (+1, 1, 1, c1), (-1, 1, 2, c0)],
+        [(+1, 0, 0, c3), (-1, 0, 1, c1), (+1, 0, 2, c0)],
+        [(-1, 3, 0, s3), (+1, 3, 1, s1), (-1, 3, 2, s0)],
+        [(+1, 2, 0, s3), (-1, 2, 1, s1), (+1, 2, 2, s0)],
+    ]
+    t = np.array(terms)
+    return t[..., 1] * 4 + t[..., 2], t[..., 3], t[..., 0].astype(np.float64)
+
+
+_ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN = _adjugate_table()
+#: column pairs of the 2x2 minors
+_MINOR_I, _MINOR_J = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
+
+
+def _key_matrix(H: np.ndarray) -> np.ndarray:
+    """(4,4,S) Horn's symmetric key matrix of H (3,3,S) (H[a, b] = sum x_a y_b).
+
+    Entry by entry (not a matrix product), like every step of the closed form: each pair's
+    result depends on its own numbers only, not on the batch it is computed in."""
+    (xx, xy, xz), (yx, yy, yz), (zx, zy, zz) = H
+    K = np.empty((4, 4) + H.shape[2:])
+    K[0, 0] = xx + yy + zz
+    K[1, 1] = xx - yy - zz
+    K[2, 2] = yy - xx - zz
+    K[3, 3] = zz - xx - yy
+    K[0, 1] = K[1, 0] = yz - zy
+    K[0, 2] = K[2, 0] = zx - xz
+    K[0, 3] = K[3, 0] = xy - yx
+    K[1, 2] = K[2, 1] = xy + yx
+    K[1, 3] = K[3, 1] = zx + xz
+    K[2, 3] = K[3, 2] = yz + zy
+    return K
+
+
+def _det3(a: np.ndarray) -> np.ndarray:
+    """Determinants of (3,3,S) matrices."""
+    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+
+
+def _minors(a: np.ndarray) -> np.ndarray:
+    """(12,S) 2x2 minors of rows (0,1), then of rows (2,3), of (4,4,S) matrices, columns
+    (01, 02, 03, 12, 13, 23)."""
+    top, low = a[0::2], a[1::2]  # rows (0,2) and (1,3): both minor families at once
+    m = top[:, _MINOR_I] * low[:, _MINOR_J] - low[:, _MINOR_I] * top[:, _MINOR_J]  # (2,6,S)
+    return m.reshape(12, -1)
+
+
+def _det4(a: np.ndarray) -> np.ndarray:
+    """Determinants of (4,4,S) matrices (Laplace expansion over the top two rows)."""
+    m = _minors(a)
+    s, c = m[:6], m[6:]
+    return s[0] * c[5] - s[1] * c[4] + s[2] * c[3] + s[3] * c[2] - s[4] * c[1] + s[5] * c[0]
+
+
+def _adjugate4(a: np.ndarray) -> np.ndarray:
+    """(4,4,S) adjugates of (4,4,S) matrices, from the 2x2 minors."""
+    m = _minors(a)
+    flat = a.reshape(16, -1)
+    terms = flat[_ADJ_ENTRY] * m[_ADJ_MINOR]  # (16,3,S)
+    terms *= _ADJ_SIGN[..., None]
+    return terms.sum(axis=1).reshape(a.shape)
+
+
+def _qcp_rotation(H: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """(3,3,S) rotations of the unit quaternions (eigenvectors of the key matrix of H for
+    eigenvalue lam): the adjugate of K - lam I has rank one, q q^T up to scale; its column
+    with the largest diagonal entry is the best-conditioned multiple of q."""
+    A = _key_matrix(H)
+    A[np.arange(4), np.arange(4)] -= lam
+    adj = _adjugate4(A)
+    best = np.argmax(np.abs(adj[np.arange(4), np.arange(4)]), axis=0)
+    q = np.take_along_axis(adj, best[None, None, :], axis=1)[:, 0]  # (4,S)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q /= np.sqrt(np.einsum("ks,ks->s", q, q))
+    w, x, y, z = q
+    R = np.empty((3, 3) + lam.shape)
+    R[0, 0] = w * w + x * x - y * y - z * z
+    R[1, 1] = w * w - x * x + y * y - z * z
+    R[2, 2] = w * w - x * x - y * y + z * z
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    return R
+
+
+def _umeyama_svd(Xc: np.ndarray, Yc: np.ndarray) -> np.ndarray:
+    """(S,) PA-MPJPE of centred Xc (S,J,3) onto centred Yc (S,J,3) by one stacked SVD of the
+    3x3 covariances (the closed form's reference and its fallback)."""
     U, S, Vt = np.linalg.svd(np.matmul(Yc.transpose(0, 2, 1), Xc))
     d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
     d[d == 0] = 1.0
