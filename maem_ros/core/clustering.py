@@ -110,6 +110,10 @@ class _Verifier:
         self.uv = table.kpts2d[:, joints]  # (N,Jb,2)
         self.P = P[table.cam]  # (N,3,4)
         self.tau = tau
+        self.usable = np.isfinite(self.uv).all(-1)  # (N,Jb)
+        # each row's share of every candidate cluster's DLT system, computed once per frame
+        # set (unusable joints weigh 0)
+        self.E = normal_entries(self.P[:, None], self.uv, self.usable) * self.usable  # (9,N,Jb)
 
     def __call__(self, rows: np.ndarray) -> np.ndarray:
         """rows (K,M) table rows, -1 = padding -> (K,) all members consistent."""
@@ -119,8 +123,8 @@ class _Verifier:
         r = np.where(present, rows, 0)
         P = self.P[r]  # (K,M,3,4)
         uv = self.uv[r]  # (K,M,Jb,2)
-        usable = present[..., None] & np.isfinite(uv).all(-1)
-        E = normal_entries(P[:, :, None], uv, usable) * usable  # (9,K,M,Jb), unusable = 0
+        usable = present[..., None] & self.usable[r]
+        E = self.E[:, r] * present[..., None]  # (9,K,M,Jb), padding = 0
         X = solve_normal(E.sum(2))  # (K,Jb,3)
         err = reprojection_error(P, X[:, None], uv)[:, :, 0]  # (K,M,Jb), inf if unusable
         err = np.where(usable, err, np.inf)
@@ -168,16 +172,18 @@ def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
     return Found(_groups(label))
 
 
-def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
+def _members_padded(label: np.ndarray, parts: list[np.ndarray], width: int | None = None
+                    ) -> np.ndarray:
     """(K, M) table rows of the union of the given label sets per candidate, -1 padded.
 
-    parts: arrays (K,) of labels (-1 = none) whose members are concatenated per candidate.
+    parts: arrays (K,) of labels (-1 = none) whose members are concatenated per candidate;
+    M = width, by default the largest union.
     """
     order = np.argsort(label, kind="stable")
     size = np.bincount(label, minlength=label.size)
     start = np.concatenate([[0], np.cumsum(size)[:-1]])
     sizes = [np.where(p >= 0, size[np.maximum(p, 0)], 0) for p in parts]
-    M = int(sum(sizes).max(initial=0))
+    M = int(sum(sizes).max(initial=0)) if width is None else width
     slot = np.arange(M)[None, :]
     out = np.full((parts[0].size, M), -1, np.int64)
     base = np.zeros(parts[0].size, np.int64)
@@ -213,39 +219,60 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         size = np.bincount(label, minlength=N)
         camset = np.zeros((N, C), bool)
         camset[label, table.cam] = True
-        # objective change: sum of gains over all cross pairs of the two clusters
-        members_ab = _members_padded(label, [A, B])
-        sa = size[A]
-        g = _cross_gain(gain, members_ab, sa)
         disjoint = ~(camset[A] & camset[B]).any(1)
         support = count / (size[A] * size[B])
-        allowed = disjoint & (support >= params.min_support) & (g > 0)
         # a refused merge stays refused while neither cluster changed (same labels and sizes)
         codes = ((A * N + B) * (N + 1) + size[A]) * (N + 1) + size[B]
+        pre = disjoint & (support >= params.min_support)
         if refused:
-            allowed &= ~np.isin(codes, np.fromiter(refused, np.int64, len(refused)))
-        cand = np.flatnonzero(allowed)
+            pre &= ~np.isin(codes, np.fromiter(refused, np.int64, len(refused)))
+        pre = np.flatnonzero(pre)
+        # objective change (sum of gains over all cross pairs of the two clusters), only where
+        # the cheap conditions hold; padded to the width of all candidates' unions
+        width = int((size[A] + size[B]).max(initial=0))
+        members_ab = _members_padded(label, [A[pre], B[pre]], width)
+        g = _cross_gain(gain, members_ab, size[A[pre]])
+        gainful = g > 0
+        cand, members_ab, g = pre[gainful], members_ab[gainful], g[gainful]
         if cand.size == 0:
             return label
         need = size[A[cand]] + size[B[cand]] >= 3
         passed = np.ones(cand.size, bool)
         if need.any():
-            passed[need] = verify(members_ab[cand[need]])
+            passed[need] = verify(members_ab[need])
         refused.update(codes[cand[~passed]].tolist())
         stats["merges_rejected"] += float(np.count_nonzero(~passed))
-        cand = cand[passed]
+        cand, g = cand[passed], g[passed]
         if cand.size == 0:
             return label
-        cand = cand[np.argsort(-g[cand], kind="stable")]
-        used: set[int] = set()
+        best_first = np.argsort(-g, kind="stable")
+        x, y = _disjoint_greedy(A[cand[best_first]], B[cand[best_first]], N)
         into = np.arange(N)
-        for x, y in zip(A[cand].tolist(), B[cand].tolist()):  # candidate merges, best first
-            if x in used or y in used:
-                continue
-            used.update((x, y))
-            into[y] = x
+        into[y] = x
         label = into[label]  # the applied merges touch disjoint clusters: one relabelling
-        stats["merges"] += float(len(used) // 2)
+        stats["merges"] += float(x.size)
+
+
+def _disjoint_greedy(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The edges (a[k], b[k]) (labels < n) that a best-first pass in k order takes when it
+    skips every edge touching a label already taken.
+
+    Computed in rounds rather than edge by edge: an edge that comes first among all remaining
+    edges at both of its ends is taken by the sequential pass too (nothing earlier can block
+    it); taking those and dropping the edges they block repeats until none remain."""
+    rank = np.arange(a.size)
+    alive = np.ones(a.size, bool)
+    taken = np.zeros(a.size, bool)
+    used = np.zeros(n, bool)
+    while alive.any():
+        first = np.full(n, a.size)
+        np.minimum.at(first, a[alive], rank[alive])
+        np.minimum.at(first, b[alive], rank[alive])
+        now = alive & (first[a] == rank) & (first[b] == rank)
+        taken |= now
+        used[a[now]] = used[b[now]] = True
+        alive &= ~(used[a] | used[b])
+    return a[taken], b[taken]
 
 
 def _cross_gain(gain: np.ndarray, members: np.ndarray, split: np.ndarray) -> np.ndarray:
