@@ -411,13 +411,8 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     found = clustering.cluster(table, pairs, P, joints, params, stats, pair_cost)
     stats["t_cluster_ms"], _ = _lap(t)
 
-    kept_groups = []
-    for rows in found.groups:
-        alive = rows[~np.isin(rows, found.conflicts)]
-        if np.unique(table.cam[alive]).size < params.k_min:
-            stats["clusters_below_k_min"] += 1
-        else:
-            kept_groups.append(alive)
+    kept_groups = _views_at_least(table, found, params.k_min)
+    stats["clusters_below_k_min"] += float(len(found.groups) - len(kept_groups))
     clusters = [Cluster(members=table.members(g), costs=c)
                 for g, c in zip(kept_groups, clustering.mean_costs(kept_groups, pair_cost))]
     clusters.sort(key=lambda c: tuple(c.members[0].tolist()))
@@ -425,6 +420,23 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     stats["t_total_ms"] = (time.perf_counter() - t_start) * 1e3
     return AssociationResult(clusters=clusters, stats=stats, table=table, pairs=pairs,
                              groups=found.groups, conflicts=found.conflicts)
+
+
+def _views_at_least(table: DetectionTable, found: clustering.Found, k_min: int
+                    ) -> list[np.ndarray]:
+    """The groups (table rows, conflicts removed, in order) seen by at least k_min cameras."""
+    if not found.groups:
+        return []
+    rows = np.concatenate(found.groups)
+    group = np.repeat(np.arange(len(found.groups)), [g.size for g in found.groups])
+    alive = np.ones(len(table), bool)
+    alive[found.conflicts] = False
+    rows, group = rows[alive[rows]], group[alive[rows]]
+    C = int(table.cam.max()) + 1
+    views = np.bincount(np.unique(group * C + table.cam[rows]) // C, minlength=len(found.groups))
+    keep = np.flatnonzero(views >= k_min)
+    bounds = zip(group.searchsorted(keep, "left").tolist(), group.searchsorted(keep, "right").tolist())
+    return [rows[start:end] for start, end in bounds]
 
 
 def _lap(t: float) -> tuple[float, float]:

@@ -445,25 +445,37 @@ def cost_matrix(rows: np.ndarray, pair_cost: PairCost) -> np.ndarray:
 
 def mean_costs(groups: list[np.ndarray], pair_cost: PairCost) -> list[np.ndarray]:
     """Per group (table rows), each member's mean pose cost (m) to the rest (member m aligned
-    onto n for m < n; NaN if alone), all groups' pairs in one batch."""
-    tri = [np.triu_indices(g.size, 1) for g in groups]
-    a = np.concatenate([g[t[0]] for g, t in zip(groups, tri)] + [np.zeros(0, np.int64)])
-    b = np.concatenate([g[t[1]] for g, t in zip(groups, tri)] + [np.zeros(0, np.int64)])
+    onto n for m < n; NaN if alone), all groups' pairs in one batch, groups of one size
+    reduced together."""
+    out: list[np.ndarray] = [np.zeros(0)] * len(groups)
+    sizes = np.array([g.size for g in groups], np.int64)
+    batches = [(m, np.flatnonzero(sizes == m)) for m in np.unique(sizes).tolist()]
+    r, c, a, b = {}, {}, [], []
+    for m, which in batches:
+        r[m], c[m] = np.triu_indices(m, 1)
+        rows = np.stack([groups[k] for k in which.tolist()])  # (G,m)
+        a.append(rows[:, r[m]].ravel())
+        b.append(rows[:, c[m]].ravel())
+    a = np.concatenate(a + [np.zeros(0, np.int64)])
+    b = np.concatenate(b + [np.zeros(0, np.int64)])
     flat = pair_cost(a, b) if a.size else np.zeros(0)
-    out, k = [], 0
-    for g, (r, c) in zip(groups, tri):
-        Cm = np.full((g.size, g.size), np.nan)
-        Cm[r, c] = Cm[c, r] = flat[k:k + r.size]
-        k += r.size
-        out.append(mean_to_rest(Cm, np.ones(g.size, bool)))
+    k = 0
+    for m, which in batches:
+        Cm = np.full((which.size, m, m), np.nan)
+        n = which.size * r[m].size
+        Cm[:, r[m], c[m]] = Cm[:, c[m], r[m]] = flat[k:k + n].reshape(which.size, -1)
+        k += n
+        for g, mean in zip(which.tolist(), mean_to_rest(Cm, np.ones(m, bool))):
+            out[g] = mean
     return out
 
 
 def mean_to_rest(Cm: np.ndarray, alive: np.ndarray) -> np.ndarray:
-    """(M,) mean cost of each member to the other alive members, ignoring NaN (NaN if none)."""
+    """(...,M) mean cost of each member to the other alive members, ignoring NaN (NaN if
+    none), of cost matrices Cm (...,M,M)."""
     use = alive[None, :] & ~np.eye(len(alive), dtype=bool) & np.isfinite(Cm)
-    n = use.sum(axis=1)
-    total = np.where(use, Cm, 0.0).sum(axis=1)
+    n = use.sum(axis=-1)
+    total = np.where(use, Cm, 0.0).sum(axis=-1)
     return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
