@@ -1,0 +1,140 @@
+"""The association's fast paths make exactly the decisions of their straightforward forms:
+closed-form Procrustes = the SVD alignment, the reprojection gate's epipolar bound never
+exceeds the DLT error it stands in for, best-first disjoint merges picked in rounds = one
+sequential pass, the vectorised pair enumeration = the sorted upper triangle."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from test_association import ring_rig
+
+from maem_ros.core import procrustes
+from maem_ros.core.association import (AssociationParams, _enumerate_pairs, _fundamental_stack,
+                                       _reprojection_gate, rig_geometry)
+from maem_ros.core.clustering import _disjoint_greedy
+from maem_ros.core.detections import DetectionTable, FrameDetections
+from maem_ros.core.geometry import pair_reprojection_bound, pair_reprojection_errors
+from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
+
+
+def svd_reference(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    return procrustes._umeyama_svd(X - X.mean(1, keepdims=True), Y - Y.mean(1, keepdims=True))
+
+
+def _poses(kind: str, rng: np.random.Generator, S: int, J: int) -> tuple[np.ndarray, np.ndarray]:
+    X = rng.normal(size=(S, J, 3))
+    if kind == "unrelated":
+        return X, rng.normal(size=(S, J, 3))
+    if kind == "same person":  # a similarity of X plus detection noise
+        R = Rotation.random(S, random_state=int(rng.integers(1 << 30))).as_matrix()
+        Y = 1.7 * np.einsum("sij,skj->ski", R, X) + rng.normal(size=(S, 1, 3))
+        return X, Y + 0.03 * rng.normal(size=Y.shape)
+    if kind == "planar":
+        return X * [1, 1, 0], rng.normal(size=(S, J, 3)) * [1, 0, 1]
+    if kind == "mirrored":
+        return X * [1, 1, -1], X
+    if kind == "collinear":  # rotation about the line is free: the SVD fallback decides
+        return rng.normal(size=(S, J, 1)) * [1, 2, 3], rng.normal(size=(S, J, 3))
+    if kind == "one point":
+        return np.broadcast_to(X[:, :1], X.shape).copy(), rng.normal(size=(S, J, 3))
+    raise ValueError(kind)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10**6), J=st.sampled_from([3, 4, 13, 70]),
+       kind=st.sampled_from(["unrelated", "same person", "planar", "mirrored", "collinear",
+                             "one point"]))
+def test_closed_form_procrustes_equals_the_svd_alignment(seed, J, kind):
+    rng = np.random.default_rng(seed)
+    X, Y = _poses(kind, rng, 25, J)
+    fast = pa_mpjpe_finite(X, Y)
+    np.testing.assert_allclose(fast, svd_reference(X, Y), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fast, pa_mpjpe(X, Y), rtol=1e-9, atol=1e-12)
+
+
+def test_closed_form_procrustes_result_does_not_depend_on_the_batch():
+    """Each pair's cost is its own (a converged pair stops iterating, a lone pair sums its
+    joints like a batch): the association may compute a pair in any batch."""
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(200, 13, 3))
+    Y = X + rng.normal(size=X.shape) * rng.uniform(0.0, 2.0, (200, 1, 1))
+    full = pa_mpjpe_finite(X, Y)
+    singles = np.concatenate([pa_mpjpe_finite(X[k:k + 1], Y[k:k + 1]) for k in range(200)])
+    parts = np.concatenate([pa_mpjpe_finite(X[:77], Y[:77]), pa_mpjpe_finite(X[77:], Y[77:])])
+    np.testing.assert_array_equal(full, singles)
+    np.testing.assert_array_equal(full, parts)
+    assert pa_mpjpe_finite(np.zeros((0, 13, 3)), np.zeros((0, 13, 3))).shape == (0,)
+
+
+def _table(rig, rng: np.random.Generator, sizes: list[int], spread: float = 300.0
+           ) -> DetectionTable:
+    """Detections of random people (near the court centre) plus random boxes."""
+    frames = {}
+    for c, (cam, n) in enumerate(zip(rig.cameras, sizes)):
+        world = np.column_stack([rng.uniform(-4, 4, (n, 2)), np.full(n, 0.9)])
+        uv = cam.project_rectified(world) + rng.normal(0.0, 3.0, (n, 2))
+        uv[: n // 3] = rng.uniform(0, 1280, (n // 3, 2))  # unrelated boxes
+        half = rng.uniform(10, spread, (n, 2))
+        frames[c] = FrameDetections(cam.name, 0, np.hstack([uv - half, uv + half]),
+                                    np.ones(n), np.zeros((n, 3, 2)), np.zeros((n, 3, 3)),
+                                    np.zeros((n, 0, 2), np.float32))
+    return DetectionTable.build(frames, len(rig))
+
+
+@pytest.mark.parametrize("reduce", ["mean", "max"])
+def test_reprojection_bound_never_exceeds_the_dlt_error_and_gate_decisions_are_the_dlts(reduce):
+    rng = np.random.default_rng(11)
+    rig = ring_rig(5)
+    table = _table(rig, rng, [30, 0, 25, 30, 28])
+    i, j = _enumerate_pairs(table)
+    P, _ = rig_geometry(rig)
+    errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, reduce)
+    bound = pair_reprojection_bound(_fundamental_stack(rig), table.cam, table.centers, i, j,
+                                    reduce)
+    finite = np.isfinite(errors)
+    assert finite.sum() > 1000 and np.isfinite(bound).all()
+    assert np.all(bound[finite] <= errors[finite] * (1 + 1e-9))
+    # the bound settles most pairs: the DLT runs on few
+    for tau in (2.0, 10.0, 40.0):
+        params = AssociationParams(tau_reproj_bbox=tau, reproj_reduce=reduce)
+        assert np.count_nonzero(bound > tau) > 0.5 * i.size
+        np.testing.assert_array_equal(_reprojection_gate(table, i, j, rig, params),
+                                      errors < tau)
+
+
+def test_enumerated_pairs_are_the_sorted_upper_triangle_across_cameras():
+    rng = np.random.default_rng(2)
+    table = _table(ring_rig(6), rng, [4, 0, 7, 1, 0, 5])
+    i, j = _enumerate_pairs(table)
+    ri, rj = np.triu_indices(len(table), 1)
+    other = table.cam[ri] != table.cam[rj]
+    ri, rj = ri[other], rj[other]
+    order = np.lexsort((rj, ri, table.cam[rj], table.cam[ri]))
+    np.testing.assert_array_equal(i, ri[order])
+    np.testing.assert_array_equal(j, rj[order])
+    assert i.dtype == np.int64 and j.dtype == np.int64
+
+
+def _sequential(a: np.ndarray, b: np.ndarray) -> list[tuple[int, int]]:
+    used, out = set(), []
+    for x, y in zip(a.tolist(), b.tolist()):
+        if x in used or y in used:
+            continue
+        used.update((x, y))
+        out.append((x, y))
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10**6), n=st.integers(2, 40), m=st.integers(0, 120))
+def test_disjoint_merges_in_rounds_equal_the_sequential_best_first_pass(seed, n, m):
+    rng = np.random.default_rng(seed)
+    a = rng.integers(0, n, m)
+    b = rng.integers(0, n, m)
+    a, b = np.minimum(a, b)[a != b], np.maximum(a, b)[a != b]
+    x, y = _disjoint_greedy(a, b, n)
+    assert sorted(zip(x.tolist(), y.tolist())) == sorted(_sequential(a, b))
