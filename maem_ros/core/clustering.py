@@ -107,24 +107,30 @@ class _Verifier:
     median reprojection error (px) must stay under tau_verify."""
 
     def __init__(self, table: DetectionTable, P: np.ndarray, joints: np.ndarray, tau: float):
-        self.uv = table.kpts2d[:, joints]  # (N,Jb,2)
-        self.P = P[table.cam]  # (N,3,4)
+        # one extra row N stands for padding: no usable joint, zero DLT share
+        N, Jb = len(table), joints.size
+        self.uv = np.zeros((N + 1, Jb, 2))
+        self.uv[:N] = table.kpts2d[:, joints]
+        self.P = np.zeros((N + 1, 3, 4))
+        self.P[:N] = P[table.cam]
         self.tau = tau
-        self.usable = np.isfinite(self.uv).all(-1)  # (N,Jb)
+        self.usable = np.zeros((N + 1, Jb), bool)
+        self.usable[:N] = np.isfinite(self.uv[:N]).all(-1)
         # each row's share of every candidate cluster's DLT system, computed once per frame
         # set (unusable joints weigh 0)
-        self.E = normal_entries(self.P[:, None], self.uv, self.usable) * self.usable  # (9,N,Jb)
+        self.E = normal_entries(self.P[:, None], self.uv, self.usable) * self.usable  # (9,N+1,Jb)
 
     def __call__(self, rows: np.ndarray) -> np.ndarray:
         """rows (K,M) table rows, -1 = padding -> (K,) all members consistent."""
         if rows.size == 0:
             return np.zeros(rows.shape[0], bool)
+        rows = rows[:, :int((rows >= 0).sum(1).max())]  # members first: drop padding columns
         present = rows >= 0
-        r = np.where(present, rows, 0)
+        r = np.where(present, rows, self.usable.shape[0] - 1)
         P = self.P[r]  # (K,M,3,4)
         uv = self.uv[r]  # (K,M,Jb,2)
-        usable = present[..., None] & self.usable[r]
-        E = self.E[:, r] * present[..., None]  # (9,K,M,Jb), padding = 0
+        usable = self.usable[r]
+        E = self.E[:, r]  # (9,K,M,Jb), padding = 0
         X = solve_normal(E.sum(2))  # (K,Jb,3)
         err = reprojection_error(P, X[:, None], uv)[:, :, 0]  # (K,M,Jb), inf if unusable
         err = np.where(usable, err, np.inf)
@@ -157,7 +163,8 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
     ci, cj = pairs.i[capped], pairs.j[capped]
     gain[ci, cj] = gain[cj, ci] = CAPPED_PAIR_GAIN * tau
     gain[pairs.i[ok], pairs.j[ok]] = gain[pairs.j[ok], pairs.i[ok]] = tau - pairs.cost[ok]
-    gain[table.cam[:, None] == table.cam[None, :]] = 0.0
+    for start, end in zip(table.offsets[:-1].tolist(), table.offsets[1:].tolist()):
+        gain[start:end, start:end] = 0.0  # rows are grouped by camera
     return gain, geometric
 
 
@@ -172,18 +179,16 @@ def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
     return Found(_groups(label))
 
 
-def _members_padded(label: np.ndarray, parts: list[np.ndarray], width: int | None = None
-                    ) -> np.ndarray:
+def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
     """(K, M) table rows of the union of the given label sets per candidate, -1 padded.
 
-    parts: arrays (K,) of labels (-1 = none) whose members are concatenated per candidate;
-    M = width, by default the largest union.
+    parts: arrays (K,) of labels (-1 = none) whose members are concatenated per candidate.
     """
     order = np.argsort(label, kind="stable")
     size = np.bincount(label, minlength=label.size)
     start = np.concatenate([[0], np.cumsum(size)[:-1]])
     sizes = [np.where(p >= 0, size[np.maximum(p, 0)], 0) for p in parts]
-    M = int(sum(sizes).max(initial=0)) if width is None else width
+    M = int(sum(sizes).max(initial=0))
     slot = np.arange(M)[None, :]
     out = np.full((parts[0].size, M), -1, np.int64)
     base = np.zeros(parts[0].size, np.int64)
@@ -209,13 +214,15 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         if not cross.any():
             return label
         a, b = np.minimum(la, lb)[cross], np.maximum(la, lb)[cross]
-        key = np.unique(a * N + b)
+        linked = np.zeros(N * N, bool)  # cluster pairs (A, B), A < B, as sorted keys A * N + B
+        linked[a * N + b] = True
+        key = np.flatnonzero(linked)
         A, B = key // N, key % N
         ga, gb = label[gi], label[gj]
-        gkey = np.minimum(ga, gb) * N + np.maximum(ga, gb)
-        pos = np.searchsorted(key, gkey)
-        hit = (pos < key.size) & (key[np.minimum(pos, key.size - 1)] == gkey)
-        count = np.bincount(pos[hit], minlength=key.size)
+        index_of = np.full(N * N, -1)
+        index_of[key] = np.arange(key.size)
+        pos = index_of[np.minimum(ga, gb) * N + np.maximum(ga, gb)]
+        count = np.bincount(pos[pos >= 0], minlength=key.size)
         size = np.bincount(label, minlength=N)
         camset = np.zeros((N, C), bool)
         camset[label, table.cam] = True
@@ -228,9 +235,8 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
             pre &= ~np.isin(codes, np.fromiter(refused, np.int64, len(refused)))
         pre = np.flatnonzero(pre)
         # objective change (sum of gains over all cross pairs of the two clusters), only where
-        # the cheap conditions hold; padded to the width of all candidates' unions
-        width = int((size[A] + size[B]).max(initial=0))
-        members_ab = _members_padded(label, [A[pre], B[pre]], width)
+        # the cheap conditions hold
+        members_ab = _members_padded(label, [A[pre], B[pre]])
         g = _cross_gain(gain, members_ab, size[A[pre]])
         gainful = g > 0
         cand, members_ab, g = pre[gainful], members_ab[gainful], g[gainful]
@@ -361,9 +367,10 @@ def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray
 
 def _groups(label: np.ndarray) -> list[np.ndarray]:
     """Sorted row arrays of each label, ordered by first row."""
-    order = np.argsort(label, kind="stable")
+    order = np.argsort(label, kind="stable")  # rows ascending within each label
     bounds = np.flatnonzero(np.diff(label[order])) + 1
-    return sorted((np.sort(g) for g in np.split(order, bounds) if g.size), key=lambda g: int(g[0]))
+    groups = [g for g in np.split(order, bounds) if g.size]
+    return [groups[k] for k in np.argsort([int(g[0]) for g in groups], kind="stable").tolist()]
 
 
 # ---------------------------------------------------------------------------------------

@@ -167,16 +167,16 @@ def _qcp_eigenvalue(H: np.ndarray, gx: np.ndarray, gy: np.ndarray
     lam = np.minimum(np.sqrt(gx * gy), np.sqrt(3.0) * frob)
     tol = 1e-13 * frob
     active = np.ones(lam.shape, bool)  # a converged pair stops: its result is its own
-    for _ in range(_QCP_MAX_STEPS):
-        l2 = lam * lam
-        p = (l2 + c2) * l2 + c1 * lam + c0
-        dp = (4.0 * l2 + 2.0 * c2) * lam + c1
-        with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for _ in range(_QCP_MAX_STEPS):
+            l2 = lam * lam
+            p = (l2 + c2) * l2 + c1 * lam + c0
+            dp = (4.0 * l2 + 2.0 * c2) * lam + c1
             step = np.where(active & (dp > 0), p / dp, 0.0)
-        lam -= step
-        active &= np.abs(step) > tol
-        if not active.any():
-            break
+            lam -= step
+            active &= np.abs(step) > tol
+            if not active.any():
+                break
     l2 = lam * lam
     dp = (4.0 * l2 + 2.0 * c2) * lam + c1  # = product of the gaps to the other eigenvalues
     return lam, ~active & (dp > _QCP_MIN_GAP * f2 * frob)
