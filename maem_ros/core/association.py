@@ -215,16 +215,15 @@ def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, rig: Rig,
-                       params: AssociationParams) -> np.ndarray:
+                       params: AssociationParams, geometry: tuple | None = None) -> np.ndarray:
     """(S,) pairs whose bbox-centre reprojection error is under tau_reproj_bbox.
 
     The epipolar lower bound of the error (geometry.pair_reprojection_bound) rejects most
     pairs of different people without triangulating; the rest get the DLT. The bound keeps a
     relative margin for rounding, so the decisions are exactly the DLT's.
     """
-    P, _ = rig_geometry(rig)
-    bound = pair_reprojection_bound(_fundamental_stack(rig), table.cam, table.centers, i, j,
-                                    params.reproj_reduce)
+    _, P, _, stack = _rig_cache(rig) if geometry is None else geometry
+    bound = pair_reprojection_bound(stack, table.cam, table.centers, i, j, params.reproj_reduce)
     ok = np.zeros(i.size, bool)
     todo = np.flatnonzero(~(bound > params.tau_reproj_bbox * (1.0 + _BOUND_MARGIN)))
     if todo.size:
@@ -331,14 +330,15 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
                stats: dict[str, float], costs: PoseCosts | None = None) -> PairSet:
     """Steps 2-4 of the method on every kept pair: gates, costs (computed by ``costs``, by
     default a new PoseCosts of the table), the cost cap."""
-    _, F = rig_geometry(rig)
+    geometry = _rig_cache(rig)
+    F = geometry[2]
     i, j = _enumerate_pairs(table)
     S = i.size
     stage = np.full(S, PASSED, np.int8)
     alive = np.arange(S)
     t = time.perf_counter()
     if params.reproj_gate and S:
-        ok = _reprojection_gate(table, i, j, rig, params)
+        ok = _reprojection_gate(table, i, j, rig, params, geometry)
         stage[alive[~ok]] = REJECTED_REPROJ
         alive = alive[ok]
     stats["rejected_reproj"] = float(S - alive.size)
