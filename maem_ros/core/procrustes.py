@@ -1,7 +1,9 @@
 """Batched similarity Procrustes (Umeyama): rotation, translation and uniform scale.
 
-Shared by the association cost (PA-MPJPE between two detections' 3D keypoints, the fast
-``pa_mpjpe_finite`` for validated input) and the evaluation metrics (``pa_mpjpe``, masked). Units are whatever the inputs use (metres here).
+Shared by the association cost (PA-MPJPE between two detections' 3D keypoints: the fast
+``pa_mpjpe_finite`` / ``pa_mpjpe_columns`` for validated input, in closed form per pair via
+Horn's quaternion, with the stacked SVD as fallback for near-degenerate poses) and the
+evaluation metrics (``pa_mpjpe``, masked, SVD). Units are whatever the inputs use (metres here).
 """
 from __future__ import annotations
 
