@@ -113,9 +113,10 @@ def test_bench_large_load_reduced():
 
 @pytest.mark.timeout(300)
 def test_bench_live_reduced_run():
-    """maem-bench --live: 6 publisher processes at 30 fps through association + triangulation."""
+    """maem-bench --live: 6 publisher processes through association + triangulation (at 10 fps:
+    the test checks the tool and its report, not this machine's speed under CI load)."""
     proc = _bench("--live", "--frames", "20", "--vertices", "500", "--wire", "q4", "--json",
-                  timeout=280)
+                  "--rate", "10", timeout=280)
     assert proc.returncode == 0, proc.stderr
     out = json.loads(proc.stdout)
     assert (out["cameras"], out["frames_published"], out["wire"]) == (6, 20, "q4")
