@@ -475,8 +475,9 @@ EXECUTOR_VAR = "MAEM_EXECUTOR"
 EXECUTORS = ("events", "single")
 
 
-def make_executor():
-    """The executor a node process spins (``MAEM_EXECUTOR``): ``events`` (default), rclpy's
+def make_executor(context=None):
+    """The executor a node process spins on ``context`` (rclpy's default when None),
+    chosen by ``MAEM_EXECUTOR``: ``events`` (default), rclpy's
     EventsExecutor, or ``single``, rclpy's SingleThreadedExecutor.
 
     Why events: the SingleThreadedExecutor rebuilds its wait set in Python on every wake-up,
@@ -492,8 +493,8 @@ def make_executor():
                           f"{list(EXECUTORS)}")
     if choice == "events":
         from rclpy.experimental import EventsExecutor
-        return EventsExecutor()
-    return SingleThreadedExecutor()
+        return EventsExecutor(context=context)
+    return SingleThreadedExecutor(context=context)
 
 
 def spin_slices(executor, stop: Callable[[], bool], until: Future | None = None,
