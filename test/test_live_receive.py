@@ -238,7 +238,7 @@ def test_executor_choice_and_a_bad_one(monkeypatch) -> None:
         for ex in (single, events):
             ex.shutdown(timeout_sec=1.0)
         monkeypatch.setenv(EXECUTOR_VAR, "threads")
-        with pytest.raises(ConfigError, match="MAEM_EXECUTOR='threads'.*'events', 'single'"):
+        with pytest.raises(ConfigError, match="MAEM_EXECUTOR='threads'.*'single', 'events'"):
             make_executor(ctx)
     finally:
         rclpy.try_shutdown(context=ctx)
