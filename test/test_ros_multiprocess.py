@@ -80,13 +80,15 @@ def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
     for f in range(FRAMES):
         pf = client.poses[scene.stamp_ns(f)][1]
         assert pf.frame_id == "world" and pf.joints.shape[1] == SPORTCENTER_13.num_joints
+        if f == 0:  # the start-up frame, published alone: when some frontends' first frame
+            continue  # takes longer than max_wait its set goes out partial (below k_min)
         gt = SPORTCENTER_13.select(scene.gt_keypoints(f))[players]
         e, pairs = match_mpjpe(pf.joints, gt)
         assert len(pairs) >= 0.6 * len(players), \
             f"frame {f}: {len(pairs)}/{len(players)}; {client.diagnostics}"
         errors += e
         for r, c in pairs:
-            if f >= 3:  # confirmed after 3 hits; one partial start-up set may delay that
+            if f >= 4:  # confirmed after 3 hits, from frame 1 when frame 0's set was partial
                 assert pf.ids[r] != wire.UNTRACKED_ID
                 ids.setdefault(c, set()).add(int(pf.ids[r]))
     assert 1e3 * np.mean(errors) < 60.0, 1e3 * np.mean(errors)
