@@ -112,9 +112,11 @@ def test_bench_large_load_reduced():
 
 
 @pytest.mark.timeout(300)
-def test_bench_live_reduced_run():
+def test_bench_live_reduced_run(scene):
     """maem-bench --live: 6 publisher processes through association + triangulation (at 10 fps:
-    the test checks the tool and its report, not this machine's speed under CI load)."""
+    the test checks the tool and its report, not this machine's speed under CI load). The
+    ``scene`` fixture compiles the numba kernels into their on-disk cache first, so on a fresh
+    clone the node processes load them instead of each compiling for tens of seconds."""
     proc = _bench("--live", "--frames", "20", "--vertices", "500", "--wire", "q4", "--json",
                   "--rate", "10", timeout=280)
     assert proc.returncode == 0, proc.stderr
