@@ -134,6 +134,10 @@ class _Stage:
         return s[len(s) // 2], s[min(len(s) - 1, int(math.ceil(0.99 * len(s))) - 1)]
 
 
+#: topics every node has that say nothing about the data graph (left out of the match counts)
+_INFRA_TOPICS = frozenset({"/rosout", "/parameter_events", "/diagnostics"})
+
+
 class Diagnostics:
     """Counters and timings of one node, published as a DiagnosticArray every ``period`` s.
 
@@ -142,8 +146,10 @@ class Diagnostics:
     ``frames_processed``, ``frames_dropped``, ``dropped/<reason>`` cumulative counts,
     ``time_ms/<stage>/median`` and ``/p99`` over the last 200 samples, ``count/<name>``
     cumulative counters (gate rejections ...), ``missing/<camera>`` frame sets without it,
-    plus free-form ``set(key, value)`` entries. Level: WARN when frames were dropped or cameras
-    missing during the last period, else OK. Thread-safe.
+    ``matched_publishers/<topic>`` / ``matched_subscribers/<topic>`` DDS-matched endpoints of
+    each subscription / publisher (see :meth:`connections`), plus free-form ``set(key, value)``
+    entries. Level: WARN when frames were dropped or cameras missing during the last period,
+    else OK. Thread-safe.
     """
 
     def __init__(self, node: Node, period_s: float = 1.0, hardware_id: str = "maem_ros"):
@@ -257,6 +263,27 @@ class Diagnostics:
                 kv[f"time_ms/{stage}/median"] = f"{med:.3f}"
                 kv[f"time_ms/{stage}/p99"] = f"{p99:.3f}"
             kv.update(self._values)
+        kv.update(self.connections())
+        return kv
+
+    def connections(self) -> dict[str, str]:
+        """``matched_publishers/<topic>`` for each of the node's subscriptions and
+        ``matched_subscribers/<topic>`` for each publisher: endpoints matched at the DDS level,
+        as this side sees them (the ROS graph lists a node before its endpoints are matched,
+        and a message sent before both sides matched is lost). Infrastructure topics
+        (/rosout, /parameter_events, /diagnostics) are left out."""
+        kv: dict[str, str] = {}
+        try:
+            for sub in self._node.subscriptions:
+                if sub.topic_name not in _INFRA_TOPICS:
+                    kv[f"matched_publishers/{sub.topic_name.lstrip('/')}"] = \
+                        str(sub.get_publisher_count())
+            for pub in self._node.publishers:
+                if pub.topic_name not in _INFRA_TOPICS:
+                    kv[f"matched_subscribers/{pub.topic_name.lstrip('/')}"] = \
+                        str(pub.get_subscription_count())
+        except InvalidHandle:  # an endpoint destroyed during shutdown
+            pass
         return kv
 
     def publish(self) -> None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import rclpy
@@ -65,6 +65,32 @@ class BackgroundNode:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def fusion_links(cameras: Sequence[str], image_topic: str | None = "image_raw",
+                 ) -> list[tuple[str, str]]:
+    """The data path's DDS links as ``(node, /diagnostics key)``, each seen from both ends:
+    images -> frontends (``image_topic`` under each camera namespace; None: no frontends, the
+    detections come from elsewhere) -> association -> triangulation -> /maem/poses. Names are
+    the shipped defaults (node names, ``maem/clusters``, ``maem/poses``)."""
+    links: list[tuple[str, str]] = []
+    for c in cameras:
+        if image_topic is not None:
+            links += [(f"/{c}/frontend", f"matched_publishers/{c}/{image_topic}"),
+                      (f"/{c}/frontend", f"matched_subscribers/{c}/detections")]
+        links.append(("/association", f"matched_publishers/{c}/detections"))
+    return links + [("/association", "matched_subscribers/maem/clusters"),
+                    ("/triangulation", "matched_publishers/maem/clusters"),
+                    ("/triangulation", "matched_subscribers/maem/poses")]
+
+
+def unmatched_links(diagnostics: Mapping[str, Mapping[str, str]],
+                    links: Iterable[tuple[str, str]]) -> list[str]:
+    """The links whose node has not reported (in its last /diagnostics) at least one matched
+    endpoint, as ``node:key``: a message sent on such a link may be lost even though the ROS
+    graph already lists both nodes."""
+    return [f"{node}:{key}" for node, key in links
+            if int(diagnostics.get(node, {}).get(key, "0")) < 1]
 
 
 class ArrivalListener(BackgroundNode):
@@ -129,16 +155,20 @@ class ReplayClient(BackgroundNode):
             for st in msg.status:
                 self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
 
+    def unready(self) -> list[str]:
+        """The links of the graph not yet matched at both ends (empty: ready): images ->
+        frontends -> association -> triangulation -> us, the nodes' own ends read from their
+        /diagnostics."""
+        with self.lock:
+            diagnostics = dict(self.diagnostics)
+        ours = [f"images -> /{c}/image_raw" for c, p in self.image_pubs.items()
+                if p.get_subscription_count() == 0]
+        if self.poses_sub.get_publisher_count() == 0:
+            ours.append("/maem/poses -> us")
+        return ours + unmatched_links(diagnostics, fusion_links(self.cameras))
+
     def ready(self) -> bool:
-        """Every edge of the graph discovered: images -> frontends -> association ->
-        triangulation -> us."""
-        n = self.node
-        return (all(p.get_subscription_count() > 0 for p in self.image_pubs.values())
-                and all(n.count_publishers(f"/{c}/detections") > 0 and
-                        n.count_subscribers(f"/{c}/detections") > 0 for c in self.cameras)
-                and n.count_publishers("/maem/clusters") > 0
-                and n.count_subscribers("/maem/clusters") > 0
-                and self.poses_sub.get_publisher_count() > 0)
+        return not self.unready()
 
     def wait_ready(self, timeout_s: float, alive: Callable[[], bool] = lambda: True) -> bool:
         deadline = time.monotonic() + timeout_s

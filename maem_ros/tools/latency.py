@@ -169,8 +169,8 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
     report: dict[str, Any] = {"cameras": len(rig.names), "frames_published": frames, "rate_hz": rate_hz}
     try:
         if not client.wait_ready(startup_timeout, alive=lambda: not graph.dead()):
-            raise RuntimeError(f"graph not ready (dead: {graph.dead()})\n{graph.logs()}")
-        time.sleep(1.0)  # let the last discovery settle
+            raise RuntimeError(f"graph not ready (dead: {graph.dead()}; not matched: "
+                               f"{client.unready()})\n{graph.logs()}")
         cpu0 = {p.name: p.cpu_seconds() for p in graph.procs}
         t0 = time.perf_counter()
         stamps = [scene.stamp_ns(f) for f in range(frames)]

@@ -158,6 +158,17 @@ def _listener():
     return bg.start()
 
 
+def _unready(listener, cameras: Sequence[str]) -> list[str]:
+    """The links not yet matched at both ends: publishers -> association (the publishers wait
+    for their end themselves) -> triangulation -> the listener."""
+    from maem_ros.ros.probe import fusion_links, unmatched_links
+
+    with listener.lock:
+        diagnostics = dict(listener.diagnostics)
+    ours = [] if listener.subs[0].get_publisher_count() else ["/maem/poses -> listener"]
+    return ours + unmatched_links(diagnostics, fusion_links(cameras, image_topic=None))
+
+
 def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[int]) -> float:
     """Fraction of ground-truth players of ``stamps`` with a pose within RECALL_MM."""
     from maem_ros.tools.latency import match_mpjpe
@@ -268,9 +279,11 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
                 raise RuntimeError(f"publishers not ready after {a.startup_timeout:.0f} s\n"
                                    f"{group.logs()}")
             time.sleep(0.1)
-        while listener.node.count_publishers("/maem/poses") == 0 and time.monotonic() < deadline:
+        while unready := _unready(listener, rig.names):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"graph not matched after {a.startup_timeout:.0f} s: {unready}"
+                                   f"\n{group.logs()}")
             time.sleep(0.05)
-        time.sleep(1.0)  # the last discovery round
         messages = {c: pickle.loads((work / f"{c}.pkl").read_bytes()) for c in rig.names}
         stamps = [s for s, _ in messages[rig.names[0]]]
         procs = list(group.procs.values())

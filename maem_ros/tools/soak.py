@@ -100,7 +100,8 @@ def run(params_file: Path, minutes: float, rate_hz: float, log_dir: Path, sample
     samples: list[tuple[float, dict[str, float]]] = []
     try:
         if not client.wait_ready(startup_timeout, alive=lambda: not graph.dead()):
-            raise RuntimeError(f"graph not ready (dead: {graph.dead()})\n{graph.logs()}")
+            raise RuntimeError(f"graph not ready (dead: {graph.dead()}; not matched: "
+                               f"{client.unready()})\n{graph.logs()}")
         stamps = [scene.stamp_ns(f) for f in range(frames)]
         t0 = next_sample = time.perf_counter()
         for offset, stamp, cams in faults.schedule(stamps, rig.names, rate_hz):
