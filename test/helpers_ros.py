@@ -26,6 +26,7 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS
+from maem_ros.ros.probe import fusion_links, unmatched_links
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -224,6 +225,10 @@ class DiagnosticsReader:
             for st in msg.status:
                 self.latest[st.name] = {kv.key: kv.value for kv in st.values}
 
+    def snapshot(self) -> dict[str, dict[str, str]]:
+        with self.lock:
+            return {k: dict(v) for k, v in self.latest.items()}
+
     def get(self, node_name: str) -> dict[str, str]:
         with self.lock:
             return dict(self.latest.get(node_name, {}))
@@ -236,6 +241,14 @@ class DiagnosticsReader:
         ok = wait_for(lambda: pred(self.value(node_name, key, float("nan"))), timeout, graph)
         assert ok, f"{node_name} {key}: {self.get(node_name)}"
         return self.value(node_name, key)
+
+
+def wait_links_matched(diags: DiagnosticsReader, links, timeout: float = 30.0,
+                       on: Any = None) -> None:
+    """Until every link is matched at the node's end too (its /diagnostics): what is sent
+    before both ends matched is lost, and the publisher's own count only says its end."""
+    assert wait_for(lambda: not unmatched_links(diags.snapshot(), links), timeout, on), \
+        f"not matched: {unmatched_links(diags.snapshot(), links)}"
 
 
 class DetectionPlayer:
@@ -308,6 +321,7 @@ def start_pipeline(graph: Graph, **extra: Any):
     assert player.wait_matched(), "association did not subscribe to every camera"
     assert wait_for(lambda: poses.sub.get_publisher_count() > 0 and
                     clusters.sub.get_publisher_count() > 0, 20.0)
+    wait_links_matched(diags, fusion_links(assoc.rig.names, image_topic=None))
     return dict(assoc=assoc, tri=tri, client=client, player=player, clusters=clusters,
                 poses=poses, markers=markers, diags=diags)
 

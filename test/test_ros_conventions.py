@@ -10,11 +10,13 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
+from helpers_ros import (DiagnosticsReader, OutputWatcher, killed_on_exit, ros_node,
+                         wait_for, wait_links_matched)
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
 from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.probe import fusion_links
 
 BIN = Path(sys.executable).parent
 PARAM_NODES = {"frontend": "maem_ros.ros.frontend_node",
@@ -80,6 +82,10 @@ def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
         pubs = {c: node.create_publisher(PointCloud2, f"/team/{c}/detections", DATA_QOS)
                 for c in scene.rig.names}
         assert wait_for(lambda: all(p.get_subscription_count() for p in pubs.values()), 60, ex)
+        # and matched at the nodes' ends (their /diagnostics): the first frame is sent once
+        diags = DiagnosticsReader(node)
+        wait_links_matched(diags, fusion_links(scene.rig.names, image_topic=None,
+                                               namespace="/team"), 60, ex)
         for f in range(scene.num_frames):
             for cam, pub in pubs.items():
                 pub.publish(wire.detections_to_msg(scene.detections(cam, f)))

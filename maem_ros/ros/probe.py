@@ -68,20 +68,24 @@ class BackgroundNode:
 
 
 def fusion_links(cameras: Sequence[str], image_topic: str | None = "image_raw",
-                 ) -> list[tuple[str, str]]:
+                 namespace: str = "") -> list[tuple[str, str]]:
     """The data path's DDS links as ``(node, /diagnostics key)``, each seen from both ends:
     images -> frontends (``image_topic`` under each camera namespace; None: no frontends, the
-    detections come from elsewhere) -> association -> triangulation -> /maem/poses. Names are
-    the shipped defaults (node names, ``maem/clusters``, ``maem/poses``)."""
+    detections come from elsewhere) -> association -> triangulation -> /maem/poses, the nodes
+    started under ``namespace`` (e.g. "/team"). Names are the shipped defaults (node names,
+    ``maem/clusters``, ``maem/poses``)."""
+    ns = namespace.rstrip("/")
+    topic = ns.lstrip("/") + "/" if ns else ""
+    assoc, tri = f"{ns}/association", f"{ns}/triangulation"
     links: list[tuple[str, str]] = []
     for c in cameras:
         if image_topic is not None:
-            links += [(f"/{c}/frontend", f"matched_publishers/{c}/{image_topic}"),
-                      (f"/{c}/frontend", f"matched_subscribers/{c}/detections")]
-        links.append(("/association", f"matched_publishers/{c}/detections"))
-    return links + [("/association", "matched_subscribers/maem/clusters"),
-                    ("/triangulation", "matched_publishers/maem/clusters"),
-                    ("/triangulation", "matched_subscribers/maem/poses")]
+            links += [(f"{ns}/{c}/frontend", f"matched_publishers/{topic}{c}/{image_topic}"),
+                      (f"{ns}/{c}/frontend", f"matched_subscribers/{topic}{c}/detections")]
+        links.append((assoc, f"matched_publishers/{topic}{c}/detections"))
+    return links + [(assoc, f"matched_subscribers/{topic}maem/clusters"),
+                    (tri, f"matched_publishers/{topic}maem/clusters"),
+                    (tri, f"matched_subscribers/{topic}maem/poses")]
 
 
 def unmatched_links(diagnostics: Mapping[str, Mapping[str, str]],
