@@ -342,6 +342,10 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         # where the tail is: (frame index, ms) of the five slowest frames
         "slowest_frames": [(f, round(ms, 1)) for f, ms in
                            sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]],
+        # every frame's latency in publish order (None: no poses): where a stall starts and
+        # whether the node recovers from it
+        "latency_ms_by_frame": [round(lat_by_frame[f], 1) if f in lat_by_frame else None
+                                for f in range(len(stamps))],
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
         "partial_sets": int(float(assoc.get("count/sync_partial_sets", 0))),
         # where they happen: frames whose best-seen person has fewer views than the run's best
@@ -352,6 +356,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
         "association_stage_ms_median": _stage_medians(assoc),
         "triangulation_stage_ms_median": _stage_medians(tri),
+        "association_stage_ms_p99": _stage_medians(assoc, "p99"),
+        "triangulation_stage_ms_p99": _stage_medians(tri, "p99"),
         "recall_live": recall(live, gt, stamps),
         "recall_offline": recall(offline_poses(rig, params, messages), gt, stamps),
         "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
@@ -364,10 +370,10 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
     return report
 
 
-def _stage_medians(diagnostics: dict[str, str]) -> dict[str, float]:
-    """stage -> median ms from a node's /diagnostics (``time_ms/<stage>/median``)."""
+def _stage_medians(diagnostics: dict[str, str], stat: str = "median") -> dict[str, float]:
+    """stage -> ms from a node's /diagnostics (``time_ms/<stage>/<stat>``, median or p99)."""
     return {k.split("/")[1]: float(v) for k, v in diagnostics.items()
-            if k.startswith("time_ms/") and k.endswith("/median")}
+            if k.startswith("time_ms/") and k.endswith(f"/{stat}")}
 
 
 def _fewer_views(poses: dict[int, Any], stamps: Sequence[int]) -> list[int]:
