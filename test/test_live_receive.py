@@ -201,3 +201,68 @@ def test_bench_live_rejects_a_negative_vertex_count() -> None:
     proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", "--live",
                            "--vertex-count", "-1"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--vertex-count" in proc.stderr, proc.stderr
+
+
+def test_poll_timer_runs_only_while_a_set_waits(graph, scene):
+    """With nothing queued the node's poll timer is off (no empty wake-ups); one camera's
+    message arms it, and a set missing cameras still goes out after max_wait, partial."""
+    g = start_pipeline(graph, association={"max_wait": 0.2, "poll_period": 0.01})
+    node = g["assoc"]
+    assert wait_for(node.timer.is_canceled, 10.0, graph), "poll timer runs with nothing queued"
+    for cam in node.rig.names[:3]:
+        g["player"].publish(scene.detections(cam, 0))
+    assert wait_for(lambda: not node.timer.is_canceled() or g["clusters"].has(scene.stamp_ns(0)),
+                    10.0, graph), "a queued message did not arm the poll timer"
+    assert wait_for(lambda: g["clusters"].has(scene.stamp_ns(0)), 10.0, graph)
+    g["diags"].wait_value("/association", "count/sync_partial_sets", lambda v: v == 1,
+                          graph=graph)
+    assert wait_for(node.timer.is_canceled, 10.0, graph), "poll timer left running"
+    assert {int(c) for c in g["clusters"].by_stamp[scene.stamp_ns(0)].camera} <= {0, 1, 2}
+
+
+def test_executor_choice_and_a_bad_one(monkeypatch) -> None:
+    """MAEM_EXECUTOR picks the nodes' executor; anything else is a one-line ConfigError."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from maem_ros.ros.common import EXECUTOR_VAR, ConfigError, make_executor
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        monkeypatch.setenv(EXECUTOR_VAR, "single")
+        single = make_executor(ctx)
+        assert isinstance(single, SingleThreadedExecutor)
+        monkeypatch.setenv(EXECUTOR_VAR, "events")
+        events = make_executor(ctx)
+        assert type(events).__name__ == "EventsExecutor"
+        for ex in (single, events):
+            ex.shutdown(timeout_sec=1.0)
+        monkeypatch.setenv(EXECUTOR_VAR, "threads")
+        with pytest.raises(ConfigError, match="MAEM_EXECUTOR='threads'.*'single', 'events'"):
+            make_executor(ctx)
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_node_with_a_bad_executor_exits_2_with_one_line(tmp_path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, MAEM_EXECUTOR="threads")
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.association_node", "--ros-args",
+                           "-p", "rig:=sportcenter6"], env=env, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if "invalid configuration" in line]
+    assert len(errors) == 1 and "MAEM_EXECUTOR" in errors[0], proc.stderr
+
+
+def test_freed_memory_is_kept_for_reuse() -> None:
+    """On glibc the nodes set the mmap / trim thresholds (mallopt accepts both values)."""
+    import platform
+
+    from maem_ros.ros.common import keep_freed_memory
+    if platform.libc_ver()[0] != "glibc":
+        pytest.skip("not glibc")
+    assert keep_freed_memory()

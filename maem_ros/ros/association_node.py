@@ -8,8 +8,9 @@ and decoded in place, wire.cdr_to_cloud: rclpy's own deserialisation of a 1.8 MB
 message costs more than its association), takes every pending message of all cameras before the
 synchroniser decides (a busy executor would run the poll timer first and leave messages of the
 frame in the DDS queues) and counts ``max_wait`` and lags from each message's rmw receive time,
-groups them with core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; a timer
-polls every ``poll_period`` so a silent camera never stalls the graph; a camera lagging beyond
+groups them with core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; while
+a message waits in it a timer polls every ``poll_period`` so a silent camera never stalls the
+graph; a camera lagging beyond
 ``max_wait`` is not waited for (``max_lag`` compensates a known lag); one camera's stale/future
 stamps are dropped for that camera, a jump of most cameras or of /clock resets the queues; every
 dropped message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message
@@ -173,6 +174,8 @@ class AssociationNode(Node):
         now = self._now_ns()
         self._ready += self.sync.add(cam, dets.stamp_ns, dets, now, arrival_ns(now, info),
                                      poll=False)
+        if self.timer.is_canceled() and self.sync.pending():
+            self.timer.reset()  # a set is waiting: poll it (max_wait) until it goes out
 
     def _decide(self) -> None:
         """Take every message already waiting in the DDS queues (the executor runs the poll
@@ -183,6 +186,10 @@ class AssociationNode(Node):
         self._take_all()
         ready, self._ready = self._ready, []
         sets, skipped = skip_behind(ready + self.sync.poll(self._now_ns()), self.max_backlog_ns)
+        if not self.sync.pending():
+            # nothing waits for max_wait: a poll would find nothing (each executor wake-up
+            # costs CPU); _receive re-arms the timer with the next queued message
+            self.timer.cancel()
         if skipped:
             self.diag.reject("behind", f"{len(skipped)} frame set(s) more than max_backlog "
                              f"{self.max_backlog_ns / 1e9:g} s behind the newest skipped (node "

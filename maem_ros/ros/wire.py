@@ -536,28 +536,36 @@ def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
     fields are written too.
     """
     j = next((f.num_joints for f in frames.values()), 0)
-    rows = [(k, int(c), int(d), float(cost)) for k, cl in enumerate(clusters)
-            for (c, d), cost in zip(np.asarray(cl.members), np.asarray(cl.costs))]
+    members, costs = [], []  # one row per (cluster, member); a member without a cost: no row
+    for cl in clusters:
+        m, c = np.asarray(cl.members, np.int64).reshape(-1, 2), np.asarray(cl.costs).reshape(-1)
+        n = min(len(m), len(c))
+        members.append(m[:n])
+        costs.append(c[:n])
+    per_row = np.repeat(np.arange(len(clusters)), [len(m) for m in members])
     fields = [("cluster", U32, 1), ("camera", U16, 1), ("detection", U16, 1), ("score", F32, 1),
               ("cost", F32, 1), ("kpts2d", F32, 2 * j)]
     if track_ids is not None:
         fields += [(name, dt, 1) for name, dt in CLUSTER_TRACK_TYPES.items()]
-    msg, rec = _new_cloud(stamp_ns, frame_id, fields, len(rows))
-    if track_ids is not None and rows:
-        per_row = np.array([k for k, *_ in rows])
+    msg, rec = _new_cloud(stamp_ns, frame_id, fields, len(per_row))
+    if not len(per_row):
+        return _set_data(msg, rec)
+    if track_ids is not None:
         ids = np.asarray(track_ids, np.int64)[per_row]
         rec["track"] = np.where(ids < 0, UNTRACKED_ID, ids).astype(np.uint32)
         flags = np.zeros(len(clusters), np.uint8) if track_flags is None else track_flags
         rec["track_flags"] = np.asarray(flags, np.uint8)[per_row]
+    cam_det = np.concatenate(members)
+    rec["cluster"] = per_row
+    rec["camera"] = cam_det[:, 0]
+    rec["detection"] = cam_det[:, 1]
+    rec["cost"] = np.concatenate(costs)
     names = rig.names
-    for i, (k, c, d, cost) in enumerate(rows):
-        f = frames[names[c]]
-        rec["cluster"][i] = k
-        rec["camera"][i] = c
-        rec["detection"][i] = d
-        rec["score"][i] = f.scores[d]
-        rec["cost"][i] = cost
-        rec["kpts2d"][i] = f.kpts2d[d].reshape(-1)
+    for c in np.unique(cam_det[:, 0]):  # gathered per camera: rows index into its detections
+        rows = cam_det[:, 0] == c
+        f, d = frames[names[c]], cam_det[rows, 1]
+        rec["score"][rows] = f.scores[d]
+        rec["kpts2d"][rows] = f.kpts2d[d].reshape(len(d), -1)
     return _set_data(msg, rec)
 
 
