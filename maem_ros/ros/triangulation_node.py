@@ -206,8 +206,13 @@ class TriangulationNode(Node):
         self.diag.set("last_stamp_ns", stamp_ns)
 
 
+#: heap touched at start (MiB): clusters messages and the RANSAC arrays of a frame set
+HEAP_PREFAULT_MB = 64
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: TriangulationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
+    return run_node(lambda: TriangulationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__,
+                    heap_prefault_mb=HEAP_PREFAULT_MB)
 
 
 if __name__ == "__main__":

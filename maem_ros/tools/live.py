@@ -94,8 +94,10 @@ def publish_main(a: argparse.Namespace) -> int:
     import rclpy
     from sensor_msgs.msg import PointCloud2
 
-    from maem_ros.ros.common import DATA_QOS, use_shipped_dds_profile
+    from maem_ros.ros.common import DATA_QOS, keep_freed_memory, use_shipped_dds_profile
+    from maem_ros.ros.frontend_node import HEAP_PREFAULT_MB
 
+    keep_freed_memory(HEAP_PREFAULT_MB)  # as a frontend process does (run_node)
     msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride,
                            a.vertex_count)
     work = Path(a.work)
