@@ -244,18 +244,21 @@ def test_executor_choice_and_a_bad_one(monkeypatch) -> None:
         rclpy.try_shutdown(context=ctx)
 
 
-def test_node_with_a_bad_executor_exits_2_with_one_line(tmp_path) -> None:
+@pytest.mark.parametrize("variable,value,node", [
+    ("MAEM_EXECUTOR", "threads", "association_node"),
+    ("MAEM_HEAP_PREFAULT_MB", "lots", "triangulation_node")])
+def test_node_with_a_bad_environment_setting_exits_2_with_one_line(variable, value, node) -> None:
     import os
     import subprocess
     import sys
 
-    env = dict(os.environ, MAEM_EXECUTOR="threads")
-    proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.association_node", "--ros-args",
+    env = dict(os.environ, **{variable: value})
+    proc = subprocess.run([sys.executable, "-m", f"maem_ros.ros.{node}", "--ros-args",
                            "-p", "rig:=sportcenter6"], env=env, capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 2, proc.stderr
     errors = [line for line in proc.stderr.splitlines() if "invalid configuration" in line]
-    assert len(errors) == 1 and "MAEM_EXECUTOR" in errors[0], proc.stderr
+    assert len(errors) == 1 and f"{variable}={value!r}" in errors[0], proc.stderr
 
 
 def test_freed_memory_is_kept_for_reuse() -> None:
@@ -296,17 +299,3 @@ def test_prefaulted_heap_serves_a_new_message_buffer_without_page_faults(prefaul
     assert out.returncode == 0, out.stderr
     faults = int(out.stdout.strip())
     assert (faults >= 400) if prefault_mb == 0 else (faults <= 20), faults
-
-
-def test_node_with_a_bad_heap_prefault_exits_2_with_one_line() -> None:
-    import os
-    import subprocess
-    import sys
-
-    env = dict(os.environ, MAEM_HEAP_PREFAULT_MB="lots")
-    proc = subprocess.run([sys.executable, "-m", "maem_ros.ros.triangulation_node", "--ros-args",
-                           "-p", "rig:=sportcenter6"], env=env, capture_output=True, text=True,
-                          timeout=120)
-    assert proc.returncode == 2, proc.stderr
-    errors = [line for line in proc.stderr.splitlines() if "invalid configuration" in line]
-    assert len(errors) == 1 and "MAEM_HEAP_PREFAULT_MB='lots'" in errors[0], proc.stderr
