@@ -175,33 +175,29 @@ def test_diagnostics_report_matched_endpoints_per_topic() -> None:
     """/diagnostics says, per data topic, how many endpoints DDS matched at this node's end:
     0 on /maem/clusters until a subscriber appears, then 1; a client waits on these (not on the
     ROS graph listing) before it sends, so nothing it sends before matching is lost."""
-    from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
-    from sensor_msgs.msg import PointCloud2
 
-    from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS
-    from maem_ros.ros.probe import fusion_links, unmatched_links
+    from maem_ros.ros.probe import unmatched_links
     from maem_ros.ros.triangulation_node import TriangulationNode
 
     with ros_node("diag_listener") as (client, ex):
-        latest: dict[str, dict[str, str]] = {}
-        client.create_subscription(DiagnosticArray, "/diagnostics", lambda m: latest.update(
-            {s.name: {kv.key: kv.value for kv in s.values} for s in m.status}), DIAGNOSTICS_QOS)
+        diags = DiagnosticsReader(client)
         node = TriangulationNode(context=client.context, parameter_overrides=[
             Parameter("rig", value="sportcenter6"), Parameter("diagnostics_period", value=0.2)])
         ex.add_node(node)
         try:
             tri = ("/triangulation", "matched_publishers/maem/clusters")
-            assert wait_for(lambda: "/triangulation" in latest, 20, ex)
-            assert latest["/triangulation"][tri[1]] == "0"
-            assert unmatched_links(latest, [tri]) == ["/triangulation:matched_publishers/maem/clusters"]
-            assert not any(k.endswith(("/rosout", "/diagnostics")) for k in latest["/triangulation"])
+            assert wait_for(lambda: diags.get(tri[0]), 20, ex)
+            assert diags.get(tri[0])[tri[1]] == "0"
+            assert unmatched_links(diags.snapshot(), [tri]) == [f"{tri[0]}:{tri[1]}"]
+            assert not any(k.endswith(("/rosout", "/diagnostics")) for k in diags.get(tri[0]))
             client.create_publisher(PointCloud2, "/maem/clusters", DATA_QOS)
-            assert wait_for(lambda: latest["/triangulation"].get(tri[1]) == "1", 20, ex), \
-                latest["/triangulation"]
-            assert unmatched_links(latest, [tri]) == []
+            assert wait_for(lambda: diags.get(tri[0]).get(tri[1]) == "1", 20, ex), \
+                diags.get(tri[0])
+            assert unmatched_links(diags.snapshot(), [tri]) == []
             links = fusion_links(["camera_0"], image_topic=None)
-            assert tri in links and ("/association", "matched_publishers/camera_0/detections") in links
+            assert tri in links
+            assert ("/association", "matched_publishers/camera_0/detections") in links
             assert all(not k.endswith("image_raw") for _, k in links)
         finally:
             ex.remove_node(node)

@@ -573,8 +573,9 @@ def keep_freed_memory(prefault_mb: int = 0) -> bool:
     try:
         mb = int(os.environ.get(HEAP_PREFAULT_VAR, prefault_mb))
     except ValueError:
-        raise ConfigError(f"environment {HEAP_PREFAULT_VAR}="
-                          f"{os.environ[HEAP_PREFAULT_VAR]!r}: expected MiB as an integer") from None
+        value = os.environ[HEAP_PREFAULT_VAR]
+        raise ConfigError(f"environment {HEAP_PREFAULT_VAR}={value!r}: expected MiB as an "
+                          f"integer") from None
     if ok and mb > 0:
         _prefault_heap(libc, mb * 1024 * 1024)
     return ok
