@@ -270,6 +270,30 @@ def test_frame_sums_of_all_camera_pairs_decide_like_the_reference(seed, n, symme
             np.testing.assert_allclose(one[0][ok[s]], sums[s][ok[s]], rtol=1e-12)
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(200, 3000), stride=st.integers(2, 5),
+       symmetric=st.booleans(), early=st.booleans())
+def test_a_screen_read_in_place_sums_like_its_contiguous_copy(seed, n, stride, symmetric, early):
+    """The screening subset is read where it lies (runs of SCREEN_RUN points in each
+    detection's row): every backend gives the numbers it gives on a contiguous copy of the
+    same points."""
+    _, points, F, rng = _ring_scene(seed, n, 8.0, 4)
+    points = {c: x.astype(np.float32) for c, x in points.items()}
+    screen = {c: epipolar.screen_rows(x, stride) for c, x in points.items()}
+    copied = {c: rows.contiguous() for c, rows in screen.items()}
+    assert all(rows.run and np.shares_memory(rows.flat, points[c]) for c, rows in screen.items())
+    pairs = [(a, b) for a, b in F for _ in range(5)]
+    ca, cb = np.array([a for a, _ in pairs]), np.array([b for _, b in pairs])
+    da, db = rng.integers(0, 4, ca.size), rng.integers(0, 4, ca.size)
+    for backend, precision, _, _ in VARIANTS:
+        got = epipolar.frame_sums(screen, F, ca, da, cb, db, 8.0, symmetric, early, backend,
+                                  precision)
+        want = epipolar.frame_sums(copied, F, ca, da, cb, db, 8.0, symmetric, early, backend,
+                                   precision)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+
+
 def test_frame_sums_rejects_bad_input_with_the_input_named():
     x = np.zeros((2, 10, 2), np.float32)
     F = {(0, 1): np.eye(3)[[1, 0, 2]]}

@@ -111,7 +111,9 @@ def _block_indices(n: int) -> tuple[np.ndarray, ...]:
 @dataclass(frozen=True)
 class PointRows:
     """One camera's points as the kernel reads them: point k of detection i is
-    ``(flat[rows[i] + 2k], flat[rows[i] + 2k + 1])`` rectified px (NaN = missing).
+    ``(flat[rows[i] + 2p], flat[rows[i] + 2p + 1])`` rectified px (NaN = missing), p = k when
+    ``run`` is 0 (contiguous), else ``(k // run) * period + k % run`` (runs of ``run``
+    consecutive points, one every ``period``: a screening subset read in place).
 
     flat: 1D C-contiguous float32/float64 (may span other message fields between rows, never
     read); rows (N,) int64 element offsets; n points per detection.
@@ -120,10 +122,28 @@ class PointRows:
     flat: np.ndarray
     rows: np.ndarray
     n: int
+    run: int = 0
+    period: int = 0
 
     @property
     def count(self) -> int:
         return int(self.rows.size)
+
+    def positions(self, k: np.ndarray) -> np.ndarray:
+        """Point indices k (0 <= k < n) -> their positions p in a detection's row."""
+        return k if not self.run else (k // self.run) * self.period + k % self.run
+
+    def contiguous(self) -> "PointRows":
+        """The same points, each detection's n points contiguous (a copy when read in runs)."""
+        if not self.run:
+            return self
+        at = self.rows[:, None] + 2 * self.positions(np.arange(self.n))[None, :]
+        return point_rows(np.stack([self.flat[at], self.flat[at + 1]], axis=-1))
+
+    def points(self, i: int) -> np.ndarray:
+        """(n,2) copy of detection i's points."""
+        at = self.rows[i] + 2 * self.positions(np.arange(self.n))
+        return np.stack([self.flat[at], self.flat[at + 1]], axis=-1)
 
 
 def point_rows(x: np.ndarray | PointRows) -> PointRows:
@@ -203,6 +223,8 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
     if missing:
         raise ValueError(f"epipolar pairs: no points for camera(s) {missing}")
     rows = {c: point_rows(points[c]) for c in cams}
+    if len({(r.run, r.period) for r in rows.values()}) > 1:  # one layout per kernel call
+        rows = {c: r.contiguous() for c, r in rows.items()}
     sizes = {rows[c].n for c in cams}
     if len(sizes) > 1:
         raise ValueError(f"epipolar points: expected (N,n,2) with one n for every camera, got "
@@ -268,7 +290,14 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     # each detection's first coordinate as an address: flats stay referenced during the call
     base = np.array([f.__array_interface__["data"][0] for f in flats], dtype=np.int64)
     det_addr = base[det_slot] + det_row * flats[0].dtype.itemsize
-    sums, used = _numba_kernel()(flats[0], det_addr, unit.reshape(-1, 9),
+    like = flats[0]
+    layout = rows[cams[0]]
+    if layout.run:  # a subset read in runs: each detection's points gathered once, contiguous
+        like = np.empty((dets.size, 2 * n), dtype=like.dtype)
+        _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like)
+        det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
+        like = like.reshape(-1)
+    sums, used = _numba_kernels().sums_kernel(like, det_addr, unit.reshape(-1, 9),
                                  np.ascontiguousarray(which[order], dtype=np.int64),
                                  np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]),
                                  block_order(n), n, tau, early_exit, symmetric, mixed)
@@ -290,6 +319,8 @@ def warmup() -> None:
         x = np.ones((1, BLOCK, 2), dtype=dtype)
         for precision in PRECISIONS:
             epipolar_sums(x, x, F, one, one, 1.0, True, True, "numba", precision)
+        screen = screen_rows(x, 2)
+        epipolar_sums(screen, screen, F, one, one, 1.0, True, True, "numba", "mixed")
 
 
 def point_distances(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, symmetric: bool) -> np.ndarray:
@@ -330,8 +361,8 @@ def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb:
     seen = 0
     alive = np.arange(S)
     for idx in _block_indices(ra.n):
-        cols = 2 * idx[None, :]
-        oa, ob = ra.rows[ia[alive], None] + cols, rb.rows[jb[alive], None] + cols
+        oa = ra.rows[ia[alive], None] + 2 * ra.positions(idx)[None, :]
+        ob = rb.rows[jb[alive], None] + 2 * rb.positions(idx)[None, :]
         A = np.stack([ra.flat[oa], ra.flat[oa + 1]], axis=-1)
         B = np.stack([rb.flat[ob], rb.flat[ob + 1]], axis=-1)
         d = point_distances(A, B, F, symmetric)
@@ -374,27 +405,29 @@ def _rsqrt_within_bound() -> bool:
 
 
 @lru_cache(maxsize=1)
-def _numba_kernel():
-    """The numba kernel (compiled, or loaded from numba's on-disk cache, on first use)."""
+def _numba_kernels():
+    """The numba kernels' module (compiled, or loaded from numba's on-disk cache, on first
+    use)."""
     from . import epipolar_kernel
-    return epipolar_kernel.sums_kernel
+    return epipolar_kernel
 
 
 def screen_rows(x: np.ndarray, stride: int) -> PointRows | None:
     """The screening subset of (N,n,2) points as the kernel reads them: runs of SCREEN_RUN
     consecutive points, one run in every ``SCREEN_RUN * stride`` (1/stride of the points, the
-    same fixed-topology ids in every detection). One contiguous copy per camera, shared by
-    every camera pair; runs rather than single points so the copy reads 1/stride of the
-    cache lines (every other point of a strided subset shares a line with a skipped one).
-    None when the screen is off (stride 1) or would keep too few points to screen with."""
+    same fixed-topology ids in every detection), described over x's own memory (no copy
+    here; the numba backend gathers the runs of the detections that take part once per
+    call). Runs rather than single points so a screen reads 1/stride of the cache lines
+    (every other point of a strided subset shares a line with a skipped one). None when the
+    screen is off (stride 1) or would keep too few points to screen with."""
     x = np.asarray(x)
     N, n = int(x.shape[0]), int(x.shape[1])
     period = SCREEN_RUN * stride
     runs = n // period
     if stride <= 1 or runs * SCREEN_RUN < SCREEN_MIN_POINTS:
         return None
-    picked = x[:, :runs * period].reshape(N, runs, period, 2)[:, :, :SCREEN_RUN]
-    return point_rows(np.ascontiguousarray(picked).reshape(N, runs * SCREEN_RUN, 2))
+    full = point_rows(x)
+    return PointRows(full.flat, full.rows, runs * SCREEN_RUN, SCREEN_RUN, period)
 
 
 #: consecutive points per screening run (8 float32 (u, v) = one 64-byte cache line)

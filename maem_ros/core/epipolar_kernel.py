@@ -16,8 +16,6 @@ from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U3
 
 # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
 # survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
-# no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
-# survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
 # reassoc lets the sums vectorise
 _FLAGS = {"reassoc", "contract", "arcp", "nsz"}
 _OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
@@ -406,6 +404,17 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                                       blocks, n, tau, early_exit, h, symmetric)
     return sums, used
 
+
+@plain
+def gather_runs(like, det_addr, run, period, out):
+    """out[d] (2n,) = the n points of the detection at address det_addr[d] read in runs of
+    ``run`` consecutive points, one run every ``period`` points (PointRows.run/period)."""
+    width = out.shape[1]
+    for d in range(det_addr.shape[0]):
+        for r in range(width // (2 * run)):
+            src = points(like, det_addr[d], 2 * r * period, 2 * run)
+            for k in range(2 * run):
+                out[d, 2 * r * run + k] = src[k]
 
 
 @jit32
