@@ -1,7 +1,8 @@
 """The association's fast paths make exactly the decisions of their straightforward forms:
 closed-form Procrustes = the SVD alignment, the reprojection gate's epipolar bound never
 exceeds the DLT error it stands in for, best-first disjoint merges picked in rounds = one
-sequential pass, the vectorised pair enumeration = the sorted upper triangle."""
+sequential pass, the vectorised pair enumeration = the sorted upper triangle, the numba
+reprojection pass = enumeration + the numpy gate."""
 from __future__ import annotations
 
 import numpy as np
@@ -12,9 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from test_association import ring_rig
 
-from maem_ros.core import procrustes
-from maem_ros.core.association import (AssociationParams, _enumerate_pairs, _fundamental_stack,
-                                       _reprojection_gate, rig_geometry)
+from maem_ros.core import epipolar, procrustes
+from maem_ros.core.association import (_BOUND_MARGIN, AssociationParams, _enumerate_pairs,
+                                       _fundamental_stack, _reprojection_gate, rig_geometry)
 from maem_ros.core.clustering import _disjoint_greedy
 from maem_ros.core.detections import DetectionTable, FrameDetections
 from maem_ros.core.geometry import pair_reprojection_bound, pair_reprojection_errors
@@ -104,6 +105,33 @@ def test_reprojection_bound_never_exceeds_the_dlt_error_and_gate_decisions_are_t
         assert np.count_nonzero(bound > tau) > 0.5 * i.size
         np.testing.assert_array_equal(_reprojection_gate(table, i, j, rig, params),
                                       errors < tau)
+
+
+@pytest.mark.skipif(not epipolar.have_numba(), reason="numba not installed")
+@pytest.mark.parametrize("reduce", ["mean", "max"])
+def test_numba_reprojection_pass_enumerates_and_decides_like_the_numpy_path(reduce):
+    """Same pairs in the same order and the same decisions, also at thresholds equal to a
+    pair's DLT error (the kernel's arithmetic is numpy's), for missing centres and for
+    points behind a camera."""
+    from maem_ros.core.reprojection_kernel import reprojection_gate
+    rng = np.random.default_rng(5)
+    rig = ring_rig(5)
+    table = _table(rig, rng, [30, 0, 25, 30, 28])
+    table.centers[[3, 40, 41]] = np.nan
+    i, j = _enumerate_pairs(table)
+    P, _ = rig_geometry(rig)
+    errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, reduce)
+    assert np.isinf(errors).sum() > 100 and np.isfinite(errors).sum() > 1000
+    ties = rng.choice(errors[np.isfinite(errors) & (errors < 60)], 5, replace=False)
+    for tau in (2.0, 10.0, 40.0, *ties):
+        params = AssociationParams(tau_reproj_bbox=float(tau), reproj_reduce=reduce)
+        got_i, got_j, ok = reprojection_gate(table.offsets, _fundamental_stack(rig),
+                                             P[table.cam], table.centers, float(tau),
+                                             _BOUND_MARGIN, reduce == "max")
+        np.testing.assert_array_equal(got_i, i)
+        np.testing.assert_array_equal(got_j, j)
+        np.testing.assert_array_equal(ok, _reprojection_gate(table, i, j, rig, params))
+        np.testing.assert_array_equal(ok, errors < tau)
 
 
 def test_enumerated_pairs_are_the_sorted_upper_triangle_across_cameras():

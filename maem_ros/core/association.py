@@ -53,8 +53,8 @@ class AssociationParams(Params):
     association node (core/paramspec.py: add a field with ``param()`` and it is validated, read
     from params files and declared, with --help, by the node).
 
-    ``backend`` selects the epipolar kernel (auto = numba when installed, else numpy); both
-    give the same decisions. ``epipolar_precision`` (numba): ``mixed`` float32 distances with
+    ``backend`` selects the gates' kernels, epipolar and reprojection (auto = numba when
+    installed, else numpy); both give the same decisions. ``epipolar_precision`` (numba): ``mixed`` float32 distances with
     a rigorous rounding-error bound (undecided pairs redone in float64; means ~1e-7
     relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
     detections' keypoint convention), "all", or comma-separated keypoint indices.
@@ -84,7 +84,8 @@ class AssociationParams(Params):
                                   "set, the paper)", minimum=1)
     screen_margin: float = param(1.0, "px, mesh gate: subset means within this of tau_mesh are "
                                       "decided on the full set", minimum=0.0)
-    backend: str = param("auto", "epipolar kernel (auto = numba when installed, else numpy)",
+    backend: str = param("auto", "gate kernels, epipolar and reprojection (auto = numba when "
+                                 "installed, else numpy)",
                          choices=epipolar.BACKENDS)
     epipolar_precision: str = param("mixed", "numba kernel arithmetic: mixed (float32 SIMD with "
                                              "a rounding-error bound, float64 decisions) or "
@@ -238,6 +239,29 @@ def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, rig:
 _BOUND_MARGIN = 1e-6
 
 
+def warmup(backend: str = "auto", epipolar_gate: str = "mesh") -> None:
+    """Compile (or load from numba's on-disk cache) the gates' numba kernels now, so a node's
+    first frame does not pay for it. No-op for the numpy backend or without numba."""
+    kernel = _reprojection_kernel(backend)
+    if kernel is None:
+        return
+    if epipolar_gate != "none":
+        epipolar.warmup()
+    P = np.zeros((2, 3, 4))
+    kernel(np.arange(3, dtype=np.int64), np.zeros((2, 2, 3, 3)), P, np.zeros((2, 2)), 1.0,
+           _BOUND_MARGIN, False)
+
+
+def _reprojection_kernel(backend: str):
+    """The numba pass of enumeration + reprojection gate (core/reprojection_kernel.py; same
+    pairs, order and decisions as _enumerate_pairs + _reprojection_gate), or None for the
+    numpy path (``backend`` numpy, or numba not installed)."""
+    if backend == "numpy" or not epipolar.have_numba():
+        return None
+    from .reprojection_kernel import reprojection_gate
+    return reprojection_gate
+
+
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
                  ) -> dict[int, tuple[epipolar.PointRows, epipolar.PointRows | None]]:
     """Per camera, the points the epipolar gate compares (vertices or keypoints) and their
@@ -332,13 +356,20 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     default a new PoseCosts of the table), the cost cap."""
     geometry = _rig_cache(rig)
     F = geometry[2]
-    i, j = _enumerate_pairs(table)
+    t = time.perf_counter()
+    kernel = _reprojection_kernel(params.backend) if params.reproj_gate else None
+    if kernel is not None:  # enumeration and gate in one pass
+        i, j, ok = kernel(table.offsets, geometry[3], geometry[1][table.cam], table.centers,
+                          float(params.tau_reproj_bbox), _BOUND_MARGIN,
+                          params.reproj_reduce == "max")
+    else:
+        i, j = _enumerate_pairs(table)
+        ok = (_reprojection_gate(table, i, j, rig, params, geometry)
+              if params.reproj_gate and i.size else None)
     S = i.size
     stage = np.full(S, PASSED, np.int8)
     alive = np.arange(S)
-    t = time.perf_counter()
-    if params.reproj_gate and S:
-        ok = _reprojection_gate(table, i, j, rig, params, geometry)
+    if ok is not None:
         stage[alive[~ok]] = REJECTED_REPROJ
         alive = alive[ok]
     stats["rejected_reproj"] = float(S - alive.size)

@@ -35,6 +35,7 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
+from maem_ros.core import association
 from maem_ros.core.association import AssociationParams
 from maem_ros.core.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
@@ -117,9 +118,8 @@ class AssociationNode(Node):
                                                TemporalParams.from_mapping(p))
         except ValueError as e:
             raise ConfigError(str(e)) from None
-        if self.params.backend != "numpy" and self.params.epipolar_gate != "none":
-            from maem_ros.core import epipolar
-            epipolar.warmup()  # compile/load the numba kernels now, not on the first frame
+        # compile/load the numba kernels now, not on the first frame
+        association.warmup(self.params.backend, self.params.epipolar_gate)
         wire.warm_cdr_decoder()
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]

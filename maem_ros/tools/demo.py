@@ -50,7 +50,7 @@ from typing import Any, Sequence
 import numpy as np
 import yaml
 
-from maem_ros.core import epipolar, triangulation_kernel
+from maem_ros.core import association, triangulation_kernel
 from maem_ros.core.association import associate
 from maem_ros.core.camera import Rig
 from maem_ros.core.errors import InputError
@@ -256,10 +256,10 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
 
 
 def warm_numba_cache() -> None:
-    """Compile the epipolar and RANSAC kernels here (numba's on-disk cache) so the nodes load
+    """Compile the gates' and RANSAC kernels here (numba's on-disk cache) so the nodes load
     them at start instead of compiling them for seconds while frames queue up."""
     t0 = time.monotonic()
-    epipolar.warmup()
+    association.warmup()
     triangulation_kernel.warmup()
     dt = time.monotonic() - t0
     if dt > 1.0:
