@@ -201,51 +201,42 @@ def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
 
 
 def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> np.ndarray:
-    """Best-first verified merges in rounds until no allowed merge is left."""
+    """Best-first verified merges in rounds until no allowed merge is left.
+
+    label: each row its own cluster (label = row). Cluster-level tables indexed by label are
+    kept merged as clusters merge (a merge adds the absorbed cluster's row and column), so a
+    round reads each candidate's figures instead of gathering its members' pairs."""
     C = int(table.cam.max()) + 1
-    ok = pairs.passed
-    ei, ej = pairs.i[ok], pairs.j[ok]  # merge candidates: linked by a pair that passed all
-    gi, gj = np.nonzero(np.triu(gated, 1))  # support: pairs that passed the geometric gates
-    refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     N = label.size
+    ok = pairs.passed
+    linked = np.zeros((N, N), bool)  # linked by a pair that passed all: merge candidates
+    linked[pairs.i[ok], pairs.j[ok]] = linked[pairs.j[ok], pairs.i[ok]] = True
+    between = gain.copy()  # summed gain of the cross pairs of two clusters
+    support = gated.astype(np.int64)  # cross pairs that passed the geometric gates
+    camset = np.zeros((N, C), bool)
+    camset[label, table.cam] = True
+    size = np.bincount(label, minlength=N)
+    refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     while True:
-        la, lb = label[ei], label[ej]
-        cross = la != lb
-        if not cross.any():
+        A, B = np.nonzero(np.triu(linked, 1))  # ascending A * N + B
+        if A.size == 0:
             return label
-        a, b = np.minimum(la, lb)[cross], np.maximum(la, lb)[cross]
-        linked = np.zeros(N * N, bool)  # cluster pairs (A, B), A < B, as sorted keys A * N + B
-        linked[a * N + b] = True
-        key = np.flatnonzero(linked)
-        A, B = key // N, key % N
-        ga, gb = label[gi], label[gj]
-        index_of = np.full(N * N, -1)
-        index_of[key] = np.arange(key.size)
-        pos = index_of[np.minimum(ga, gb) * N + np.maximum(ga, gb)]
-        count = np.bincount(pos[pos >= 0], minlength=key.size)
-        size = np.bincount(label, minlength=N)
-        camset = np.zeros((N, C), bool)
-        camset[label, table.cam] = True
         disjoint = ~(camset[A] & camset[B]).any(1)
-        support = count / (size[A] * size[B])
         # a refused merge stays refused while neither cluster changed (same labels and sizes)
         codes = ((A * N + B) * (N + 1) + size[A]) * (N + 1) + size[B]
-        pre = disjoint & (support >= params.min_support)
+        pre = disjoint & (support[A, B] / (size[A] * size[B]) >= params.min_support)
         if refused:
             pre &= ~np.isin(codes, np.fromiter(refused, np.int64, len(refused)))
-        pre = np.flatnonzero(pre)
-        # objective change (sum of gains over all cross pairs of the two clusters), only where
-        # the cheap conditions hold
-        members_ab = _members_padded(label, [A[pre], B[pre]])
-        g = _cross_gain(gain, members_ab, size[A[pre]])
-        gainful = g > 0
-        cand, members_ab, g = pre[gainful], members_ab[gainful], g[gainful]
+        # objective change: the summed gain over all cross pairs of the two clusters
+        g = between[A, B]
+        cand = np.flatnonzero(pre & (g > 0))
         if cand.size == 0:
             return label
+        g = g[cand]
         need = size[A[cand]] + size[B[cand]] >= 3
         passed = np.ones(cand.size, bool)
         if need.any():
-            passed[need] = verify(members_ab[need])
+            passed[need] = verify(_members_padded(label, [A[cand[need]], B[cand[need]]]))
         refused.update(codes[cand[~passed]].tolist())
         stats["merges_rejected"] += float(np.count_nonzero(~passed))
         cand, g = cand[passed], g[passed]
@@ -256,7 +247,23 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         into = np.arange(N)
         into[y] = x
         label = into[label]  # the applied merges touch disjoint clusters: one relabelling
+        _absorb(x, y, size, between, support, linked, camset)
         stats["merges"] += float(x.size)
+
+
+def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
+            support: np.ndarray, linked: np.ndarray, camset: np.ndarray) -> None:
+    """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place."""
+    size[x] += size[y]
+    size[y] = 0
+    for table, add in ((between, np.add), (support, np.add), (linked, np.logical_or)):
+        table[x] = add(table[x], table[y])
+        table[:, x] = add(table[:, x], table[:, y])
+        table[y] = 0
+        table[:, y] = 0
+    linked[x, x] = False
+    camset[x] |= camset[y]
+    camset[y] = False
 
 
 def _disjoint_greedy(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -279,20 +286,6 @@ def _disjoint_greedy(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, 
         used[a[now]] = used[b[now]] = True
         alive &= ~(used[a] | used[b])
     return a[taken], b[taken]
-
-
-def _cross_gain(gain: np.ndarray, members: np.ndarray, split: np.ndarray) -> np.ndarray:
-    """(K,) sum of gain over pairs (first part x second part) of padded member rows (K,M)."""
-    K, M = members.shape
-    if K == 0:
-        return np.zeros(0)
-    present = members >= 0
-    r = np.where(present, members, 0)
-    G = gain[r[:, :, None], r[:, None, :]]  # (K,M,M)
-    slot = np.arange(M)
-    first = present & (slot[None, :] < split[:, None])
-    second = present & (slot[None, :] >= split[:, None])
-    return np.einsum("kmn,km,kn->k", G, first.astype(float), second.astype(float))
 
 
 def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray:
