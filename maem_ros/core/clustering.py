@@ -218,7 +218,8 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
     size = np.bincount(label, minlength=N)
     refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     while True:
-        A, B = np.nonzero(np.triu(linked, 1))  # ascending A * N + B
+        A, B = np.nonzero(linked)  # ascending A * N + B; each pair once, A < B:
+        A, B = A[A < B], B[A < B]
         if A.size == 0:
             return label
         disjoint = ~(camset[A] & camset[B]).any(1)
