@@ -70,6 +70,25 @@ def test_silent_camera_partial_after_max_wait_and_picked_up_again(returning_firs
     assert s.counters["dropped_late"] == (0 if returning_first else 1)
 
 
+def test_complete_only_poll_never_times_a_set_out() -> None:
+    """A caller still taking messages polls complete_only: a set past max_wait that waits for
+    a camera stays queued (its message may be among those not yet taken); complete sets and
+    ones whose missing camera is already past them go out."""
+    s = make()
+    for cam in CAMS[:3]:
+        s.add(cam, T0, cam, now_ns=T0 + MS, poll=False)
+    late = T0 + 500 * MS
+    assert s.poll(late, complete_only=True) == []
+    s.add("cam3", T0 + PERIOD, "cam3@1", now_ns=late, poll=False)  # cam3 skipped frame 0
+    out = s.poll(late, complete_only=True)
+    assert [(fs.stamp_ns, fs.missing) for fs in out] == [(T0, ["cam3"])]
+    for cam in CAMS[:3]:
+        s.add(cam, T0 + PERIOD, f"{cam}@1", now_ns=late, poll=False)
+    out = s.poll(late, complete_only=True)
+    assert [(fs.stamp_ns, fs.missing) for fs in out] == [(T0 + PERIOD, [])]
+    assert s.counters["timeouts"] == 0
+
+
 def test_first_partial_set_only_after_max_wait() -> None:
     s = make()
     s.add("cam0", T0, "a", now_ns=T0)

@@ -326,8 +326,12 @@ class ApproximateTimeSync:
     def _dead(self, camera: str) -> bool:
         return self._missed.get(camera, 0) >= self.dead_after_sets
 
-    def poll(self, now_ns: int) -> list[FrameSet]:
-        """Emit every frame set that is complete or has waited long enough at ``now_ns``."""
+    def poll(self, now_ns: int, complete_only: bool = False) -> list[FrameSet]:
+        """Emit every frame set that is complete or has waited long enough at ``now_ns``.
+
+        ``complete_only``: emit only sets that wait for no camera (every camera is present,
+        dead, lagging, or already past the set's stamp), never one that timed out: for a
+        caller still taking messages that may hold the awaited ones."""
         now_ns = int(now_ns)
         out: list[FrameSet] = []
         while True:
@@ -340,7 +344,8 @@ class ApproximateTimeSync:
             present = [c for c in self.cameras if c in heads and heads[c].stamp_ns <= limit]
             awaited = [c for c in self.cameras if c not in heads and not self._dead(c)
                        and not self._is_lagging(c)]
-            if awaited and now_ns - ref.arrival_ns < max(self._wait_ns(c) for c in awaited):
+            if awaited and (complete_only or
+                            now_ns - ref.arrival_ns < max(self._wait_ns(c) for c in awaited)):
                 return out
             if len(present) < self.min_cameras:
                 self._queues[ref_cam].popleft()

@@ -33,6 +33,7 @@ from typing import Any
 from rclpy.clock import ClockChange, JumpThreshold
 from rclpy.duration import Duration
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core import association
@@ -42,8 +43,8 @@ from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats, skip_behind
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, ConfigError, Diagnostics, NodeParams, RejectErrors,
-                                 Stopwatch, arrival_ns, declare_params, load_rig_param,
+from maem_ros.ros.common import (DATA_DEPTH, DATA_QOS, ConfigError, Diagnostics, NodeParams,
+                                 RejectErrors, Stopwatch, arrival_ns, declare_params, load_rig_param,
                                  publish_rig_tf, run_node, subscribe_counted, take_pending)
 
 NODE_NAME = "association"
@@ -71,6 +72,9 @@ class AssociationNodeParams(NodeParams):
     max_wait: float = param(0.15, "s, emit a partial frame set after waiting this long",
                             minimum=0.0, exclusive_minimum=True)
     min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
+    queue_size: int = param(DATA_DEPTH, "messages per camera held (DDS reader history "
+                                              "and synchroniser queue): a stall this many "
+                                              "frames long loses nothing", minimum=1)
     max_backlog: float = param(0.0, "s, of frame sets ready at once (the node fell behind) skip "
                                     "those older than this behind the newest, counted "
                                     "dropped/behind (0 = process every set)", minimum=0.0)
@@ -126,7 +130,8 @@ class AssociationNode(Node):
         try:
             self.sync = ApproximateTimeSync(
                 self.cameras, int(round(p["slop"] * 1e9)), int(round(p["max_wait"] * 1e9)),
-                p["min_cameras"], max_lag_ns=int(round(p["max_lag"] * 1e9)),
+                p["min_cameras"], queue_size=p["queue_size"],
+                max_lag_ns=int(round(p["max_lag"] * 1e9)),
                 jump_ns=int(round(p["jump_tolerance"] * 1e9)))
             self.limits = InputLimits(max_detections=p["max_detections"],
                                       pixel_margin=p["pixel_margin"])
@@ -139,11 +144,14 @@ class AssociationNode(Node):
         self.subs = []
         self._ready: list = []  # sets a stream reset replayed while receiving
         self._taking = False  # inside take_pending: receive only, decide afterwards
+        detections_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["queue_size"],
+                                    reliability=ReliabilityPolicy.RELIABLE,
+                                    durability=DurabilityPolicy.VOLATILE)
         for cam in self.cameras:
             topic = self.resolve_topic_name(f"{cam}/detections")
             self.subs.append(subscribe_counted(self, self.diag, PointCloud2, topic,
                                                partial(self.on_detections, cam, topic),
-                                               DATA_QOS, raw=True, with_info=True))
+                                               detections_qos, raw=True, with_info=True))
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
         self.tf_pub = publish_rig_tf(self, self.rig, self.frame_id) if p["publish_tf"] else None
         if p["reset_on_clock_jump"]:
@@ -179,17 +187,23 @@ class AssociationNode(Node):
 
     def _decide(self) -> None:
         """Take every message already waiting in the DDS queues (the executor runs the poll
-        timer before them and takes one per subscription and wait), then poll: a frame set is
-        declared partial only when its missing camera's message has not reached this process
-        within max_wait of the reference's arrival (rmw receive time), never because the node
-        was busy. Waiting messages also stop being overwritten in the keep-last history."""
+        timer before them and takes one per subscription and wait; complete frame sets are
+        handled as they complete), then poll: a frame set is declared partial only when its
+        missing camera's message has not reached this process within max_wait of the
+        reference's arrival (rmw receive time), never because the node was busy. Waiting
+        messages also stop being overwritten in the keep-last history."""
         self._take_all()
         ready, self._ready = self._ready, []
-        sets, skipped = skip_behind(ready + self.sync.poll(self._now_ns()), self.max_backlog_ns)
+        ready += self.sync.poll(self._now_ns())
         if not self.sync.pending():
             # nothing waits for max_wait: a poll would find nothing (each executor wake-up
             # costs CPU); _receive re-arms the timer with the next queued message
             self.timer.cancel()
+        self._emit(ready)
+
+    def _emit(self, ready: list) -> None:
+        """Handle frame sets ready together, the ones max_backlog leaves behind skipped."""
+        sets, skipped = skip_behind(ready, self.max_backlog_ns)
         if skipped:
             self.diag.reject("behind", f"{len(skipped)} frame set(s) more than max_backlog "
                              f"{self.max_backlog_ns / 1e9:g} s behind the newest skipped (node "
@@ -197,13 +211,23 @@ class AssociationNode(Node):
         self._handle(sets)
 
     def _take_all(self) -> None:
-        """Receive (decode and queue) every message waiting in the DDS queues, decide nothing."""
+        """Receive every message waiting in the DDS queues, one per camera per round: the
+        cameras' messages come in stamp order together, so after a stall (every camera's
+        backlog waiting) each frame set completes, and is handled, as soon as its messages
+        are in, instead of after all of the backlog was received. With max_backlog the whole
+        backlog is received first: which sets are stale is known only then."""
         self._taking = True
         try:
-            for sub in self.subs:
-                take_pending(sub)
+            while self._take_round():
+                if self.max_backlog_ns <= 0:
+                    ready, self._ready = self._ready, []
+                    self._emit(ready + self.sync.poll(self._now_ns(), complete_only=True))
         finally:
             self._taking = False
+
+    def _take_round(self) -> int:
+        """Receive (decode and queue) at most one waiting message per camera; how many."""
+        return sum(take_pending(sub, limit=1) for sub in self.subs)
 
     def on_timer(self) -> None:
         self._decide()
@@ -221,7 +245,7 @@ class AssociationNode(Node):
         for fs in sets:
             self.process(fs)
             if len(sets) > 1:  # a backlog: keep the DDS history from overwriting what arrived
-                self._take_all()
+                self._take_round()
 
     def _sync_counters(self) -> None:
         """Report the synchroniser's drops (``sync_<reason>``), resets and state changes."""
@@ -280,6 +304,7 @@ class AssociationNode(Node):
                 self.diag.time(stage, float(result.stats[key]))
         self.diag.set("last_clusters", len(result.clusters))
         self.diag.set("last_cameras", len(fs.items))
+
 
 
 #: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,

@@ -25,9 +25,10 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, declare_params, default_camera_name,
-                                 load_rig_param, run_node, subscribe_counted)
+from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS,
+                                 ConfigError, Diagnostics, NodeParams, RejectErrors, Stopwatch,
+                                 declare_params, default_camera_name, load_rig_param, run_node,
+                                 subscribe_counted)
 
 NODE_NAME = "frontend"
 
@@ -172,7 +173,8 @@ class FrontendNode(Node):
         self.diag = Diagnostics(self, p["diagnostics_period"], hardware_id=self.camera_name)
         self.diag.set("backend", p["backend"])
         self.pub = self.create_publisher(PointCloud2, f"{prefix}detections", DATA_QOS)
-        self.overlay_pub = (self.create_publisher(Image, f"{prefix}detections/overlay", DATA_QOS)
+        self.overlay_pub = (self.create_publisher(Image, f"{prefix}detections/overlay",
+                                                   RELIABLE_IMAGE_QOS)
                             if self.publish_overlay else None)
         compressed = p["image_transport"] == "compressed"
         self.image_topic = self.resolve_topic_name(

@@ -137,10 +137,10 @@ def message_class(msgtype: str):
 def topic_qos(topic: str, msgtype: str, recorded: Sequence = (), reliable_images: bool = False):
     """Publisher QoS: images as the camera nodes publish them (common.IMAGE_QOS, best effort;
     ``reliable_images``: reliable, keep last 10); latched (transient local) for /maem/scene or
-    when recorded so; everything else reliable, keep last 10."""
+    when recorded so; everything else as the nodes publish it (common.DATA_QOS)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from maem_ros.ros.common import IMAGE_QOS, RELIABLE_IMAGE_QOS
+    from maem_ros.ros.common import DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS
     latched = topic == bagio.SCENE_TOPIC or any(
         q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in recorded)
     if latched:
@@ -149,8 +149,7 @@ def topic_qos(topic: str, msgtype: str, recorded: Sequence = (), reliable_images
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
     if msgtype in _IMAGE_TYPES:
         return RELIABLE_IMAGE_QOS if reliable_images else IMAGE_QOS
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+    return DATA_QOS
 
 
 def loop_gap_ns(info: bagio.BagInfo) -> int:
