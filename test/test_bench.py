@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -19,9 +20,10 @@ KEYS = ("cameras", "detections_per_camera", "vertices", "association_ms_median",
         "triangulation_cpu_ms_median", "triangulation_cpu_ms_min")
 
 
-def _bench(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+def _bench(*args: str, timeout: float = 120.0, env: dict | None = None
+           ) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", *args],
-                          capture_output=True, text=True, timeout=timeout)
+                          capture_output=True, text=True, timeout=timeout, env=env)
 
 
 def test_bench_json_reduced_load():
@@ -112,14 +114,15 @@ def test_bench_large_load_reduced():
 
 
 @pytest.mark.timeout(300)
-def test_bench_live_reduced_run(scene):
+def test_bench_live_reduced_run(scene, tmp_path):
     """maem-bench --live: 6 publisher processes through association + triangulation (at 10 fps:
     the test checks the tool and its report, not this machine's speed under CI load). The
     ``scene`` fixture compiles the numba kernels into their on-disk cache first, so on a fresh
     clone the node processes load them instead of each compiling for tens of seconds."""
     proc = _bench("--live", "--frames", "20", "--vertices", "500", "--wire", "q4", "--json",
-                  "--rate", "10", timeout=280)
+                  "--rate", "10", timeout=280, env=dict(os.environ, TMPDIR=str(tmp_path)))
     assert proc.returncode == 0, proc.stderr
+    assert not list(tmp_path.iterdir())  # its work folder (every camera's messages) is gone
     out = json.loads(proc.stdout)
     assert (out["cameras"], out["frames_published"], out["wire"]) == (6, 20, "q4")
     assert out["frames_without_poses"] <= 4, out

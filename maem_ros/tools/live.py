@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import pickle
+import shutil
 import sys
 import tempfile
 import time
@@ -231,12 +232,21 @@ def _ros_env(env: dict[str, str]) -> list[str]:
 
 
 def run_live(a: argparse.Namespace) -> dict[str, Any]:
+    """Run the live benchmark in a fresh work folder, removed afterwards: it holds every
+    camera's messages (3 GB for 300 full-mesh frames); a failure's error carries the logs."""
+    work = Path(tempfile.mkdtemp(prefix="maem_live_"))
+    try:
+        return _run_live(a, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
     from maem_ros.params import load_node_params
     from maem_ros.ros.common import DDS_PROFILE_VARS, load_rig_param, use_shipped_dds_profile
     from maem_ros.tools.latency import write_params
     from maem_ros.tools.processes import ProcessGroup, module_command, node_command
 
-    work = Path(tempfile.mkdtemp(prefix="maem_live_"))
     assoc_over = {**({"max_wait": a.max_wait} if a.max_wait else {}),
                   **({"max_backlog": a.max_backlog} if a.max_backlog else {})} or None
     params = write_params(a.params, work / "params.yaml",
@@ -367,7 +377,6 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
         # rate ms to keep up), less dependent on what else loads the machine than the latency
         "cpu_ms_per_frame": {n: round(1e3 * (cpu1[n] - cpu0[n]) / len(stamps), 2) for n in cpu0},
         "exit_codes": codes,
-        "work_dir": str(work),
     }
     return report
 
