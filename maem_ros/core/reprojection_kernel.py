@@ -10,37 +10,17 @@ geometry.pair_reprojection_errors. The numpy path materialises ~20 arrays of the
 Decisions equal the numpy path's: the bound only rejects with a relative margin far above its
 rounding (its arithmetic order does not matter), and the DLT and reprojection are the numpy
 path's float64 operations in the same order (no fast-math: no reassociation, no fused
-multiply-add), so the errors compared with tau are the same numbers.
+multiply-add), so the errors compared with tau are the same numbers. The DLT steps are the
+triangulation kernel's (core/triangulation_kernel.py: _entries, _solve).
 """
 from __future__ import annotations
 
 import numba as nb
 import numpy as np
 
-from .geometry import _SINGULAR
+from .triangulation_kernel import _entries, _solve
 
 _OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
-
-
-@nb.njit(**_OPTS)
-def _normal_entries(P, uv, out):
-    """out (N,9): geometry.normal_entries of each view (uv (N,2) px, P (N,3,4)), in its
-    entry order and arithmetic; an unusable view (non-finite uv) takes uv = 0."""
-    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2), (0, 3), (1, 3), (2, 3))
-    r1 = np.empty(4)
-    r2 = np.empty(4)
-    for n in range(P.shape[0]):
-        u = uv[n, 0]
-        v = uv[n, 1]
-        if not (np.isfinite(u) and np.isfinite(v)):
-            u = 0.0
-            v = 0.0
-        for k in range(4):
-            r1[k] = u * P[n, 2, k] - P[n, 0, k]
-            r2[k] = v * P[n, 2, k] - P[n, 1, k]
-        for e in range(9):
-            a, b = pairs[e]
-            out[n, e] = r1[a] * r1[b] + r2[a] * r2[b]
 
 
 @nb.njit(**_OPTS)
@@ -57,37 +37,17 @@ def _view_error(P, n, x0, x1, x2, u, v):
 
 
 @nb.njit(**_OPTS)
-def _pair_error(P, uv, E, i, j, reduce_max):
+def _pair_error(P, uv, usable, E, i, j, reduce_max, system, X):
     """geometry.pair_reprojection_errors of the pair (i, j): DLT from the summed normal
-    entries (geometry.solve_normal), reprojected into both views, mean or max."""
-    n00 = E[i, 0] + E[j, 0]
-    n01 = E[i, 1] + E[j, 1]
-    n02 = E[i, 2] + E[j, 2]
-    n11 = E[i, 3] + E[j, 3]
-    n12 = E[i, 4] + E[j, 4]
-    n22 = E[i, 5] + E[j, 5]
-    r0 = E[i, 6] + E[j, 6]
-    r1 = E[i, 7] + E[j, 7]
-    r2 = E[i, 8] + E[j, 8]
-    c00 = n11 * n22 - n12 * n12
-    c01 = n02 * n12 - n01 * n22
-    c02 = n01 * n12 - n02 * n11
-    c11 = n00 * n22 - n02 * n02
-    c12 = n01 * n02 - n00 * n12
-    c22 = n00 * n11 - n01 * n01
-    det = n00 * c00 + n01 * c01 + n02 * c02
-    trace = n00 + n11 + n22
-    if not (abs(det) > _SINGULAR * trace * trace * trace):
-        det = np.nan
-    usable = (np.isfinite(uv[i, 0]) and np.isfinite(uv[i, 1]) and np.isfinite(uv[j, 0])
-              and np.isfinite(uv[j, 1]))
-    if not usable:
+    entries (E (9,N) each view's, geometry.solve_normal's arithmetic), reprojected into both
+    views, mean or max; system (9,1) and X (3,1) scratch."""
+    if not (usable[i] and usable[j]):
         return np.inf
-    x0 = -((c00 * r0 + c01 * r1 + c02 * r2) / det)
-    x1 = -((c01 * r0 + c11 * r1 + c12 * r2) / det)
-    x2 = -((c02 * r0 + c12 * r1 + c22 * r2) / det)
-    ei = _view_error(P, i, x0, x1, x2, uv[i, 0], uv[i, 1])
-    ej = _view_error(P, j, x0, x1, x2, uv[j, 0], uv[j, 1])
+    for e in range(9):
+        system[e, 0] = E[e, i] + E[e, j]
+    _solve(system, X)
+    ei = _view_error(P, i, X[0, 0], X[1, 0], X[2, 0], uv[i, 0], uv[i, 1])
+    ej = _view_error(P, j, X[0, 0], X[1, 0], X[2, 0], uv[j, 0], uv[j, 1])
     return max(ei, ej) if reduce_max else 0.5 * (ei + ej)
 
 
@@ -105,8 +65,15 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
     pi = np.empty(S, dtype=np.int64)
     pj = np.empty(S, dtype=np.int64)
     ok = np.zeros(S, dtype=np.bool_)
-    E = np.empty((P.shape[0], 9))
-    _normal_entries(P, uv, E)
+    N = P.shape[0]
+    usable = np.empty(N, dtype=np.bool_)
+    for n in range(N):
+        usable[n] = np.isfinite(uv[n, 0]) and np.isfinite(uv[n, 1])
+    E = np.empty((9, N))  # each view's share of every pair's DLT system
+    for n in range(N):
+        _entries(P[n], uv[n:n + 1, 0], uv[n:n + 1, 1], usable[n:n + 1], E[:, n:n + 1])
+    system = np.empty((9, 1))
+    X = np.empty((3, 1))
     scale = 0.5 if not reduce_max else np.sqrt(0.5)
     limit = tau * (1.0 + margin)
     s = 0
@@ -134,6 +101,7 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
                     pj[s] = j
                     # NaN bound (degenerate geometry): no bound, the DLT decides
                     if not bound > limit:
-                        ok[s] = _pair_error(P, uv, E, i, j, reduce_max) < tau
+                        ok[s] = _pair_error(P, uv, usable, E, i, j, reduce_max, system,
+                                            X) < tau
                     s += 1
     return pi, pj, ok
