@@ -33,7 +33,6 @@ from typing import Any
 from rclpy.clock import ClockChange, JumpThreshold
 from rclpy.duration import Duration
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core import association
@@ -44,8 +43,9 @@ from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats, skip_behind
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_DEPTH, DATA_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, arrival_ns, declare_params, load_rig_param,
-                                 publish_rig_tf, run_node, subscribe_counted, take_pending)
+                                 RejectErrors, Stopwatch, arrival_ns, data_qos, declare_params,
+                                 load_rig_param, publish_rig_tf, run_node, subscribe_counted,
+                                 take_pending)
 
 NODE_NAME = "association"
 
@@ -72,9 +72,9 @@ class AssociationNodeParams(NodeParams):
     max_wait: float = param(0.15, "s, emit a partial frame set after waiting this long",
                             minimum=0.0, exclusive_minimum=True)
     min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
-    queue_size: int = param(DATA_DEPTH, "messages per camera held (DDS reader history "
-                                              "and synchroniser queue): a stall this many "
-                                              "frames long loses nothing", minimum=1)
+    queue_size: int = param(DATA_DEPTH, "messages per camera held (DDS reader history and "
+                                         "synchroniser queue): a stall this many frames long "
+                                         "loses nothing", minimum=1)
     max_backlog: float = param(0.0, "s, of frame sets ready at once (the node fell behind) skip "
                                     "those older than this behind the newest, counted "
                                     "dropped/behind (0 = process every set)", minimum=0.0)
@@ -144,9 +144,7 @@ class AssociationNode(Node):
         self.subs = []
         self._ready: list = []  # sets a stream reset replayed while receiving
         self._taking = False  # inside take_pending: receive only, decide afterwards
-        detections_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p["queue_size"],
-                                    reliability=ReliabilityPolicy.RELIABLE,
-                                    durability=DurabilityPolicy.VOLATILE)
+        detections_qos = data_qos(p["queue_size"])
         for cam in self.cameras:
             topic = self.resolve_topic_name(f"{cam}/detections")
             self.subs.append(subscribe_counted(self, self.diag, PointCloud2, topic,
@@ -304,7 +302,6 @@ class AssociationNode(Node):
                 self.diag.time(stage, float(result.stats[key]))
         self.diag.set("last_clusters", len(result.clusters))
         self.diag.set("last_cameras", len(fs.items))
-
 
 
 #: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,

@@ -43,14 +43,21 @@ IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
 RELIABLE_IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                                 reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.VOLATILE)
-#: per-frame streams (detections, clusters, poses): reliable, keep last DATA_DEPTH. A node that
-#: stalls (CPU contention, a paused VM: 0.2-0.7 s measured on the 2-core test machine) finds
-#: every message of the stall still queued instead of overwritten (dropped/dds_lost); after
-#: it the upstream node sends its backlog as a burst. Both ends count: the writer and the
-#: reader each keep this many
+#: messages kept per per-frame stream (detections, clusters, poses) at both ends, writer and
+#: reader: a node starved of CPU for a while (0.2-0.4 s measured on the 2-core test machine)
+#: finds every message of the stall still queued instead of overwritten (dropped/dds_lost),
+#: and the upstream node's backlog, sent as a burst afterwards, fits
 DATA_DEPTH = 32
-DATA_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=DATA_DEPTH,
-                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+
+def data_qos(depth: int = DATA_DEPTH) -> QoSProfile:
+    """Per-frame streams: reliable, keep last ``depth``, volatile."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+DATA_QOS = data_qos()
 #: MarkerArray for RViz: reliable, keep last 10
 MARKER_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                         reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
