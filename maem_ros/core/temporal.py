@@ -582,18 +582,17 @@ class TemporalAssociator:
             uv = np.stack([view.centers[ca, da], view.centers[cb, db]], axis=1)  # (S,2,2)
             Ps = np.stack([self._P[ca], self._P[cb]], axis=1)
             ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
-        if self.tp.verify_epipolar != "none" and ca.size:
-            key = ca * len(self.rig) + cb
-            for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
-                s = np.flatnonzero(ok & (key == k))
-                a, b = divmod(k, len(self.rig))
-                (full_a, screen_a), (full_b, screen_b) = view.points(a), view.points(b)
-                screen = None if screen_a is None or screen_b is None else (screen_a, screen_b)
-                ok[s] = epipolar.screened_means(  # missing (NaN) points are not counted
-                    (full_a, full_b), screen, self._F[(a, b)], da[s], db[s], p.tau_mesh,
-                    p.screen_margin, symmetric=p.epipolar_distance == "symmetric",
-                    early_exit=p.early_exit, backend=p.backend,
-                    precision=p.epipolar_precision)[0]
+        if self.tp.verify_epipolar != "none" and ok.any():
+            s = np.flatnonzero(ok)
+            rows = {c: view.points(c) for c in np.unique(np.concatenate([ca[s], cb[s]])).tolist()}
+            screens = {c: screen for c, (_, screen) in rows.items()}
+            # every camera pair in one kernel call; missing (NaN) points are not counted
+            ok[s] = epipolar.frame_screened_means(
+                {c: full for c, (full, _) in rows.items()},
+                None if any(v is None for v in screens.values()) else screens, self._F,
+                ca[s], da[s], cb[s], db[s], p.tau_mesh, p.screen_margin,
+                symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
+                backend=p.backend, precision=p.epipolar_precision)[0]
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)
