@@ -135,14 +135,15 @@ class PointRows:
 
     def contiguous(self) -> "PointRows":
         """The same points, each detection's n points contiguous (a copy when read in runs)."""
-        if not self.run:
-            return self
-        at = self.rows[:, None] + 2 * self.positions(np.arange(self.n))[None, :]
-        return point_rows(np.stack([self.flat[at], self.flat[at + 1]], axis=-1))
+        return self if not self.run else point_rows(self._gather(self.rows))
 
     def points(self, i: int) -> np.ndarray:
         """(n,2) copy of detection i's points."""
-        at = self.rows[i] + 2 * self.positions(np.arange(self.n))
+        return self._gather(self.rows[i:i + 1])[0]
+
+    def _gather(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows),n,2) copy of the points of the detections at element offsets rows."""
+        at = rows[:, None] + 2 * self.positions(np.arange(self.n))[None, :]
         return np.stack([self.flat[at], self.flat[at + 1]], axis=-1)
 
 
@@ -297,10 +298,10 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
         _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like)
         det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
         like = like.reshape(-1)
-    sums, used = _numba_kernels().sums_kernel(like, det_addr, unit.reshape(-1, 9),
-                                 np.ascontiguousarray(which[order], dtype=np.int64),
-                                 np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]),
-                                 block_order(n), n, tau, early_exit, symmetric, mixed)
+    sums, used = _numba_kernels().sums_kernel(
+        like, det_addr, unit.reshape(-1, 9), np.ascontiguousarray(which[order], dtype=np.int64),
+        np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]), block_order(n), n,
+        tau, early_exit, symmetric, mixed)
     out_sums = np.empty(S)
     out_used = np.empty(S, dtype=np.int64)
     out_sums[order] = sums
