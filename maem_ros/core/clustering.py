@@ -257,11 +257,11 @@ def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
     """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place."""
     size[x] += size[y]
     size[y] = 0
-    for table, add in ((between, np.add), (support, np.add), (linked, np.logical_or)):
-        table[x] = add(table[x], table[y])
-        table[:, x] = add(table[:, x], table[:, y])
-        table[y] = 0
-        table[:, y] = 0
+    for matrix, add in ((between, np.add), (support, np.add), (linked, np.logical_or)):
+        matrix[x] = add(matrix[x], matrix[y])  # rows first, then columns: the entry of two
+        matrix[:, x] = add(matrix[:, x], matrix[:, y])  # merged clusters sums all four parts
+        matrix[y] = 0
+        matrix[:, y] = 0
     linked[x, x] = False
     camset[x] |= camset[y]
     camset[y] = False
