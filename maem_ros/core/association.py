@@ -54,9 +54,9 @@ class AssociationParams(Params):
     from params files and declared, with --help, by the node).
 
     ``backend`` selects the gates' kernels, epipolar and reprojection (auto = numba when
-    installed, else numpy); both give the same decisions. ``epipolar_precision`` (numba): ``mixed`` float32 distances with
-    a rigorous rounding-error bound (undecided pairs redone in float64; means ~1e-7
-    relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
+    installed, else numpy); both give the same decisions. ``epipolar_precision`` (numba):
+    ``mixed`` float32 distances with a rigorous rounding-error bound (undecided pairs redone
+    in float64; means ~1e-7 relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
     detections' keypoint convention), "all", or comma-separated keypoint indices.
     ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).
     ``cost_epipolar_weight`` (m) adds the pair's mean epipolar distance, as a fraction of

@@ -143,7 +143,9 @@ class AssociationNode(Node):
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
         self._ready: list = []  # sets a stream reset replayed while receiving
-        self._taking = False  # inside take_pending: receive only, decide afterwards
+        # inside _take_all: a message callback only receives (complete sets are handled
+        # between rounds there, timeouts decided after it)
+        self._taking = False
         detections_qos = data_qos(p["queue_size"])
         for cam in self.cameras:
             topic = self.resolve_topic_name(f"{cam}/detections")

@@ -237,7 +237,6 @@ class FrontendNode(Node):
                                                        self.camera_name))
 
 
-
 #: heap touched at start (MiB): the detections message being encoded and published (~1.8 MB
 #: per copy with the full mesh)
 HEAP_PREFAULT_MB = 64
