@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import assume, given, settings, strategies as st
 
 from maem_ros.core.tracking import Tracker
 
@@ -206,7 +206,9 @@ def test_bone_filter_equals_a_per_person_loop(seed, history, min_samples):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(bone_filter, "_MAX_TRACKS", 6)
         marked = _run_bone_filters(fast, ref, bodies, rng)
-    assert marked > 0
+    # the outputs were compared frame by frame above; a crowd in which nothing was marked
+    # (some seeds with min_samples = history: seed 5058, 5, 5) exercised nothing worth keeping
+    assume(marked > 0)
 
 
 def _run_bone_filters(fast, ref, bodies, rng) -> int:
