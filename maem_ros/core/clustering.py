@@ -209,8 +209,11 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
     C = int(table.cam.max()) + 1
     N = label.size
     ok = pairs.passed
-    linked = np.zeros((N, N), bool)  # linked by a pair that passed all: merge candidates
-    linked[pairs.i[ok], pairs.j[ok]] = linked[pairs.j[ok], pairs.i[ok]] = True
+    # codes A * N + B (A < B) of the clusters linked by a pair that passed all (merge
+    # candidates), ascending: relabelled after each round (a list of the passed pairs, not an
+    # N x N table that every round would scan)
+    links = np.unique(np.minimum(pairs.i[ok], pairs.j[ok]) * N
+                      + np.maximum(pairs.i[ok], pairs.j[ok]))
     between = gain.copy()  # summed gain of the cross pairs of two clusters
     support = gated.astype(np.int64)  # cross pairs that passed the geometric gates
     camset = np.zeros((N, C), bool)
@@ -218,8 +221,7 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
     size = np.bincount(label, minlength=N)
     refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     while True:
-        A, B = np.nonzero(linked)  # ascending A * N + B; each pair once, A < B:
-        A, B = A[A < B], B[A < B]
+        A, B = np.divmod(links, N)
         if A.size == 0:
             return label
         disjoint = ~(camset[A] & camset[B]).any(1)
@@ -248,21 +250,29 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         into = np.arange(N)
         into[y] = x
         label = into[label]  # the applied merges touch disjoint clusters: one relabelling
-        _absorb(x, y, size, between, support, linked, camset)
+        links = _relabel_links(links, into, N)
+        _absorb(x, y, size, between, support, camset)
         stats["merges"] += float(x.size)
 
 
+def _relabel_links(links: np.ndarray, into: np.ndarray, n: int) -> np.ndarray:
+    """Link codes A * n + B (A < B) after relabelling by ``into``: ascending, each once, none
+    within one cluster."""
+    a, b = into[links // n], into[links % n]
+    a, b = np.minimum(a, b), np.maximum(a, b)
+    return np.unique(a[a != b] * n + b[a != b])
+
+
 def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
-            support: np.ndarray, linked: np.ndarray, camset: np.ndarray) -> None:
+            support: np.ndarray, camset: np.ndarray) -> None:
     """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place."""
     size[x] += size[y]
     size[y] = 0
-    for matrix, add in ((between, np.add), (support, np.add), (linked, np.logical_or)):
-        matrix[x] = add(matrix[x], matrix[y])  # rows first, then columns: the entry of two
-        matrix[:, x] = add(matrix[:, x], matrix[:, y])  # merged clusters sums all four parts
+    for matrix in (between, support):
+        matrix[x] += matrix[y]  # rows first, then columns: the entry of two merged
+        matrix[:, x] += matrix[:, y]  # clusters sums all four parts
         matrix[y] = 0
         matrix[:, y] = 0
-    linked[x, x] = False
     camset[x] |= camset[y]
     camset[y] = False
 
