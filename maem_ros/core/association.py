@@ -36,6 +36,7 @@ from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet)
 from .geometry import pair_reprojection_bound, pair_reprojection_errors
+from .intsets import sorted_unique
 from .paramspec import Params, param
 from .procrustes import pa_mpjpe_columns
 from .skeleton import joint_subset
@@ -464,7 +465,8 @@ def _views_at_least(table: DetectionTable, found: clustering.Found, k_min: int
     alive[found.conflicts] = False
     rows, group = rows[alive[rows]], group[alive[rows]]
     C = int(table.cam.max()) + 1
-    views = np.bincount(np.unique(group * C + table.cam[rows]) // C, minlength=len(found.groups))
+    views = np.bincount(sorted_unique(group * C + table.cam[rows]) // C,
+                        minlength=len(found.groups))
     keep = np.flatnonzero(views >= k_min)
     bounds = zip(group.searchsorted(keep, "left").tolist(), group.searchsorted(keep, "right").tolist())
     return [rows[start:end] for start, end in bounds]

@@ -50,6 +50,7 @@ from scipy.optimize import linear_sum_assignment
 from .geometry import normal_entries, reprojection_error, solve_normal
 
 from .detections import DetectionTable, PairSet, camera_pair_groups
+from .intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
     from .association import AssociationParams
@@ -212,8 +213,8 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
     # codes A * N + B (A < B) of the clusters linked by a pair that passed all (merge
     # candidates), ascending: relabelled after each round (a list of the passed pairs, not an
     # N x N table that every round would scan)
-    links = np.unique(np.minimum(pairs.i[ok], pairs.j[ok]) * N
-                      + np.maximum(pairs.i[ok], pairs.j[ok]))
+    links = sorted_unique(np.minimum(pairs.i[ok], pairs.j[ok]) * N
+                          + np.maximum(pairs.i[ok], pairs.j[ok]))
     between = gain.copy()  # summed gain of the cross pairs of two clusters
     support = gated.astype(np.int64)  # cross pairs that passed the geometric gates
     camset = np.zeros((N, C), bool)
@@ -260,7 +261,7 @@ def _relabel_links(links: np.ndarray, into: np.ndarray, n: int) -> np.ndarray:
     within one cluster."""
     a, b = into[links // n], into[links % n]
     a, b = np.minimum(a, b), np.maximum(a, b)
-    return np.unique(a[a != b] * n + b[a != b])
+    return sorted_unique(a[a != b] * n + b[a != b])
 
 
 def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
@@ -306,7 +307,7 @@ def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray
     one batch and applies the best that stays consistent."""
     N = label.size
     C = int(table.cam.max()) + 1
-    _, label = np.unique(label, return_inverse=True)
+    _, label = unique_inverse(label, N)
     K = int(label.max()) + 1
     Z = np.zeros((N, K))
     Z[np.arange(N), label] = 1.0

@@ -53,6 +53,8 @@ from typing import Mapping
 
 import numpy as np
 
+from .intsets import sorted_unique, unique_inverse
+
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
 #: small); blocks are visited in a fixed shuffled order
 BLOCK = 1024
@@ -219,7 +221,9 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
                          f"{[v.shape for v in pairs]}")
     cam_a, det_a, cam_b, det_b = pairs
     S = cam_a.size
-    cams = sorted(set(np.unique(cam_a).tolist()) | set(np.unique(cam_b).tolist()))
+    cams = sorted_unique(np.concatenate([cam_a, cam_b])).tolist()
+    if cams and cams[0] < 0:
+        raise ValueError(f"epipolar pairs: camera indices must be >= 0, got {cams[0]}")
     missing = [c for c in cams if c not in points]
     if missing:
         raise ValueError(f"epipolar pairs: no points for camera(s) {missing}")
@@ -237,8 +241,7 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
         count = np.array([rows[c].count for c in cams])[np.searchsorted(cams, cam)]
         if det.min() < 0 or np.any(det >= count):  # the kernel runs without bounds checks
             raise ValueError("epipolar pairs: detection index out of range")
-    groups = np.unique(cam_a * (max(cams) + 1) + cam_b, return_inverse=True)
-    keys, which = groups[0], groups[1].reshape(-1)
+    keys, which = unique_inverse(cam_a * (max(cams) + 1) + cam_b, (max(cams) + 1) ** 2)
     Fs = []
     for k in keys.tolist():
         a, b = divmod(k, max(cams) + 1)
@@ -276,7 +279,7 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     slot = np.searchsorted(cams, np.concatenate([cam_a, cam_b]))
     offsets = np.concatenate([[0], np.cumsum([rows[c].count for c in cams])])
     key = offsets[slot] + np.concatenate([det_a, det_b])
-    dets, idx = np.unique(key, return_inverse=True)
+    dets, idx = unique_inverse(key, int(offsets[-1]))
     det_slot = np.searchsorted(offsets, dets, side="right") - 1
     det_row = np.concatenate([rows[c].rows for c in cams])[dets]
     S = cam_a.size

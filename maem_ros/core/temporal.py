@@ -54,6 +54,7 @@ from .camera import Rig
 from .detections import Cluster, FrameDetections
 from . import epipolar
 from .geometry import dlt, reprojection_errors
+from .intsets import sorted_unique
 from .paramspec import Params, param
 from .procrustes import pa_mpjpe_finite
 from .skeleton import body_joints, joint_subset
@@ -584,7 +585,7 @@ class TemporalAssociator:
             ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
         if self.tp.verify_epipolar != "none" and ok.any():
             s = np.flatnonzero(ok)
-            rows = {c: view.points(c) for c in np.unique(np.concatenate([ca[s], cb[s]])).tolist()}
+            rows = {c: view.points(c) for c in sorted_unique(np.concatenate([ca[s], cb[s]])).tolist()}
             screens = {c: screen for c, (_, screen) in rows.items()}
             # every camera pair in one kernel call; missing (NaN) points are not counted
             ok[s] = epipolar.frame_screened_means(
