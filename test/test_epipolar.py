@@ -308,3 +308,18 @@ def test_frame_sums_rejects_bad_input_with_the_input_named():
         epipolar.frame_sums({0: x, 1: x}, F, zero, zero, one, np.array([2]), 8.0)
     with pytest.raises(ValueError, match="equal-length 1D"):
         epipolar.frame_sums({0: x, 1: x}, F, zero, zero, one, np.array([0, 1]), 8.0)
+
+
+def test_wide_vectors_reaches_llvm():
+    """The kernels' 512-bit vector attribute is still written into the LLVM function with the
+    installed numba/llvmlite (else the kernels would silently run with narrower vectors)."""
+    numba = pytest.importorskip("numba")
+    from maem_ros.core.epipolar_kernel import _WIDE, wide_vectors
+
+    @numba.njit
+    def plus_one(x):
+        wide_vectors()
+        return x + 1
+
+    assert plus_one(1) == 2
+    assert _WIDE in plus_one.inspect_llvm(plus_one.signatures[0])
