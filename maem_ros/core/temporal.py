@@ -585,7 +585,8 @@ class TemporalAssociator:
             ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
         if self.tp.verify_epipolar != "none" and ok.any():
             s = np.flatnonzero(ok)
-            rows = {c: view.points(c) for c in sorted_unique(np.concatenate([ca[s], cb[s]])).tolist()}
+            cams = sorted_unique(np.concatenate([ca[s], cb[s]])).tolist()
+            rows = {c: view.points(c) for c in cams}
             screens = {c: screen for c, (_, screen) in rows.items()}
             # every camera pair in one kernel call; missing (NaN) points are not counted
             ok[s] = epipolar.frame_screened_means(
