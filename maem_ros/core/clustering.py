@@ -261,7 +261,8 @@ def _relabel_links(links: np.ndarray, into: np.ndarray, n: int) -> np.ndarray:
     within one cluster."""
     a, b = into[links // n], into[links % n]
     a, b = np.minimum(a, b), np.maximum(a, b)
-    return sorted_unique(a[a != b] * n + b[a != b])
+    apart = a != b
+    return sorted_unique(a[apart] * n + b[apart])
 
 
 def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
