@@ -53,8 +53,11 @@ def test_closed_form_procrustes_equals_the_svd_alignment(seed, J, kind):
     rng = np.random.default_rng(seed)
     X, Y = _poses(kind, rng, 25, J)
     fast = pa_mpjpe_finite(X, Y)
-    np.testing.assert_allclose(fast, svd_reference(X, Y), rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(fast, pa_mpjpe(X, Y), rtol=1e-9, atol=1e-12)
+    # atol: a zero cost (three mirrored points are a rotation) comes out up to 1.2e-11 over 429
+    # seeds (4e-12 failed make test at seed 22735, J=3): the closed form's eigenvalue at a
+    # double root; on unit-scale poses 1e-10 is far below any cost the association compares
+    np.testing.assert_allclose(fast, svd_reference(X, Y), rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(fast, pa_mpjpe(X, Y), rtol=1e-9, atol=1e-10)
 
 
 def test_closed_form_procrustes_result_does_not_depend_on_the_batch():
