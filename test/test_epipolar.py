@@ -247,12 +247,14 @@ def test_frame_sums_of_all_camera_pairs_decide_like_the_reference(seed, n, symme
     db = np.where(rng.random(ca.size) < 0.5, da, rng.integers(0, 4, ca.size))
     want_reject = np.zeros(ca.size, bool)
     want_mean = np.zeros(ca.size)
+    want_used = np.zeros(ca.size, np.int64)
     for (a, b) in F:
         s = np.flatnonzero((ca == a) & (cb == b))
-        mean, _ = _full_mean(points[a].astype(np.float64), points[b].astype(np.float64),
+        mean, common = _full_mean(points[a].astype(np.float64), points[b].astype(np.float64),
                              F[(a, b)], da[s], db[s], symmetric)
         want_reject[s] = ~(mean < tau)
         want_mean[s] = mean
+        want_used[s] = common
     near_tie = np.abs(want_mean - tau) < 1e-9 * tau
     for backend, precision, rtol, atol in VARIANTS:
         sums, used = epipolar.frame_sums(points, F, ca, da, cb, db, tau, symmetric, early,
@@ -261,6 +263,11 @@ def test_frame_sums_of_all_camera_pairs_decide_like_the_reference(seed, n, symme
         assert np.array_equal(reject[~near_tie], want_reject[~near_tie]), (backend, precision)
         ok = ~reject
         np.testing.assert_allclose(sums[ok] / used[ok], want_mean[ok], rtol=rtol, atol=atol)
+        # count_rest: every pair's count is complete, early exit or not; the sums unchanged
+        counted = epipolar.frame_sums(points, F, ca, da, cb, db, tau, symmetric, early,
+                                      backend, precision, count_rest=True)
+        np.testing.assert_array_equal(counted[0], sums)
+        np.testing.assert_array_equal(counted[1], want_used)
         # the per-camera-pair entry point gives the same numbers
         for (a, b) in F:
             s = np.flatnonzero((ca == a) & (cb == b))

@@ -26,16 +26,17 @@ def _screened_ids(n: int, stride: int) -> np.ndarray:
     return k[k % (epipolar.SCREEN_RUN * stride) < epipolar.SCREEN_RUN]
 
 
-def _pair(on_screen: float, elsewhere: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """One detection in a and one in b whose vertices lie on_screen px off their epipolar lines
-    on the screened ids and elsewhere px off on the others."""
+def _pair(on_screen: float, elsewhere: float, seed: int = 0, n: int = N
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """One detection in a and one in b (n vertices) whose vertices lie on_screen px off their
+    epipolar lines on the screened ids and elsewhere px off on the others."""
     rng = np.random.default_rng(seed)
-    xa = rng.uniform(100, 900, (1, N, 2)).astype(np.float32)
-    offset = np.full(N, elsewhere, np.float32)
-    offset[_screened_ids(N, STRIDE)] = on_screen
+    xa = rng.uniform(100, 900, (1, n, 2)).astype(np.float32)
+    offset = np.full(n, elsewhere, np.float32)
+    offset[_screened_ids(n, STRIDE)] = on_screen
     xb = xa.copy()
-    xb[0, :, 0] += rng.uniform(-50, 50, N).astype(np.float32)  # along the line: no distance
-    xb[0, :, 1] += offset * rng.choice(np.float32([-1, 1]), N)
+    xb[0, :, 0] += rng.uniform(-50, 50, n).astype(np.float32)  # along the line: no distance
+    xb[0, :, 1] += offset * rng.choice(np.float32([-1, 1]), n)
     return xa, xb
 
 
@@ -79,6 +80,24 @@ def test_a_subset_mean_within_the_margin_is_decided_on_the_full_set(on_screen, e
     if keep[0]:
         assert mean[0] == pytest.approx(full, rel=1e-5)
     assert evaluated > N // STRIDE
+
+
+def test_a_subset_rejected_by_an_early_exit_before_half_its_points_is_not_read_again():
+    """A far pair's screen stops after its first block, having summed fewer than half of the
+    subset's points: the points it did not reach are still there (counted, not summed), so the
+    screen decides it, as it would without the early exit, and the full set is not read."""
+    n = 18 * 1024  # a subset of several blocks: the first one is under half of it
+    xa, xb = _pair(100.0, 1.0, n=n)
+    screen = epipolar.screen_rows(xa, STRIDE).n
+    assert 2 * np.diff(epipolar.block_order(screen)[0]) < screen
+    for backend in epipolar.BACKENDS:
+        screen_a, screen_b = epipolar.screen_rows(xa, STRIDE), epipolar.screen_rows(xb, STRIDE)
+        one = np.zeros(1, np.int64)
+        keep, mean, evaluated = epipolar.screened_means(
+            (epipolar.point_rows(xa), epipolar.point_rows(xb)), (screen_a, screen_b), F_ROWS,
+            one, one, TAU, MARGIN, backend=backend)
+        assert not keep[0] and np.isnan(mean[0])
+        assert evaluated == np.diff(epipolar.block_order(screen)[0])[0], backend
 
 
 def test_without_a_screen_every_pair_is_decided_on_the_full_set():

@@ -193,8 +193,8 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
 def frame_sums(points: Mapping[int, np.ndarray | PointRows],
                F: Mapping[tuple[int, int], np.ndarray], cam_a: np.ndarray, det_a: np.ndarray,
                cam_b: np.ndarray, det_b: np.ndarray, tau: float, symmetric: bool = True,
-               early_exit: bool = True, backend: str = "auto", precision: str = "mixed"
-               ) -> tuple[np.ndarray, np.ndarray]:
+               early_exit: bool = True, backend: str = "auto", precision: str = "mixed",
+               count_rest: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Distance sums of the detection pairs of every camera pair of a frame, in one kernel call.
 
     points[c]: camera c's (N,n,2) rectified px (float32 or float64, point k = same body spot,
@@ -210,7 +210,23 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
     bound cannot settle, so the decisions are the float64 ones; an accepted pair's sum is then
     within its bound (~1e-7 relative in practice) of the exact one. ``float64``: every distance
     in float64 (sums to ~1e-13).
+
+    count_rest: with early exit, a rejected pair's ``used`` also counts the points its sum did
+    not reach (read for presence only), so ``used`` is every point both detections have, for
+    every pair, and early exit changes only the rejected pairs' sums.
     """
+    sums, used, _ = _frame_sums(points, F, cam_a, det_a, cam_b, det_b, tau, symmetric,
+                                early_exit, backend, precision, count_rest)
+    return sums, used
+
+
+def _frame_sums(points: Mapping[int, np.ndarray | PointRows],
+                F: Mapping[tuple[int, int], np.ndarray], cam_a: np.ndarray, det_a: np.ndarray,
+                cam_b: np.ndarray, det_b: np.ndarray, tau: float, symmetric: bool,
+                early_exit: bool, backend: str, precision: str, count_rest: bool
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`frame_sums` and, third, the points each pair's sum reached (``used`` without
+    count_rest)."""
     if backend not in BACKENDS:
         raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if precision not in PRECISIONS:
@@ -236,7 +252,7 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
                          f"n={sorted(sizes)}")
     n = sizes.pop() if sizes else 0
     if S == 0 or n == 0:
-        return np.zeros(S), np.zeros(S, dtype=np.int64)
+        return np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
     for cam, det in ((cam_a, det_a), (cam_b, det_b)):
         count = np.array([rows[c].count for c in cams])[np.searchsorted(cams, cam)]
         if det.min() < 0 or np.any(det >= count):  # the kernel runs without bounds checks
@@ -250,25 +266,26 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
         Fs.append(np.asarray(F[(a, b)], dtype=np.float64))
     use_numba = backend == "numba" or (backend == "auto" and _numba is not None)
     if not use_numba:
-        sums = np.zeros(S)
-        used = np.zeros(S, dtype=np.int64)
+        out = np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
         for g, Fg in enumerate(Fs):
             s = np.flatnonzero(which == g)
-            sums[s], used[s] = _numpy_sums(rows[int(cam_a[s[0]])], rows[int(cam_b[s[0]])],
-                                           Fg, det_a[s], det_b[s],
-                                           float(tau) if early_exit else np.inf, bool(symmetric))
-        return sums, used
+            for v, got in zip(out, _numpy_sums(rows[int(cam_a[s[0]])], rows[int(cam_b[s[0]])],
+                                               Fg, det_a[s], det_b[s],
+                                               float(tau) if early_exit else np.inf,
+                                               bool(symmetric), bool(count_rest))):
+                v[s] = got
+        return out
     if _numba is None:
         raise ValueError("backend: 'numba' requested but numba is not installed")
     return _numba_frame_sums(rows, cams, Fs, which, cam_a, det_a, cam_b, det_b, n, float(tau),
-                             bool(symmetric), bool(early_exit), precision)
+                             bool(symmetric), bool(early_exit), precision, bool(count_rest))
 
 
 def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.ndarray],
                       which: np.ndarray, cam_a: np.ndarray, det_a: np.ndarray,
                       cam_b: np.ndarray, det_b: np.ndarray, n: int, tau: float,
-                      symmetric: bool, early_exit: bool, precision: str
-                      ) -> tuple[np.ndarray, np.ndarray]:
+                      symmetric: bool, early_exit: bool, precision: str, count_rest: bool
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The numba kernel on the pairs of a frame: detections numbered once (each one's centre and
     block ranges computed once for all its pairs), pairs ordered by their a-side detection."""
     flats = [rows[c].flat for c in cams]
@@ -301,15 +318,14 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
         _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like)
         det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
         like = like.reshape(-1)
-    sums, used = _numba_kernels().sums_kernel(
+    got = _numba_kernels().sums_kernel(
         like, det_addr, unit.reshape(-1, 9), np.ascontiguousarray(which[order], dtype=np.int64),
         np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]), block_order(n), n,
-        tau, early_exit, symmetric, mixed)
-    out_sums = np.empty(S)
-    out_used = np.empty(S, dtype=np.int64)
-    out_sums[order] = sums
-    out_used[order] = used
-    return out_sums, out_used
+        tau, early_exit, symmetric, mixed, count_rest)
+    out = np.empty(S), np.empty(S, dtype=np.int64), np.empty(S, dtype=np.int64)
+    for v, g in zip(out, got):
+        v[order] = g
+    return out
 
 
 def warmup() -> None:
@@ -357,29 +373,46 @@ def point_distances(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, symmetric: bo
 
 
 def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb: np.ndarray,
-                tau: float, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Reference path: all pairs of a block at once, blocks in the fixed order, early exit."""
+                tau: float, symmetric: bool, count_rest: bool
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference path: all pairs of a block at once, blocks in the fixed order, early exit;
+    (sums, used, points summed)."""
     S = ia.size
     sums = np.zeros(S)
-    used = np.zeros(S, dtype=np.int64)
+    summed = np.zeros(S, dtype=np.int64)
+    rest = np.zeros(S, dtype=np.int64)  # count_rest: present points after a pair's exit
     seen = 0
     alive = np.arange(S)
+    dead = np.arange(0)
     for idx in _block_indices(ra.n):
-        oa = ra.rows[ia[alive], None] + 2 * ra.positions(idx)[None, :]
-        ob = rb.rows[jb[alive], None] + 2 * rb.positions(idx)[None, :]
-        A = np.stack([ra.flat[oa], ra.flat[oa + 1]], axis=-1)
-        B = np.stack([rb.flat[ob], rb.flat[ob + 1]], axis=-1)
-        d = point_distances(A, B, F, symmetric)
-        present = ~np.isnan(d)
+        if count_rest and dead.size:
+            rest[dead] += _block_points(ra, rb, ia[dead], jb[dead], idx, F, symmetric)[1].sum(1)
+        if alive.size == 0:
+            if not (count_rest and dead.size):
+                break
+            continue
+        d, present = _block_points(ra, rb, ia[alive], jb[alive], idx, F, symmetric)
         sums[alive] += np.where(present, d, 0.0).sum(axis=1)
-        used[alive] += present.sum(axis=1)
+        summed[alive] += present.sum(axis=1)
         seen += idx.size
         # used + (points still to come) bounds the final count from above
         with np.errstate(invalid="ignore"):  # inf * 0 without early exit: NaN, not < anything
-            alive = alive[sums[alive] < tau * (used[alive] + (ra.n - seen))]
-        if alive.size == 0:
-            break
-    return sums, used
+            go_on = sums[alive] < tau * (summed[alive] + (ra.n - seen))
+        dead = np.concatenate([dead, alive[~go_on]])
+        alive = alive[go_on]
+    return sums, summed + rest, summed
+
+
+def _block_points(ra: PointRows, rb: PointRows, ia: np.ndarray, jb: np.ndarray,
+                  idx: np.ndarray, F: np.ndarray, symmetric: bool
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(distances (S,m) px, present (S,m) bool) of points idx of the pairs (ia, jb)."""
+    oa = ra.rows[ia, None] + 2 * ra.positions(idx)[None, :]
+    ob = rb.rows[jb, None] + 2 * rb.positions(idx)[None, :]
+    A = np.stack([ra.flat[oa], ra.flat[oa + 1]], axis=-1)
+    B = np.stack([rb.flat[ob], rb.flat[ob + 1]], axis=-1)
+    d = point_distances(A, B, F, symmetric)
+    return d, ~np.isnan(d)
 
 
 #: float32 unit roundoff
@@ -474,7 +507,6 @@ def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, Poi
     full mean (the vertices oversample the image), so the decisions are the full-set ones
     unless it errs by more than ``margin``.
     """
-    kw = dict(symmetric=symmetric, early_exit=early_exit, backend=backend, precision=precision)
     pairs = [np.asarray(v) for v in (cam_a, det_a, cam_b, det_b)]
     S = pairs[0].size
     keep = np.zeros(S, dtype=bool)
@@ -482,8 +514,11 @@ def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, Poi
     todo = np.arange(S)
     evaluated = 0
     if screen is not None and S:
-        sums, used = frame_sums(screen, F, *pairs, tau + margin, **kw)
-        evaluated += int(used.sum())
+        # every point counted: whether half the subset is there does not depend on where an
+        # early exit stopped
+        sums, used, summed = _frame_sums(screen, F, *pairs, tau + margin, symmetric, early_exit,
+                                         backend, precision, True)
+        evaluated += int(summed.sum())
         with np.errstate(invalid="ignore", divide="ignore"):
             m = sums / used
         n = next(iter(screen.values())).n
@@ -494,7 +529,8 @@ def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, Poi
         mean[accepted] = m[accepted]
         todo = np.flatnonzero(~(accepted | rejected))
     if todo.size:
-        sums, used = frame_sums(full, F, *(v[todo] for v in pairs), tau, **kw)
+        sums, used = frame_sums(full, F, *(v[todo] for v in pairs), tau, symmetric, early_exit,
+                                backend, precision)
         evaluated += int(used.sum())
         ok = sums < tau * used
         keep[todo] = ok

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
+from llvmlite import ir as llvm_ir
 
 from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U32, BLOCK,
                        EPIPOLE_NORM)
@@ -34,6 +35,24 @@ def pointer_like(typingctx, like, address):
 
     def codegen(context, builder, signature, args):
         return builder.inttoptr(args[1], context.get_value_type(signature.return_type))
+    return sig, codegen
+
+
+@nb.extending.intrinsic
+def prefetch(typingctx, address):
+    """Ask the CPU to bring the cache line at the int64 address towards L1 (a hint: never
+    faults, even for an address outside any mapping)."""
+    sig = nb.types.void(nb.types.int64)
+
+    def codegen(context, builder, signature, args):
+        byte_ptr = llvm_ir.IntType(8).as_pointer()
+        i32 = llvm_ir.IntType(32)
+        fn = builder.module.declare_intrinsic(
+            "llvm.prefetch", [byte_ptr],
+            llvm_ir.FunctionType(llvm_ir.VoidType(), [byte_ptr, i32, i32, i32]))
+        # read (0), high temporal locality (3), data cache (1)
+        builder.call(fn, [builder.inttoptr(args[0], byte_ptr), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
     return sig, codegen
 
 
@@ -83,11 +102,12 @@ def inv_sqrt(q):
 
 
 @jit
-def block64(a, b, f, ha, symmetric):
-    """(sum of d_k, points used) of a block, float64: points a, b (2m,) rectified px, f (9,)
-    unit F; missing points (NaN) take no part; a point at the epipole makes the sum
+def block64(a, b, fs, fk, ha, symmetric):
+    """(sum of d_k, points used) of a block, float64: points a, b (2m,) rectified px, fs[fk]
+    (9,) unit F; missing points (NaN) take no part; a point at the epipole makes the sum
     NaN or inf."""
     wide_vectors()
+    f = fs[fk]
     part = 0.0
     used = 0
     for k in range(a.shape[0] // 2):
@@ -112,26 +132,30 @@ def block64(a, b, f, ha, symmetric):
 
 
 @jit32
-def block32(a, b, c, g, symmetric):
-    """float32 sums over a block of complete points, centred (u - c[0], v - c[1]) in a,
-    (u - c[2], v - c[3]) in b, g (9,) float32 F of the centred points:
-    (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and w = wa + wb (symmetric) or
-    wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||."""
+def block32(a, b, cs, gs, t, symmetric):
+    """float32 sums over a block of complete points of pair t, centred (u - c[0], v - c[1])
+    in a, (u - c[2], v - c[3]) in b (c = cs[t]), g = gs[t] (9,) float32 F of the centred
+    points: (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and w = wa + wb
+    (symmetric) or wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||. Arrays and indices,
+    not rows: a row view per call costs reference counting."""
     wide_vectors()
+    c0, c1, c2, c3 = cs[t, 0], cs[t, 1], cs[t, 2], cs[t, 3]
+    g0, g1, g2, g3, g4 = gs[t, 0], gs[t, 1], gs[t, 2], gs[t, 3], gs[t, 4]
+    g5, g6, g7, g8 = gs[t, 5], gs[t, 6], gs[t, 7], gs[t, 8]
     p = s = q = np.float32(0.0)
     for k in range(a.shape[0] // 2):
-        ua = a[2 * k] - c[0]
-        va = a[2 * k + 1] - c[1]
-        ub = b[2 * k] - c[2]
-        vb = b[2 * k + 1] - c[3]
-        l0 = g[0] * ua + g[1] * va + g[2]
-        l1 = g[3] * ua + g[4] * va + g[5]
-        l2 = g[6] * ua + g[7] * va + g[8]
+        ua = a[2 * k] - c0
+        va = a[2 * k + 1] - c1
+        ub = b[2 * k] - c2
+        vb = b[2 * k + 1] - c3
+        l0 = g0 * ua + g1 * va + g2
+        l1 = g3 * ua + g4 * va + g5
+        l2 = g6 * ua + g7 * va + g8
         e = abs(ub * l0 + vb * l1 + l2)
         w = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
         if symmetric:
-            m0 = g[0] * ub + g[3] * vb + g[6]
-            m1 = g[1] * ub + g[4] * vb + g[7]
+            m0 = g0 * ub + g3 * vb + g6
+            m1 = g1 * ub + g4 * vb + g7
             w += np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
         ew = e * w
         p += ew
@@ -141,37 +165,41 @@ def block32(a, b, c, g, symmetric):
 
 
 @jit32
-def b_terms(ub, vb, ua, va, l0, l1, wa, g, symmetric):
+def b_terms(ub, vb, ua, va, l0, l1, wa, g0, g1, g3, g4, g6, g7, g8, symmetric):
     """(|e| w, w) of one point of a pair: centred b point (ub, vb), a point (ua, va) with
-    its line's first coefficients l0, l1 and weight wa, g (9,) the pair's centred F."""
-    e = abs(ub * l0 + vb * l1 + (g[6] * ua + g[7] * va + g[8]))
-    m0 = g[0] * ub + g[3] * vb + g[6]
-    m1 = g[1] * ub + g[4] * vb + g[7]
+    its line's first coefficients l0, l1 and weight wa, g0..g8 the pair's centred F."""
+    e = abs(ub * l0 + vb * l1 + (g6 * ua + g7 * va + g8))
+    m0 = g0 * ub + g3 * vb + g6
+    m1 = g1 * ub + g4 * vb + g7
     wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
     w = wa + wb if symmetric else wa  # the select keeps the loop branch-free
     return e * w, w
 
 
 @jit32
-def block32x2(a, b, d, ca, cb, cd, g, k, symmetric):
-    """block32 of two pairs (a, b) under g and (a, d) under k that share a's detection and
-    camera pair (g, k have equal rows 0-1): a's lines and weights computed once. ca, cb,
-    cd (2,) the centres; returns block32's three sums for each pair."""
+def block32x2(a, b, d, cs, gs, t1, t2, symmetric):
+    """block32 of two pairs, t1 = (a, b) and t2 = (a, d), that share a's detection and
+    camera pair (their gs rows have equal entries 0-5, their cs rows equal entries 0-1):
+    a's lines and weights computed once; returns block32's three sums for each pair."""
     wide_vectors()
+    ca0, ca1, cb0, cb1, cd0, cd1 = cs[t1, 0], cs[t1, 1], cs[t1, 2], cs[t1, 3], cs[t2, 2], cs[t2, 3]
+    g0, g1, g2, g3, g4, g5 = gs[t1, 0], gs[t1, 1], gs[t1, 2], gs[t1, 3], gs[t1, 4], gs[t1, 5]
+    g6, g7, g8 = gs[t1, 6], gs[t1, 7], gs[t1, 8]
+    k6, k7, k8 = gs[t2, 6], gs[t2, 7], gs[t2, 8]
     p1 = s1 = q1 = p2 = s2 = q2 = np.float32(0.0)
     for j in range(a.shape[0] // 2):
-        ua = a[2 * j] - ca[0]
-        va = a[2 * j + 1] - ca[1]
-        l0 = g[0] * ua + g[1] * va + g[2]
-        l1 = g[3] * ua + g[4] * va + g[5]
+        ua = a[2 * j] - ca0
+        va = a[2 * j + 1] - ca1
+        l0 = g0 * ua + g1 * va + g2
+        l1 = g3 * ua + g4 * va + g5
         wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
-        ew, w = b_terms(b[2 * j] - cb[0], b[2 * j + 1] - cb[1], ua, va, l0, l1, wa, g,
-                        symmetric)
+        ew, w = b_terms(b[2 * j] - cb0, b[2 * j + 1] - cb1, ua, va, l0, l1, wa, g0, g1, g3,
+                        g4, g6, g7, g8, symmetric)
         p1 += ew
         s1 += w
         q1 += ew * w
-        ew, w = b_terms(d[2 * j] - cd[0], d[2 * j + 1] - cd[1], ua, va, l0, l1, wa, k,
-                        symmetric)
+        ew, w = b_terms(d[2 * j] - cd0, d[2 * j + 1] - cd1, ua, va, l0, l1, wa, g0, g1, g3,
+                        g4, k6, k7, k8, symmetric)
         p2 += ew
         s2 += w
         q2 += ew * w
@@ -180,13 +208,13 @@ def block32x2(a, b, d, ca, cb, cd, g, k, symmetric):
 
 
 @plain
-def block_range(x, ranges, r):
-    """(min, max) of all coordinates of a block's float32 points (2m,), cached in
-    ranges[r]; (inf, -inf) if one is NaN or inf. Ordered integer keys of the float bits,
-    so the min/max reductions vectorise."""
+def block_range(x, ranges, d, r):
+    """(min, max) of all coordinates of detection d's block r of float32 points x (2m,),
+    cached in ranges[d, r]; (inf, -inf) if one is NaN or inf. Ordered integer keys of the
+    float bits, so the min/max reductions vectorise."""
     wide_vectors()
-    if ranges[r, 0] == ranges[r, 0]:
-        return ranges[r, 0], ranges[r, 1]
+    if ranges[d, r, 0] == ranges[d, r, 0]:
+        return ranges[d, r, 0], ranges[d, r, 1]
     bits = x.view(np.int32)
     lo = np.int32(2147483647)
     hi = np.int32(-2147483648)
@@ -198,14 +226,14 @@ def block_range(x, ranges, r):
         lo = key if key < lo else lo
         hi = key if key > hi else hi
     if lo <= _KEY_NEG_INF or hi >= _KEY_POS_INF:
-        ranges[r, 0], ranges[r, 1] = np.inf, -np.inf
+        ranges[d, r, 0], ranges[d, r, 1] = np.inf, -np.inf
     else:
         keys = np.empty(2, dtype=np.int32)
         keys[0] = lo ^ ((lo >> 31) & low31)
         keys[1] = hi ^ ((hi >> 31) & low31)
         vals = keys.view(np.float32)
-        ranges[r, 0], ranges[r, 1] = vals[0], vals[1]
-    return ranges[r, 0], ranges[r, 1]
+        ranges[d, r, 0], ranges[d, r, 1] = vals[0], vals[1]
+    return ranges[d, r, 0], ranges[d, r, 1]
 
 
 @plain
@@ -238,19 +266,21 @@ def centred_f(f, ca0, ca1, cb0, cb1, g, G):
 
 
 @plain
-def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, h):
-    """(float32 block sum, upper bound (px) on its distance to the exact sum); xa0, xa1,
+def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h):
+    """(float32 block sum, upper bound (px) on its distance to the exact sum) of pair t (G[t]
+    = |g| of its centred F); xa0, xa1,
     xb0, xb1 bound |u|, |v| of the centred points in a and b (module docstring); epi:
     EPIPOLE_NORM in g's units; h = 0.5 (symmetric) or 1. (inf, inf) when the block must be
     summed in float64."""
     # rows of G times (xa0, xa1, 1), then xb's weights: no loops, no tuple indexing (this
     # runs per pair and block)
-    r0 = G[0, 0] * xa0 + G[0, 1] * xa1 + G[0, 2]
-    r1 = G[1, 0] * xa0 + G[1, 1] * xa1 + G[1, 2]
-    r2 = G[2, 0] * xa0 + G[2, 1] * xa1 + G[2, 2]
+    r0 = G[t, 0, 0] * xa0 + G[t, 0, 1] * xa1 + G[t, 0, 2]
+    r1 = G[t, 1, 0] * xa0 + G[t, 1, 1] * xa1 + G[t, 1, 2]
+    r2 = G[t, 2, 0] * xa0 + G[t, 2, 1] * xa1 + G[t, 2, 2]
     bil = r0 * xb0 + r1 * xb1 + r2
     la = r0 + r1
-    lb = (G[0, 0] + G[0, 1]) * xb0 + (G[1, 0] + G[1, 1]) * xb1 + G[2, 0] + G[2, 1]
+    lb = ((G[t, 0, 0] + G[t, 0, 1]) * xb0 + (G[t, 1, 0] + G[t, 1, 1]) * xb1 + G[t, 2, 0]
+          + G[t, 2, 1])
     lmax = max(la, lb) if h != 1.0 else la
     p, s, q = sums
     # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM = epi in g's units)
@@ -267,46 +297,73 @@ def block_bound(G, epi, xa0, xa1, xb0, xb1, sums, h):
 
 
 @plain
-def pair64(a, b, f, blocks, n, tau, early_exit, ha, symmetric):
-    """(sum, used) of one pair in float64, blocks in order, exact early exit."""
+def pair64(a, b, fs, fk, blocks, n, tau, early_exit, ha, symmetric):
+    """(sum, used, index of the last block summed) of one pair in float64, blocks in order,
+    exact early exit."""
     total = 0.0
     count = 0
     seen = 0
+    last = blocks.shape[0] - 1
     for r in range(blocks.shape[0]):
         lo = blocks[r, 0]
         hi = blocks[r, 1]
-        p, c = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], f, ha, symmetric)
+        p, c = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], fs, fk, ha, symmetric)
         total += p if p == p else np.inf  # NaN: undefined line -> cannot pass
         count += c
         seen += hi - lo
         # count + points still to come bounds the final count from above
         if early_exit and total >= tau * (count + (n - seen)):
+            last = r
             break
-    return total, count
+    return total, count, last
+
+
+@plain
+def present64(a, b):
+    """Points of a block that both detections have: block64's test (the float64 sum of the
+    four coordinates is not NaN), without the distances."""
+    count = 0
+    for k in range(a.shape[0] // 2):
+        s = (np.float64(a[2 * k]) + np.float64(a[2 * k + 1]) + np.float64(b[2 * k])
+             + np.float64(b[2 * k + 1]))
+        count += np.int64(s == s)
+    return count
+
+
+@plain
+def rest_present(a, b, blocks, after):
+    """Points of the blocks after block index ``after`` that both a and b (2n,) have."""
+    count = 0
+    for r in range(after + 1, blocks.shape[0]):
+        lo = blocks[r, 0]
+        hi = blocks[r, 1]
+        count += present64(a[2 * lo:2 * hi], b[2 * lo:2 * hi])
+    return count
 
 
 @inline
-def pair_bound(G, ra, rb, c, sums3, h):
-    """block_bound of a pair from its blocks' coordinate ranges ra, rb (min, max) and its
-    centres c (4,)."""
-    return block_bound(G, EPIPOLE_NORM, max(abs(ra[1] - c[0]), abs(ra[0] - c[0])),
-                       max(abs(ra[1] - c[1]), abs(ra[0] - c[1])),
-                       max(abs(rb[1] - c[2]), abs(rb[0] - c[2])),
-                       max(abs(rb[1] - c[3]), abs(rb[0] - c[3])), sums3, h)
+def pair_bound(G, t, ranges, i, j, r, c, sums3, h):
+    """block_bound of pair t (detections i, j) from their block r's coordinate ranges
+    ranges[i, r], ranges[j, r] (min, max) and its centres c[t] (4,)."""
+    a0, a1, b0, b1 = ranges[i, r, 0], ranges[i, r, 1], ranges[j, r, 0], ranges[j, r, 1]
+    return block_bound(G, t, EPIPOLE_NORM, max(abs(a1 - c[t, 0]), abs(a0 - c[t, 0])),
+                       max(abs(a1 - c[t, 1]), abs(a0 - c[t, 1])),
+                       max(abs(b1 - c[t, 2]), abs(b0 - c[t, 2])),
+                       max(abs(b1 - c[t, 3]), abs(b0 - c[t, 3])), sums3, h)
 
 
 @inline
-def settle(s, p, e, ab, bb, f, m, rest, h, symmetric, tau, early_exit, sums, err, used,
+def settle(s, p, e, ab, bb, fs, fk, m, rest, h, symmetric, tau, early_exit, sums, err, used,
            alive):
     """Add pair s's block: the float32 sum p within e, or (e inf: missing points, a point
     at or very near the epipole) the float64 sum of blocks ab, bb; then the exact early
-    exit, ``rest`` points still to come."""
+    exit, ``rest`` points still to come (alive[s] False; the block loop notes where)."""
     if p < np.inf and e < np.inf:
         sums[s] += p
         err[s] += e
         used[s] += m
     else:
-        p, k = block64(ab, bb, f, h, symmetric)
+        p, k = block64(ab, bb, fs, fk, h, symmetric)
         sums[s] += p if p == p else np.inf
         used[s] += k
     # exact: sum - err is below the exact partial sum
@@ -315,7 +372,7 @@ def settle(s, p, e, ab, bb, f, m, rest, h, symmetric, tau, early_exit, sums, err
 
 
 @inline
-def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, f, h,
+def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, h,
            symmetric, tau, early_exit, sums, err, used, alive):
     """Block r = points lo:hi of pair s alone."""
     i = pa[s]
@@ -324,31 +381,35 @@ def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, f, h,
     bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
     p = np.inf
     e = np.inf
-    lo_a, hi_a = block_range(ab, ranges[i], r)
-    lo_b, hi_b = block_range(bb, ranges[j], r)
+    lo_a, hi_a = block_range(ab, ranges, i, r)
+    lo_b, hi_b = block_range(bb, ranges, j, r)
     if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
-        p, e = pair_bound(G[s], ranges[i, r], ranges[j, r], c[s],
-                          block32(ab, bb, c[s], g[s], symmetric), h)
-    settle(s, p, e, ab, bb, f, hi - lo, rest, h, symmetric, tau, early_exit, sums, err,
-           used, alive)
+        p, e = pair_bound(G, s, ranges, i, j, r, c, block32(ab, bb, c, g, s, symmetric), h)
+    settle(s, p, e, ab, bb, fs, fk[s], hi - lo, rest, h, symmetric, tau, early_exit, sums,
+           err, used, alive)
 
 
 @plain
 def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
-                symmetric, mixed):
-    """(sums, used) of pairs s (detections pa[s], pb[s] under unit F fs[fk[s]]); detection
-    d's 2n coordinates start at address det_addr[d] (arrays of like's dtype)."""
+                symmetric, mixed, count_rest):
+    """(sums, used, points summed) of pairs s (detections pa[s], pb[s] under unit F
+    fs[fk[s]]); detection d's 2n coordinates start at address det_addr[d] (arrays of like's
+    dtype). count_rest: used also counts the points after a rejected pair's early exit."""
     S = pa.shape[0]
     D = det_addr.shape[0]
     h = 0.5 if symmetric else 1.0
     sums = np.zeros(S)
     used = np.zeros(S, dtype=np.int64)
+    # the last block each pair summed (early exit); -1: still summing
+    last = np.full(S, -1, dtype=np.int64)
     if not mixed:
         for s in range(S):
-            sums[s], used[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
-                                      points(like, det_addr[pb[s]], 0, 2 * n), fs[fk[s]],
-                                      blocks, n, tau, early_exit, h, symmetric)
-        return sums, used
+            sums[s], used[s], last[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                               points(like, det_addr[pb[s]], 0, 2 * n),
+                                               fs, fk[s], blocks, n, tau, early_exit, h,
+                                               symmetric)
+        total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
+        return sums, total, used
     # once per detection: its centre, its block ranges (filled on first use)
     cen = np.empty((D, 2))
     for d in range(D):
@@ -394,41 +455,64 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                 bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
                 j2 = pb[t]
                 db = points(like, det_addr[j2], 2 * lo, 2 * (hi - lo))
-                lo_a, hi_a = block_range(ab, ranges[i], r)
-                lo_b, hi_b = block_range(bb, ranges[j], r)
-                lo_d, hi_d = block_range(db, ranges[j2], r)
+                lo_a, hi_a = block_range(ab, ranges, i, r)
+                lo_b, hi_b = block_range(bb, ranges, j, r)
+                lo_d, hi_d = block_range(db, ranges, j2, r)
                 if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
-                    one, two = block32x2(ab, bb, db, c[first, 0:2], c[first, 2:4],
-                                         c[t, 2:4], g[first], g[t], symmetric)
-                    p, e = pair_bound(G[first], ranges[i, r], ranges[j, r], c[first], one,
-                                      h)
-                    settle(first, p, e, ab, bb, fs[fk[first]], hi - lo, n - seen, h,
+                    one, two = block32x2(ab, bb, db, c, g, first, t, symmetric)
+                    p, e = pair_bound(G, first, ranges, i, j, r, c, one, h)
+                    settle(first, p, e, ab, bb, fs, fk[first], hi - lo, n - seen, h,
                            symmetric, tau, early_exit, sums, err, used, alive)
-                    p, e = pair_bound(G[t], ranges[i, r], ranges[j2, r], c[t], two, h)
-                    settle(t, p, e, ab, db, fs[fk[t]], hi - lo, n - seen, h,
+                    p, e = pair_bound(G, t, ranges, i, j2, r, c, two, h)
+                    settle(t, p, e, ab, db, fs, fk[t], hi - lo, n - seen, h,
                            symmetric, tau, early_exit, sums, err, used, alive)
                 else:
                     single(first, r, lo, hi, n - seen, like, det_addr, pa, pb,
-                           ranges, c, g, G, fs[fk[first]], h, symmetric, tau, early_exit,
+                           ranges, c, g, G, fs, fk, h, symmetric, tau, early_exit,
                            sums, err, used, alive)
                     single(t, r, lo, hi, n - seen, like, det_addr, pa, pb,
-                           ranges, c, g, G, fs[fk[t]], h, symmetric, tau, early_exit,
+                           ranges, c, g, G, fs, fk, h, symmetric, tau, early_exit,
                            sums, err, used, alive)
                 first = -1
             if first >= 0:
                 single(first, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges,
-                       c, g, G, fs[fk[first]], h, symmetric, tau, early_exit, sums, err,
+                       c, g, G, fs, fk, h, symmetric, tau, early_exit, sums, err,
                        used, alive)
             s = run_end[s]
+        for t in range(S):  # where this block's early exits stopped
+            if not alive[t] and last[t] < 0:
+                last[t] = r
     for s in range(S):
         total = sums[s]
         if alive[s] and not (total + err[s] < tau * used[s]) \
                 and not (total - err[s] >= tau * used[s]):
             # the bound does not settle the decision: float64 throughout
-            sums[s], used[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
-                                      points(like, det_addr[pb[s]], 0, 2 * n), fs[fk[s]],
-                                      blocks, n, tau, early_exit, h, symmetric)
-    return sums, used
+            sums[s], used[s], last[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                               points(like, det_addr[pb[s]], 0, 2 * n),
+                                               fs, fk[s], blocks, n, tau, early_exit, h,
+                                               symmetric)
+    total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
+    return sums, total, used
+
+
+@plain
+def _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest):
+    """(used with the points after each early exit when count_rest, points summed)."""
+    total = used.copy()
+    if count_rest:
+        for s in range(used.shape[0]):
+            if 0 <= last[s] < blocks.shape[0] - 1:
+                total[s] += rest_present(points(like, det_addr[pa[s]], 0, 2 * n),
+                                         points(like, det_addr[pb[s]], 0, 2 * n), blocks,
+                                         last[s])
+    return total, used
+
+
+#: runs prefetched ahead of the one gather_runs copies: the runs are separate cache lines
+#: (one every period points) that the hardware prefetchers do not follow across pages, so
+#: without the hint the copy waits for memory one line at a time (a large-load screen,
+#: 400 detections from cold memory: 4.7 ms without, 3.1 ms with 8 ahead)
+_RUNS_AHEAD = 8
 
 
 @plain
@@ -436,9 +520,15 @@ def gather_runs(like, det_addr, run, period, out):
     """out[d] (2n,) = the n points of the detection at address det_addr[d] read in runs of
     ``run`` consecutive points, one run every ``period`` points (PointRows.run/period)."""
     wide_vectors()
-    width = out.shape[1]
-    for d in range(det_addr.shape[0]):
-        for r in range(width // (2 * run)):
+    runs = out.shape[1] // (2 * run)
+    D = det_addr.shape[0]
+    for d in range(D):
+        for r in range(runs):
+            ahead = r + _RUNS_AHEAD  # this detection's later run, else the next one's first
+            if ahead < runs:
+                prefetch(det_addr[d] + 2 * ahead * period * like.itemsize)
+            elif d + 1 < D:
+                prefetch(det_addr[d + 1] + 2 * (ahead - runs) * period * like.itemsize)
             src = points(like, det_addr[d], 2 * r * period, 2 * run)
             for k in range(2 * run):
                 out[d, 2 * r * run + k] = src[k]
