@@ -86,7 +86,7 @@ def test_a_subset_rejected_by_an_early_exit_before_half_its_points_is_not_read_a
     """A far pair's screen stops after its first block, having summed fewer than half of the
     subset's points: the points it did not reach are still there (counted, not summed), so the
     screen decides it, as it would without the early exit, and the full set is not read."""
-    n = 18 * 1024  # a subset of several blocks: the first one is under half of it
+    n = 3 * epipolar.BLOCK * STRIDE  # a subset of three blocks: the first is under half of it
     xa, xb = _pair(100.0, 1.0, n=n)
     screen = epipolar.screen_rows(xa, STRIDE).n
     assert 2 * np.diff(epipolar.block_order(screen)[0]) < screen

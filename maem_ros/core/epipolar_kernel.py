@@ -12,7 +12,7 @@ import numba as nb
 import numpy as np
 from llvmlite import ir as llvm_ir
 
-from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U32, BLOCK,
+from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U32,
                        EPIPOLE_NORM)
 
 # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
@@ -266,12 +266,11 @@ def centred_f(f, ca0, ca1, cb0, cb1, g, G):
 
 
 @plain
-def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h):
-    """(float32 block sum, upper bound (px) on its distance to the exact sum) of pair t (G[t]
-    = |g| of its centred F); xa0, xa1,
-    xb0, xb1 bound |u|, |v| of the centred points in a and b (module docstring); epi:
-    EPIPOLE_NORM in g's units; h = 0.5 (symmetric) or 1. (inf, inf) when the block must be
-    summed in float64."""
+def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m):
+    """(float32 block sum, upper bound (px) on its distance to the exact sum) of pair t's
+    block of m points (G[t] = |g| of its centred F); xa0, xa1, xb0, xb1 bound |u|, |v| of
+    the centred points in a and b (module docstring); epi: EPIPOLE_NORM in g's units;
+    h = 0.5 (symmetric) or 1. (inf, inf) when the block must be summed in float64."""
     # rows of G times (xa0, xa1, 1), then xb's weights: no loops, no tuple indexing (this
     # runs per pair and block)
     r0 = G[t, 0, 0] * xa0 + G[t, 0, 1] * xa1 + G[t, 0, 2]
@@ -292,7 +291,7 @@ def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h):
     part = h * p
     # sum |e| (wa^2 + wb^2) <= sum |e| w^2 bounds the line-norm term of both sides
     err = (10.0 * _U32 * bil * h * s + 8.0 * _U32 * h * lmax * q
-           + (_RSQRT_ERR + (BLOCK + 8) * _U32) * part)
+           + (_RSQRT_ERR + (m + 8) * _U32) * part)
     return part, err * (1.0 + _BOUND_SLACK)
 
 
@@ -342,14 +341,14 @@ def rest_present(a, b, blocks, after):
 
 
 @inline
-def pair_bound(G, t, ranges, i, j, r, c, sums3, h):
-    """block_bound of pair t (detections i, j) from their block r's coordinate ranges
-    ranges[i, r], ranges[j, r] (min, max) and its centres c[t] (4,)."""
+def pair_bound(G, t, ranges, i, j, r, c, sums3, h, m):
+    """block_bound of pair t (detections i, j) from their block r's (m points) coordinate
+    ranges ranges[i, r], ranges[j, r] (min, max) and its centres c[t] (4,)."""
     a0, a1, b0, b1 = ranges[i, r, 0], ranges[i, r, 1], ranges[j, r, 0], ranges[j, r, 1]
     return block_bound(G, t, EPIPOLE_NORM, max(abs(a1 - c[t, 0]), abs(a0 - c[t, 0])),
                        max(abs(a1 - c[t, 1]), abs(a0 - c[t, 1])),
                        max(abs(b1 - c[t, 2]), abs(b0 - c[t, 2])),
-                       max(abs(b1 - c[t, 3]), abs(b0 - c[t, 3])), sums3, h)
+                       max(abs(b1 - c[t, 3]), abs(b0 - c[t, 3])), sums3, h, m)
 
 
 @inline
@@ -384,7 +383,8 @@ def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, 
     lo_a, hi_a = block_range(ab, ranges, i, r)
     lo_b, hi_b = block_range(bb, ranges, j, r)
     if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
-        p, e = pair_bound(G, s, ranges, i, j, r, c, block32(ab, bb, c, g, s, symmetric), h)
+        p, e = pair_bound(G, s, ranges, i, j, r, c, block32(ab, bb, c, g, s, symmetric), h,
+                          hi - lo)
     settle(s, p, e, ab, bb, fs, fk[s], hi - lo, rest, h, symmetric, tau, early_exit, sums,
            err, used, alive)
 
@@ -460,10 +460,10 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                 lo_d, hi_d = block_range(db, ranges, j2, r)
                 if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
                     one, two = block32x2(ab, bb, db, c, g, first, t, symmetric)
-                    p, e = pair_bound(G, first, ranges, i, j, r, c, one, h)
+                    p, e = pair_bound(G, first, ranges, i, j, r, c, one, h, hi - lo)
                     settle(first, p, e, ab, bb, fs, fk[first], hi - lo, n - seen, h,
                            symmetric, tau, early_exit, sums, err, used, alive)
-                    p, e = pair_bound(G, t, ranges, i, j2, r, c, two, h)
+                    p, e = pair_bound(G, t, ranges, i, j2, r, c, two, h, hi - lo)
                     settle(t, p, e, ab, db, fs, fk[t], hi - lo, n - seen, h,
                            symmetric, tau, early_exit, sums, err, used, alive)
                 else:
