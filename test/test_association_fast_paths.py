@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 
 from test_association import ring_rig
 
-from maem_ros.core import epipolar, procrustes
+from maem_ros.core import epipolar, procrustes, procrustes_kernel
 from maem_ros.core.association import (_BOUND_MARGIN, AssociationParams, _enumerate_pairs,
                                        _fundamental_stack, _reprojection_gate, rig_geometry)
 from maem_ros.core.clustering import _disjoint_greedy
@@ -72,6 +72,33 @@ def test_closed_form_procrustes_result_does_not_depend_on_the_batch():
     np.testing.assert_array_equal(full, singles)
     np.testing.assert_array_equal(full, parts)
     assert pa_mpjpe_finite(np.zeros((0, 13, 3)), np.zeros((0, 13, 3))).shape == (0,)
+
+
+@pytest.mark.skipif(not procrustes_kernel.have_numba(), reason="numba not installed")
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10**6), J=st.sampled_from([3, 4, 13, 70]),
+       kind=st.sampled_from(["unrelated", "same person", "planar", "mirrored", "collinear",
+                             "one point"]))
+def test_numba_pair_costs_equal_the_numpy_closed_form(seed, J, kind):
+    """The per-pair kernel reads detections a[s] and b[s] in place from the (3,J,N) columns
+    and gives numpy's closed-form costs (the same steps; only the einsum sums may round in
+    another order), near-degenerate pairs included (both hand them to the SVD)."""
+    rng = np.random.default_rng(seed)
+    X, Y = _poses(kind, rng, 20, J)
+    columns = np.ascontiguousarray(np.concatenate([X, Y]).transpose(2, 1, 0))  # (3,J,40)
+    a = np.concatenate([np.arange(20), rng.integers(0, 40, 30), [3]])
+    b = np.concatenate([np.arange(20, 40), rng.integers(0, 40, 30), [3]])  # and a == b
+    want = procrustes.pa_mpjpe_columns(columns[:, :, a], columns[:, :, b])
+    got = procrustes.pa_mpjpe_pairs(columns, a, b, backend="numba")
+    np.testing.assert_allclose(got, want, rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(procrustes.pa_mpjpe_pairs(columns, a, b, backend="numpy"),
+                                  want)
+    assert got[-1] < 1e-6  # a detection onto itself
+
+
+def test_pair_costs_reject_an_unknown_backend_by_name():
+    with pytest.raises(ValueError, match="backend"):
+        procrustes.pa_mpjpe_pairs(np.zeros((3, 4, 2)), [0], [1], backend="cuda")
 
 
 def _table(rig, rng: np.random.Generator, sizes: list[int], spread: float = 300.0

@@ -31,14 +31,14 @@ from typing import Mapping
 
 import numpy as np
 
-from . import clustering, epipolar
+from . import clustering, epipolar, procrustes_kernel
 from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet)
 from .geometry import pair_reprojection_bound, pair_reprojection_errors
 from .intsets import sorted_unique
 from .paramspec import Params, param
-from .procrustes import pa_mpjpe_columns
+from .procrustes import pa_mpjpe_pairs
 from .skeleton import joint_subset
 
 #: overrides that give the MAEM paper's pipeline exactly: PA-MPJPE on every keypoint, no cost
@@ -54,8 +54,8 @@ class AssociationParams(Params):
     association node (core/paramspec.py: add a field with ``param()`` and it is validated, read
     from params files and declared, with --help, by the node).
 
-    ``backend`` selects the gates' kernels, epipolar and reprojection (auto = numba when
-    installed, else numpy); both give the same decisions. ``epipolar_precision`` (numba):
+    ``backend`` selects the kernels of the gates (epipolar, reprojection) and of the pair cost
+    (auto = numba when installed, else numpy); both give the same decisions. ``epipolar_precision`` (numba):
     ``mixed`` float32 distances with a rigorous rounding-error bound (undecided pairs redone
     in float64; means ~1e-7 relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
     detections' keypoint convention), "all", or comma-separated keypoint indices.
@@ -85,8 +85,8 @@ class AssociationParams(Params):
                                   "set, the paper)", minimum=1)
     screen_margin: float = param(1.0, "px, mesh gate: subset means within this of tau_mesh are "
                                       "decided on the full set", minimum=0.0)
-    backend: str = param("auto", "gate kernels, epipolar and reprojection (auto = numba when "
-                                 "installed, else numpy)",
+    backend: str = param("auto", "kernels of the gates (epipolar, reprojection) and the pair "
+                                 "cost (auto = numba when installed, else numpy)",
                          choices=epipolar.BACKENDS)
     epipolar_precision: str = param("mixed", "numba kernel arithmetic: mixed (float32 SIMD with "
                                              "a rounding-error bound, float64 decisions) or "
@@ -248,6 +248,7 @@ def warmup(backend: str = "auto", epipolar_gate: str = "mesh") -> None:
         return
     if epipolar_gate != "none":
         epipolar.warmup()
+    procrustes_kernel.warmup()
     P = np.zeros((2, 3, 4))
     kernel(np.arange(3, dtype=np.int64), np.zeros((2, 2, 3, 3)), P, np.zeros((2, 2)), 1.0,
            _BOUND_MARGIN, False)
@@ -336,17 +337,17 @@ class PoseCosts:
     closed-form Procrustes (core/procrustes.py) computes on.
     """
 
-    def __init__(self, table: DetectionTable, joints: np.ndarray):
+    def __init__(self, table: DetectionTable, joints: np.ndarray, backend: str = "auto"):
         self.columns = np.ascontiguousarray(table.kpts3d[:, joints].transpose(2, 1, 0))
         self.known = np.full((len(table), len(table)), np.nan)
+        self.backend = backend
 
     def __call__(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """(S,) costs of rows a onto rows b."""
         out = self.known[a, b]
         todo = np.flatnonzero(np.isnan(out))
         if todo.size:
-            out[todo] = pa_mpjpe_columns(self.columns[:, :, a[todo]],
-                                         self.columns[:, :, b[todo]])
+            out[todo] = pa_mpjpe_pairs(self.columns, a[todo], b[todo], self.backend)
             self.known[a[todo], b[todo]] = out[todo]
         return out
 
@@ -389,7 +390,8 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     pose = np.full(S, np.nan)
     if alive.size:
         if costs is None:
-            costs = PoseCosts(table, joint_subset(params.cost_joints, table.num_joints))
+            costs = PoseCosts(table, joint_subset(params.cost_joints, table.num_joints),
+                              params.backend)
         pose[alive] = costs(i[alive], j[alive])
     # relative to the gate threshold, so one default fits dense-mesh px and keypoint px
     weight = (params.cost_epipolar_weight / params.tau_mesh if params.epipolar_gate != "none"
@@ -435,7 +437,7 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections],
     stats["rejected_score"] = stats["pairs_considered"] - float(
         (n_kept.sum() ** 2 - (n_kept ** 2).sum()) / 2)
     joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
-    pair_cost = PoseCosts(table, joints) if len(table) else None
+    pair_cost = PoseCosts(table, joints, params.backend) if len(table) else None
     pairs = gate_pairs(rig, table, params, stats, pair_cost)
 
     t = time.perf_counter()

@@ -128,10 +128,7 @@ def pa_mpjpe_columns(Xt: np.ndarray, Yt: np.ndarray) -> np.ndarray:
     if S == 1:  # numpy sums a lone pair's joints in another order: keep results batch-free
         return pa_mpjpe_columns(np.repeat(Xt, 2, axis=2), np.repeat(Yt, 2, axis=2))[:1]
     # centred copies, contiguous per coordinate: every later step runs on (J,S) / (S,) rows
-    Xc = np.array(Xt, dtype=np.float64, order="C")
-    Xc -= Xc.mean(axis=1, keepdims=True)
-    Yc = np.array(Yt, dtype=np.float64, order="C")
-    Yc -= Yc.mean(axis=1, keepdims=True)
+    Xc, Yc = _centred(Xt), _centred(Yt)
     H = np.einsum("ajs,bjs->abs", Xc, Yc)  # sum_j x_a y_b (Horn's S_ab, x aligned onto y)
     gx = np.einsum("ajs,ajs->s", Xc, Xc)
     lam, ok = _qcp_eigenvalue(H, gx, np.einsum("ajs,ajs->s", Yc, Yc))
@@ -151,6 +148,39 @@ def pa_mpjpe_columns(Xt: np.ndarray, Yt: np.ndarray) -> np.ndarray:
     if bad.size:
         out[bad] = _umeyama_svd(Xc[..., bad].transpose(2, 1, 0), Yc[..., bad].transpose(2, 1, 0))
     return out
+
+
+def pa_mpjpe_pairs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, backend: str = "auto"
+                   ) -> np.ndarray:
+    """(S,) PA-MPJPE of detection a[s] aligned onto b[s]: :func:`pa_mpjpe_columns` of
+    ``columns[:, :, a]`` onto ``columns[:, :, b]`` for columns (3,J,N) float64 finite.
+
+    backend: ``numba`` (core/procrustes_kernel.py: the same steps per pair, reading the
+    columns in place; ~1e-16 relative from numpy's summation order), ``numpy``, or ``auto``
+    (numba when installed). Near-degenerate pairs take the SVD path in both."""
+    from . import procrustes_kernel
+    a = np.asarray(a, dtype=np.int64)
+    b = np.asarray(b, dtype=np.int64)
+    if backend not in ("auto", "numba", "numpy"):
+        raise ValueError(f"backend: expected auto, numba or numpy, got {backend!r}")
+    if backend == "numba" and not procrustes_kernel.have_numba():
+        raise ValueError("backend: 'numba' requested but numba is not installed")
+    if (backend == "numpy" or not procrustes_kernel.have_numba() or columns.shape[1] < MIN_JOINTS
+            or a.size == 0):
+        return pa_mpjpe_columns(columns[:, :, a], columns[:, :, b])
+    out, ok = procrustes_kernel.pair_costs(columns, a, b, _QCP_MAX_STEPS, _QCP_MIN_GAP)
+    bad = np.flatnonzero(~ok)
+    if bad.size:
+        Xc, Yc = (_centred(columns[:, :, v[bad]]) for v in (a, b))
+        out[bad] = _umeyama_svd(Xc.transpose(2, 1, 0), Yc.transpose(2, 1, 0))
+    return out
+
+
+def _centred(Xt: np.ndarray) -> np.ndarray:
+    """(3,J,S) coordinate-first points minus their mean over the joints, a C-contiguous copy."""
+    Xc = np.array(Xt, dtype=np.float64, order="C")
+    Xc -= Xc.mean(axis=1, keepdims=True)
+    return Xc
 
 
 def _qcp_eigenvalue(H: np.ndarray, gx: np.ndarray, gy: np.ndarray

@@ -1,0 +1,208 @@
+"""Numba kernel of the closed-form PA-MPJPE (core.procrustes.pa_mpjpe_columns), per pair.
+
+The numpy path runs ~150 vectorised steps over (S,) rows, each a pass over memory with its
+own temporaries (~1.1 us per pair for 13 joints). This kernel walks the same steps per pair
+with scalars: the same float64 operations in the same order (no fast-math: no reassociation,
+no fused multiply-add), reading the two detections' keypoints in place from the (3,J,N)
+columns (no gathered copies). Only the einsum reductions (H, the squared norms) may sum in
+another order than numpy's, a relative difference of ~1e-16 in the costs; see
+test_procrustes.py. Pairs with a near-degenerate eigenvalue gap are flagged for the SVD path,
+as in numpy.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN
+
+#: the adjugate table as kernel arguments (global arrays would keep numba from caching)
+_ADJUGATE = (np.ascontiguousarray(_ADJ_ENTRY, np.int64),
+             np.ascontiguousarray(_ADJ_MINOR, np.int64),
+             np.ascontiguousarray(_ADJ_SIGN, np.float64))
+
+try:  # numba is optional: the numpy path gives the same costs, only slower
+    import numba as _numba
+except ImportError:  # pragma: no cover - exercised only without numba
+    _numba = None
+
+
+def have_numba() -> bool:
+    return _numba is not None
+
+
+def pair_costs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, max_steps: int,
+               min_gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """(costs (S,), closed form usable (S,) bool) of columns[:, :, a[s]] aligned onto
+    columns[:, :, b[s]]: columns (3,J,N) float64 finite keypoints (J >= 3); a pair whose flag is
+    False has no cost yet (NaN): its eigenvalue gap is too small (pa_mpjpe_columns)."""
+    S = a.size
+    out = np.empty(S)
+    ok = np.empty(S, np.bool_)
+    _kernel(np.ascontiguousarray(columns, dtype=np.float64), np.ascontiguousarray(a, np.int64),
+            np.ascontiguousarray(b, np.int64), _ADJUGATE, int(max_steps), float(min_gap), out,
+            ok)
+    return out, ok
+
+
+def warmup() -> None:
+    """Compile (or load from numba's on-disk cache) the kernel now. No-op without numba."""
+    if _numba is not None:
+        cols = np.random.default_rng(0).normal(size=(3, 4, 2))
+        pair_costs(cols, np.array([0]), np.array([1]), 60, 1e-6)
+
+
+def _pair(cols, i, k, xc, yc, h, K, m, q, R, adj, max_steps, min_gap):
+    """(cost, usable) of detection i onto k: pa_mpjpe_columns' steps for one pair; xc, yc
+    (3,J), h (3,3), K (4,4), m (12,), q (4,), R (3,3) scratch (no allocation per pair); adj:
+    procrustes' adjugate table (entries, minors, signs)."""
+    J = cols.shape[1]
+    for c in range(3):  # centred (numpy: mean over joints, a sequential sum / J)
+        sx = cols[c, 0, i]
+        sy = cols[c, 0, k]
+        for j in range(1, J):
+            sx += cols[c, j, i]
+            sy += cols[c, j, k]
+        mx = sx / J
+        my = sy / J
+        for j in range(J):
+            xc[c, j] = cols[c, j, i] - mx
+            yc[c, j] = cols[c, j, k] - my
+    for p in range(3):  # h: sum_j x_a y_b
+        for o in range(3):
+            acc = 0.0
+            for j in range(J):
+                acc += xc[p, j] * yc[o, j]
+            h[p, o] = acc
+    gx = 0.0
+    gy = 0.0
+    for p in range(3):
+        for j in range(J):
+            gx += xc[p, j] * xc[p, j]
+            gy += yc[p, j] * yc[p, j]
+    xx, xy, xz = h[0, 0], h[0, 1], h[0, 2]
+    yx, yy, yz = h[1, 0], h[1, 1], h[1, 2]
+    zx, zy, zz = h[2, 0], h[2, 1], h[2, 2]
+    # Horn's key matrix (procrustes._key_matrix)
+    K[0, 0] = xx + yy + zz
+    K[1, 1] = xx - yy - zz
+    K[2, 2] = yy - xx - zz
+    K[3, 3] = zz - xx - yy
+    K[0, 1] = K[1, 0] = yz - zy
+    K[0, 2] = K[2, 0] = zx - xz
+    K[0, 3] = K[3, 0] = xy - yx
+    K[1, 2] = K[2, 1] = xy + yx
+    K[1, 3] = K[3, 1] = zx + xz
+    K[2, 3] = K[3, 2] = yz + zy
+    f2 = 0.0
+    for p in range(3):
+        for o in range(3):
+            f2 += h[p, o] * h[p, o]
+    c2 = -2.0 * f2
+    det3 = (h[0, 0] * (h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1])
+            - h[0, 1] * (h[1, 0] * h[2, 2] - h[1, 2] * h[2, 0])
+            + h[0, 2] * (h[1, 0] * h[2, 1] - h[1, 1] * h[2, 0]))
+    c1 = -8.0 * det3
+    _minors(K, m)
+    c0 = (m[0] * m[11] - m[1] * m[10] + m[2] * m[9] + m[3] * m[8] - m[4] * m[7]
+          + m[5] * m[6])
+    frob = np.sqrt(f2)
+    lam = min(np.sqrt(gx * gy), np.sqrt(3.0) * frob)
+    tol = 1e-13 * frob
+    active = True
+    for _ in range(max_steps):  # Newton on the quartic from an upper bound (monotone)
+        l2 = lam * lam
+        p4 = (l2 + c2) * l2 + c1 * lam + c0
+        dp = (4.0 * l2 + 2.0 * c2) * lam + c1
+        step = p4 / dp if dp > 0 else 0.0
+        lam -= step
+        if not abs(step) > tol:
+            active = False
+            break
+    l2 = lam * lam
+    dp = (4.0 * l2 + 2.0 * c2) * lam + c1
+    if active or not dp > min_gap * f2 * frob:
+        return np.nan, False
+    for d in range(4):
+        K[d, d] -= lam
+    _minors(K, m)
+    best = 0  # the adjugate's column with the largest |diagonal| (first on ties, as argmax)
+    best_val = -1.0
+    for d in range(4):
+        v = abs(_adjugate_entry(K, m, d, d, adj))
+        if v > best_val:
+            best, best_val = d, v
+    for r in range(4):
+        q[r] = _adjugate_entry(K, m, r, best, adj)
+    norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    w, x, y, z = q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
+    R[0, 0] = w * w + x * x - y * y - z * z
+    R[1, 1] = w * w - x * x + y * y - z * z
+    R[2, 2] = w * w - x * x - y * y + z * z
+    R[0, 1] = 2.0 * (x * y - w * z)
+    R[1, 0] = 2.0 * (x * y + w * z)
+    R[0, 2] = 2.0 * (x * z + w * y)
+    R[2, 0] = 2.0 * (x * z - w * y)
+    R[1, 2] = 2.0 * (y * z - w * x)
+    R[2, 1] = 2.0 * (y * z + w * x)
+    scale = lam / gx if gx > 0 else 0.0
+    for p in range(3):
+        for o in range(3):
+            R[p, o] *= scale
+    total = 0.0
+    for j in range(J):
+        sq = 0.0
+        for p in range(3):
+            r = R[p, 0] * xc[0, j]
+            r += R[p, 1] * xc[1, j]
+            r += R[p, 2] * xc[2, j]
+            r -= yc[p, j]
+            r *= r
+            sq += r
+        total += np.sqrt(sq)
+    return total / J, True
+
+
+def _minors(a, m):
+    """m (12,) = the 2x2 minors of rows (0,1), then rows (2,3), of a (4,4), columns 01 02 03
+    12 13 23 (procrustes._minors)."""
+    for half in range(2):
+        r0 = 2 * half
+        r1 = r0 + 1
+        k = 6 * half
+        for ci, cj in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+            m[k] = a[r0, ci] * a[r1, cj] - a[r1, ci] * a[r0, cj]
+            k += 1
+
+
+def _adjugate_entry(a, m, r, c, adj):
+    """adj(a)[r, c] from a (4,4) and its minors m: the three signed terms of
+    procrustes._adjugate_table (adj = its entries, minors, signs) in its order."""
+    entry, minor, sign = adj
+    total = 0.0
+    for t in range(3):
+        e = entry[4 * r + c, t]
+        term = a[e // 4, e % 4] * m[minor[4 * r + c, t]]
+        total += term * sign[4 * r + c, t]
+    return total
+
+
+def _kernel(cols, a, b, adj, max_steps, min_gap, out, ok):
+    J = cols.shape[1]
+    xc = np.empty((3, J))
+    yc = np.empty((3, J))
+    h = np.empty((3, 3))
+    K = np.empty((4, 4))
+    m = np.empty(12)
+    q = np.empty(4)
+    R = np.empty((3, 3))
+    for s in range(a.size):
+        out[s], ok[s] = _pair(cols, a[s], b[s], xc, yc, h, K, m, q, R, adj, max_steps,
+                              min_gap)
+
+
+if _numba is not None:
+    _opts = dict(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    _minors = _numba.njit(inline="always", **_opts)(_minors)
+    _adjugate_entry = _numba.njit(inline="always", **_opts)(_adjugate_entry)
+    _pair = _numba.njit(**_opts)(_pair)
+    _kernel = _numba.njit(**_opts)(_kernel)
