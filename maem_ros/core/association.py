@@ -31,7 +31,7 @@ from typing import Mapping
 
 import numpy as np
 
-from . import clustering, epipolar, procrustes_kernel
+from . import clustering, clustering_kernel, epipolar, procrustes_kernel
 from .camera import Rig, fundamental_matrix
 from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet)
@@ -249,6 +249,7 @@ def warmup(backend: str = "auto", epipolar_gate: str = "mesh") -> None:
     if epipolar_gate != "none":
         epipolar.warmup()
     procrustes_kernel.warmup()
+    clustering_kernel.warmup()
     P = np.zeros((2, 3, 4))
     kernel(np.arange(3, dtype=np.int64), np.zeros((2, 2, 3, 3)), P, np.zeros((2, 2)), 1.0,
            _BOUND_MARGIN, False)

@@ -97,7 +97,18 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
         return _paper(table, pairs, stats, pair_cost)
     if params.clustering == "spectral":
         return _spectral(table, stats, pair_cost)
-    return _consistent(table, pairs, _Verifier(table, P, joints, params.tau_verify), params, stats)
+    kernels = _kernels(params.backend)
+    return _consistent(table, pairs, _Verifier(table, P, joints, params.tau_verify, kernels),
+                       params, stats, kernels)
+
+
+def _kernels(backend: str):
+    """core/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
+    (the numpy paths: the same results)."""
+    from . import clustering_kernel
+    if backend == "numba" and not clustering_kernel.have_numba():
+        raise ValueError("backend: 'numba' requested but numba is not installed")
+    return clustering_kernel if backend != "numpy" and clustering_kernel.have_numba() else None
 
 
 # ---------------------------------------------------------------------------------------
@@ -107,7 +118,8 @@ class _Verifier:
     """Batched cluster check: body joints triangulated (DLT) from all members, each member's
     median reprojection error (px) must stay under tau_verify."""
 
-    def __init__(self, table: DetectionTable, P: np.ndarray, joints: np.ndarray, tau: float):
+    def __init__(self, table: DetectionTable, P: np.ndarray, joints: np.ndarray, tau: float,
+                 kernels=None):
         # one extra row N stands for padding: no usable joint, zero DLT share
         N, Jb = len(table), joints.size
         self.uv = np.zeros((N + 1, Jb, 2))
@@ -120,11 +132,14 @@ class _Verifier:
         # each row's share of every candidate cluster's DLT system, computed once per frame
         # set (unusable joints weigh 0)
         self.E = normal_entries(self.P[:, None], self.uv, self.usable) * self.usable  # (9,N+1,Jb)
+        self.kernels = kernels  # clustering_kernel (numba) or None (numpy)
 
     def __call__(self, rows: np.ndarray) -> np.ndarray:
         """rows (K,M) table rows, -1 = padding -> (K,) all members consistent."""
         if rows.size == 0:
             return np.zeros(rows.shape[0], bool)
+        if self.kernels is not None:
+            return self.kernels.consistent(self.E, self.P, self.uv, self.usable, rows, self.tau)
         rows = rows[:, :int((rows >= 0).sum(1).max())]  # members first: drop padding columns
         present = rows >= 0
         r = np.where(present, rows, self.usable.shape[0] - 1)
@@ -170,10 +185,10 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
 
 
 def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
-                params: "AssociationParams", stats: dict[str, float]) -> Found:
+                params: "AssociationParams", stats: dict[str, float], kernels) -> Found:
     gain, geometric = _gain_matrix(table, pairs, params.tau_cost)
     label = np.arange(len(table))
-    label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats)
+    label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
     label = _local_moves(table, gain, geometric, label, verify, params, stats)
     together = label[:, None] == label[None, :]
     stats["matched_pairs"] = float(np.count_nonzero(np.triu(together & geometric, 1)))
@@ -201,7 +216,8 @@ def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> np.ndarray:
+def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kernels
+                   ) -> np.ndarray:
     """Best-first verified merges in rounds until no allowed merge is left.
 
     label: each row its own cluster (label = row). Cluster-level tables indexed by label are
@@ -252,7 +268,7 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats) -> n
         into[y] = x
         label = into[label]  # the applied merges touch disjoint clusters: one relabelling
         links = _relabel_links(links, into, N)
-        _absorb(x, y, size, between, support, camset)
+        _absorb(x, y, size, between, support, camset, kernels)
         stats["merges"] += float(x.size)
 
 
@@ -266,15 +282,19 @@ def _relabel_links(links: np.ndarray, into: np.ndarray, n: int) -> np.ndarray:
 
 
 def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
-            support: np.ndarray, camset: np.ndarray) -> None:
-    """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place."""
+            support: np.ndarray, camset: np.ndarray, kernels=None) -> None:
+    """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place
+    (the matrices by clustering_kernel.absorb when kernels is given: the same sums)."""
     size[x] += size[y]
     size[y] = 0
-    for matrix in (between, support):
-        matrix[x] += matrix[y]  # rows first, then columns: the entry of two merged
-        matrix[:, x] += matrix[:, y]  # clusters sums all four parts
-        matrix[y] = 0
-        matrix[:, y] = 0
+    if kernels is not None:
+        kernels.absorb(x, y, between, support)
+    else:
+        for matrix in (between, support):
+            matrix[x] += matrix[y]  # rows first, then columns: the entry of two merged
+            matrix[:, x] += matrix[:, y]  # clusters sums all four parts
+            matrix[y] = 0
+            matrix[:, y] = 0
     camset[x] |= camset[y]
     camset[y] = False
 
