@@ -49,7 +49,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .geometry import normal_entries, reprojection_error, solve_normal
 
-from .detections import DetectionTable, PairSet, camera_pair_groups
+from .detections import PASSED, DetectionTable, PairSet, camera_pair_groups
 from .intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
@@ -170,15 +170,13 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
     within a camera (such pairs are never together) and on the diagonal. geometric: the pair
     passed the geometric gates (the merge support counts these)."""
     N = len(table)
-    ok = pairs.passed
-    geo = pairs.geometric
+    geo = np.flatnonzero(pairs.geometric)  # a few % of the pairs: index them once
+    gi, gj = pairs.i[geo], pairs.j[geo]
     geometric = np.zeros((N, N), bool)
-    geometric[pairs.i[geo], pairs.j[geo]] = geometric[pairs.j[geo], pairs.i[geo]] = True
+    geometric[gi, gj] = geometric[gj, gi] = True
     gain = np.full((N, N), REJECTED_PAIR_GAIN * tau)
-    capped = geo & ~ok
-    ci, cj = pairs.i[capped], pairs.j[capped]
-    gain[ci, cj] = gain[cj, ci] = CAPPED_PAIR_GAIN * tau
-    gain[pairs.i[ok], pairs.j[ok]] = gain[pairs.j[ok], pairs.i[ok]] = tau - pairs.cost[ok]
+    gain[gi, gj] = gain[gj, gi] = np.where(pairs.stage[geo] == PASSED, tau - pairs.cost[geo],
+                                           CAPPED_PAIR_GAIN * tau)
     for start, end in zip(table.offsets[:-1].tolist(), table.offsets[1:].tolist()):
         gain[start:end, start:end] = 0.0  # rows are grouped by camera
     return gain, geometric

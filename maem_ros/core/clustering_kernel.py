@@ -143,13 +143,15 @@ def _absorb(x, y, matrix):
     for k in range(x.size):
         for c in range(N):
             matrix[x[k], c] += matrix[y[k], c]
-    for r in range(N):  # columns after all rows: the entry of two merged clusters sums 4 parts
+    # columns after all rows (the entry of two merged clusters sums 4 parts), row by row (the
+    # columns are strided); a column y is read, then zeroed
+    for r in range(N):
         for k in range(x.size):
             matrix[r, x[k]] += matrix[r, y[k]]
+            matrix[r, y[k]] = 0
     for k in range(x.size):
         for c in range(N):
             matrix[y[k], c] = 0
-            matrix[c, y[k]] = 0
 
 
 if _numba is not None:
