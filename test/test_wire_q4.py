@@ -232,3 +232,23 @@ def test_a_subset_announced_on_the_wire_is_honoured(bench_frames):
     # one camera sends the whole mesh, the others a subset: compared on the common vertices
     mixed = dict(got, **{rig.names[0]: fr.frames[rig.names[0]]})
     assert _members(associate(rig, mixed, AssociationParams.from_mapping(base))) == _members(local)
+
+
+def test_a_subset_of_validated_detections_is_not_checked_again(monkeypatch):
+    """The track stage hands the association the detections it left: rows of a validated frame
+    need no second pass; rows of an unchecked frame still get one."""
+    back = wire.msg_to_detections(roundtrip(wire.detections_to_msg(make_dets(3, 4, 600))), TOPIC)
+    calls = []
+    original = np.isfinite
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(np, "isfinite", spy)
+    back.select(np.array([0, 2])).validate()
+    assert calls == []
+    unchecked = FrameDetections(back.camera, back.stamp_ns, back.bboxes, back.scores,
+                                back.kpts2d, back.kpts3d, back.verts2d.copy())
+    unchecked.select(np.array([1])).validate()
+    assert calls

@@ -54,11 +54,12 @@ class AssociationParams(Params):
     association node (core/paramspec.py: add a field with ``param()`` and it is validated, read
     from params files and declared, with --help, by the node).
 
-    ``backend`` selects the kernels of the gates (epipolar, reprojection) and of the pair cost
-    (auto = numba when installed, else numpy); both give the same decisions. ``epipolar_precision`` (numba):
-    ``mixed`` float32 distances with a rigorous rounding-error bound (undecided pairs redone
-    in float64; means ~1e-7 relative), ``float64`` (means ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the
-    detections' keypoint convention), "all", or comma-separated keypoint indices.
+    ``backend`` selects the kernels of the gates (epipolar, reprojection), the pair cost and
+    the clustering (auto = numba when installed, else numpy); both give the same decisions.
+    ``epipolar_precision`` (numba): ``mixed`` float32 distances with a rigorous rounding-error
+    bound (undecided pairs redone in float64; means ~1e-7 relative), ``float64`` (means
+    ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the detections'
+    keypoint convention), "all", or comma-separated keypoint indices.
     ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).
     ``cost_epipolar_weight`` (m) adds the pair's mean epipolar distance, as a fraction of
     tau_mesh (so the term scales with the gate: mesh px, keypoint px), to its cost.
@@ -85,8 +86,8 @@ class AssociationParams(Params):
                                   "set, the paper)", minimum=1)
     screen_margin: float = param(1.0, "px, mesh gate: subset means within this of tau_mesh are "
                                       "decided on the full set", minimum=0.0)
-    backend: str = param("auto", "kernels of the gates (epipolar, reprojection) and the pair "
-                                 "cost (auto = numba when installed, else numpy)",
+    backend: str = param("auto", "kernels of the gates (epipolar, reprojection), the pair cost "
+                                 "and the clustering (auto = numba when installed, else numpy)",
                          choices=epipolar.BACKENDS)
     epipolar_precision: str = param("mixed", "numba kernel arithmetic: mixed (float32 SIMD with "
                                              "a rounding-error bound, float64 decisions) or "

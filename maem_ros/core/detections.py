@@ -85,10 +85,14 @@ class FrameDetections:
                    np.zeros((0, num_joints, 3)), np.zeros((0, num_vertices, 2), np.float32))
 
     def select(self, index: np.ndarray) -> "FrameDetections":
-        """Subset by boolean mask or integer index (copies)."""
-        return FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
-                               self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
-                               self.mesh_subset)
+        """Subset by boolean mask or integer index (copies); validated when self is (every
+        check of :meth:`validate` is per detection or on shapes the subset keeps)."""
+        out = FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
+                              self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
+                              self.mesh_subset)
+        if self._validated and self._validated == self._arrays():
+            out.mark_validated()
+        return out
 
     def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
         """These detections with verts2d cut to the fixed-topology subset

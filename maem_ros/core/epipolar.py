@@ -34,8 +34,9 @@ reciprocal line norms, B = [|u_b|,|v_b|,1] |F'| [|u_a|,|v_a|,1]^T from the block
 range, L = max(L_a, L_b) the same bound of the lines' first two coefficients; terms: rounding
 of e, of the line norms (through their coefficients and the 2^-20 reciprocal square root;
 sum |e| (w_a^2 + w_b^2) <= sum |e| w^2), and of the block's m (<= BLOCK) float32 additions; E
-does not depend on F' 's scale). A pair is rejected early when ``sum - E >= tau * (used + still to come)``,
-accepted when ``sum + E < tau * used``, rejected when ``sum - E >= tau * used``; otherwise (the
+does not depend on F' 's scale). A pair is rejected early when
+``sum - E >= tau * (used + still to come)``, accepted when ``sum + E < tau * used``, rejected
+when ``sum - E >= tau * used``; otherwise (the
 bound cannot settle it; in practice never) it is recomputed in float64. Blocks with a missing
 point or a point at (or very near) the epipole are summed in float64. So the decisions are
 those of the float64 sums; an accepted pair's mean carries an error below E / used (~1e-7

@@ -355,8 +355,9 @@ def pair_bound(G, t, ranges, i, j, r, c, sums3, h, m):
 def settle(s, p, e, ab, bb, fs, fk, m, rest, h, symmetric, tau, early_exit, sums, err, used,
            alive):
     """Add pair s's block: the float32 sum p within e, or (e inf: missing points, a point
-    at or very near the epipole) the float64 sum of blocks ab, bb; then the exact early
-    exit, ``rest`` points still to come (alive[s] False; the block loop notes where)."""
+    at or very near the epipole) the float64 sum of blocks ab, bb under fs[fk]; then the
+    exact early exit, ``rest`` points still to come (alive[s] False; the block loop notes
+    the block)."""
     if p < np.inf and e < np.inf:
         sums[s] += p
         err[s] += e

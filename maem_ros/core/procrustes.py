@@ -87,18 +87,20 @@ def pa_mpjpe(X: np.ndarray, Y: np.ndarray, mask: np.ndarray | None = None) -> np
     return np.where(n >= MIN_JOINTS, out, np.nan)
 
 
-def pa_mpjpe_finite(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+def pa_mpjpe_finite(X: np.ndarray, Y: np.ndarray, backend: str = "auto") -> np.ndarray:
     """(S,) PA-MPJPE (units of Y) of X (S,J,3) similarity-aligned onto Y (S,J,3), finite input.
 
     The same Umeyama alignment as pa_mpjpe (rotation with reflection guard,
     translation, uniform scale) without its mask/NaN handling, which validated detections do
     not need. Fewer than 3 joints do not fix a similarity (any two point pairs align exactly),
     so the cost is NaN (= gated) then. See :func:`pa_mpjpe_columns` (the same on
-    coordinate-first arrays, which it computes on).
+    coordinate-first arrays, which it computes on) and :func:`pa_mpjpe_pairs` (backend).
     """
     X = np.asarray(X, dtype=np.float64)
     Y = np.asarray(Y, dtype=np.float64)
-    return pa_mpjpe_columns(X.transpose(2, 1, 0), Y.transpose(2, 1, 0))
+    S = X.shape[0]
+    columns = np.concatenate([X, Y]).transpose(2, 1, 0)  # (3,J,2S): X's rows, then Y's
+    return pa_mpjpe_pairs(columns, np.arange(S), S + np.arange(S), backend)
 
 
 #: relative eigenvalue gap (product of the three gaps over ||H||_F^3) under which the closed

@@ -518,7 +518,8 @@ class TemporalAssociator:
             # than one gated partner in a camera: an isolated gated pair is assigned whatever
             # its cost (any other choice for its row or column is gated)
             contested = okc & ((okc.sum(2, keepdims=True) > 1) | (okc.sum(1, keepdims=True) > 1))
-            cost = cost + self.tp.pose_weight * self._pose_cost(contested, joints, view.kp3)
+            cost = cost + self.tp.pose_weight * self._pose_cost(contested, joints, view.kp3,
+                                                                 self.params.backend)
         cand = np.full((T, C), -1, np.int64)
         for c, ok in view.ok.items():  # one Hungarian per camera
             gated = okc[c][:, ok]
@@ -544,14 +545,16 @@ class TemporalAssociator:
         return cam, det, present, keep, X
 
     @staticmethod
-    def _pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray) -> np.ndarray:
+    def _pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray,
+                   backend: str = "auto") -> np.ndarray:
         """(C,T,N) PA-MPJPE (m) of each selected (okc) detection's 3D body pose (kpts3d (C,N,J,3))
         aligned onto the track's skeleton joints (T,J,3), one batched alignment over all
-        cameras; 0 where not selected or the track has unseen joints (no preference)."""
+        cameras (procrustes backend); 0 where not selected or the track has unseen joints (no
+        preference)."""
         out = np.zeros(okc.shape)
         c, t, n = np.nonzero(okc & np.isfinite(joints).all((1, 2))[None, :, None])
         if t.size:
-            out[c, t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[c, n], joints[t]))
+            out[c, t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[c, n], joints[t], backend))
         return out
 
     def _pair_gates(self, view: "_FrameView", cam: np.ndarray, det: np.ndarray,
@@ -604,7 +607,7 @@ class TemporalAssociator:
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            ok[s] = pa_mpjpe_finite(X, Y) < p.tau_cost  # NaN (too few joints) fails
+            ok[s] = pa_mpjpe_finite(X, Y, p.backend) < p.tau_cost  # NaN (too few joints) fails
         return ok
 
     def _gate_points(self, fd: FrameDetections) -> np.ndarray:
