@@ -155,12 +155,10 @@ def test_announced_subset_round_trip_and_errors():
         wire.msg_to_detections(one, TOPIC)
 
 
-def test_f32_verts_view_the_message_and_are_validated_once(monkeypatch):
-    dets = make_dets(3, 4, 600, hi=1000.0)
-    msg = roundtrip(wire.detections_to_msg(dets))
-    back = wire.msg_to_detections(msg, TOPIC)
-    rows = epipolar.point_rows(back.verts2d)
-    assert np.shares_memory(rows.flat, np.frombuffer(msg.data, dtype=np.uint8))  # zero copy
+@pytest.fixture
+def isfinite_calls(monkeypatch) -> list:
+    """Grows by one entry per np.isfinite call (validation's pass over the arrays) from the
+    test's start."""
     calls = []
     original = np.isfinite
 
@@ -169,6 +167,17 @@ def test_f32_verts_view_the_message_and_are_validated_once(monkeypatch):
         return original(*args, **kwargs)
 
     monkeypatch.setattr(np, "isfinite", spy)
+    return calls
+
+
+def test_f32_verts_view_the_message_and_are_validated_once(isfinite_calls):
+    dets = make_dets(3, 4, 600, hi=1000.0)
+    msg = roundtrip(wire.detections_to_msg(dets))
+    back = wire.msg_to_detections(msg, TOPIC)
+    rows = epipolar.point_rows(back.verts2d)
+    assert np.shares_memory(rows.flat, np.frombuffer(msg.data, dtype=np.uint8))  # zero copy
+    calls = isfinite_calls
+    calls.clear()  # the decoder's own checks
     back.validate()
     assert calls == []  # marked validated by the decoder: no second pass over the arrays
     replaced = FrameDetections(back.camera, back.stamp_ns, back.bboxes, back.scores, back.kpts2d,
@@ -234,18 +243,12 @@ def test_a_subset_announced_on_the_wire_is_honoured(bench_frames):
     assert _members(associate(rig, mixed, AssociationParams.from_mapping(base))) == _members(local)
 
 
-def test_a_subset_of_validated_detections_is_not_checked_again(monkeypatch):
+def test_a_subset_of_validated_detections_is_not_checked_again(isfinite_calls):
     """The track stage hands the association the detections it left: rows of a validated frame
     need no second pass; rows of an unchecked frame still get one."""
     back = wire.msg_to_detections(roundtrip(wire.detections_to_msg(make_dets(3, 4, 600))), TOPIC)
-    calls = []
-    original = np.isfinite
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(np, "isfinite", spy)
+    calls = isfinite_calls
+    calls.clear()  # the decoder's own checks
     back.select(np.array([0, 2])).validate()
     assert calls == []
     unchecked = FrameDetections(back.camera, back.stamp_ns, back.bboxes, back.scores,

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import _SINGULAR
+from .geometry import _SINGULAR, adjugate_solve, normal_cofactors
 
 try:  # numba is optional: the numpy paths give the same results, only slower
     import numba as _numba
@@ -95,30 +95,11 @@ def _consistent(E, P, uv, usable, rows, tau, ok):
 
 def _solve(n):
     """geometry.solve_normal of one system's entries n (9,): (x, y, z), NaN if singular."""
-    n00, n01, n02, n11, n12, n22 = n[0], n[1], n[2], n[3], n[4], n[5]
-    c00 = n11 * n22 - n12 * n12
-    c01 = n02 * n12 - n01 * n22
-    c02 = n01 * n12 - n02 * n11
-    c11 = n00 * n22 - n02 * n02
-    c12 = n01 * n02 - n00 * n12
-    c22 = n00 * n11 - n01 * n01
-    det = n00 * c00 + n01 * c01 + n02 * c02
-    trace = n00 + n11 + n22
+    cof = _normal_cofactors(n[0], n[1], n[2], n[3], n[4], n[5])
+    det, trace = cof[6], cof[7]
     if not abs(det) > _SINGULAR * trace * trace * trace:
         det = np.nan
-    x = c00 * n[6]
-    x += c01 * n[7]
-    x += c02 * n[8]
-    x /= det
-    y = c01 * n[6]
-    y += c11 * n[7]
-    y += c12 * n[8]
-    y /= det
-    z = c02 * n[6]
-    z += c12 * n[7]
-    z += c22 * n[8]
-    z /= det
-    return -x, -y, -z
+    return _adjugate_solve(cof[:6], det, n[6], n[7], n[8])
 
 
 def _reprojection(P, r, x, y, z, u, v):
@@ -154,8 +135,11 @@ def _absorb(x, y, matrix):
             matrix[y[k], c] = 0
 
 
+_normal_cofactors, _adjugate_solve = normal_cofactors, adjugate_solve  # one home: geometry
 if _numba is not None:
     _opts = dict(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    _normal_cofactors = _numba.njit(inline="always", **_opts)(normal_cofactors)
+    _adjugate_solve = _numba.njit(inline="always", **_opts)(adjugate_solve)
     _solve = _numba.njit(inline="always", **_opts)(_solve)
     _reprojection = _numba.njit(inline="always", **_opts)(_reprojection)
     _consistent = _numba.njit(**_opts)(_consistent)

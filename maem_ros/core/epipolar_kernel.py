@@ -317,6 +317,15 @@ def pair64(a, b, fs, fk, blocks, n, tau, early_exit, ha, symmetric):
     return total, count, last
 
 
+@inline
+def pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h, symmetric,
+                sums, used, last):
+    """pair64 of pair s (detections pa[s], pb[s] under fs[fk[s]]) into sums, used, last."""
+    sums[s], used[s], last[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
+                                       points(like, det_addr[pb[s]], 0, 2 * n), fs, fk[s],
+                                       blocks, n, tau, early_exit, h, symmetric)
+
+
 @plain
 def present64(a, b):
     """Points of a block that both detections have: block64's test (the float64 sum of the
@@ -405,10 +414,8 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
     last = np.full(S, -1, dtype=np.int64)
     if not mixed:
         for s in range(S):
-            sums[s], used[s], last[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
-                                               points(like, det_addr[pb[s]], 0, 2 * n),
-                                               fs, fk[s], blocks, n, tau, early_exit, h,
-                                               symmetric)
+            pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
+                        symmetric, sums, used, last)
         total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
         return sums, total, used
     # once per detection: its centre, its block ranges (filled on first use)
@@ -488,10 +495,8 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
         if alive[s] and not (total + err[s] < tau * used[s]) \
                 and not (total - err[s] >= tau * used[s]):
             # the bound does not settle the decision: float64 throughout
-            sums[s], used[s], last[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
-                                               points(like, det_addr[pb[s]], 0, 2 * n),
-                                               fs, fk[s], blocks, n, tau, early_exit, h,
-                                               symmetric)
+            pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
+                        symmetric, sums, used, last)
     total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
     return sums, total, used
 

@@ -64,7 +64,18 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     """
     shape = E.shape[1:]
     E = E.reshape(9, -1)
-    n00, n01, n02, n11, n12, n22 = E[0], E[1], E[2], E[3], E[4], E[5]
+    cof = normal_cofactors(E[0], E[1], E[2], E[3], E[4], E[5])
+    det, trace = cof[6], cof[7]
+    det[~(np.abs(det) > _SINGULAR * trace * trace * trace)] = np.nan  # singular
+    # computed coordinate-first (contiguous) and returned as a (...,3) view
+    X = np.stack(adjugate_solve(cof[:6], det, E[6], E[7], E[8]))
+    return np.moveaxis(X.reshape((3,) + shape), 0, -1)
+
+
+def normal_cofactors(n00, n01, n02, n11, n12, n22):
+    """(c00, c01, c02, c11, c12, c22, det, trace) of the symmetric 3x3 block of DLT normal
+    matrices (entries as in :func:`normal_entries`), elementwise: arrays here, scalars in the
+    numba kernels that compile this same function."""
     c00 = n11 * n22 - n12 * n12
     c01 = n02 * n12 - n01 * n22
     c02 = n01 * n12 - n02 * n11
@@ -73,17 +84,26 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     c22 = n00 * n11 - n01 * n01
     det = n00 * c00 + n01 * c01 + n02 * c02
     trace = n00 + n11 + n22
-    singular = ~(np.abs(det) > _SINGULAR * trace * trace * trace)
-    det[singular] = np.nan
-    # X = -adj(N) r / det, computed coordinate-first (contiguous) and returned as a (...,3) view
-    X = np.empty((3, E.shape[1]))
-    for k, (a, b, c) in enumerate(((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))):
-        np.multiply(a, E[6], out=X[k])
-        X[k] += b * E[7]
-        X[k] += c * E[8]
-        X[k] /= det
-    np.negative(X, out=X)
-    return np.moveaxis(X.reshape((3,) + shape), 0, -1)
+    return c00, c01, c02, c11, c12, c22, det, trace
+
+
+def adjugate_solve(cof, det, r0, r1, r2):
+    """(x, y, z) = -adj(N) r / det from the cofactors cof (c00, c01, c02, c11, c12, c22) of
+    :func:`normal_cofactors` and r = (r0, r1, r2) (normal entries n03 n13 n23), elementwise."""
+    c00, c01, c02, c11, c12, c22 = cof
+    x = c00 * r0  # unrolled, no helpers: numba compiles this function as it is
+    x += c01 * r1
+    x += c02 * r2
+    x /= det
+    y = c01 * r0
+    y += c11 * r1
+    y += c12 * r2
+    y /= det
+    z = c02 * r0
+    z += c12 * r1
+    z += c22 * r2
+    z /= det
+    return -x, -y, -z
 
 
 def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -253,8 +253,15 @@ def _key_matrix(H: np.ndarray) -> np.ndarray:
 
     Entry by entry (not a matrix product), like every step of the closed form: each pair's
     result depends on its own numbers only, not on the batch it is computed in."""
-    (xx, xy, xz), (yx, yy, yz), (zx, zy, zz) = H
     K = np.empty((4, 4) + H.shape[2:])
+    fill_key_matrix(K, H[0, 0], H[0, 1], H[0, 2], H[1, 0], H[1, 1], H[1, 2], H[2, 0], H[2, 1],
+                    H[2, 2])
+    return K
+
+
+def fill_key_matrix(K, xx, xy, xz, yx, yy, yz, zx, zy, zz) -> None:
+    """K[:4, :4] = Horn's key matrix of H = [[xx xy xz] [yx yy yz] [zx zy zz]], elementwise:
+    entries of (S,) stacks here, scalars in the numba kernel that compiles this function."""
     K[0, 0] = xx + yy + zz
     K[1, 1] = xx - yy - zz
     K[2, 2] = yy - xx - zz
@@ -265,7 +272,6 @@ def _key_matrix(H: np.ndarray) -> np.ndarray:
     K[1, 2] = K[2, 1] = xy + yx
     K[1, 3] = K[3, 1] = zx + xz
     K[2, 3] = K[3, 2] = yz + zy
-    return K
 
 
 def _det3(a: np.ndarray) -> np.ndarray:
@@ -310,8 +316,14 @@ def _qcp_rotation(H: np.ndarray, lam: np.ndarray) -> np.ndarray:
     q = np.take_along_axis(adj, best[None, None, :], axis=1)[:, 0]  # (4,S)
     with np.errstate(divide="ignore", invalid="ignore"):
         q /= np.sqrt(np.einsum("ks,ks->s", q, q))
-    w, x, y, z = q
     R = np.empty((3, 3) + lam.shape)
+    fill_rotation(R, q[0], q[1], q[2], q[3])
+    return R
+
+
+def fill_rotation(R, w, x, y, z) -> None:
+    """R[:3, :3] = the rotation of the unit quaternion (w, x, y, z), elementwise (as
+    :func:`fill_key_matrix`)."""
     R[0, 0] = w * w + x * x - y * y - z * z
     R[1, 1] = w * w - x * x + y * y - z * z
     R[2, 2] = w * w - x * x - y * y + z * z
@@ -321,7 +333,6 @@ def _qcp_rotation(H: np.ndarray, lam: np.ndarray) -> np.ndarray:
     R[2, 0] = 2.0 * (x * z - w * y)
     R[1, 2] = 2.0 * (y * z - w * x)
     R[2, 1] = 2.0 * (y * z + w * x)
-    return R
 
 
 def _umeyama_svd(Xc: np.ndarray, Yc: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN
+from .procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN, fill_key_matrix, fill_rotation
 
 #: the adjugate table as kernel arguments (global arrays would keep numba from caching)
 _ADJUGATE = (np.ascontiguousarray(_ADJ_ENTRY, np.int64),
@@ -79,20 +79,8 @@ def _pair(cols, i, k, xc, yc, h, K, m, q, R, adj, max_steps, min_gap):
         for j in range(J):
             gx += xc[p, j] * xc[p, j]
             gy += yc[p, j] * yc[p, j]
-    xx, xy, xz = h[0, 0], h[0, 1], h[0, 2]
-    yx, yy, yz = h[1, 0], h[1, 1], h[1, 2]
-    zx, zy, zz = h[2, 0], h[2, 1], h[2, 2]
-    # Horn's key matrix (procrustes._key_matrix)
-    K[0, 0] = xx + yy + zz
-    K[1, 1] = xx - yy - zz
-    K[2, 2] = yy - xx - zz
-    K[3, 3] = zz - xx - yy
-    K[0, 1] = K[1, 0] = yz - zy
-    K[0, 2] = K[2, 0] = zx - xz
-    K[0, 3] = K[3, 0] = xy - yx
-    K[1, 2] = K[2, 1] = xy + yx
-    K[1, 3] = K[3, 1] = zx + xz
-    K[2, 3] = K[3, 2] = yz + zy
+    _fill_key_matrix(K, h[0, 0], h[0, 1], h[0, 2], h[1, 0], h[1, 1], h[1, 2], h[2, 0], h[2, 1],
+                     h[2, 2])
     f2 = 0.0
     for p in range(3):
         for o in range(3):
@@ -134,16 +122,7 @@ def _pair(cols, i, k, xc, yc, h, K, m, q, R, adj, max_steps, min_gap):
     for r in range(4):
         q[r] = _adjugate_entry(K, m, r, best, adj)
     norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    w, x, y, z = q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
-    R[0, 0] = w * w + x * x - y * y - z * z
-    R[1, 1] = w * w - x * x + y * y - z * z
-    R[2, 2] = w * w - x * x - y * y + z * z
-    R[0, 1] = 2.0 * (x * y - w * z)
-    R[1, 0] = 2.0 * (x * y + w * z)
-    R[0, 2] = 2.0 * (x * z + w * y)
-    R[2, 0] = 2.0 * (x * z - w * y)
-    R[1, 2] = 2.0 * (y * z - w * x)
-    R[2, 1] = 2.0 * (y * z + w * x)
+    _fill_rotation(R, q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm)
     scale = lam / gx if gx > 0 else 0.0
     for p in range(3):
         for o in range(3):
@@ -200,8 +179,11 @@ def _kernel(cols, a, b, adj, max_steps, min_gap, out, ok):
                               min_gap)
 
 
+_fill_key_matrix, _fill_rotation = fill_key_matrix, fill_rotation  # one home: procrustes
 if _numba is not None:
     _opts = dict(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+    _fill_key_matrix = _numba.njit(inline="always", **_opts)(fill_key_matrix)
+    _fill_rotation = _numba.njit(inline="always", **_opts)(fill_rotation)
     _minors = _numba.njit(inline="always", **_opts)(_minors)
     _adjugate_entry = _numba.njit(inline="always", **_opts)(_adjugate_entry)
     _pair = _numba.njit(**_opts)(_pair)
