@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numba as nb
 import numpy as np
-from llvmlite import ir as llvm_ir
+from numba.core import cgutils
 
 from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U32,
                        EPIPOLE_NORM)
@@ -45,11 +45,12 @@ def prefetch(typingctx, address):
     sig = nb.types.void(nb.types.int64)
 
     def codegen(context, builder, signature, args):
-        byte_ptr = llvm_ir.IntType(8).as_pointer()
-        i32 = llvm_ir.IntType(32)
+        # numba's codegen types (llvmlite, which numba brings): no import of llvmlite here
+        byte_ptr = cgutils.voidptr_t
+        i32 = cgutils.int32_t
         fn = builder.module.declare_intrinsic(
             "llvm.prefetch", [byte_ptr],
-            llvm_ir.FunctionType(llvm_ir.VoidType(), [byte_ptr, i32, i32, i32]))
+            cgutils.ir.FunctionType(cgutils.ir.VoidType(), [byte_ptr, i32, i32, i32]))
         # read (0), high temporal locality (3), data cache (1)
         builder.call(fn, [builder.inttoptr(args[0], byte_ptr), i32(0), i32(3), i32(1)])
         return context.get_dummy_value()
