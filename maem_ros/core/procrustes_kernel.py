@@ -5,9 +5,10 @@ own temporaries (~1.1 us per pair for 13 joints). This kernel walks the same ste
 with scalars: the same float64 operations in the same order (no fast-math: no reassociation,
 no fused multiply-add), reading the two detections' keypoints in place from the (3,J,N)
 columns (no gathered copies). Only the einsum reductions (H, the squared norms) may sum in
-another order than numpy's, a relative difference of ~1e-16 in the costs; see
-test_procrustes.py. Pairs with a near-degenerate eigenvalue gap are flagged for the SVD path,
-as in numpy.
+another order than numpy's, a relative difference of ~1e-16 in the costs (bit-identical on
+6,000 random pairs here; test_association_fast_paths.py compares them). The key matrix and
+the rotation are procrustes' own functions, compiled. Pairs with a near-degenerate eigenvalue
+gap are flagged for the SVD path, as in numpy.
 """
 from __future__ import annotations
 
