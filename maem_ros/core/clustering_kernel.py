@@ -12,16 +12,11 @@ from __future__ import annotations
 import numpy as np
 
 from .geometry import _SINGULAR, adjugate_solve, normal_cofactors
+from .jit import have_numba, jit
 
-try:  # numba is optional: the numpy paths give the same results, only slower
-    import numba as _numba
-except ImportError:  # pragma: no cover - exercised only without numba
-    _numba = None
-
-
-def have_numba() -> bool:
-    return _numba is not None
-
+# geometry's elementwise formulas, compiled for the scalars here (one home: geometry)
+_normal_cofactors = jit(normal_cofactors, inline=True)
+_adjugate_solve = jit(adjugate_solve, inline=True)
 
 def consistent(E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray,
                rows: np.ndarray, tau: float) -> np.ndarray:
@@ -47,7 +42,7 @@ def absorb(x: np.ndarray, y: np.ndarray, between: np.ndarray, support: np.ndarra
 
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernels now. No-op without numba."""
-    if _numba is None:
+    if not have_numba():
         return
     E = np.zeros((9, 2, 3))
     consistent(E, np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool),
@@ -55,6 +50,7 @@ def warmup() -> None:
     absorb(np.array([0]), np.array([1]), np.zeros((2, 2)), np.zeros((2, 2), np.int64))
 
 
+@jit
 def _consistent(E, P, uv, usable, rows, tau, ok):
     Jb = E.shape[2]
     M = rows.shape[1]
@@ -93,6 +89,7 @@ def _consistent(E, P, uv, usable, rows, tau, ok):
         ok[k] = good
 
 
+@jit(inline=True)
 def _solve(n):
     """geometry.solve_normal of one system's entries n (9,): (x, y, z), NaN if singular."""
     cof = _normal_cofactors(n[0], n[1], n[2], n[3], n[4], n[5])
@@ -102,6 +99,7 @@ def _solve(n):
     return _adjugate_solve(cof[:6], det, n[6], n[7], n[8])
 
 
+@jit(inline=True)
 def _reprojection(P, r, x, y, z, u, v):
     """geometry.reprojection_error of point (x, y, z) in view P[r] against (u, v) px: inf
     behind the camera or for non-finite input."""
@@ -119,6 +117,7 @@ def _reprojection(P, r, x, y, z, u, v):
     return np.inf
 
 
+@jit
 def _absorb(x, y, matrix):
     N = matrix.shape[0]
     for k in range(x.size):
@@ -133,14 +132,3 @@ def _absorb(x, y, matrix):
     for k in range(x.size):
         for c in range(N):
             matrix[y[k], c] = 0
-
-
-_normal_cofactors, _adjugate_solve = normal_cofactors, adjugate_solve  # one home: geometry
-if _numba is not None:
-    _opts = dict(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-    _normal_cofactors = _numba.njit(inline="always", **_opts)(normal_cofactors)
-    _adjugate_solve = _numba.njit(inline="always", **_opts)(adjugate_solve)
-    _solve = _numba.njit(inline="always", **_opts)(_solve)
-    _reprojection = _numba.njit(inline="always", **_opts)(_reprojection)
-    _consistent = _numba.njit(**_opts)(_consistent)
-    _absorb = _numba.njit(**_opts)(_absorb)

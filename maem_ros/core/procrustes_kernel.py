@@ -14,22 +14,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from .jit import have_numba, jit
 from .procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN, fill_key_matrix, fill_rotation
+
+# procrustes' elementwise formulas, compiled for the scalars here (one home: procrustes)
+_fill_key_matrix = jit(fill_key_matrix, inline=True)
+_fill_rotation = jit(fill_rotation, inline=True)
 
 #: the adjugate table as kernel arguments (global arrays would keep numba from caching)
 _ADJUGATE = (np.ascontiguousarray(_ADJ_ENTRY, np.int64),
              np.ascontiguousarray(_ADJ_MINOR, np.int64),
              np.ascontiguousarray(_ADJ_SIGN, np.float64))
-
-try:  # numba is optional: the numpy path gives the same costs, only slower
-    import numba as _numba
-except ImportError:  # pragma: no cover - exercised only without numba
-    _numba = None
-
-
-def have_numba() -> bool:
-    return _numba is not None
-
 
 def pair_costs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, max_steps: int,
                min_gap: float) -> tuple[np.ndarray, np.ndarray]:
@@ -47,11 +42,12 @@ def pair_costs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, max_steps: int
 
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernel now. No-op without numba."""
-    if _numba is not None:
+    if have_numba():
         cols = np.random.default_rng(0).normal(size=(3, 4, 2))
         pair_costs(cols, np.array([0]), np.array([1]), 60, 1e-6)
 
 
+@jit
 def _pair(cols, i, k, xc, yc, h, K, m, q, R, adj, max_steps, min_gap):
     """(cost, usable) of detection i onto k: pa_mpjpe_columns' steps for one pair; xc, yc
     (3,J), h (3,3), K (4,4), m (12,), q (4,), R (3,3) scratch (no allocation per pair); adj:
@@ -142,6 +138,7 @@ def _pair(cols, i, k, xc, yc, h, K, m, q, R, adj, max_steps, min_gap):
     return total / J, True
 
 
+@jit(inline=True)
 def _minors(a, m):
     """m (12,) = the 2x2 minors of rows (0,1), then rows (2,3), of a (4,4), columns 01 02 03
     12 13 23 (procrustes._minors)."""
@@ -154,6 +151,7 @@ def _minors(a, m):
             k += 1
 
 
+@jit(inline=True)
 def _adjugate_entry(a, m, r, c, adj):
     """adj(a)[r, c] from a (4,4) and its minors m: the three signed terms of
     procrustes._adjugate_table (adj = its entries, minors, signs) in its order."""
@@ -166,6 +164,7 @@ def _adjugate_entry(a, m, r, c, adj):
     return total
 
 
+@jit
 def _kernel(cols, a, b, adj, max_steps, min_gap, out, ok):
     J = cols.shape[1]
     xc = np.empty((3, J))
@@ -178,14 +177,3 @@ def _kernel(cols, a, b, adj, max_steps, min_gap, out, ok):
     for s in range(a.size):
         out[s], ok[s] = _pair(cols, a[s], b[s], xc, yc, h, K, m, q, R, adj, max_steps,
                               min_gap)
-
-
-_fill_key_matrix, _fill_rotation = fill_key_matrix, fill_rotation  # one home: procrustes
-if _numba is not None:
-    _opts = dict(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-    _fill_key_matrix = _numba.njit(inline="always", **_opts)(fill_key_matrix)
-    _fill_rotation = _numba.njit(inline="always", **_opts)(fill_rotation)
-    _minors = _numba.njit(inline="always", **_opts)(_minors)
-    _adjugate_entry = _numba.njit(inline="always", **_opts)(_adjugate_entry)
-    _pair = _numba.njit(**_opts)(_pair)
-    _kernel = _numba.njit(**_opts)(_kernel)

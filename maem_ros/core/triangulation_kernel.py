@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from .geometry import _SINGULAR
+from .jit import jit
 
 try:  # numba is optional: the numpy path gives the same results, only slower
     import numba as _numba
@@ -63,20 +64,11 @@ def warmup() -> None:
                          np.ones((1, 2)), 1.0, 2)
 
 
-def _jit(fn):
-    """numba.njit with the on-disk cache (compiled on first call), or ``fn`` unchanged without
-    numba (then never called). Module-level functions, not closures: numba's cache key hashes
-    a closure's cells, and a captured dispatcher hashes differently in every process."""
-    if _numba is None:
-        return fn
-    return _numba.njit(cache=True, error_model="numpy", boundscheck=False, nogil=True)(fn)
-
-
 # every loop below runs over the keypoints j innermost (contiguous, independent): LLVM
 # vectorises them with exact SIMD division and square root, no fast-math needed
 
 
-@_jit
+@jit
 def _entries(P, u, v, usable, E):
     """geometry.normal_entries of one view for all keypoints: P (3,4), u, v, usable (J,)
     -> E (9,J); rows r1 = u P3 - P1, r2 = v P3 - P2, uv = 0 where unusable."""
@@ -102,7 +94,7 @@ def _entries(P, u, v, usable, E):
         E[8, j] = a2 * a3 + b2 * b3
 
 
-@_jit
+@jit
 def _solve(n, X):
     """geometry.solve_normal of the systems n (9,J) into X (3,J), NaN when singular."""
     for j in range(n.shape[1]):
@@ -121,7 +113,7 @@ def _solve(n, X):
         X[2, j] = -((c02 * n[6, j] + c12 * n[7, j] + c22 * n[8, j]) / det)
 
 
-@_jit
+@jit
 def _score(P, X, u, v, usable, tau, inl, count, total):
     """Inliers of hypotheses X (3,J) in one view (P (3,4), u, v, usable (J,)): inl (J,)
     and the running count and error sum (px) per keypoint. An inlier has depth > 0 and
@@ -138,7 +130,7 @@ def _score(P, X, u, v, usable, tau, inl, count, total):
         total[j] += err if ok else 0.0
 
 
-@_jit
+@jit
 def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
     """ransac_keypoints on split coordinates u, v (C,M,J), into X_out (C,J,3), n_out (C,J)."""
     C, M, J = usable.shape
