@@ -1,6 +1,7 @@
 """The screened mesh gate: pairs are decided on a fixed 1/stride subset of the vertices (runs of
 SCREEN_RUN consecutive ones) unless their subset mean is within the margin of tau, where the
-full set decides; screen_stride 1 is the paper's gate over every vertex."""
+next level (a finer subset, last the full set) decides; screen_stride 1 is the paper's gate over
+every vertex."""
 from __future__ import annotations
 
 import dataclasses
@@ -18,6 +19,9 @@ N = 4096
 STRIDE = 8
 TAU = 8.0
 MARGIN = 1.0
+#: a coarser screening level before the screen
+COARSE = 32
+COARSE_MARGIN = 2.5
 
 
 def _screened_ids(n: int, stride: int) -> np.ndarray:
@@ -26,14 +30,17 @@ def _screened_ids(n: int, stride: int) -> np.ndarray:
     return k[k % (epipolar.SCREEN_RUN * stride) < epipolar.SCREEN_RUN]
 
 
-def _pair(on_screen: float, elsewhere: float, seed: int = 0, n: int = N
-          ) -> tuple[np.ndarray, np.ndarray]:
+def _pair(on_screen: float, elsewhere: float, seed: int = 0, n: int = N,
+          on_coarse: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One detection in a and one in b (n vertices) whose vertices lie on_screen px off their
-    epipolar lines on the screened ids and elsewhere px off on the others."""
+    epipolar lines on the screened ids (on_coarse px on those of the COARSE subset, if
+    given) and elsewhere px off on the others."""
     rng = np.random.default_rng(seed)
     xa = rng.uniform(100, 900, (1, n, 2)).astype(np.float32)
     offset = np.full(n, elsewhere, np.float32)
     offset[_screened_ids(n, STRIDE)] = on_screen
+    if on_coarse is not None:
+        offset[_screened_ids(n, COARSE)] = on_coarse
     xb = xa.copy()
     xb[0, :, 0] += rng.uniform(-50, 50, n).astype(np.float32)  # along the line: no distance
     xb[0, :, 1] += offset * rng.choice(np.float32([-1, 1]), n)
@@ -115,6 +122,46 @@ def test_a_subset_with_most_points_missing_defers_to_the_full_set():
     keep, mean, _ = _gate(xa, xb)
     assert keep[0]  # the full set's mean is ~1.3 px (the missing ones take no part)
     assert 1.0 < mean[0] < TAU
+
+
+def _two_levels(xa, xb):
+    """The gate with the coarse level and the screen (as the association's default)."""
+    rows = [(epipolar.screen_rows(xa, k), epipolar.screen_rows(xb, k)) for k in (COARSE, STRIDE)]
+    one = np.zeros(1, np.int64)
+    return epipolar.frame_screened_means(
+        {0: epipolar.point_rows(xa), 1: epipolar.point_rows(xb)},
+        [(dict(enumerate(r)), m) for r, m in zip(rows, (COARSE_MARGIN, MARGIN))], {(0, 1): F_ROWS},
+        one, one, one + 1, one, TAU)
+
+
+def test_screen_levels_decide_coarse_to_fine_each_within_its_margin():
+    coarse, fine = N // COARSE, N // STRIDE
+    # clear on the coarse subset: decided there, with its mean (the rest is never read)
+    keep, mean, evaluated = _two_levels(*_pair(7.9, 7.9, on_coarse=2.0))
+    assert keep[0] and mean[0] == pytest.approx(2.0, abs=1e-4) and evaluated == coarse
+    keep, mean, evaluated = _two_levels(*_pair(1.0, 1.0, on_coarse=TAU + COARSE_MARGIN + 0.5))
+    assert not keep[0] and np.isnan(mean[0]) and evaluated == coarse
+    # within the coarse margin, clear on the screen: the screen decides
+    keep, mean, evaluated = _two_levels(*_pair(3.0, 9.0, on_coarse=TAU + 1.5))
+    screen_mean = (3.0 * (fine - coarse) + (TAU + 1.5) * coarse) / fine
+    assert keep[0] and mean[0] == pytest.approx(screen_mean, rel=1e-5)
+    assert evaluated == coarse + fine
+    # within both margins: the full set decides
+    for on_screen, elsewhere in [(7.5, 9.0), (8.5, 7.0)]:
+        keep, mean, evaluated = _two_levels(*_pair(on_screen, elsewhere, on_coarse=on_screen))
+        assert keep[0] == (_full_mean(on_screen, elsewhere) < TAU)
+        assert evaluated == coarse + fine + N
+
+
+def test_screen_levels_follow_the_params():
+    params = AssociationParams()
+    assert params.screen_levels() == [(params.screen_coarse_stride, params.screen_coarse_margin),
+                                      (params.screen_stride, params.screen_margin)]
+    assert AssociationParams(screen_coarse_stride=1).screen_levels() == [
+        (params.screen_stride, params.screen_margin)]
+    assert AssociationParams(screen_stride=1).screen_levels() == []  # the paper: every vertex
+    with pytest.raises(ValueError, match="^screen_coarse_stride: must be 1 .* coarser"):
+        AssociationParams(screen_coarse_stride=params.screen_stride)
 
 
 def test_screened_and_full_mesh_association_give_the_same_clusters(scene):

@@ -45,7 +45,7 @@ from .skeleton import joint_subset
 #: cap, every pair's mesh distance over all vertices (no screen), per-pair Hungarian +
 #: union-find + conflict removal
 PAPER_PIPELINE = {"clustering": "paper", "cost_joints": "all", "tau_cost": 0.0,
-                  "cost_epipolar_weight": 0.0, "screen_stride": 1}
+                  "cost_epipolar_weight": 0.0, "screen_stride": 1, "screen_coarse_stride": 1}
 
 
 @dataclass
@@ -86,6 +86,12 @@ class AssociationParams(Params):
                                   "set, the paper)", minimum=1)
     screen_margin: float = param(1.0, "px, mesh gate: subset means within this of tau_mesh are "
                                       "decided on the full set", minimum=0.0)
+    screen_coarse_stride: int = param(32, "mesh gate, before the screen: decide pairs on 1/n of "
+                                          "the gate vertices (runs of 8), on the screen only "
+                                          "within screen_coarse_margin of tau_mesh (1 = off; "
+                                          "only with a screen, and coarser than it)", minimum=1)
+    screen_coarse_margin: float = param(2.5, "px, mesh gate: coarse subset means within this of "
+                                             "tau_mesh go on to the screen", minimum=0.0)
     backend: str = param("auto", "kernels of the gates (epipolar, reprojection), the pair cost "
                                  "and the clustering (auto = numba when installed, else numpy)",
                          choices=epipolar.BACKENDS)
@@ -112,6 +118,20 @@ class AssociationParams(Params):
         if self.clustering == "consistent" and self.tau_cost == 0:
             raise ValueError("tau_cost: the consistent clustering needs a cost cap > 0 m")
         joint_subset(self.cost_joints, None)
+        if 1 < self.screen_coarse_stride <= self.screen_stride:
+            raise ValueError(f"screen_coarse_stride: must be 1 (off) or coarser than "
+                             f"screen_stride ({self.screen_stride}), got "
+                             f"{self.screen_coarse_stride}")
+
+    def screen_levels(self) -> list[tuple[int, float]]:
+        """(stride, margin px) of the mesh gate's screening levels, coarse to fine (empty: every
+        pair on the full set)."""
+        if self.screen_stride <= 1:
+            return []
+        levels = [(self.screen_stride, self.screen_margin)]
+        if self.screen_coarse_stride > 1:
+            levels.insert(0, (self.screen_coarse_stride, self.screen_coarse_margin))
+        return levels
 
 
 @dataclass
@@ -267,19 +287,38 @@ def _reprojection_kernel(backend: str):
 
 
 def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
-                 ) -> dict[int, tuple[epipolar.PointRows, epipolar.PointRows | None]]:
+                 ) -> dict[int, tuple[epipolar.PointRows, list[epipolar.PointRows | None]]]:
     """Per camera, the points the epipolar gate compares (vertices or keypoints) and their
-    screening subset (mesh gate, ``screen_stride``; None = no screen), in the layout the
-    kernel reads: built once per camera (not per camera pair), the full set a view of the
-    decoded message when the gate uses every vertex it received."""
+    screening subsets (mesh gate, :meth:`AssociationParams.screen_levels`, coarse to fine;
+    None = too few points), in the layout the kernel reads: built once per camera (not per
+    camera pair), the full set a view of the decoded message when the gate uses every vertex
+    it received."""
     if params.epipolar_gate == "sparse":
-        return {c: (epipolar.point_rows(fd.kpts2d), None) for c, fd in frames.items()}
+        return {c: (epipolar.point_rows(fd.kpts2d), []) for c, fd in frames.items()}
     columns = _gate_columns(frames, params)
     out = {}
     for c, fd in frames.items():
         x = fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]]
-        out[c] = (epipolar.point_rows(x), epipolar.screen_rows(x, params.screen_stride))
+        out[c] = (epipolar.point_rows(x), screen_subsets(x, params))
     return out
+
+
+def screen_subsets(x: np.ndarray, params: AssociationParams) -> list[epipolar.PointRows | None]:
+    """One camera's (N,n,2) gate points -> the subset of each screening level (coarse to fine,
+    :meth:`AssociationParams.screen_levels`; None where too few points to screen with)."""
+    return [epipolar.screen_rows(x, stride) for stride, _ in params.screen_levels()]
+
+
+def screen_levels(points: Mapping[int, tuple[epipolar.PointRows, list[epipolar.PointRows | None]]],
+                  params: AssociationParams) -> list[epipolar.ScreenLevel]:
+    """The screening levels of epipolar.frame_screened_means from per-camera (full, subsets):
+    the levels every camera has a subset for (keypoints have none), with their margins."""
+    levels = []
+    for k, (_, margin) in enumerate(params.screen_levels()):
+        subsets = {c: rows[k] if k < len(rows) else None for c, (_, rows) in points.items()}
+        if all(v is not None for v in subsets.values()):
+            levels.append((subsets, margin))
+    return levels
 
 
 def _gate_columns(frames: dict[int, FrameDetections], params: AssociationParams
@@ -318,14 +357,13 @@ def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
     """(keep (S,) bool, mean distance (S,) px, exact where kept) of pairs (i, j)."""
     points = _gate_points(table.frames, params)
     full = {c: rows for c, (rows, _) in points.items()}
-    screens = {c: rows for c, (_, rows) in points.items()}
-    # one kernel call for every camera pair of the frame (per pass): a detection's block is
+    # one kernel call for every camera pair of the frame (per level): a detection's block is
     # read once from memory for all its candidate pairs
     keep, mean, evaluated = epipolar.frame_screened_means(
-        full, None if any(v is None for v in screens.values()) else screens, F, table.cam[i],
-        table.det[i], table.cam[j], table.det[j], params.tau_mesh, params.screen_margin,
-        symmetric=params.epipolar_distance == "symmetric", early_exit=params.early_exit,
-        backend=params.backend, precision=params.epipolar_precision)
+        full, screen_levels(points, params), F, table.cam[i], table.det[i], table.cam[j],
+        table.det[j], params.tau_mesh, symmetric=params.epipolar_distance == "symmetric",
+        early_exit=params.early_exit, backend=params.backend,
+        precision=params.epipolar_precision)
     budget = i.size * next(iter(full.values())).n if full else 0
     stats["epipolar_points_fraction"] = evaluated / budget if budget else 0.0
     return keep, mean

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -476,39 +476,45 @@ SCREEN_RUN = 8
 SCREEN_MIN_POINTS = 64
 
 
+#: one screening level: the subset of every camera's points (:func:`screen_rows`) and its margin
+#: (px): subset means within it of tau go on to the next level
+ScreenLevel = tuple[Mapping[int, PointRows], float]
+
+
 def screened_means(full: tuple[PointRows, PointRows], screen: tuple[PointRows, PointRows] | None,
                    F: np.ndarray, ia: np.ndarray, jb: np.ndarray, tau: float, margin: float,
                    symmetric: bool = True, early_exit: bool = True, backend: str = "auto",
                    precision: str = "mixed") -> tuple[np.ndarray, np.ndarray, int]:
-    """The epipolar gate of detection pairs (ia[s] in a, jb[s] in b) of one camera pair:
-    :func:`frame_screened_means` of that camera pair."""
+    """The epipolar gate of detection pairs (ia[s] in a, jb[s] in b) of one camera pair with
+    one screening level (or None): :func:`frame_screened_means` of that camera pair."""
     ia = np.asarray(ia)
     return frame_screened_means(dict(enumerate(full)),
-                                None if screen is None else dict(enumerate(screen)),
+                                [] if screen is None else [(dict(enumerate(screen)), margin)],
                                 {(0, 1): F}, np.zeros(ia.shape, np.int64), ia,
-                                np.ones(ia.shape, np.int64), jb, tau, margin, symmetric,
-                                early_exit, backend, precision)
+                                np.ones(ia.shape, np.int64), jb, tau, symmetric, early_exit,
+                                backend, precision)
 
 
-def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, PointRows] | None,
+def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[ScreenLevel],
                          F: Mapping[tuple[int, int], np.ndarray], cam_a: np.ndarray,
                          det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray, tau: float,
-                         margin: float, symmetric: bool = True, early_exit: bool = True,
+                         symmetric: bool = True, early_exit: bool = True,
                          backend: str = "auto", precision: str = "mixed"
                          ) -> tuple[np.ndarray, np.ndarray, int]:
     """The epipolar gate of the detection pairs of a frame (as :func:`frame_sums`): (keep (S,)
     bool, mean (S,) px over the points the decision used, points evaluated); one kernel call
-    for the screen and one for the full sets, every camera pair at once.
+    per level for every camera pair at once.
 
-    Without a screen (None) every pair is decided on the full point sets (exact: the mean over
-    all points both detections have, ``keep = mean < tau``). With one (screen[c]: the same
-    fixed-topology subset of every camera's points, :func:`screen_rows`), each pair's mean is
-    first taken over the subset; a pair whose subset mean is below ``tau - margin`` px is
-    accepted with it, one at or above ``tau + margin`` is rejected, and the pairs in between
-    (or with fewer than half of the subset's points present) are decided on the full sets. The
-    subset mean of a regular subset of a dense mesh is within a small fraction of a px of the
-    full mean (the vertices oversample the image), so the decisions are the full-set ones
-    unless it errs by more than ``margin``.
+    Without screening levels (empty) every pair is decided on the full point sets (exact: the
+    mean over all points both detections have, ``keep = mean < tau``). With them (coarse to
+    fine; each the same fixed-topology subset of every camera's points and a margin), the
+    pairs still open are taken over each level's subset in turn: a pair whose subset mean is
+    below ``tau - margin`` px is accepted with it, one at or above ``tau + margin`` is
+    rejected, and the rest (or those with fewer than half of the subset's points present) go
+    on to the next level, the last to the full sets. The subset mean of a regular subset of a
+    dense mesh is within a small fraction of the full mean (the vertices oversample the
+    image; the error grows with the mean and with the stride), so the decisions are the
+    full-set ones unless a level errs by more than its margin.
     """
     pairs = [np.asarray(v) for v in (cam_a, det_a, cam_b, det_b)]
     S = pairs[0].size
@@ -516,11 +522,13 @@ def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, Poi
     mean = np.full(S, np.nan)
     todo = np.arange(S)
     evaluated = 0
-    if screen is not None and S:
+    for screen, margin in screens:
+        if not todo.size:
+            break
         # every point counted: whether half the subset is there does not depend on where an
         # early exit stopped
-        sums, used, summed = _frame_sums(screen, F, *pairs, tau + margin, symmetric, early_exit,
-                                         backend, precision, True)
+        sums, used, summed = _frame_sums(screen, F, *(v[todo] for v in pairs), tau + margin,
+                                         symmetric, early_exit, backend, precision, True)
         evaluated += int(summed.sum())
         with np.errstate(invalid="ignore", divide="ignore"):
             m = sums / used
@@ -528,9 +536,9 @@ def frame_screened_means(full: Mapping[int, PointRows], screen: Mapping[int, Poi
         enough = used * 2 >= n
         rejected = enough & ~(sums < (tau + margin) * used)  # partial sums: early exit
         accepted = enough & ~rejected & (m < tau - margin)
-        keep[accepted] = True
-        mean[accepted] = m[accepted]
-        todo = np.flatnonzero(~(accepted | rejected))
+        keep[todo[accepted]] = True
+        mean[todo[accepted]] = m[accepted]
+        todo = todo[~(accepted | rejected)]
     if todo.size:
         sums, used = frame_sums(full, F, *(v[todo] for v in pairs), tau, symmetric, early_exit,
                                 backend, precision)

@@ -49,7 +49,7 @@ from typing import Callable, Mapping
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .association import AssociationParams, associate
+from .association import AssociationParams, associate, screen_levels, screen_subsets
 from .camera import Rig
 from .detections import Cluster, FrameDetections
 from . import epipolar
@@ -322,18 +322,18 @@ class _FrameView:
             self.valid[c, ok] = True
             if ok.size:
                 self.ok[c] = ok
-        self._rows: dict[int, epipolar.PointRows] = {}
+        self._rows: dict[int, tuple[epipolar.PointRows, list[epipolar.PointRows | None]]] = {}
         self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
         self._known_ok = np.zeros(0, bool)
 
-    def points(self, c: int) -> "tuple[epipolar.PointRows, epipolar.PointRows | None]":
-        """Camera c's points for the verification's epipolar gate and their screening subset
-        (None = no screen: keypoints, or ``screen_stride`` 1), converted once per frame."""
+    def points(self, c: int) -> "tuple[epipolar.PointRows, list[epipolar.PointRows | None]]":
+        """Camera c's points for the verification's epipolar gate and their screening subsets
+        (association.screen_subsets; none for keypoints), converted once per frame."""
         if c not in self._rows:
             x = self.stage._gate_points(self.by_cam[c])
             mesh = self.stage.tp.verify_epipolar == "mesh"
-            stride = self.stage.params.screen_stride if mesh else 1
-            self._rows[c] = (epipolar.point_rows(x), epipolar.screen_rows(x, stride))
+            self._rows[c] = (epipolar.point_rows(x),
+                             screen_subsets(x, self.stage.params) if mesh else [])
         return self._rows[c]
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
@@ -590,12 +590,12 @@ class TemporalAssociator:
             s = np.flatnonzero(ok)
             cams = sorted_unique(np.concatenate([ca[s], cb[s]])).tolist()
             rows = {c: view.points(c) for c in cams}
-            screens = {c: screen for c, (_, screen) in rows.items()}
-            # every camera pair in one kernel call; missing (NaN) points are not counted
+            # every camera pair in one kernel call per level; missing (NaN) points are not
+            # counted
             ok[s] = epipolar.frame_screened_means(
                 {c: full for c, (full, _) in rows.items()},
-                None if any(v is None for v in screens.values()) else screens, self._F,
-                ca[s], da[s], cb[s], db[s], p.tau_mesh, p.screen_margin,
+                screen_levels(rows, p), self._F,
+                ca[s], da[s], cb[s], db[s], p.tau_mesh,
                 symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
                 backend=p.backend, precision=p.epipolar_precision)[0]
         if p.tau_cost > 0 and ok.any():
