@@ -317,7 +317,7 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     like = flats[0]
     layout = rows[cams[0]]
     if layout.run:  # a subset read in runs: each detection's points gathered once, contiguous
-        like = np.empty((dets.size, 2 * n), dtype=like.dtype)
+        like = _aligned_empty(dets.size * 2 * n, like.dtype).reshape(dets.size, 2 * n)
         _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like)
         det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
         like = like.reshape(-1)
@@ -329,6 +329,14 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], Fs: list[np.n
     for v, g in zip(out, got):
         v[order] = g
     return out
+
+
+def _aligned_empty(size: int, dtype: np.dtype, align: int = 64) -> np.ndarray:
+    """np.empty((size,), dtype) starting on an ``align``-byte boundary."""
+    item = np.dtype(dtype).itemsize
+    raw = np.empty(size * item + align, np.uint8)
+    skip = -raw.ctypes.data % align
+    return raw[skip:skip + size * item].view(dtype)
 
 
 def warmup() -> None:

@@ -247,23 +247,34 @@ def centre(x, n):
 
 
 @plain
-def centred_f(f, ca0, ca1, cb0, cb1, g, G):
-    """g (9,) float32 T_b^T F T_a: F (f (9,) row-major, unit norm) of the points centred on
-    (ca0, ca1) in a and (cb0, cb1) in b; G (3,3) = |g|. Rows 0-1 depend on a's centre only
-    (a detection's pairs in one camera pair share them bit for bit), and (g x)_12 =
-    (F x)_12, so EPIPOLE_NORM applies in g's units as it is; the error bound does not
-    depend on g's scale."""
-    h = np.empty((3, 3))
-    for r in range(3):
-        h[r, 0] = f[3 * r]
-        h[r, 1] = f[3 * r + 1]
-        h[r, 2] = f[3 * r] * ca0 + f[3 * r + 1] * ca1 + f[3 * r + 2]
-    for col in range(3):
-        h[2, col] = cb0 * h[0, col] + cb1 * h[1, col] + h[2, col]
-    for r in range(3):
-        for col in range(3):
-            g[3 * r + col] = np.float32(h[r, col])
-            G[r, col] = abs(np.float64(g[3 * r + col]))
+def centred_f(fs, k, ca0, ca1, cb0, cb1, g, G, s):
+    """g[s] (9,) float32 T_b^T F T_a: F (fs[k] (9,) row-major, unit norm) of the points
+    centred on (ca0, ca1) in a and (cb0, cb1) in b; G[s] (3,3) = |g[s]|. Rows 0-1 depend on
+    a's centre only (a detection's pairs in one camera pair share them bit for bit), and
+    (g x)_12 = (F x)_12, so EPIPOLE_NORM applies in g's units as it is; the error bound does
+    not depend on g's scale. Scalars and indices: a temporary array or a row view per pair
+    costs an allocation or reference counting."""
+    # F T_a: the third column takes a's centre
+    h02 = fs[k, 0] * ca0 + fs[k, 1] * ca1 + fs[k, 2]
+    h12 = fs[k, 3] * ca0 + fs[k, 4] * ca1 + fs[k, 5]
+    h22 = fs[k, 6] * ca0 + fs[k, 7] * ca1 + fs[k, 8]
+    # T_b^T (F T_a): the third row takes b's centre
+    _put(g, G, s, 0, 0, fs[k, 0])
+    _put(g, G, s, 0, 1, fs[k, 1])
+    _put(g, G, s, 0, 2, h02)
+    _put(g, G, s, 1, 0, fs[k, 3])
+    _put(g, G, s, 1, 1, fs[k, 4])
+    _put(g, G, s, 1, 2, h12)
+    _put(g, G, s, 2, 0, cb0 * fs[k, 0] + cb1 * fs[k, 3] + fs[k, 6])
+    _put(g, G, s, 2, 1, cb0 * fs[k, 1] + cb1 * fs[k, 4] + fs[k, 7])
+    _put(g, G, s, 2, 2, cb0 * h02 + cb1 * h12 + h22)
+
+
+@inline
+def _put(g, G, s, r, col, value):
+    """g[s, 3r + col] = value in float32, G[s, r, col] its magnitude."""
+    g[s, 3 * r + col] = np.float32(value)
+    G[s, r, col] = abs(np.float64(g[s, 3 * r + col]))
 
 
 @plain
@@ -435,7 +446,7 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
         i = pa[s]
         j = pb[s]
         c[s, 0], c[s, 1], c[s, 2], c[s, 3] = cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1]
-        centred_f(fs[fk[s]], cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1], g[s], G[s])
+        centred_f(fs, fk[s], cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1], g, G, s)
     # run_end[s]: end of s's run, the pairs of its a-side detection in its camera pair
     # (sorted together); their lines and weights in a are computed once, two pairs at a time
     run_end = np.empty(S, dtype=np.int64)
