@@ -234,6 +234,13 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kern
     camset = np.zeros((N, C), bool)
     camset[label, table.cam] = True
     size = np.bincount(label, minlength=N)
+    if kernels is not None:  # the same rounds, compiled (clustering_kernel.greedy_merges)
+        label, merged, rejected = kernels.greedy_merges(
+            links, between, support, camset, size, label, params.min_support,
+            verify.E, verify.P, verify.uv, verify.usable, verify.tau)
+        stats["merges_rejected"] += float(rejected)
+        stats["merges"] += float(merged)
+        return label
     refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     while True:
         A, B = np.divmod(links, N)
