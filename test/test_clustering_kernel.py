@@ -122,6 +122,22 @@ def test_link_relabelling_equals_the_numpy_relabelling(seed, n, links):
                           clustering._relabel_links(codes, into, n))
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10**6), n=st.integers(2, 40), k=st.integers(0, 10))
+def test_candidate_members_are_listed_as_numpy_lists_them(seed, n, k):
+    """The check's DLT sums run over the members in this order."""
+    rng = np.random.default_rng(seed)
+    label = rng.integers(0, n, n)
+    labels = np.unique(label)
+    if labels.size < 2:
+        return
+    pick = np.array([rng.choice(labels, 2, replace=False) for _ in range(k)],
+                    np.int64).reshape(k, 2)
+    got = clustering_kernel._member_rows(pick[:, 0].copy(), pick[:, 1].copy(), label)
+    want = clustering._members_padded(label, [pick[:, 0], pick[:, 1]])
+    assert np.array_equal(got, want)
+
+
 def _pairs(table: DetectionTable, rng: np.random.Generator, people: int, tau: float) -> PairSet:
     """Every cross-camera pair: same-person pairs mostly pass, the others mostly fail a gate;
     costs on a 1 cm grid (ties in the gains and their sums)."""

@@ -250,40 +250,40 @@ def _take_disjoint(a, b, order, n):
 
 @jit
 def _check(a, b, size, label, E, P, uv, usable, tau):
-    """The merge check of candidates a[k] + b[k] from three members on (smaller ones pass),
-    members listed as clustering._members_padded does: a's rows ascending, then b's."""
-    N = label.size
-    start = np.zeros(N + 1, np.int64)  # rows grouped by label, ascending within each
-    for r in range(N):
+    """The merge check of candidates a[k] + b[k] from three members on (smaller ones pass)."""
+    need = np.flatnonzero(size[a] + size[b] >= 3)
+    ok = np.empty(need.size, np.bool_)
+    _consistent(E, P, uv, usable, _member_rows(a[need], b[need], label), tau, ok)
+    passed = np.ones(a.size, np.bool_)
+    passed[need] = ok
+    return passed
+
+
+@jit
+def _member_rows(a, b, label):
+    """(K, M) table rows of clusters a[k] and b[k] (labels), -1 padded, as
+    clustering._members_padded lists them (the check sums the DLT systems in this order):
+    a's rows ascending, then b's."""
+    n = label.size
+    start = np.zeros(n + 1, np.int64)  # rows grouped by label, ascending within each
+    for r in range(n):
         start[label[r] + 1] += 1
-    for lab in range(N):
+    for lab in range(n):
         start[lab + 1] += start[lab]
-    order = np.empty(N, np.int64)
-    fill = start[:N].copy()
-    for r in range(N):
+    order = np.empty(n, np.int64)
+    fill = start[:n].copy()
+    for r in range(n):
         order[fill[label[r]]] = r
         fill[label[r]] += 1
-    need = np.empty(a.size, np.int64)
-    K = 0
-    M = 0
+    count = start[a + 1] - start[a] + start[b + 1] - start[b]
+    rows = np.full((a.size, count.max() if a.size else 0), -1, np.int64)
     for k in range(a.size):
-        if size[a[k]] + size[b[k]] >= 3:
-            need[K] = k
-            K += 1
-            M = max(M, size[a[k]] + size[b[k]])
-    rows = np.full((K, M), -1, np.int64)
-    for q in range(K):
         at = 0
-        for lab in (a[need[q]], b[need[q]]):
+        for lab in (a[k], b[k]):
             for s in range(start[lab], start[lab + 1]):
-                rows[q, at] = order[s]
+                rows[k, at] = order[s]
                 at += 1
-    ok = np.empty(K, np.bool_)
-    _consistent(E, P, uv, usable, rows, tau, ok)
-    passed = np.ones(a.size, np.bool_)
-    for q in range(K):
-        passed[need[q]] = ok[q]
-    return passed
+    return rows
 
 
 @jit
