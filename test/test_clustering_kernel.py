@@ -138,6 +138,18 @@ def test_candidate_members_are_listed_as_numpy_lists_them(seed, n, k):
     assert np.array_equal(got, want)
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10**6), n=st.integers(1, 60), k=st.integers(1, 20))
+def test_gated_counts_per_cluster_equal_the_matmul(seed, n, k):
+    rng = np.random.default_rng(seed)
+    gated = rng.random((n, n)) < rng.random()
+    label = rng.integers(0, k, n)
+    Z = np.zeros((n, k))
+    Z[np.arange(n), label] = 1.0
+    np.testing.assert_array_equal(clustering_kernel.cluster_counts(gated, label, k),
+                                  gated.astype(float) @ Z)
+
+
 def _pairs(table: DetectionTable, rng: np.random.Generator, people: int, tau: float) -> PairSet:
     """Every cross-camera pair: same-person pairs mostly pass, the others mostly fail a gate;
     costs on a 1 cm grid (ties in the gains and their sums)."""
@@ -159,8 +171,8 @@ def _pairs(table: DetectionTable, rng: np.random.Generator, people: int, tau: fl
        noise=st.sampled_from([0.5, 4.0, 40.0]), tau=st.sampled_from([2.0, 8.0, 30.0]),
        min_support=st.sampled_from([0.0, 0.4, 0.6, 1.0]))
 def test_numba_merge_rounds_equal_the_numpy_rounds(seed, cams, people, noise, tau, min_support):
-    """Same labels and the same merge / refusal counts, refused merges remembered across
-    rounds; the tables the rounds update end the same too."""
+    """Same labels and the same merge / refusal counts (refused merges remembered across
+    rounds), and the same local moves after them."""
     rng = np.random.default_rng(seed)
     rig = ring_rig(cams)
     table = _table(rig, rng, people, noise)
@@ -171,12 +183,15 @@ def test_numba_merge_rounds_equal_the_numpy_rounds(seed, cams, people, noise, ta
     out = []
     for kernels in (None, clustering_kernel):
         verify = clustering._Verifier(table, P, np.arange(J), tau, kernels)
-        stats = {"merges": 0.0, "merges_rejected": 0.0}
+        stats = {"merges": 0.0, "merges_rejected": 0.0, "moves": 0.0}
         label = clustering._greedy_merges(table, pairs, gain, geometric, np.arange(len(table)),
                                           verify, params, stats, kernels)
-        out.append((label, stats))
-    (want, want_stats), (got, got_stats) = out
+        moved = clustering._local_moves(table, gain, geometric, label.copy(), verify, params,
+                                        stats, kernels)
+        out.append((label, moved, stats))
+    (want, want_moved, want_stats), (got, got_moved, got_stats) = out
     assert np.array_equal(got, want)
+    assert np.array_equal(got_moved, want_moved)
     assert got_stats == want_stats
 
 

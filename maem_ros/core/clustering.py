@@ -187,9 +187,9 @@ def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
     gain, geometric = _gain_matrix(table, pairs, params.tau_cost)
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
-    label = _local_moves(table, gain, geometric, label, verify, params, stats)
-    together = label[:, None] == label[None, :]
-    stats["matched_pairs"] = float(np.count_nonzero(np.triu(together & geometric, 1)))
+    label = _local_moves(table, gain, geometric, label, verify, params, stats, kernels)
+    geo = pairs.geometric  # each pair once: the geometric pairs i < j within one cluster
+    stats["matched_pairs"] = float(np.count_nonzero(label[pairs.i[geo]] == label[pairs.j[geo]]))
     return Found(_groups(label))
 
 
@@ -326,11 +326,12 @@ def _disjoint_greedy(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, 
     return a[taken], b[taken]
 
 
-def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray:
+def _local_moves(table, gain, gated, label, verify, params, stats, kernels=None) -> np.ndarray:
     """Move single detections between clusters (or out) while that raises the objective.
 
     Each step scores every (detection, target) move at once, verifies the improving ones in
-    one batch and applies the best that stays consistent."""
+    one batch and applies the best that stays consistent. kernels (clustering_kernel or
+    None) counts the gated pairs per cluster without the matmul (same integers)."""
     N = label.size
     C = int(table.cam.max()) + 1
     _, label = unique_inverse(label, N)
@@ -338,7 +339,9 @@ def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray
     Z = np.zeros((N, K))
     Z[np.arange(N), label] = 1.0
     G = gain @ Z  # (N,K): objective gain of each detection with each cluster
-    S = gated.astype(float) @ Z  # gated pairs of each detection with each cluster
+    # gated pairs of each detection with each cluster (the gain sums stay a BLAS matmul: a
+    # compiled loop would add them in another order)
+    S = gated.astype(float) @ Z if kernels is None else kernels.cluster_counts(gated, label, K)
     size = Z.sum(0)
     camset = np.zeros((K, C), bool)
     camset[label, table.cam] = True

@@ -67,6 +67,15 @@ def greedy_merges(links: np.ndarray, between: np.ndarray, support: np.ndarray,
     return label, int(counts[0]), int(counts[1])
 
 
+def cluster_counts(gated: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) float64: per row i and cluster c, the rows j of c with gated[i, j] (gated (N,N)
+    bool, label (N,) ints < k): ``gated.astype(float) @ Z`` of clustering._local_moves
+    (Z the one-hot labels), the same small integers in any summation order."""
+    out = np.zeros((gated.shape[0], k))
+    _cluster_counts(gated, np.ascontiguousarray(label, np.int64), out)
+    return out
+
+
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernels now. No-op without numba."""
     if not have_numba():
@@ -78,6 +87,7 @@ def warmup() -> None:
     greedy_merges(np.array([1]), np.ones((2, 2)), np.ones((2, 2), np.int64),
                   np.eye(2, dtype=bool), np.ones(2, np.int64), np.arange(2), 0.5, E,
                   np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool), 1.0)
+    cluster_counts(np.eye(2, dtype=bool), np.arange(2), 2)
 
 
 @jit
@@ -355,3 +365,11 @@ def _descending_order(g):
             count[p, digit] += 1
         order, spare = spare, order
     return order
+
+
+@jit
+def _cluster_counts(gated, label, out):
+    for i in range(gated.shape[0]):
+        for j in range(gated.shape[1]):
+            if gated[i, j]:
+                out[i, label[j]] += 1.0
