@@ -166,6 +166,20 @@ def _pairs(table: DetectionTable, rng: np.random.Generator, people: int, tau: fl
     return PairSet(i, j, stage, nan, nan, cost)
 
 
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10**6), cams=st.integers(2, 7), people=st.integers(1, 6),
+       tau=st.sampled_from([0.0, 0.05, 0.08]))
+def test_numba_gain_tables_equal_the_numpy_tables(seed, cams, people, tau):
+    rng = np.random.default_rng(seed)
+    table = _table(ring_rig(cams), rng, people, 1.0)
+    pairs = _pairs(table, rng, people, 0.08)
+    want = clustering._gain_matrix(table, pairs, tau, None)
+    got = clustering._gain_matrix(table, pairs, tau, clustering_kernel)
+    for g, w in zip(got, want):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)
+
+
 @settings(max_examples=60, deadline=None)
 @given(seed=st.integers(0, 10**6), cams=st.integers(2, 7), people=st.integers(1, 6),
        noise=st.sampled_from([0.5, 4.0, 40.0]), tau=st.sampled_from([2.0, 8.0, 30.0]),
@@ -201,7 +215,8 @@ def bench_frames():
     rng = np.random.default_rng(3)
     template = body_template(2000, 70, seed=0)
     sets = []
-    for rig, players, extras in ((load_bench_rig("ring16"), 22, 3), (load_bench_rig("sportcenter6"), 10, 2)):
+    for name, players, extras in (("ring16", 22, 3), ("sportcenter6", 10, 2)):
+        rig = load_bench_rig(name)
         sets += [(rig, make_frame(rig, template, rng, players, extras).frames) for _ in range(2)]
     return sets
 

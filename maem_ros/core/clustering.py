@@ -49,7 +49,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .geometry import normal_entries, reprojection_error, solve_normal
 
-from .detections import PASSED, DetectionTable, PairSet, camera_pair_groups
+from .detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
 from .intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
@@ -160,7 +160,7 @@ class _Verifier:
         return ~bad.any(axis=1)
 
 
-def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
+def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float, kernels=None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(gain (N,N), geometric (N,N) bool) over table rows.
 
@@ -168,8 +168,13 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
     passed the geometric gates but cost more than the cap, REJECTED_PAIR_GAIN x tau for cross
     pairs a geometric gate rejected, 0
     within a camera (such pairs are never together) and on the diagonal. geometric: the pair
-    passed the geometric gates (the merge support counts these)."""
+    passed the geometric gates (the merge support counts these). kernels: clustering_kernel
+    (one compiled pass over the pairs, the same tables) or None."""
     N = len(table)
+    if kernels is not None:
+        return kernels.gain_tables(pairs.i, pairs.j, pairs.stage, pairs.cost, table.offsets, N,
+                                   tau, REJECTED_PAIR_GAIN * tau, CAPPED_PAIR_GAIN * tau,
+                                   PASSED, REJECTED_COST)
     geo = np.flatnonzero(pairs.geometric)  # a few % of the pairs: index them once
     gi, gj = pairs.i[geo], pairs.j[geo]
     geometric = np.zeros((N, N), bool)
@@ -184,7 +189,7 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
 
 def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
                 params: "AssociationParams", stats: dict[str, float], kernels) -> Found:
-    gain, geometric = _gain_matrix(table, pairs, params.tau_cost)
+    gain, geometric = _gain_matrix(table, pairs, params.tau_cost, kernels)
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
     label = _local_moves(table, gain, geometric, label, verify, params, stats, kernels)

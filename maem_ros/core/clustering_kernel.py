@@ -1,16 +1,18 @@
 """Numba kernels of the consistent clustering (core.clustering): the merge check, the
 cluster-level table update and the greedy merge rounds that use both.
 
-The check and the update walk what the numpy paths compute with whole-array passes, per candidate and joint (the
-check) or per merged row and column (the update), in the same float64 operations and order
-(no fast-math). The one difference is the order of the 4-term dot products of the
-reprojection (numpy hands them to a BLAS matmul): a relative difference of ~1e-16 in the
-pixel errors the check compares with tau_verify.
+The check and the update walk what the numpy paths compute with whole-array passes, per
+candidate and joint (the check) or per merged row and column (the update), in the same
+float64 operations and order (no fast-math). The one difference is the order of the 4-term
+dot products of the reprojection (numpy hands them to a BLAS matmul): a relative difference
+of ~1e-16 in the pixel errors the check compares with tau_verify.
 
 The merge rounds (``greedy_merges``) take every decision of clustering._greedy_merges from
 the same numbers: the gains are read from the same cluster-level tables (updated by the same
 ``_absorb``), the candidates are checked by the same ``_consistent`` with their members in the
 same order (so the DLT sums are the same), and the best-first order is the same stable sort.
+The frame set's gain tables (``gain_tables``: assignments and one subtraction) and the local
+moves' gated pairs per cluster (``cluster_counts``: small integers) are the numpy values too.
 """
 from __future__ import annotations
 
@@ -76,6 +78,21 @@ def cluster_counts(gated: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+def gain_tables(i: np.ndarray, j: np.ndarray, stage: np.ndarray, cost: np.ndarray,
+                offsets: np.ndarray, n: int, tau: float, rejected: float, capped: float,
+                passed: int, rejected_cost: int) -> tuple[np.ndarray, np.ndarray]:
+    """clustering._gain_matrix's (gain (n,n) float64, geometric (n,n) bool) from the pairs
+    (rows i, j, stage, cost m), in one pass: geometric where stage is ``passed`` or
+    ``rejected_cost``; gain tau - cost (passed), ``capped`` (cost cap), ``rejected`` (any
+    other cross pair), 0 within a camera (rows offsets[c]:offsets[c + 1]) and on the
+    diagonal; the values are the numpy path's (the same subtraction, constants given)."""
+    gain = np.empty((n, n))
+    geometric = np.empty((n, n), np.bool_)
+    _gain_tables(i, j, stage, cost, np.ascontiguousarray(offsets, np.int64), float(tau),
+                 float(rejected), float(capped), passed, rejected_cost, gain, geometric)
+    return gain, geometric
+
+
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernels now. No-op without numba."""
     if not have_numba():
@@ -88,6 +105,8 @@ def warmup() -> None:
                   np.eye(2, dtype=bool), np.ones(2, np.int64), np.arange(2), 0.5, E,
                   np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool), 1.0)
     cluster_counts(np.eye(2, dtype=bool), np.arange(2), 2)
+    gain_tables(np.array([0]), np.array([1]), np.zeros(1, np.int8), np.zeros(1),
+                np.array([0, 1, 2]), 2, 1.0, -0.25, 0.0, 0, 3)
 
 
 @jit
@@ -373,3 +392,17 @@ def _cluster_counts(gated, label, out):
         for j in range(gated.shape[1]):
             if gated[i, j]:
                 out[i, label[j]] += 1.0
+
+
+@jit
+def _gain_tables(i, j, stage, cost, offsets, tau, rejected, capped, passed, rejected_cost,
+                 gain, geometric):
+    gain[:] = rejected
+    geometric[:] = False
+    for k in range(i.size):
+        if stage[k] == passed or stage[k] == rejected_cost:
+            a, b = i[k], j[k]
+            geometric[a, b] = geometric[b, a] = True
+            gain[a, b] = gain[b, a] = tau - cost[k] if stage[k] == passed else capped
+    for c in range(offsets.size - 1):  # rows are grouped by camera
+        gain[offsets[c]:offsets[c + 1], offsets[c]:offsets[c + 1]] = 0.0
