@@ -235,7 +235,9 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kern
     links = sorted_unique(np.minimum(pairs.i[ok], pairs.j[ok]) * N
                           + np.maximum(pairs.i[ok], pairs.j[ok]))
     between = gain.copy()  # summed gain of the cross pairs of two clusters
-    support = gated.astype(np.int64)  # cross pairs that passed the geometric gates
+    # cross pairs that passed the geometric gates (int32 for the kernel: the same counts in
+    # half the memory its table updates stream through)
+    support = gated.astype(np.int64 if kernels is None else np.int32)
     camset = np.zeros((N, C), bool)
     camset[label, table.cam] = True
     size = np.bincount(label, minlength=N)

@@ -57,7 +57,7 @@ def greedy_merges(links: np.ndarray, between: np.ndarray, support: np.ndarray,
     the check refused).
 
     links: ascending codes A * N + B (A < B) of the clusters linked by a pair that passed
-    all; between (N,N) float64 summed gain and support (N,N) int64 geometric pairs between
+    all; between (N,N) float64 summed gain and support (N,N) int geometric pairs between
     clusters, camset (N,C) bool cameras per cluster, size (N,) int64 members per cluster, all
     indexed by label and updated in place; label (N,) int64 each row's cluster (not
     modified); min_support fraction; E, P, uv, usable, tau: the merge check's inputs (see
