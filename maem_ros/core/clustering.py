@@ -49,7 +49,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .geometry import normal_entries, reprojection_error, solve_normal
 
-from .detections import PASSED, DetectionTable, PairSet, camera_pair_groups
+from .detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
 from .intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
@@ -160,7 +160,7 @@ class _Verifier:
         return ~bad.any(axis=1)
 
 
-def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
+def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float, kernels=None
                  ) -> tuple[np.ndarray, np.ndarray]:
     """(gain (N,N), geometric (N,N) bool) over table rows.
 
@@ -168,8 +168,13 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
     passed the geometric gates but cost more than the cap, REJECTED_PAIR_GAIN x tau for cross
     pairs a geometric gate rejected, 0
     within a camera (such pairs are never together) and on the diagonal. geometric: the pair
-    passed the geometric gates (the merge support counts these)."""
+    passed the geometric gates (the merge support counts these). kernels: clustering_kernel
+    (one compiled pass over the pairs, the same tables) or None."""
     N = len(table)
+    if kernels is not None:
+        return kernels.gain_tables(pairs.i, pairs.j, pairs.stage, pairs.cost, table.offsets, N,
+                                   tau, REJECTED_PAIR_GAIN * tau, CAPPED_PAIR_GAIN * tau,
+                                   PASSED, REJECTED_COST)
     geo = np.flatnonzero(pairs.geometric)  # a few % of the pairs: index them once
     gi, gj = pairs.i[geo], pairs.j[geo]
     geometric = np.zeros((N, N), bool)
@@ -184,12 +189,12 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float
 
 def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
                 params: "AssociationParams", stats: dict[str, float], kernels) -> Found:
-    gain, geometric = _gain_matrix(table, pairs, params.tau_cost)
+    gain, geometric = _gain_matrix(table, pairs, params.tau_cost, kernels)
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
-    label = _local_moves(table, gain, geometric, label, verify, params, stats)
-    together = label[:, None] == label[None, :]
-    stats["matched_pairs"] = float(np.count_nonzero(np.triu(together & geometric, 1)))
+    label = _local_moves(table, gain, geometric, label, verify, params, stats, kernels)
+    geo = pairs.geometric  # each pair once: the geometric pairs i < j within one cluster
+    stats["matched_pairs"] = float(np.count_nonzero(label[pairs.i[geo]] == label[pairs.j[geo]]))
     return Found(_groups(label))
 
 
@@ -230,10 +235,19 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kern
     links = sorted_unique(np.minimum(pairs.i[ok], pairs.j[ok]) * N
                           + np.maximum(pairs.i[ok], pairs.j[ok]))
     between = gain.copy()  # summed gain of the cross pairs of two clusters
-    support = gated.astype(np.int64)  # cross pairs that passed the geometric gates
+    # cross pairs that passed the geometric gates (int32 for the kernel: the same counts in
+    # half the memory its table updates stream through)
+    support = gated.astype(np.int64 if kernels is None else np.int32)
     camset = np.zeros((N, C), bool)
     camset[label, table.cam] = True
     size = np.bincount(label, minlength=N)
+    if kernels is not None:  # the same rounds, compiled (clustering_kernel.greedy_merges)
+        label, merged, rejected = kernels.greedy_merges(
+            links, between, support, camset, size, label, params.min_support,
+            verify.E, verify.P, verify.uv, verify.usable, verify.tau)
+        stats["merges_rejected"] += float(rejected)
+        stats["merges"] += float(merged)
+        return label
     refused: set[int] = set()  # codes of verified-inconsistent (A, B, sizes)
     while True:
         A, B = np.divmod(links, N)
@@ -319,11 +333,12 @@ def _disjoint_greedy(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, 
     return a[taken], b[taken]
 
 
-def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray:
+def _local_moves(table, gain, gated, label, verify, params, stats, kernels=None) -> np.ndarray:
     """Move single detections between clusters (or out) while that raises the objective.
 
     Each step scores every (detection, target) move at once, verifies the improving ones in
-    one batch and applies the best that stays consistent."""
+    one batch and applies the best that stays consistent. kernels (clustering_kernel or
+    None) counts the gated pairs per cluster without the matmul (same integers)."""
     N = label.size
     C = int(table.cam.max()) + 1
     _, label = unique_inverse(label, N)
@@ -331,7 +346,9 @@ def _local_moves(table, gain, gated, label, verify, params, stats) -> np.ndarray
     Z = np.zeros((N, K))
     Z[np.arange(N), label] = 1.0
     G = gain @ Z  # (N,K): objective gain of each detection with each cluster
-    S = gated.astype(float) @ Z  # gated pairs of each detection with each cluster
+    # gated pairs of each detection with each cluster (the gain sums stay a BLAS matmul: a
+    # compiled loop would add them in another order)
+    S = gated.astype(float) @ Z if kernels is None else kernels.cluster_counts(gated, label, K)
     size = Z.sum(0)
     camset = np.zeros((K, C), bool)
     camset[label, table.cam] = True
