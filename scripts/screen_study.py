@@ -50,10 +50,11 @@ def scene_frames(rig_name: str, difficulty: str, seed: int, count: int) -> Itera
 
 
 def subset_mask(n: int, stride: int) -> np.ndarray:
-    """The vertex ids epipolar.screen_rows keeps for this stride, as a mask."""
-    k = np.arange(n)
-    period = epipolar.SCREEN_RUN * stride
-    return (k % period < epipolar.SCREEN_RUN) & (k < n // period * period)
+    """The vertex ids epipolar.screen_rows keeps for this stride (n vertices), as a mask."""
+    rows = epipolar.screen_rows(np.zeros((1, n, 2), np.float32), stride)
+    mask = np.zeros(n, bool)
+    mask[rows.positions(np.arange(rows.n))] = True
+    return mask
 
 
 def pair_means(full, F, cam_a, det_a, cam_b, det_b) -> np.ndarray:

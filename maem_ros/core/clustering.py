@@ -280,7 +280,7 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kern
         into[y] = x
         label = into[label]  # the applied merges touch disjoint clusters: one relabelling
         links = _relabel_links(links, into, N)
-        _absorb(x, y, size, between, support, camset, kernels)
+        _absorb(x, y, size, between, support, camset)
         stats["merges"] += float(x.size)
 
 
@@ -294,19 +294,17 @@ def _relabel_links(links: np.ndarray, into: np.ndarray, n: int) -> np.ndarray:
 
 
 def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
-            support: np.ndarray, camset: np.ndarray, kernels=None) -> None:
+            support: np.ndarray, camset: np.ndarray) -> None:
     """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place
-    (the matrices by clustering_kernel.absorb when kernels is given: the same sums)."""
+    (the numpy rounds; the compiled rounds update the matrices by clustering_kernel._absorb,
+    the same sums)."""
     size[x] += size[y]
     size[y] = 0
-    if kernels is not None:
-        kernels.absorb(x, y, between, support)
-    else:
-        for matrix in (between, support):
-            matrix[x] += matrix[y]  # rows first, then columns: the entry of two merged
-            matrix[:, x] += matrix[:, y]  # clusters sums all four parts
-            matrix[y] = 0
-            matrix[:, y] = 0
+    for matrix in (between, support):
+        matrix[x] += matrix[y]  # rows first, then columns: the entry of two merged
+        matrix[:, x] += matrix[:, y]  # clusters sums all four parts
+        matrix[y] = 0
+        matrix[:, y] = 0
     camset[x] |= camset[y]
     camset[y] = False
 

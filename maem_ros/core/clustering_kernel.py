@@ -42,7 +42,8 @@ def consistent(E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray,
 def absorb(x: np.ndarray, y: np.ndarray, between: np.ndarray, support: np.ndarray) -> None:
     """Clusters y[k] merged into x[k] (all distinct) in the symmetric (N,N) tables between
     (float64) and support (int64), in place: rows x += rows y, then columns x += columns y,
-    rows and columns y zeroed (clustering._absorb's matrix update)."""
+    rows and columns y zeroed (clustering._absorb's matrix update; greedy_merges applies it
+    to the live clusters only)."""
     x, y = np.ascontiguousarray(x, np.int64), np.ascontiguousarray(y, np.int64)
     every = np.arange(between.shape[0])
     _absorb(x, y, every, between)
