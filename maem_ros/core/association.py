@@ -181,7 +181,7 @@ def _rig_cache(rig: Rig) -> tuple:
     stack = np.zeros((len(cams), len(cams), 3, 3))
     for (a, b), f in F.items():
         stack[a, b], stack[b, a] = f, f.T
-    _GEOMETRY[rig] = hit = (key, P, F, stack)
+    _GEOMETRY[rig] = hit = (key, P, F, stack, epipolar.pair_matrices(F))
     return hit
 
 
@@ -245,7 +245,8 @@ def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, rig:
     pairs of different people without triangulating; the rest get the DLT. The bound keeps a
     relative margin for rounding, so the decisions are exactly the DLT's.
     """
-    _, P, _, stack = _rig_cache(rig) if geometry is None else geometry
+    geometry = _rig_cache(rig) if geometry is None else geometry
+    P, stack = geometry[1], geometry[3]
     bound = pair_reprojection_bound(stack, table.cam, table.centers, i, j, params.reproj_reduce)
     ok = np.zeros(i.size, bool)
     todo = np.flatnonzero(~(bound > params.tau_reproj_bbox * (1.0 + _BOUND_MARGIN)))
@@ -298,14 +299,16 @@ def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
     columns = _gate_columns(frames, params)
     out = {}
     for c, fd in frames.items():
-        x = fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]]
-        out[c] = (epipolar.point_rows(x), screen_subsets(x, params))
+        full = epipolar.point_rows(fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]])
+        out[c] = (full, screen_subsets(full, params))
     return out
 
 
-def screen_subsets(x: np.ndarray, params: AssociationParams) -> list[epipolar.PointRows | None]:
-    """One camera's (N,n,2) gate points -> the subset of each screening level (coarse to fine,
-    :meth:`AssociationParams.screen_levels`; None where too few points to screen with)."""
+def screen_subsets(x: np.ndarray | epipolar.PointRows, params: AssociationParams
+                   ) -> list[epipolar.PointRows | None]:
+    """One camera's (N,n,2) gate points (or their full-set PointRows) -> the subset of each
+    screening level (coarse to fine, :meth:`AssociationParams.screen_levels`; None where too
+    few points to screen with)."""
     return [epipolar.screen_rows(x, stride) for stride, _ in params.screen_levels()]
 
 
@@ -352,7 +355,7 @@ def _gate_columns(frames: dict[int, FrameDetections], params: AssociationParams
 
 
 def _epipolar_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray,
-                   F: dict[tuple[int, int], np.ndarray], params: AssociationParams,
+                   F: epipolar.PairMatrices, params: AssociationParams,
                    stats: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     """(keep (S,) bool, mean distance (S,) px, exact where kept) of pairs (i, j)."""
     points = _gate_points(table.frames, params)
@@ -397,7 +400,7 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     """Steps 2-4 of the method on every kept pair: gates, costs (computed by ``costs``, by
     default a new PoseCosts of the table), the cost cap."""
     geometry = _rig_cache(rig)
-    F = geometry[2]
+    F = geometry[4]
     t = time.perf_counter()
     kernel = _reprojection_kernel(params.backend) if params.reproj_gate else None
     if kernel is not None:  # enumeration and gate in one pass

@@ -330,10 +330,9 @@ class _FrameView:
         """Camera c's points for the verification's epipolar gate and their screening subsets
         (association.screen_subsets; none for keypoints), converted once per frame."""
         if c not in self._rows:
-            x = self.stage._gate_points(self.by_cam[c])
+            full = epipolar.point_rows(self.stage._gate_points(self.by_cam[c]))
             mesh = self.stage.tp.verify_epipolar == "mesh"
-            self._rows[c] = (epipolar.point_rows(x),
-                             screen_subsets(x, self.stage.params) if mesh else [])
+            self._rows[c] = (full, screen_subsets(full, self.stage.params) if mesh else [])
         return self._rows[c]
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
@@ -380,7 +379,7 @@ class TemporalAssociator:
         self.tp = temporal
         self.tracker = Tracker3D(temporal)
         self._P = np.stack([c.P for c in rig.cameras])
-        self._F = rig.fundamental_matrices()
+        self._F = epipolar.pair_matrices(rig.fundamental_matrices())
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
