@@ -379,7 +379,8 @@ class TemporalAssociator:
         self.tp = temporal
         self.tracker = Tracker3D(temporal)
         self._P = np.stack([c.P for c in rig.cameras])
-        self._F = epipolar.pair_matrices(rig.fundamental_matrices())
+        self._F = rig.fundamental_matrices()
+        self._pair_F = epipolar.pair_matrices(self._F)  # as the kernels take them, once
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
@@ -593,7 +594,7 @@ class TemporalAssociator:
             # counted
             ok[s] = epipolar.frame_screened_means(
                 {c: full for c, (full, _) in rows.items()},
-                screen_levels(rows, p), self._F,
+                screen_levels(rows, p), self._pair_F,
                 ca[s], da[s], cb[s], db[s], p.tau_mesh,
                 symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
                 backend=p.backend, precision=p.epipolar_precision)[0]
