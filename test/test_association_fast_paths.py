@@ -16,7 +16,7 @@ from test_association import ring_rig
 from maem_ros.core import epipolar, procrustes, procrustes_kernel
 from maem_ros.core.association import (_BOUND_MARGIN, AssociationParams, _enumerate_pairs,
                                        _fundamental_stack, _reprojection_gate, rig_geometry)
-from maem_ros.core.clustering import _disjoint_greedy
+from maem_ros.core.clustering import _disjoint_greedy, _members_padded, _verified_disjoint
 from maem_ros.core.detections import DetectionTable, FrameDetections
 from maem_ros.core.geometry import pair_reprojection_bound, pair_reprojection_errors
 from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
@@ -194,5 +194,31 @@ def test_disjoint_merges_in_rounds_equal_the_sequential_best_first_pass(seed, n,
     a = rng.integers(0, n, m)
     b = rng.integers(0, n, m)
     a, b = np.minimum(a, b)[a != b], np.maximum(a, b)[a != b]
-    x, y = _disjoint_greedy(a, b, n)
+    taken = _disjoint_greedy(a, b, n)
+    x, y = a[taken], b[taken]
     assert sorted(zip(x.tolist(), y.tolist())) == sorted(_sequential(a, b))
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10**6), n=st.integers(3, 30), m=st.integers(0, 90))
+def test_checking_only_the_merges_taken_equals_checking_every_candidate(seed, n, m):
+    """clustering._verified_disjoint: the best-first pass over the merges that pass the
+    check, whichever candidates it checked; every merge it reports refused did fail."""
+    rng = np.random.default_rng(seed)
+    label = rng.integers(0, n, 2 * n)
+    label[:n] = np.arange(n)  # every label has a member
+    size = np.bincount(label, minlength=n)
+    a, b = rng.integers(0, n, m), rng.integers(0, n, m)
+    a, b = np.minimum(a, b)[a != b], np.maximum(a, b)[a != b]
+    salt = int(rng.integers(1, 1000))
+
+    def verify(rows):  # a deterministic verdict per member set, failing about a third
+        return np.array([hash((salt, *sorted(r[r >= 0].tolist()))) % 3 != 0 for r in rows],
+                        dtype=bool)
+
+    taken, failed = _verified_disjoint(a, b, size, label, verify, n)
+    rows = _members_padded(label, [a, b])
+    passes = (size[a] + size[b] < 3) | verify(rows)
+    want = np.flatnonzero(passes)[_disjoint_greedy(a[passes], b[passes], n)]
+    assert np.array_equal(taken, want)
+    assert not passes[failed].any()

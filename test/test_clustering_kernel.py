@@ -100,9 +100,10 @@ def test_sequential_disjoint_pass_equals_the_numpy_rounds(seed, n, edges):
     a = rng.integers(0, n - 1, edges)
     b = a + 1 + rng.integers(0, n - 1 - a)  # a < b < n, repeats allowed
     order = rng.permutation(edges)
-    x, y = clustering_kernel._take_disjoint(a, b, order, n)
-    wx, wy = clustering._disjoint_greedy(a[order], b[order], n)
-    assert np.array_equal(x, wx) and np.array_equal(y, wy)
+    alive = rng.random(edges) < 0.8
+    got = clustering_kernel._take_disjoint(a, b, order, alive, n)
+    live = order[alive[order]]
+    assert np.array_equal(got, live[clustering._disjoint_greedy(a[live], b[live], n)])
 
 
 @settings(max_examples=60, deadline=None)
@@ -137,14 +138,23 @@ def test_candidate_members_are_listed_as_numpy_lists_them(seed, n, k):
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 10**6), n=st.integers(1, 60), k=st.integers(1, 20))
-def test_gated_counts_per_cluster_equal_the_matmul(seed, n, k):
+def test_sums_per_cluster_add_each_clusters_columns_in_ascending_order(seed, n, k):
+    """clustering._cluster_sums, numpy and numba: bit for bit the sequential sums (float
+    gains: order matters), and the matmul's counts for a bool table."""
     rng = np.random.default_rng(seed)
+    gain = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-3, 4, (n, n))
     gated = rng.random((n, n)) < rng.random()
     label = rng.integers(0, k, n)
+    want = np.zeros((n, k))
+    for i in range(n):
+        for j in range(n):
+            want[i, label[j]] += gain[i, j]
     Z = np.zeros((n, k))
     Z[np.arange(n), label] = 1.0
-    np.testing.assert_array_equal(clustering_kernel.cluster_counts(gated, label, k),
-                                  gated.astype(float) @ Z)
+    for kernels in (None, clustering_kernel):
+        assert np.array_equal(clustering._cluster_sums(gain, label, k, kernels), want)
+        assert np.array_equal(clustering._cluster_sums(gated, label, k, kernels),
+                              gated.astype(float) @ Z)
 
 
 def _pairs(table: DetectionTable, rng: np.random.Generator, people: int, tau: float) -> PairSet:

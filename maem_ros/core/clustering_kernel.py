@@ -12,7 +12,8 @@ the same numbers: the gains are read from the same cluster-level tables (updated
 ``_absorb``), the candidates are checked by the same ``_consistent`` with their members in the
 same order (so the DLT sums are the same), and the best-first order is the same stable sort.
 The frame set's gain tables (``gain_tables``: assignments and one subtraction) and the local
-moves' gated pairs per cluster (``cluster_counts``: small integers) are the numpy values too.
+moves' sums per cluster (``cluster_sums``: the same additions in the same order) are the
+numpy values too.
 """
 from __future__ import annotations
 
@@ -70,12 +71,12 @@ def greedy_merges(links: np.ndarray, between: np.ndarray, support: np.ndarray,
     return label, int(counts[0]), int(counts[1])
 
 
-def cluster_counts(gated: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
-    """(N, k) float64: per row i and cluster c, the rows j of c with gated[i, j] (gated (N,N)
-    bool, label (N,) ints < k): ``gated.astype(float) @ Z`` of clustering._local_moves
-    (Z the one-hot labels), the same small integers in any summation order."""
-    out = np.zeros((gated.shape[0], k))
-    _cluster_counts(gated, np.ascontiguousarray(label, np.int64), out)
+def cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
+    """(N, k) float64: clustering._cluster_sums of matrix (N,N) float64 or bool over the
+    clusters label (N,) ints < k: per row, the columns of each cluster added in ascending
+    order from 0.0."""
+    out = np.zeros((matrix.shape[0], k))
+    _cluster_sums(matrix, np.ascontiguousarray(label, np.int64), out)
     return out
 
 
@@ -105,7 +106,8 @@ def warmup() -> None:
     greedy_merges(np.array([1]), np.ones((2, 2)), np.ones((2, 2), np.int32),
                   np.eye(2, dtype=bool), np.ones(2, np.int64), np.arange(2), 0.5, E,
                   np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool), 1.0)
-    cluster_counts(np.eye(2, dtype=bool), np.arange(2), 2)
+    cluster_sums(np.eye(2, dtype=bool), np.arange(2), 2)
+    cluster_sums(np.eye(2), np.arange(2), 2)
     gain_tables(np.array([0]), np.array([1]), np.zeros(1, np.int8), np.zeros(1),
                 np.array([0, 1, 2]), 2, 1.0, -0.25, 0.0, 0, 3)
 
@@ -209,14 +211,11 @@ def _greedy(links, between, support, camset, size, label, min_support, E, P, uv,
                                        refused)
         if a.size == 0:
             break
-        passed = _check(a, b, size, label, E, P, uv, usable, tau)
-        for k in np.flatnonzero(~passed):
-            refused.add(code[k])
-        counts[1] += a.size - np.count_nonzero(passed)
-        if not passed.any():
+        taken = _verified_disjoint(a, b, _descending_order(gain), code, size, label, E, P, uv,
+                                   usable, tau, refused, counts)
+        if taken.size == 0:
             break
-        a, b = a[passed], b[passed]
-        x, y = _take_disjoint(a, b, _descending_order(gain[passed]), n)
+        x, y = a[taken], b[taken]
         into = np.arange(n)
         into[y] = x
         for r in range(n):  # the merges touch disjoint clusters: one relabelling
@@ -263,30 +262,45 @@ def _candidates(links, between, support, camset, size, min_support, refused):
 
 
 @jit
-def _take_disjoint(a, b, order, n):
-    """clustering._disjoint_greedy of the edges (a[k], b[k]) in the given order: the
-    sequential pass its rounds reproduce (an edge is taken unless an end is taken)."""
-    used = np.zeros(n, np.bool_)
-    x = np.empty(a.size, np.int64)
-    y = np.empty(a.size, np.int64)
-    m = 0
-    for k in order:
-        if not used[a[k]] and not used[b[k]]:
-            used[a[k]] = used[b[k]] = True
-            x[m], y[m] = a[k], b[k]
-            m += 1
-    return x[:m], y[:m]
+def _verified_disjoint(a, b, order, code, size, label, E, P, uv, usable, tau, refused, counts):
+    """clustering._verified_disjoint of the candidates (a[k], b[k]) in the given order: the
+    indices taken, in that order; the codes of the merges the check refused go into
+    ``refused`` and their number onto counts[1]."""
+    alive = np.ones(a.size, np.bool_)
+    checked = size[a] + size[b] < 3
+    while True:
+        taken = _take_disjoint(a, b, order, alive, label.size)
+        todo = taken[~checked[taken]]
+        if todo.size == 0:
+            return taken
+        good = np.empty(todo.size, np.bool_)
+        _consistent(E, P, uv, usable, _member_rows(a[todo], b[todo], label), tau, good)
+        failed = 0
+        for k in range(todo.size):
+            checked[todo[k]] = True
+            if not good[k]:
+                alive[todo[k]] = False
+                refused.add(code[todo[k]])
+                failed += 1
+        counts[1] += failed
+        if failed == 0:
+            return taken
 
 
 @jit
-def _check(a, b, size, label, E, P, uv, usable, tau):
-    """The merge check of candidates a[k] + b[k] from three members on (smaller ones pass)."""
-    need = np.flatnonzero(size[a] + size[b] >= 3)
-    ok = np.empty(need.size, np.bool_)
-    _consistent(E, P, uv, usable, _member_rows(a[need], b[need], label), tau, ok)
-    passed = np.ones(a.size, np.bool_)
-    passed[need] = ok
-    return passed
+def _take_disjoint(a, b, order, alive, n):
+    """Indices k of clustering._disjoint_greedy over the alive edges (a[k], b[k]) in the given
+    order: the sequential pass its rounds reproduce (an edge is taken unless an end is
+    taken), in that order."""
+    used = np.zeros(n, np.bool_)
+    taken = np.empty(a.size, np.int64)
+    m = 0
+    for k in order:
+        if alive[k] and not used[a[k]] and not used[b[k]]:
+            used[a[k]] = used[b[k]] = True
+            taken[m] = k
+            m += 1
+    return taken[:m]
 
 
 @jit
@@ -389,11 +403,10 @@ def _descending_order(g):
 
 
 @jit
-def _cluster_counts(gated, label, out):
-    for i in range(gated.shape[0]):
-        for j in range(gated.shape[1]):
-            if gated[i, j]:
-                out[i, label[j]] += 1.0
+def _cluster_sums(matrix, label, out):
+    for i in range(matrix.shape[0]):
+        for j in range(matrix.shape[1]):
+            out[i, label[j]] += matrix[i, j]
 
 
 @jit
