@@ -529,9 +529,8 @@ def _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest):
 #: runs prefetched ahead of the one gather_runs copies: the runs are separate cache lines
 #: (one every period points) that the hardware prefetchers do not follow across pages, so
 #: without the hint the copy waits for memory one line at a time (a large-load screen,
-#: 400 detections from cold memory: 4.7 ms without, 3.1 ms with 8 ahead; 16 ahead took
-#: another 0.2 ms off the large-load frame's gathers, 32 no more)
-_RUNS_AHEAD = 16
+#: 400 detections from cold memory: 4.7 ms without, 3.1 ms with 8 ahead)
+_RUNS_AHEAD = 8
 
 
 @plain
