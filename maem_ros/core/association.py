@@ -439,7 +439,8 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     # relative to the gate threshold, so one default fits dense-mesh px and keypoint px
     weight = (params.cost_epipolar_weight / params.tau_mesh if params.epipolar_gate != "none"
               else 0.0)
-    cost = pose + weight * np.nan_to_num(epi, nan=0.0)
+    cost = np.full(S, np.nan)  # NaN where a gate rejected the pair, as its pose cost
+    cost[alive] = pose[alive] + weight * np.nan_to_num(epi[alive], nan=0.0)
     capped = ~np.isfinite(cost[alive])
     if params.tau_cost > 0:
         capped |= cost[alive] > params.tau_cost
