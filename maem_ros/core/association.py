@@ -27,7 +27,7 @@ from __future__ import annotations
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, NamedTuple
 
 import numpy as np
 
@@ -154,25 +154,35 @@ class AssociationResult:
 # ---------------------------------------------------------------------------------------
 # rig geometry (P, F) cached per Rig object
 # ---------------------------------------------------------------------------------------
-_GEOMETRY: "weakref.WeakKeyDictionary[Rig, tuple]" = weakref.WeakKeyDictionary()
+class _RigGeometry(NamedTuple):
+    """A rig's cached geometry (recomputed when a camera's intrinsics or pose change)."""
+
+    key: tuple  # the cameras' names, K_rect, R, t as bytes
+    P: np.ndarray  # (C,3,4) rectified world -> px
+    F: dict[tuple[int, int], np.ndarray]  # F[(a, b)], a < b, x_b^T F x_a = 0
+    stack: np.ndarray  # (C,C,3,3) F[a, b] both ways, zero diagonal
+    pairs: epipolar.PairMatrices  # F as the epipolar kernels take it
+
+
+_GEOMETRY: "weakref.WeakKeyDictionary[Rig, _RigGeometry]" = weakref.WeakKeyDictionary()
 
 
 def rig_geometry(rig: Rig) -> tuple[np.ndarray, dict[tuple[int, int], np.ndarray]]:
     """(P (C,3,4) rectified world->px, F[(a,b)] with x_b^T F x_a = 0) for the rig."""
     hit = _rig_cache(rig)
-    return hit[1], hit[2]
+    return hit.P, hit.F
 
 
 def _fundamental_stack(rig: Rig) -> np.ndarray:
     """(C,C,3,3) F[a, b] with x_b^T F[a, b] x_a = 0 for every camera pair (F[b, a] = F[a, b]^T,
     zero diagonal), for the reprojection gate's bound."""
-    return _rig_cache(rig)[3]
+    return _rig_cache(rig).stack
 
 
-def _rig_cache(rig: Rig) -> tuple:
+def _rig_cache(rig: Rig) -> _RigGeometry:
     key = tuple((c.name, c.K_rect.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in rig)
     hit = _GEOMETRY.get(rig)
-    if hit is not None and hit[0] == key:
+    if hit is not None and hit.key == key:
         return hit
     cams = rig.cameras
     P = np.stack([c.P for c in cams])
@@ -181,7 +191,7 @@ def _rig_cache(rig: Rig) -> tuple:
     stack = np.zeros((len(cams), len(cams), 3, 3))
     for (a, b), f in F.items():
         stack[a, b], stack[b, a] = f, f.T
-    _GEOMETRY[rig] = hit = (key, P, F, stack, epipolar.pair_matrices(F))
+    _GEOMETRY[rig] = hit = _RigGeometry(key, P, F, stack, epipolar.pair_matrices(F))
     return hit
 
 
@@ -238,7 +248,8 @@ def _enumerate_pairs(table: DetectionTable) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, rig: Rig,
-                       params: AssociationParams, geometry: tuple | None = None) -> np.ndarray:
+                       params: AssociationParams, geometry: _RigGeometry | None = None
+                       ) -> np.ndarray:
     """(S,) pairs whose bbox-centre reprojection error is under tau_reproj_bbox.
 
     The epipolar lower bound of the error (geometry.pair_reprojection_bound) rejects most
@@ -246,7 +257,7 @@ def _reprojection_gate(table: DetectionTable, i: np.ndarray, j: np.ndarray, rig:
     relative margin for rounding, so the decisions are exactly the DLT's.
     """
     geometry = _rig_cache(rig) if geometry is None else geometry
-    P, stack = geometry[1], geometry[3]
+    P, stack = geometry.P, geometry.stack
     bound = pair_reprojection_bound(stack, table.cam, table.centers, i, j, params.reproj_reduce)
     ok = np.zeros(i.size, bool)
     todo = np.flatnonzero(~(bound > params.tau_reproj_bbox * (1.0 + _BOUND_MARGIN)))
@@ -400,11 +411,10 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     """Steps 2-4 of the method on every kept pair: gates, costs (computed by ``costs``, by
     default a new PoseCosts of the table), the cost cap."""
     geometry = _rig_cache(rig)
-    F = geometry[4]
     t = time.perf_counter()
     kernel = _reprojection_kernel(params.backend) if params.reproj_gate else None
     if kernel is not None:  # enumeration and gate in one pass
-        i, j, ok = kernel(table.offsets, geometry[3], geometry[1][table.cam], table.centers,
+        i, j, ok = kernel(table.offsets, geometry.stack, geometry.P[table.cam], table.centers,
                           float(params.tau_reproj_bbox), _BOUND_MARGIN,
                           params.reproj_reduce == "max")
     else:
@@ -423,7 +433,7 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     epi = np.full(S, np.nan)
     stats["epipolar_points_fraction"] = 0.0
     if params.epipolar_gate != "none" and alive.size:
-        ok, mean = _epipolar_gate(table, i[alive], j[alive], F, params, stats)
+        ok, mean = _epipolar_gate(table, i[alive], j[alive], geometry.pairs, params, stats)
         epi[alive] = mean
         stage[alive[~ok]] = REJECTED_EPIPOLAR
         stats["rejected_epipolar"] = float(np.count_nonzero(~ok))
