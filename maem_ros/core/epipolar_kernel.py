@@ -167,6 +167,21 @@ def prefetch_share(address, k0, k1):
             prefetch_l2(address + offset)
 
 
+@inline
+def chunk_step(fetch, m):
+    """Points per chunk of a block loop over m points: CHUNK when fetching, else all."""
+    return CHUNK if fetch else max(m, 1)
+
+
+@inline
+def chunk_start(k0, m, step, next_a, next_b):
+    """End of the chunk from point k0, after prefetching its share at next_a and next_b."""
+    k1 = min(k0 + step, m)
+    prefetch_share(next_a, k0, k1)
+    prefetch_share(next_b, k0, k1)
+    return k1
+
+
 @inline32
 def chunk32(a, b, c0, c1, c2, c3, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric):
     """block32's three sums over the points of a, b (float32; block32 documents the terms)."""
@@ -208,11 +223,9 @@ def block32(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
     g5, g6, g7, g8 = gs[t, 5], gs[t, 6], gs[t, 7], gs[t, 8]
     p = s = q = np.float32(0.0)
     m = a.shape[0] // 2
-    step = CHUNK if fetch else max(m, 1)
+    step = chunk_step(fetch, m)
     for k0 in range(0, m, step):
-        k1 = min(k0 + step, m)
-        prefetch_share(next_a, k0, k1)
-        prefetch_share(next_b, k0, k1)
+        k1 = chunk_start(k0, m, step, next_a, next_b)
         ak = a[2 * k0:2 * k1]
         bk = b[2 * k0:2 * k1]
         # a constant per call: a loop without the branch
@@ -277,11 +290,9 @@ def block32x2(a, b, d, cs, gs, t1, t2, symmetric, fetch, next_a, next_b):
     k6, k7, k8 = gs[t2, 6], gs[t2, 7], gs[t2, 8]
     p1 = s1 = q1 = p2 = s2 = q2 = np.float32(0.0)
     m = a.shape[0] // 2
-    step = CHUNK if fetch else max(m, 1)
+    step = chunk_step(fetch, m)
     for k0 in range(0, m, step):
-        k1 = min(k0 + step, m)
-        prefetch_share(next_a, k0, k1)
-        prefetch_share(next_b, k0, k1)
+        k1 = chunk_start(k0, m, step, next_a, next_b)
         ak = a[2 * k0:2 * k1]
         bk = b[2 * k0:2 * k1]
         dk = d[2 * k0:2 * k1]
