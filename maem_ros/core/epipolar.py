@@ -19,9 +19,11 @@ monotone, so the decision equals the full sum's.
 The numpy reference computes every distance in float64. The numba kernel takes every pair of
 a frame in one call (:func:`frame_sums`: all camera pairs; each detection's centre and block
 coordinate ranges computed once), blocks outermost, so each detection's block is read from
-memory once for all its candidate pairs. It fuses everything per point (the line, both norms
-and the distance), and two pairs of one detection in one camera pair run in one loop that
-computes that detection's lines and weights once. By default (``precision "mixed"``) it runs
+memory once for all its candidate pairs, and the blocks the next pair reads are prefetched
+while one pair's are summed (in chunks of the block, so reads and arithmetic overlap). It
+fuses everything per point (the line, both norms and the distance), and two pairs of one
+detection in one camera pair run in one loop that computes that detection's lines and
+weights once. By default (``precision "mixed"``) it runs
 float32 SIMD (twice the lanes of float64) on points centred on each detection (u - c,
 integer c; the bilinear form loses no digits to the px offset) with a rigorous bound E of the
 block sum's rounding error, from float32 unit roundoff u = 2^-24:
