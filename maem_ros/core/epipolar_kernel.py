@@ -146,9 +146,9 @@ def block64(a, b, fs, fk, ha, symmetric):
 #: of the next pair's blocks (CHUNK x 8 bytes of each): spread over the block's arithmetic,
 #: the next blocks stream in from memory while this one is summed. (All of them at the start
 #: of a block: no gain, the requests queue up and the arithmetic waits behind them.) On a
-#: large-load frame set (2-core Xeon VM, slow memory), alternating runs: full level 16.6-17.2
-#: -> 14.8-15.2 ms, 1/8 screen 3.9 -> 3.6 ms; chunks of 128 the same, of 512 about half the
-#: gain
+#: large-load frame set (2-core Xeon VM, slow memory), alternating runs: full level 16.3-16.9
+#: -> 14.7-15.5 ms, 1/8 screen 3.9 -> 3.6 ms (the README's figures); chunks of 128 the same,
+#: of 512 about half the gain
 CHUNK = 256
 
 
