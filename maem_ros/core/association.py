@@ -57,7 +57,7 @@ class AssociationParams(Params):
     ``backend`` selects the kernels of the gates (epipolar, reprojection), the pair cost and
     the clustering (auto = numba when installed, else numpy); both give the same decisions.
     ``epipolar_precision`` (numba): ``mixed`` float32 distances with a rigorous rounding-error
-    bound (undecided pairs redone in float64; means ~1e-7 relative), ``float64`` (means
+    bound (undecided pairs redone in float64; means ~1e-5 relative), ``float64`` (means
     ~1e-13). ``cost_joints``: "body" (the 13 sportcenter body joints of the detections'
     keypoint convention), "all", or comma-separated keypoint indices.
     ``tau_cost`` (m): pairs whose cost is above it never match; 0 = no cap (the paper).

@@ -28,21 +28,23 @@ float32 SIMD (twice the lanes of float64) on points centred on each detection (u
 integer c; the bilinear form loses no digits to the px offset) with a rigorous bound E of the
 block sum's rounding error, from float32 unit roundoff u = 2^-24:
 
-    E = (1 + 1e-3) [10 u B h sum w + 8 u h L sum |e| w^2 + (2^-20 + (m + 8) u) sum d]
+    E = (1 + 1e-3) [10 u B h sum w + 8 u h L sum |e| w^2 + (R + (m + 8) u) sum d]
 
 (e the bilinear form of the centred points under the float32 F' = T_b^T F T_a (F of unit
 norm), w = w_a + w_b and h = 1/2 (symmetric) or w = w_a and h = 1 (forward), w_a, w_b the
 reciprocal line norms, B = [|u_b|,|v_b|,1] |F'| [|u_a|,|v_a|,1]^T from the block's coordinate
 range, L = max(L_a, L_b) the same bound of the lines' first two coefficients; terms: rounding
-of e, of the line norms (through their coefficients and the 2^-20 reciprocal square root;
-sum |e| (w_a^2 + w_b^2) <= sum |e| w^2), and of the block's m (<= BLOCK) float32 additions; E
-does not depend on F' 's scale). A pair is rejected early when
+of e, of the line norms (through their coefficients and the reciprocal square root, within
+R = 2^-10 relative: x86's hardware estimate without a Newton step; sum |e| (w_a^2 + w_b^2) <=
+sum |e| w^2), and of the block's m (<= BLOCK) float32 additions; E does not depend on F' 's
+scale). A pair is rejected early when
 ``sum - E >= tau * (used + still to come)``, accepted when ``sum + E < tau * used``, rejected
 when ``sum - E >= tau * used``; otherwise (the
 bound cannot settle it; in practice never) it is recomputed in float64. Blocks with a missing
 point or a point at (or very near) the epipole are summed in float64. So the decisions are
-those of the float64 sums; an accepted pair's mean carries an error below E / used (~1e-7
-relative in practice; ``precision "float64"`` gives it to ~1e-13). The kernel reads each
+those of the float64 sums; an accepted pair's mean carries an error below E / used (~1e-5
+relative on full meshes in practice, the estimate's errors averaging over the points;
+``precision "float64"`` gives it to ~1e-13). The kernel reads each
 camera's points where they are (:class:`PointRows`: a strided PointCloud2 field or a
 contiguous array, float32 or float64; float64 points are summed in float64), without copies.
 A point at the epipole has an undefined line: its distance is inf (or NaN, mapped to inf),
@@ -255,7 +257,7 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
     precision (numba backend, float32 points): ``mixed`` sums float32 SIMD distances with a
     rigorous bound of their rounding error and re-runs in float64 any pair whose decision the
     bound cannot settle, so the decisions are the float64 ones; an accepted pair's sum is then
-    within its bound (~1e-7 relative in practice) of the exact one. ``float64``: every distance
+    within its bound (~1e-5 relative in practice) of the exact one. ``float64``: every distance
     in float64 (sums to ~1e-13).
 
     count_rest: with early exit, a rejected pair's ``used`` also counts the points its sum did
@@ -361,10 +363,16 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], unit: np.ndar
         _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like)
         det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
         like = like.reshape(-1)
+    if like.flags.writeable:
+        # one compiled kernel per dtype: a writable array would take another, compiled (and
+        # cached) apart with its own inlining, so sums could differ in the last bits between
+        # points read in place (read-only views) and gathered ones
+        like = like.view()
+        like.setflags(write=False)
     got = _numba_kernels().sums_kernel(
         like, det_addr, unit, np.ascontiguousarray(which[order], dtype=np.int64),
         np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]), block_order(n), n,
-        tau, early_exit, symmetric, mixed, count_rest)
+        tau, early_exit, symmetric, mixed, mixed and _refined_rsqrt_within_bound(), count_rest)
     out = np.empty(S), np.empty(S, dtype=np.int64), np.empty(S, dtype=np.int64)
     for v, g in zip(out, got):
         v[order] = g
@@ -468,9 +476,14 @@ def _block_points(ra: PointRows, rb: PointRows, ia: np.ndarray, jb: np.ndarray,
 
 #: float32 unit roundoff
 _U32 = 2.0 ** -24
-#: relative error bound of a float32 1/sqrt (hardware estimate, |rel err| <= 1.5 * 2^-12, plus
+#: relative error bound of the float32 1/sqrt of the kernels: the hardware estimate alone on
+#: x86-64 (documented |rel err| <= 1.5 * 2^-12, 3.7e-4; rsqrt14ps 2^-14; 2^-10 leaves a margin
+#: of ~2.7), elsewhere the estimate with LLVM's Newton steps. Checked at first use
+#: (:func:`_rsqrt_within_bound`)
+_RSQRT_ERR = 2.0 ** -10
+#: the same of the refined float32 1/sqrt that a pair's second try takes (the estimate plus
 #: one Newton step in float32: ~3 * 2^-24 + 1.7 * 2^-24; 2^-20 leaves a margin of ~3)
-_RSQRT_ERR = 2.0 ** -20
+_RSQRT_ERR_REFINED = 2.0 ** -20
 #: relative slack on the error bound for its own (second-order) rounding
 _BOUND_SLACK = 1e-3
 #: float32 bit patterns mapped to ordered int32 keys: keys of -inf and +inf (finite in between)
@@ -480,16 +493,41 @@ _KEY_POS_INF = 2139095040
 
 @lru_cache(maxsize=1)
 def _rsqrt_within_bound() -> bool:
-    """Whether the compiled float32 1/sqrt (the instructions LLVM picks for this CPU) is within
-    _RSQRT_ERR of the exact value over a sweep of arguments; if not, the mixed kernel's error
-    bound would not hold, and "mixed" runs in float64 instead."""
+    """Whether the compiled float32 1/sqrt of the kernels (the instructions LLVM picks for
+    this CPU) is within half of _RSQRT_ERR of the exact value; if not, the mixed kernel's
+    error bound would not hold, and "mixed" runs in float64 instead."""
     from .epipolar_kernel import rsqrt32
-    q = np.geomspace(1e-30, 1e30, 200_003).astype(np.float32)
-    q = np.concatenate([q, np.random.default_rng(0).uniform(0.5, 2.0, 100_000).astype(np.float32)])
-    got = np.empty_like(q)
-    rsqrt32(q, got)
-    exact = 1.0 / np.sqrt(q.astype(np.float64))
-    return bool(np.max(np.abs(got / exact - 1.0)) <= _RSQRT_ERR / 2)
+    return _rsqrt_probe(rsqrt32) <= _RSQRT_ERR / 2
+
+
+@lru_cache(maxsize=1)
+def _refined_rsqrt_within_bound() -> bool:
+    """Whether the refined float32 1/sqrt of a pair's second try is within half of
+    _RSQRT_ERR_REFINED; if not, pairs the first bound cannot settle go to float64 at once."""
+    from .epipolar_kernel import rsqrt32_refined
+    return _rsqrt_probe(rsqrt32_refined) <= _RSQRT_ERR_REFINED / 2
+
+
+def _rsqrt_probe(kernel) -> float:
+    """Largest relative error of a compiled float32 1/sqrt ``kernel(q, out, step)``. An
+    estimate depends on the mantissa and the exponent's parity: every 61st float32 in [1, 4)
+    (8 or more arguments in every table cell of the 12- and 14-bit estimates) through the
+    widest vector loop and through the narrower remainder code (chunks shorter than one
+    vector), and a sweep over the whole exponent range."""
+    every = np.arange(np.float32(1.0).view(np.int32), np.float32(4.0).view(np.int32),
+                      61, dtype=np.int32).view(np.float32)
+    q = np.concatenate([every, np.geomspace(1e-30, 1e30, 200_003).astype(np.float32)])
+    worst = 0.0
+    for probe, step in ((q, q.size), (every, _REMAINDER_PROBE)):
+        got = np.empty_like(probe)
+        kernel(probe, got, step)
+        exact = 1.0 / np.sqrt(probe.astype(np.float64))
+        worst = max(worst, float(np.max(np.abs(got / exact - 1.0))))
+    return worst
+
+
+#: arguments per chunk of the remainder probe: fewer than a 512-bit vector of float32 lanes
+_REMAINDER_PROBE = 15
 
 
 @lru_cache(maxsize=1)

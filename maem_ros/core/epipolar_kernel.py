@@ -12,8 +12,8 @@ import numba as nb
 import numpy as np
 from numba.core import cgutils
 
-from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U32,
-                       EPIPOLE_NORM)
+from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR,
+                       _RSQRT_ERR_REFINED, _U32, EPIPOLE_NORM)
 
 # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
 # survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
@@ -21,7 +21,7 @@ from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR, _U3
 _FLAGS = {"reassoc", "contract", "arcp", "nsz"}
 _OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
 jit = nb.njit(fastmath=_FLAGS, **_OPTS)
-# afn: float32 1/sqrt as the hardware estimate + one Newton step (bounded by _RSQRT_ERR)
+# afn: float32 1/sqrt as the hardware estimate (_ESTIMATE; bounded by _RSQRT_ERR)
 jit32 = nb.njit(fastmath=_FLAGS | {"afn"}, **_OPTS)
 plain = nb.njit(**_OPTS)
 # per pair and block helpers: inlined, so the hot loop passes no array views through calls
@@ -76,17 +76,39 @@ prefetch_l2 = _prefetch_intrinsic(2, "L2")
 _WIDE = '"prefer-vector-width"="512"'
 
 
-@nb.extending.intrinsic
-def wide_vectors(typingctx):
-    """Mark the calling kernel with _WIDE. A no-op where llvmlite's function attributes are
-    not the set of printed strings they are today (then only narrower vectors)."""
-    def codegen(context, builder, signature, args):
-        attributes = builder.function.attributes
-        if isinstance(attributes, set):
-            # set.add: llvmlite's own add() accepts only LLVM's keyword attributes
-            set.add(attributes, _WIDE)
-        return context.get_dummy_value()
-    return nb.types.none(), codegen
+#: LLVM function attribute: a float32 1/sqrt (``afn``) is the hardware estimate alone, no
+#: Newton step. x86's estimates are documented within 1.5 * 2^-12 relative (rsqrtps; the
+#: AVX-512 rsqrt14ps that 512-bit loops take, 2^-14), inside epipolar._RSQRT_ERR = 2^-10, so
+#: the error bound covers them (and epipolar._rsqrt_within_bound checks it at first use). A
+#: Newton step is 4 vector operations, twice per point of ~36: without it the large load's
+#: three kernel levels took 20.5-20.7 -> 19.0-19.4 ms (alternating runs, 2-core Xeon VM).
+#: Only on x86-64: other targets' estimates are coarser (AArch64's frsqrte: 8 bits), so they
+#: keep LLVM's Newton steps
+_ESTIMATE = '"reciprocal-estimates"="sqrtf:0,vec-sqrtf:0"'
+
+
+def _function_attribute(attribute: str, doc: str, x86_only: bool = False):
+    """An intrinsic that marks the calling kernel with the LLVM function attribute
+    ``attribute`` (x86_only: on x86-64 targets only). A no-op where llvmlite's function
+    attributes are not the set of printed strings they are today."""
+    @nb.extending.intrinsic
+    def intrinsic(typingctx):
+        def codegen(context, builder, signature, args):
+            attributes = builder.function.attributes
+            x86 = builder.module.triple.startswith(("x86_64", "amd64"))
+            if isinstance(attributes, set) and (x86 or not x86_only):
+                # set.add: llvmlite's own add() accepts only LLVM's keyword attributes
+                set.add(attributes, attribute)
+            return context.get_dummy_value()
+        return nb.types.none(), codegen
+    intrinsic.__doc__ = doc
+    return intrinsic
+
+
+wide_vectors = _function_attribute(_WIDE, "Mark the calling kernel with _WIDE (else only "
+                                          "narrower vectors).")
+estimated_rsqrt = _function_attribute(_ESTIMATE, "Mark the calling float32 kernel with "
+                                                 "_ESTIMATE (x86-64 only).", x86_only=True)
 
 
 @inline
@@ -208,16 +230,16 @@ def chunk32(a, b, c0, c1, c2, c3, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric)
     return p, s, q
 
 
-@jit32
-def block32(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
+@inline32
+def block32_sums(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
     """float32 sums over a block of complete points of pair t, centred (u - c[0], v - c[1])
     in a, (u - c[2], v - c[3]) in b (c = cs[t]), g = gs[t] (9,) float32 F of the centred
     points: (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and w = wa + wb
     (symmetric) or wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||. fetch: summed in
     chunks of CHUNK points, meanwhile prefetching the same-sized blocks at addresses next_a,
     next_b (0: none); the sums depend on fetch, never on the addresses. Arrays and indices,
-    not rows: a row view per call costs reference counting."""
-    wide_vectors()
+    not rows: a row view per call costs reference counting. Inlined into block32 and
+    block32_refined, which choose the 1/sqrt."""
     c0, c1, c2, c3 = cs[t, 0], cs[t, 1], cs[t, 2], cs[t, 3]
     g0, g1, g2, g3, g4 = gs[t, 0], gs[t, 1], gs[t, 2], gs[t, 3], gs[t, 4]
     g5, g6, g7, g8 = gs[t, 5], gs[t, 6], gs[t, 7], gs[t, 8]
@@ -239,6 +261,23 @@ def block32(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
         s += ds
         q += dq
     return np.float64(p), np.float64(s), np.float64(q)
+
+
+@jit32
+def block32(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
+    """block32_sums with the 1/sqrt as the hardware estimate (_ESTIMATE)."""
+    wide_vectors()
+    estimated_rsqrt()
+    return block32_sums(a, b, cs, gs, t, symmetric, fetch, next_a, next_b)
+
+
+@jit32
+def block32_refined(a, b, cs, gs, t, symmetric):
+    """block32_sums with LLVM's refined 1/sqrt (the estimate and its Newton steps, within
+    epipolar._RSQRT_ERR_REFINED): the second try of a pair the estimate's bound cannot
+    settle."""
+    wide_vectors()
+    return block32_sums(a, b, cs, gs, t, symmetric, False, 0, 0)
 
 
 @jit32
@@ -284,6 +323,7 @@ def block32x2(a, b, d, cs, gs, t1, t2, symmetric, fetch, next_a, next_b):
     a's lines and weights computed once; returns block32's three sums for each pair
     (fetch, next_a, next_b as in block32)."""
     wide_vectors()
+    estimated_rsqrt()
     ca0, ca1, cb0, cb1, cd0, cd1 = cs[t1, 0], cs[t1, 1], cs[t1, 2], cs[t1, 3], cs[t2, 2], cs[t2, 3]
     g0, g1, g2, g3, g4, g5 = gs[t1, 0], gs[t1, 1], gs[t1, 2], gs[t1, 3], gs[t1, 4], gs[t1, 5]
     g6, g7, g8 = gs[t1, 6], gs[t1, 7], gs[t1, 8]
@@ -384,11 +424,12 @@ def _put(g, G, s, r, col, value):
 
 
 @plain
-def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m):
+def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m, rsqrt_err):
     """(float32 block sum, upper bound (px) on its distance to the exact sum) of pair t's
     block of m points (G[t] = |g| of its centred F); xa0, xa1, xb0, xb1 bound |u|, |v| of
     the centred points in a and b (module docstring); epi: EPIPOLE_NORM in g's units;
-    h = 0.5 (symmetric) or 1. (inf, inf) when the block must be summed in float64."""
+    h = 0.5 (symmetric) or 1; rsqrt_err: relative error bound of the sums' 1/sqrt. (inf,
+    inf) when the block must be summed in float64."""
     # rows of G times (xa0, xa1, 1), then xb's weights: no loops, no tuple indexing (this
     # runs per pair and block)
     r0 = G[t, 0, 0] * xa0 + G[t, 0, 1] * xa1 + G[t, 0, 2]
@@ -404,12 +445,12 @@ def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m):
     # has a float32 line norm within the rounding bound 6 u L of that: its weight, and so
     # the block's weight sum, reaches 1 / (epi + 6 u L); such a block goes to float64
     # (part inf)
-    if not s * (epi + 6.0 * _U32 * lmax) * (1.0 + 2.0 * _RSQRT_ERR) < 1.0:
+    if not s * (epi + 6.0 * _U32 * lmax) * (1.0 + 2.0 * rsqrt_err) < 1.0:
         return np.inf, np.inf
     part = h * p
     # sum |e| (wa^2 + wb^2) <= sum |e| w^2 bounds the line-norm term of both sides
     err = (10.0 * _U32 * bil * h * s + 8.0 * _U32 * h * lmax * q
-           + (_RSQRT_ERR + (m + 8) * _U32) * part)
+           + (rsqrt_err + (m + 8) * _U32) * part)
     return part, err * (1.0 + _BOUND_SLACK)
 
 
@@ -468,14 +509,15 @@ def rest_present(a, b, blocks, after):
 
 
 @inline
-def pair_bound(G, t, ranges, i, j, r, c, sums3, h, m):
+def pair_bound(G, t, ranges, i, j, r, c, sums3, h, m, rsqrt_err=_RSQRT_ERR):
     """block_bound of pair t (detections i, j) from their block r's (m points) coordinate
-    ranges ranges[i, r], ranges[j, r] (min, max) and its centres c[t] (4,)."""
+    ranges ranges[i, r], ranges[j, r] (min, max) and its centres c[t] (4,); rsqrt_err: that
+    of the sums (block32's by default)."""
     a0, a1, b0, b1 = ranges[i, r, 0], ranges[i, r, 1], ranges[j, r, 0], ranges[j, r, 1]
     return block_bound(G, t, EPIPOLE_NORM, max(abs(a1 - c[t, 0]), abs(a0 - c[t, 0])),
                        max(abs(a1 - c[t, 1]), abs(a0 - c[t, 1])),
                        max(abs(b1 - c[t, 2]), abs(b0 - c[t, 2])),
-                       max(abs(b1 - c[t, 3]), abs(b0 - c[t, 3])), sums3, h, m)
+                       max(abs(b1 - c[t, 3]), abs(b0 - c[t, 3])), sums3, h, m, rsqrt_err)
 
 
 @inline
@@ -532,12 +574,55 @@ def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, 
            err, used, alive)
 
 
+@inline
+def decided(total, bound, count, tau):
+    """Whether a complete sum within ``bound`` of the exact one settles the decision
+    (exact sum < tau * count)."""
+    return total + bound < tau * count or total - bound >= tau * count
+
+
+@inline
+def refined_pair(s, like, det_addr, pa, pb, blocks, ranges, c, g, G, fs, fk, h, symmetric):
+    """(sum, its error bound, points used) of pair s over all its blocks with block32_refined
+    (blocks with a missing point or a point near the epipole in float64, as in settle)."""
+    i = pa[s]
+    j = pb[s]
+    total = 0.0
+    bound = 0.0
+    count = 0
+    for r in range(blocks.shape[0]):
+        lo = blocks[r, 0]
+        hi = blocks[r, 1]
+        ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
+        bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
+        p = np.inf
+        e = np.inf
+        lo_a, hi_a = block_range(ab, ranges, i, r)
+        lo_b, hi_b = block_range(bb, ranges, j, r)
+        if lo_a <= hi_a and lo_b <= hi_b:
+            p, e = pair_bound(G, s, ranges, i, j, r, c,
+                              block32_refined(ab, bb, c, g, s, symmetric), h, hi - lo,
+                              _RSQRT_ERR_REFINED)
+        if p < np.inf and e < np.inf:
+            total += p
+            bound += e
+            count += hi - lo
+        else:
+            p, k = block64(ab, bb, fs, fk[s], h, symmetric)
+            total += p if p == p else np.inf
+            count += k
+    return total, bound, count
+
+
 @plain
 def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
-                symmetric, mixed, count_rest):
+                symmetric, mixed, refine, count_rest):
     """(sums, used, points summed) of pairs s (detections pa[s], pb[s] under unit F
     fs[fk[s]]); detection d's 2n coordinates start at address det_addr[d] (arrays of like's
-    dtype). count_rest: used also counts the points after a rejected pair's early exit."""
+    dtype). count_rest: used also counts the points after a rejected pair's early exit.
+    mixed: float32 sums with the estimated 1/sqrt (block32); a pair their bound cannot
+    settle is summed again with the refined 1/sqrt (refine) and, if that cannot settle it
+    either, in float64."""
     S = pa.shape[0]
     D = det_addr.shape[0]
     h = 0.5 if symmetric else 1.0
@@ -629,12 +714,19 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
             if not alive[t] and last[t] < 0:
                 last[t] = r
     for s in range(S):
-        total = sums[s]
-        if alive[s] and not (total + err[s] < tau * used[s]) \
-                and not (total - err[s] >= tau * used[s]):
-            # the bound does not settle the decision: float64 throughout
-            pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
-                        symmetric, sums, used, last)
+        if not alive[s] or decided(sums[s], err[s], used[s], tau):
+            continue
+        # the bound does not settle the decision (the mean is within ~2^-10 of tau): again
+        # with the refined 1/sqrt (~2^-20), then float64 throughout
+        if refine:
+            total, bound, count = refined_pair(s, like, det_addr, pa, pb, blocks, ranges, c,
+                                               g, G, fs, fk, h, symmetric)
+            if decided(total, bound, count, tau):
+                sums[s] = total
+                used[s] = count
+                continue
+        pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
+                    symmetric, sums, used, last)
     total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
     return sums, total, used
 
@@ -678,9 +770,29 @@ def gather_runs(like, det_addr, run, period, out):
                 out[d, 2 * r * run + k] = src[k]
 
 
+@inline32
+def rsqrt32_chunks(q, out, step):
+    """out[k] = 1/sqrt(q[k]) in float32, in chunks of ``step`` arguments (shorter than one
+    vector: the loop's remainder code)."""
+    n = q.shape[0]
+    for start in range(0, n, step):
+        qk = q[start:min(start + step, n)]
+        ok = out[start:min(start + step, n)]
+        for k in range(qk.shape[0]):
+            ok[k] = np.float32(1.0) / np.sqrt(qk[k])
+
+
 @jit32
-def rsqrt32(q, out):
-    """out[k] = 1/sqrt(q[k]) in float32, in the vectorised form block32 uses (the probe of
+def rsqrt32(q, out, step):
+    """rsqrt32_chunks compiled as block32 is (the probe of epipolar._rsqrt_within_bound)."""
+    wide_vectors()
+    estimated_rsqrt()
+    rsqrt32_chunks(q, out, step)
+
+
+@jit32
+def rsqrt32_refined(q, out, step):
+    """rsqrt32_chunks compiled as block32_refined is (the probe of
     epipolar._rsqrt_within_bound)."""
-    for k in range(q.shape[0]):
-        out[k] = np.float32(1.0) / np.sqrt(q[k])
+    wide_vectors()
+    rsqrt32_chunks(q, out, step)
