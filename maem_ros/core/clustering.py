@@ -193,7 +193,8 @@ def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
     label = _local_moves(table, gain, geometric, label, verify, params, stats, kernels)
-    geo = pairs.geometric  # each pair once: the geometric pairs i < j within one cluster
+    # each pair once: the geometric pairs i < j within one cluster
+    geo = np.flatnonzero(pairs.geometric)
     stats["matched_pairs"] = float(np.count_nonzero(label[pairs.i[geo]] == label[pairs.j[geo]]))
     return Found(_groups(label))
 
@@ -228,12 +229,14 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kern
     round reads each candidate's figures instead of gathering its members' pairs."""
     C = int(table.cam.max()) + 1
     N = label.size
-    ok = pairs.passed
+    # the passed pairs indexed once: a few % of all pairs (each boolean-mask gather would
+    # scan all of them)
+    ok = np.flatnonzero(pairs.passed)
+    i, j = pairs.i[ok], pairs.j[ok]
     # codes A * N + B (A < B) of the clusters linked by a pair that passed all (merge
     # candidates), ascending: relabelled after each round (a list of the passed pairs, not an
     # N x N table that every round would scan)
-    links = sorted_unique(np.minimum(pairs.i[ok], pairs.j[ok]) * N
-                          + np.maximum(pairs.i[ok], pairs.j[ok]))
+    links = sorted_unique(np.minimum(i, j) * N + np.maximum(i, j))
     between = gain.copy()  # summed gain of the cross pairs of two clusters
     # cross pairs that passed the geometric gates (int32 for the kernel: the same counts in
     # half the memory its table updates stream through)

@@ -39,13 +39,14 @@ R = 2^-10 relative: x86's hardware estimate without a Newton step; sum |e| (w_a^
 sum |e| w^2), and of the block's m (<= BLOCK) float32 additions; E does not depend on F' 's
 scale). A pair is rejected early when
 ``sum - E >= tau * (used + still to come)``, accepted when ``sum + E < tau * used``, rejected
-when ``sum - E >= tau * used``; otherwise (the
-bound cannot settle it; in practice never) it is recomputed in float64. Blocks with a missing
-point or a point at (or very near) the epipole are summed in float64. So the decisions are
-those of the float64 sums; an accepted pair's mean carries an error below E / used (~1e-5
-relative on full meshes in practice, the estimate's errors averaging over the points;
-``precision "float64"`` gives it to ~1e-13). The kernel reads each
-camera's points where they are (:class:`PointRows`: a strided PointCloud2 field or a
+when ``sum - E >= tau * used``; otherwise (the bound cannot settle it: its mean is within
+~2^-10 of tau, a few pairs of a large-load frame) it is summed again in float32 with the
+refined 1/sqrt (R = 2^-20) and, if that cannot settle it either, in float64. Blocks with a
+missing point or a point at (or very near) the epipole are summed in float64. So the
+decisions are those of the float64 sums; an accepted pair's mean carries an error below
+E / used (~1e-5 relative on full meshes in practice, the estimate's errors averaging over the
+points; ``precision "float64"`` gives it to ~1e-13). The kernel reads each camera's points
+where they are (:class:`PointRows`: a strided PointCloud2 field or a
 contiguous array, float32 or float64; float64 points are summed in float64), without copies.
 A point at the epipole has an undefined line: its distance is inf (or NaN, mapped to inf),
 which rejects the pair.
