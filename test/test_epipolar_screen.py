@@ -5,6 +5,7 @@ every vertex."""
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -108,6 +109,21 @@ def test_a_subset_rejected_by_an_early_exit_before_half_its_points_is_not_read_a
             one, one, TAU, MARGIN, backend=backend)
         assert not keep[0] and np.isnan(mean[0])
         assert evaluated == np.diff(epipolar.block_order(screen)[0])[0], backend
+
+
+def test_screens_in_threads_at_once_give_what_they_give_one_after_the_other():
+    """The screens' gathered points live in per-thread scratch memory kept between calls
+    (grown as needed): threads running at once (the kernels release the GIL) and calls of
+    other sizes in between do not disturb each other's points."""
+    jobs = [_pair(7.0 + 0.25 * k, 7.5, seed=k, n=N * (1 + k % 3)) for k in range(8)]
+    alone = [_gate(*job) for job in jobs]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda job: _gate(*job), jobs * 8))
+    for k, got in enumerate(together):
+        want = alone[k % len(jobs)]
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        assert got[2] == want[2]
 
 
 def test_without_a_screen_every_pair_is_decided_on_the_full_set():
