@@ -390,12 +390,13 @@ def _gather_buffer(size: int, dtype: np.dtype, align: int = 64) -> np.ndarray:
     memory (valid until its next call in this thread). Kept, not allocated per call: a fresh
     7 MB buffer (the large load's 1/8 screen) came from new pages now and then, and their
     first writes faulted (~380 page faults, up to +30 ms on a frame on a 2-core VM), while
-    memory reused from the previous frame is already mapped."""
+    memory reused from the previous frame is already mapped. Grown with headroom (frame sets
+    vary in size), as each growth faults its new pages once."""
     need = size * np.dtype(dtype).itemsize + align
     raw = getattr(_scratch, "raw", None)
     if raw is None or raw.size < need:
-        raw = _scratch.raw = np.empty(max(need, 2 * raw.size if raw is not None else 0),
-                                      np.uint8)
+        raw = _scratch.raw = np.empty(max(need + need // 2, 2 * raw.size if raw is not None
+                                          else 0), np.uint8)
     skip = -raw.ctypes.data % align
     return raw[skip:skip + need - align].view(dtype)
 
