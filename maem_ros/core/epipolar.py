@@ -279,22 +279,80 @@ def _frame_sums(points: Mapping[int, np.ndarray | PointRows],
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`frame_sums` and, third, the points each pair's sum reached (``used`` without
     count_rest)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
+    plan = _frame_pairs(points, F, cam_a, det_a, cam_b, det_b)
+    return _level_sums(plan, points, np.arange(plan.which.size), tau, symmetric, early_exit,
+                       backend, precision, count_rest)
+
+
+@dataclass(frozen=True)
+class _FramePairs:
+    """The detection pairs of a frame, checked and prepared once for every level of
+    :func:`frame_screened_means`: each side's detection as a frame-wide key (``offsets`` of
+    the cameras ``cams`` plus the index), each pair's row ``which`` of ``unit`` (its unit F),
+    and the kernel's pair order over all of them (``order``: by a-side detection, camera pair,
+    b-side detection; stable). A level's pairs take that order filtered to them, the order a
+    sort of the level's pairs alone gives."""
+
+    cam_a: np.ndarray
+    det_a: np.ndarray
+    cam_b: np.ndarray
+    det_b: np.ndarray
+    cams: list[int]
+    counts: np.ndarray
+    offsets: np.ndarray
+    key_a: np.ndarray
+    key_b: np.ndarray
+    which: np.ndarray
+    unit: np.ndarray
+    order: np.ndarray
+
+
+def _frame_pairs(points: Mapping[int, np.ndarray | PointRows],
+                 F: Mapping[tuple[int, int], np.ndarray] | PairMatrices, cam_a: np.ndarray,
+                 det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray) -> _FramePairs:
+    """:class:`_FramePairs` of pairs (det_a[s] of camera cam_a[s], det_b[s] of cam_b[s]) over
+    the cameras' points; ValueError naming the first bad input."""
     pairs = [np.ascontiguousarray(v, dtype=np.int64) for v in (cam_a, det_a, cam_b, det_b)]
     if any(v.ndim != 1 or v.shape != pairs[0].shape for v in pairs):
         raise ValueError(f"epipolar pairs: cameras and detections must be equal-length 1D, got "
                          f"{[v.shape for v in pairs]}")
     cam_a, det_a, cam_b, det_b = pairs
-    S = cam_a.size
     cams = sorted_unique(np.concatenate([cam_a, cam_b])).tolist()
     if cams and cams[0] < 0:
         raise ValueError(f"epipolar pairs: camera indices must be >= 0, got {cams[0]}")
     missing = [c for c in cams if c not in points]
     if missing:
         raise ValueError(f"epipolar pairs: no points for camera(s) {missing}")
+    counts = np.array([point_rows(points[c]).count for c in cams], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    keys = []
+    for cam, det in ((cam_a, det_a), (cam_b, det_b)):
+        slot = np.searchsorted(cams, cam)
+        if det.size and (det.min() < 0 or np.any(det >= counts[slot])):
+            # the kernel runs without bounds checks
+            raise ValueError("epipolar pairs: detection index out of range")
+        keys.append(offsets[slot] + det)
+    Fs = pair_matrices(F)
+    which = Fs.rows(cam_a, cam_b)
+    W = int(which.max()) + 1 if which.size else 1
+    K = int(offsets[-1])
+    # one stable sort on a combined key (np.lexsort of the three keys took 3x as long)
+    order = np.argsort((keys[0] * W + which) * K + keys[1], kind="stable")
+    return _FramePairs(cam_a, det_a, cam_b, det_b, cams, counts, offsets, keys[0], keys[1],
+                       which, Fs.unit, order)
+
+
+def _level_sums(plan: _FramePairs, points: Mapping[int, np.ndarray | PointRows],
+                todo: np.ndarray, tau: float, symmetric: bool, early_exit: bool, backend: str,
+                precision: str, count_rest: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(sums, used, points summed) of the plan's pairs ``todo`` (indices, ascending) over
+    ``points`` (the plan's cameras, the same detections: the full sets or one screening
+    level's subsets), as :func:`_frame_sums`."""
+    if backend not in BACKENDS:
+        raise ValueError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
+    cams = plan.cams
     rows = {c: point_rows(points[c]) for c in cams}
     if len({(r.run, r.period) for r in rows.values()}) > 1:  # one layout per kernel call
         rows = {c: r.contiguous() for c, r in rows.items()}
@@ -302,59 +360,64 @@ def _frame_sums(points: Mapping[int, np.ndarray | PointRows],
     if len(sizes) > 1:
         raise ValueError(f"epipolar points: expected (N,n,2) with one n for every camera, got "
                          f"n={sorted(sizes)}")
+    if any(rows[c].count != k for c, k in zip(cams, plan.counts.tolist())):
+        raise ValueError("epipolar points: a level's detections differ from the pairs' cameras'")
     n = sizes.pop() if sizes else 0
+    S = todo.size
     if S == 0 or n == 0:
         return np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
-    for cam, det in ((cam_a, det_a), (cam_b, det_b)):
-        count = np.array([rows[c].count for c in cams])[np.searchsorted(cams, cam)]
-        if det.min() < 0 or np.any(det >= count):  # the kernel runs without bounds checks
-            raise ValueError("epipolar pairs: detection index out of range")
-    Fs = pair_matrices(F)
-    which = Fs.rows(cam_a, cam_b)
     use_numba = backend == "numba" or (backend == "auto" and _numba is not None)
     if not use_numba:
-        out = np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
-        for g in sorted_unique(which).tolist():
-            s = np.flatnonzero(which == g)
-            for v, got in zip(out, _numpy_sums(rows[int(cam_a[s[0]])], rows[int(cam_b[s[0]])],
-                                               Fs.unit[g].reshape(3, 3), det_a[s], det_b[s],
-                                               float(tau) if early_exit else np.inf,
-                                               bool(symmetric), bool(count_rest))):
-                v[s] = got
-        return out
+        return _numpy_level_sums(plan, rows, todo, float(tau) if early_exit else np.inf,
+                                 bool(symmetric), bool(count_rest))
     if _numba is None:
         raise ValueError("backend: 'numba' requested but numba is not installed")
-    return _numba_frame_sums(rows, cams, Fs.unit, which, cam_a, det_a, cam_b, det_b, n,
-                             float(tau), bool(symmetric), bool(early_exit), precision,
-                             bool(count_rest))
+    return _numba_frame_sums(rows, plan, todo, n, float(tau), bool(symmetric),
+                             bool(early_exit), precision, bool(count_rest))
 
 
-def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], unit: np.ndarray,
-                      which: np.ndarray, cam_a: np.ndarray, det_a: np.ndarray,
-                      cam_b: np.ndarray, det_b: np.ndarray, n: int, tau: float,
-                      symmetric: bool, early_exit: bool, precision: str, count_rest: bool
+def _numpy_level_sums(plan: _FramePairs, rows: dict[int, PointRows], todo: np.ndarray,
+                      tau: float, symmetric: bool, count_rest: bool
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The numba kernel on the pairs of a frame: detections numbered once (each one's centre and
-    block ranges computed once for all its pairs), pairs ordered by their a-side detection;
-    pair s under unit F unit[which[s]] (9,)."""
+    """The numpy reference on the plan's pairs todo, one camera pair at a time."""
+    S = todo.size
+    which = plan.which[todo]
+    cam_a, det_a, cam_b, det_b = (v[todo] for v in (plan.cam_a, plan.det_a, plan.cam_b,
+                                                    plan.det_b))
+    out = np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
+    for g in sorted_unique(which).tolist():
+        s = np.flatnonzero(which == g)
+        for v, got in zip(out, _numpy_sums(rows[int(cam_a[s[0]])], rows[int(cam_b[s[0]])],
+                                           plan.unit[g].reshape(3, 3), det_a[s], det_b[s],
+                                           tau, symmetric, count_rest)):
+            v[s] = got
+    return out
+
+
+def _numba_frame_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.ndarray, n: int,
+                      tau: float, symmetric: bool, early_exit: bool, precision: str,
+                      count_rest: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The numba kernel on the plan's pairs todo: the detections they read numbered once
+    (each one's centre and block ranges computed once for all its pairs), the pairs in the
+    plan's order (a detection's pairs one after another: its block stays hot; those of one
+    camera pair together: they share its lines)."""
+    cams = plan.cams
     flats = [rows[c].flat for c in cams]
     if len({f.dtype for f in flats}) > 1:  # mixed float32/float64 cameras: all in float64
         flats = [f.astype(np.float64) for f in flats]
     # float64 points (keypoints: few per detection) always take the float64 path
     mixed = (precision == "mixed" and flats[0].dtype == np.float32 and _rsqrt_within_bound())
-    slot = np.searchsorted(cams, np.concatenate([cam_a, cam_b]))
-    offsets = np.concatenate([[0], np.cumsum([rows[c].count for c in cams])])
-    key = offsets[slot] + np.concatenate([det_a, det_b])
-    dets, idx = unique_inverse(key, int(offsets[-1]))
-    det_slot = np.searchsorted(offsets, dets, side="right") - 1
+    chosen = np.zeros(plan.which.size, bool)
+    chosen[todo] = True
+    order = plan.order[chosen[plan.order]]  # this level's pairs in the kernel's order
+    key_a, key_b = plan.key_a[order], plan.key_b[order]
+    present = np.zeros(int(plan.offsets[-1]), bool)
+    present[key_a] = True
+    present[key_b] = True
+    dets = np.flatnonzero(present)
+    rank = np.cumsum(present) - 1
+    det_slot = np.searchsorted(plan.offsets, dets, side="right") - 1
     det_row = np.concatenate([rows[c].rows for c in cams])[dets]
-    S = cam_a.size
-    pa, pb = idx[:S], idx[S:]
-    # a detection's pairs one after another (its block stays hot), those of one camera pair
-    # together (they share its lines): one stable sort on a combined key (np.lexsort of the
-    # three keys took 3x as long)
-    D = dets.size
-    order = np.argsort((pa * (int(which.max()) + 1) + which) * D + pb, kind="stable")
     # each detection's first coordinate as an address: flats stay referenced during the call
     base = np.array([f.__array_interface__["data"][0] for f in flats], dtype=np.int64)
     det_addr = base[det_slot] + det_row * flats[0].dtype.itemsize
@@ -372,12 +435,15 @@ def _numba_frame_sums(rows: dict[int, PointRows], cams: list[int], unit: np.ndar
         like = like.view()
         like.setflags(write=False)
     got = _numba_kernels().sums_kernel(
-        like, det_addr, unit, np.ascontiguousarray(which[order], dtype=np.int64),
-        np.ascontiguousarray(pa[order]), np.ascontiguousarray(pb[order]), block_order(n), n,
-        tau, early_exit, symmetric, mixed, mixed and _refined_rsqrt_within_bound(), count_rest)
-    out = np.empty(S), np.empty(S, dtype=np.int64), np.empty(S, dtype=np.int64)
+        like, det_addr, plan.unit, plan.which[order], rank[key_a], rank[key_b],
+        block_order(n), n, tau, early_exit, symmetric, mixed,
+        mixed and _refined_rsqrt_within_bound(), count_rest)
+    # back from the kernel's order to todo's
+    at = np.empty(plan.which.size, np.int64)
+    at[todo] = np.arange(todo.size)
+    out = np.empty(todo.size), np.empty(todo.size, dtype=np.int64), np.empty(todo.size, np.int64)
     for v, g in zip(out, got):
-        v[order] = g
+        v[at[order]] = g
     return out
 
 
@@ -618,9 +684,8 @@ def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[Screen
     image; the error grows with the mean and with the stride), so the decisions are the
     full-set ones unless a level errs by more than its margin.
     """
-    pairs = [np.asarray(v) for v in (cam_a, det_a, cam_b, det_b)]
-    F = pair_matrices(F)  # once for every level
-    S = pairs[0].size
+    plan = _frame_pairs(full, F, cam_a, det_a, cam_b, det_b)  # once for every level
+    S = plan.which.size
     keep = np.zeros(S, dtype=bool)
     mean = np.full(S, np.nan)
     todo = np.arange(S)
@@ -630,8 +695,8 @@ def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[Screen
             break
         # every point counted: whether half the subset is there does not depend on where an
         # early exit stopped
-        sums, used, summed = _frame_sums(screen, F, *(v[todo] for v in pairs), tau + margin,
-                                         symmetric, early_exit, backend, precision, True)
+        sums, used, summed = _level_sums(plan, screen, todo, tau + margin, symmetric,
+                                         early_exit, backend, precision, True)
         evaluated += int(summed.sum())
         with np.errstate(invalid="ignore", divide="ignore"):
             m = sums / used
@@ -643,8 +708,8 @@ def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[Screen
         mean[todo[accepted]] = m[accepted]
         todo = todo[~(accepted | rejected)]
     if todo.size:
-        sums, used = frame_sums(full, F, *(v[todo] for v in pairs), tau, symmetric, early_exit,
-                                backend, precision)
+        sums, used, _ = _level_sums(plan, full, todo, tau, symmetric, early_exit, backend,
+                                    precision, False)
         evaluated += int(used.sum())
         ok = sums < tau * used
         keep[todo] = ok
