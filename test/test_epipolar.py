@@ -349,35 +349,24 @@ def test_frame_sums_rejects_bad_input_with_the_input_named():
         epipolar.frame_sums({0: x, 1: x}, F, zero, zero, one, np.array([0, 1]), 8.0)
 
 
-def test_the_rsqrt_estimate_attribute_reaches_llvm_on_x86():
-    """The float32 kernels' "no Newton step" attribute is written into the LLVM function on
-    x86-64 (else their 1/sqrt would silently keep the refinement: slower, still correct)."""
+@pytest.mark.parametrize("intrinsic, attribute", [("wide_vectors", "_WIDE"),
+                                                   ("estimated_rsqrt", "_ESTIMATE")])
+def test_the_kernels_function_attributes_reach_llvm(intrinsic, attribute):
+    """The kernels' LLVM function attributes are still written with the installed
+    numba/llvmlite: 512-bit vectors (else narrower, silently) and, on x86-64, the float32
+    1/sqrt as the estimate alone (else refined, silently: slower, still correct)."""
     numba = pytest.importorskip("numba")
     import platform
 
-    from maem_ros.core.epipolar_kernel import _ESTIMATE, estimated_rsqrt
-    if platform.machine().lower() not in ("x86_64", "amd64"):
+    from maem_ros.core import epipolar_kernel
+    if intrinsic == "estimated_rsqrt" and platform.machine().lower() not in ("x86_64", "amd64"):
         pytest.skip("the estimate alone is used on x86-64 only")
+    mark = getattr(epipolar_kernel, intrinsic)
 
     @numba.njit
     def plus_one(x):
-        estimated_rsqrt()
+        mark()
         return x + 1
 
     assert plus_one(1) == 2
-    assert _ESTIMATE in plus_one.inspect_llvm(plus_one.signatures[0])
-
-
-def test_wide_vectors_reaches_llvm():
-    """The kernels' 512-bit vector attribute is still written into the LLVM function with the
-    installed numba/llvmlite (else the kernels would silently run with narrower vectors)."""
-    numba = pytest.importorskip("numba")
-    from maem_ros.core.epipolar_kernel import _WIDE, wide_vectors
-
-    @numba.njit
-    def plus_one(x):
-        wide_vectors()
-        return x + 1
-
-    assert plus_one(1) == 2
-    assert _WIDE in plus_one.inspect_llvm(plus_one.signatures[0])
+    assert getattr(epipolar_kernel, attribute) in plus_one.inspect_llvm(plus_one.signatures[0])

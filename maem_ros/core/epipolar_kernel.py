@@ -554,19 +554,27 @@ def next_blocks(t, pa, pb, det_addr, offset, fetch):
 
 
 @inline
-def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, h,
-           symmetric, tau, early_exit, sums, err, used, alive, fetch):
-    """Block r = points lo:hi of pair s alone (fetch: in chunks, prefetching the next pair's
-    blocks)."""
+def pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges):
+    """Block r = points lo:hi of pair s: its detections i, j, their points there and whether
+    every one of those coordinates is finite (block_range, cached in ranges)."""
     i = pa[s]
     j = pb[s]
     ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
     bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
-    p = np.inf
-    e = np.inf
     lo_a, hi_a = block_range(ab, ranges, i, r)
     lo_b, hi_b = block_range(bb, ranges, j, r)
-    if lo_a <= hi_a and lo_b <= hi_b:  # no NaN or inf coordinate
+    return i, j, ab, bb, lo_a <= hi_a and lo_b <= hi_b
+
+
+@inline
+def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, h,
+           symmetric, tau, early_exit, sums, err, used, alive, fetch):
+    """Block r = points lo:hi of pair s alone (fetch: in chunks, prefetching the next pair's
+    blocks)."""
+    i, j, ab, bb, finite = pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges)
+    p = np.inf
+    e = np.inf
+    if finite:  # no NaN or inf coordinate
         next_a, next_b = next_blocks(s, pa, pb, det_addr, 2 * lo * like.itemsize, fetch)
         p, e = pair_bound(G, s, ranges, i, j, r, c,
                           block32(ab, bb, c, g, s, symmetric, fetch, next_a, next_b), h, hi - lo)
@@ -585,21 +593,16 @@ def decided(total, bound, count, tau):
 def refined_pair(s, like, det_addr, pa, pb, blocks, ranges, c, g, G, fs, fk, h, symmetric):
     """(sum, its error bound, points used) of pair s over all its blocks with block32_refined
     (blocks with a missing point or a point near the epipole in float64, as in settle)."""
-    i = pa[s]
-    j = pb[s]
     total = 0.0
     bound = 0.0
     count = 0
     for r in range(blocks.shape[0]):
         lo = blocks[r, 0]
         hi = blocks[r, 1]
-        ab = points(like, det_addr[i], 2 * lo, 2 * (hi - lo))
-        bb = points(like, det_addr[j], 2 * lo, 2 * (hi - lo))
+        i, j, ab, bb, finite = pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges)
         p = np.inf
         e = np.inf
-        lo_a, hi_a = block_range(ab, ranges, i, r)
-        lo_b, hi_b = block_range(bb, ranges, j, r)
-        if lo_a <= hi_a and lo_b <= hi_b:
+        if finite:
             p, e = pair_bound(G, s, ranges, i, j, r, c,
                               block32_refined(ab, bb, c, g, s, symmetric), h, hi - lo,
                               _RSQRT_ERR_REFINED)
