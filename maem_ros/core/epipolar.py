@@ -60,7 +60,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .intsets import sorted_unique, unique_inverse
+from .intsets import sorted_unique
 
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
 #: small: 2048 against 1024 took the large load's epipolar stage from 42 to 39 ms, the
@@ -257,8 +257,9 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
     are partial.
 
     precision (numba backend, float32 points): ``mixed`` sums float32 SIMD distances with a
-    rigorous bound of their rounding error and re-runs in float64 any pair whose decision the
-    bound cannot settle, so the decisions are the float64 ones; an accepted pair's sum is then
+    rigorous bound of their rounding error and re-runs any pair whose decision the bound
+    cannot settle (in float32 with a refined 1/sqrt, then in float64), so the decisions are
+    the float64 ones; an accepted pair's sum is then
     within its bound (~1e-5 relative in practice) of the exact one. ``float64``: every distance
     in float64 (sums to ~1e-13).
 
@@ -455,7 +456,7 @@ def _gather_buffer(size: int, dtype: np.dtype, align: int = 64) -> np.ndarray:
     """(size,) ``dtype`` starting on an ``align``-byte boundary, in this thread's scratch
     memory (valid until its next call in this thread). Kept, not allocated per call: a fresh
     7 MB buffer (the large load's 1/8 screen) came from new pages now and then, and their
-    first writes faulted (~380 page faults, up to +30 ms on a frame on a 2-core VM), while
+    first writes faulted (~380 page faults, +6 to +60 ms on a frame on a 2-core VM), while
     memory reused from the previous frame is already mapped. Grown with headroom (frame sets
     vary in size), as each growth faults its new pages once."""
     need = size * np.dtype(dtype).itemsize + align
