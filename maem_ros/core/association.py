@@ -424,9 +424,9 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     S = i.size
     stage = np.full(S, PASSED, np.int8)
     alive = np.arange(S)
-    if ok is not None:
-        stage[alive[~ok]] = REJECTED_REPROJ
-        alive = alive[ok]
+    if ok is not None:  # masks, not index arrays, over every pair (72,000 on the large load)
+        stage[~ok] = REJECTED_REPROJ
+        alive = np.flatnonzero(ok)
     stats["rejected_reproj"] = float(S - alive.size)
     stats["t_reproj_ms"], t = _lap(t)
 
