@@ -373,7 +373,7 @@ def _level_sums(plan: _FramePairs, points: Mapping[int, np.ndarray | PointRows],
                                  bool(symmetric), bool(count_rest))
     if _numba is None:
         raise ValueError("backend: 'numba' requested but numba is not installed")
-    return _numba_frame_sums(rows, plan, todo, n, float(tau), bool(symmetric),
+    return _numba_level_sums(rows, plan, todo, n, float(tau), bool(symmetric),
                              bool(early_exit), precision, bool(count_rest))
 
 
@@ -395,7 +395,7 @@ def _numpy_level_sums(plan: _FramePairs, rows: dict[int, PointRows], todo: np.nd
     return out
 
 
-def _numba_frame_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.ndarray, n: int,
+def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.ndarray, n: int,
                       tau: float, symmetric: bool, early_exit: bool, precision: str,
                       count_rest: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The numba kernel on the plan's pairs todo: the detections they read numbered once

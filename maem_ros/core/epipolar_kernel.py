@@ -80,8 +80,9 @@ _WIDE = '"prefer-vector-width"="512"'
 #: Newton step. x86's estimates are documented within 1.5 * 2^-12 relative (rsqrtps; the
 #: AVX-512 rsqrt14ps that 512-bit loops take, 2^-14), inside epipolar._RSQRT_ERR = 2^-10, so
 #: the error bound covers them (and epipolar._rsqrt_within_bound checks it at first use). A
-#: Newton step is 4 vector operations, twice per point of ~36: without it the large load's
-#: three kernel levels took 20.5-20.7 -> 19.0-19.4 ms (alternating runs, 2-core Xeon VM).
+#: Newton step is 4 vector operations, twice per point of ~36: without it (and with
+#: refined_pair's second try for the pairs the wider bound cannot settle) the large load's
+#: three kernel levels took 20.1-20.4 -> 18.2-19.3 ms (alternating runs, 2-core Xeon VM).
 #: Only on x86-64: other targets' estimates are coarser (AArch64's frsqrte: 8 bits), so they
 #: keep LLVM's Newton steps
 _ESTIMATE = '"reciprocal-estimates"="sqrtf:0,vec-sqrtf:0"'
