@@ -17,21 +17,23 @@ accepted pairs are always summed completely. Floating-point addition of non-nega
 monotone, so the decision equals the full sum's.
 
 The numpy reference computes every distance in float64. The numba kernel takes every pair of
-a frame in one call (:func:`frame_sums`: all camera pairs; each detection's centre and block
-coordinate ranges computed once), blocks outermost, so each detection's block is read from
+a frame in one call (:func:`frame_sums`: all camera pairs; each detection's block coordinate
+ranges computed once), blocks outermost, so each detection's block is read from
 memory once for all its candidate pairs, and the blocks the next pair reads are prefetched
 while one pair's are summed (in chunks of the block, so reads and arithmetic overlap). It
 fuses everything per point (the line, both norms and the distance), and two pairs of one
 detection in one camera pair run in one loop that computes that detection's lines and
 weights once. By default (``precision "mixed"``) it runs
-float32 SIMD (twice the lanes of float64) on points centred on each detection (u - c,
-integer c; the bilinear form loses no digits to the px offset) with a rigorous bound E of the
-block sum's rounding error, from float32 unit roundoff u = 2^-24:
+float32 SIMD (twice the lanes of float64) on the points as they are (no per-point centring:
+4 of ~34 vector operations per 16 points) with a rigorous bound E of the block sum's rounding
+error, from float32 unit roundoff u = 2^-24:
 
     E = (1 + 1e-3) [10 u B h sum w + 8 u h L sum |e| w^2 + (R + (m + 8) u) sum d]
 
-(e the bilinear form of the centred points under the float32 F' = T_b^T F T_a (F of unit
-norm), w = w_a + w_b and h = 1/2 (symmetric) or w = w_a and h = 1 (forward), w_a, w_b the
+(e the bilinear form of the points under F' = F (of unit norm) in float32 -- or, in the
+second try below, of the points centred on each detection (u - c, integer c) under the float32
+F' = T_b^T F T_a, where B scales with the detection's extent instead of its distance from the
+image origin --, w = w_a + w_b and h = 1/2 (symmetric) or w = w_a and h = 1 (forward), w_a, w_b the
 reciprocal line norms, B = [|u_b|,|v_b|,1] |F'| [|u_a|,|v_a|,1]^T from the block's coordinate
 range, L = max(L_a, L_b) the same bound of the lines' first two coefficients; terms: rounding
 of e, of the line norms (through their coefficients and the reciprocal square root, within
@@ -40,8 +42,8 @@ sum |e| w^2), and of the block's m (<= BLOCK) float32 additions; E does not depe
 scale). A pair is rejected early when
 ``sum - E >= tau * (used + still to come)``, accepted when ``sum + E < tau * used``, rejected
 when ``sum - E >= tau * used``; otherwise (the bound cannot settle it: its mean is within
-~2^-10 of tau, a few pairs of a large-load frame) it is summed again in float32 with the
-refined 1/sqrt (R = 2^-20) and, if that cannot settle it either, in float64. Blocks with a
+~2^-10 of tau, a few pairs of a large-load frame) it is summed again in float32, centred and
+with the refined 1/sqrt (R = 2^-20), and, if that cannot settle it either, in float64. Blocks with a
 missing point or a point at (or very near) the epipole are summed in float64. So the
 decisions are those of the float64 sums; an accepted pair's mean carries an error below
 E / used (~1e-5 relative on full meshes in practice, the estimate's errors averaging over the
@@ -63,10 +65,12 @@ import numpy as np
 from .intsets import sorted_unique
 
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
-#: small: 2048 against 1024 took the large load's epipolar stage from 42 to 39 ms, the
-#: standard load unchanged; the early exit is tested once per block, so longer blocks sum a
-#: little more of a rejected pair); blocks are visited in a fixed shuffled order
-BLOCK = 2048
+#: small and that a block's points stream from memory as one run: 2048 against 1024 took the
+#: large load's epipolar stage from 42 to 39 ms, 4096 against 2048 its full-mesh level from
+#: 14.1-14.6 to 13.5 ms and its 1/8 screen from 3.3-3.4 to 2.9-3.0 ms (alternating runs, 2-core
+#: Xeon VM); the early exit is tested once per block, so longer blocks sum a little more of a
+#: rejected pair); blocks are visited in a fixed shuffled order
+BLOCK = 4096
 #: a point whose line has ||(F x)_12|| <= EPIPOLE_NORM ||F|| is at the epipole (its line is
 #: rounding noise): distance inf, the pair is rejected. ~1e-6 px from the epipole of a
 #: typical pixel F; one definition for every backend and precision
@@ -399,7 +403,7 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
                       tau: float, symmetric: bool, early_exit: bool, precision: str,
                       count_rest: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The numba kernel on the plan's pairs todo: the detections they read numbered once
-    (each one's centre and block ranges computed once for all its pairs), the pairs in the
+    (each one's block ranges computed once for all its pairs), the pairs in the
     plan's order (a detection's pairs one after another: its block stays hot; those of one
     camera pair together: they share its lines)."""
     cams = plan.cams

@@ -206,15 +206,15 @@ def chunk_start(k0, m, step, next_a, next_b):
 
 
 @inline32
-def chunk32(a, b, c0, c1, c2, c3, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric):
+def chunk32(a, b, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric):
     """block32's three sums over the points of a, b (float32; block32 documents the terms)."""
     p = s = q = np.float32(0.0)
     # a range from 0: the compiler sees non-negative indices (no wraparound: vector loads)
     for k in range(a.shape[0] // 2):
-        ua = a[2 * k] - c0
-        va = a[2 * k + 1] - c1
-        ub = b[2 * k] - c2
-        vb = b[2 * k + 1] - c3
+        ua = a[2 * k]
+        va = a[2 * k + 1]
+        ub = b[2 * k]
+        vb = b[2 * k + 1]
         l0 = g0 * ua + g1 * va + g2
         l1 = g3 * ua + g4 * va + g5
         l2 = g6 * ua + g7 * va + g8
@@ -232,18 +232,17 @@ def chunk32(a, b, c0, c1, c2, c3, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric)
 
 
 @inline32
-def block32_sums(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
-    """float32 sums over a block of complete points of pair t, centred (u - c[0], v - c[1])
-    in a, (u - c[2], v - c[3]) in b (c = cs[t]), g = gs[t] (9,) float32 F of the centred
-    points: (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and w = wa + wb
+def block32_sums(a, b, gs, k, symmetric, fetch, next_a, next_b):
+    """float32 sums over a block of complete points a, b of a pair under g = gs[k] (9,), its
+    camera pair's F in float32: (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and
+    w = wa + wb
     (symmetric) or wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||. fetch: summed in
     chunks of CHUNK points, meanwhile prefetching the same-sized blocks at addresses next_a,
     next_b (0: none); the sums depend on fetch, never on the addresses. Arrays and indices,
     not rows: a row view per call costs reference counting. Inlined into block32 and
     block32_refined, which choose the 1/sqrt."""
-    c0, c1, c2, c3 = cs[t, 0], cs[t, 1], cs[t, 2], cs[t, 3]
-    g0, g1, g2, g3, g4 = gs[t, 0], gs[t, 1], gs[t, 2], gs[t, 3], gs[t, 4]
-    g5, g6, g7, g8 = gs[t, 5], gs[t, 6], gs[t, 7], gs[t, 8]
+    g0, g1, g2, g3, g4 = gs[k, 0], gs[k, 1], gs[k, 2], gs[k, 3], gs[k, 4]
+    g5, g6, g7, g8 = gs[k, 5], gs[k, 6], gs[k, 7], gs[k, 8]
     p = s = q = np.float32(0.0)
     m = a.shape[0] // 2
     step = chunk_step(fetch, m)
@@ -253,11 +252,9 @@ def block32_sums(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
         bk = b[2 * k0:2 * k1]
         # a constant per call: a loop without the branch
         if symmetric:
-            dp, ds, dq = chunk32(ak, bk, c0, c1, c2, c3, g0, g1, g2, g3, g4, g5, g6, g7, g8,
-                                 True)
+            dp, ds, dq = chunk32(ak, bk, g0, g1, g2, g3, g4, g5, g6, g7, g8, True)
         else:
-            dp, ds, dq = chunk32(ak, bk, c0, c1, c2, c3, g0, g1, g2, g3, g4, g5, g6, g7, g8,
-                                 False)
+            dp, ds, dq = chunk32(ak, bk, g0, g1, g2, g3, g4, g5, g6, g7, g8, False)
         p += dp
         s += ds
         q += dq
@@ -265,27 +262,27 @@ def block32_sums(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
 
 
 @jit32
-def block32(a, b, cs, gs, t, symmetric, fetch, next_a, next_b):
+def block32(a, b, gs, k, symmetric, fetch, next_a, next_b):
     """block32_sums with the 1/sqrt as the hardware estimate (_ESTIMATE)."""
     wide_vectors()
     estimated_rsqrt()
-    return block32_sums(a, b, cs, gs, t, symmetric, fetch, next_a, next_b)
+    return block32_sums(a, b, gs, k, symmetric, fetch, next_a, next_b)
 
 
 @jit32
-def block32_refined(a, b, cs, gs, t, symmetric):
+def block32_refined(a, b, gs, k, symmetric):
     """block32_sums with LLVM's refined 1/sqrt (the estimate and its Newton steps, within
     epipolar._RSQRT_ERR_REFINED): the second try of a pair the estimate's bound cannot
     settle."""
     wide_vectors()
-    return block32_sums(a, b, cs, gs, t, symmetric, False, 0, 0)
+    return block32_sums(a, b, gs, k, symmetric, False, 0, 0)
 
 
 @jit32
-def b_terms(ub, vb, ua, va, l0, l1, wa, g0, g1, g3, g4, g6, g7, g8, symmetric):
-    """(|e| w, w) of one point of a pair: centred b point (ub, vb), a point (ua, va) with
-    its line's first coefficients l0, l1 and weight wa, g0..g8 the pair's centred F."""
-    e = abs(ub * l0 + vb * l1 + (g6 * ua + g7 * va + g8))
+def b_terms(ub, vb, l0, l1, l2, wa, g0, g1, g3, g4, g6, g7, symmetric):
+    """(|e| w, w) of one point of a pair: b point (ub, vb), the line (l0, l1, l2) of its a
+    point and that line's weight wa, g0..g8 the pair's F in float32."""
+    e = abs(ub * l0 + vb * l1 + l2)
     m0 = g0 * ub + g3 * vb + g6
     m1 = g1 * ub + g4 * vb + g7
     wb = np.float32(1.0) / np.sqrt(m0 * m0 + m1 * m1)
@@ -294,23 +291,23 @@ def b_terms(ub, vb, ua, va, l0, l1, wa, g0, g1, g3, g4, g6, g7, g8, symmetric):
 
 
 @inline32
-def chunk32x2(a, b, d, ca0, ca1, cb0, cb1, cd0, cd1, g0, g1, g2, g3, g4, g5, g6, g7, g8, k6,
-              k7, k8, symmetric):
+def chunk32x2(a, b, d, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric):
     """block32x2's six sums over the points of a, b, d."""
     p1 = s1 = q1 = p2 = s2 = q2 = np.float32(0.0)
     for j in range(a.shape[0] // 2):
-        ua = a[2 * j] - ca0
-        va = a[2 * j + 1] - ca1
+        ua = a[2 * j]
+        va = a[2 * j + 1]
         l0 = g0 * ua + g1 * va + g2
         l1 = g3 * ua + g4 * va + g5
+        l2 = g6 * ua + g7 * va + g8
         wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
-        ew, w = b_terms(b[2 * j] - cb0, b[2 * j + 1] - cb1, ua, va, l0, l1, wa, g0, g1, g3,
-                        g4, g6, g7, g8, symmetric)
+        ew, w = b_terms(b[2 * j], b[2 * j + 1], l0, l1, l2, wa, g0, g1, g3, g4, g6, g7,
+                        symmetric)
         p1 += ew
         s1 += w
         q1 += ew * w
-        ew, w = b_terms(d[2 * j] - cd0, d[2 * j + 1] - cd1, ua, va, l0, l1, wa, g0, g1, g3,
-                        g4, k6, k7, k8, symmetric)
+        ew, w = b_terms(d[2 * j], d[2 * j + 1], l0, l1, l2, wa, g0, g1, g3, g4, g6, g7,
+                        symmetric)
         p2 += ew
         s2 += w
         q2 += ew * w
@@ -318,17 +315,14 @@ def chunk32x2(a, b, d, ca0, ca1, cb0, cb1, cd0, cd1, g0, g1, g2, g3, g4, g5, g6,
 
 
 @jit32
-def block32x2(a, b, d, cs, gs, t1, t2, symmetric, fetch, next_a, next_b):
-    """block32 of two pairs, t1 = (a, b) and t2 = (a, d), that share a's detection and
-    camera pair (their gs rows have equal entries 0-5, their cs rows equal entries 0-1):
-    a's lines and weights computed once; returns block32's three sums for each pair
-    (fetch, next_a, next_b as in block32)."""
+def block32x2(a, b, d, gs, k, symmetric, fetch, next_a, next_b):
+    """block32 of two pairs of one camera pair (F gs[k]) that share a's detection, (a, b)
+    and (a, d): a's lines and weights computed once; returns block32's three sums for each
+    pair (fetch, next_a, next_b as in block32)."""
     wide_vectors()
     estimated_rsqrt()
-    ca0, ca1, cb0, cb1, cd0, cd1 = cs[t1, 0], cs[t1, 1], cs[t1, 2], cs[t1, 3], cs[t2, 2], cs[t2, 3]
-    g0, g1, g2, g3, g4, g5 = gs[t1, 0], gs[t1, 1], gs[t1, 2], gs[t1, 3], gs[t1, 4], gs[t1, 5]
-    g6, g7, g8 = gs[t1, 6], gs[t1, 7], gs[t1, 8]
-    k6, k7, k8 = gs[t2, 6], gs[t2, 7], gs[t2, 8]
+    g0, g1, g2, g3, g4 = gs[k, 0], gs[k, 1], gs[k, 2], gs[k, 3], gs[k, 4]
+    g5, g6, g7, g8 = gs[k, 5], gs[k, 6], gs[k, 7], gs[k, 8]
     p1 = s1 = q1 = p2 = s2 = q2 = np.float32(0.0)
     m = a.shape[0] // 2
     step = chunk_step(fetch, m)
@@ -338,13 +332,11 @@ def block32x2(a, b, d, cs, gs, t1, t2, symmetric, fetch, next_a, next_b):
         bk = b[2 * k0:2 * k1]
         dk = d[2 * k0:2 * k1]
         if symmetric:
-            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, ca0, ca1, cb0, cb1, cd0, cd1,
-                                                     g0, g1, g2, g3, g4, g5, g6, g7, g8, k6,
-                                                     k7, k8, True)
+            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, g0, g1, g2, g3, g4, g5, g6,
+                                                     g7, g8, True)
         else:
-            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, ca0, ca1, cb0, cb1, cd0, cd1,
-                                                     g0, g1, g2, g3, g4, g5, g6, g7, g8, k6,
-                                                     k7, k8, False)
+            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, g0, g1, g2, g3, g4, g5, g6,
+                                                     g7, g8, False)
         p1 += dp1
         s1 += ds1
         q1 += dq1
@@ -385,50 +377,25 @@ def block_range(x, ranges, d, r):
 
 
 @plain
-def centre(x, n):
-    """Integer px near a detection's points (its first complete point; 0 if none)."""
-    for k in range(n):
-        if x[2 * k] == x[2 * k] and x[2 * k + 1] == x[2 * k + 1]:
-            return np.floor(np.float64(x[2 * k]) + 0.5), np.floor(np.float64(x[2 * k + 1]) + 0.5)
-    return 0.0, 0.0
-
-
-@plain
-def centred_f(fs, k, ca0, ca1, cb0, cb1, g, G, s):
-    """g[s] (9,) float32 T_b^T F T_a: F (fs[k] (9,) row-major, unit norm) of the points
-    centred on (ca0, ca1) in a and (cb0, cb1) in b; G[s] (3,3) = |g[s]|. Rows 0-1 depend on
-    a's centre only (a detection's pairs in one camera pair share them bit for bit), and
-    (g x)_12 = (F x)_12, so EPIPOLE_NORM applies in g's units as it is; the error bound does
-    not depend on g's scale. Scalars and indices: a temporary array or a row view per pair
-    costs an allocation or reference counting."""
-    # F T_a: the third column takes a's centre
-    h02 = fs[k, 0] * ca0 + fs[k, 1] * ca1 + fs[k, 2]
-    h12 = fs[k, 3] * ca0 + fs[k, 4] * ca1 + fs[k, 5]
-    h22 = fs[k, 6] * ca0 + fs[k, 7] * ca1 + fs[k, 8]
-    # T_b^T (F T_a): the third row takes b's centre
-    _put(g, G, s, 0, 0, fs[k, 0])
-    _put(g, G, s, 0, 1, fs[k, 1])
-    _put(g, G, s, 0, 2, h02)
-    _put(g, G, s, 1, 0, fs[k, 3])
-    _put(g, G, s, 1, 1, fs[k, 4])
-    _put(g, G, s, 1, 2, h12)
-    _put(g, G, s, 2, 0, cb0 * fs[k, 0] + cb1 * fs[k, 3] + fs[k, 6])
-    _put(g, G, s, 2, 1, cb0 * fs[k, 1] + cb1 * fs[k, 4] + fs[k, 7])
-    _put(g, G, s, 2, 2, cb0 * h02 + cb1 * h12 + h22)
-
-
-@inline
-def _put(g, G, s, r, col, value):
-    """g[s, 3r + col] = value in float32, G[s, r, col] its magnitude."""
-    g[s, 3 * r + col] = np.float32(value)
-    G[s, r, col] = abs(np.float64(g[s, 3 * r + col]))
+def float32_f(fs):
+    """(g (W, 9) float32, G (W, 3, 3) float64 = |g|): the unit F of each camera pair (fs
+    (W, 9) row-major) rounded to float32, the float32 kernels' F (EPIPOLE_NORM applies in its
+    units as it is; the error bound does not depend on its scale)."""
+    W = fs.shape[0]
+    g = np.empty((W, 9), dtype=np.float32)
+    G = np.empty((W, 3, 3))
+    for k in range(W):
+        for e in range(9):
+            g[k, e] = np.float32(fs[k, e])
+            G[k, e // 3, e % 3] = abs(np.float64(g[k, e]))
+    return g, G
 
 
 @plain
 def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m, rsqrt_err):
-    """(float32 block sum, upper bound (px) on its distance to the exact sum) of pair t's
-    block of m points (G[t] = |g| of its centred F); xa0, xa1, xb0, xb1 bound |u|, |v| of
-    the centred points in a and b (module docstring); epi: EPIPOLE_NORM in g's units;
+    """(float32 block sum, upper bound (px) on its distance to the exact sum) of a pair's
+    block of m points (G[t] = |g|, g its camera pair's float32 F); xa0, xa1, xb0, xb1 bound
+    |u|, |v| of the points in a and b (module docstring); epi: EPIPOLE_NORM in g's units;
     h = 0.5 (symmetric) or 1; rsqrt_err: relative error bound of the sums' 1/sqrt. (inf,
     inf) when the block must be summed in float64."""
     # rows of G times (xa0, xa1, 1), then xb's weights: no loops, no tuple indexing (this
@@ -510,15 +477,13 @@ def rest_present(a, b, blocks, after):
 
 
 @inline
-def pair_bound(G, t, ranges, i, j, r, c, sums3, h, m, rsqrt_err=_RSQRT_ERR):
-    """block_bound of pair t (detections i, j) from their block r's (m points) coordinate
-    ranges ranges[i, r], ranges[j, r] (min, max) and its centres c[t] (4,); rsqrt_err: that
-    of the sums (block32's by default)."""
-    a0, a1, b0, b1 = ranges[i, r, 0], ranges[i, r, 1], ranges[j, r, 0], ranges[j, r, 1]
-    return block_bound(G, t, EPIPOLE_NORM, max(abs(a1 - c[t, 0]), abs(a0 - c[t, 0])),
-                       max(abs(a1 - c[t, 1]), abs(a0 - c[t, 1])),
-                       max(abs(b1 - c[t, 2]), abs(b0 - c[t, 2])),
-                       max(abs(b1 - c[t, 3]), abs(b0 - c[t, 3])), sums3, h, m, rsqrt_err)
+def pair_bound(G, k, ranges, i, j, r, sums3, h, m, rsqrt_err=_RSQRT_ERR):
+    """block_bound of a pair (detections i, j, camera pair k) from their block r's (m points)
+    coordinate ranges ranges[i, r], ranges[j, r] (min, max over u and v); rsqrt_err: that of
+    the sums (block32's by default)."""
+    xa = max(abs(ranges[i, r, 0]), abs(ranges[i, r, 1]))
+    xb = max(abs(ranges[j, r, 0]), abs(ranges[j, r, 1]))
+    return block_bound(G, k, EPIPOLE_NORM, xa, xa, xb, xb, sums3, h, m, rsqrt_err)
 
 
 @inline
@@ -568,7 +533,7 @@ def pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges):
 
 
 @inline
-def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, h,
+def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, g, G, fs, fk, h,
            symmetric, tau, early_exit, sums, err, used, alive, fetch):
     """Block r = points lo:hi of pair s alone (fetch: in chunks, prefetching the next pair's
     blocks)."""
@@ -577,8 +542,9 @@ def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, c, g, G, fs, fk, 
     e = np.inf
     if finite:  # no NaN or inf coordinate
         next_a, next_b = next_blocks(s, pa, pb, det_addr, 2 * lo * like.itemsize, fetch)
-        p, e = pair_bound(G, s, ranges, i, j, r, c,
-                          block32(ab, bb, c, g, s, symmetric, fetch, next_a, next_b), h, hi - lo)
+        p, e = pair_bound(G, fk[s], ranges, i, j, r,
+                          block32(ab, bb, g, fk[s], symmetric, fetch, next_a, next_b), h,
+                          hi - lo)
     settle(s, p, e, ab, bb, fs, fk[s], hi - lo, rest, h, symmetric, tau, early_exit, sums,
            err, used, alive)
 
@@ -590,29 +556,71 @@ def decided(total, bound, count, tau):
     return total + bound < tau * count or total - bound >= tau * count
 
 
+@plain
+def centred(x, n):
+    """(float32 copy of the 2n coordinates x with the integer px (c0, c1) near them
+    subtracted, c0, c1): the points of a detection centred on its first complete point
+    (0, 0 if none), so the float32 bilinear form's rounding scales with the detection's
+    extent, not with its distance from the image origin."""
+    c0 = c1 = 0.0
+    for k in range(n):
+        if x[2 * k] == x[2 * k] and x[2 * k + 1] == x[2 * k + 1]:
+            c0 = np.floor(np.float64(x[2 * k]) + 0.5)
+            c1 = np.floor(np.float64(x[2 * k + 1]) + 0.5)
+            break
+    out = np.empty(2 * n, dtype=np.float32)
+    for k in range(n):
+        out[2 * k] = x[2 * k] - np.float32(c0)
+        out[2 * k + 1] = x[2 * k + 1] - np.float32(c1)
+    return out, c0, c1
+
+
+@plain
+def centred_f(f, ca0, ca1, cb0, cb1):
+    """(g (1, 9) float32, G (1, 3, 3) = |g|): g = T_b^T F T_a, the unit F (f (9,) row-major)
+    of points centred on (ca0, ca1) in a and (cb0, cb1) in b ((g x)_12 = (F x)_12, so
+    EPIPOLE_NORM applies in g's units as it is)."""
+    h02 = f[0] * ca0 + f[1] * ca1 + f[2]
+    h12 = f[3] * ca0 + f[4] * ca1 + f[5]
+    h22 = f[6] * ca0 + f[7] * ca1 + f[8]
+    t = np.array([f[0], f[1], h02, f[3], f[4], h12, cb0 * f[0] + cb1 * f[3] + f[6],
+                  cb0 * f[1] + cb1 * f[4] + f[7], cb0 * h02 + cb1 * h12 + h22])
+    return float32_f(t.reshape(1, 9))
+
+
 @inline
-def refined_pair(s, like, det_addr, pa, pb, blocks, ranges, c, g, G, fs, fk, h, symmetric):
+def refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric):
     """(sum, its error bound, points used) of pair s over all its blocks with block32_refined
-    (blocks with a missing point or a point near the epipole in float64, as in settle)."""
+    on its points centred (centred: the rounding terms of the bound shrink with the
+    coordinates) under its centred F (blocks with a missing point or a point near the
+    epipole in float64, as in settle)."""
+    a = points(like, det_addr[pa[s]], 0, 2 * n)
+    b = points(like, det_addr[pb[s]], 0, 2 * n)
+    ac, ca0, ca1 = centred(a, n)
+    bc, cb0, cb1 = centred(b, n)
+    g, G = centred_f(fs[fk[s]], ca0, ca1, cb0, cb1)
+    ranges = np.full((2, blocks.shape[0], 2), np.nan)
     total = 0.0
     bound = 0.0
     count = 0
     for r in range(blocks.shape[0]):
         lo = blocks[r, 0]
         hi = blocks[r, 1]
-        i, j, ab, bb, finite = pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges)
+        ab = ac[2 * lo:2 * hi]
+        bb = bc[2 * lo:2 * hi]
+        lo_a, hi_a = block_range(ab, ranges, 0, r)
+        lo_b, hi_b = block_range(bb, ranges, 1, r)
         p = np.inf
         e = np.inf
-        if finite:
-            p, e = pair_bound(G, s, ranges, i, j, r, c,
-                              block32_refined(ab, bb, c, g, s, symmetric), h, hi - lo,
-                              _RSQRT_ERR_REFINED)
+        if lo_a <= hi_a and lo_b <= hi_b:
+            p, e = pair_bound(G, 0, ranges, 0, 1, r, block32_refined(ab, bb, g, 0, symmetric),
+                              h, hi - lo, _RSQRT_ERR_REFINED)
         if p < np.inf and e < np.inf:
             total += p
             bound += e
             count += hi - lo
         else:
-            p, k = block64(ab, bb, fs, fk[s], h, symmetric)
+            p, k = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], fs, fk[s], h, symmetric)
             total += p if p == p else np.inf
             count += k
     return total, bound, count
@@ -642,23 +650,12 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                         symmetric, sums, used, last)
         total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
         return sums, total, used
-    # once per detection: its centre, its block ranges (filled on first use)
-    cen = np.empty((D, 2))
-    for d in range(D):
-        x = points(like, det_addr[d], 0, 2 * n)
-        cen[d, 0], cen[d, 1] = centre(x, n)
+    # once per detection: its block ranges (filled on first use)
     ranges = np.full((D, blocks.shape[0], 2), np.nan)
-    # each pair's centred float32 F, then the blocks outermost: one block of every
-    # detection of the frame (4 KB each) stays in cache while all its candidate pairs read
-    # it, instead of each pair streaming whole detections from memory
-    g = np.empty((S, 9), dtype=np.float32)
-    G = np.empty((S, 3, 3))
-    c = np.empty((S, 4), dtype=np.float32)
-    for s in range(S):
-        i = pa[s]
-        j = pb[s]
-        c[s, 0], c[s, 1], c[s, 2], c[s, 3] = cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1]
-        centred_f(fs, fk[s], cen[i, 0], cen[i, 1], cen[j, 0], cen[j, 1], g, G, s)
+    # each camera pair's float32 F, then the blocks outermost: one block of every detection
+    # of the frame stays in cache while all its candidate pairs read it, instead of each pair
+    # streaming whole detections from memory
+    g, G = float32_f(fs)
     # run_end[s]: end of s's run, the pairs of its a-side detection in its camera pair
     # (sorted together); their lines and weights in a are computed once, two pairs at a time
     run_end = np.empty(S, dtype=np.int64)
@@ -693,25 +690,25 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                 if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
                     next_a, next_b = next_blocks(t, pa, pb, det_addr,
                                                  2 * lo * like.itemsize, fetch)
-                    one, two = block32x2(ab, bb, db, c, g, first, t, symmetric, fetch,
-                                         next_a, next_b)
-                    p, e = pair_bound(G, first, ranges, i, j, r, c, one, h, hi - lo)
+                    one, two = block32x2(ab, bb, db, g, fk[t], symmetric, fetch, next_a,
+                                         next_b)
+                    p, e = pair_bound(G, fk[t], ranges, i, j, r, one, h, hi - lo)
                     settle(first, p, e, ab, bb, fs, fk[first], hi - lo, n - seen, h,
                            symmetric, tau, early_exit, sums, err, used, alive)
-                    p, e = pair_bound(G, t, ranges, i, j2, r, c, two, h, hi - lo)
+                    p, e = pair_bound(G, fk[t], ranges, i, j2, r, two, h, hi - lo)
                     settle(t, p, e, ab, db, fs, fk[t], hi - lo, n - seen, h,
                            symmetric, tau, early_exit, sums, err, used, alive)
                 else:
                     single(first, r, lo, hi, n - seen, like, det_addr, pa, pb,
-                           ranges, c, g, G, fs, fk, h, symmetric, tau, early_exit,
+                           ranges, g, G, fs, fk, h, symmetric, tau, early_exit,
                            sums, err, used, alive, fetch)
                     single(t, r, lo, hi, n - seen, like, det_addr, pa, pb,
-                           ranges, c, g, G, fs, fk, h, symmetric, tau, early_exit,
+                           ranges, g, G, fs, fk, h, symmetric, tau, early_exit,
                            sums, err, used, alive, fetch)
                 first = -1
             if first >= 0:
                 single(first, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges,
-                       c, g, G, fs, fk, h, symmetric, tau, early_exit, sums, err,
+                       g, G, fs, fk, h, symmetric, tau, early_exit, sums, err,
                        used, alive, fetch)
             s = run_end[s]
         for t in range(S):  # where this block's early exits stopped
@@ -723,8 +720,8 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
         # the bound does not settle the decision (the mean is within ~2^-10 of tau): again
         # with the refined 1/sqrt (~2^-20), then float64 throughout
         if refine:
-            total, bound, count = refined_pair(s, like, det_addr, pa, pb, blocks, ranges, c,
-                                               g, G, fs, fk, h, symmetric)
+            total, bound, count = refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk,
+                                               h, symmetric)
             if decided(total, bound, count, tau):
                 sums[s] = total
                 used[s] = count
