@@ -172,6 +172,38 @@ def test_screen_levels_decide_coarse_to_fine_each_within_its_margin():
         assert evaluated == coarse + fine + N
 
 
+def test_the_two_levels_gathered_in_one_pass_give_what_each_level_gathered_gives():
+    """The coarse level's runs are every (COARSE // STRIDE)-th run of the screen's: the numba
+    path copies both subsets in one pass over the points. With the coarse subset described
+    over another view of the memory (so each level gathers its own), every result is the
+    same, bit for bit; the numpy reference decides the same."""
+    cases = [(7.5, 9.0, 7.5), (3.0, 9.0, TAU + 1.5), (7.9, 7.9, 2.0), (8.5, 7.0, 8.5),
+             (1.0, 1.0, TAU + 3.0)]
+    pairs = [_pair(s, e, seed=k, on_coarse=c) for k, (s, e, c) in enumerate(cases)]
+    xa = np.concatenate([a for a, _ in pairs])
+    xb = np.concatenate([b for _, b in pairs])
+    ia, jb = np.repeat(np.arange(len(cases)), len(cases)), np.tile(np.arange(len(cases)), len(cases))
+    full = {0: epipolar.point_rows(xa), 1: epipolar.point_rows(xb)}
+
+    def gate(apart: bool, backend: str = "auto"):
+        levels = []
+        for k, m in ((COARSE, COARSE_MARGIN), (STRIDE, MARGIN)):
+            rows = {c: epipolar.screen_rows(full[c], k) for c in full}
+            if apart and k == COARSE:
+                rows = {c: dataclasses.replace(r, flat=r.flat.view()) for c, r in rows.items()}
+            levels.append((rows, m))
+        return epipolar.frame_screened_means(full, levels, {(0, 1): F_ROWS}, 0 * ia, ia,
+                                             0 * ia + 1, jb, TAU, backend=backend)
+
+    fused, apart = gate(False), gate(True)
+    for got, want in zip(fused, apart):
+        np.testing.assert_array_equal(got, want)
+    # the detections' own pairs: full set (mean 8.8), screen (4.6), coarse level (2.0), full
+    # set (7.2), coarse level (11)
+    assert fused[0][::len(cases) + 1].tolist() == [False, True, True, True, False]
+    np.testing.assert_array_equal(gate(False, "numpy")[0], fused[0])
+
+
 def test_screen_levels_follow_the_params():
     params = AssociationParams()
     assert params.screen_levels() == [(params.screen_coarse_stride, params.screen_coarse_margin),

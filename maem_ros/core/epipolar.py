@@ -430,7 +430,8 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
     layout = rows[cams[0]]
     if layout.run:  # a subset read in runs: each detection's points gathered once, contiguous
         like = _gather_buffer(dets.size * 2 * n, like.dtype).reshape(dets.size, 2 * n)
-        _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like)
+        _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like, 0,
+                                     np.empty((0, 0), like.dtype))
         det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
         like = like.reshape(-1)
     if like.flags.writeable:
@@ -456,18 +457,20 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
 _scratch = threading.local()
 
 
-def _gather_buffer(size: int, dtype: np.dtype, align: int = 64) -> np.ndarray:
+def _gather_buffer(size: int, dtype: np.dtype, slot: int = 0, align: int = 64) -> np.ndarray:
     """(size,) ``dtype`` starting on an ``align``-byte boundary, in this thread's scratch
-    memory (valid until its next call in this thread). Kept, not allocated per call: a fresh
+    memory ``slot`` (valid until the next call for that slot in this thread). Kept, not allocated per call: a fresh
     7 MB buffer (the large load's 1/8 screen) came from new pages now and then, and their
     first writes faulted (~380 page faults, +6 to +60 ms on a frame on a 2-core VM), while
     memory reused from the previous frame is already mapped. Grown with headroom (frame sets
     vary in size), as each growth faults its new pages once."""
     need = size * np.dtype(dtype).itemsize + align
-    raw = getattr(_scratch, "raw", None)
+    if not hasattr(_scratch, "raw"):
+        _scratch.raw = {}
+    raw = _scratch.raw.get(slot)
     if raw is None or raw.size < need:
-        raw = _scratch.raw = np.empty(max(need + need // 2, 2 * raw.size if raw is not None
-                                          else 0), np.uint8)
+        raw = _scratch.raw[slot] = np.empty(max(need + need // 2, 2 * raw.size
+                                                if raw is not None else 0), np.uint8)
     skip = -raw.ctypes.data % align
     return raw[skip:skip + need - align].view(dtype)
 
@@ -648,6 +651,60 @@ SCREEN_RUN = 8
 SCREEN_MIN_POINTS = 64
 
 
+def _gathered_screens(plan: _FramePairs, screens: Sequence[ScreenLevel], backend: str
+                      ) -> Sequence[ScreenLevel]:
+    """The screening levels with the subsets of the plan's detections gathered once,
+    contiguous, for the numba kernel: one pass over each detection's points copies the finest
+    level's runs and, of them, a coarser level's (its runs are every k-th of the finest's when
+    its period is a multiple of the finest's): the coarse level's own gather, a second pass
+    over scattered cache lines, took 1.1 ms of a large-load frame set. The levels as they are
+    where that does not apply (the numpy backend reads the runs in place; other layouts are
+    gathered level by level)."""
+    if not screens or len(screens) > 2 or backend == "numpy" or _numba is None:
+        return screens
+    levels = [{c: point_rows(level[c]) for c in plan.cams} for level, _ in screens]
+    fine = levels[-1]
+    rows = [fine[c] for c in plan.cams]
+    every = 0
+    if len(levels) == 2:
+        coarse = levels[0]
+        if any(coarse[c].flat is not fine[c].flat or coarse[c].rows is not fine[c].rows
+               or coarse[c].run != fine[c].run or coarse[c].period % fine[c].period
+               for c in plan.cams):
+            return screens
+        every = coarse[plan.cams[0]].period // fine[plan.cams[0]].period
+        if any(coarse[c].period != every * fine[c].period for c in plan.cams):
+            return screens
+    if (len({(r.run, r.period, r.n, r.flat.dtype) for r in rows}) > 1 or not rows[0].run
+            or rows[0].flat.dtype not in (np.float32, np.float64)):
+        return screens
+    present = np.zeros(int(plan.offsets[-1]), bool)
+    present[plan.key_a] = True
+    present[plan.key_b] = True
+    dets = np.flatnonzero(present)
+    slot = np.cumsum(present) - 1  # each detection's place among those gathered
+    cam_of = np.searchsorted(plan.offsets, dets, side="right") - 1
+    base = np.array([r.flat.__array_interface__["data"][0] for r in rows], dtype=np.int64)
+    det_row = np.concatenate([r.rows for r in rows])[dets]
+    det_addr = base[cam_of] + det_row * rows[0].flat.itemsize
+    run, period, n, dtype = rows[0].run, rows[0].period, rows[0].n, rows[0].flat.dtype
+    out = _gather_buffer(dets.size * 2 * n, dtype, 1).reshape(dets.size, 2 * n)
+    n_coarse = levels[0][plan.cams[0]].n if every else 0
+    coarse = _gather_buffer(dets.size * 2 * n_coarse, dtype, 2).reshape(dets.size, 2 * n_coarse)
+    # keeps the message buffers referenced while the kernel reads them by address
+    flats = [r.flat for r in rows]
+    _numba_kernels().gather_runs(flats[0], det_addr, run, period, out, every, coarse)
+    gathered = []
+    for (level, margin), buffer, size in zip(screens, [coarse, out][-len(screens):],
+                                             [n_coarse, n][-len(screens):]):
+        flat = buffer.reshape(-1).view()
+        flat.setflags(write=False)
+        gathered.append(({c: PointRows(flat, slot[plan.offsets[k]:plan.offsets[k + 1]].clip(0)
+                                       * 2 * size, size)
+                          for k, c in enumerate(plan.cams)}, margin))
+    return gathered
+
+
 #: one screening level: the subset of every camera's points (:func:`screen_rows`) and its margin
 #: (px): subset means within it of tau go on to the next level
 ScreenLevel = tuple[Mapping[int, PointRows], float]
@@ -690,6 +747,7 @@ def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[Screen
     full-set ones unless a level errs by more than its margin.
     """
     plan = _frame_pairs(full, F, cam_a, det_a, cam_b, det_b)  # once for every level
+    screens = _gathered_screens(plan, screens, backend)
     S = plan.which.size
     keep = np.zeros(S, dtype=bool)
     mean = np.full(S, np.nan)

@@ -753,11 +753,14 @@ _RUNS_AHEAD = 8
 
 
 @plain
-def gather_runs(like, det_addr, run, period, out):
+def gather_runs(like, det_addr, run, period, out, every, coarse):
     """out[d] (2n,) = the n points of the detection at address det_addr[d] read in runs of
-    ``run`` consecutive points, one run every ``period`` points (PointRows.run/period)."""
+    ``run`` consecutive points, one run every ``period`` points (PointRows.run/period); and
+    (every > 0) coarse[d] = every ``every``-th of those runs, as long as coarse has room: a
+    coarser subset copied in the same pass."""
     wide_vectors()
     runs = out.shape[1] // (2 * run)
+    coarse_runs = coarse.shape[1] // (2 * run) if every > 0 else 0
     D = det_addr.shape[0]
     for d in range(D):
         for r in range(runs):
@@ -769,6 +772,10 @@ def gather_runs(like, det_addr, run, period, out):
             src = points(like, det_addr[d], 2 * r * period, 2 * run)
             for k in range(2 * run):
                 out[d, 2 * r * run + k] = src[k]
+            if every > 0 and r % every == 0 and r // every < coarse_runs:
+                q = r // every
+                for k in range(2 * run):
+                    coarse[d, 2 * q * run + k] = src[k]
 
 
 @inline32
