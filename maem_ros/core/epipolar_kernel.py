@@ -591,9 +591,9 @@ def centred_f(f, ca0, ca1, cb0, cb1):
 @inline
 def refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric):
     """(sum, its error bound, points used) of pair s over all its blocks with block32_refined
-    on its points centred (centred: the rounding terms of the bound shrink with the
-    coordinates) under its centred F (blocks with a missing point or a point near the
-    epipole in float64, as in settle)."""
+    on its points centred on each detection, under its centred F: the bound's rounding terms
+    scale with the detections' extent, not with their distance from the image origin (blocks
+    with a missing point or a point near the epipole in float64, as in settle)."""
     a = points(like, det_addr[pa[s]], 0, 2 * n)
     b = points(like, det_addr[pb[s]], 0, 2 * n)
     ac, ca0, ca1 = centred(a, n)
