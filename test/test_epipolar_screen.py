@@ -182,7 +182,8 @@ def test_the_two_levels_gathered_in_one_pass_give_what_each_level_gathered_gives
     pairs = [_pair(s, e, seed=k, on_coarse=c) for k, (s, e, c) in enumerate(cases)]
     xa = np.concatenate([a for a, _ in pairs])
     xb = np.concatenate([b for _, b in pairs])
-    ia, jb = np.repeat(np.arange(len(cases)), len(cases)), np.tile(np.arange(len(cases)), len(cases))
+    every = np.arange(len(cases))
+    ia, jb = np.repeat(every, len(cases)), np.tile(every, len(cases))
     full = {0: epipolar.point_rows(xa), 1: epipolar.point_rows(xb)}
 
     def gate(apart: bool, backend: str = "auto"):

@@ -33,18 +33,18 @@ error, from float32 unit roundoff u = 2^-24:
 (e the bilinear form of the points under F' = F (of unit norm) in float32 -- or, in the
 second try below, of the points centred on each detection (u - c, integer c) under the float32
 F' = T_b^T F T_a, where B scales with the detection's extent instead of its distance from the
-image origin --, w = w_a + w_b and h = 1/2 (symmetric) or w = w_a and h = 1 (forward), w_a, w_b the
-reciprocal line norms, B = [|u_b|,|v_b|,1] |F'| [|u_a|,|v_a|,1]^T from the block's coordinate
-range, L = max(L_a, L_b) the same bound of the lines' first two coefficients; terms: rounding
-of e, of the line norms (through their coefficients and the reciprocal square root, within
-R = 2^-10 relative: x86's hardware estimate without a Newton step; sum |e| (w_a^2 + w_b^2) <=
-sum |e| w^2), and of the block's m (<= BLOCK) float32 additions; E does not depend on F' 's
-scale). A pair is rejected early when
+image origin --, w = w_a + w_b and h = 1/2 (symmetric) or w = w_a and h = 1 (forward), w_a,
+w_b the reciprocal line norms, B = [|u_b|,|v_b|,1] |F'| [|u_a|,|v_a|,1]^T from the block's
+coordinate range, L = max(L_a, L_b) the same bound of the lines' first two coefficients;
+terms: rounding of e, of the line norms (through their coefficients and the reciprocal square
+root, within R = 2^-10 relative: x86's hardware estimate without a Newton step;
+sum |e| (w_a^2 + w_b^2) <= sum |e| w^2), and of the block's m (<= BLOCK) float32 additions;
+E does not depend on F' 's scale). A pair is rejected early when
 ``sum - E >= tau * (used + still to come)``, accepted when ``sum + E < tau * used``, rejected
 when ``sum - E >= tau * used``; otherwise (the bound cannot settle it: its mean is within
 ~2^-10 of tau, a few pairs of a large-load frame) it is summed again in float32, centred and
-with the refined 1/sqrt (R = 2^-20), and, if that cannot settle it either, in float64. Blocks with a
-missing point or a point at (or very near) the epipole are summed in float64. So the
+with the refined 1/sqrt (R = 2^-20), and, if that cannot settle it either, in float64. Blocks
+with a missing point or a point at (or very near) the epipole are summed in float64. So the
 decisions are those of the float64 sums; an accepted pair's mean carries an error below
 E / used (~1e-5 relative on full meshes in practice, the estimate's errors averaging over the
 points; ``precision "float64"`` gives it to ~1e-13). The kernel reads each camera's points
@@ -459,11 +459,11 @@ _scratch = threading.local()
 
 def _gather_buffer(size: int, dtype: np.dtype, slot: int = 0, align: int = 64) -> np.ndarray:
     """(size,) ``dtype`` starting on an ``align``-byte boundary, in this thread's scratch
-    memory ``slot`` (valid until the next call for that slot in this thread). Kept, not allocated per call: a fresh
-    7 MB buffer (the large load's 1/8 screen) came from new pages now and then, and their
-    first writes faulted (~380 page faults, +6 to +60 ms on a frame on a 2-core VM), while
-    memory reused from the previous frame is already mapped. Grown with headroom (frame sets
-    vary in size), as each growth faults its new pages once."""
+    memory ``slot`` (valid until the next call for that slot in this thread). Kept, not
+    allocated per call: a fresh 7 MB buffer (the large load's 1/8 screen) came from new pages
+    now and then, and their first writes faulted (~380 page faults, +6 to +60 ms on a frame
+    on a 2-core VM), while memory reused from the previous frame is already mapped. Grown with
+    headroom (frame sets vary in size), as each growth faults its new pages once."""
     need = size * np.dtype(dtype).itemsize + align
     if not hasattr(_scratch, "raw"):
         _scratch.raw = {}
@@ -656,11 +656,11 @@ def _gathered_screens(plan: _FramePairs, screens: Sequence[ScreenLevel], backend
     """The screening levels with the subsets of the plan's detections gathered once,
     contiguous, for the numba kernel: one pass over each detection's points copies the finest
     level's runs and, of them, a coarser level's (its runs are every k-th of the finest's when
-    its period is a multiple of the finest's): the coarse level's own gather, a second pass
-    over scattered cache lines, took 1.1-1.2 ms of a large-load frame set, the copies add
-    ~0.4 ms to the screen's pass (2-core Xeon VM). The levels as they are
-    where that does not apply (the numpy backend reads the runs in place; other layouts are
-    gathered level by level)."""
+    its period is a multiple of the finest's). The coarse level's own gather, a second pass
+    over scattered cache lines, took 1.1-1.2 ms of a large-load frame set; the copies add
+    ~0.4 ms to the screen's pass (2-core Xeon VM). The levels as they are where that does not
+    apply (the numpy backend reads the runs in place; other layouts are gathered level by
+    level in the kernel call)."""
     if not screens or len(screens) > 2 or backend == "numpy" or _numba is None:
         return screens
     levels = [{c: point_rows(level[c]) for c in plan.cams} for level, _ in screens]
@@ -676,8 +676,7 @@ def _gathered_screens(plan: _FramePairs, screens: Sequence[ScreenLevel], backend
         every = coarse[plan.cams[0]].period // fine[plan.cams[0]].period
         if any(coarse[c].period != every * fine[c].period for c in plan.cams):
             return screens
-    if (len({(r.run, r.period, r.n, r.flat.dtype) for r in rows}) > 1 or not rows[0].run
-            or rows[0].flat.dtype not in (np.float32, np.float64)):
+    if len({(r.run, r.period, r.n, r.flat.dtype) for r in rows}) > 1 or not rows[0].run:
         return screens
     present = np.zeros(int(plan.offsets[-1]), bool)
     present[plan.key_a] = True

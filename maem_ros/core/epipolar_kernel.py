@@ -235,8 +235,7 @@ def chunk32(a, b, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric):
 def block32_sums(a, b, gs, k, symmetric, fetch, next_a, next_b):
     """float32 sums over a block of complete points a, b of a pair under g = gs[k] (9,), its
     camera pair's F in float32: (sum |e| w, sum w, sum |e| w^2) with e = x_b^T g x_a and
-    w = wa + wb
-    (symmetric) or wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||. fetch: summed in
+    w = wa + wb (symmetric) or wa, wa = 1/||(g x_a)_12||, wb = 1/||(g^T x_b)_12||. fetch: summed in
     chunks of CHUNK points, meanwhile prefetching the same-sized blocks at addresses next_a,
     next_b (0: none); the sums depend on fetch, never on the addresses. Arrays and indices,
     not rows: a row view per call costs reference counting. Inlined into block32 and
