@@ -186,16 +186,24 @@ def test_the_two_levels_gathered_in_one_pass_give_what_each_level_gathered_gives
     ia, jb = np.repeat(every, len(cases)), np.tile(every, len(cases))
     full = {0: epipolar.point_rows(xa), 1: epipolar.point_rows(xb)}
 
-    def gate(apart: bool, backend: str = "auto"):
-        levels = []
+    def levels(apart: bool):
+        out = []
         for k, m in ((COARSE, COARSE_MARGIN), (STRIDE, MARGIN)):
             rows = {c: epipolar.screen_rows(full[c], k) for c in full}
             if apart and k == COARSE:
                 rows = {c: dataclasses.replace(r, flat=r.flat.view()) for c, r in rows.items()}
-            levels.append((rows, m))
-        return epipolar.frame_screened_means(full, levels, {(0, 1): F_ROWS}, 0 * ia, ia,
+            out.append((rows, m))
+        return out
+
+    def gate(apart: bool, backend: str = "auto"):
+        return epipolar.frame_screened_means(full, levels(apart), {(0, 1): F_ROWS}, 0 * ia, ia,
                                              0 * ia + 1, jb, TAU, backend=backend)
 
+    if epipolar.have_numba():  # the one pass runs: both levels come back contiguous
+        plan = epipolar._frame_pairs(full, {(0, 1): F_ROWS}, 0 * ia, ia, 0 * ia + 1, jb)
+        for apart, runs in ((False, {0}), (True, {epipolar.SCREEN_RUN})):
+            got = epipolar._gathered_screens(plan, levels(apart), "auto")
+            assert {r.run for level, _ in got for r in level.values()} == runs
     fused, apart = gate(False), gate(True)
     for got, want in zip(fused, apart):
         np.testing.assert_array_equal(got, want)
