@@ -422,11 +422,12 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
         ok = (_reprojection_gate(table, i, j, rig, params, geometry)
               if params.reproj_gate and i.size else None)
     S = i.size
-    stage = np.full(S, PASSED, np.int8)
-    alive = np.arange(S)
     if ok is not None:  # masks, not index arrays, over every pair (72,000 on the large load)
-        stage[~ok] = REJECTED_REPROJ
+        stage = np.where(ok, np.int8(PASSED), np.int8(REJECTED_REPROJ))
         alive = np.flatnonzero(ok)
+    else:
+        stage = np.full(S, PASSED, np.int8)
+        alive = np.arange(S)
     stats["rejected_reproj"] = float(S - alive.size)
     stats["t_reproj_ms"], t = _lap(t)
 

@@ -699,8 +699,8 @@ def _gathered_screens(plan: _FramePairs, screens: Sequence[ScreenLevel], backend
                                              [n_coarse, n][-len(screens):]):
         flat = buffer.reshape(-1).view()
         flat.setflags(write=False)
-        gathered.append(({c: PointRows(flat, slot[plan.offsets[k]:plan.offsets[k + 1]].clip(0)
-                                       * 2 * size, size)
+        at = slot.clip(0) * (2 * size)  # each detection's row in the buffer (unread if absent)
+        gathered.append(({c: PointRows(flat, at[plan.offsets[k]:plan.offsets[k + 1]], size)
                           for k, c in enumerate(plan.cams)}, margin))
     return gathered
 
