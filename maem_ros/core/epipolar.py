@@ -416,16 +416,9 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
     chosen[todo] = True
     order = plan.order[chosen[plan.order]]  # this level's pairs in the kernel's order
     key_a, key_b = plan.key_a[order], plan.key_b[order]
-    present = np.zeros(int(plan.offsets[-1]), bool)
-    present[key_a] = True
-    present[key_b] = True
-    dets = np.flatnonzero(present)
-    rank = np.cumsum(present) - 1
-    det_slot = np.searchsorted(plan.offsets, dets, side="right") - 1
-    det_row = np.concatenate([rows[c].rows for c in cams])[dets]
-    # each detection's first coordinate as an address: flats stay referenced during the call
-    base = np.array([f.__array_interface__["data"][0] for f in flats], dtype=np.int64)
-    det_addr = base[det_slot] + det_row * flats[0].dtype.itemsize
+    # flats stay referenced during the call
+    dets, rank, det_addr = _detections_read(plan, key_a, key_b, flats,
+                                            [rows[c].rows for c in cams])
     like = flats[0]
     layout = rows[cams[0]]
     if layout.run:  # a subset read in runs: each detection's points gathered once, contiguous
@@ -451,6 +444,24 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
     for v, g in zip(out, got):
         v[at[order]] = g
     return out
+
+
+def _detections_read(plan: _FramePairs, key_a: np.ndarray, key_b: np.ndarray,
+                     flats: list[np.ndarray], rows: list[np.ndarray]
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(dets, rank, det_addr) of the detections that pairs (frame-wide keys key_a[s],
+    key_b[s]) read: their keys ascending, each key's place among them (rank[key]; meaningless
+    for keys no pair reads) and each one's first coordinate as an address in flats (one
+    array per camera of the plan, of one dtype; rows: the cameras' PointRows.rows)."""
+    present = np.zeros(int(plan.offsets[-1]), bool)
+    present[key_a] = True
+    present[key_b] = True
+    dets = np.flatnonzero(present)
+    rank = np.cumsum(present) - 1
+    det_slot = np.searchsorted(plan.offsets, dets, side="right") - 1
+    det_row = np.concatenate(rows)[dets]
+    base = np.array([f.__array_interface__["data"][0] for f in flats], dtype=np.int64)
+    return dets, rank, base[det_slot] + det_row * flats[0].dtype.itemsize
 
 
 #: per thread, the bytes the screens' gathered points are written to, kept from call to call
@@ -678,21 +689,15 @@ def _gathered_screens(plan: _FramePairs, screens: Sequence[ScreenLevel], backend
             return screens
     if len({(r.run, r.period, r.n, r.flat.dtype) for r in rows}) > 1 or not rows[0].run:
         return screens
-    present = np.zeros(int(plan.offsets[-1]), bool)
-    present[plan.key_a] = True
-    present[plan.key_b] = True
-    dets = np.flatnonzero(present)
-    slot = np.cumsum(present) - 1  # each detection's place among those gathered
-    cam_of = np.searchsorted(plan.offsets, dets, side="right") - 1
-    base = np.array([r.flat.__array_interface__["data"][0] for r in rows], dtype=np.int64)
-    det_row = np.concatenate([r.rows for r in rows])[dets]
-    det_addr = base[cam_of] + det_row * rows[0].flat.itemsize
+    # flats keeps the message buffers referenced while the kernel reads them by address;
+    # slot: each detection's place among those gathered
+    flats = [r.flat for r in rows]
+    dets, slot, det_addr = _detections_read(plan, plan.key_a, plan.key_b, flats,
+                                            [r.rows for r in rows])
     run, period, n, dtype = rows[0].run, rows[0].period, rows[0].n, rows[0].flat.dtype
     out = _gather_buffer(dets.size * 2 * n, dtype, 1).reshape(dets.size, 2 * n)
     n_coarse = levels[0][plan.cams[0]].n if every else 0
     coarse = _gather_buffer(dets.size * 2 * n_coarse, dtype, 2).reshape(dets.size, 2 * n_coarse)
-    # keeps the message buffers referenced while the kernel reads them by address
-    flats = [r.flat for r in rows]
     _numba_kernels().gather_runs(flats[0], det_addr, run, period, out, every, coarse)
     gathered = []
     for (level, margin), buffer, size in zip(screens, [coarse, out][-len(screens):],
