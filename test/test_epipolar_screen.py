@@ -213,6 +213,68 @@ def test_the_two_levels_gathered_in_one_pass_give_what_each_level_gathered_gives
     np.testing.assert_array_equal(gate(False, "numpy")[0], fused[0])
 
 
+@pytest.mark.parametrize("strides", [(8, 32), (8,), (32, 8, 2), (8, 12), (1, 8)])
+def test_screen_copies_hold_each_screens_points_and_find_the_first_inf(strides):
+    """screen_copies: every stride's screening subset (nested in the finest or not) as
+    screen_rows reads it, NaN kept, read-only; the first detection with an inf coordinate."""
+    rng = np.random.default_rng(len(strides))
+    x = rng.uniform(-100, 2000, (5, 3001, 2)).astype(np.float32)
+    x[1, ::7, 0] = np.nan
+    copies, first_inf = epipolar.screen_copies(x, strides)
+    assert first_inf == -1 and sorted(copies) == sorted(s for s in strides if s > 1)
+    for stride, got in copies.items():
+        screen = epipolar.screen_rows(x, stride)
+        np.testing.assert_array_equal(got, screen._gather(screen.rows))
+        assert not got.flags.writeable
+    x[3, 2000, 1], x[4, 5, 0] = -np.inf, np.inf
+    assert epipolar.screen_copies(x, strides)[1] == 3
+
+
+def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
+    """Detections decoded with the gate's screening subsets copied (the association node's
+    path): the gate reads the copies (no gather of its own) and every decision and mean is the
+    one it gives when it gathers the subsets from the messages, bit for bit; a detections
+    subset (select) keeps its rows' copies."""
+    from maem_ros.core import association
+    from maem_ros.ros import wire
+    params = AssociationParams(k_min=2)
+    strides = association.decode_screen_strides(params)
+    assert strides == (params.screen_coarse_stride, params.screen_stride) or \
+        not epipolar.have_numba()
+    for f in (0, scene.config.frames // 2):
+        msgs = {c: wire.detections_to_msg(scene.detections(c, f)) for c in scene.rig.names}
+        plain, copied = ({c: wire.msg_to_detections(m, "/d", screen_strides=s)
+                          for c, m in msgs.items()} for s in ((), strides))
+        runs = {rows.run for _, subsets in association._gate_points(
+            {k: copied[c] for k, c in enumerate(scene.rig.names)}, params).values()
+            for rows in subsets if rows is not None}
+        assert runs == ({0} if strides else {epipolar.SCREEN_RUN})
+        a, b = associate(scene.rig, plain, params), associate(scene.rig, copied, params)
+        assert [c.members.tolist() for c in a.clusters] == [c.members.tolist() for c in b.clusters]
+        for got, want in zip(_gate_means(scene, copied, params), _gate_means(scene, plain, params)):
+            np.testing.assert_array_equal(got, want)
+    if strides:
+        fd = copied[scene.rig.names[0]]
+        keep = np.array([0, fd.n - 1])
+        np.testing.assert_array_equal(fd.select(keep).screen_copy(strides[-1]),
+                                      fd.screen_copy(strides[-1])[keep])
+        fd.verts2d = fd.verts2d.copy()  # new vertices: the copies no longer describe them
+        assert fd.screen_copy(strides[-1]) is None
+
+
+def _gate_means(scene, frames, params):
+    """(keep, mean) of the mesh gate on every cross-camera pair of the frame set."""
+    from maem_ros.core import association
+    from maem_ros.core.detections import DetectionTable
+    by_index = {k: frames[c] for k, c in enumerate(scene.rig.names)}
+    table = DetectionTable.build(by_index, len(scene.rig.names))
+    i, j = np.triu_indices(len(table), 1)
+    other = table.cam[i] != table.cam[j]
+    F = association._rig_cache(scene.rig).pairs
+    return association._epipolar_gate(table, i[other], j[other], F, params,
+                                      {"epipolar_points_fraction": 0.0})
+
+
 def test_screen_levels_follow_the_params():
     params = AssociationParams()
     assert params.screen_levels() == [(params.screen_coarse_stride, params.screen_coarse_margin),

@@ -13,6 +13,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from visualization_msgs.msg import Marker
 
+from maem_ros.core import epipolar
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
@@ -224,6 +225,26 @@ def test_detections_decoder_rejects_values(field, index, value, name, reason):
         wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC)
     assert (ei.value.field, ei.value.reason) == (name, reason)
     assert "detection" in ei.value.problem
+
+
+@pytest.mark.parametrize("layout", ["f32", "q4"])
+def test_detections_decoder_copies_the_screens_in_the_pass_that_checks_verts2d(layout):
+    """With screen_strides the decoder copies the mesh gate's screening subsets of verts2d
+    (the points screen_rows reads, NaN kept) and still rejects an inf vertex, naming the
+    detection, as without them."""
+    dets = make_dets(3, 5, 2000)
+    dets.verts2d[1, 7] = np.nan
+    got = wire.msg_to_detections(wire.detections_to_msg(dets, layout), TOPIC,
+                                 screen_strides=(8, 32))
+    assert got.screen_copy(32) is None  # 2000 vertices: too few for a 1/32 screen
+    screen = epipolar.screen_rows(got.verts2d, 8)
+    np.testing.assert_array_equal(got.screen_copy(8), screen._gather(screen.rows))
+    assert np.isnan(got.screen_copy(8)[1, 7]).all()
+    dets.verts2d[2, 1000, 1] = np.inf
+    with pytest.raises(wire.WireError) as ei:
+        wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC, screen_strides=(8, 32))
+    assert (ei.value.field, ei.value.reason, ei.value.problem) == \
+        ("verts2d", "nonfinite", "inf in detection 2")
 
 
 def test_stamps_outside_ros_time_are_rejected():

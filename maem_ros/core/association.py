@@ -312,7 +312,26 @@ def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
     for c, fd in frames.items():
         full = epipolar.point_rows(fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]])
         out[c] = (full, screen_subsets(full, params))
+    # a level's subsets as the decoder copied them where every camera has its copy (one
+    # layout per level), else read in place
+    for k, (stride, _) in enumerate(params.screen_levels()):
+        copies = {c: fd.screen_copy(stride) if columns[c] is None else None
+                  for c, fd in frames.items()}
+        if all(a is not None for a in copies.values()):
+            for c, a in copies.items():
+                out[c][1][k] = epipolar.point_rows(a)
     return out
+
+
+def decode_screen_strides(params: AssociationParams) -> tuple[int, ...]:
+    """The screening strides whose subsets a decoder should copy for the mesh gate
+    (FrameDetections.attach_screens, epipolar.screen_copies): those of the screening levels
+    when the numba gate compares every vertex a camera sends, else none (the gate would not
+    read them; the numpy backend reads the subsets in place)."""
+    if params.epipolar_gate != "mesh" or params.vertex_stride != 1 or params.vertex_count > 0 \
+            or params.backend == "numpy" or not epipolar.have_numba():
+        return ()
+    return tuple(stride for stride, _ in params.screen_levels())
 
 
 def screen_subsets(x: np.ndarray | epipolar.PointRows, params: AssociationParams

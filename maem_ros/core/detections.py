@@ -37,6 +37,9 @@ class FrameDetections:
     verts2d: np.ndarray
     mesh_subset: tuple[int, int, int] | None = None
     _validated: tuple = field(default=(), init=False, repr=False, compare=False)
+    #: (verts2d they were copied from, {stride: (N,m,2) float32}): the mesh gate's screening
+    #: subsets of verts2d copied by the decoder (:meth:`attach_screens`)
+    _screens: tuple = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.bboxes = np.asarray(self.bboxes, dtype=np.float64)
@@ -86,13 +89,31 @@ class FrameDetections:
 
     def select(self, index: np.ndarray) -> "FrameDetections":
         """Subset by boolean mask or integer index (copies); validated when self is (every
-        check of :meth:`validate` is per detection or on shapes the subset keeps)."""
+        check of :meth:`validate` is per detection or on shapes the subset keeps), with the
+        attached screening copies' rows."""
         out = FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
                               self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
                               self.mesh_subset)
         if self._validated and self._validated == self._arrays():
             out.mark_validated()
+        if self._screens and self._screens[0] is self.verts2d:
+            out.attach_screens({s: a[index] for s, a in self._screens[1].items()})
         return out
+
+    def attach_screens(self, copies: dict[int, np.ndarray]) -> "FrameDetections":
+        """Keep contiguous copies of the mesh gate's screening subsets of verts2d
+        (``core.epipolar.screen_copies``: {stride: (N,m,2) float32}), made where verts2d was
+        read anyway (the decoder), for the gate to read instead of gathering them again.
+        They stay valid while verts2d is the same array (as for :meth:`mark_validated`)."""
+        self._screens = (self.verts2d, dict(copies))
+        return self
+
+    def screen_copy(self, stride: int) -> np.ndarray | None:
+        """The attached copy of the screening subset of ``stride`` (see :meth:`attach_screens`),
+        None if there is none or verts2d was replaced since."""
+        if not self._screens or self._screens[0] is not self.verts2d:
+            return None
+        return self._screens[1].get(int(stride))
 
     def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
         """These detections with verts2d cut to the fixed-topology subset

@@ -499,6 +499,7 @@ def warmup() -> None:
             epipolar_sums(x, x, F, one, one, 1.0, True, True, "numba", precision)
         screen = screen_rows(x, 2)
         epipolar_sums(screen, screen, F, one, one, 1.0, True, True, "numba", "mixed")
+    screen_copies(np.ones((1, BLOCK, 2), dtype=np.float32), (2, 4))
 
 
 def point_distances(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, symmetric: bool) -> np.ndarray:
@@ -654,6 +655,49 @@ def screen_rows(x: np.ndarray | PointRows, stride: int) -> PointRows | None:
     if stride <= 1 or runs * SCREEN_RUN < SCREEN_MIN_POINTS:
         return None
     return PointRows(full.flat, full.rows, runs * SCREEN_RUN, SCREEN_RUN, period)
+
+
+def screen_copies(x: np.ndarray, strides: Sequence[int]) -> tuple[dict[int, np.ndarray], int]:
+    """The screening subsets of one camera's (N,n,2) float32 points for each of ``strides``
+    (:func:`screen_rows`), each copied contiguous ((N,m,2) float32, read-only; strides whose
+    screen is off left out), and the first detection with an infinite coordinate (-1: none;
+    NaN = missing is allowed).
+
+    For a decoder, whose finiteness check reads every point anyway: with numba, one pass
+    scans each detection and copies its runs (of the finest subset and of one coarser subset
+    nested in it) while they are in cache. The gate then reads the copies where it would
+    gather the same runs from scattered cache lines (a large-load frame set: 3.6-4.5 ms in
+    the gate against ~2 ms added to the decoding, 2-core Xeon VM)."""
+    x = np.asarray(x, dtype=np.float32)
+    full = point_rows(x)
+    levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
+    levels = [(s, rows) for s, rows in levels if rows is not None]  # finest first
+    if _numba is None or full.count == 0 or not levels:
+        bad = np.flatnonzero(np.isinf(x).any(axis=(1, 2)))
+        copies = {s: rows._gather(rows.rows) for s, rows in levels}
+        return _read_only(copies), int(bad[0]) if bad.size else -1
+    (stride, fine), rest = levels[0], levels[1:]
+    nested = [(s, rows) for s, rows in rest if rows.period % fine.period == 0]
+    coarse_stride, coarse = nested[0] if nested else (0, None)
+    out = np.empty((full.count, 2 * fine.n), np.float32)
+    every = coarse.period // fine.period if coarse is not None else 0
+    inner = np.empty((full.count, 2 * coarse.n) if coarse is not None else (0, 0), np.float32)
+    det_addr = full.flat.__array_interface__["data"][0] + full.rows * full.flat.itemsize
+    first_inf = _numba_kernels().scan_gather_runs(full.flat, det_addr, full.n, fine.run,
+                                                  fine.period, out, every, inner)
+    copies = {stride: out.reshape(full.count, fine.n, 2)}
+    if coarse is not None:
+        copies[coarse_stride] = inner.reshape(full.count, coarse.n, 2)
+    for s, rows in rest:  # a level not nested in the finest one: gathered on its own
+        if s not in copies:
+            copies[s] = rows._gather(rows.rows)
+    return _read_only(copies), int(first_inf)
+
+
+def _read_only(arrays: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    for a in arrays.values():
+        a.setflags(write=False)
+    return arrays
 
 
 #: consecutive points per screening run (8 float32 (u, v) = one 64-byte cache line)

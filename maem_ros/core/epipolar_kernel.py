@@ -759,7 +759,6 @@ def gather_runs(like, det_addr, run, period, out, every, coarse):
     coarser subset copied in the same pass."""
     wide_vectors()
     runs = out.shape[1] // (2 * run)
-    coarse_runs = coarse.shape[1] // (2 * run) if every > 0 else 0
     D = det_addr.shape[0]
     for d in range(D):
         for r in range(runs):
@@ -768,13 +767,54 @@ def gather_runs(like, det_addr, run, period, out, every, coarse):
                 prefetch(det_addr[d] + 2 * ahead * period * like.itemsize)
             elif d + 1 < D:
                 prefetch(det_addr[d + 1] + 2 * (ahead - runs) * period * like.itemsize)
-            src = points(like, det_addr[d], 2 * r * period, 2 * run)
-            for k in range(2 * run):
-                out[d, 2 * r * run + k] = src[k]
-            if every > 0 and r % every == 0 and r // every < coarse_runs:
-                q = r // every
-                for k in range(2 * run):
-                    coarse[d, 2 * q * run + k] = src[k]
+            copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
+                     coarse)
+
+
+@inline
+def copy_run(src, d, r, out, every, coarse):
+    """Run r of detection d (src: its 2 * run coordinates) into out[d] and, when it is one
+    of every ``every``-th runs and coarse has room, into coarse[d] (gather_runs)."""
+    width = src.shape[0]
+    for k in range(width):
+        out[d, r * width + k] = src[k]
+    if every > 0 and r % every == 0 and (r // every + 1) * width <= coarse.shape[1]:
+        for k in range(width):
+            coarse[d, (r // every) * width + k] = src[k]
+
+
+#: float32 bits without the sign, and those of inf
+_ABS_BITS = np.uint32(0x7FFFFFFF)
+_INF_BITS = np.uint32(0x7F800000)
+
+
+@plain
+def scan_gather_runs(like, det_addr, n, run, period, out, every, coarse):
+    """gather_runs of detections of n float32 points each, and the first detection d with an
+    infinite coordinate (-1: none; NaN is not inf). Each detection is scanned whole, then its
+    runs copied while it is still in cache: one pass from memory, the one a finiteness check
+    makes anyway, instead of a second one over scattered cache lines."""
+    wide_vectors()
+    runs = out.shape[1] // (2 * run)
+    first_inf = -1
+    for d in range(det_addr.shape[0]):
+        if first_inf < 0 and has_inf(points(like, det_addr[d], 0, 2 * n).view(np.uint32)):
+            first_inf = d
+        for r in range(runs):
+            copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
+                     coarse)
+    return first_inf
+
+
+@inline
+def has_inf(bits):
+    """Whether float32 values (their uint32 bits) hold +-inf: an integer min over
+    |bits| xor inf's bits, which is 0 only for inf (a min reduction vectorises; an early
+    break would not)."""
+    least = _INF_BITS
+    for k in range(bits.shape[0]):
+        least = min(least, (bits[k] & _ABS_BITS) ^ _INF_BITS)
+    return least == 0
 
 
 @inline32

@@ -124,6 +124,9 @@ class AssociationNode(Node):
             raise ConfigError(str(e)) from None
         # compile/load the numba kernels now, not on the first frame
         association.warmup(self.params.backend, self.params.epipolar_gate)
+        # the gate's screening subsets copied as each message is decoded (off the frame
+        # set's critical path: the other cameras' messages are still on their way)
+        self.screen_strides = association.decode_screen_strides(self.params)
         wire.warm_cdr_decoder()
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]
@@ -175,7 +178,8 @@ class AssociationNode(Node):
         with RejectErrors(self.diag, topic, "bad_detections") as step:
             with Stopwatch(self.diag, "decode"):
                 dets = wire.msg_to_detections(wire.cdr_to_cloud(data, topic), topic,
-                                              self.rig.names, expected_camera=cam)
+                                              self.rig.names, expected_camera=cam,
+                                              screen_strides=self.screen_strides)
                 check_detections(dets, self.rig, self.limits, topic)
         if step.failed:
             return

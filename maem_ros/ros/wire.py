@@ -46,6 +46,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from maem_ros.core.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.epipolar import screen_copies
 from maem_ros.core.frames import FrameTransform
 from maem_ros.core.errors import InputError
 
@@ -413,13 +414,16 @@ def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
 
 def msg_to_detections(msg: PointCloud2, topic: str,
                       known_cameras: Sequence[str] | None = None,
-                      expected_camera: str | None = None) -> FrameDetections:
+                      expected_camera: str | None = None,
+                      screen_strides: Sequence[int] = ()) -> FrameDetections:
     """PointCloud2 -> FrameDetections, validated once (the result is marked validated, so the
     association does not check the arrays again); f32 verts2d is a view of msg.data, q4 codes
     are decoded once into one float32 array (NaN = missing).
 
     ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
-    (the camera whose topic this came from).
+    (the camera whose topic this came from). ``screen_strides``: the mesh gate's screening
+    subsets of verts2d to copy in the pass that checks verts2d
+    (core.association.decode_screen_strides; FrameDetections.attach_screens).
     """
     cam = msg.header.frame_id
     if known_cameras is not None and cam not in known_cameras:
@@ -461,11 +465,19 @@ def msg_to_detections(msg: PointCloud2, topic: str,
     else:
         _check_finite(topic, "kpts2d", fields["kpts2d"], allow_nan=True)  # NaN = not seen
         kpts2d = fields["kpts2d"]
+    copies: dict[int, np.ndarray] = {}
     if vname == "verts2d_q4":
         origin = fields.get(ORIGIN_FIELD)
         if origin is not None:
             _check_finite(topic, ORIGIN_FIELD, origin)
         verts2d = decode_q4(fields[vname], origin=origin)
+        if screen_strides:
+            copies, _ = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
+    elif screen_strides:  # the check and the copies in one pass
+        verts2d = fields["verts2d"]
+        copies, row = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
+        if row >= 0:
+            raise WireError(topic, "verts2d", f"inf in detection {row}", "nonfinite")
     else:
         verts2d = fields["verts2d"]
         _check_finite(topic, "verts2d", verts2d, allow_nan=True)  # NaN = missing vertex
@@ -481,7 +493,7 @@ def msg_to_detections(msg: PointCloud2, topic: str,
         camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
         scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
         kpts3d=fields["kpts3d"].reshape(n, j, 3), verts2d=verts2d.reshape(n, v, 2),
-        mesh_subset=subset).mark_validated()
+        mesh_subset=subset).mark_validated().attach_screens(copies)
 
 
 # ---------------------------------------------------------------------------------------------
