@@ -181,11 +181,13 @@ def _reprojection(P, r, x, y, z, u, v):
 
 @jit
 def _absorb(x, y, live, matrix):
-    """Rows and columns y[k] added to x[k], then zeroed, over the live indices only: the
-    rows and columns of every other index are zero (zeroed when their cluster was absorbed)
-    and stay so, and skipping them gives the same table."""
+    """Rows and columns y[k] added to x[k], then zeroed. The columns of rows that are not
+    live are zero (zeroed when their cluster was absorbed) and stay so: the column updates
+    skip them, the same table; the row updates run over every column, where a dead one adds
+    0 to 0, as contiguous loops that vectorise."""
+    n = matrix.shape[1]
     for k in range(x.size):
-        for c in live:
+        for c in range(n):
             matrix[x[k], c] += matrix[y[k], c]
     # columns after all rows (the entry of two merged clusters sums 4 parts), row by row (the
     # columns are strided); a column y is read, then zeroed
@@ -194,7 +196,7 @@ def _absorb(x, y, live, matrix):
             matrix[r, x[k]] += matrix[r, y[k]]
             matrix[r, y[k]] = 0
     for k in range(x.size):
-        for c in live:
+        for c in range(n):
             matrix[y[k], c] = 0
 
 
@@ -244,17 +246,20 @@ def _candidates(links, between, support, camset, size, min_support, refused):
     gain = np.empty(links.size)
     code = np.empty(links.size, np.int64)
     m = 0
+    any_refused = len(refused) > 1  # beyond the seed: else no lookup
     for k in range(links.size):
         A, B = links[k] // n, links[k] % n
+        if not between[A, B] > 0 or not support[A, B] / (size[A] * size[B]) >= min_support:
+            continue
         shared = False
         for c in range(camset.shape[1]):
             if camset[A, c] and camset[B, c]:
                 shared = True
                 break
-        if shared or not support[A, B] / (size[A] * size[B]) >= min_support:
+        if shared:
             continue
         key = ((A * n + B) * (n + 1) + size[A]) * (n + 1) + size[B]
-        if key in refused or not between[A, B] > 0:
+        if any_refused and key in refused:
             continue
         a[m], b[m], gain[m], code[m] = A, B, between[A, B], key
         m += 1
