@@ -310,16 +310,9 @@ def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
     columns = _gate_columns(frames, params)
     out = {}
     for c, fd in frames.items():
-        full = epipolar.point_rows(fd.verts2d if columns[c] is None else fd.verts2d[:, columns[c]])
-        out[c] = (full, screen_subsets(full, params))
-    # a level's subsets as the decoder copied them where every camera has its copy (one
-    # layout per level), else read in place
-    for k, (stride, _) in enumerate(params.screen_levels()):
-        copies = {c: fd.screen_copy(stride) if columns[c] is None else None
-                  for c, fd in frames.items()}
-        if all(a is not None for a in copies.values()):
-            for c, a in copies.items():
-                out[c][1][k] = epipolar.point_rows(a)
+        whole = columns[c] is None
+        full = epipolar.point_rows(fd.verts2d if whole else fd.verts2d[:, columns[c]])
+        out[c] = (full, screen_subsets(full, params, fd if whole else None))
     return out
 
 
@@ -334,12 +327,17 @@ def decode_screen_strides(params: AssociationParams) -> tuple[int, ...]:
     return tuple(stride for stride, _ in params.screen_levels())
 
 
-def screen_subsets(x: np.ndarray | epipolar.PointRows, params: AssociationParams
-                   ) -> list[epipolar.PointRows | None]:
+def screen_subsets(x: np.ndarray | epipolar.PointRows, params: AssociationParams,
+                   fd: FrameDetections | None = None) -> list[epipolar.PointRows | None]:
     """One camera's (N,n,2) gate points (or their full-set PointRows) -> the subset of each
     screening level (coarse to fine, :meth:`AssociationParams.screen_levels`; None where too
-    few points to screen with)."""
-    return [epipolar.screen_rows(x, stride) for stride, _ in params.screen_levels()]
+    few points to screen with): the decoder's contiguous copy (FrameDetections.screen_copy)
+    when ``fd`` is given (x is its whole verts2d) and has one, else read in place."""
+    out = []
+    for stride, _ in params.screen_levels():
+        copy = fd.screen_copy(stride) if fd is not None else None
+        out.append(epipolar.screen_rows(x, stride) if copy is None else epipolar.point_rows(copy))
+    return out
 
 
 def screen_levels(points: Mapping[int, tuple[epipolar.PointRows, list[epipolar.PointRows | None]]],

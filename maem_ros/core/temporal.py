@@ -328,11 +328,15 @@ class _FrameView:
 
     def points(self, c: int) -> "tuple[epipolar.PointRows, list[epipolar.PointRows | None]]":
         """Camera c's points for the verification's epipolar gate and their screening subsets
-        (association.screen_subsets; none for keypoints), converted once per frame."""
+        (association.screen_subsets, the decoder's copies where it made them; none for
+        keypoints), converted once per frame."""
         if c not in self._rows:
-            full = epipolar.point_rows(self.stage._gate_points(self.by_cam[c]))
+            fd = self.by_cam[c]
+            points = self.stage._gate_points(fd)
+            full = epipolar.point_rows(points)
             mesh = self.stage.tp.verify_epipolar == "mesh"
-            self._rows[c] = (full, screen_subsets(full, self.stage.params) if mesh else [])
+            whole = fd if points is fd.verts2d else None  # the decoder's copies describe it
+            self._rows[c] = (full, screen_subsets(full, self.stage.params, whole) if mesh else [])
         return self._rows[c]
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
