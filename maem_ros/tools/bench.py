@@ -20,7 +20,8 @@ Temporal on/off (same run): the load in motion (tools/bench_load.make_sequence: 
 walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.temporal's
 track-assisted association and through the per-frame association; per-frame times after the
 first frame (steady state: tracks explain the known people, cross-view association runs on the
-rest), the first frame apart, and the detections left to the cross-view stage.
+rest), the first frame apart, and the detections left to the cross-view stage; each frame
+decoded from its messages as the node decodes them (not timed).
 
 Targets (reported, not enforced): standard load association median <= 6.5 ms/frame,
 triangulation median <= 1.5 ms for 10 people, speedup >= 50; large load association median
@@ -236,24 +237,31 @@ def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
     """Temporal on vs off on the load in motion (module docstring)."""
     import numpy as np
 
-    from ..core.association import associate
+    from ..core.association import associate, decode_screen_strides
     from ..core.temporal import TemporalAssociator, TemporalParams
+    from ..ros import wire
     from .bench_load import make_sequence
 
     seq = make_sequence(rig, template, np.random.default_rng(args.seed + 1), args.players,
                         args.extras, args.temporal_frames)
+    screens = decode_screen_strides(aparams)
     on, off, first, left = [], [], [], []
     for _ in range(max(1, args.repeats // 5)):  # whole sequences: the tracker is stateful
         stage = TemporalAssociator(rig, aparams, TemporalParams())
         for f, fr in enumerate(seq):
+            # decoded as the node receives them (not timed: the node decodes each message
+            # as it arrives)
+            frames = {c: wire.msg_to_detections(wire.detections_to_msg(fd, args.wire),
+                                                f"/{c}/detections", screen_strides=screens)
+                      for c, fd in fr.frames.items()}
             t = time.perf_counter()
-            res = stage.step(fr.frames, fr.frames[rig.names[0]].stamp_ns)
+            res = stage.step(frames, frames[rig.names[0]].stamp_ns)
             ms = (time.perf_counter() - t) * 1e3
             (first if f == 0 else on).append(ms)
             if f:
                 left.append(res.stats["detections_left"])
             t = time.perf_counter()
-            associate(rig, fr.frames, aparams)
+            associate(rig, frames, aparams)
             off.append((time.perf_counter() - t) * 1e3)
     found = len(set(seq[-1].truth) & set(_as_sets([c.members for c in res.clusters])))
     on_med, off_med = _percentile(on, 50), _percentile(off, 50)
