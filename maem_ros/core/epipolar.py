@@ -671,8 +671,8 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> tuple[dict[int, np.n
     For a decoder, whose finiteness check reads every point anyway: with numba, one pass
     scans each detection and copies its runs (of the finest subset and of one coarser subset
     nested in it) while they are in cache. The gate then reads the copies where it would
-    gather the same runs from scattered cache lines (a large-load frame set: 3.6-4.5 ms in
-    the gate against ~2 ms added to the decoding, 2-core Xeon VM)."""
+    gather the same runs from scattered cache lines (maem-bench --load large: 3.4-3.6 ms of
+    gathers gone from the gate, 0.4-1 ms added to decoding the 16 cameras; 2-core Xeon VM)."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
     levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
