@@ -213,28 +213,88 @@ def test_the_two_levels_gathered_in_one_pass_give_what_each_level_gathered_gives
     np.testing.assert_array_equal(gate(False, "numpy")[0], fused[0])
 
 
+def _block_ranges(x: np.ndarray) -> np.ndarray:
+    """Reference of PointRows.ranges: per detection and BLOCK-point block (natural order),
+    (min, max) over both coordinates, (inf, -inf) where one is NaN or inf."""
+    N, n = x.shape[:2]
+    out = np.empty((N, -(-n // epipolar.BLOCK), 2), np.float32)
+    for b, start in enumerate(range(0, n, epipolar.BLOCK)):
+        part = x[:, start:start + epipolar.BLOCK].reshape(N, -1)
+        bad = ~np.isfinite(part).all(axis=1)
+        out[:, b, 0] = np.where(bad, np.inf, part.min(axis=1))
+        out[:, b, 1] = np.where(bad, -np.inf, part.max(axis=1))
+    return out
+
+
 @pytest.mark.parametrize("strides", [(8, 32), (8,), (32, 8, 2), (8, 12), (1, 8)])
-def test_screen_copies_hold_each_screens_points_and_find_the_first_inf(strides):
+def test_screen_copies_hold_each_screens_points_the_block_ranges_and_the_first_inf(strides):
     """screen_copies: every stride's screening subset (nested in the finest or not) as
-    screen_rows reads it, NaN kept, read-only; the first detection with an inf coordinate."""
+    screen_rows reads it, NaN kept, read-only; each detection's block ranges (with numba);
+    the first detection with an inf coordinate, also in a block with a NaN."""
     rng = np.random.default_rng(len(strides))
-    x = rng.uniform(-100, 2000, (5, 3001, 2)).astype(np.float32)
+    x = rng.uniform(-100, 2000, (5, 2 * epipolar.BLOCK + 1001, 2)).astype(np.float32)
     x[1, ::7, 0] = np.nan
-    copies, first_inf = epipolar.screen_copies(x, strides)
+    x[2, epipolar.BLOCK + 3, 1] = -np.nan
+    copies, ranges, first_inf = epipolar.screen_copies(x, strides)
     assert first_inf == -1 and sorted(copies) == sorted(s for s in strides if s > 1)
     for stride, got in copies.items():
         screen = epipolar.screen_rows(x, stride)
         np.testing.assert_array_equal(got, screen._gather(screen.rows))
         assert not got.flags.writeable
+    if epipolar.have_numba():
+        np.testing.assert_array_equal(ranges, _block_ranges(x))
+        assert np.isinf(ranges[2, 1]).all() and np.isfinite(ranges[2, [0, 2]]).all()
+        assert not ranges.flags.writeable
+    else:
+        assert ranges is None
     x[3, 2000, 1], x[4, 5, 0] = -np.inf, np.inf
-    assert epipolar.screen_copies(x, strides)[1] == 3
+    assert epipolar.screen_copies(x, strides).first_inf == 3
+    x[3, 2000, 1] = 0.0
+    x[4, 0, 1] = np.nan  # the inf shares its block with a NaN
+    assert epipolar.screen_copies(x, strides).first_inf == 4
+
+
+@pytest.mark.skipif(not epipolar.have_numba(), reason="block ranges are the numba kernel's")
+def test_the_kernel_given_block_ranges_sums_what_it_sums_computing_them():
+    """Full sets with the decoder's block ranges (PointRows.ranges) or without: the same sums
+    and counts, bit for bit, over pairs with missing points and pairs near tau; the kernel
+    reads them (blocks marked non-finite take the float64 path); ranges that do not describe
+    the points are refused."""
+    rng = np.random.default_rng(5)
+    n = 2 * epipolar.BLOCK + 700
+    a = rng.uniform(100, 1500, (6, n, 2)).astype(np.float32)
+    b = a + rng.normal(0, 1, (6, 1, 1)).astype(np.float32)
+    b[..., 1] += rng.uniform(0, 2 * TAU, (6, 1)).astype(np.float32)  # row offsets: F_ROWS
+    a[2, 5000:5010] = np.nan
+    given = [epipolar.point_rows(x, epipolar.screen_copies(x, (8,)).block_ranges)
+             for x in (a, b)]
+    assert all(r.ranges is not None for r in given)
+    ia, jb = np.repeat(np.arange(6), 6), np.tile(np.arange(6), 6)
+    for early_exit in (True, False):
+        got = epipolar.frame_sums(dict(enumerate(given)), {(0, 1): F_ROWS}, 0 * ia, ia,
+                                  0 * ia + 1, jb, TAU, early_exit=early_exit)
+        want = epipolar.frame_sums({0: a, 1: b}, {(0, 1): F_ROWS}, 0 * ia, ia, 0 * ia + 1, jb,
+                                   TAU, early_exit=early_exit)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+    # the kernel reads the given ranges: blocks marked non-finite are summed in float64
+    marked = np.empty_like(given[0].ranges)
+    marked[..., 0], marked[..., 1] = np.inf, -np.inf
+    rows = {0: dataclasses.replace(given[0], ranges=marked), 1: given[1]}
+    sums64, used64 = epipolar.frame_sums(rows, {(0, 1): F_ROWS}, 0 * ia, ia, 0 * ia + 1, jb,
+                                         TAU, early_exit=False)
+    np.testing.assert_array_equal(used64, got[1])
+    assert not np.array_equal(sums64, got[0])
+    np.testing.assert_allclose(sums64, got[0], rtol=1e-5)
+    with pytest.raises(ValueError, match="block ranges .* do not describe"):
+        epipolar.point_rows(a[:, :epipolar.BLOCK], given[0].ranges)
 
 
 def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
     """Detections decoded with the gate's screening subsets copied (the association node's
-    path): the gate reads the copies (no gather of its own) and every decision and mean is the
-    one it gives when it gathers the subsets from the messages, bit for bit; a detections
-    subset (select) keeps its rows' copies."""
+    path): the gate reads the copies (no gather of its own) and the block ranges, and every
+    decision and mean is the one it gives when it gathers the subsets and scans the blocks
+    itself, bit for bit; a detections subset (select) keeps its rows' copies and ranges."""
     from maem_ros.core import association
     from maem_ros.ros import wire
     params = AssociationParams(k_min=2)
@@ -258,8 +318,11 @@ def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
         keep = np.array([0, fd.n - 1])
         np.testing.assert_array_equal(fd.select(keep).screen_copy(strides[-1]),
                                       fd.screen_copy(strides[-1])[keep])
+        np.testing.assert_array_equal(fd.select(keep).block_ranges(), fd.block_ranges()[keep])
+        full = association._gate_points({0: fd}, params)[0][0]
+        assert full.ranges is fd.block_ranges() is not None  # the kernel is given them
         fd.verts2d = fd.verts2d.copy()  # new vertices: the copies no longer describe them
-        assert fd.screen_copy(strides[-1]) is None
+        assert fd.screen_copy(strides[-1]) is None and fd.block_ranges() is None
 
 
 def _gate_means(scene, frames, params):

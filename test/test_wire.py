@@ -230,8 +230,8 @@ def test_detections_decoder_rejects_values(field, index, value, name, reason):
 @pytest.mark.parametrize("layout", ["f32", "q4"])
 def test_detections_decoder_copies_the_screens_in_the_pass_that_checks_verts2d(layout):
     """With screen_strides the decoder copies the mesh gate's screening subsets of verts2d
-    (the points screen_rows reads, NaN kept) and still rejects an inf vertex, naming the
-    detection, as without them."""
+    (the points screen_rows reads, NaN kept) and its block ranges (with numba), and still
+    rejects an inf vertex, naming the detection, as without them."""
     dets = make_dets(3, 5, 2000)
     dets.verts2d[1, 7] = np.nan
     got = wire.msg_to_detections(wire.detections_to_msg(dets, layout), TOPIC,
@@ -240,6 +240,14 @@ def test_detections_decoder_copies_the_screens_in_the_pass_that_checks_verts2d(l
     screen = epipolar.screen_rows(got.verts2d, 8)
     np.testing.assert_array_equal(got.screen_copy(8), screen._gather(screen.rows))
     assert np.isnan(got.screen_copy(8)[1, 7]).all()
+    ranges = got.block_ranges()
+    if epipolar.have_numba():
+        finite = np.array([0, 2])
+        np.testing.assert_array_equal(ranges[finite, 0, 0], got.verts2d[finite].min(axis=(1, 2)))
+        np.testing.assert_array_equal(ranges[finite, 0, 1], got.verts2d[finite].max(axis=(1, 2)))
+        assert ranges.shape == (3, 1, 2) and ranges[1, 0].tolist() == [np.inf, -np.inf]
+    else:
+        assert ranges is None
     dets.verts2d[2, 1000, 1] = np.inf
     with pytest.raises(wire.WireError) as ei:
         wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC, screen_strides=(8, 32))

@@ -311,7 +311,8 @@ def _gate_points(frames: dict[int, FrameDetections], params: AssociationParams
     out = {}
     for c, fd in frames.items():
         whole = columns[c] is None
-        full = epipolar.point_rows(fd.verts2d if whole else fd.verts2d[:, columns[c]])
+        full = (epipolar.point_rows(fd.verts2d, fd.block_ranges()) if whole
+                else epipolar.point_rows(fd.verts2d[:, columns[c]]))
         out[c] = (full, screen_subsets(full, params, fd if whole else None))
     return out
 

@@ -37,8 +37,9 @@ class FrameDetections:
     verts2d: np.ndarray
     mesh_subset: tuple[int, int, int] | None = None
     _validated: tuple = field(default=(), init=False, repr=False, compare=False)
-    #: (verts2d they were copied from, {stride: (N,m,2) float32}): the mesh gate's screening
-    #: subsets of verts2d copied by the decoder (:meth:`attach_screens`)
+    #: (verts2d they were made from, {stride: (N,m,2) float32}, block ranges or None): the
+    #: mesh gate's screening subsets of verts2d copied by the decoder and its block ranges
+    #: (:meth:`attach_screens`)
     _screens: tuple = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -97,15 +98,19 @@ class FrameDetections:
         if self._validated and self._validated == self._arrays():
             out.mark_validated()
         if self._screens and self._screens[0] is self.verts2d:
-            out.attach_screens({s: a[index] for s, a in self._screens[1].items()})
+            ranges = self._screens[2]
+            out.attach_screens({s: a[index] for s, a in self._screens[1].items()},
+                               None if ranges is None else ranges[index])
         return out
 
-    def attach_screens(self, copies: dict[int, np.ndarray]) -> "FrameDetections":
-        """Keep contiguous copies of the mesh gate's screening subsets of verts2d
-        (``core.epipolar.screen_copies``: {stride: (N,m,2) float32}), made where verts2d was
-        read anyway (the decoder), for the gate to read instead of gathering them again.
-        They stay valid while verts2d is the same array (as for :meth:`mark_validated`)."""
-        self._screens = (self.verts2d, dict(copies))
+    def attach_screens(self, copies: dict[int, np.ndarray],
+                       block_ranges: np.ndarray | None = None) -> "FrameDetections":
+        """Keep contiguous copies of the mesh gate's screening subsets of verts2d and its
+        block ranges (``core.epipolar.screen_copies``: {stride: (N,m,2) float32}; (N,
+        blocks, 2) float32 or None), made where verts2d was read anyway (the decoder), for
+        the gate to read instead of making them again. They stay valid while verts2d is the
+        same array (as for :meth:`mark_validated`)."""
+        self._screens = (self.verts2d, dict(copies), block_ranges)
         return self
 
     def screen_copy(self, stride: int) -> np.ndarray | None:
@@ -114,6 +119,13 @@ class FrameDetections:
         if not self._screens or self._screens[0] is not self.verts2d:
             return None
         return self._screens[1].get(int(stride))
+
+    def block_ranges(self) -> np.ndarray | None:
+        """The attached block ranges of verts2d (see :meth:`attach_screens`), None if there
+        are none or verts2d was replaced since."""
+        if not self._screens or self._screens[0] is not self.verts2d:
+            return None
+        return self._screens[2]
 
     def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
         """These detections with verts2d cut to the fixed-topology subset

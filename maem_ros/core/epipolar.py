@@ -56,9 +56,9 @@ which rejects the pair.
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
-from typing import Mapping, Sequence
+from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
@@ -131,7 +131,10 @@ class PointRows:
     consecutive points, one every ``period``: a screening subset read in place).
 
     flat: 1D C-contiguous float32/float64 (may span other message fields between rows, never
-    read); rows (N,) int64 element offsets; n points per detection.
+    read); rows (N,) int64 element offsets; n points per detection; ranges: None or, for a
+    full set (run 0), (N, blocks, 2) float32 each detection's (min, max) coordinate over each
+    of its BLOCK-point blocks in their natural order, (inf, -inf) where one is NaN (made by
+    a decoder's pass, :func:`screen_copies`; the kernel's error bound trusts them).
     """
 
     flat: np.ndarray
@@ -139,6 +142,7 @@ class PointRows:
     n: int
     run: int = 0
     period: int = 0
+    ranges: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -162,16 +166,22 @@ class PointRows:
         return np.stack([self.flat[at], self.flat[at + 1]], axis=-1)
 
 
-def point_rows(x: np.ndarray | PointRows) -> PointRows:
+def point_rows(x: np.ndarray | PointRows, ranges: np.ndarray | None = None) -> PointRows:
     """(N,n,2) points -> :class:`PointRows`, zero-copy when each detection's (n,2) block is
     contiguous and aligned (a contiguous array, or a field view of a PointCloud2 with one
-    detection per point); otherwise one contiguous float64 copy."""
+    detection per point); otherwise one contiguous float64 copy. ranges: the block ranges
+    of x's float32 points made by :func:`screen_copies` (PointRows.ranges), or None."""
     if isinstance(x, PointRows):
         return x
     x = np.asarray(x)
     if x.ndim != 3 or x.shape[2] != 2:
         raise ValueError(f"epipolar points: expected (N,n,2), got {x.shape}")
     N, n = int(x.shape[0]), int(x.shape[1])
+    if ranges is not None:
+        if ranges.shape != (N, -(-n // BLOCK), 2) or x.dtype != np.float32:
+            raise ValueError(f"epipolar points: block ranges {ranges.shape} do not describe "
+                             f"{x.dtype} points {x.shape}")
+        return replace(point_rows(x), ranges=ranges)
     if x.dtype not in (np.float32, np.float64) or not x.dtype.isnative:
         x = x.astype(np.float64)
     if N and n and x.flags.c_contiguous and x.flags.aligned:
@@ -426,6 +436,7 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
                                             [rows[c].rows for c in cams])
     like = flats[0]
     layout = rows[cams[0]]
+    ranges = _known_ranges([rows[c] for c in cams], dets, n, mixed)
     if layout.run:  # a subset read in runs: each detection's points gathered once, contiguous
         like = _gather_buffer(dets.size * 2 * n, like.dtype).reshape(dets.size, 2 * n)
         _numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like, 0,
@@ -439,7 +450,7 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
         like = like.view()
         like.setflags(write=False)
     got = _numba_kernels().sums_kernel(
-        like, det_addr, plan.unit, plan.which[order], rank[key_a], rank[key_b],
+        like, det_addr, ranges, plan.unit, plan.which[order], rank[key_a], rank[key_b],
         block_order(n), n, tau, early_exit, symmetric, mixed,
         mixed and _refined_rsqrt_within_bound(), count_rest)
     # back from the kernel's order to todo's
@@ -467,6 +478,23 @@ def _detections_read(plan: _FramePairs, key_a: np.ndarray, key_b: np.ndarray,
     det_row = np.concatenate(rows)[dets]
     base = np.array([f.__array_interface__["data"][0] for f in flats], dtype=np.int64)
     return dets, rank, base[det_slot] + det_row * flats[0].dtype.itemsize
+
+
+def _known_ranges(rows: list[PointRows], dets: np.ndarray, n: int, mixed: bool) -> np.ndarray:
+    """(D, blocks, 2) float64: the block ranges of the detections dets (frame-wide keys over
+    the cameras' rows) in the kernel's block order (:func:`block_order`), NaN where a
+    camera's were not given (the kernel computes them when it first reads a block). A
+    decoder's ranges spare the kernel a pass over the full sets' points (~1.3 ms of a
+    large-load frame set, 2-core Xeon VM)."""
+    order = block_order(n)
+    unknown = np.full((dets.size, order.shape[0], 2), np.nan)
+    given = [r.ranges for r in rows]
+    if not mixed or all(g is None for g in given):
+        return unknown
+    natural = np.concatenate([g if g is not None else
+                              np.full((r.count, order.shape[0], 2), np.nan, np.float32)
+                              for g, r in zip(given, rows)])
+    return natural[dets][:, order[:, 0] // BLOCK].astype(np.float64)
 
 
 #: per thread, the bytes the screens' gathered points are written to, kept from call to call
@@ -662,17 +690,30 @@ def screen_rows(x: np.ndarray | PointRows, stride: int) -> PointRows | None:
     return PointRows(full.flat, full.rows, runs * SCREEN_RUN, SCREEN_RUN, period)
 
 
-def screen_copies(x: np.ndarray, strides: Sequence[int]) -> tuple[dict[int, np.ndarray], int]:
+class ScreenCopies(NamedTuple):
+    """What a decoder's pass over one camera's (N,n,2) float32 points leaves for the mesh
+    gate (:func:`screen_copies`)."""
+
+    #: {stride: (N,m,2) float32 read-only}: each screening subset, contiguous
+    copies: dict[int, np.ndarray]
+    #: (N, blocks, 2) float32 read-only PointRows.ranges of the full set (None without numba)
+    block_ranges: np.ndarray | None
+    #: the first detection with an infinite coordinate (-1: none; NaN = missing is allowed)
+    first_inf: int
+
+
+def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     """The screening subsets of one camera's (N,n,2) float32 points for each of ``strides``
-    (:func:`screen_rows`), each copied contiguous ((N,m,2) float32, read-only; strides whose
-    screen is off left out), and the first detection with an infinite coordinate (-1: none;
-    NaN = missing is allowed).
+    (:func:`screen_rows`) copied contiguous (strides whose screen is off left out), the full
+    set's block ranges, and the first detection with an infinite coordinate.
 
     For a decoder, whose finiteness check reads every point anyway: with numba, one pass
-    scans each detection and copies its runs (of the finest subset and of one coarser subset
-    nested in it) while they are in cache. The gate then reads the copies where it would
-    gather the same runs from scattered cache lines (maem-bench --load large: 3.4-3.6 ms of
-    gathers gone from the gate, 0.4-1 ms added to decoding the 16 cameras; 2-core Xeon VM)."""
+    scans each detection (its block ranges are the finiteness check) and copies its runs (of
+    the finest subset and of one coarser subset nested in it) while they are in cache. The
+    gate then reads the copies where it would gather the same runs from scattered cache
+    lines (maem-bench --load large: 3.4-3.6 ms of gathers gone from the gate, 0.4-1 ms added
+    to decoding the 16 cameras; 2-core Xeon VM), and the ranges where its kernel would scan
+    the full sets again (:func:`_known_ranges`)."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
     levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
@@ -680,23 +721,25 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> tuple[dict[int, np.n
     if _numba is None or full.count == 0 or not levels:
         bad = np.flatnonzero(np.isinf(x).any(axis=(1, 2)))
         copies = {s: rows._gather(rows.rows) for s, rows in levels}
-        return _read_only(copies), int(bad[0]) if bad.size else -1
+        return ScreenCopies(_read_only(copies), None, int(bad[0]) if bad.size else -1)
     (stride, fine), rest = levels[0], levels[1:]
     nested = [(s, rows) for s, rows in rest if rows.period % fine.period == 0]
     coarse_stride, coarse = nested[0] if nested else (0, None)
     out = np.empty((full.count, 2 * fine.n), np.float32)
     every = coarse.period // fine.period if coarse is not None else 0
     inner = np.empty((full.count, 2 * coarse.n) if coarse is not None else (0, 0), np.float32)
+    ranges = np.empty((full.count, -(-full.n // BLOCK), 2), np.float32)
     det_addr = full.flat.__array_interface__["data"][0] + full.rows * full.flat.itemsize
-    first_inf = _numba_kernels().scan_gather_runs(full.flat, det_addr, full.n, fine.run,
-                                                  fine.period, out, every, inner)
+    first_inf = _numba_kernels().scan_gather_runs(full.flat, det_addr, full.n, BLOCK, fine.run,
+                                                  fine.period, out, every, inner, ranges)
     copies = {stride: out.reshape(full.count, fine.n, 2)}
     if coarse is not None:
         copies[coarse_stride] = inner.reshape(full.count, coarse.n, 2)
     for s, rows in rest:  # a level not nested in the finest one: gathered on its own
         if s not in copies:
             copies[s] = rows._gather(rows.rows)
-    return _read_only(copies), int(first_inf)
+    ranges.setflags(write=False)
+    return ScreenCopies(_read_only(copies), ranges, int(first_inf))
 
 
 def _read_only(arrays: dict[int, np.ndarray]) -> dict[int, np.ndarray]:

@@ -349,30 +349,44 @@ def block32x2(a, b, d, gs, k, symmetric, fetch, next_a, next_b):
 @plain
 def block_range(x, ranges, d, r):
     """(min, max) of all coordinates of detection d's block r of float32 points x (2m,),
-    cached in ranges[d, r]; (inf, -inf) if one is NaN or inf. Ordered integer keys of the
-    float bits, so the min/max reductions vectorise."""
+    cached in ranges[d, r] (a decoder's, epipolar.screen_copies, when given); (inf, -inf) if
+    one is NaN or inf."""
     wide_vectors()
     if ranges[d, r, 0] == ranges[d, r, 0]:
         return ranges[d, r, 0], ranges[d, r, 1]
-    bits = x.view(np.int32)
+    lo, hi = key_range(x.view(np.int32))
+    ranges[d, r, 0], ranges[d, r, 1] = key_values(lo, hi)
+    return ranges[d, r, 0], ranges[d, r, 1]
+
+
+_LOW31 = np.int32(0x7FFFFFFF)
+
+
+@inline
+def key_range(bits):
+    """(min, max) ordered int32 keys of float32 values (their int32 bits): ordered keys of
+    the float bits, so the min/max reductions vectorise."""
     lo = np.int32(2147483647)
     hi = np.int32(-2147483648)
-    low31 = np.int32(0x7FFFFFFF)
     for k in range(bits.shape[0]):
         b = bits[k]
         # int32 throughout and selects, not min(): the loop vectorises
-        key = np.int32(b ^ (np.int32(b >> np.int32(31)) & low31))
+        key = np.int32(b ^ (np.int32(b >> np.int32(31)) & _LOW31))
         lo = key if key < lo else lo
         hi = key if key > hi else hi
+    return lo, hi
+
+
+@inline
+def key_values(lo, hi):
+    """key_range's keys as (min, max) float values; (inf, -inf) if a value is NaN or inf."""
     if lo <= _KEY_NEG_INF or hi >= _KEY_POS_INF:
-        ranges[d, r, 0], ranges[d, r, 1] = np.inf, -np.inf
-    else:
-        keys = np.empty(2, dtype=np.int32)
-        keys[0] = lo ^ ((lo >> 31) & low31)
-        keys[1] = hi ^ ((hi >> 31) & low31)
-        vals = keys.view(np.float32)
-        ranges[d, r, 0], ranges[d, r, 1] = vals[0], vals[1]
-    return ranges[d, r, 0], ranges[d, r, 1]
+        return np.inf, -np.inf
+    keys = np.empty(2, dtype=np.int32)
+    keys[0] = lo ^ ((lo >> 31) & _LOW31)
+    keys[1] = hi ^ ((hi >> 31) & _LOW31)
+    vals = keys.view(np.float32)
+    return np.float64(vals[0]), np.float64(vals[1])
 
 
 @plain
@@ -626,16 +640,17 @@ def refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric):
 
 
 @plain
-def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
+def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit,
                 symmetric, mixed, refine, count_rest):
     """(sums, used, points summed) of pairs s (detections pa[s], pb[s] under unit F
     fs[fk[s]]); detection d's 2n coordinates start at address det_addr[d] (arrays of like's
-    dtype). count_rest: used also counts the points after a rejected pair's early exit.
+    dtype); ranges (D, blocks, 2) float64: each detection's block ranges (block_range; NaN:
+    not known yet, filled on first use). count_rest: used also counts the points after a
+    rejected pair's early exit.
     mixed: float32 sums with the estimated 1/sqrt (block32); a pair their bound cannot
     settle is summed again with the refined 1/sqrt (refine) and, if that cannot settle it
     either, in float64."""
     S = pa.shape[0]
-    D = det_addr.shape[0]
     h = 0.5 if symmetric else 1.0
     # n alone decides the chunking, so a pair's sums do not depend on the other pairs
     fetch = n >= FETCH_MIN_POINTS
@@ -649,8 +664,6 @@ def sums_kernel(like, det_addr, fs, fk, pa, pb, blocks, n, tau, early_exit,
                         symmetric, sums, used, last)
         total, used = _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest)
         return sums, total, used
-    # once per detection: its block ranges (filled on first use)
-    ranges = np.full((D, blocks.shape[0], 2), np.nan)
     # each camera pair's float32 F, then the blocks outermost: one block of every detection
     # of the frame stays in cache while all its candidate pairs read it, instead of each pair
     # streaming whole detections from memory
@@ -789,17 +802,26 @@ _INF_BITS = np.uint32(0x7F800000)
 
 
 @plain
-def scan_gather_runs(like, det_addr, n, run, period, out, every, coarse):
-    """gather_runs of detections of n float32 points each, and the first detection d with an
-    infinite coordinate (-1: none; NaN is not inf). Each detection is scanned whole, then its
-    runs copied while it is still in cache: one pass from memory, the one a finiteness check
-    makes anyway, instead of a second one over scattered cache lines."""
+def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, ranges):
+    """gather_runs of detections of n float32 points each, each detection's ranges[d, b]
+    (float32) = block_range of its points b * block:(b + 1) * block (the kernel's blocks in
+    their natural order), and the first detection d with an infinite coordinate (-1: none;
+    NaN is not inf). Each detection is scanned whole, then its runs copied while it is still
+    in cache: one pass from memory, the one a finiteness check makes anyway, instead of a
+    second one over scattered cache lines."""
     wide_vectors()
     runs = out.shape[1] // (2 * run)
     first_inf = -1
     for d in range(det_addr.shape[0]):
-        if first_inf < 0 and has_inf(points(like, det_addr[d], 0, 2 * n).view(np.uint32)):
-            first_inf = d
+        for b in range(ranges.shape[1]):
+            start = b * block
+            bits = points(like, det_addr[d], 2 * start, 2 * (min(start + block, n) - start))
+            lo, hi = key_range(bits.view(np.int32))
+            ranges[d, b, 0], ranges[d, b, 1] = key_values(lo, hi)
+            # a NaN or inf in the block: whether an inf (the finiteness check)
+            if (first_inf < 0 and not ranges[d, b, 0] <= ranges[d, b, 1]
+                    and has_inf(bits.view(np.uint32))):
+                first_inf = d
         for r in range(runs):
             copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
                      coarse)

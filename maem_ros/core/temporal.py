@@ -333,9 +333,9 @@ class _FrameView:
         if c not in self._rows:
             fd = self.by_cam[c]
             points = self.stage._gate_points(fd)
-            full = epipolar.point_rows(points)
-            mesh = self.stage.tp.verify_epipolar == "mesh"
             whole = fd if points is fd.verts2d else None  # the decoder's copies describe it
+            full = epipolar.point_rows(points, whole.block_ranges() if whole else None)
+            mesh = self.stage.tp.verify_epipolar == "mesh"
             self._rows[c] = (full, screen_subsets(full, self.stage.params, whole) if mesh else [])
         return self._rows[c]
 

@@ -466,16 +466,17 @@ def msg_to_detections(msg: PointCloud2, topic: str,
         _check_finite(topic, "kpts2d", fields["kpts2d"], allow_nan=True)  # NaN = not seen
         kpts2d = fields["kpts2d"]
     copies: dict[int, np.ndarray] = {}
+    ranges: np.ndarray | None = None
     if vname == "verts2d_q4":
         origin = fields.get(ORIGIN_FIELD)
         if origin is not None:
             _check_finite(topic, ORIGIN_FIELD, origin)
         verts2d = decode_q4(fields[vname], origin=origin)
         if screen_strides:
-            copies, _ = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
+            copies, ranges, _ = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
     elif screen_strides:  # the check and the copies in one pass
         verts2d = fields["verts2d"]
-        copies, row = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
+        copies, ranges, row = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
         if row >= 0:
             raise WireError(topic, "verts2d", f"inf in detection {row}", "nonfinite")
     else:
@@ -493,7 +494,7 @@ def msg_to_detections(msg: PointCloud2, topic: str,
         camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
         scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
         kpts3d=fields["kpts3d"].reshape(n, j, 3), verts2d=verts2d.reshape(n, v, 2),
-        mesh_subset=subset).mark_validated().attach_screens(copies)
+        mesh_subset=subset).mark_validated().attach_screens(copies, ranges)
 
 
 # ---------------------------------------------------------------------------------------------
