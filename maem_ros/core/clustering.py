@@ -130,8 +130,9 @@ class _Verifier:
         self.usable = np.zeros((N + 1, Jb), bool)
         self.usable[:N] = np.isfinite(self.uv[:N]).all(-1)
         # each row's share of every candidate cluster's DLT system, computed once per frame
-        # set (unusable joints weigh 0)
-        self.E = normal_entries(self.P[:, None], self.uv, self.usable) * self.usable  # (9,N+1,Jb)
+        # set (unusable joints weigh 0): (9,N+1,Jb)
+        self.E = (normal_entries(self.P[:, None], self.uv, self.usable) * self.usable
+                  if kernels is None else kernels.verifier_entries(self.P, self.uv, self.usable))
         self.kernels = kernels  # clustering_kernel (numba) or None (numpy)
 
     def __call__(self, rows: np.ndarray) -> np.ndarray:

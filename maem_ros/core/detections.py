@@ -269,7 +269,10 @@ class DetectionTable:
         J = next((frames[c].num_joints for c in cams if frames[c].n), 0)
 
         def cat(get, shape):
-            parts = [get(frames[c])[idx[c]] for c in cams if idx[c].size]
+            # every detection kept (increasing, distinct: all of them): the array itself, not a
+            # gathered copy that concatenate would copy again
+            parts = [get(frames[c]) if idx[c].size == frames[c].n else get(frames[c])[idx[c]]
+                     for c in cams if idx[c].size]
             return np.concatenate(parts) if parts else np.zeros((0,) + shape)
 
         return cls(cam=np.repeat(np.arange(num_cameras), sizes),
