@@ -160,6 +160,30 @@ def test_sums_per_cluster_add_each_clusters_columns_in_ascending_order(seed, n, 
                               gated.astype(float) @ Z)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10**6), n=st.integers(1, 40), k=st.integers(1, 12),
+       cams=st.integers(1, 5))
+def test_numba_move_scores_equal_the_numpy_scores(seed, n, k, cams):
+    """clustering._move_scores, numpy and numba: the same best move into a cluster (the first
+    of tied ones; -inf and cluster 0 when none is allowed) and out of it, on tables with
+    tied gains (a coarse grid), empty and refused clusters, shared cameras and support
+    below the minimum."""
+    rng = np.random.default_rng(seed)
+    label = rng.integers(0, k, n)
+    G = rng.integers(-4, 5, (n, k)) / 4.0
+    S = rng.integers(0, 4, (n, k)).astype(float)
+    size = np.bincount(label, minlength=k).astype(float)
+    cam = rng.integers(0, cams, n)
+    camset = np.zeros((k, cams), bool)
+    camset[label, cam] = True
+    refused = rng.random((n, k)) < 0.2
+    want = clustering._move_scores(G, S, label, camset, cam, refused, size, 0.5)
+    got = clustering._move_scores(G, S, label, camset, cam, refused, size, 0.5,
+                                  clustering_kernel)
+    for g, w in zip(got, want):
+        np.testing.assert_array_equal(g, w)
+
+
 def _pairs(table: DetectionTable, rng: np.random.Generator, people: int, tau: float) -> PairSet:
     """Every cross-camera pair: same-person pairs mostly pass, the others mostly fail a gate;
     costs on a 1 cm grid (ties in the gains and their sums)."""

@@ -375,14 +375,8 @@ def _local_moves(table, gain, gated, label, verify, params, stats, kernels=None)
     camset[label, table.cam] = True
     refused = np.zeros((N, K), bool)  # verified inconsistent until the target changes
     for _ in range(MAX_MOVES_PER_DETECTION * N):
-        own = G[np.arange(N), label]
-        occupied = camset[:, table.cam].T  # (N,K): cluster already has this detection's camera
-        allowed = ~occupied & ~refused & (size[None, :] > 0) & \
-            (S >= params.min_support * size[None, :])
-        delta = np.where(allowed, G - own[:, None], -np.inf)
-        leave = np.where(size[label] > 1, -own, -np.inf)  # move out, alone
-        d_best = np.argmax(delta, axis=1)
-        into = delta[np.arange(N), d_best]
+        into, d_best, leave = _move_scores(G, S, label, camset, table.cam, refused, size,
+                                           params.min_support, kernels)
         cand = np.flatnonzero((into > 1e-12) | (leave > 1e-12))
         if cand.size == 0:
             break
@@ -425,6 +419,26 @@ def _local_moves(table, gain, gated, label, verify, params, stats, kernels=None)
         refused[:, [src, T]] = False
         stats["moves"] += 1.0
     return label
+
+
+def _move_scores(G: np.ndarray, S: np.ndarray, label: np.ndarray, camset: np.ndarray,
+                 cam: np.ndarray, refused: np.ndarray, size: np.ndarray, min_support: float,
+                 kernels=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(into, d_best, leave) (N,) of the local moves' step: the best objective change of
+    moving each detection into another cluster (-inf if none is allowed) and that cluster
+    (the first best), and that of moving it out alone (-inf if alone already). G, S (N,K)
+    gain and gated pairs with each cluster, label (N,), camset (K,C), cam (N,), refused
+    (N,K), size (K,) float. kernels: the same numbers in one compiled pass."""
+    if kernels is not None:
+        return kernels.move_scores(G, S, label, camset, cam, refused, size, min_support)
+    N = label.size
+    own = G[np.arange(N), label]
+    occupied = camset[:, cam].T  # (N,K): cluster already has this detection's camera
+    allowed = ~occupied & ~refused & (size[None, :] > 0) & (S >= min_support * size[None, :])
+    delta = np.where(allowed, G - own[:, None], -np.inf)
+    leave = np.where(size[label] > 1, -own, -np.inf)  # move out, alone
+    d_best = np.argmax(delta, axis=1)
+    return delta[np.arange(N), d_best], d_best, leave
 
 
 def _cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int, kernels=None) -> np.ndarray:

@@ -82,6 +82,19 @@ def greedy_merges(links: np.ndarray, between: np.ndarray, support: np.ndarray,
     return label, int(counts[0]), int(counts[1])
 
 
+def move_scores(G: np.ndarray, S: np.ndarray, label: np.ndarray, camset: np.ndarray,
+                cam: np.ndarray, refused: np.ndarray, size: np.ndarray, min_support: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """clustering._move_scores' (into, d_best, leave) in one pass over the (N,K) tables
+    (the same subtractions and comparisons; the first best cluster as np.argmax picks it)."""
+    N = label.size
+    into, d_best, leave = np.empty(N), np.empty(N, np.int64), np.empty(N)
+    _move_scores(G, S, np.ascontiguousarray(label, np.int64), camset,
+                 np.ascontiguousarray(cam, np.int64), refused, size, float(min_support), into,
+                 d_best, leave)
+    return into, d_best, leave
+
+
 def cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
     """(N, k) float64: clustering._cluster_sums of matrix (N,N) float64 or bool over the
     clusters label (N,) ints < k: per row, the columns of each cluster added in ascending
@@ -117,6 +130,8 @@ def warmup() -> None:
     greedy_merges(np.array([1]), np.ones((2, 2)), np.ones((2, 2), np.int32),
                   np.eye(2, dtype=bool), np.ones(2, np.int64), np.arange(2), 0.5, E,
                   np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool), 1.0)
+    move_scores(np.zeros((2, 2)), np.zeros((2, 2)), np.arange(2), np.eye(2, dtype=bool),
+                np.arange(2), np.zeros((2, 2), bool), np.ones(2), 0.5)
     cluster_sums(np.eye(2, dtype=bool), np.arange(2), 2)
     cluster_sums(np.eye(2), np.arange(2), 2)
     gain_tables(np.array([0]), np.array([1]), np.zeros(1, np.int8), np.zeros(1),
@@ -425,6 +440,25 @@ def _descending_order(g):
             count[p, digit] += 1
         order, spare = spare, order
     return order
+
+
+@jit
+def _move_scores(G, S, label, camset, cam, refused, size, min_support, into, d_best, leave):
+    for i in range(label.size):
+        own = G[i, label[i]]
+        best = -np.inf
+        at = 0
+        for k in range(G.shape[1]):
+            if (camset[k, cam[i]] or refused[i, k] or not size[k] > 0
+                    or not S[i, k] >= min_support * size[k]):
+                continue
+            d = G[i, k] - own
+            if d > best:  # strict: the first of equal ones, as np.argmax
+                best = d
+                at = k
+        into[i] = best
+        d_best[i] = at
+        leave[i] = -own if size[label[i]] > 1 else -np.inf
 
 
 @jit

@@ -76,32 +76,43 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
     X = np.empty((3, 1))
     scale = 0.5 if not reduce_max else np.sqrt(0.5)
     limit = tau * (1.0 + margin)
+    # the centres' coordinates apart and contiguous, and one camera's bounds at a time: the
+    # bound loop has no branch and vectorises; the DLT runs after it on the pairs it keeps
+    U = np.ascontiguousarray(uv[:, 0])
+    V = np.ascontiguousarray(uv[:, 1])
+    bound = np.empty(N)
     s = 0
     for a in range(C):
         for b in range(a + 1, C):
             f = F[a, b]
             cross = np.sqrt(f[0, 0] ** 2 + f[0, 1] ** 2 + f[1, 0] ** 2 + f[1, 1] ** 2)
+            lo, hi = offsets[b], offsets[b + 1]
             for i in range(offsets[a], offsets[a + 1]):
-                ua = uv[i, 0]
-                va = uv[i, 1]
                 # F x_a: the line of x_a in b (and the gradient of g in x_b)
-                l0 = f[0, 0] * ua + f[0, 1] * va + f[0, 2]
-                l1 = f[1, 0] * ua + f[1, 1] * va + f[1, 2]
-                l2 = f[2, 0] * ua + f[2, 1] * va + f[2, 2]
-                for j in range(offsets[b], offsets[b + 1]):
-                    ub = uv[j, 0]
-                    vb = uv[j, 1]
-                    # F^T x_b: the gradient of g in x_a
-                    m0 = f[0, 0] * ub + f[1, 0] * vb + f[2, 0]
-                    m1 = f[0, 1] * ub + f[1, 1] * vb + f[2, 1]
-                    g = abs(l0 * ub + l1 * vb + l2)
-                    grad = np.sqrt(l0 * l0 + l1 * l1 + m0 * m0 + m1 * m1)
-                    bound = scale * 2.0 * g / (grad + np.sqrt(grad * grad + 2.0 * cross * g))
+                l0 = f[0, 0] * U[i] + f[0, 1] * V[i] + f[0, 2]
+                l1 = f[1, 0] * U[i] + f[1, 1] * V[i] + f[1, 2]
+                l2 = f[2, 0] * U[i] + f[2, 1] * V[i] + f[2, 2]
+                _bounds(f, l0, l1, l2, cross, scale, U[lo:hi], V[lo:hi], bound)
+                for k in range(hi - lo):
                     pi[s] = i
-                    pj[s] = j
+                    pj[s] = lo + k
                     # NaN bound (degenerate geometry): no bound, the DLT decides
-                    if not bound > limit:
-                        ok[s] = _pair_error(P, uv, usable, E, i, j, reduce_max, system,
+                    if not bound[k] > limit:
+                        ok[s] = _pair_error(P, uv, usable, E, i, lo + k, reduce_max, system,
                                             X) < tau
                     s += 1
     return pi, pj, ok
+
+
+@nb.njit(inline="always", **_OPTS)
+def _bounds(f, l0, l1, l2, cross, scale, ub, vb, out):
+    """out[k] = the epipolar lower bound (geometry.pair_reprojection_bound's arithmetic) of
+    the reprojection error of centre (ub[k], vb[k]) in b against the one whose line in b is
+    (l0, l1, l2), under F f (3,3) with cross the norm of its upper-left 2x2 block."""
+    for k in range(ub.shape[0]):
+        # F^T x_b: the gradient of g in x_a
+        m0 = f[0, 0] * ub[k] + f[1, 0] * vb[k] + f[2, 0]
+        m1 = f[0, 1] * ub[k] + f[1, 1] * vb[k] + f[2, 1]
+        g = abs(l0 * ub[k] + l1 * vb[k] + l2)
+        grad = np.sqrt(l0 * l0 + l1 * l1 + m0 * m0 + m1 * m1)
+        out[k] = scale * 2.0 * g / (grad + np.sqrt(grad * grad + 2.0 * cross * g))
