@@ -11,14 +11,17 @@ Decisions equal the numpy path's: the bound only rejects with a relative margin 
 rounding (its arithmetic order does not matter), and the DLT and reprojection are the numpy
 path's float64 operations in the same order (no fast-math: no reassociation, no fused
 multiply-add), so the errors compared with tau are the same numbers. The DLT steps are the
-triangulation kernel's (core/triangulation_kernel.py: _entries, _solve).
+triangulation kernel's entries (core/triangulation_kernel.py: _entries) and geometry's
+cofactor solve as core/clustering_kernel.py compiles it for scalars.
 """
 from __future__ import annotations
 
 import numba as nb
 import numpy as np
 
-from .triangulation_kernel import _entries, _solve
+from .clustering_kernel import _adjugate_solve, _normal_cofactors
+from .geometry import _SINGULAR
+from .triangulation_kernel import _entries
 
 _OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
 
@@ -37,18 +40,27 @@ def _view_error(P, n, x0, x1, x2, u, v):
 
 
 @nb.njit(**_OPTS)
-def _pair_error(P, uv, usable, E, i, j, reduce_max, system, X):
-    """geometry.pair_reprojection_errors of the pair (i, j): DLT from the summed normal
-    entries (E (9,N) each view's, geometry.solve_normal's arithmetic), reprojected into both
-    views, mean or max; system (9,1) and X (3,1) scratch."""
-    if not (usable[i] and usable[j]):
-        return np.inf
-    for e in range(9):
-        system[e, 0] = E[e, i] + E[e, j]
-    _solve(system, X)
-    ei = _view_error(P, i, X[0, 0], X[1, 0], X[2, 0], uv[i, 0], uv[i, 1])
-    ej = _view_error(P, j, X[0, 0], X[1, 0], X[2, 0], uv[j, 0], uv[j, 1])
-    return max(ei, ej) if reduce_max else 0.5 * (ei + ej)
+def _pair_errors(P, U, V, usable, E, pi, pj, todo, reduce_max, tau, ok):
+    """ok[s] = geometry.pair_reprojection_errors of the pairs s in todo (rows pi[s], pj[s])
+    < tau: the DLT from the summed normal entries (E (9,N) each view's;
+    geometry.solve_normal's arithmetic), reprojected into both views, mean or max. Scalars
+    only, in one loop over the pairs the bounds kept."""
+    for t in range(todo.shape[0]):
+        s = todo[t]
+        i = pi[s]
+        j = pj[s]
+        n0, n1, n2 = E[0, i] + E[0, j], E[1, i] + E[1, j], E[2, i] + E[2, j]
+        n3, n4, n5 = E[3, i] + E[3, j], E[4, i] + E[4, j], E[5, i] + E[5, j]
+        cof = _normal_cofactors(n0, n1, n2, n3, n4, n5)
+        det, trace = cof[6], cof[7]
+        if not abs(det) > _SINGULAR * trace * trace * trace:
+            det = np.nan
+        x0, x1, x2 = _adjugate_solve(cof[:6], det, E[6, i] + E[6, j], E[7, i] + E[7, j],
+                                     E[8, i] + E[8, j])
+        ei = _view_error(P, i, x0, x1, x2, U[i], V[i])
+        ej = _view_error(P, j, x0, x1, x2, U[j], V[j])
+        err = max(ei, ej) if reduce_max else 0.5 * (ei + ej)
+        ok[s] = usable[i] and usable[j] and err < tau
 
 
 @nb.njit(**_OPTS)
@@ -72,15 +84,16 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
     E = np.empty((9, N))  # each view's share of every pair's DLT system
     for n in range(N):
         _entries(P[n], uv[n:n + 1, 0], uv[n:n + 1, 1], usable[n:n + 1], E[:, n:n + 1])
-    system = np.empty((9, 1))
-    X = np.empty((3, 1))
     scale = 0.5 if not reduce_max else np.sqrt(0.5)
     limit = tau * (1.0 + margin)
     # the centres' coordinates apart and contiguous, and one camera's bounds at a time: the
-    # bound loop has no branch and vectorises; the DLT runs after it on the pairs it keeps
+    # bound loop has no branch and vectorises; the DLT runs after all of them, in one loop
+    # over the pairs they keep
     U = np.ascontiguousarray(uv[:, 0])
     V = np.ascontiguousarray(uv[:, 1])
     bound = np.empty(N)
+    todo = np.empty(S, dtype=np.int64)  # the pairs the bounds keep, for the DLT
+    m = 0
     s = 0
     for a in range(C):
         for b in range(a + 1, C):
@@ -98,9 +111,10 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
                     pj[s] = lo + k
                     # NaN bound (degenerate geometry): no bound, the DLT decides
                     if not bound[k] > limit:
-                        ok[s] = _pair_error(P, uv, usable, E, i, lo + k, reduce_max, system,
-                                            X) < tau
+                        todo[m] = s
+                        m += 1
                     s += 1
+    _pair_errors(P, U, V, usable, E, pi, pj, todo[:m], reduce_max, tau, ok)
     return pi, pj, ok
 
 
