@@ -68,7 +68,7 @@ def _centre(cols, n, xc, norm2):
     norm2[n] = acc
 
 
-@jit
+@jit(inline=True)
 def _pair(centred, norm2, i, k, h, K, m, q, R, adj, max_steps, min_gap):
     """(cost, usable) of detection i onto k: pa_mpjpe_columns' steps for one pair on the
     centred keypoints (centred (N,3,J), norm2 (N,) from _centre); h (3,3), K (4,4), m (12,),
