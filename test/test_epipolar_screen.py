@@ -241,12 +241,16 @@ def test_screen_copies_hold_each_screens_points_the_block_ranges_and_the_first_i
         screen = epipolar.screen_rows(x, stride)
         np.testing.assert_array_equal(got, screen._gather(screen.rows))
         assert not got.flags.writeable
-    if epipolar.have_numba():
-        np.testing.assert_array_equal(ranges, _block_ranges(x))
-        assert np.isinf(ranges[2, 1]).all() and np.isfinite(ranges[2, [0, 2]]).all()
-        assert not ranges.flags.writeable
+    if epipolar.have_numba():  # the full set's and the copies made in the pass
+        np.testing.assert_array_equal(ranges[1], _block_ranges(x))
+        assert np.isinf(ranges[1][2, 1]).all() and np.isfinite(ranges[1][2, [0, 2]]).all()
+        finest = min(s for s in strides if s > 1)
+        assert {1, finest} <= set(ranges) <= {1} | set(copies)
+        for stride, got in ranges.items():
+            np.testing.assert_array_equal(got, _block_ranges(x if stride == 1 else copies[stride]))
+            assert not got.flags.writeable
     else:
-        assert ranges is None
+        assert ranges == {}
     x[3, 2000, 1], x[4, 5, 0] = -np.inf, np.inf
     assert epipolar.screen_copies(x, strides).first_inf == 3
     x[3, 2000, 1] = 0.0
@@ -266,7 +270,7 @@ def test_the_kernel_given_block_ranges_sums_what_it_sums_computing_them():
     b = a + rng.normal(0, 1, (6, 1, 1)).astype(np.float32)
     b[..., 1] += rng.uniform(0, 2 * TAU, (6, 1)).astype(np.float32)  # row offsets: F_ROWS
     a[2, 5000:5010] = np.nan
-    given = [epipolar.point_rows(x, epipolar.screen_copies(x, (8,)).block_ranges)
+    given = [epipolar.point_rows(x, epipolar.screen_copies(x, (8,)).block_ranges[1])
              for x in (a, b)]
     assert all(r.ranges is not None for r in given)
     ia, jb = np.repeat(np.arange(6), 6), np.tile(np.arange(6), 6)
@@ -318,9 +322,16 @@ def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
         keep = np.array([0, fd.n - 1])
         np.testing.assert_array_equal(fd.select(keep).screen_copy(strides[-1]),
                                       fd.screen_copy(strides[-1])[keep])
-        np.testing.assert_array_equal(fd.select(keep).block_ranges(), fd.block_ranges()[keep])
-        full = association._gate_points({0: fd}, params)[0][0]
-        assert full.ranges is fd.block_ranges() is not None  # the kernel is given them
+        copied_strides = [s for s in strides if fd.screen_copy(s) is not None]
+        assert copied_strides
+        for stride in [1] + copied_strides:
+            np.testing.assert_array_equal(fd.select(keep).block_ranges(stride),
+                                          fd.block_ranges(stride)[keep])
+        full, subsets = association._gate_points({0: fd}, params)[0]
+        # the kernel is given them
+        assert full.ranges is fd.block_ranges() is not None
+        assert all(r.ranges is fd.block_ranges(s) is not None
+                   for r, s in zip(subsets, strides) if s in copied_strides)
         fd.verts2d = fd.verts2d.copy()  # new vertices: the copies no longer describe them
         assert fd.screen_copy(strides[-1]) is None and fd.block_ranges() is None
 

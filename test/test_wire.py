@@ -242,6 +242,9 @@ def test_detections_decoder_copies_the_screens_in_the_pass_that_checks_verts2d(l
     assert np.isnan(got.screen_copy(8)[1, 7]).all()
     ranges = got.block_ranges()
     if epipolar.have_numba():
+        np.testing.assert_array_equal(got.block_ranges(8)[[0, 2], 0, 1],
+                                      got.screen_copy(8)[[0, 2]].max(axis=(1, 2)))
+        assert got.block_ranges(8)[1, 0].tolist() == [np.inf, -np.inf]  # a NaN in its copy
         finite = np.array([0, 2])
         np.testing.assert_array_equal(ranges[finite, 0, 0], got.verts2d[finite].min(axis=(1, 2)))
         np.testing.assert_array_equal(ranges[finite, 0, 1], got.verts2d[finite].max(axis=(1, 2)))

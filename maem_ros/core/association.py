@@ -337,7 +337,8 @@ def screen_subsets(x: np.ndarray | epipolar.PointRows, params: AssociationParams
     out = []
     for stride, _ in params.screen_levels():
         copy = fd.screen_copy(stride) if fd is not None else None
-        out.append(epipolar.screen_rows(x, stride) if copy is None else epipolar.point_rows(copy))
+        out.append(epipolar.screen_rows(x, stride) if copy is None
+                   else epipolar.point_rows(copy, fd.block_ranges(stride)))
     return out
 
 

@@ -98,19 +98,19 @@ class FrameDetections:
         if self._validated and self._validated == self._arrays():
             out.mark_validated()
         if self._screens and self._screens[0] is self.verts2d:
-            ranges = self._screens[2]
             out.attach_screens({s: a[index] for s, a in self._screens[1].items()},
-                               None if ranges is None else ranges[index])
+                               {s: a[index] for s, a in self._screens[2].items()})
         return out
 
     def attach_screens(self, copies: dict[int, np.ndarray],
-                       block_ranges: np.ndarray | None = None) -> "FrameDetections":
-        """Keep contiguous copies of the mesh gate's screening subsets of verts2d and its
-        block ranges (``core.epipolar.screen_copies``: {stride: (N,m,2) float32}; (N,
-        blocks, 2) float32 or None), made where verts2d was read anyway (the decoder), for
-        the gate to read instead of making them again. They stay valid while verts2d is the
-        same array (as for :meth:`mark_validated`)."""
-        self._screens = (self.verts2d, dict(copies), block_ranges)
+                       block_ranges: dict[int, np.ndarray] | None = None) -> "FrameDetections":
+        """Keep contiguous copies of the mesh gate's screening subsets of verts2d and the
+        block ranges of verts2d and of the copies (``core.epipolar.screen_copies``: {stride:
+        (N,m,2) float32}; {stride: (N, blocks, 2) float32}, stride 1 = verts2d), made where
+        verts2d was read anyway (the decoder), for the gate to read instead of making them
+        again. They stay valid while verts2d is the same array (as for
+        :meth:`mark_validated`)."""
+        self._screens = (self.verts2d, dict(copies), dict(block_ranges or {}))
         return self
 
     def screen_copy(self, stride: int) -> np.ndarray | None:
@@ -120,12 +120,13 @@ class FrameDetections:
             return None
         return self._screens[1].get(int(stride))
 
-    def block_ranges(self) -> np.ndarray | None:
-        """The attached block ranges of verts2d (see :meth:`attach_screens`), None if there
-        are none or verts2d was replaced since."""
+    def block_ranges(self, stride: int = 1) -> np.ndarray | None:
+        """The attached block ranges of verts2d (stride 1) or of its screening copy of
+        ``stride`` (see :meth:`attach_screens`), None if there are none or verts2d was
+        replaced since."""
         if not self._screens or self._screens[0] is not self.verts2d:
             return None
-        return self._screens[2]
+        return self._screens[2].get(int(stride))
 
     def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
         """These detections with verts2d cut to the fixed-topology subset

@@ -696,8 +696,9 @@ class ScreenCopies(NamedTuple):
 
     #: {stride: (N,m,2) float32 read-only}: each screening subset, contiguous
     copies: dict[int, np.ndarray]
-    #: (N, blocks, 2) float32 read-only PointRows.ranges of the full set (None without numba)
-    block_ranges: np.ndarray | None
+    #: {stride: (N, blocks, 2) float32 read-only}: PointRows.ranges of the full set
+    #: (stride 1) and of each copy made in the one pass (empty without numba)
+    block_ranges: dict[int, np.ndarray]
     #: the first detection with an infinite coordinate (-1: none; NaN = missing is allowed)
     first_inf: int
 
@@ -705,7 +706,7 @@ class ScreenCopies(NamedTuple):
 def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     """The screening subsets of one camera's (N,n,2) float32 points for each of ``strides``
     (:func:`screen_rows`) copied contiguous (strides whose screen is off left out), the full
-    set's block ranges, and the first detection with an infinite coordinate.
+    set's and the copies' block ranges, and the first detection with an infinite coordinate.
 
     For a decoder, whose finiteness check reads every point anyway: with numba, one pass
     scans each detection (its block ranges are the finiteness check) and copies its runs (of
@@ -713,7 +714,7 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     gate then reads the copies where it would gather the same runs from scattered cache
     lines (maem-bench --load large: 3.4-3.6 ms of gathers gone from the gate, 0.4-1 ms added
     to decoding the 16 cameras; 2-core Xeon VM), and the ranges where its kernel would scan
-    the full sets again (:func:`_known_ranges`)."""
+    the points again (:func:`_known_ranges`)."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
     levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
@@ -721,25 +722,33 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     if _numba is None or full.count == 0 or not levels:
         bad = np.flatnonzero(np.isinf(x).any(axis=(1, 2)))
         copies = {s: rows._gather(rows.rows) for s, rows in levels}
-        return ScreenCopies(_read_only(copies), None, int(bad[0]) if bad.size else -1)
+        return ScreenCopies(_read_only(copies), {}, int(bad[0]) if bad.size else -1)
     (stride, fine), rest = levels[0], levels[1:]
     nested = [(s, rows) for s, rows in rest if rows.period % fine.period == 0]
     coarse_stride, coarse = nested[0] if nested else (0, None)
     out = np.empty((full.count, 2 * fine.n), np.float32)
     every = coarse.period // fine.period if coarse is not None else 0
     inner = np.empty((full.count, 2 * coarse.n) if coarse is not None else (0, 0), np.float32)
-    ranges = np.empty((full.count, -(-full.n // BLOCK), 2), np.float32)
+    ranges = {1: _ranges_buffer(full.count, full.n), stride: _ranges_buffer(full.count, fine.n),
+              coarse_stride: _ranges_buffer(full.count, coarse.n if coarse is not None else 0)}
     det_addr = full.flat.__array_interface__["data"][0] + full.rows * full.flat.itemsize
-    first_inf = _numba_kernels().scan_gather_runs(full.flat, det_addr, full.n, BLOCK, fine.run,
-                                                  fine.period, out, every, inner, ranges)
+    first_inf = _numba_kernels().scan_gather_runs(
+        full.flat, det_addr, full.n, BLOCK, fine.run, fine.period, out, every, inner, ranges[1],
+        ranges[stride], ranges[coarse_stride])
     copies = {stride: out.reshape(full.count, fine.n, 2)}
     if coarse is not None:
         copies[coarse_stride] = inner.reshape(full.count, coarse.n, 2)
+    else:
+        del ranges[coarse_stride]
     for s, rows in rest:  # a level not nested in the finest one: gathered on its own
         if s not in copies:
             copies[s] = rows._gather(rows.rows)
-    ranges.setflags(write=False)
-    return ScreenCopies(_read_only(copies), ranges, int(first_inf))
+    return ScreenCopies(_read_only(copies), _read_only(ranges), int(first_inf))
+
+
+def _ranges_buffer(count: int, n: int) -> np.ndarray:
+    """(count, blocks of n points, 2) float32 for PointRows.ranges."""
+    return np.empty((count, -(-n // BLOCK), 2), np.float32)
 
 
 def _read_only(arrays: dict[int, np.ndarray]) -> dict[int, np.ndarray]:

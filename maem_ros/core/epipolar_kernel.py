@@ -802,13 +802,15 @@ _INF_BITS = np.uint32(0x7F800000)
 
 
 @plain
-def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, ranges):
+def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, ranges,
+                     out_ranges, coarse_ranges):
     """gather_runs of detections of n float32 points each, each detection's ranges[d, b]
     (float32) = block_range of its points b * block:(b + 1) * block (the kernel's blocks in
-    their natural order), and the first detection d with an infinite coordinate (-1: none;
-    NaN is not inf). Each detection is scanned whole, then its runs copied while it is still
-    in cache: one pass from memory, the one a finiteness check makes anyway, instead of a
-    second one over scattered cache lines."""
+    their natural order), out_ranges and coarse_ranges the same of its rows of out and
+    coarse (copies: float32, C-contiguous), and the first detection d with an infinite
+    coordinate (-1: none; NaN is not inf). Each detection is scanned whole, then its runs
+    copied while it is still in cache: one pass from memory, the one a finiteness check
+    makes anyway, instead of a second one over scattered cache lines."""
     wide_vectors()
     runs = out.shape[1] // (2 * run)
     first_inf = -1
@@ -825,7 +827,23 @@ def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, 
         for r in range(runs):
             copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
                      coarse)
+        row_ranges(out, d, block, out_ranges)
+        if every > 0:
+            row_ranges(coarse, d, block, coarse_ranges)
     return first_inf
+
+
+@inline
+def row_ranges(x, d, block, ranges):
+    """ranges[d, b] = block_range of the points b * block:(b + 1) * block of row d of x
+    (float32 (N, 2m) C-contiguous), just written (in cache)."""
+    m = x.shape[1] // 2
+    address = x.ctypes.data + d * x.strides[0]
+    for b in range(ranges.shape[1]):
+        start = b * block
+        bits = points(x, address, 2 * start, 2 * (min(start + block, m) - start))
+        lo, hi = key_range(bits.view(np.int32))
+        ranges[d, b, 0], ranges[d, b, 1] = key_values(lo, hi)
 
 
 @inline

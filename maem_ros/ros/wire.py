@@ -466,7 +466,7 @@ def msg_to_detections(msg: PointCloud2, topic: str,
         _check_finite(topic, "kpts2d", fields["kpts2d"], allow_nan=True)  # NaN = not seen
         kpts2d = fields["kpts2d"]
     copies: dict[int, np.ndarray] = {}
-    ranges: np.ndarray | None = None
+    ranges: dict[int, np.ndarray] = {}
     if vname == "verts2d_q4":
         origin = fields.get(ORIGIN_FIELD)
         if origin is not None:
