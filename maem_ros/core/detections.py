@@ -37,9 +37,9 @@ class FrameDetections:
     verts2d: np.ndarray
     mesh_subset: tuple[int, int, int] | None = None
     _validated: tuple = field(default=(), init=False, repr=False, compare=False)
-    #: (verts2d they were made from, {stride: (N,m,2) float32}, block ranges or None): the
-    #: mesh gate's screening subsets of verts2d copied by the decoder and its block ranges
-    #: (:meth:`attach_screens`)
+    #: (verts2d they were made from, {stride: (N,m,2) float32}, {stride: (N,blocks,2)
+    #: float32}): the mesh gate's screening subsets of verts2d copied by the decoder, and the
+    #: block ranges of verts2d (stride 1) and of the copies (:meth:`attach_screens`)
     _screens: tuple = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
