@@ -490,10 +490,9 @@ def _known_ranges(rows: list[PointRows], dets: np.ndarray, n: int, mixed: bool) 
     2-core Xeon VM: the full-mesh level 1.9 ms less in alternating runs, the 1/8 screen
     ~0.2 ms)."""
     order = block_order(n)
-    unknown = np.full((dets.size, order.shape[0], 2), np.nan)
     given = [r.ranges for r in rows]
     if not mixed or all(g is None for g in given):
-        return unknown
+        return np.full((dets.size, order.shape[0], 2), np.nan)
     natural = np.concatenate([g if g is not None else
                               np.full((r.count, order.shape[0], 2), np.nan, np.float32)
                               for g, r in zip(given, rows)])
@@ -732,17 +731,16 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     out = np.empty((full.count, 2 * fine.n), np.float32)
     every = coarse.period // fine.period if coarse is not None else 0
     inner = np.empty((full.count, 2 * coarse.n) if coarse is not None else (0, 0), np.float32)
-    ranges = {1: _ranges_buffer(full.count, full.n), stride: _ranges_buffer(full.count, fine.n),
-              coarse_stride: _ranges_buffer(full.count, coarse.n if coarse is not None else 0)}
+    ranges = {1: _ranges_buffer(full.count, full.n), stride: _ranges_buffer(full.count, fine.n)}
+    inner_ranges = _ranges_buffer(full.count, coarse.n if coarse is not None else 0)
     det_addr = full.flat.__array_interface__["data"][0] + full.rows * full.flat.itemsize
     first_inf = _numba_kernels().scan_gather_runs(
         full.flat, det_addr, full.n, BLOCK, fine.run, fine.period, out, every, inner, ranges[1],
-        ranges[stride], ranges[coarse_stride])
+        ranges[stride], inner_ranges)
     copies = {stride: out.reshape(full.count, fine.n, 2)}
     if coarse is not None:
         copies[coarse_stride] = inner.reshape(full.count, coarse.n, 2)
-    else:
-        del ranges[coarse_stride]
+        ranges[coarse_stride] = inner_ranges
     for s, rows in rest:  # a level not nested in the finest one: gathered on its own
         if s not in copies:
             copies[s] = rows._gather(rows.rows)

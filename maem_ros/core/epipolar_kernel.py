@@ -815,34 +815,37 @@ def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, 
     runs = out.shape[1] // (2 * run)
     first_inf = -1
     for d in range(det_addr.shape[0]):
+        address_ranges(like, det_addr[d], n, block, ranges, d)
         for b in range(ranges.shape[1]):
-            start = b * block
-            bits = points(like, det_addr[d], 2 * start, 2 * (min(start + block, n) - start))
-            lo, hi = key_range(bits.view(np.int32))
-            ranges[d, b, 0], ranges[d, b, 1] = key_values(lo, hi)
             # a NaN or inf in the block: whether an inf (the finiteness check)
-            if (first_inf < 0 and not ranges[d, b, 0] <= ranges[d, b, 1]
-                    and has_inf(bits.view(np.uint32))):
+            if (first_inf < 0 and not ranges[d, b, 0] <= ranges[d, b, 1] and
+                    has_inf(block_points(like, det_addr[d], n, block, b).view(np.uint32))):
                 first_inf = d
         for r in range(runs):
             copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
                      coarse)
-        row_ranges(out, d, block, out_ranges)
+        # the copies' rows, just written (in cache)
+        address_ranges(out, out.ctypes.data + d * out.strides[0], out.shape[1] // 2, block,
+                       out_ranges, d)
         if every > 0:
-            row_ranges(coarse, d, block, coarse_ranges)
+            address_ranges(coarse, coarse.ctypes.data + d * coarse.strides[0],
+                           coarse.shape[1] // 2, block, coarse_ranges, d)
     return first_inf
 
 
 @inline
-def row_ranges(x, d, block, ranges):
-    """ranges[d, b] = block_range of the points b * block:(b + 1) * block of row d of x
-    (float32 (N, 2m) C-contiguous), just written (in cache)."""
-    m = x.shape[1] // 2
-    address = x.ctypes.data + d * x.strides[0]
+def block_points(like, address, n, block, b):
+    """Points b * block:(b + 1) * block (2 coordinates each) of the n float32 points at
+    address."""
+    start = b * block
+    return points(like, address, 2 * start, 2 * (min(start + block, n) - start))
+
+
+@inline
+def address_ranges(like, address, n, block, ranges, d):
+    """ranges[d, b] = block_range of each block b of the n float32 points at address."""
     for b in range(ranges.shape[1]):
-        start = b * block
-        bits = points(x, address, 2 * start, 2 * (min(start + block, m) - start))
-        lo, hi = key_range(bits.view(np.int32))
+        lo, hi = key_range(block_points(like, address, n, block, b).view(np.int32))
         ranges[d, b, 0], ranges[d, b, 1] = key_values(lo, hi)
 
 
