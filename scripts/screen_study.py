@@ -64,7 +64,9 @@ def pair_means(full, F, cam_a, det_a, cam_b, det_b) -> np.ndarray:
               for c, rows in full.items() if rows.count}
     masks = [subset_mask(n, s) for s in STRIDES]
     out = np.full((cam_a.size, 1 + len(STRIDES)), np.nan)
-    for (a, b), Fab in F.items():
+    F = epipolar.pair_matrices(F)
+    for a, b in sorted(set(zip(cam_a.tolist(), cam_b.tolist()))):
+        Fab = F.unit[F.lookup[a * F.cameras + b]].reshape(3, 3)
         pairs = np.flatnonzero((cam_a == a) & (cam_b == b))
         for chunk in np.array_split(pairs, max(1, pairs.size // 64)):
             d = epipolar.point_distances(points[a][det_a[chunk]], points[b][det_b[chunk]], Fab,
