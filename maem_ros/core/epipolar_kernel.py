@@ -346,14 +346,21 @@ def block32x2(a, b, d, gs, k, symmetric, fetch, next_a, next_b):
             (np.float64(p2), np.float64(s2), np.float64(q2)))
 
 
-@plain
+@inline
 def block_range(x, ranges, d, r):
     """(min, max) of all coordinates of detection d's block r of float32 points x (2m,),
     cached in ranges[d, r] (a decoder's, epipolar.screen_copies, when given); (inf, -inf) if
-    one is NaN or inf."""
-    wide_vectors()
+    one is NaN or inf. The cached case inlined (the kernel asks ~3 times a pair and block),
+    the scan a call."""
     if ranges[d, r, 0] == ranges[d, r, 0]:
         return ranges[d, r, 0], ranges[d, r, 1]
+    return scan_range(x, ranges, d, r)
+
+
+@plain
+def scan_range(x, ranges, d, r):
+    """block_range of a block not cached yet: scanned, then cached."""
+    wide_vectors()
     lo, hi = key_range(x.view(np.int32))
     ranges[d, r, 0], ranges[d, r, 1] = key_values(lo, hi)
     return ranges[d, r, 0], ranges[d, r, 1]
@@ -404,7 +411,7 @@ def float32_f(fs):
     return g, G
 
 
-@plain
+@inline
 def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m, rsqrt_err):
     """(float32 block sum, upper bound (px) on its distance to the exact sum) of a pair's
     block of m points (G[t] = |g|, g its camera pair's float32 F); xa0, xa1, xb0, xb1 bound
