@@ -370,3 +370,88 @@ def test_the_kernels_function_attributes_reach_llvm(intrinsic, attribute):
 
     assert plus_one(1) == 2
     assert getattr(epipolar_kernel, attribute) in plus_one.inspect_llvm(plus_one.signatures[0])
+
+
+def _runs(pa: np.ndarray, fk: np.ndarray) -> list[tuple[int, ...]]:
+    """The runs of a pair order: consecutive pairs of one a-side detection and camera pair."""
+    cut = np.flatnonzero((np.diff(pa) != 0) | (np.diff(fk) != 0)) + 1
+    return [tuple(r) for r in np.split(np.arange(pa.size), cut)]
+
+
+def _lru_misses(order: np.ndarray, pa: np.ndarray, pb: np.ndarray, cap: int) -> int:
+    """Detections read from outside an LRU cache of cap detections, pairs in ``order``."""
+    recent: list[int] = []
+    misses = 0
+    for s in order:
+        for d in (int(pa[s]), int(pb[s])):
+            if d in recent:
+                recent.remove(d)
+            else:
+                misses += 1
+                recent = recent[-(cap - 1):]
+            recent.append(d)
+    return misses
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2 ** 31 - 1), st.integers(1, 60), st.integers(2, 12))
+def test_locality_order_keeps_runs_whole_and_in_order(seed, detections, cap):
+    if not epipolar.have_numba():
+        pytest.skip("numba not installed")
+    from maem_ros.core import epipolar_kernel
+    rng = np.random.default_rng(seed)
+    S = int(rng.integers(1, 4 * detections + 1))
+    key = np.unique(rng.integers(0, 3 * detections * detections, S))  # (a, camera pair, b)
+    pa, fk, pb = key // (3 * detections), key // detections % 3, key % detections
+    perm = epipolar_kernel.locality_order(pa, pb, fk, detections, cap)
+    assert sorted(perm.tolist()) == list(range(key.size))
+    runs = _runs(pa, fk)
+    got = _runs(pa[perm], fk[perm])
+    assert sorted(tuple(perm[list(r)]) for r in got) == sorted(runs)  # whole, in order
+
+
+def test_locality_order_reads_a_ring_of_detections_from_cache():
+    """Pairs along a ring of 200 detections (each with its two neighbours, numbered at
+    random), given in the kernel's order (by a side): taken in locality_order, nearly every detection comes from outside an
+    LRU cache of 8 detections once, not once per pair."""
+    if not epipolar.have_numba():
+        pytest.skip("numba not installed")
+    from maem_ros.core import epipolar_kernel
+    D = 200
+    label = np.random.default_rng(3).permutation(D)  # the ring's detections, numbered apart
+    a, b = label, np.roll(label, -1)
+    pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], 1)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))  # the kernel's input order: by a side
+    pa, pb = pairs[order, 0], pairs[order, 1]
+    fk = np.zeros(D, np.int64)
+    perm = epipolar_kernel.locality_order(pa, pb, fk, D, 8)
+    assert _lru_misses(np.arange(D), pa, pb, 8) > 1.5 * D  # by a side: b read apart
+    assert _lru_misses(perm, pa, pb, 8) <= D + 10
+
+
+def test_several_blocks_sum_each_pair_as_in_the_given_order():
+    """With several blocks the kernel takes the runs in locality_order: every pair's sums
+    and counts are those of the given order, bit for bit (ordered_sums)."""
+    if not epipolar.have_numba():
+        pytest.skip("numba not installed")
+    from maem_ros.core import epipolar_kernel
+    rng = np.random.default_rng(7)
+    n, N = 3 * epipolar.BLOCK + 100, 9
+    F = fundamental_matrix(*two_facing_cameras())
+    x = (rng.uniform(200, 1800, (N, n, 2))).astype(np.float32)
+    x[2, 5] = np.nan
+    x.setflags(write=False)
+    flat = x.reshape(-1)
+    det_addr = x.ctypes.data + np.arange(N, dtype=np.int64) * x.strides[0]
+    pa = np.repeat(np.arange(N), N)[:60]
+    pb = np.tile(np.arange(N), N)[:60]
+    fk = np.zeros(60, np.int64)
+    unit = epipolar.pair_matrices({(0, 1): F}).unit
+    blocks = epipolar.block_order(n)
+    ranges = np.full((N, blocks.shape[0], 2), np.nan)
+    args = (unit, fk, pa, pb, blocks, n, 40.0, True, True, True, True, True)
+    got = epipolar_kernel.sums_kernel(flat, det_addr, ranges.copy(), *args)
+    given = epipolar_kernel.ordered_sums(flat, det_addr, ranges.copy(), *args)
+    for g, w in zip(got, given):
+        np.testing.assert_array_equal(g, w)
+    assert not np.array_equal(epipolar_kernel.locality_order(pa, pb, fk, N, 4), np.arange(60))
