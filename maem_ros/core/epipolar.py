@@ -19,7 +19,9 @@ monotone, so the decision equals the full sum's.
 The numpy reference computes every distance in float64. The numba kernel takes every pair of
 a frame in one call (:func:`frame_sums`: all camera pairs; each detection's block coordinate
 ranges computed once), blocks outermost, so each detection's block is read from
-memory once for all its candidate pairs, and the blocks the next pair reads are prefetched
+memory once for all its candidate pairs (with several blocks the pairs are taken in an order
+that reads the same detections close together: epipolar_kernel.locality_order), and the
+blocks the next pair reads are prefetched
 while one pair's are summed (in chunks of the block, so reads and arithmetic overlap). It
 fuses everything per point (the line, both norms and the distance), and two pairs of one
 detection in one camera pair run in one loop that computes that detection's lines and
@@ -422,7 +424,8 @@ def _numba_level_sums(rows: dict[int, PointRows], plan: _FramePairs, todo: np.nd
     """The numba kernel on the plan's pairs todo: the detections they read numbered once
     (each one's block ranges computed once for all its pairs), the pairs in the
     plan's order (a detection's pairs one after another: its block stays hot; those of one
-    camera pair together: they share its lines)."""
+    camera pair together: they share its lines; the kernel reorders these runs when there are
+    several blocks)."""
     cams = plan.cams
     flats = [rows[c].flat for c in cams]
     if len({f.dtype for f in flats}) > 1:  # mixed float32/float64 cameras: all in float64

@@ -679,7 +679,9 @@ def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_ex
 #: float32 (u, v) are 32 KB, so 48 fill 1.5 MB of a 2 MB L2, the rest left to the kernel's
 #: other reads. On a large-load frame set's full-mesh level (814 pairs of 386 detections,
 #: one connected graph of degree ~4), counted in an LRU cache of 48 blocks: 937 block loads a
-#: round in the detection order, 720 in locality_order's; 9.8 -> 9.1 ms (2-core Xeon VM)
+#: round in the detection order, 720 in locality_order's; the level alone 9.4-9.6 -> 8.7-9.0
+#: ms, in the frame ~0.3 ms (alternating runs, 2-core Xeon VM; 24, 96 or 192: within noise of
+#: 48). The screens (one block each, their points in cache) gained nothing: not reordered
 LOCALITY_BLOCKS = 48
 
 
