@@ -18,11 +18,11 @@ monotone, so the decision equals the full sum's.
 
 The numpy reference computes every distance in float64. The numba kernel takes every pair of
 a frame in one call (:func:`frame_sums`: all camera pairs; each detection's block coordinate
-ranges computed once), blocks outermost, so each detection's block is read from
-memory once for all its candidate pairs (with several blocks the pairs are taken in an order
-that reads the same detections close together: epipolar_kernel.locality_order), and the
-blocks the next pair reads are prefetched
-while one pair's are summed (in chunks of the block, so reads and arithmetic overlap). It
+ranges computed once), blocks outermost, so a detection's block stays in cache for its
+candidate pairs (with several blocks the pairs are taken in an order that reads the same
+detections close together: epipolar_kernel.locality_order), and the blocks the next pair
+reads are prefetched while one pair's are summed (in chunks of the block, so reads and
+arithmetic overlap). It
 fuses everything per point (the line, both norms and the distance), and two pairs of one
 detection in one camera pair run in one loop that computes that detection's lines and
 weights once. By default (``precision "mixed"``) it runs
