@@ -410,48 +410,65 @@ def test_locality_order_keeps_runs_whole_and_in_order(seed, detections, cap):
     assert sorted(tuple(perm[list(r)]) for r in got) == sorted(runs)  # whole, in order
 
 
+def _ring_pairs(D: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(pa, pb) of the pairs along a ring of D detections numbered at random (each with its
+    two neighbours), in the kernel's input order (by a side)."""
+    label = np.random.default_rng(seed).permutation(D)
+    a, b = label, np.roll(label, -1)
+    pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], 1)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    return pairs[order, 0], pairs[order, 1]
+
+
 def test_locality_order_reads_a_ring_of_detections_from_cache():
-    """Pairs along a ring of 200 detections (each with its two neighbours, numbered at
-    random), given in the kernel's order (by a side): taken in locality_order, nearly every detection comes from outside an
-    LRU cache of 8 detections once, not once per pair."""
+    """Pairs along a ring of 200 detections, given by a side (one detection's neighbours far
+    apart in that order): taken in locality_order, nearly every detection comes from outside
+    an LRU cache of 8 detections once, not once per pair."""
     if not epipolar.have_numba():
         pytest.skip("numba not installed")
     from maem_ros.core import epipolar_kernel
     D = 200
-    label = np.random.default_rng(3).permutation(D)  # the ring's detections, numbered apart
-    a, b = label, np.roll(label, -1)
-    pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], 1)
-    order = np.lexsort((pairs[:, 1], pairs[:, 0]))  # the kernel's input order: by a side
-    pa, pb = pairs[order, 0], pairs[order, 1]
-    fk = np.zeros(D, np.int64)
-    perm = epipolar_kernel.locality_order(pa, pb, fk, D, 8)
-    assert _lru_misses(np.arange(D), pa, pb, 8) > 1.5 * D  # by a side: b read apart
+    pa, pb = _ring_pairs(D, 3)
+    perm = epipolar_kernel.locality_order(pa, pb, np.zeros(D, np.int64), D, 8)
+    assert _lru_misses(np.arange(D), pa, pb, 8) > 1.5 * D
     assert _lru_misses(perm, pa, pb, 8) <= D + 10
 
 
-def test_several_blocks_sum_each_pair_as_in_the_given_order():
+@pytest.mark.parametrize("symmetric", [True, False])
+def test_several_blocks_sum_each_pair_as_in_the_given_order(symmetric):
     """With several blocks the kernel takes the runs in locality_order: every pair's sums
-    and counts are those of the given order, bit for bit (ordered_sums)."""
+    and counts are those of the given order, bit for bit (ordered_sums), whether the pairs
+    are summed whole or exit early, with runs of one and two pairs and a block with a missing
+    point."""
     if not epipolar.have_numba():
         pytest.skip("numba not installed")
     from maem_ros.core import epipolar_kernel
     rng = np.random.default_rng(7)
-    n, N = 3 * epipolar.BLOCK + 100, 9
+    D, n = 40, 3 * epipolar.BLOCK + 100
     F = fundamental_matrix(*two_facing_cameras())
-    x = (rng.uniform(200, 1800, (N, n, 2))).astype(np.float32)
+    x = rng.uniform(200, 1800, (D, n, 2)).astype(np.float32)
     x[2, 5] = np.nan
     x.setflags(write=False)
-    flat = x.reshape(-1)
-    det_addr = x.ctypes.data + np.arange(N, dtype=np.int64) * x.strides[0]
-    pa = np.repeat(np.arange(N), N)[:60]
-    pb = np.tile(np.arange(N), N)[:60]
-    fk = np.zeros(60, np.int64)
+    det_addr = x.ctypes.data + np.arange(D, dtype=np.int64) * x.strides[0]
+    pa, pb = _ring_pairs(D, 5)
+    pa, pb = np.concatenate([pa, pa[:5]]), np.concatenate([pb, (pb[:5] + 7) % D])
+    keep = np.lexsort((pb, pa))  # runs of one and two pairs
+    pa, pb = pa[keep], pb[keep]
+    fk = np.zeros(pa.size, np.int64)
+    assert not np.array_equal(epipolar_kernel.locality_order(
+        pa, pb, fk, D, epipolar_kernel.LOCALITY_BLOCKS), np.arange(pa.size))
     unit = epipolar.pair_matrices({(0, 1): F}).unit
     blocks = epipolar.block_order(n)
-    ranges = np.full((N, blocks.shape[0], 2), np.nan)
-    args = (unit, fk, pa, pb, blocks, n, 40.0, True, True, True, True, True)
-    got = epipolar_kernel.sums_kernel(flat, det_addr, ranges.copy(), *args)
-    given = epipolar_kernel.ordered_sums(flat, det_addr, ranges.copy(), *args)
-    for g, w in zip(got, given):
-        np.testing.assert_array_equal(g, w)
-    assert not np.array_equal(epipolar_kernel.locality_order(pa, pb, fk, N, 4), np.arange(60))
+
+    def sums(kernel, tau):
+        return kernel(x.reshape(-1), det_addr, np.full((D, blocks.shape[0], 2), np.nan), unit,
+                      fk, pa, pb, blocks, n, tau, True, symmetric, True, True, True)
+
+    means = np.divide(*sums(epipolar_kernel.ordered_sums, np.inf)[:2])
+    # every pair passes and is summed whole; every pair exits early
+    for tau, early in ((np.inf, False), (float(means.min()) / 5, True)):
+        got, given = sums(epipolar_kernel.sums_kernel, tau), sums(epipolar_kernel.ordered_sums,
+                                                                  tau)
+        assert np.all(given[2] < given[1]) == early
+        for g, w in zip(got, given):
+            np.testing.assert_array_equal(g, w)
