@@ -322,6 +322,10 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         while time.monotonic() < stop_by and len(group.dead(publishers)) < len(publishers):
             time.sleep(0.05)
         codes = group.stop(timeout_s=15.0)
+        if failed := [n for n, c in codes.items() if c != 0]:
+            # the work folder and its logs go when the run ends: say here why they failed
+            print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed)}",
+                  file=sys.stderr)
         if listener is not None:
             listener.close()
     sent = {s: t0 + f / a.rate for f, s in enumerate(stamps)}

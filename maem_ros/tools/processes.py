@@ -123,7 +123,7 @@ class ProcessGroup:
             if "recorder" in running:
                 self.stop(["recorder"], timeout_s=10.0)
 
-    def logs(self, tail: int = 2000) -> str:
-        """The last ``tail`` characters of every log, one section per process."""
-        return "\n".join(f"--- {p.name} ---\n{p.tail(tail)}"
-                         for p in self.procs.values() if p.log.exists())
+    def logs(self, tail: int = 2000, names: Sequence[str] | None = None) -> str:
+        """The last ``tail`` characters of every log (of ``names``), one section per process."""
+        return "\n".join(f"--- {p.name} ---\n{p.tail(tail)}" for p in self.procs.values()
+                         if (names is None or p.name in names) and p.log.exists())
