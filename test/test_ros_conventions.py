@@ -202,3 +202,27 @@ def test_diagnostics_report_matched_endpoints_per_topic() -> None:
         finally:
             ex.remove_node(node)
             node.destroy_node()
+
+
+def test_fusion_links_between_the_graphs_own_nodes() -> None:
+    """sources=False: the links a tool can check before its player starts (maem-demo); a count
+    can be required above one (two readers of /maem/poses: recorder and listener)."""
+    from maem_ros.ros.probe import unmatched_links
+
+    full = fusion_links(["a", "b"], image_topic="image_raw")
+    own = fusion_links(["a", "b"], image_topic="image_raw", sources=False)
+    assert [link for link in full if link not in own] == [
+        ("/a/frontend", "matched_publishers/a/image_raw"),
+        ("/b/frontend", "matched_publishers/b/image_raw")]
+    assert ("/association", "matched_publishers/a/detections") in own  # frontend -> association
+    without_frontends = fusion_links(["a", "b"], image_topic=None, sources=False)
+    assert without_frontends == [("/association", "matched_subscribers/maem/clusters"),
+                                 ("/triangulation", "matched_publishers/maem/clusters"),
+                                 ("/triangulation", "matched_subscribers/maem/poses")]
+    diags = {"/association": {"matched_subscribers/maem/clusters": "1"},
+             "/triangulation": {"matched_publishers/maem/clusters": "1",
+                                "matched_subscribers/maem/poses": "1"}}
+    assert unmatched_links(diags, without_frontends) == []
+    assert unmatched_links(diags, without_frontends,
+                           at_least={"matched_subscribers/maem/poses": 2}) == [
+        "/triangulation:matched_subscribers/maem/poses"]

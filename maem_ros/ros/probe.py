@@ -6,7 +6,7 @@ daemon thread, closed cleanly by :meth:`BackgroundNode.close`. On top of it:
 
 * :class:`ArrivalListener` (maem-demo): first arrival time of each header stamp on the input
   topics (images, or detections) and on /maem/poses, read from the raw CDR bytes (no
-  deserialisation);
+  deserialisation), and the nodes' last /diagnostics;
 * :class:`ReplayClient` (tools/latency.py): publishes tiny images with given stamps and records
   /maem/poses and /diagnostics.
 """
@@ -48,6 +48,23 @@ class BackgroundNode:
         self.thread.start()
         return self
 
+    def watch_diagnostics(self) -> None:
+        """Keep each node's last /diagnostics values (``diagnostics_snapshot``); call before
+        ``start()``."""
+        self.diagnostics: dict[str, dict[str, str]] = {}
+        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
+                                                      self._on_diag, DIAGNOSTICS_QOS)
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            for st in msg.status:
+                self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def diagnostics_snapshot(self) -> dict[str, dict[str, str]]:
+        """{node name: {key: value}} of each node's last /diagnostics (watch_diagnostics)."""
+        with self.lock:
+            return dict(self.diagnostics)
+
     def _spin(self) -> None:
         while not self._stop.is_set() and self.context.ok():
             self.executor.spin_once(timeout_sec=0.05)
@@ -68,33 +85,40 @@ class BackgroundNode:
 
 
 def fusion_links(cameras: Sequence[str], image_topic: str | None = "image_raw",
-                 namespace: str = "") -> list[tuple[str, str]]:
+                 namespace: str = "", sources: bool = True) -> list[tuple[str, str]]:
     """The data path's DDS links as ``(node, /diagnostics key)``, each seen from both ends:
     images -> frontends (``image_topic`` under each camera namespace; None: no frontends, the
     detections come from elsewhere) -> association -> triangulation -> /maem/poses, the nodes
     started under ``namespace`` (e.g. "/team"). Names are the shipped defaults (node names,
-    ``maem/clusters``, ``maem/poses``)."""
+    ``maem/clusters``, ``maem/poses``). ``sources=False`` leaves out the first hop (the images,
+    or without frontends the detections): the links between the graph's own nodes, which can
+    be checked before whatever feeds the graph (a bag player) has started."""
     ns = namespace.rstrip("/")
     topic = ns.lstrip("/") + "/" if ns else ""
     assoc, tri = f"{ns}/association", f"{ns}/triangulation"
     links: list[tuple[str, str]] = []
     for c in cameras:
         if image_topic is not None:
-            links += [(f"{ns}/{c}/frontend", f"matched_publishers/{topic}{c}/{image_topic}"),
-                      (f"{ns}/{c}/frontend", f"matched_subscribers/{topic}{c}/detections")]
-        links.append((assoc, f"matched_publishers/{topic}{c}/detections"))
+            if sources:
+                links.append((f"{ns}/{c}/frontend",
+                              f"matched_publishers/{topic}{c}/{image_topic}"))
+            links.append((f"{ns}/{c}/frontend", f"matched_subscribers/{topic}{c}/detections"))
+        if sources or image_topic is not None:
+            links.append((assoc, f"matched_publishers/{topic}{c}/detections"))
     return links + [(assoc, f"matched_subscribers/{topic}maem/clusters"),
                     (tri, f"matched_publishers/{topic}maem/clusters"),
                     (tri, f"matched_subscribers/{topic}maem/poses")]
 
 
 def unmatched_links(diagnostics: Mapping[str, Mapping[str, str]],
-                    links: Iterable[tuple[str, str]]) -> list[str]:
+                    links: Iterable[tuple[str, str]],
+                    at_least: Mapping[str, int] | None = None) -> list[str]:
     """The links whose node has not reported (in its last /diagnostics) at least one matched
-    endpoint, as ``node:key``: a message sent on such a link may be lost even though the ROS
-    graph already lists both nodes."""
+    endpoint (``at_least[key]`` for the keys it names), as ``node:key``: a message sent on such
+    a link may be lost even though the ROS graph already lists both nodes."""
+    at_least = at_least or {}
     return [f"{node}:{key}" for node, key in links
-            if int(diagnostics.get(node, {}).get(key, "0")) < 1]
+            if int(diagnostics.get(node, {}).get(key, "0")) < at_least.get(key, 1)]
 
 
 class ArrivalListener(BackgroundNode):
@@ -111,6 +135,7 @@ class ArrivalListener(BackgroundNode):
                                                    qos, raw=True) for t in image_topics]
         self.subs.append(self.node.create_subscription(
             PointCloud2, "/maem/poses", self._arrival(self.poses_t), DATA_QOS, raw=True))
+        self.watch_diagnostics()
         self.start()
 
     def _arrival(self, table: dict[int, int]) -> Callable[[bytes], None]:
@@ -141,11 +166,9 @@ class ReplayClient(BackgroundNode):
                            for c in self.cameras}
         self.sent: dict[int, float] = {}
         self.poses: dict[int, tuple[float, Any]] = {}
-        self.diagnostics: dict[str, dict[str, str]] = {}
         self.poses_sub = self.node.create_subscription(PointCloud2, "/maem/poses", self._on_poses,
                                                        DATA_QOS)
-        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
-                                                      self._on_diag, DIAGNOSTICS_QOS)
+        self.watch_diagnostics()
         self.start()
 
     def _on_poses(self, msg: PointCloud2) -> None:
@@ -154,22 +177,15 @@ class ReplayClient(BackgroundNode):
         with self.lock:
             self.poses.setdefault(pf.stamp_ns, (t, pf))
 
-    def _on_diag(self, msg: DiagnosticArray) -> None:
-        with self.lock:
-            for st in msg.status:
-                self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
-
     def unready(self) -> list[str]:
         """The links of the graph not yet matched at both ends (empty: ready): images ->
         frontends -> association -> triangulation -> us, the nodes' own ends read from their
         /diagnostics."""
-        with self.lock:
-            diagnostics = dict(self.diagnostics)
         ours = [f"images -> /{c}/image_raw" for c, p in self.image_pubs.items()
                 if p.get_subscription_count() == 0]
         if self.poses_sub.get_publisher_count() == 0:
             ours.append("/maem/poses -> us")
-        return ours + unmatched_links(diagnostics, fusion_links(self.cameras))
+        return ours + unmatched_links(self.diagnostics_snapshot(), fusion_links(self.cameras))
 
     def ready(self) -> bool:
         return not self.unready()

@@ -56,7 +56,7 @@ from maem_ros.core.camera import Rig
 from maem_ros.core.errors import InputError
 from maem_ros.core.triangulation import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
-from maem_ros.ros.probe import ArrivalListener
+from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
 from maem_ros.ros.wire import msg_to_detections
 from maem_ros import bagio
 from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
@@ -158,14 +158,22 @@ def child_env() -> dict[str, str]:
 
 def missing_links(listener: ArrivalListener, cameras: Sequence[str],
                   frontends: bool = True) -> list[str]:
-    """What is not wired yet (empty = frontends, association, triangulation, recorder ready)."""
+    """What is not wired yet (empty = frontends, association, triangulation, recorder ready).
+
+    The ROS graph must list every subscriber, and the links between the nodes must be matched
+    at both ends (the nodes' /diagnostics): a message sent before its link matched is lost,
+    though the graph already lists both nodes (CI saw the first 5 frames' clusters lost).
+    /maem/poses: the recorder's and this listener's readers."""
     need = [(image_topic(c), 2, "frontend") for c in cameras] if frontends else []
     # without frontends the player publishes the detections: association + this listener
     need += [(f"/{c}/detections", 1 if frontends else 2, "association") for c in cameras]
     need += [("/maem/clusters", 1, "triangulation"), ("/maem/poses", 2, "recorder"),
              ("/maem/skeletons", 1, "recorder"), ("/diagnostics", 1, "recorder")]
-    return [f"{topic} has no {who} subscriber" for topic, k, who in need
-            if listener.count_subscribers(topic) < k]
+    listed = [f"{topic} has no {who} subscriber" for topic, k, who in need
+              if listener.count_subscribers(topic) < k]
+    links = fusion_links(cameras, "image_raw/compressed" if frontends else None, sources=False)
+    return listed + [f"{link} not matched" for link in unmatched_links(
+        listener.diagnostics_snapshot(), links, at_least={"matched_subscribers/maem/poses": 2})]
 
 
 @dataclass

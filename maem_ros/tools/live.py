@@ -134,15 +134,14 @@ def publish_main(a: argparse.Namespace) -> int:
 # the run
 # ---------------------------------------------------------------------------------------------
 def _listener():
-    from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import PointCloud2
 
     from maem_ros.ros import wire
-    from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS
+    from maem_ros.ros.common import DATA_QOS
     from maem_ros.ros.probe import BackgroundNode
 
     bg = BackgroundNode("maem_live_listener")
-    bg.poses, bg.diagnostics = {}, {}
+    bg.poses = {}
 
     def on_poses(msg):
         t = time.time()
@@ -150,14 +149,8 @@ def _listener():
         with bg.lock:
             bg.poses.setdefault(pf.stamp_ns, (t, pf))
 
-    def on_diag(msg):
-        with bg.lock:
-            for st in msg.status:
-                bg.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
-
-    bg.subs = [bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS),
-               bg.node.create_subscription(DiagnosticArray, "/diagnostics", on_diag,
-                                           DIAGNOSTICS_QOS)]
+    bg.subs = [bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS)]
+    bg.watch_diagnostics()
     return bg.start()
 
 
@@ -166,10 +159,9 @@ def _unready(listener, cameras: Sequence[str]) -> list[str]:
     for their end themselves) -> triangulation -> the listener."""
     from maem_ros.ros.probe import fusion_links, unmatched_links
 
-    with listener.lock:
-        diagnostics = dict(listener.diagnostics)
     ours = [] if listener.subs[0].get_publisher_count() else ["/maem/poses -> listener"]
-    return ours + unmatched_links(diagnostics, fusion_links(cameras, image_topic=None))
+    return ours + unmatched_links(listener.diagnostics_snapshot(),
+                                  fusion_links(cameras, image_topic=None))
 
 
 def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[int]) -> float:
