@@ -14,7 +14,6 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -25,8 +24,8 @@ from visualization_msgs.msg import MarkerArray
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS
-from maem_ros.ros.probe import fusion_links, unmatched_links
+from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.probe import DiagnosticsTable, fusion_links, unmatched_links
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -211,23 +210,8 @@ class Recorder:
             return len(self.all)
 
 
-class DiagnosticsReader:
+class DiagnosticsReader(DiagnosticsTable):
     """Latest /diagnostics values per node (status name = fully qualified node name)."""
-
-    def __init__(self, node):
-        self.lock = threading.Lock()
-        self.latest: dict[str, dict[str, str]] = {}
-        self.sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._cb,
-                                            DIAGNOSTICS_QOS)
-
-    def _cb(self, msg: DiagnosticArray) -> None:
-        with self.lock:
-            for st in msg.status:
-                self.latest[st.name] = {kv.key: kv.value for kv in st.values}
-
-    def snapshot(self) -> dict[str, dict[str, str]]:
-        with self.lock:
-            return {k: dict(v) for k, v in self.latest.items()}
 
     def get(self, node_name: str) -> dict[str, str]:
         with self.lock:

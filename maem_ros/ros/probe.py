@@ -9,6 +9,9 @@ daemon thread, closed cleanly by :meth:`BackgroundNode.close`. On top of it:
   deserialisation), and the nodes' last /diagnostics;
 * :class:`ReplayClient` (tools/latency.py): publishes tiny images with given stamps and records
   /maem/poses and /diagnostics.
+
+:class:`DiagnosticsTable` is the one collector of the nodes' last /diagnostics values (a
+BackgroundNode's ``watch_diagnostics``, the tests' reader).
 """
 from __future__ import annotations
 
@@ -49,21 +52,14 @@ class BackgroundNode:
         return self
 
     def watch_diagnostics(self) -> None:
-        """Keep each node's last /diagnostics values (``diagnostics_snapshot``); call before
-        ``start()``."""
-        self.diagnostics: dict[str, dict[str, str]] = {}
-        self.diag_sub = self.node.create_subscription(DiagnosticArray, "/diagnostics",
-                                                      self._on_diag, DIAGNOSTICS_QOS)
-
-    def _on_diag(self, msg: DiagnosticArray) -> None:
-        with self.lock:
-            for st in msg.status:
-                self.diagnostics[st.name] = {kv.key: kv.value for kv in st.values}
+        """Keep each node's last /diagnostics values (``diagnostics``, guarded by ``lock``;
+        ``diagnostics_snapshot``); call before ``start()``."""
+        self.diagnostics_table = DiagnosticsTable(self.node, self.lock)
+        self.diagnostics = self.diagnostics_table.latest
 
     def diagnostics_snapshot(self) -> dict[str, dict[str, str]]:
         """{node name: {key: value}} of each node's last /diagnostics (watch_diagnostics)."""
-        with self.lock:
-            return dict(self.diagnostics)
+        return self.diagnostics_table.snapshot()
 
     def _spin(self) -> None:
         while not self._stop.is_set() and self.context.ok():
@@ -82,6 +78,26 @@ class BackgroundNode:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class DiagnosticsTable:
+    """Each node's last /diagnostics values (``latest``: status name, the fully qualified node
+    name -> {key: value}), from a subscription on ``node``; ``lock`` guards ``latest``."""
+
+    def __init__(self, node, lock: threading.Lock | None = None):
+        self.lock = lock or threading.Lock()
+        self.latest: dict[str, dict[str, str]] = {}
+        self.sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag,
+                                            DIAGNOSTICS_QOS)
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        with self.lock:
+            for st in msg.status:
+                self.latest[st.name] = {kv.key: kv.value for kv in st.values}
+
+    def snapshot(self) -> dict[str, dict[str, str]]:
+        with self.lock:
+            return {k: dict(v) for k, v in self.latest.items()}
 
 
 def fusion_links(cameras: Sequence[str], image_topic: str | None = "image_raw",
