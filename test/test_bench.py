@@ -130,6 +130,7 @@ def test_bench_live_reduced_run(scene, tmp_path):
     assert out["recall_offline"] >= 0.8 and out["recall_live"] >= 0.6, out
     assert {"association", "triangulation", "publisher_camera_0"} <= set(out["cpu_percent"])
     assert all(code == 0 for code in out["exit_codes"].values()), (out["exit_codes"], proc.stderr)
+    assert isinstance(out["forced_exits"], list)
     assert out["dds_profile"].endswith("fastdds.xml")
     assert isinstance(out["partial_sets"], int)
 
@@ -139,3 +140,34 @@ def test_bench_live_rejects_bad_arguments():
     assert proc.returncode == 2 and "--rate" in proc.stderr
     proc = _bench("--live", "--bag", "/nonexistent/bag")
     assert proc.returncode == 2 and "--bag" in proc.stderr
+
+
+@pytest.mark.timeout(120)
+def test_live_publisher_stops_cleanly_on_sigint(tmp_path):
+    """A camera publisher of maem-bench --live that SIGINT reaches while it waits for its
+    subscriber ends like a node: between steps, exit code 0, its node torn down."""
+    import signal
+    import time
+
+    from maem_ros.tools.latency import write_params
+
+    params = write_params("demo.yaml", tmp_path / "params.yaml",
+                          frontend={"frames": 2, "num_vertices": 200})
+    log = open(tmp_path / "publisher.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "maem_ros.tools.live", "--publish", "camera_0",
+                             "--params", str(params), "--work", str(tmp_path), "--frames", "2",
+                             "--rate", "10"], stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 90
+        while not (tmp_path / "camera_0.pkl").exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert (tmp_path / "camera_0.pkl").exists(), (tmp_path / "publisher.log").read_text()
+        time.sleep(1.0)  # in its wait for a subscriber (none comes)
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0, (tmp_path / "publisher.log").read_text()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        log.close()
+    text = (tmp_path / "publisher.log").read_text()
+    assert text.rstrip().endswith("done") and "published" not in text, text

@@ -91,13 +91,22 @@ def ground_truth(params_file: Path, bag: Path | None, stamps: Sequence[int]
 # ---------------------------------------------------------------------------------------------
 def publish_main(a: argparse.Namespace) -> int:
     """Build the messages, wait until the association subscribes, write them to ``CAM.pkl``
-    (for the offline comparison), signal READY, then publish on the shared start time."""
+    (for the offline comparison), signal READY, then publish on the shared start time.
+
+    Signals as in a node (ros/cli.stop_on_signals): SIGINT/SIGTERM stop it between frames,
+    SIGUSR1 dumps its stacks, and a teardown that stalls (DDS) ends the process
+    SHUTDOWN_GRACE_S after it began, with the watchdog's line in the log (the report's
+    forced_exits). rclpy's own signal handler is not installed, as in the nodes. Before, one
+    run in ~230 here left a publisher that did not exit after its last frame, nor at SIGINT."""
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
+    from maem_ros.ros.cli import stop_on_signals
     from maem_ros.ros.common import DATA_QOS, keep_freed_memory, use_shipped_dds_profile
     from maem_ros.ros.frontend_node import HEAP_PREFAULT_MB
 
+    stop = stop_on_signals(f"live_publisher_{a.publish}")
     keep_freed_memory(HEAP_PREFAULT_MB)  # as a frontend process does (run_node)
     msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride,
                            a.vertex_count)
@@ -106,27 +115,34 @@ def publish_main(a: argparse.Namespace) -> int:
         pickle.dump(msgs, fh)
     if not a.no_profile:
         use_shipped_dds_profile()
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node(f"live_publisher_{a.publish}")
     pub = node.create_publisher(PointCloud2, f"/{a.publish}/detections", DATA_QOS)
     try:
         deadline = time.monotonic() + 120
-        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        while (pub.get_subscription_count() == 0 and time.monotonic() < deadline
+               and not stop.is_set()):
             time.sleep(0.05)
         (work / f"{a.publish}.ready").write_text("ready")
         start = work / "start"
-        while not start.exists():
+        while not start.exists() and not stop.is_set():
             time.sleep(0.005)
-        t0 = float(start.read_text())
+        t0 = float(start.read_text()) if not stop.is_set() else 0.0
         for f, (_, data) in enumerate(msgs):
             target = t0 + f / a.rate
-            while (now := time.time()) < target:
+            while (now := time.time()) < target and not stop.is_set():
                 time.sleep(min(target - now, 0.002))
+            if stop.is_set():
+                break
             pub.publish(data)
-        time.sleep(1.0)  # let reliable delivery finish before the writer goes away
+        else:
+            print(f"published {len(msgs)} frames", flush=True)
+            stop.wait(1.0)  # let reliable delivery finish before the writer goes away
     finally:
+        stop.set()  # the teardown begins: the watchdog's grace from now
         node.destroy_node()
         rclpy.try_shutdown()
+        print("done", flush=True)
     return 0
 
 
@@ -314,6 +330,7 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         while time.monotonic() < stop_by and len(group.dead(publishers)) < len(publishers):
             time.sleep(0.05)
         codes = group.stop(timeout_s=15.0)
+        forced = group.forced_exits()
         if failed := [n for n, c in codes.items() if c != 0]:
             # the work folder and its logs go when the run ends: say here why they failed
             print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed)}",
@@ -373,6 +390,8 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         # rate ms to keep up), less dependent on what else loads the machine than the latency
         "cpu_ms_per_frame": {n: round(1e3 * (cpu1[n] - cpu0[n]) / len(stamps), 2) for n in cpu0},
         "exit_codes": codes,
+        # processes whose shutdown watchdog ended a stalled teardown (exit code 0)
+        "forced_exits": forced,
     }
     return report
 
