@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from maem_ros.ros.cli import SHUTDOWN_STALLED
+from maem_ros.ros.cli import SHUTDOWN_STALLED, STALLED_WITH_GIL
 
 from helpers_ros import wait_for
 
@@ -25,12 +25,17 @@ STALLED = textwrap.dedent("""
     def stalled_in_callback():
         while True:
             time.sleep(0.01)
-    stalled_in_callback()
+    def stalled_holding_the_gil():
+        while not stop.is_set():
+            time.sleep(0.01)
+        import re
+        re.match(r"(a+)+$", "a" * 64 + "b")  # C code that never lets the GIL go
+    stalled_holding_the_gil() if sys.argv[2:] == ["gil"] else stalled_in_callback()
 """)
 
 
-def start(grace_s: float) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-c", STALLED, str(grace_s)], text=True,
+def start(grace_s: float, *how: str) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", STALLED, str(grace_s), *how], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     assert proc.stdout.readline().strip() == "ready"
     return proc
@@ -45,6 +50,19 @@ def test_watchdog_ends_a_stalled_process_after_the_grace_with_its_stacks():
     assert time.monotonic() - t0 >= 1.0
     assert f"[stalled] {SHUTDOWN_STALLED} 1 s after the stop signal" in err
     assert "stalled_in_callback" in err  # where it was stuck
+
+
+def test_watchdog_backstop_ends_a_process_stalled_holding_the_gil():
+    """A teardown stalled in C code that holds the GIL (rclpy's destroy_node seen so) keeps the
+    watchdog thread from waking: faulthandler's thread dumps the stacks and exits 1, 1 s later."""
+    proc = start(1.0, "gil")
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1, err
+    assert time.monotonic() - t0 >= 2.0
+    assert err.startswith(STALLED_WITH_GIL) and "stalled_holding_the_gil" in err, err
+    assert SHUTDOWN_STALLED not in err
 
 
 def test_sigusr1_dumps_stacks_and_the_process_keeps_running():

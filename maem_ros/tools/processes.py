@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
-from maem_ros.ros.cli import SHUTDOWN_STALLED
+from maem_ros.ros.cli import SHUTDOWN_STALLED, STALLED_WITH_GIL
 
 #: node kind -> module run with ``python -m`` (works without installing the console scripts)
 NODE_MODULES = {"frontend": "maem_ros.ros.frontend_node",
@@ -110,8 +110,10 @@ class ProcessGroup:
         return None
 
     def forced_exits(self) -> list[str]:
-        """Names of the processes whose shutdown watchdog ended them (see ros/cli.py)."""
-        return [p.name for p in self.procs.values() if SHUTDOWN_STALLED in p.tail(100_000)]
+        """Names of the processes whose shutdown watchdog ended them (see ros/cli.py: exit code
+        0, or 1 from its backstop when the stalled teardown held the GIL)."""
+        return [p.name for p in self.procs.values()
+                if any(m in p.tail(100_000) for m in (SHUTDOWN_STALLED, STALLED_WITH_GIL))]
 
     def shutdown(self) -> None:
         """SIGINT whatever still runs (recorder last, so it keeps what it received), then kill."""
