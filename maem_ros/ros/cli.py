@@ -40,8 +40,11 @@ def stop_on_signals(name: str = "", grace_s: float | None = SHUTDOWN_GRACE_S) ->
     not stop can be asked where it is. With ``grace_s``, a watchdog thread ends the process
     ``grace_s`` seconds after the signal if it is still running (a callback or the middleware's
     teardown stalled): it prints one line and the stacks, then exits with code 0, as a stop was
-    requested and every processed message has been published by then. The recorder passes
-    None: its bag must be finalised whatever it takes.
+    requested and every processed message has been published by then. If the stall holds the
+    GIL (C code; the thread cannot wake), faulthandler's own thread dumps the stacks and exits
+    with code 1 a second later (its dump begins with STALLED_WITH_GIL). The recorder passes
+    None: its bag must be finalised whatever it takes. The event is also set by the caller
+    when it begins its teardown by itself.
     """
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -390,7 +390,8 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         # rate ms to keep up), less dependent on what else loads the machine than the latency
         "cpu_ms_per_frame": {n: round(1e3 * (cpu1[n] - cpu0[n]) / len(stamps), 2) for n in cpu0},
         "exit_codes": codes,
-        # processes whose shutdown watchdog ended a stalled teardown (exit code 0)
+        # processes whose shutdown watchdog ended a stalled teardown (exit code 0; 1 from its
+        # backstop when the stall held the GIL)
         "forced_exits": forced,
     }
     return report
