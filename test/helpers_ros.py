@@ -24,7 +24,9 @@ from visualization_msgs.msg import MarkerArray
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
+from maem_ros.ros.cli import shutdown_ros
 from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.fastdds import detach_discovery_listener
 from maem_ros.ros.probe import DiagnosticsTable, fusion_links, unmatched_links
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -44,8 +46,7 @@ def ros_node(name: str) -> Iterator[tuple[rclpy.node.Node, SingleThreadedExecuto
         yield node, ex
     finally:
         ex.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        shutdown_ros(node, ctx)
 
 
 def wait_for(cond: Callable[[], bool] | Future, timeout: float, on: Any = None,
@@ -164,6 +165,8 @@ class Graph:
     def close(self) -> None:
         self._stop.set()
         self.thread.join(timeout=10)
+        if self.nodes:  # all of the context's nodes go: its discovery may stop (ros/fastdds.py)
+            detach_discovery_listener(self.nodes[0])
         for node in self.nodes:
             self.executor.remove_node(node)
             node.destroy_node()

@@ -1,4 +1,5 @@
-"""Stopping a node process: the shutdown watchdog and the SIGUSR1 stack dump (ros/cli.py)."""
+"""Stopping a node process: the shutdown watchdog and the SIGUSR1 stack dump (ros/cli.py), the
+Fast DDS teardown guard (ros/fastdds.py)."""
 from __future__ import annotations
 
 import signal
@@ -12,7 +13,7 @@ import pytest
 
 from maem_ros.ros.cli import SHUTDOWN_STALLED, STALLED_WITH_GIL
 
-from helpers_ros import wait_for
+from helpers_ros import ros_node, wait_for
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -89,3 +90,24 @@ def test_without_a_signal_the_watchdog_never_fires():
     finally:
         proc.kill()
         proc.communicate(timeout=10)
+
+
+def test_detached_discovery_listener_stops_its_own_participants_discovery_only():
+    """ros/fastdds.py: once a node's participant has its discovery listener detached, no
+    discovery callback runs there (so the detach rmw makes at destroy_node, whose wait cannot
+    end while one runs, returns at once): it learns of no new endpoint, while another
+    participant of the same process does; and the node is then destroyed as usual."""
+    import rclpy
+    from std_msgs.msg import String
+
+    from maem_ros.ros.fastdds import detach_discovery_listener
+
+    with ros_node("guard_detached") as (detached, _), ros_node("guard_watching") as (watching, _):
+        if rclpy.get_rmw_implementation_identifier() != "rmw_fastrtps_cpp":
+            pytest.skip("the guard is for rmw_fastrtps_cpp")
+        assert detach_discovery_listener(detached)
+        with ros_node("guard_late") as (late, _):
+            late.create_publisher(String, "/guard_late", 10)
+            assert wait_for(lambda: watching.count_publishers("/guard_late") == 1, 20.0)
+            # the watching participant has discovered it: the detached one had the same chance
+            assert not wait_for(lambda: detached.count_publishers("/guard_late") > 0, 2.0)

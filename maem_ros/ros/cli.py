@@ -131,3 +131,18 @@ def init_ros(args: Sequence[str] | None, name: str) -> bool:
         rclpy.try_shutdown()
         return False
     return True
+
+
+def shutdown_ros(node, context=None) -> None:
+    """The end of a command's ROS session: destroy ``node`` (the last node of its context;
+    None: none was made) and shut rclpy (``context``, default the global one) down. The node's
+    DDS discovery listener is detached first (ros/fastdds.py: a teardown deadlock of the PyPI
+    Fast DDS build, hit when the processes of a graph stop together)."""
+    import rclpy
+
+    from maem_ros.ros.fastdds import detach_discovery_listener
+
+    if node is not None:
+        detach_discovery_listener(node)
+        node.destroy_node()
+    rclpy.try_shutdown(context=context)

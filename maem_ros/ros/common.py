@@ -34,7 +34,7 @@ from rclpy.task import Future
 
 from maem_ros.core.errors import InputError
 from maem_ros.core.paramspec import ParamError, Params, ParamSpec, param
-from maem_ros.ros.cli import init_ros, stop_on_signals
+from maem_ros.ros.cli import init_ros, shutdown_ros, stop_on_signals
 
 #: camera images: best effort, keep last 2
 IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2,
@@ -662,9 +662,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_ros(node)
     return 0
 
 

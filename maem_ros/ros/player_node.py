@@ -25,7 +25,8 @@ from dataclasses import dataclass, field
 from typing import Iterator, Sequence
 
 from maem_ros import bagio
-from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, split_ros_args, stop_on_signals
+from maem_ros.ros.cli import (EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args,
+                              stop_on_signals)
 
 _IMAGE_TYPES = (bagio.IMAGE, bagio.COMPRESSED_IMAGE)
 
@@ -426,8 +427,7 @@ def main(args: Sequence[str] | None = None) -> int:
     finally:
         if player is not None and player.lockstep is not None:
             player.lockstep.close()
-        node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_ros(node)
     return code
 
 

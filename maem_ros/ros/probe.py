@@ -26,6 +26,7 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.ros import wire
+from maem_ros.ros.cli import shutdown_ros
 from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS, use_shipped_dds_profile
 
 
@@ -70,8 +71,7 @@ class BackgroundNode:
         if self.thread.is_alive():
             self.thread.join(timeout=5)
         self.executor.shutdown(timeout_sec=1.0)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
+        shutdown_ros(self.node, self.context)
 
     def __enter__(self) -> "BackgroundNode":
         return self

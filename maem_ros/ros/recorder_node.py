@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from maem_ros import bagio
-from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, split_ros_args, stop_on_signals
+from maem_ros.ros.cli import (EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args,
+                              stop_on_signals)
 
 _HIDDEN = ("/rosout", "/parameter_events")
 
@@ -164,8 +165,7 @@ def main(args: Sequence[str] | None = None) -> int:
         writer = bagio.BagWriter(opts.out, compress=opts.compress)
     except Exception as e:  # noqa: BLE001 - rosbags WriterError / OSError: report, exit non-zero
         print(f"maem-record: output bag {opts.out!r}: {e}", file=sys.stderr)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_ros(node)
         return 2
     executor = SingleThreadedExecutor()
     executor.add_node(node)
@@ -180,8 +180,7 @@ def main(args: Sequence[str] | None = None) -> int:
     finally:
         writer.close()
         executor.shutdown(timeout_sec=1.0)
-        node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_ros(node)
     per_topic = ", ".join(f"{t}: {n}" for t, n in writer.counts.items()) or "no topics"
     print(f"maem-record: wrote {writer.message_count} messages to {opts.out} ({per_topic})"
           f"{f'; not recorded: {sorted(rec.rejected)}' if rec.rejected else ''}", flush=True)

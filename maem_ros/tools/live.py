@@ -102,7 +102,7 @@ def publish_main(a: argparse.Namespace) -> int:
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import PointCloud2
 
-    from maem_ros.ros.cli import stop_on_signals
+    from maem_ros.ros.cli import shutdown_ros, stop_on_signals
     from maem_ros.ros.common import DATA_QOS, keep_freed_memory, use_shipped_dds_profile
     from maem_ros.ros.frontend_node import HEAP_PREFAULT_MB
 
@@ -140,8 +140,7 @@ def publish_main(a: argparse.Namespace) -> int:
             stop.wait(1.0)  # let reliable delivery finish before the writer goes away
     finally:
         stop.set()  # the teardown begins: the watchdog's grace from now
-        node.destroy_node()
-        rclpy.try_shutdown()
+        shutdown_ros(node)
         print("done", flush=True)
     return 0
 
