@@ -64,8 +64,9 @@ STALLED_WITH_GIL = "Timeout ("
 def _exit_after_grace(stop: threading.Event, name: str, grace_s: float) -> None:
     stop.wait()
     # backstop without the GIL: a teardown stalled inside C code that holds it (seen: rclpy's
-    # destroy_node -> destroy_when_not_in_use, 1 run in ~25 of maem-bench --live here) keeps
-    # this thread from waking; faulthandler's own thread then dumps the stacks and exits 1
+    # destroy_node -> destroy_when_not_in_use, 1 run in ~35 of maem-bench --live here, until
+    # ros/fastdds.py removed that deadlock's cause) keeps this thread from waking;
+    # faulthandler's own thread then dumps the stacks and exits 1
     faulthandler.dump_traceback_later(grace_s + 1.0, exit=True)
     time.sleep(grace_s)
     print(f"[{name}] {SHUTDOWN_STALLED} {grace_s:g} s after the stop signal; exiting "
