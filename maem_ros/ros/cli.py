@@ -9,7 +9,11 @@ import signal
 import sys
 import threading
 import time
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
+    from rclpy.node import Node
 
 #: exit code of a command whose input (arguments, params file, bag) is invalid
 EXIT_BAD_INPUT = 2
@@ -134,7 +138,7 @@ def init_ros(args: Sequence[str] | None, name: str) -> bool:
     return True
 
 
-def shutdown_ros(node, context=None) -> None:
+def shutdown_ros(node: Node | None, context: Context | None = None) -> None:
     """The end of a command's ROS session: destroy ``node`` (the last node of its context;
     None: none was made) and shut rclpy (``context``, default the global one) down. The node's
     DDS discovery listener is detached first (ros/fastdds.py: a teardown deadlock of the PyPI

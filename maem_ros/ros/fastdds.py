@@ -8,7 +8,7 @@ to the system clock, where it overflows: ``pthread_cond_timedwait`` returns EINV
 without ever releasing the participant's mutex, and the wait loops. A discovery callback that is
 running at that moment (a remote endpoint going away: the processes of a graph stopped together)
 needs the mutex to finish, so neither thread moves again; the process hangs in
-``Node.destroy_node`` holding the GIL. Seen with gdb in ~1 of 40 runs of ``maem-bench --live``,
+``Node.destroy_node`` holding the GIL. Seen with gdb in 2 of 70 runs of ``maem-bench --live``,
 which stops its 8 processes at once: the main thread spinning in ``DomainParticipant::
 set_listener`` under ``rmw_destroy_node``, a receive thread blocked on the mutex in
 ``onWriterDiscovery``.
@@ -25,6 +25,10 @@ from __future__ import annotations
 import ctypes
 import os
 from functools import lru_cache
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
 
 #: the mangled Fast DDS 2.x (CODEABI_1.0) functions called, Itanium C++ ABI
 _GET_INSTANCE = "_ZN8eprosima7fastdds3dds24DomainParticipantFactory12get_instanceEv"
@@ -101,7 +105,7 @@ def _loaded_library(prefix: str) -> str | None:
     return None
 
 
-def own_guid_prefix(node) -> bytes | None:
+def own_guid_prefix(node: Node) -> bytes | None:
     """The GUID prefix of ``node``'s DDS participant, from the gid of one of its own
     publishers (/rosout, else any it created) in the ROS graph, or None if it has none."""
     name, namespace = node.get_name(), node.get_namespace()
@@ -113,7 +117,7 @@ def own_guid_prefix(node) -> bytes | None:
     return None
 
 
-def detach_discovery_listener(node, timeout_s: int = 5) -> bool:
+def detach_discovery_listener(node: Node, timeout_s: int = 5) -> bool:
     """Before ``node`` (the last node of its context) is destroyed: detach its DDS
     participant's discovery listener, waiting at most ``timeout_s`` s for running callbacks
     (see the module's docstring). True if detached; False where there is nothing to do
