@@ -50,11 +50,12 @@ from typing import Any, Sequence
 import numpy as np
 import yaml
 
-from maem_ros.core import association, triangulation_kernel
-from maem_ros.core.association import associate
-from maem_ros.core.camera import Rig
+from maem_ros.core.association import pipeline as association
+from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
+from maem_ros.core.association.pipeline import associate
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.errors import InputError
-from maem_ros.core.triangulation import triangulate
+from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
 from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
 from maem_ros.ros.wire import msg_to_detections
