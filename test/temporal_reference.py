@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from maem_ros.core import epipolar
+from maem_ros.core.association.gates import epipolar
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.geometry import reprojection_errors
-from maem_ros.core.procrustes import pa_mpjpe_finite
+from maem_ros.core.geometry.multiview import reprojection_errors
+from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.core.temporal import (_GATED, TemporalAssociator, _depth, _nanmedian, _project,
+from maem_ros.core.tracking.temporal import (_GATED, TemporalAssociator, _depth, _nanmedian, _project,
                                     _verify)
 
 

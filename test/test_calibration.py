@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from maem_ros.core.calibration import read_pose2sim_toml, read_qualisys, rotate_view
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.rig_formats import read_pose2sim_toml, read_qualisys, rotate_view
+from maem_ros.core.geometry.camera import Camera, Rig
 
 # Two cameras of Pose2Sim/Demo_MultiPerson/calibration/Calib.qca.txt (pose2sim 0.10.49), verbatim
 _CAM01 = """<camera active="1" avg-residual="0.402000" model="none" point-count="999999999" serial="cam01" viewrotation="{rot}">

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
-from maem_ros.core.camera import Camera, Rig, fundamental_matrix
+from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 from maem_ros.params import load_node_params
 

@@ -12,8 +12,9 @@ from hypothesis import strategies as st
 
 from test_association import ring_rig
 
-from maem_ros.core import clustering, clustering_kernel
-from maem_ros.core.association import AssociationParams, associate, rig_geometry
+from maem_ros.core.association import clustering
+from maem_ros.core.association import clustering_kernel
+from maem_ros.core.association.pipeline import AssociationParams, associate, rig_geometry
 from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, DetectionTable,
                                       FrameDetections, PairSet)
 from maem_ros.core.skeleton import joint_subset

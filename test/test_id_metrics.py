@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from maem_ros.core.id_metrics import identity_metrics
+from maem_ros.core.metrics.identity import identity_metrics
 
 J = 4
 

@@ -12,8 +12,8 @@ import pytest
 from temporal_reference import ReferenceTemporalAssociator
 from test_temporal import PARAMS, Walker, frame, ring_rig
 
-from maem_ros.core.association import AssociationParams
-from maem_ros.core.temporal import TemporalAssociator, TemporalParams
+from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
 from maem_ros.tools.bench_load import body_template, load_bench_rig, make_sequence
 
 

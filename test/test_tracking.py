@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings, strategies as st
 
-from maem_ros.core.tracking import Tracker
+from maem_ros.core.tracking.tracks import Tracker
 
 J = 5
 SHAPE = np.random.default_rng(0).normal(scale=0.2, size=(J, 3))
@@ -127,7 +127,7 @@ def test_bad_input() -> None:
 def test_bone_filter_marks_implausible_limb_joints_only():
     """core.bone_filter: a wrist 60 % off the track's forearm length becomes NaN, the rest of
     the body and untracked people are untouched; a wrong elbow does not condemn its wrist."""
-    from maem_ros.core.bone_filter import BoneLengthFilter
+    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.skeleton import SPORTCENTER_13
     names = list(SPORTCENTER_13.names)
     ix = {n: i for i, n in enumerate(names)}
@@ -159,7 +159,7 @@ class _BoneFilterLoop:
     def __init__(self, names, tolerance, history, min_samples, max_tracks):
         from collections import deque
 
-        from maem_ros.core.bone_filter import limb_bones
+        from maem_ros.core.tracking.bone_filter import limb_bones
         self.bones, self.tol, self.min_samples, self.max_tracks = (limb_bones(names), tolerance,
                                                                    min_samples, max_tracks)
         self.new = lambda: deque(maxlen=history)
@@ -195,7 +195,7 @@ def test_bone_filter_equals_a_per_person_loop(seed, history, min_samples):
     """Random crowds over many frames: ids coming and going (more than the filter keeps, so
     the oldest are forgotten), untracked people, an id twice in a frame, missing joints and
     wrong limbs: the same joints marked, the same counts."""
-    from maem_ros.core import bone_filter
+    from maem_ros.core.tracking import bone_filter
     from maem_ros.core.skeleton import SPORTCENTER_13
     names = list(SPORTCENTER_13.names)
     rng = np.random.default_rng(seed)

@@ -11,7 +11,7 @@ from typing import Iterable
 
 import numpy as np
 
-from .errors import InputError
+from maem_ros.core.errors import InputError
 
 
 
@@ -74,7 +74,7 @@ class FrameDetections:
         """Full-mesh index of each verts2d column (sorted), None when verts2d is the whole mesh."""
         if self.mesh_subset is None:
             return None
-        from .epipolar import vertex_subset  # local: epipolar is the home of the subset rule
+        from maem_ros.core.association.gates.epipolar import vertex_subset  # local: epipolar is the home of the subset rule
         ids = vertex_subset(*self.mesh_subset)
         return np.arange(self.mesh_subset[0]) if ids is None else ids
 
@@ -133,7 +133,7 @@ class FrameDetections:
         ``core.epipolar.vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
         (self when verts2d holds exactly those already). ValueError when verts2d lacks some of
         them (it holds a different subset)."""
-        from .epipolar import vertex_subset  # local: epipolar is the home of the subset rule
+        from maem_ros.core.association.gates.epipolar import vertex_subset  # local: epipolar is the home of the subset rule
         mesh = self.mesh_vertices
         want = vertex_subset(mesh, int(stride), int(count))
         have = self.vertex_ids

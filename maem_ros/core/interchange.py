@@ -25,9 +25,9 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from .camera import Camera, Rig
-from .detections import FrameDetections
-from .errors import InputError
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.errors import InputError
 
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
 REQUIRED_KEYS = ("bbox", "bbox_score", "pred_keypoints_3d", "pred_keypoints_2d", "pred_keypoints_2d_verts")

@@ -35,9 +35,9 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from maem_ros.core import association
-from maem_ros.core.association import AssociationParams
-from maem_ros.core.temporal import TemporalParams
+from maem_ros.core.association import pipeline as association
+from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats, skip_behind
@@ -115,7 +115,7 @@ class AssociationNode(Node):
                               f"({self.rig.names})")
         if p["min_cameras"] > len(cams):
             raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
-        from maem_ros.core.temporal import TemporalAssociator
+        from maem_ros.core.tracking.temporal import TemporalAssociator
         try:
             self.params = AssociationParams.from_mapping(p)
             self.temporal = TemporalAssociator(self.rig, self.params,

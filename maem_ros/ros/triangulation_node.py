@@ -30,12 +30,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from maem_ros.core.bone_filter import BoneLengthFilter
+from maem_ros.core.tracking.bone_filter import BoneLengthFilter
 from maem_ros.core.limits import InputLimits, check_clusters, mask_far_joints
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
 from maem_ros.core.sync import StampGuard
-from maem_ros.core.triangulation import TriangulationParams
+from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, MARKER_QOS, ConfigError, Diagnostics, NodeParams,
                                  RejectErrors, Stopwatch, declare_params, load_rig_param,
@@ -90,10 +90,10 @@ class TriangulationNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         p = declare_params(self, PARAMS)
         self.rig = load_rig_param(p["rig"])
-        from maem_ros.core.tracking import Tracker
-        from maem_ros.core import triangulation_kernel
-        from maem_ros.core.triangulation import triangulate_members
-        from maem_ros.core.triangulation_kernel import use_numba
+        from maem_ros.core.tracking.tracks import Tracker
+        from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
+        from maem_ros.core.triangulation.ransac import triangulate_members
+        from maem_ros.core.triangulation.ransac_kernel import use_numba
         try:
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],

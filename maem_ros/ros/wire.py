@@ -43,11 +43,11 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, Poi
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.epipolar import screen_copies
-from maem_ros.core.frames import FrameTransform
+from maem_ros.core.association.gates.epipolar import screen_copies
+from maem_ros.core.geometry.frames import FrameTransform
 from maem_ros.core.errors import InputError
 
 #: poses ``id`` of a person whose track is not confirmed yet
@@ -400,7 +400,7 @@ def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
         raise WireError(topic, SUBSET_FIELD, f"detection {row} announces {sub[row].tolist()}, "
                         f"detection 0 {sub[0].tolist()}", "bad_subset")
     mesh, stride, count = (int(x) for x in sub[0])
-    from maem_ros.core.epipolar import vertex_subset
+    from maem_ros.core.association.gates.epipolar import vertex_subset
     if stride < 1 or mesh < v:
         raise WireError(topic, SUBSET_FIELD, f"(mesh {mesh}, stride {stride}, count {count}) "
                         f"for {v} vertices", "bad_subset")
@@ -525,7 +525,7 @@ class ClusterFrame:
     def dense(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Dense padded member arrays for core.triangulation.triangulate_members: cam (C,M),
         kpts2d (C,M,J,2), score (C,M), present (C,M); clusters in order of first row."""
-        from maem_ros.core.triangulation import pad_members  # local: wire stays importable alone
+        from maem_ros.core.triangulation.ransac import pad_members  # local: wire stays importable alone
         return pad_members(self.cluster, self.camera.astype(np.int64),
                            self.kpts2d.astype(np.float64), self.score.astype(np.float64))
 

@@ -13,9 +13,9 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from maem_ros.core.camera import Rig
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import KeypointConvention
-from maem_ros.core.triangulation import (TriangulationParams, mirror_permutation,
+from maem_ros.core.triangulation.ransac import (TriangulationParams, mirror_permutation,
                                          triangulate_members)
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_clusters
 from maem_ros import bagio

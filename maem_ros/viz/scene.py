@@ -16,8 +16,8 @@ from foxglove.messages import (CameraCalibration, Color, CompressedImage, CubePr
                                SceneEntityDeletion, SceneEntityDeletionType, SceneUpdate,
                                SpherePrimitive, TextAnnotation, TextPrimitive, Timestamp, Vector3)
 
-from maem_ros.core import frames as frames_
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry import frames as frames_
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
 
 WORLD = "world"

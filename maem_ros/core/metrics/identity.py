@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .metrics import MATCH_THRESHOLD_M, mpjpe
+from maem_ros.core.metrics.poses import MATCH_THRESHOLD_M, mpjpe
 
 _NO_MATCH = 1e6
 

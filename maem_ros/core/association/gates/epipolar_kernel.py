@@ -12,7 +12,7 @@ import numba as nb
 import numpy as np
 from numba.core import cgutils
 
-from .epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR,
+from maem_ros.core.association.gates.epipolar import (_BOUND_SLACK, _KEY_NEG_INF, _KEY_POS_INF, _RSQRT_ERR,
                        _RSQRT_ERR_REFINED, _U32, EPIPOLE_NORM)
 
 # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must

@@ -34,7 +34,7 @@ from typing import Mapping
 import cv2
 import numpy as np
 
-from .camera import Camera
+from maem_ros.core.geometry.camera import Camera
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -26,11 +26,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .camera import Rig
-from .detections import Cluster, FrameDetections
-from .geometry import normal_entries, reprojection_error, solve_normal
-from .paramspec import Params, param
-from .triangulation_kernel import BACKENDS, ransac_keypoints, use_numba
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.detections import Cluster, FrameDetections
+from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
+from maem_ros.core.paramspec import Params, param
+from maem_ros.core.triangulation.ransac_kernel import BACKENDS, ransac_keypoints, use_numba
 
 #: a view whose detection score is 0 still counts as a view, with this tiny DLT weight
 _MIN_WEIGHT = 1e-3
@@ -237,7 +237,7 @@ def _ransac_numpy(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.
 def mirror_permutation(num_joints: int) -> np.ndarray:
     """(J,) joint index of each joint's left/right counterpart (itself when central), for the
     keypoint convention with ``num_joints`` joints (core.skeleton); ValueError when none."""
-    from .skeleton import convention_for
+    from maem_ros.core.skeleton import convention_for
     names = convention_for(num_joints).names
     idx = {n: i for i, n in enumerate(names)}
     swap = lambda n: n.replace("left", "\0").replace("right", "left").replace("\0", "right")  # noqa: E731

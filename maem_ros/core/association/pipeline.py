@@ -31,15 +31,18 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
-from . import clustering, clustering_kernel, epipolar, procrustes_kernel
-from .camera import Rig, fundamental_matrix
-from .detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
+from maem_ros.core.association import clustering
+from maem_ros.core.association import clustering_kernel
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.geometry import procrustes_kernel
+from maem_ros.core.geometry.camera import Rig, fundamental_matrix
+from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, REJECTED_REPROJ, Cluster,
                          DetectionTable, FrameDetections, PairSet)
-from .geometry import pair_reprojection_bound, pair_reprojection_errors
-from .intsets import sorted_unique
-from .paramspec import Params, param
-from .procrustes import pa_mpjpe_pairs
-from .skeleton import joint_subset
+from maem_ros.core.geometry.multiview import pair_reprojection_bound, pair_reprojection_errors
+from maem_ros.core.intsets import sorted_unique
+from maem_ros.core.paramspec import Params, param
+from maem_ros.core.geometry.procrustes import pa_mpjpe_pairs
+from maem_ros.core.skeleton import joint_subset
 
 #: overrides that give the MAEM paper's pipeline exactly: PA-MPJPE on every keypoint, no cost
 #: cap, every pair's mesh distance over all vertices (no screen), per-pair Hungarian +
@@ -294,7 +297,7 @@ def _reprojection_kernel(backend: str):
     numpy path (``backend`` numpy, or numba not installed)."""
     if backend == "numpy" or not epipolar.have_numba():
         return None
-    from .reprojection_kernel import reprojection_gate
+    from maem_ros.core.association.gates.reprojection_kernel import reprojection_gate
     return reprojection_gate
 
 

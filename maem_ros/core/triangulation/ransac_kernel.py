@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import _SINGULAR
-from .jit import jit
+from maem_ros.core.geometry.multiview import _SINGULAR
+from maem_ros.core.jit import jit
 
 try:  # numba is optional: the numpy path gives the same results, only slower
     import numba as _numba

@@ -38,7 +38,7 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .procrustes import pa_mpjpe as _pa_mpjpe
+from maem_ros.core.geometry.procrustes import pa_mpjpe as _pa_mpjpe
 
 MATCH_THRESHOLD_M = 0.5
 AP_THRESHOLDS_MM = (75, 100, 125, 150)

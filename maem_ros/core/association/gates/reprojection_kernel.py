@@ -19,9 +19,9 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .clustering_kernel import _adjugate_solve, _normal_cofactors
-from .geometry import _SINGULAR
-from .triangulation_kernel import _entries
+from maem_ros.core.association.clustering_kernel import _adjugate_solve, _normal_cofactors
+from maem_ros.core.geometry.multiview import _SINGULAR
+from maem_ros.core.triangulation.ransac_kernel import _entries
 
 _OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
 
