@@ -1,4 +1,4 @@
-"""core <-> ROS messages: the only module that knows the wire layouts (DESIGN.md §4).
+"""core <-> ROS messages: the only module that knows the wire layouts (doc/design.md §4).
 
 PointCloud2 layouts (one point per row, little-endian, packed, height 1):
 
