@@ -28,13 +28,14 @@ from typing import Callable, Sequence
 
 from ..core.paramspec import ParamSpec
 
-#: node table name -> module whose ``PARAMS`` is the node's parameter list (what it declares)
+#: node table name -> (module, its attributes holding the specs the node declares and its
+#: ``--help`` lists, in that order: a ParamSpec or a sequence of them)
 NODE_MODULES = {
-    "frontend": "maem_ros.ros.frontend_node",
-    "association": "maem_ros.ros.association_node",
-    "triangulation": "maem_ros.ros.triangulation_node",
-    "camera": "maem_ros.ros.camera_node",
-    "foxglove": "maem_ros.ros.foxglove_node",
+    "frontend": ("maem_ros.ros.frontend_node", ("PARAMS",)),
+    "association": ("maem_ros.ros.association_node", ("PARAMS",)),
+    "triangulation": ("maem_ros.ros.triangulation_node", ("PARAMS",)),
+    "camera": ("maem_ros.ros.camera_node", ("SOURCE", "PARAMS")),
+    "foxglove": ("maem_ros.ros.foxglove_node", ("PARAMS",)),
 }
 
 HEADER = ("| parameter | type | default | allowed | meaning |\n"
@@ -56,8 +57,14 @@ def method_specs() -> tuple[ParamSpec, ...]:
 
 
 def node_specs(node: str) -> tuple[ParamSpec, ...]:
-    """Every parameter the node declares (its module's ``PARAMS``)."""
-    return tuple(importlib.import_module(NODE_MODULES[node]).PARAMS)
+    """Every parameter the node declares, in its ``--help`` order."""
+    module_name, attributes = NODE_MODULES[node]
+    module = importlib.import_module(module_name)
+    out: list[ParamSpec] = []
+    for attribute in attributes:
+        value = getattr(module, attribute)
+        out.extend([value] if isinstance(value, ParamSpec) else value)
+    return tuple(out)
 
 
 def table_sources() -> dict[str, Callable[[], Sequence[ParamSpec]]]:
