@@ -444,7 +444,7 @@ def _move_scores(G: np.ndarray, S: np.ndarray, label: np.ndarray, camset: np.nda
 def _cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int, kernels=None) -> np.ndarray:
     """(N, k) float64: per row i and cluster c < k, the sum of matrix[i, j] (N,N) over the
     rows j with label[j] == c, added in ascending j from 0.0 (a one-hot matmul would add
-    them in BLAS's order, and took 1.5 ms on the large bench load; kernels: the same sums
+    them in BLAS's order, and costs an (N, k) one-hot matrix product; kernels: the same sums
     compiled)."""
     if kernels is not None:
         return kernels.cluster_sums(matrix, label, k)
