@@ -1,6 +1,6 @@
 """Shared node plumbing: QoS profiles, validated parameters, /diagnostics, the main() runner.
 
-QoS (chosen deliberately, see README):
+QoS (chosen deliberately, see doc/design.md §4):
   * images: sensor data (best effort, keep last 2): a slow frontend drops stale frames instead of
     queueing them, and best-effort subscribers also accept reliable camera drivers.
   * detections / clusters / poses: reliable, keep last 10, volatile: every processed frame reaches
@@ -684,7 +684,7 @@ def load_rig_param(value: str, name: str = "rig"):
 def publish_rig_tf(node: Node, rig, world_frame: str):
     """Publish world -> every rig camera once on /tf_static (transient local, so late joiners
     get it); the publisher, or None with one log line when tf2_msgs is not importable (it is
-    built by ``make``, see README)."""
+    built by ``make``, see doc/design.md §4)."""
     from maem_ros.core.geometry.frames import rig_transforms
     from maem_ros.ros import wire
 
@@ -692,7 +692,7 @@ def publish_rig_tf(node: Node, rig, world_frame: str):
         from tf2_msgs.msg import TFMessage
     except ImportError:
         node.get_logger().warning("TF skipped: tf2_msgs is not importable (make builds it from "
-                                  "its upstream definition; see README, TF)")
+                                  "its upstream definition; see doc/design.md §4)")
         return None
     pub = node.create_publisher(TFMessage, wire.TF_STATIC_TOPIC, TF_STATIC_QOS)
     pub.publish(wire.tf_message(rig_transforms(rig, world_frame),
