@@ -1,4 +1,4 @@
-"""MAEM stage 3 (core/triangulation.py) against exact geometric answers."""
+"""MAEM stage 3 (core/triangulation/ransac.py) against exact geometric answers."""
 from __future__ import annotations
 
 import time

@@ -8,14 +8,14 @@ person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and `
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
 the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they
-come from core.tracking.Tracker on the converted joints (post-hoc, 3D proximity). A person whose track is not confirmed yet has id 4294967295 in poses
+come from core.tracking.tracks.Tracker on the converted joints (post-hoc, 3D proximity). A person whose track is not confirmed yet has id 4294967295 in poses
 (dropped unless ``publish_tentative``) and no markers. A stamp that steps back or far ahead is
 held until the next frames confirm the jump (then a stamp going back resets the tracker) or
 refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``max_people``
 clusters or member pixels beyond ``pixel_margin`` reject the frame; joints beyond
 ``world_extent`` become NaN (counted ``joints_beyond_world_extent``). With ``bone_tolerance`` a
 tracked person's limb joint whose bone length leaves the track's recent median by more than that
-fraction is NaN (core.bone_filter, counted ``joints_bone_implausible``).
+fraction is NaN (core.tracking.bone_filter, counted ``joints_bone_implausible``).
 """
 from __future__ import annotations
 
@@ -72,7 +72,7 @@ class TriangulationNodeParams(NodeParams):
                                 minimum=0.0, exclusive_minimum=True)
     bone_tolerance: float = param(0.0, "fraction: a tracked person's elbow, wrist, knee or ankle "
                                        "whose limb bone differs from the track's median length "
-                                       "by more than this is published NaN (core.bone_filter; "
+                                       "by more than this is published NaN (core.tracking.bone_filter; "
                                        "0 = off, the paper)", minimum=0.0)
     jump_tolerance: float = param(1.0, "s, a stamp this far ahead (beyond the time since the "
                                   "previous message) or any step back is held until the next "

@@ -14,13 +14,13 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   vertex coordinates, so people whose rectified vertices are negative or beyond 4096 px (wide,
   strongly distorted cameras) lose nothing; optionally ``kpts2d_q4`` (uint16 x 2J, 65535 = not seen) instead
   of ``kpts2d``. A vertex subset is announced by ``verts2d_subset`` (uint32 x 3: full mesh
-  vertices, stride, count; core.epipolar.vertex_subset gives the ids) in every point.
+  vertices, stride, count; core.association.gates.epipolar.vertex_subset gives the ids) in every point.
 * clusters (``/maem/clusters``), one point per (cluster, member view): ``cluster``(uint32, index in
   the frame) ``camera``(uint16, index in the rig's camera order) ``detection``(uint16, index in
   that camera's detections message) ``score``(f32) ``cost``(f32, mean PA-MPJPE m to the rest of
   the cluster, NaN if alone) ``kpts2d``(f32 x 2J rectified px). header.stamp = frame-set stamp.
   With temporal association also ``track``(uint32 track id, 4294967295 = tentative) and
-  ``track_flags``(uint8, core.temporal FLAG_* bits: 1 tracked, 2 fewer than k_min views).
+  ``track_flags``(uint8, core.tracking.temporal FLAG_* bits: 1 tracked, 2 fewer than k_min views).
 * poses (``/maem/poses``), one point per person: ``id``(uint32 track id, 4294967295 = not yet
   confirmed) ``joints``(f32 x 3J world m, NaN = missing) ``views``(uint16) ``score``(f32).
 
@@ -79,7 +79,7 @@ Q4_SCALE, Q4_MISSING = 16.0, 65535
 CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, "cost": F32,
                  "kpts2d": F32}
 #: optional cluster fields, written with temporal association: ``track``(uint32 track id,
-#: UNTRACKED_ID = tentative) ``track_flags``(uint8, core.temporal FLAG_* bits)
+#: UNTRACKED_ID = tentative) ``track_flags``(uint8, core.tracking.temporal FLAG_* bits)
 CLUSTER_TRACK_TYPES = {"track": U32, "track_flags": PointField.UINT8}
 POSE_TYPES = {"id": U32, "joints": F32, "views": U16, "score": F32}
 
@@ -423,7 +423,7 @@ def msg_to_detections(msg: PointCloud2, topic: str,
     ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
     (the camera whose topic this came from). ``screen_strides``: the mesh gate's screening
     subsets of verts2d to copy in the pass that checks verts2d
-    (core.association.decode_screen_strides; FrameDetections.attach_screens).
+    (core.association.pipeline.decode_screen_strides; FrameDetections.attach_screens).
     """
     cam = msg.header.frame_id
     if known_cameras is not None and cam not in known_cameras:
@@ -516,14 +516,14 @@ class ClusterFrame:
     cost: np.ndarray
     kpts2d: np.ndarray
     track: np.ndarray | None = None  # (M,) int64 track id per row, -1 = tentative; None = untracked
-    track_flags: np.ndarray | None = None  # (M,) uint8 core.temporal FLAG_* bits
+    track_flags: np.ndarray | None = None  # (M,) uint8 core.tracking.temporal FLAG_* bits
 
     @property
     def num_joints(self) -> int:
         return int(self.kpts2d.shape[1])
 
     def dense(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Dense padded member arrays for core.triangulation.triangulate_members: cam (C,M),
+        """Dense padded member arrays for core.triangulation.ransac.triangulate_members: cam (C,M),
         kpts2d (C,M,J,2), score (C,M), present (C,M); clusters in order of first row."""
         from maem_ros.core.triangulation.ransac import pad_members  # local: wire stays importable alone
         return pad_members(self.cluster, self.camera.astype(np.int64),
@@ -849,7 +849,7 @@ def _rclpy_type(msgtype: str):
 
 def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int,
                types: Mapping[str, type] | None = None):
-    """tf2_msgs/TFMessage of core.frames transforms (one TransformStamped each, header.stamp =
+    """tf2_msgs/TFMessage of core.geometry.frames transforms (one TransformStamped each, header.stamp =
     ``stamp_ns``). ``types``: msgtype -> class (e.g. the rosbags typestore's ``types``) to build
     the same layout for a bag writer; default rclpy (ImportError if tf2_msgs is not installed).
     """
@@ -870,7 +870,7 @@ def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int,
 
 
 def msg_to_transforms(msg, topic: str) -> list[FrameTransform]:
-    """TFMessage (rclpy or rosbags) -> core.frames transforms; WireError on a non-unit quaternion
+    """TFMessage (rclpy or rosbags) -> core.geometry.frames transforms; WireError on a non-unit quaternion
     or a non-finite value."""
     out = []
     for i, ts in enumerate(msg.transforms):
