@@ -54,16 +54,17 @@ class TriangulationParams(Params):
                               minimum=0.0)
     ransac_backend: str = param("auto", "RANSAC kernel (auto = numba when installed, else the "
                                         "numpy path; the same results)", choices=BACKENDS)
-    pose_score: str = param("paper", "a pose's score: uncertainty (predicted error from the "
-                                           "joints' covariance, core/triangulation/uncertainty.py) "
+    pose_score: str = param("uncertainty", "a pose's score: uncertainty (the members' mean "
+                                           "detection score times a confidence from the joints' "
+                                           "predicted error, core/triangulation/uncertainty.py) "
                                            "or paper (mean detection score of the members)",
                             choices=("uncertainty", "paper"))
     noise_prior_px: float = param(2.0, "px, prior keypoint noise of the joint covariance",
                                   minimum=0.0, exclusive_minimum=True)
     noise_prior_dof: float = param(2.0, "weight of noise_prior_px in residual degrees of freedom",
                                    minimum=0.0)
-    score_ref_m: float = param(0.05, "m, predicted pose error at which the uncertainty score is "
-                                     "0.5", minimum=0.0, exclusive_minimum=True)
+    score_ref_m: float = param(0.05, "m, predicted pose error that halves the uncertainty score",
+                               minimum=0.0, exclusive_minimum=True)
 
 
 @dataclass
@@ -216,10 +217,9 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
     cov, _ = joint_covariance(P, X, uv, usable, params.tau_kps, params.noise_prior_px,
                               params.noise_prior_dof)
     std = joint_std(cov)
-    if params.pose_score == "paper":
-        scores = (score * present).sum(1) / np.maximum(present.sum(1), 1)
-    else:
-        scores = pose_confidence(std, params.score_ref_m)
+    scores = (score * present).sum(1) / np.maximum(present.sum(1), 1)  # the paper's
+    if params.pose_score == "uncertainty":
+        scores = scores * pose_confidence(std, params.score_ref_m)
     return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), scores,
                  mirrored, joint_std=std)
 
