@@ -164,7 +164,9 @@ def _scan_stream(path: Path, size: int) -> FileScan:
                 if isinstance(record, Footer):
                     out.complete, out.good_bytes = True, size
         except READ_ERRORS as e:
-            out.problem = "ends inside a record" if isinstance(e, EndOfFile) else \
+            clean = counting.pos == out.good_bytes
+            out.problem = ("ends without its summary" if clean else "ends inside a record") \
+                if isinstance(e, EndOfFile) else \
                 f"damaged record after byte {out.good_bytes:,}: {type(e).__name__} {str(e)[:80]}"
     if out.good_bytes < len(MAGIC):
         out.good_bytes = 0

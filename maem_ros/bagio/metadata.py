@@ -3,6 +3,8 @@ writing atomically (temporary file + fsync + rename, so a crash leaves the old o
 never half of one) and parsing. QoS profiles use rosbags' own dump/parse helpers."""
 from __future__ import annotations
 
+import copy
+import functools
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,11 +113,27 @@ def write(folder: Path, meta: Metadata, durable: bool = True) -> None:
         raise
 
 
+#: libyaml's loader when PyYAML has it (metadata.yaml holds the rig YAML: tens of kB)
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
 def _qos(value: Any) -> list[Qos]:
+    """QoS profiles from metadata.yaml (a list, v9) or an MCAP channel / v8 (YAML text)."""
+    if isinstance(value, str):
+        return list(_qos_text(value))
     try:
         return parse_qos(value) if value else []
     except Exception:  # noqa: BLE001 - rosbags raises ReaderError/KeyError/TypeError: no QoS
         return []
+
+
+@functools.lru_cache(maxsize=64)
+def _qos_text(text: str) -> tuple[Qos, ...]:
+    try:
+        items = yaml.load(text, Loader=_LOADER) if text else []
+        return tuple(parse_qos(items)) if items else ()
+    except Exception:  # noqa: BLE001 - unreadable QoS text: none recorded
+        return ()
 
 
 def from_dict(info: dict[str, Any]) -> Metadata:
@@ -141,7 +159,7 @@ def from_dict(info: dict[str, Any]) -> Metadata:
 def parse(text: str) -> Metadata:
     """Metadata from metadata.yaml text, or from a file's serialized_metadata (which is the
     inner mapping)."""
-    data = yaml.safe_load(text)
+    data = yaml.load(text, Loader=_LOADER)
     if not isinstance(data, dict):
         raise TypeError(f"expected a mapping, got {type(data).__name__}")
     return from_dict(data.get("rosbag2_bagfile_information", data))
@@ -154,14 +172,22 @@ def load(folder: Path) -> Metadata | None:
     if not path.is_file():
         return None
     try:
-        meta = parse(path.read_text(encoding="utf-8"))
+        meta = _parse_file(str(path.resolve()), path.stat().st_mtime_ns, path.stat().st_size)
     except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError,
             AttributeError) as e:
         problem = " ".join(str(e).split()) or type(e).__name__
         raise BagError(f"bag {str(folder)!r}: unreadable metadata.yaml ({type(e).__name__}: "
                        f"{problem[:160]}); `maem-bag recover` rebuilds it from the MCAP files "
                        f"once it is removed") from None
+    meta = copy.deepcopy(meta)
     if meta.compression:
         raise BagError(f"bag {str(folder)!r}: file compression {meta.compression!r} is not "
                        f"supported (MCAP chunk compression is)")
     return meta
+
+
+@functools.lru_cache(maxsize=16)
+def _parse_file(path: str, mtime_ns: int, size: int) -> Metadata:
+    """parse() of a file, cached while it is unchanged (readers open a bag several times)."""
+    with open(path, encoding="utf-8") as f:
+        return parse(f.read())

@@ -46,7 +46,7 @@ class WriteOptions(Params):
                                     "much log time (0 = one file)", minimum=0.0)
     max_bag_size: float = param(0.0, "MB, start a new file when the open one reaches this size "
                                 "(0 = one file)", minimum=0.0)
-    chunk_duration: float = param(1.0, "s, longest a message waits in memory before its chunk "
+    chunk_duration: float = param(0.5, "s, longest a message waits in memory before its chunk "
                                   "is written (what a crash can lose)", minimum=0.0,
                                   exclusive_minimum=True)
     chunk_size: float = param(1.0, "MB, uncompressed size at which a chunk is written",
