@@ -16,6 +16,7 @@ package's own (bagio.metadata). What a crash can cost:
 """
 from __future__ import annotations
 
+import datetime
 import errno
 import os
 import time
@@ -54,6 +55,12 @@ class WriteOptions(Params):
     compress: bool = param(False, "zstd compression of MCAP chunks")
     metadata_period: float = param(2.0, "s, longest time between metadata.yaml rewrites",
                                    minimum=0.0, exclusive_minimum=True)
+
+
+def _utc(stamp_ns: int) -> str:
+    """Log time as UTC, e.g. '2026-12-04 17:03:12.345 UTC'."""
+    t = datetime.datetime.fromtimestamp(stamp_ns / 1e9, tz=datetime.timezone.utc)
+    return t.strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
 
 
 class BagWriteError(OSError):
@@ -337,7 +344,7 @@ class BagWriter:
             meta_note = "metadata.yaml not updated (readers rebuild it)"
         kept = sum(x.count for x in self._done)
         ends = [x.start_ns + x.duration_ns for x in self._done if x.count]
-        until = f", up to log time {max(ends) / 1e9:.3f} s" if ends else ""
+        until = f", up to {_utc(max(ends))}" if ends else ""
         reason = e.strerror or str(e)
         self.failed = BagWriteError(
             e.errno, f"bag {str(self.path)!r}: writing {name} failed ({reason}): stopped; "

@@ -59,7 +59,9 @@ BAG = command("maem-bag", "maem_ros.tools.bag")
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class Source:
-    """Per topic the bag's messages in order (the player's order on every loop pass)."""
+    """Per topic the bag's messages in order (the player's order on every loop pass). The
+    player publishes the bag's CDR bytes; Fast DDS delivers them zero-padded to a multiple of 4
+    bytes, so a recorded message is identical to the bag's bytes or to those padded."""
 
     seqs: dict[str, list[bytes]]
     where: dict[str, dict[bytes, list[int]]]  # topic -> data -> positions in seqs[topic]
@@ -73,6 +75,9 @@ class Source:
         for t, seq in seqs.items():
             for i, data in enumerate(seq):
                 where[t][data].append(i)
+                padded = data + bytes(-len(data) % 4)  # as DDS delivers it (4-byte multiple)
+                if padded != data:
+                    where[t][padded].append(i)
         return cls(dict(seqs), where)
 
     def check(self, msgs: Iterable[bagio.BagMessage], last: dict | None = None) -> "Checked":
