@@ -11,6 +11,7 @@ length), so nothing garbled is returned. Scans are cached per (path, size, mtime
 from __future__ import annotations
 
 import heapq
+import struct
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,7 +29,7 @@ from maem_ros.bagio.metadata import BagError
 MAGIC = b"\x89MCAP0\r\n"
 #: errors of a damaged or cut file the mcap library raises while reading records
 READ_ERRORS = (McapError, EOFError, ValueError, KeyError, IndexError, OSError, MemoryError,
-               UnicodeDecodeError)
+               UnicodeDecodeError, struct.error)
 
 
 @dataclass(frozen=True)
