@@ -12,7 +12,6 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 from rosbags.rosbag2 import Reader
 
 from maem_ros import bagio

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import heapq
 import struct
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Iterable, Iterator
@@ -274,7 +273,3 @@ def split_index(path: Path) -> tuple[int, str]:
     stem = path.name[:-len(".mcap")]
     head, _, tail = stem.rpartition("_")
     return (int(tail), path.name) if head and tail.isdigit() else (-1, path.name)
-
-
-def file_size(path: Path) -> int:
-    return os.stat(path).st_size

@@ -5,10 +5,13 @@ The MCAP files are written with the ``mcap`` library's Writer (schemas, channels
 rosbag2 stores them, so rosbags, ``ros2 bag`` and Foxglove read them); metadata.yaml is this
 package's own (bagio.metadata). What a crash can cost:
 
-* messages wait in memory in the open chunk until it holds ``chunk_size`` MB or its first
-  message is ``chunk_duration`` s old (checked on every write and by ``tick()``); a whole chunk
-  is then written with one write() and flushed to the OS, and fsync'ed at most every
-  ``chunk_duration`` s, so a killed process or a power cut loses about ``chunk_duration``;
+* messages wait in memory in the open chunk until it holds ``chunk_size`` MB or spans
+  ``chunk_duration`` s of log time (checked on every write; ``tick()`` also writes it once its
+  first message waited that long on the wall clock); a whole chunk is then written with one
+  write() and flushed to the OS, and fsync'ed at most every ``chunk_duration`` s on a
+  background thread (a slow disk never stalls the writing thread), so a killed process or a
+  power cut loses about ``chunk_duration``. Offline writers (no tick) get chunks that depend on
+  the messages only, so their files are reproducible byte for byte;
 * metadata.yaml is written when the bag opens, on every split and every ``metadata_period``
   s (atomically), listing only what is on disk;
 * a write error (ENOSPC, EFBIG from a file size limit, EIO) cuts the file back to its last whole
@@ -19,6 +22,7 @@ from __future__ import annotations
 import datetime
 import errno
 import os
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -94,6 +98,48 @@ class _Unbuffered:
         os.close(self.fd)
 
 
+class _Syncer:
+    """fsync on a background thread (os.fsync releases the GIL): ``request(fd)`` asks for a
+    sync of the open file, ``forget()`` returns once no sync runs and none will run on the
+    descriptor given before (call it before closing the file). An fsync error is kept in
+    ``error`` for the writer to raise."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()  # held while fsync runs
+        self._wake = threading.Event()
+        self._fd: int | None = None
+        self._stopped = False
+        self.error: OSError | None = None
+        self._thread = threading.Thread(target=self._run, name="bag-fsync", daemon=True)
+        self._thread.start()
+
+    def request(self, fd: int) -> None:
+        self._fd = fd
+        self._wake.set()
+
+    def forget(self) -> None:
+        with self._lock:
+            self._fd = None
+
+    def stop(self) -> None:
+        self._stopped = True
+        self.forget()
+        self._wake.set()
+        self._thread.join(timeout=10.0)
+
+    def _run(self) -> None:
+        while not self._stopped:
+            self._wake.wait()
+            self._wake.clear()
+            with self._lock:
+                if self._fd is None or self._stopped:
+                    continue
+                try:
+                    os.fsync(self._fd)
+                except OSError as e:
+                    self.error = e
+
+
 @dataclass
 class _Topic:
     name: str
@@ -149,6 +195,7 @@ class BagWriter:
         self._file: _File | None = None
         self._last_meta = self._last_sync = time.monotonic()
         self.failed: BagWriteError | None = None
+        self._syncer = _Syncer() if durable else None
         self._guarded(self._open_file)
 
     # ---- public -------------------------------------------------------------------------------
@@ -204,10 +251,14 @@ class BagWriter:
 
     def close(self) -> None:
         """Finish the open file (summary, footer) and write the final metadata.yaml."""
-        if self._file is not None and self.failed is None:
-            self._guarded(self._finish_file)
-            self._guarded(self._write_metadata)
-        self._file = None
+        try:
+            if self._file is not None and self.failed is None:
+                self._guarded(self._finish_file)
+                self._guarded(self._write_metadata)
+        finally:
+            self._file = None
+            if self._syncer is not None:
+                self._syncer.stop()
 
     def __enter__(self) -> "BagWriter":
         return self
@@ -245,7 +296,8 @@ class BagWriter:
         f.mcap.add_metadata(metadata.MCAP_METADATA_NAME, {
             metadata.MCAP_METADATA_KEY: metadata.dump(self._metadata(include_open=True))})
         f.mcap.finish()
-        if self.durable:
+        if self._syncer is not None:
+            self._syncer.forget()  # no background sync of this descriptor any more
             os.fsync(f.stream.fd)
         f.stream.close()
         self._done.append(f.committed)
@@ -275,9 +327,11 @@ class BagWriter:
         if f.pending_since is None:
             f.pending_since = time.monotonic()
         self.counts[topic.name] += 1
-        if f.pending_bytes >= self.options.chunk_size * MB:
+        if f.pending_bytes >= self.options.chunk_size * MB or \
+                stamp_ns - f.pending_times[0] >= self.options.chunk_duration * 1e9:
             self._flush_chunk()
-        self._tick()
+        if time.monotonic() - self._last_meta >= self.options.metadata_period:
+            self._write_metadata()
 
     def _tick(self) -> None:
         f, now = self._file, time.monotonic()
@@ -299,9 +353,12 @@ class BagWriter:
         for topic, n in f.pending.items():
             self._done_counts[topic] = self._done_counts.get(topic, 0) + n
         f.pending, f.pending_bytes, f.pending_since, f.pending_times = {}, 0, None, []
-        if self.durable and time.monotonic() - self._last_sync >= self.options.chunk_duration:
-            os.fsync(f.stream.fd)
-            self._last_sync = time.monotonic()
+        if self._syncer is not None:
+            if self._syncer.error is not None:
+                raise self._syncer.error
+            if time.monotonic() - self._last_sync >= self.options.chunk_duration:
+                self._syncer.request(f.stream.fd)
+                self._last_sync = time.monotonic()
 
     # ---- metadata -------------------------------------------------------------------------------
     def _metadata(self, include_open: bool) -> metadata.Metadata:
@@ -329,6 +386,8 @@ class BagWriter:
     def _fail(self, e: OSError) -> None:
         f = self._file
         name = f.path.name if f is not None else "metadata.yaml"
+        if self._syncer is not None:
+            self._syncer.forget()
         if f is not None:
             try:  # keep what is whole: cut the partly written chunk off (frees its space)
                 os.ftruncate(f.stream.fd, f.committed_bytes)
