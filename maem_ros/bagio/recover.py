@@ -147,9 +147,10 @@ def format_report(r: RecoverReport) -> list[str]:
         lines.append(f"{topic:<{width}}  {n:>9,}  {lost:>4,}" if topic in r.listed
                      else f"{topic:<{width}}  {n:>9,}     ?")
     total_lost = sum(r.lost(t) for t in r.recovered)
-    unknown = "" if r.listed else " (no metadata.yaml to compare with)"
+    lost = f"{total_lost:,} known lost (listed in the old metadata.yaml)" if r.listed else \
+        "losses per topic unknown (no metadata.yaml to compare with)"
     cut = sum(f.dropped_bytes for f in r.files)
-    lines.append(f"recovered {r.message_count:,} messages into {r.bag}; lost {total_lost:,} "
-                 f"counted in the old metadata.yaml{unknown}, plus whatever the "
-                 f"{cut:,} dropped bytes held")
+    tail = f"; {cut:,} bytes of cut chunks dropped (their messages cannot be counted)" \
+        if cut else ""
+    lines.append(f"recovered {r.message_count:,} messages into {r.bag}; {lost}{tail}")
     return lines
