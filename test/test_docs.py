@@ -9,9 +9,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 DOCUMENTS = [REPO / "README.md", *sorted((REPO / "doc").glob("*.md"))]
-#: how-tos written in parallel branches (recording, calibration); links to them are kept in
-#: the README while those branches land
-PENDING = {"doc/recording.md", "doc/calibration.md", "doc/calibration_board.md"}
+#: how-tos written in parallel branches (calibration); links to them are kept in the README
+#: while those branches land
+PENDING = {"doc/calibration.md", "doc/calibration_board.md"}
 
 _LINK = re.compile(r"\]\(([^)\s#]*)(#[^)\s]+)?\)")
 
