@@ -62,6 +62,9 @@ class Camera:
     distortion_model: str = "plumb_bob"
     D: np.ndarray = field(default_factory=lambda: np.zeros(5))
     K_rect: np.ndarray | None = None  # (3,3) intrinsics of the rectified image
+    #: s, added to this camera's message stamps to give its true capture time (a camera whose
+    #: stamps run 40 ms early has +0.04); core.sync.capture_stamp_ns applies it
+    time_offset: float = 0.0
 
     def __post_init__(self) -> None:
         self.K = _as_matrix(self.K, (3, 3), f"camera {self.name!r} K")
@@ -87,6 +90,13 @@ class Camera:
         if ortho_err > 1e-3 or abs(np.linalg.det(self.R) - 1.0) > 1e-3:
             raise ValueError(f"camera {self.name!r} R: not a rotation (det={np.linalg.det(self.R):.4f}, "
                              f"max |R R^T - I| = {ortho_err:.2g})")
+        try:
+            self.time_offset = float(self.time_offset)
+        except (TypeError, ValueError):
+            raise ValueError(f"camera {self.name!r} time_offset: {self.time_offset!r} is not a "
+                             f"number of seconds") from None
+        if not np.isfinite(self.time_offset):
+            raise ValueError(f"camera {self.name!r} time_offset: {self.time_offset} is not finite")
         self.width, self.height = int(self.width), int(self.height)
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name!r} image size: {self.width}x{self.height} is not positive")
@@ -205,7 +215,8 @@ class Camera:
 
         Accepts ``extrinsic_r`` + ``extrinsic_t`` or a 4x4 ``extrinsic`` (world->camera), a 3x3 or
         3x4 ``intrinsic``, coefficients k1..k6 p1 p2 (missing = 0). A missing image size takes
-        ``default_size`` (width, height) or, failing that, twice the principal point.
+        ``default_size`` (width, height) or, failing that, twice the principal point. An optional
+        ``time_offset`` (s, this project's key; absent = 0) is kept.
         """
         cam_name = name or data.get("name") or "camera"
         where = f"camera {cam_name!r}"
@@ -238,7 +249,7 @@ class Camera:
         else:
             width, height = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
         return cls(name=cam_name, K=K, R=R, t=t, width=width, height=height,
-                   distortion_model=model, D=D)
+                   distortion_model=model, D=D, time_offset=data.get("time_offset", 0.0))
 
     def to_maem_json(self) -> dict:
         """MAEM/xrmocap camera JSON dict (extrinsic_r + extrinsic_t, 3x3 intrinsic)."""
@@ -260,6 +271,7 @@ class Camera:
             "height": self.height,
             "world2cam": True,
             **coeff,
+            **({"time_offset": self.time_offset} if self.time_offset else {}),
         }
 
     # ---- rig YAML entry ----------------------------------------------------
@@ -271,6 +283,8 @@ class Camera:
         }
         if not np.array_equal(self.K_rect, self.K):
             d["K_rect"] = self.K_rect.tolist()
+        if self.time_offset:
+            d["time_offset"] = self.time_offset
         return d
 
     @classmethod
@@ -280,7 +294,8 @@ class Camera:
             raise ValueError(f"camera {name!r}: missing {', '.join(missing)}")
         return cls(name=name, K=d["K"], R=d["R"], t=d["t"], width=d["width"], height=d["height"],
                    distortion_model=d.get("distortion_model", "plumb_bob"),
-                   D=d.get("D", []), K_rect=d.get("K_rect"))
+                   D=d.get("D", []), K_rect=d.get("K_rect"),
+                   time_offset=d.get("time_offset", 0.0))
 
 
 def _maem_distortion_model(data: Mapping, coeff: Mapping[str, float]) -> str:

@@ -28,6 +28,7 @@ import numpy as np
 from .camera import Camera, Rig
 from .detections import FrameDetections
 from .errors import InputError
+from .sync import capture_stamp_ns, match_capture_times
 
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
 REQUIRED_KEYS = ("bbox", "bbox_score", "pred_keypoints_3d", "pred_keypoints_2d", "pred_keypoints_2d_verts")
@@ -428,6 +429,24 @@ class SceneFolder:
         path = self.frame_files(view)[int(frame)]
         return outputs_to_detections(outputs, self.rig[view], self.stamp_ns(frame),
                                      where=f"npz {str(path)!r} outputs")
+
+    def capture_frame(self, view: str, frame: int) -> int:
+        """The view's frame whose capture time (stamp + its camera's time_offset) is nearest
+        ``frame``'s stamp, within half a period; ``frame`` itself without an offset or a match."""
+        offset = self.rig[view].time_offset
+        files = sorted(self.frame_files(view))
+        if not offset or not files:
+            return int(frame)
+        idx = match_capture_times([self.stamp_ns(frame)], [self.stamp_ns(g) for g in files],
+                                  offset, int(0.5e9 / self.fps))[0]
+        return files[idx] if idx >= 0 else int(frame)
+
+    def detections_at(self, view: str, frame: int) -> FrameDetections:
+        """The view's detections captured nearest the time of ``frame`` (:meth:`capture_frame`),
+        stamped with their capture time: the offline pipeline's frame set member."""
+        dets = self.detections(view, self.capture_frame(view, frame))
+        dets.stamp_ns = capture_stamp_ns(dets.stamp_ns, self.rig[view].time_offset)
+        return dets
 
     def gt(self) -> tuple[np.ndarray, np.ndarray, str]:
         return read_gt(self.root / "gt.npz")
