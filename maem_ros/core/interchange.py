@@ -2,7 +2,9 @@
 
 A scene folder (what ``maem-sim`` writes and ``maem-eval`` reads)::
 
-    cameras/<view>.json          MAEM camera JSON (world->camera extrinsics), one per view
+    cameras/<view>.json          MAEM camera JSON (world->camera extrinsics, optional time_offset s),
+                                 one per view (intrinsics only in a scene made for calibration)
+    gt_rig.yaml                  optional (simulator): the true rig, extrinsics and time offsets
     dets/<view>/<frame:06d>.npz  SAM 3D Body outputs as the MAEM authors save them, RAW image px
     gt.npz                       xrmocap keypoints3d: pose (F,P,K,4) metres, mask (F,P,K), convention
     det_ids.npz                  optional: GT person of every detection, key "<view>/<frame:06d>",
@@ -336,11 +338,14 @@ class SceneFolder:
 
     # ---- writing --------------------------------------------------------------------------
     @classmethod
-    def create(cls, root: str | Path, rig: Rig, info: Mapping | None = None) -> "SceneFolder":
-        """Make the folder, write cameras/ and (when given) scene.json."""
+    def create(cls, root: str | Path, rig: Rig, info: Mapping | None = None,
+               extrinsics: bool = True) -> "SceneFolder":
+        """Make the folder, write cameras/ (``extrinsics`` False: intrinsics only, for
+        calibration; such a scene's :attr:`rig` cannot be read, Rig.load_intrinsics reads it)
+        and (when given) scene.json."""
         root = Path(root)
         root.mkdir(parents=True, exist_ok=True)
-        rig.to_json_folder(root / "cameras")
+        rig.to_json_folder(root / "cameras", extrinsics=extrinsics)
         if info is not None:
             (root / "scene.json").write_text(json.dumps(dict(info), indent=2))
         return cls(root)
