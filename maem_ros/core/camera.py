@@ -281,12 +281,15 @@ class Camera:
         return out
 
     # ---- rig YAML entry ----------------------------------------------------
-    def to_dict(self) -> dict:
+    def to_dict(self, extrinsics: bool = True) -> dict:
+        """Rig YAML entry (``extrinsics`` False: no R, t; read by Rig.load_intrinsics)."""
         d = {
             "width": self.width, "height": self.height,
             "K": self.K.tolist(), "R": self.R.tolist(), "t": self.t.tolist(),
             "distortion_model": self.distortion_model, "D": self.D.tolist(),
         }
+        if not extrinsics:
+            del d["R"], d["t"]
         if not np.array_equal(self.K_rect, self.K):
             d["K_rect"] = self.K_rect.tolist()
         if self.time_offset:
@@ -465,6 +468,7 @@ class Rig:
         return cls([Camera.from_dict(str(n), {**(defaults or {}), **d})
                     for n, d in data["cameras"].items()])
 
-    def to_yaml(self, path: str | Path) -> None:
-        data = {"cameras": {c.name: c.to_dict() for c in self}}
+    def to_yaml(self, path: str | Path, extrinsics: bool = True) -> None:
+        """Write the rig YAML (``extrinsics`` False: intrinsics only, for Rig.load_intrinsics)."""
+        data = {"cameras": {c.name: c.to_dict(extrinsics) for c in self}}
         Path(path).write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))

@@ -2,6 +2,7 @@
 
     maem-sim OUT --rig sportcenter6 --frames 90 --difficulty medium --seed 0 [--images] [--vertices N]
              [--time-offset CAM=S ...] [--intrinsics-only]
+    maem-sim OUT --rig lab4 --board charuco:7x5:0.15:0.11:DICT_4X4_50 --frames 20 [--board-per-camera]
 """
 from __future__ import annotations
 
@@ -28,6 +29,11 @@ Output layout:
                                    first: index p < players is gt.npz person p), -1 = false positive
   OUT/images/<view>/<frame:06d>.jpg  raw rendered images (with --images)
   OUT/scene.json                   fps, start_stamp_ns, num_frames, scene_config (regenerates the scene)
+With --board: a calibration-board sequence instead of people (sim/board.py):
+  OUT/images/<view>/<frame:06d>.png  raw grayscale images of the board, through each lens
+  OUT/board.npz                    spec, board -> world poses R (F,3,3), t (F,3), camera (F,)
+  OUT/gt_rig.yaml, OUT/cameras/    the true rig; camera JSONs (intrinsics only unless
+                                   --with-extrinsics)
 By default ground truth holds the players (is_player): referees/bystanders are distractors
 (mostly low-score detections), so triangulating one counts as a false positive in AP; with
 --gt-people all they are ground truth too.
@@ -53,6 +59,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera CAM captures each frame S seconds after its stamp (it samples the "
                    "motion at its own time; |S| < 0.9; written as time_offset into the rig); "
                    "repeat per camera")
+    p.add_argument("--board", default=None, metavar="SPEC",
+                   help="render a calibration-board sequence instead of people: "
+                   "charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT or checkerboard:COLSxROWS:SQUARE_M "
+                   "(--frames board poses; use a room-sized rig such as lab4)")
+    p.add_argument("--board-per-camera", action="store_true",
+                   help="with --board: --frames poses per camera, each seen by that camera only "
+                   "(photographed one camera at a time)")
+    p.add_argument("--with-extrinsics", action="store_true",
+                   help="with --board: cameras/ holds the full rig, not intrinsics only")
     p.add_argument("--intrinsics-only", action="store_true",
                    help="cameras/ holds intrinsics only (no extrinsics), for calibration tests; "
                    "the true rig is in gt_rig.yaml")
@@ -125,6 +140,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.vertices is not None and args.vertices < 1:
         print("maem-sim: --vertices must be >= 1", file=sys.stderr)
         return 2
+    if args.board:
+        return write_board(args)
     try:
         config = scene_config(args)
         folder = write_scene(args.out, config, images=args.images, progress=not args.quiet,
@@ -134,6 +151,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     views = len(list((args.out / "cameras").glob("*.json")))
     print(f"maem-sim: wrote {config.frames} frames x {views} views to {str(args.out)!r}")
+    return 0
+
+
+def write_board(args: argparse.Namespace) -> int:
+    """maem-sim --board: render and write a board sequence (exit code)."""
+    from ..core.calibrate.board import BoardSpec
+    from ..sim.board import board_poses, write_board_sequence
+    from ..sim.rigs import load_rig
+    try:
+        spec = BoardSpec.parse(args.board)
+        rig = load_rig(args.rig)
+        poses = board_poses(rig, spec, args.frames, args.seed, per_camera=args.board_per_camera)
+        write_board_sequence(args.out, rig, spec, poses, args.seed,
+                             intrinsics_only=not args.with_extrinsics)
+    except ValueError as e:
+        print(f"maem-sim: {e}", file=sys.stderr)
+        return 2
+    print(f"maem-sim: wrote {len(poses.R)} board poses of {spec} x {len(rig)} views to "
+          f"{str(args.out)!r}")
     return 0
 
 
