@@ -113,11 +113,12 @@ def render_board(cam: Camera, spec: BoardSpec, R_wb: np.ndarray, t_wb: np.ndarra
     n = R_cb[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = float(n @ o) / (rays @ n.astype(np.float32))
+    in_front = np.isfinite(lam) & (lam > 0)
+    lam[~in_front] = 0.0  # rays parallel to or away from the plane: no hit (masked below)
     hit = rays * lam[..., None] - o.astype(np.float32)
     border = BORDER_SQUARES * spec.square
     x = (hit @ R_cb[:, 0].astype(np.float32) + border) * ppm - 0.5
     y = (hit @ R_cb[:, 1].astype(np.float32) + border) * ppm - 0.5
-    in_front = np.isfinite(lam) & (lam > 0)
     x[~in_front] = -1e6
     y[~in_front] = -1e6
     sampled = cv2.remap(tex, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)

@@ -148,10 +148,18 @@ class CornerDetector:
             if ids is None or len(ids) < MIN_CORNERS:
                 return None
             return Detection(ids.ravel().astype(np.int64), corners.reshape(-1, 2).astype(np.float64))
-        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE
+        # CALIB_CB_ACCURACY (an upsampled search) costs 3x the time for less than the
+        # cornerSubPix refinement below gains on the sector-based corners
+        flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_NORMALIZE_IMAGE
         found, corners = cv2.findChessboardCornersSB(gray, (self.spec.cols, self.spec.rows), flags=flags)
         if not found:
             return None
+        grid = corners.reshape(self.spec.rows, self.spec.cols, 2)
+        spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
+                      np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
+        half = int(np.clip(0.3 * spacing, 2, 8))  # the window stays inside one square
+        corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (half, half), (-1, -1),
+                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4))
         return Detection(np.arange(self.spec.num_corners), corners.reshape(-1, 2).astype(np.float64))
 
 
