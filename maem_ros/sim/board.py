@@ -166,7 +166,10 @@ def _facing(spec: BoardSpec, centre: np.ndarray, towards: np.ndarray, rng: np.ra
 
 
 def _common_centre(rig: Rig) -> np.ndarray:
-    """Least-squares point nearest every camera's optical axis (world m)."""
+    """Least-squares point nearest every camera's optical axis (world m); for one camera, the
+    point 3 m along its axis."""
+    if len(rig) == 1:
+        return rig[0].center + 3.0 * rig[0].R[2]
     A, b = np.zeros((3, 3)), np.zeros(3)
     for cam in rig:
         d = cam.R[2]

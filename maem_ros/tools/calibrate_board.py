@@ -243,7 +243,10 @@ def run(args: argparse.Namespace) -> int:
         if args.step < 1:
             raise SourceError(f"--step: must be >= 1, got {args.step}")
         spec = BoardSpec.parse(args.board)
-        known = Rig.load_intrinsics(args.intrinsics) if args.intrinsics else None
+        try:
+            known = Rig.load_intrinsics(args.intrinsics) if args.intrinsics else None
+        except ValueError as e:
+            raise SourceError(f"--intrinsics: {e}") from None
         frames = detect_source(args.source, spec, args.step)
         intr = intrinsics_of(frames, spec, known)
         names = list(intr)

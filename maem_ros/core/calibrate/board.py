@@ -92,7 +92,7 @@ class BoardSpec:
             extra = {"marker": float(g[3]), "dictionary": g[4]} if kind == "charuco" else {}
             return cls(kind, int(g[0]), int(g[1]), float(g[2]), **extra)
         except ValueError as e:
-            raise ValueError(f"board {text!r}: {e}") from None
+            raise ValueError(f"board {text!r}: {str(e).removeprefix('board: ')}") from None
 
     def __str__(self) -> str:
         if self.kind == "charuco":
