@@ -219,7 +219,9 @@ def board_poses(rig: Rig, spec: BoardSpec, frames: int, seed: int = 0, per_camer
                     continue
                 # face one viewer and its nearest other viewer (their bisector): both see the
                 # pattern well, the board is not edge-on to either
-                first = int(rng.choice(viewers))
+                # the cameras take turns to be faced, so every camera shares boards
+                turn = got % len(rig)
+                first = turn if turn in viewers else int(rng.choice(viewers))
                 dirs = {c: (rig[c].center - p) / np.linalg.norm(rig[c].center - p) for c in viewers}
                 second = max((c for c in viewers if c != first), key=lambda c: dirs[c] @ dirs[first],
                              default=first)

@@ -38,8 +38,10 @@ from .bundle import BundleOptions, BundleProblem, bundle_adjust
 MIN_CORNERS = 8
 #: consistent simultaneous frames a camera pair needs to join the rig
 MIN_SHARED_FRAMES = 2
-#: two frames' relative poses agree when within these (deg, fraction of the baseline + m)
-AGREE_DEG, AGREE_REL, AGREE_M = 3.0, 0.05, 0.02
+#: two frames' relative poses agree when within these (deg, fraction of the baseline + m):
+#: a far, small board's PnP pose is good to a few degrees; frames not taken together differ
+#: by tens of degrees
+AGREE_DEG, AGREE_REL, AGREE_M = 6.0, 0.1, 0.05
 #: views whose RMS exceeds this many times the median view's are dropped once (intrinsics)
 VIEW_OUTLIER_FACTOR = 3.0
 #: bundle adjustment schedule for board corners (sub-pixel accurate): narrow losses, px
