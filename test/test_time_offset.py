@@ -3,6 +3,7 @@ the synchroniser (core/sync.py) and the offline pipeline (scene folders, maem-ev
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import yaml
 
 from maem_ros.core.calibration import read_pose2sim_toml, read_qualisys, write_pose2sim_toml
 from maem_ros.core.camera import Camera, Rig
-from maem_ros.core.interchange import SceneFolder
+from maem_ros.core.interchange import MissingDataError, SceneFolder
 from maem_ros.core.sync import ApproximateTimeSync, capture_stamp_ns, match_capture_times
 from maem_ros.sim.rigs import build_rig
 
@@ -135,4 +136,94 @@ def test_scene_folder_matches_frames_by_capture_time(tmp_path):
     assert folder.capture_frame("camera_1", 5) == 7  # 7 * 33.3 ms - 50 ms = 183 ms ~ 5 * 33.3
     dets = folder.detections_at("camera_1", 5)
     assert dets.stamp_ns == scene.stamp_ns(7) - 50 * MS
-    assert folder.capture_frame("camera_1", 7) == 7  # no later frame: unmatched, as named
+    assert folder.capture_frame("camera_1", 7) is None  # no later frame
+    with pytest.raises(MissingDataError, match="no frame captured near frame 7"):
+        folder.detections_at("camera_1", 7)
+
+
+def test_sim_camera_with_an_offset_samples_the_motion_at_its_own_time(tmp_path):
+    """A camera offset by exactly one frame period sees at frame k what it sees at frame k+1
+    of the same scene without offsets; the other cameras are unchanged; the rig carries it."""
+    from maem_ros.sim.scene import Scene
+    base = {"rig": "humanm3_3", "frames": 6, "difficulty": "none", "players": 3, "bystanders": 0,
+            "num_vertices": 60}
+    plain = Scene(base)
+    shifted = Scene({**base, "time_offsets": {"camera_1": 1 / 30}})
+    assert [c.time_offset for c in shifted.rig] == [0.0, 1 / 30, 0.0]
+    def by_person(scene, cam, k):  # detection order is shuffled per camera and frame
+        order = np.argsort(scene.detection_persons(cam, k))
+        return scene.detections(cam, k).kpts2d[order]
+
+    for k in range(5):
+        np.testing.assert_array_equal(by_person(shifted, "camera_1", k),
+                                      by_person(plain, "camera_1", k + 1))
+        np.testing.assert_array_equal(by_person(shifted, "camera_0", k),
+                                      by_person(plain, "camera_0", k))
+        np.testing.assert_array_equal(shifted.gt_keypoints(k), plain.gt_keypoints(k))
+    # a half-frame offset lies between the neighbouring frames
+    half = Scene({**base, "time_offsets": {"camera_1": -0.5 / 30}})
+    mid = half.skeleton(half.capture_position("camera_1", 3)).points
+    a, b = plain.skeleton(2).points, plain.skeleton(3).points
+    assert np.abs(mid - (a + b) / 2).max() < 0.5 * np.abs(b - a).max() + 1e-3
+    with pytest.raises(ValueError, match="unknown camera"):
+        Scene({**base, "time_offsets": {"camera_7": 0.01}})
+    with pytest.raises(ValueError, match="time_offsets"):
+        Scene({**base, "time_offsets": {"camera_1": 2.0}})
+
+
+def test_maem_sim_time_offsets_and_intrinsics_only(tmp_path):
+    import subprocess
+    import sys
+    out = tmp_path / "scene"
+    done = subprocess.run([str(Path(sys.executable).parent / "maem-sim"), str(out), "--rig",
+                           "humanm3_3", "--frames", "3", "--vertices", "60", "--quiet",
+                           "--time-offset", "camera_2=-0.025", "--intrinsics-only"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    truth = Rig.load(out / "gt_rig.yaml")
+    assert [c.time_offset for c in truth] == [0.0, 0.0, -0.025]
+    for name in truth.names:
+        assert "extrinsic_r" not in json.loads((out / "cameras" / f"{name}.json").read_text())
+    with pytest.raises(ValueError, match="intrinsics only: calibrate the rig first"):
+        Rig.load(out)
+    intr = Rig.load_intrinsics(out)
+    for t, c in zip(truth, intr):
+        np.testing.assert_array_equal(c.K, t.K)
+        assert (c.width, c.height, c.time_offset) == (t.width, t.height, t.time_offset)
+        np.testing.assert_array_equal(c.R, np.eye(3))  # a placeholder, not the truth
+    info = json.loads((out / "scene.json").read_text())
+    assert info["scene_config"]["time_offsets"] == {"camera_2": -0.025}
+    bad = subprocess.run([str(Path(sys.executable).parent / "maem-sim"), str(tmp_path / "x"),
+                          "--time-offset", "camera_2"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "expected CAMERA=SECONDS" in bad.stderr
+
+
+def test_maem_eval_applies_the_rig_offsets(tmp_path):
+    """A scene whose camera_1 captures 2 frames late: maem-eval with the rig's time_offset
+    pairs its frames by capture time (as good as a synchronised scene); the same scene with the
+    offset erased from the rig pairs wrong frames and loses accuracy."""
+    from maem_ros.tools.evaluate import build_parser, evaluate_scene
+    from maem_ros.tools.simulate import write_scene
+    from maem_ros.sim.scene import SceneConfig
+    base = dict(rig="humanm3_3", frames=14, difficulty="easy", players=4, bystanders=0,
+                num_vertices=400, seed=3)
+    write_scene(tmp_path / "sync", SceneConfig(**base), progress=False)
+    write_scene(tmp_path / "late", SceneConfig(**base, time_offsets={"camera_1": 2 / 30}),
+                progress=False)
+    import shutil
+    shutil.copytree(tmp_path / "late", tmp_path / "erased")
+    cams = tmp_path / "erased" / "cameras" / "camera_1.json"
+    data = json.loads(cams.read_text())
+    del data["time_offset"]
+    cams.write_text(json.dumps(data))
+    reports = {}
+    for name in ("sync", "late", "erased"):
+        args = build_parser().parse_args([str(tmp_path / name), "--params", "humanm3.yaml",
+                                          "--frames", "12", "--quiet", "--temporal", "off"])
+        reports[name] = evaluate_scene(args, log=lambda *a: None)
+    # GT frame f takes camera_1's frame f - 2; frames 0, 1 have none: skipped, named
+    assert reports["late"]["skips"]["missing_npz"] == 2
+    # frames 2.. (all three views): MPJPE mm
+    mpjpe = {name: float(np.nanmean(r["per_frame_mpjpe"][2:])) for name, r in reports.items()}
+    assert mpjpe["late"] < mpjpe["sync"] + 5.0, mpjpe
+    assert mpjpe["erased"] > mpjpe["late"] + 30.0, mpjpe

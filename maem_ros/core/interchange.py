@@ -435,21 +435,27 @@ class SceneFolder:
         return outputs_to_detections(outputs, self.rig[view], self.stamp_ns(frame),
                                      where=f"npz {str(path)!r} outputs")
 
-    def capture_frame(self, view: str, frame: int) -> int:
+    def capture_frame(self, view: str, frame: int) -> int | None:
         """The view's frame whose capture time (stamp + its camera's time_offset) is nearest
-        ``frame``'s stamp, within half a period; ``frame`` itself without an offset or a match."""
+        ``frame``'s stamp, within half a period (None: no such frame); ``frame`` itself when the
+        camera has no offset."""
         offset = self.rig[view].time_offset
-        files = sorted(self.frame_files(view))
-        if not offset or not files:
+        if not offset:
             return int(frame)
+        files = sorted(self.frame_files(view))
         idx = match_capture_times([self.stamp_ns(frame)], [self.stamp_ns(g) for g in files],
                                   offset, int(0.5e9 / self.fps))[0]
-        return files[idx] if idx >= 0 else int(frame)
+        return files[idx] if idx >= 0 else None
 
     def detections_at(self, view: str, frame: int) -> FrameDetections:
         """The view's detections captured nearest the time of ``frame`` (:meth:`capture_frame`),
         stamped with their capture time: the offline pipeline's frame set member."""
-        dets = self.detections(view, self.capture_frame(view, frame))
+        captured = self.capture_frame(view, frame)
+        if captured is None:
+            raise MissingDataError(f"scene {str(self.root)!r}: view {view!r} has no frame "
+                                   f"captured near frame {frame} (time_offset "
+                                   f"{self.rig[view].time_offset:+.4f} s)")
+        dets = self.detections(view, captured)
         dets.stamp_ns = capture_stamp_ns(dets.stamp_ns, self.rig[view].time_offset)
         return dets
 
