@@ -13,7 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from maem_ros.core.calibrate.board import BoardSpec, CornerDetector
-from maem_ros.core.camera import Rig
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.sim.board import board_corners_world, board_poses, render_board
 from maem_ros.sim.rigs import build_rig
 

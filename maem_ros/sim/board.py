@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..core.calibrate.board import BoardSpec
-from ..core.camera import Camera, Rig
-from .view import distort_xy
+from maem_ros.core.calibrate.board import BoardSpec
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.sim.view import distort_xy
 
 #: texture pixels per board square; supersampling of the rendered image
 TEXTURE_SQUARE_PX = 96

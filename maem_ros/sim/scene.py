@@ -14,13 +14,12 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
 from .body import BodyModel, Skeleton, forward_kinematics, gait_angles
-from .motion import ANGLE_FLOOR, Motion, pose_style, simulate_motion
+from .motion import ANGLE_FLOOR, Motion, _wrap, pose_style, simulate_motion
 from .noise import PRESETS, PersonState, SimDetections, get_preset, simulate
 from .render import Renderer
-from .motion import _wrap
 from .rigs import load_rig
 
 #: s, the largest per-camera capture offset a scene simulates (the motion's warm-up is 1 s)

@@ -26,10 +26,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from ..core.calibrate.board import (BoardSpec, CornerDetector, Detection, Intrinsics,
+from maem_ros.core.calibrate.board import (BoardSpec, CornerDetector, Detection, Intrinsics,
                                     NotSimultaneous, calibrate_extrinsics, calibrate_intrinsics)
-from ..core.calibration import write_pose2sim_toml
-from ..core.camera import Camera, Rig
+from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
+from maem_ros.core.geometry.camera import Camera, Rig
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
