@@ -278,6 +278,9 @@ def _bundle_adjust(prob: BundleProblem, opts: BundleOptions) -> BundleResult:
     residuals[ob.idx] = _residuals(st, ob)
     points = st.X.copy()
     points[prob.point_object >= 0] = prob.world_points_of(st.oR, st.ot)[prob.point_object >= 0]
+    solved = np.zeros(prob.points.shape[0], bool)
+    solved[prob.obs_point[active]] = True
+    points[~solved] = np.nan  # left out (fewer than two inlier cameras): not estimated
     result = BundleResult(R=st.R, t=st.t, focal_scale=st.s, k1=st.k1, points=points,
                           object_R=st.oR, object_t=st.ot, inliers=active, residuals=residuals,
                           iterations=iterations)
