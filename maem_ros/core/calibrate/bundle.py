@@ -49,11 +49,13 @@ from .bundle_solver import (NormalEquations, Observations, State, project, reduc
                             robust_rho, skew, solve_step)
 
 __all__ = ["BundleProblem", "BundleOptions", "BundleResult", "bundle_adjust", "robust_rho",
-           "DEFAULT_SCHEDULE"]
+           "DEFAULT_SCHEDULE", "WARM_SCHEDULE"]
 
 #: (loss name, scale px, max LM iterations) of each stage, from wide to narrow
 DEFAULT_SCHEDULE: tuple[tuple[str, float, int], ...] = (
-    ("cauchy", 50.0, 30), ("cauchy", 20.0, 30), ("soft_l1", 5.0, 60))
+    ("cauchy", 50.0, 20), ("cauchy", 20.0, 20), ("soft_l1", 5.0, 40))
+#: the last stage alone: for a start that is already close (a re-run after new observations)
+WARM_SCHEDULE: tuple[tuple[str, float, int], ...] = (("soft_l1", 5.0, 40),)
 
 
 @dataclass
@@ -149,7 +151,7 @@ class BundleOptions:
     outlier_mads: float = 5.0
     reject_rounds: int = 2
     #: LM stops when the relative cost decrease of an accepted step is below this
-    ftol: float = 1e-7
+    ftol: float = 1e-6
     covariance: bool = False
 
 

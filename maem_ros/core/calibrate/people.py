@@ -14,7 +14,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..camera import Rig
-from .bundle import BundleOptions, BundleProblem, BundleResult, bundle_adjust
+from .bundle import (DEFAULT_SCHEDULE, WARM_SCHEDULE, BundleOptions, BundleProblem, BundleResult,
+                     bundle_adjust)
 from .correspondence import MIN_SUPPORT, PairEstimate, estimate_pair, hypothesis_frames
 from .court import CourtPoints, court_similarity
 from .initial_rig import InitialRig, initial_rig
@@ -93,7 +94,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
     for gate in opts.gates_px:
         clock = time.perf_counter()
         tracks = link_tracks(data, match_frames(data, R, t, gate), projection_matrices(K, R, t))
-        result, prob = _adjust(tracks, K, R, t, opts, start.connected)
+        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm=result is not None)
         R, t = result.R, result.t
         timings[f"match+bundle {gate:g}px"] = time.perf_counter() - clock
     delta = np.zeros(C)
@@ -105,7 +106,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         if np.any(np.abs(delta) > 0.02):
             tracks = Tracks(np.stack([shift_in_time(tracks.U[c], delta[c]) for c in range(C)]),
                             tracks.D)
-            result, prob = _adjust(tracks, K, R, t, opts, start.connected)
+            result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm=True)
             R, t = result.R, result.t
         timings["time offsets"] = time.perf_counter() - clock
     clock = time.perf_counter()
@@ -120,7 +121,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
                              tracks=tracks)
 
 
-def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray):
+def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray, warm: bool):
     """Bundle-adjust the tracks' observations (every (track, frame, joint) a free point)
     from the rig (R, t); the observations of each detection form one outlier group."""
     C, T, F, J = tracks.shape
@@ -136,7 +137,8 @@ def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray)
     prob = BundleProblem(K=K, R=Rs, t=ts, points=X0, obs_camera=c,
                          obs_point=(tr * F + f) * J + j, obs_uv=U[c, tr, f, j], obs_group=group)
     fixed = (int(np.flatnonzero(connected)[0]),) + tuple(np.flatnonzero(~connected))
-    opts_b = BundleOptions(refine_focal=opts.refine_intrinsics, refine_k1=opts.refine_intrinsics,
+    opts_b = BundleOptions(schedule=WARM_SCHEDULE if warm else DEFAULT_SCHEDULE,
+                           refine_focal=opts.refine_intrinsics, refine_k1=opts.refine_intrinsics,
                            fixed_cameras=fixed, covariance=True)
     return bundle_adjust(prob, opts_b), prob
 
