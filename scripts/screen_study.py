@@ -20,8 +20,8 @@ from typing import Iterator
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from maem_ros.core import epipolar
-from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire
 from maem_ros.sim.scene import Scene, SceneConfig

@@ -31,12 +31,12 @@ def graph():
 def scene():
     """The graph tests' synthetic scene (helpers_ros.SCENE), epipolar kernel compiled."""
     sim = pytest.importorskip("maem_ros.sim.scene")
-    from maem_ros.core.association import AssociationParams, associate
+    from maem_ros.core.association.pipeline import AssociationParams, associate
     sc = sim.Scene(sim.SceneConfig(**SCENE))
     # compile the epipolar kernel (numba) before any node runs: a first-frame stall longer than
     # max_wait would make the synchroniser treat every camera as dead for one frame
     associate(sc.rig, {c: sc.detections(c, 0) for c in sc.rig.names}, AssociationParams())
-    from maem_ros.core import triangulation_kernel
+    from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
     triangulation_kernel.warmup()  # the triangulation node's RANSAC kernel likewise
     return sc
 

@@ -9,7 +9,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from maem_ros.core.camera import Rig
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 from maem_ros import bagio

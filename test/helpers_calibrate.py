@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.sim.rigs import look_at
 
 

@@ -330,10 +330,10 @@ def match_players(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndar
 def offline(scene, frames: range, temporal: bool = False):
     """The core pipeline run directly on the wire-roundtripped detections (what the nodes see):
     track-assisted association with its track ids, or per-frame + the post-hoc tracker."""
-    from maem_ros.core.association import AssociationParams
-    from maem_ros.core.temporal import TemporalAssociator, TemporalParams
-    from maem_ros.core.tracking import Tracker
-    from maem_ros.core.triangulation import TriangulationParams, triangulate
+    from maem_ros.core.association.pipeline import AssociationParams
+    from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+    from maem_ros.core.tracking.tracks import Tracker
+    from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 
     ap = AssociationParams.from_mapping(ASSOC)
     stage = TemporalAssociator(scene.rig, ap, TemporalParams(temporal=temporal))

@@ -1,17 +1,17 @@
 """The track stage's straightforward implementation (a per-camera loop of small numpy calls,
-as core/temporal.py had it before it was batched over cameras), kept here only as the reference
+as core/tracking/temporal.py had it before it was batched over cameras), kept here only as the reference
 that test_temporal_equivalence.py compares the batched stage against, frame by frame."""
 from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from maem_ros.core import epipolar
+from maem_ros.core.association.gates import epipolar
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.geometry import reprojection_errors
-from maem_ros.core.procrustes import pa_mpjpe_finite
+from maem_ros.core.geometry.multiview import reprojection_errors
+from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.core.temporal import (_GATED, TemporalAssociator, _depth, _nanmedian, _project,
+from maem_ros.core.tracking.temporal import (_GATED, TemporalAssociator, _depth, _nanmedian, _project,
                                     _verify)
 
 
@@ -90,7 +90,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
         gates (bbox-centre reprojection, epipolar on mesh vertices or keypoints, PA-MPJPE cost
         of the lower camera's 3D pose aligned onto the other's under tau_cost), the same tests
-        (core.geometry, core.epipolar, core.procrustes) the cross-view association applies, on
+        (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view association applies, on
         the few pairs inside the tracks' clusters only."""
         T, M = present.shape
         a_idx, b_idx = np.triu_indices(M, 1)

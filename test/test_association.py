@@ -6,12 +6,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from maem_ros.core import epipolar
-from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
-from maem_ros.core.camera import Camera, Rig, fundamental_matrix
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.association.pipeline import PAPER_PIPELINE, AssociationParams, associate
+from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.geometry import reprojection_errors
-from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
+from maem_ros.core.geometry.multiview import reprojection_errors
+from maem_ros.core.geometry.procrustes import pa_mpjpe, pa_mpjpe_finite
 
 V, J = 400, 24
 PAPER = PAPER_PIPELINE

@@ -13,13 +13,15 @@ from scipy.spatial.transform import Rotation
 
 from test_association import ring_rig
 
-from maem_ros.core import epipolar, procrustes, procrustes_kernel
-from maem_ros.core.association import (_BOUND_MARGIN, AssociationParams, _enumerate_pairs,
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.geometry import procrustes
+from maem_ros.core.geometry import procrustes_kernel
+from maem_ros.core.association.pipeline import (_BOUND_MARGIN, AssociationParams, _enumerate_pairs,
                                        _fundamental_stack, _reprojection_gate, rig_geometry)
-from maem_ros.core.clustering import _disjoint_greedy, _members_padded, _verified_disjoint
+from maem_ros.core.association.clustering import _disjoint_greedy, _members_padded, _verified_disjoint
 from maem_ros.core.detections import DetectionTable, FrameDetections
-from maem_ros.core.geometry import pair_reprojection_bound, pair_reprojection_errors
-from maem_ros.core.procrustes import pa_mpjpe, pa_mpjpe_finite
+from maem_ros.core.geometry.multiview import pair_reprojection_bound, pair_reprojection_errors
+from maem_ros.core.geometry.procrustes import pa_mpjpe, pa_mpjpe_finite
 
 
 def svd_reference(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -143,7 +145,7 @@ def test_numba_reprojection_pass_enumerates_and_decides_like_the_numpy_path(redu
     """Same pairs in the same order and the same decisions, also at thresholds equal to a
     pair's DLT error (the kernel's arithmetic is numpy's), for missing centres and for
     points behind a camera."""
-    from maem_ros.core.reprojection_kernel import reprojection_gate
+    from maem_ros.core.association.gates.reprojection_kernel import reprojection_gate
     rng = np.random.default_rng(5)
     rig = ring_rig(5)
     table = _table(rig, rng, [30, 0, 25, 30, 28])

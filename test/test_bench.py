@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
+from maem_ros.core.association.pipeline import PAPER_PIPELINE, AssociationParams, associate
 from maem_ros.sim.rigs import load_rig
 from maem_ros.tools.bench_load import (body_template, make_frame, pa_mpjpe_one,
                                        straightforward_associate)

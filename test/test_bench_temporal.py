@@ -6,8 +6,8 @@ import json
 import numpy as np
 from test_bench import _bench
 
-from maem_ros.core.association import AssociationParams
-from maem_ros.core.temporal import TemporalAssociator, TemporalParams
+from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
 from maem_ros.sim.rigs import load_rig
 from maem_ros.tools.bench_load import body_template, make_sequence
 

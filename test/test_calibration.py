@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from maem_ros.core.calibration import read_pose2sim_toml, read_qualisys, rotate_view
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.rig_formats import read_pose2sim_toml, read_qualisys, rotate_view
+from maem_ros.core.geometry.camera import Camera, Rig
 
 # Two cameras of Pose2Sim/Demo_MultiPerson/calibration/Calib.qca.txt (pose2sim 0.10.49), verbatim
 _CAM01 = """<camera active="1" avg-residual="0.402000" model="none" point-count="999999999" serial="cam01" viewrotation="{rot}">
@@ -187,7 +187,7 @@ def test_real_qualisys_file(pose2sim_demo):
 def test_pose2sim_toml_writer_round_trips(tmp_path):
     """write_pose2sim_toml -> the project's reader: the same cameras (k3 kept when non-zero, a
     fisheye and a rational_polynomial camera too), in the Pose2Sim/anipose layout."""
-    from maem_ros.core.calibration import write_pose2sim_toml
+    from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
     from maem_ros.sim.rigs import build_rig
     cams = build_rig("sportcenter6").cameras[:2] + build_rig("humanm3_3").cameras[:1]
     cams[2].name = "pinhole"
@@ -219,7 +219,7 @@ def test_pose2sim_toml_writer_round_trips(tmp_path):
 
 
 def test_pose2sim_toml_writer_bad_input(tmp_path):
-    from maem_ros.core.calibration import write_pose2sim_toml
+    from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
     from maem_ros.sim.rigs import build_rig
     cam = build_rig("humanm3_3")[0]
     cam.name = "metadata"

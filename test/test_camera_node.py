@@ -14,7 +14,7 @@ import pytest
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.capture import Capture, ImageFolderSource, VideoSource, make_source
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.ros.wire import camera_info_msg
 from maem_ros.ros.common import IMAGE_QOS
 

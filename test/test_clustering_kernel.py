@@ -1,4 +1,4 @@
-"""The consistent clustering's numba kernels (core/clustering_kernel.py) give the numpy paths'
+"""The consistent clustering's numba kernels (core/association/clustering_kernel.py) give the numpy paths'
 results: the merge check's verdicts on candidate clusters (members padded anywhere, joints
 unusable, points behind a camera, too few rays), the cluster-level table update, and the
 greedy merge rounds (labels and stats, on random tables with tied gains and refused merges,
@@ -12,8 +12,9 @@ from hypothesis import strategies as st
 
 from test_association import ring_rig
 
-from maem_ros.core import clustering, clustering_kernel
-from maem_ros.core.association import AssociationParams, associate, rig_geometry
+from maem_ros.core.association import clustering
+from maem_ros.core.association import clustering_kernel
+from maem_ros.core.association.pipeline import AssociationParams, associate, rig_geometry
 from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, DetectionTable,
                                       FrameDetections, PairSet)
 from maem_ros.core.skeleton import joint_subset

@@ -9,8 +9,8 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from maem_ros.core import epipolar
-from maem_ros.core.camera import fundamental_matrix
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.geometry.camera import fundamental_matrix
 from test_association import VARIANTS, ring_rig, two_facing_cameras
 
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
@@ -358,7 +358,7 @@ def test_the_kernels_function_attributes_reach_llvm(intrinsic, attribute):
     numba = pytest.importorskip("numba")
     import platform
 
-    from maem_ros.core import epipolar_kernel
+    from maem_ros.core.association.gates import epipolar_kernel
     if intrinsic == "estimated_rsqrt" and platform.machine().lower() not in ("x86_64", "amd64"):
         pytest.skip("the estimate alone is used on x86-64 only")
     mark = getattr(epipolar_kernel, intrinsic)
@@ -398,7 +398,7 @@ def _lru_misses(order: np.ndarray, pa: np.ndarray, pb: np.ndarray, cap: int) -> 
 def test_locality_order_keeps_runs_whole_and_in_order(seed, detections, cap):
     if not epipolar.have_numba():
         pytest.skip("numba not installed")
-    from maem_ros.core import epipolar_kernel
+    from maem_ros.core.association.gates import epipolar_kernel
     rng = np.random.default_rng(seed)
     S = int(rng.integers(1, 4 * detections + 1))
     key = np.unique(rng.integers(0, 3 * detections * detections, S))  # (a, camera pair, b)
@@ -426,7 +426,7 @@ def test_locality_order_reads_a_ring_of_detections_from_cache():
     an LRU cache of 8 detections once, not once per pair."""
     if not epipolar.have_numba():
         pytest.skip("numba not installed")
-    from maem_ros.core import epipolar_kernel
+    from maem_ros.core.association.gates import epipolar_kernel
     D = 200
     pa, pb = _ring_pairs(D, 3)
     perm = epipolar_kernel.locality_order(pa, pb, np.zeros(D, np.int64), D, 8)
@@ -442,7 +442,7 @@ def test_several_blocks_sum_each_pair_as_in_the_given_order(symmetric):
     point."""
     if not epipolar.have_numba():
         pytest.skip("numba not installed")
-    from maem_ros.core import epipolar_kernel
+    from maem_ros.core.association.gates import epipolar_kernel
     rng = np.random.default_rng(7)
     D, n = 40, 3 * epipolar.BLOCK + 100
     F = fundamental_matrix(*two_facing_cameras())

@@ -10,8 +10,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from maem_ros.core import epipolar
-from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.association.pipeline import AssociationParams, associate
 
 #: a rectified pair (b = a shifted along x): epipolar lines are image rows, so a vertex's
 #: (symmetric and forward) distance is exactly its row offset |v_b - v_a|
@@ -299,7 +299,7 @@ def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
     path): the gate reads the copies (no gather of its own) and the block ranges, and every
     decision and mean is the one it gives when it gathers the subsets and scans the blocks
     itself, bit for bit; a detections subset (select) keeps its rows' copies and ranges."""
-    from maem_ros.core import association
+    from maem_ros.core.association import pipeline as association
     from maem_ros.ros import wire
     params = AssociationParams(k_min=2)
     strides = association.decode_screen_strides(params)
@@ -338,7 +338,7 @@ def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
 
 def _gate_means(scene, frames, params):
     """(keep, mean) of the mesh gate on every cross-camera pair of the frame set."""
-    from maem_ros.core import association
+    from maem_ros.core.association import pipeline as association
     from maem_ros.core.detections import DetectionTable
     by_index = {k: frames[c] for k, c in enumerate(scene.rig.names)}
     table = DetectionTable.build(by_index, len(scene.rig.names))

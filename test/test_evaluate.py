@@ -14,7 +14,7 @@ from maem_ros.tools import evaluate
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 HAVE_PIPELINE = all(importlib.util.find_spec(m) is not None for m in
-                    ("maem_ros.core.association", "maem_ros.core.triangulation", "maem_ros.core.metrics"))
+                    ("maem_ros.core.association.pipeline", "maem_ros.core.triangulation.ransac", "maem_ros.core.metrics.poses"))
 HAVE_SIM = importlib.util.find_spec("maem_ros.sim.scene") is not None
 needs_pipeline = pytest.mark.skipif(not HAVE_PIPELINE, reason="core association/triangulation/metrics missing")
 

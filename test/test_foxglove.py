@@ -23,7 +23,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from helpers_bags import T0_NS, known_frames, two_camera_rig, write_poses_bag
 from helpers_ros import killed_on_exit
-from maem_ros.core.frames import rig_transforms
+from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 from maem_ros.viz import scene

@@ -6,7 +6,7 @@ import importlib.util
 import numpy as np
 import pytest
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.interchange import SceneFolder, detections_to_outputs
 from maem_ros.core.detections import FrameDetections
 from maem_ros.frontend.base import Estimator, StridedEstimator, backends, make_estimator, register_backend

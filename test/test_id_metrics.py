@@ -1,10 +1,10 @@
-"""IDF1 and ID switches (core/id_metrics.py) on hand-made trajectories with hand-computed answers."""
+"""IDF1 and ID switches (core/metrics/identity.py) on hand-made trajectories with hand-computed answers."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from maem_ros.core.id_metrics import identity_metrics
+from maem_ros.core.metrics.identity import identity_metrics
 
 J = 4
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import (MissingDataError, SceneFolder, detections_to_outputs,
                                        outputs_to_detections, read_gt, read_maem_npz, validate_output,

@@ -4,11 +4,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from maem_ros.core.association import Cluster
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.association.pipeline import Cluster
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import BLAZEPOSE_33, SPORTCENTER_13
-from maem_ros.core.triangulation import TriangulationParams, mirror_permutation, triangulate
+from maem_ros.core.triangulation.ransac import TriangulationParams, mirror_permutation, triangulate
 
 
 def look_at(name: str, centre: np.ndarray, target=np.array([0.0, 0.0, 1.0])) -> Camera:

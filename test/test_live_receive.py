@@ -11,7 +11,7 @@ from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
 from helpers_ros import start_pipeline, wait_for
-from maem_ros.core.camera import Rig
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
 from maem_ros.ros import wire
 from maem_ros.ros.common import arrival_ns

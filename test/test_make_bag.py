@@ -11,7 +11,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.interchange import (SceneFolder, outputs_to_detections, read_maem_npz,
                                        write_gt, write_maem_npz)
 from maem_ros.ros.wire import TF_STATIC_TOPIC, msg_to_detections, msg_to_poses, msg_to_transforms

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros import bagio
 from maem_ros.tools.make_bag import DEFAULT_START_NS, main, stamp_ns
 

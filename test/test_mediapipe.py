@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
-from maem_ros.core.association import AssociationParams, associate
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.association.pipeline import AssociationParams, associate
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.skeleton import (BLAZEPOSE_33, COCO_17, SPORTCENTER_13, convention_for,
                                     convert, get_convention)
-from maem_ros.core.triangulation import TriangulationParams, triangulate
+from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 from maem_ros.frontend.base import make_estimator
 from maem_ros.frontend.mediapipe_pose import INSTALL_HELP, import_mediapipe
 from maem_ros.frontend.rectify import Rectifier

@@ -1,4 +1,4 @@
-"""Metrics (core/metrics.py, core/procrustes.py) on hand-computed examples."""
+"""Metrics (core/metrics/poses.py, core/geometry/procrustes.py) on hand-computed examples."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
-from maem_ros.core.metrics import average_precision, evaluate_sequence, match_frame, mpjpe, pa_mpjpe
-from maem_ros.core.procrustes import procrustes_align
+from maem_ros.core.metrics.poses import average_precision, evaluate_sequence, match_frame, mpjpe, pa_mpjpe
+from maem_ros.core.geometry.procrustes import procrustes_align
 
 J = 6
 SKELETON = np.random.default_rng(42).normal(scale=0.4, size=(J, 3))

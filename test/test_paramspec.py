@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import pytest
 
-from maem_ros.core.association import AssociationParams
+from maem_ros.core.association.pipeline import AssociationParams
 from maem_ros.core.paramspec import ParamError, Params, ParamSpec, param, param_specs
-from maem_ros.core.triangulation import TriangulationParams
+from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.params import load_node_params
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from maem_ros.core.camera import Camera
+from maem_ros.core.geometry.camera import Camera
 from maem_ros.frontend.rectify import Rectifier
 
 CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"

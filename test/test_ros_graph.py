@@ -150,7 +150,7 @@ def test_frontend_sends_q4_and_an_announced_vertex_subset(graph):
     sim = pytest.importorskip("maem_ros.sim.scene")
     from sensor_msgs.msg import Image
 
-    from maem_ros.core import epipolar
+    from maem_ros.core.association.gates import epipolar
     from maem_ros.ros.common import IMAGE_QOS
     from maem_ros.ros.frontend_node import FrontendNode
 

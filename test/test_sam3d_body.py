@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.frontend.base import make_estimator
 from maem_ros.frontend.rectify import Rectifier

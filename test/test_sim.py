@@ -4,7 +4,7 @@ import time
 import numpy as np
 import pytest
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.skeleton import MHR70_NAMES
 from maem_ros.params import resolve_rig_path
 from maem_ros.sim import body as body_mod

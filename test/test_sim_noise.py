@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from maem_ros.core.procrustes import pa_mpjpe
+from maem_ros.core.geometry.procrustes import pa_mpjpe
 from maem_ros.core.skeleton import COCO_17
 from maem_ros.sim.body import JOINT_GROUP, NOISE_GROUPS
 from maem_ros.sim.scene import Scene, SceneConfig

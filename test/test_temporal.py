@@ -1,4 +1,4 @@
-"""Track-assisted association (core/temporal.py) on constructed sequences with known answers:
+"""Track-assisted association (core/tracking/temporal.py) on constructed sequences with known answers:
 exact pinhole cameras, rigid bodies walking at known velocities, known identity of every row."""
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import pytest
 
 from test_association import look_at, ring_rig
 
-from maem_ros.core.association import AssociationParams, associate
-from maem_ros.core.camera import Rig
+from maem_ros.core.association.pipeline import AssociationParams, associate
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.temporal import (FLAG_FEW_VIEWS, FLAG_TRACKED, TemporalAssociator,
+from maem_ros.core.tracking.temporal import (FLAG_FEW_VIEWS, FLAG_TRACKED, TemporalAssociator,
                                     TemporalParams)
 
 V, J = 300, 24
@@ -167,7 +167,7 @@ def test_a_wrong_per_frame_match_is_avoided_with_tracks():
     different pose; in one frame cam1's 3D poses come swapped (a transient frontend failure):
     the wrong pairs then cost 0, the true ones PA(a, b) (still under tau_cost), so a per-frame
     association picks the wrong pairs while the tracks' 2D evidence keeps the true ones."""
-    from maem_ros.core.procrustes import pa_mpjpe
+    from maem_ros.core.geometry.procrustes import pa_mpjpe
     rig = facing_pair_rig()
     a = Walker((-1.0, 0.0), (0.0, 0.3), 8)
     b = Walker((1.0, 0.0), (0.0, 0.3), 8)

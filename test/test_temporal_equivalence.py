@@ -1,4 +1,4 @@
-"""The batched track stage (core/temporal.py) makes exactly the decisions of its straightforward
+"""The batched track stage (core/tracking/temporal.py) makes exactly the decisions of its straightforward
 per-camera implementation (test/temporal_reference.py): every frame's clusters, members, costs,
 track ids, flags and statistics, and the tracks' states, on the bench load in motion (several
 seeds, people walking through each other) and on constructed crossing / occlusion sequences."""
@@ -12,8 +12,8 @@ import pytest
 from temporal_reference import ReferenceTemporalAssociator
 from test_temporal import PARAMS, Walker, frame, ring_rig
 
-from maem_ros.core.association import AssociationParams
-from maem_ros.core.temporal import TemporalAssociator, TemporalParams
+from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
 from maem_ros.tools.bench_load import body_template, load_bench_rig, make_sequence
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 
-from maem_ros.core.frames import rig_transforms
+from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.params import resolve_rig_path
 from maem_ros.ros import wire
 
@@ -19,7 +19,7 @@ BIN = Path(sys.executable).parent
 
 
 def test_rig_transforms_are_the_camera_poses() -> None:
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.geometry.camera import Rig
     rig = Rig.load(resolve_rig_path("sportcenter6"))
     transforms = rig_transforms(rig, "court")
     X = np.random.default_rng(0).uniform(-10, 10, (50, 3))
@@ -33,7 +33,7 @@ def test_rig_transforms_are_the_camera_poses() -> None:
 
 def test_tf_message_roundtrip_and_bad_quaternion() -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.geometry.camera import Rig
     rig = Rig.load(resolve_rig_path("humanm3_4"))
     msg = wire.tf_message(rig_transforms(rig), 5_000_000_123)
     assert isinstance(msg, tf2.TFMessage) and len(msg.transforms) == len(rig)
@@ -55,7 +55,7 @@ def _association(tmp_path: Path, env: dict | None = None) -> subprocess.Popen:
 
 def test_tf_static_reaches_a_late_subscriber_in_another_process(tmp_path: Path) -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.geometry.camera import Rig
     from maem_ros.ros.common import TF_STATIC_QOS
     rig = Rig.load(resolve_rig_path("sportcenter6"))
     proc = _association(tmp_path)
@@ -95,7 +95,7 @@ def test_without_tf2_msgs_the_node_runs_and_says_tf_is_skipped(tmp_path: Path) -
 def test_player_replays_tf_static_of_a_bag(tmp_path: Path) -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
     from maem_ros import bagio
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.geometry.camera import Rig
     from maem_ros.ros.common import TF_STATIC_QOS
     rig = Rig.load(resolve_rig_path("humanm3_3"))
     t0 = 1_700_000_000_000_000_000

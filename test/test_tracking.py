@@ -1,11 +1,11 @@
-"""Persistent ids (core/tracking.py)."""
+"""Persistent ids (core/tracking/tracks.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings, strategies as st
 
-from maem_ros.core.tracking import Tracker
+from maem_ros.core.tracking.tracks import Tracker
 
 J = 5
 SHAPE = np.random.default_rng(0).normal(scale=0.2, size=(J, 3))
@@ -125,9 +125,9 @@ def test_bad_input() -> None:
 
 
 def test_bone_filter_marks_implausible_limb_joints_only():
-    """core.bone_filter: a wrist 60 % off the track's forearm length becomes NaN, the rest of
+    """core.tracking.bone_filter: a wrist 60 % off the track's forearm length becomes NaN, the rest of
     the body and untracked people are untouched; a wrong elbow does not condemn its wrist."""
-    from maem_ros.core.bone_filter import BoneLengthFilter
+    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.skeleton import SPORTCENTER_13
     names = list(SPORTCENTER_13.names)
     ix = {n: i for i, n in enumerate(names)}
@@ -154,12 +154,12 @@ def test_bone_filter_marks_implausible_limb_joints_only():
 
 class _BoneFilterLoop:
     """The bone filter read literally (one deque of lengths per track, one person at a time):
-    the reference of the batched core.bone_filter.BoneLengthFilter."""
+    the reference of the batched core.tracking.bone_filter.BoneLengthFilter."""
 
     def __init__(self, names, tolerance, history, min_samples, max_tracks):
         from collections import deque
 
-        from maem_ros.core.bone_filter import limb_bones
+        from maem_ros.core.tracking.bone_filter import limb_bones
         self.bones, self.tol, self.min_samples, self.max_tracks = (limb_bones(names), tolerance,
                                                                    min_samples, max_tracks)
         self.new = lambda: deque(maxlen=history)
@@ -195,7 +195,7 @@ def test_bone_filter_equals_a_per_person_loop(seed, history, min_samples):
     """Random crowds over many frames: ids coming and going (more than the filter keeps, so
     the oldest are forgotten), untracked people, an id twice in a frame, missing joints and
     wrong limbs: the same joints marked, the same counts."""
-    from maem_ros.core import bone_filter
+    from maem_ros.core.tracking import bone_filter
     from maem_ros.core.skeleton import SPORTCENTER_13
     names = list(SPORTCENTER_13.names)
     rng = np.random.default_rng(seed)
@@ -232,7 +232,7 @@ def _run_bone_filters(fast, ref, bodies, rng) -> int:
 
 class _TrackerLoop:
     """The tracker read literally (one object per track, one matched person at a time): the
-    reference of the array-based core.tracking.Tracker."""
+    reference of the array-based core.tracking.tracks.Tracker."""
 
     def __init__(self, gate_m, min_hits, timeout_s):
         self.gate, self.min_hits, self.timeout = gate_m, min_hits, int(round(timeout_s * 1e9))

@@ -1,4 +1,4 @@
-"""MAEM stage 3 (core/triangulation.py) against exact geometric answers."""
+"""MAEM stage 3 (core/triangulation/ransac.py) against exact geometric answers."""
 from __future__ import annotations
 
 import time
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.geometry import dlt
-from maem_ros.core.triangulation import Poses, TriangulationParams, triangulate
+from maem_ros.core.geometry.multiview import dlt
+from maem_ros.core.triangulation.ransac import Poses, TriangulationParams, triangulate
 
 
 def look_at(centre, target=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -270,7 +270,7 @@ def test_min_views_parameter() -> None:
 
 
 def test_real_cluster_type_if_available() -> None:
-    association = pytest.importorskip("maem_ros.core.association")
+    association = pytest.importorskip("maem_ros.core.association.pipeline")
     rig = ring_rig(3)
     X = people(1, 5)
     frames = make_frames(rig, X)
@@ -295,7 +295,7 @@ def test_speed_ten_people_six_views() -> None:
 def test_simulated_scene_exact_without_noise() -> None:
     """Noise-free simulated court: GT-built clusters triangulate to the GT joints."""
     scene_mod = pytest.importorskip("maem_ros.sim.scene")
-    from maem_ros.core.metrics import evaluate_sequence
+    from maem_ros.core.metrics.poses import evaluate_sequence
 
     scene = scene_mod.Scene(scene_mod.SceneConfig(frames=2, difficulty="none", num_vertices=50,
                                                   bystanders=0, players=4))

@@ -1,4 +1,4 @@
-"""The fused RANSAC kernel (core.triangulation_kernel) against the numpy path and against a
+"""The fused RANSAC kernel (core.triangulation.ransac_kernel) against the numpy path and against a
 straightforward per-cluster, per-keypoint loop (SVD least squares), on random geometry with
 outlier views, missing (NaN) keypoints, absent members and zero scores."""
 from __future__ import annotations
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core import triangulation_kernel
-from maem_ros.core.triangulation import (TriangulationParams, _MIN_WEIGHT, _ransac_numpy,
+from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
+from maem_ros.core.triangulation.ransac import (TriangulationParams, _MIN_WEIGHT, _ransac_numpy,
                                          triangulate_members)
-from maem_ros.core.triangulation_kernel import ransac_keypoints
+from maem_ros.core.triangulation.ransac_kernel import ransac_keypoints
 
 needs_numba = pytest.mark.skipif(not triangulation_kernel.have_numba(),
                                  reason="numba not installed")

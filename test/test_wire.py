@@ -13,8 +13,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from visualization_msgs.msg import Marker
 
-from maem_ros.core import epipolar
-from maem_ros.core.camera import Camera, Rig
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire

@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import PointCloud2, PointField
 
-from maem_ros.core import epipolar
-from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.core.detections import FrameDetections
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire

@@ -8,7 +8,7 @@ from sensor_msgs.msg import PointCloud2
 from test_wire import small_rig
 
 from maem_ros.core.detections import Cluster, FrameDetections
-from maem_ros.core.temporal import FLAG_FEW_VIEWS, FLAG_TRACKED
+from maem_ros.core.tracking.temporal import FLAG_FEW_VIEWS, FLAG_TRACKED
 from maem_ros.ros import wire
 
 

@@ -27,10 +27,10 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from .camera import Camera, Rig
-from .detections import FrameDetections
-from .errors import InputError
-from .sync import capture_stamp_ns, match_capture_times
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.errors import InputError
+from maem_ros.core.sync import capture_stamp_ns, match_capture_times
 
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
 REQUIRED_KEYS = ("bbox", "bbox_score", "pred_keypoints_3d", "pred_keypoints_2d", "pred_keypoints_2d_verts")

@@ -18,8 +18,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
 
 
 class Estimator(ABC):

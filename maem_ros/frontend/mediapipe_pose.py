@@ -52,9 +52,9 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
-from ..core.skeleton import BLAZEPOSE_33, KeypointConvention, convert, get_convention
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.skeleton import BLAZEPOSE_33, KeypointConvention, convert, get_convention
 from .base import Estimator, check_bgr_image, option_float, option_int
 
 

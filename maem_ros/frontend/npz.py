@@ -17,9 +17,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
-from ..core.interchange import (DEFAULT_FPS, MissingDataError, frame_at_stamp, index_frame_files,
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.interchange import (DEFAULT_FPS, MissingDataError, frame_at_stamp, index_frame_files,
                                 outputs_to_detections, read_maem_npz)
 from .base import Estimator, option_float, option_int
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from maem_ros.core.camera import Camera
+from maem_ros.core.geometry.camera import Camera
 
 
 class Rectifier:

@@ -53,9 +53,9 @@ from typing import Any, Callable, Mapping, Sequence
 import cv2
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
-from ..core.skeleton import KeypointConvention, get_convention
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.skeleton import KeypointConvention, get_convention
 from .base import Estimator, check_bgr_image, option_float
 from .rectify import Rectifier
 

@@ -15,8 +15,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
 from .base import Estimator
 
 #: frontend option -> SceneConfig field

@@ -27,7 +27,7 @@ from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.capture import Capture, Poll, make_source, to_bgr
-from maem_ros.core.camera import Camera
+from maem_ros.core.geometry.camera import Camera
 from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
 from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, Stopwatch,

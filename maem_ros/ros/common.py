@@ -668,7 +668,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
 
 def load_rig_param(value: str, name: str = "rig"):
     """The Rig named by a ``rig`` parameter (file, folder or shipped name); ConfigError if not."""
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.geometry.camera import Rig
     from maem_ros.params import resolve_rig_path
 
     if not value:
@@ -684,7 +684,7 @@ def publish_rig_tf(node: Node, rig, world_frame: str):
     """Publish world -> every rig camera once on /tf_static (transient local, so late joiners
     get it); the publisher, or None with one log line when tf2_msgs is not importable (it is
     built by ``make``, see README)."""
-    from maem_ros.core.frames import rig_transforms
+    from maem_ros.core.geometry.frames import rig_transforms
     from maem_ros.ros import wire
 
     try:

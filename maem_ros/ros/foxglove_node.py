@@ -76,7 +76,7 @@ class FoxgloveNode(Node):
             if unknown:
                 raise ConfigError(f"parameter 'cameras': {unknown} not in the rig "
                                   f"({rig.names})")
-            from maem_ros.core.camera import Rig
+            from maem_ros.core.geometry.camera import Rig
             rig = Rig([rig[c] for c in p["cameras"]])
         from maem_ros.viz.bridge import FoxgloveBridge
         try:

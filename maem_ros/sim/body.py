@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.skeleton import MHR70_NAMES
+from maem_ros.core.skeleton import MHR70_NAMES
 
 J = len(MHR70_NAMES)
 _IDX = {n: i for i, n in enumerate(MHR70_NAMES)}

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.camera import Camera
+from maem_ros.core.geometry.camera import Camera
 from .body import ANGLE_KEYS, JOINT_GROUP, NOISE_GROUPS, BodyModel, Skeleton, forward_kinematics, gait_angles
 from .rigs import COURT_LENGTH, COURT_WIDTH
 from .view import (camera_to_normalised_xy, camera_to_rectified, camera_to_rectified_xy, distort_points,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..core.camera import Camera
+from maem_ros.core.geometry.camera import Camera
 from .body import PART_CLASS, PART_NAMES, BodyModel
 from .rigs import BASKETS, COURT_LENGTH, COURT_WIDTH
 from .view import project_raw

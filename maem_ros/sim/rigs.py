@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Camera, Rig
 
 COURT_LENGTH = 28.0  # m, along world x
 COURT_WIDTH = 15.0  # m, along world y

@@ -14,8 +14,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
-from ..core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.detections import FrameDetections
 from .body import BodyModel, Skeleton, forward_kinematics, gait_angles
 from .motion import ANGLE_FLOOR, Motion, pose_style, simulate_motion
 from .noise import PRESETS, PersonState, SimDetections, get_preset, simulate

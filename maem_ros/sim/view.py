@@ -10,7 +10,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..core.camera import Camera
+from maem_ros.core.geometry.camera import Camera
 
 
 def fold_radius(camera: Camera) -> float:

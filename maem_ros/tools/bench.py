@@ -17,7 +17,7 @@ pixels, per-pair distances), and checks both give identical clusters.
                                                 # (tools/live.py)
 
 Temporal on/off (same run): the load in motion (tools/bench_load.make_sequence: the same people
-walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.temporal's
+walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.tracking.temporal's
 track-assisted association and through the per-frame association; per-frame times after the
 first frame (steady state: tracks explain the known people, cross-view association runs on the
 rest), the first frame apart, and the detections left to the cross-view stage; each frame
@@ -115,9 +115,9 @@ def run(args: argparse.Namespace) -> dict:
 
     import dataclasses
 
-    from ..core.association import (PAPER_PIPELINE, AssociationParams, associate,
+    from maem_ros.core.association.pipeline import (PAPER_PIPELINE, AssociationParams, associate,
                                     decode_screen_strides)
-    from ..core.triangulation import TriangulationParams, triangulate
+    from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
     from ..params import load_node_params
     from ..ros import wire
     from .bench_load import body_template, load_bench_rig, make_frame, straightforward_associate
@@ -237,8 +237,8 @@ def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
     """Temporal on vs off on the load in motion (module docstring)."""
     import numpy as np
 
-    from ..core.association import associate, decode_screen_strides
-    from ..core.temporal import TemporalAssociator, TemporalParams
+    from maem_ros.core.association.pipeline import associate, decode_screen_strides
+    from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from ..ros import wire
     from .bench_load import make_sequence
 

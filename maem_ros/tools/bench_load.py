@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ..core.association import AssociationParams
-from ..core.camera import Camera, Rig, fundamental_matrix
-from ..core.detections import FrameDetections
+from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
+from maem_ros.core.detections import FrameDetections
 
 #: half-extent of the court area players stand on (world x, y metres; court 28 x 15 m)
 COURT_HALF = (13.0, 6.5)
@@ -257,7 +257,7 @@ def pa_mpjpe_one(X: np.ndarray, Y: np.ndarray) -> float:
 def straightforward_associate(rig: Rig, raw: dict[str, RawDetections],
                               params: AssociationParams) -> list[np.ndarray]:
     """Reference MAEM association; returns clusters as (M,2) (camera index, detection) arrays,
-    sorted like core.association.associate's."""
+    sorted like core.association.pipeline.associate's."""
     names = [n for n in rig.names if n in raw]
     sub = None
     edges = []
@@ -278,7 +278,7 @@ def straightforward_associate(rig: Rig, raw: dict[str, RawDetections],
                     if params.reproj_gate and not err < params.tau_reproj_bbox:
                         continue
                     if sub is None:
-                        from ..core.epipolar import vertex_subset
+                        from maem_ros.core.association.gates.epipolar import vertex_subset
                         sub = vertex_subset(A.verts.shape[1], params.vertex_stride,
                                             params.vertex_count)
                         sub = np.arange(A.verts.shape[1]) if sub is None else sub

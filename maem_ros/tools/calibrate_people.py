@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.camera import Camera, Rig
+from ..core.geometry.camera import Camera, Rig
 from ..core.detections import FrameDetections
 from ..core.interchange import DEFAULT_FPS, index_frame_files, outputs_to_detections, read_maem_npz
 
@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     fmt = args.format or ("toml" if args.out.suffix.lower() == ".toml" else "yaml")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "toml":
-        from ..core.calibration import write_pose2sim_toml
+        from ..core.geometry.rig_formats import write_pose2sim_toml
         write_pose2sim_toml(args.out, result.rig.cameras)
     else:
         result.rig.to_yaml(args.out)

@@ -50,12 +50,13 @@ from typing import Any, Sequence
 import numpy as np
 import yaml
 
-from maem_ros.core import association, triangulation_kernel
-from maem_ros.core.association import associate
-from maem_ros.core.camera import Rig
+from maem_ros.core.association import pipeline as association
+from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
+from maem_ros.core.association.pipeline import associate
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.errors import InputError
 from maem_ros.core.sync import capture_stamp_ns, match_capture_times
-from maem_ros.core.triangulation import triangulate
+from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
 from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
 from maem_ros.ros.wire import msg_to_detections
@@ -63,7 +64,7 @@ from maem_ros import bagio
 from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
                                      check_scene, ensure_bag, image_topic, load_bag,
                                      log, make_demo_bag, trim_bag)
-from maem_ros.tools.demo_report import (LATENCY_DEFINITION, format_timing, latencies_ms,
+from maem_ros.tools.demo_report import (GraphRun, LATENCY_DEFINITION, format_timing, latencies_ms,
                                         print_accuracy, print_run_summary, recorded_diagnostics,
                                         recorded_poses, score, stage_timing, write_pictures)
 from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
@@ -175,18 +176,6 @@ def missing_links(listener: ArrivalListener, cameras: Sequence[str],
     links = fusion_links(cameras, "image_raw/compressed" if frontends else None, sources=False)
     return listed + [f"{link} not matched" for link in unmatched_links(
         listener.diagnostics_snapshot(), links, at_least={"matched_subscribers/maem/poses": 2})]
-
-
-@dataclass
-class GraphRun:
-    """Outcome of one graph replay."""
-
-    exit_codes: dict[str, int | None]
-    crashed: dict[str, str]  # process -> what happened (+ log tail)
-    image_t: dict[int, int]
-    poses_t: dict[int, int]
-    wall_s: float
-    record: Path
 
 
 class DemoError(RuntimeError):

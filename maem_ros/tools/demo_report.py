@@ -4,22 +4,32 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
 
 from maem_ros import bagio
 from maem_ros.core.colors import id_bgr8
-from maem_ros.core.metrics import evaluate_sequence
+from maem_ros.core.metrics.poses import evaluate_sequence
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_poses
 from maem_ros.tools.demo_bag import DemoBag, image_topic
 from maem_ros.tools.evaluate import format_table
 from maem_ros.tools.plots import plot_court
 
-if TYPE_CHECKING:
-    from maem_ros.tools.demo import GraphRun
+@dataclass
+class GraphRun:
+    """Outcome of one graph replay (tools/demo.run_graph)."""
+
+    exit_codes: dict[str, int | None]
+    crashed: dict[str, str]  # process -> what happened (+ log tail)
+    image_t: dict[int, int]
+    poses_t: dict[int, int]
+    wall_s: float
+    record: Path
+
 
 LATENCY_DEFINITION = (
     "latency = wall time (monotonic clock of the demo's listener node) at which /maem/poses with "

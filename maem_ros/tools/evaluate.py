@@ -19,10 +19,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from ..core.association import PAPER_PIPELINE
-from ..core.detections import FrameDetections
-from ..core.interchange import MissingDataError, SceneFolder, det_ids_key
-from ..core.skeleton import SPORTCENTER_13, convert, get_convention
+from maem_ros.core.association.pipeline import PAPER_PIPELINE
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
+from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
 from ..params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
@@ -86,9 +86,9 @@ Input handling (never a crash mid-sequence; every case is counted and reported a
 valid (F,K) bool, score (F,K), id (F,K) int64 track id (-1 = none: tentative track or no
 prediction); F = scene frames considered, K = most people in one frame.
 Identities: with temporal on (the params file's 'temporal', on when absent, or --temporal) ids
-are the association's track ids (core/temporal.py), with temporal off those of the post-hoc 3D
-tracker (core/tracking.py, the triangulation node's track_* params; also for the oracle row).
-IDF1 / IDP / IDR and ID switches (core/id_metrics.py: Ristani et al. 2016; CLEAR MOT switches)
+are the association's track ids (core/tracking/temporal.py), with temporal off those of the post-hoc 3D
+tracker (core/tracking/tracks.py, the triangulation node's track_* params; also for the oracle row).
+IDF1 / IDP / IDR and ID switches (core/metrics/identity.py: Ristani et al. 2016; CLEAR MOT switches)
 are scored against the GT persons of gt.npz (column = identity), MPJPE < 500 mm as a match;
 hypotheses matching no GT person of their frame (e.g. tracked referees) are left out ("players
 only"; idf1_all_hyp keeps them). --explain breaks down the per-frame association, so it implies
@@ -145,7 +145,7 @@ class Run:
     metrics: dict[str, Any] = field(default_factory=dict)
     causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
     ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
-    tracker: Any = None  # core.temporal.TemporalAssociator, or core.tracking.Tracker (post-hoc)
+    tracker: Any = None  # core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
@@ -194,9 +194,9 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
     """Associate + triangulate one frame for one configuration; append its predictions.
 
     Returns the AssociationResult (None for the oracle or when the pipeline raised)."""
-    from ..core.association import associate
-    from ..core.temporal import TemporalAssociator
-    from ..core.triangulation import triangulate
+    from maem_ros.core.association.pipeline import associate
+    from maem_ros.core.tracking.temporal import TemporalAssociator
+    from maem_ros.core.triangulation.ransac import triangulate
     from .explain import oracle_clusters
     result = ids = None
     stamp = min(fd.stamp_ns for fd in frames.values())
@@ -236,7 +236,7 @@ def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np
 
     gt / gt_mask: the frame's present GT persons; gt_index: their person index in gt.npz
     (= the ids in det_ids.npz)."""
-    from ..core.metrics import match_frame
+    from maem_ros.core.metrics.poses import match_frame
     from .explain import explain_frame, row_persons
     _, cols, _ = match_frame(run.preds[-1], gt, gt_mask)
     lost = np.setdiff1d(np.arange(len(gt)), cols)
@@ -264,7 +264,7 @@ def format_causes(runs: Sequence[Run]) -> str:
 
 def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
               gt_ids: list[np.ndarray] | None = None) -> dict[str, Any]:
-    from ..core.metrics import evaluate_sequence
+    from maem_ros.core.metrics.poses import evaluate_sequence
     m = dict(evaluate_sequence(run.preds, run.scores, gts, gt_masks))
     if gt_ids is not None:
         m.update(score_ids(run, gts, gt_masks, gt_ids))
@@ -300,7 +300,7 @@ def format_table(rows: Sequence[tuple[str, Mapping[str, Any]]]) -> str:
 def score_ids(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
               gt_ids: list[np.ndarray]) -> dict[str, Any]:
     """IDF1 / IDP / IDR / ID switches of the run's track ids (players only, and all hypotheses)."""
-    from ..core.id_metrics import identity_metrics
+    from maem_ros.core.metrics.identity import identity_metrics
     m = identity_metrics(gt_ids, gts, gt_masks, run.ids, run.preds, players_only=True)
     everything = identity_metrics(gt_ids, gts, gt_masks, run.ids, run.preds, players_only=False)
     m["idf1_all_hyp"] = everything["idf1"]
@@ -309,7 +309,7 @@ def score_ids(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
 
 def format_id_lines(runs: Sequence[Run]) -> list[str]:
     """One line per configuration: identity source, IDF1 (players only / all), IDP, IDR, switches."""
-    from ..core.temporal import TemporalAssociator
+    from maem_ros.core.tracking.temporal import TemporalAssociator
     out = []
     for r in runs:
         m = r.metrics
@@ -387,8 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_params(path: str):
-    from ..core.association import AssociationParams
-    from ..core.triangulation import TriangulationParams
+    from maem_ros.core.association.pipeline import AssociationParams
+    from maem_ros.core.triangulation.ransac import TriangulationParams
     assoc = AssociationParams.from_mapping(load_node_params(path, "association"))
     tri = TriangulationParams.from_mapping(load_node_params(path, "triangulation"))
     return assoc, tri
@@ -397,8 +397,8 @@ def load_params(path: str):
 def make_tracker(rig, assoc, params_path: str, temporal: str | None):
     """The run's identity source: TemporalAssociator (temporal on) or the post-hoc Tracker with
     the triangulation node's track_* parameters (temporal off)."""
-    from ..core.temporal import TemporalAssociator, TemporalParams
-    from ..core.tracking import Tracker
+    from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+    from maem_ros.core.tracking.tracks import Tracker
     section = dict(load_node_params(params_path, "association"))
     if temporal is not None:
         section["temporal"] = temporal == "on"

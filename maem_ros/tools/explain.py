@@ -24,8 +24,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from ..core.association import AssociationResult
-from ..core.detections import PASSED, REJECTED_EPIPOLAR, REJECTED_REPROJ
+from maem_ros.core.association.pipeline import AssociationResult
+from maem_ros.core.detections import PASSED, REJECTED_EPIPOLAR, REJECTED_REPROJ
 
 CAUSES = ("frontend", "reproj_gate", "epipolar_gate", "cost_cap", "wrong_match", "merge",
           "conflict", "k_min", "triangulation")
@@ -100,7 +100,7 @@ def oracle_clusters(rig_names: list[str], frames: Mapping, det_ids: Mapping[str,
                     tau_det: float, k_min: int) -> list:
     """The perfect association: kept detections grouped by their GT person (one per camera,
     the highest score), people seen by at least k_min cameras; false positives left out."""
-    from ..core.detections import Cluster
+    from maem_ros.core.detections import Cluster
     by_person: dict[int, dict[int, tuple[float, int]]] = {}
     for name, fd in frames.items():
         ids = det_ids.get(name)

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Iterator, Sequence
 
-from maem_ros.core.camera import Rig
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import CONVENTIONS
 from maem_ros import bagio
 from maem_ros.viz.scene import camera_info_fields

@@ -32,8 +32,8 @@ import yaml
 from tqdm import tqdm
 
 from maem_ros import bagio
-from maem_ros.core.camera import Camera, Rig
-from maem_ros.core.frames import rig_transforms
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.core.interchange import SceneFolder, outputs_to_detections, read_gt, read_maem_npz
 from maem_ros.ros import wire
 

@@ -7,9 +7,9 @@ from typing import Sequence
 
 import numpy as np
 
-from ..core.camera import Rig
-from ..core.metrics import average_precision, match_frame, mpjpe
-from ..core.skeleton import SPORTCENTER_13
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.metrics.poses import average_precision, match_frame, mpjpe
+from maem_ros.core.skeleton import SPORTCENTER_13
 
 #: AP curve thresholds, mm
 AP_CURVE_MM = np.arange(25, 301, 5)

@@ -96,13 +96,13 @@ def run_offline(root: Path, frames: int | None) -> dict:
     import cv2
     import numpy as np
 
-    from maem_ros.core.association import AssociationParams, associate
-    from maem_ros.core.bone_filter import BoneLengthFilter
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.association.pipeline import AssociationParams, associate
+    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
+    from maem_ros.core.geometry.camera import Rig
     from maem_ros.core.skeleton import get_convention
     from maem_ros.core.skeleton import convert as convert_joints
-    from maem_ros.core.tracking import Tracker
-    from maem_ros.core.triangulation import TriangulationParams, pad_members
+    from maem_ros.core.tracking.tracks import Tracker
+    from maem_ros.core.triangulation.ransac import TriangulationParams, pad_members
     from maem_ros.frontend.base import make_estimator
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.params import load_node_params
@@ -169,7 +169,7 @@ def bench_frontend(root: Path, frames: int) -> dict:
     import cv2
     import numpy as np
 
-    from maem_ros.core.camera import Rig
+    from maem_ros.core.geometry.camera import Rig
     from maem_ros.frontend.base import make_estimator
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.params import load_node_params

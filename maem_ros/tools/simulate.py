@@ -13,8 +13,8 @@ from typing import Sequence
 import numpy as np
 from tqdm import tqdm
 
-from ..core.interchange import SceneFolder
-from ..core.skeleton import SPORTCENTER_13
+from maem_ros.core.interchange import SceneFolder
+from maem_ros.core.skeleton import SPORTCENTER_13
 
 EPILOG = """\
 Output layout:

@@ -33,8 +33,8 @@ from foxglove.channels import (CameraCalibrationChannel, CompressedImageChannel,
                                SceneUpdateChannel)
 from foxglove.websocket import ServerListener
 
-from maem_ros.core.camera import Rig
-from maem_ros.core.frames import rig_transforms
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.core.skeleton import convention_for, get_convention
 from maem_ros.viz import scene
 

@@ -2,7 +2,7 @@
 
 Every (detection in camera a, detection in camera b) of one frame is a hypothesis that both
 see the same person: aligning b's camera-frame 3D skeleton onto a's (rotation of a Umeyama fit,
-core.procrustes) gives a rotation R_ab (X_a = R_ab X_b + t_ab). Each hypothesis is also tried
+core.geometry.procrustes) gives a rotation R_ab (X_a = R_ab X_b + t_ab). Each hypothesis is also tried
 with b's left and right swapped (a detector that confuses the sides). The pairs of one person
 agree on R_ab, other pairs scatter: the rotation most hypotheses agree with wins (consensus).
 Among the hypotheses that agree, the translation direction is the one most pairs' 2D keypoints
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..procrustes import procrustes_align
+from ..geometry.procrustes import procrustes_align
 from .people_data import PeopleData, normalised
 
 #: consensus thresholds: rotation (deg) of the first vote and of the refined one

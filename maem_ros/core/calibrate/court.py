@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..camera import Rig
-from ..procrustes import procrustes_align
+from ..geometry.camera import Rig
+from ..geometry.procrustes import procrustes_align
 from .tracks import projection_matrices, triangulate
 from .world import Similarity
 

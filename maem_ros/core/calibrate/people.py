@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..camera import Rig
+from ..geometry.camera import Rig
 from .bundle import (DEFAULT_SCHEDULE, WARM_SCHEDULE, BundleOptions, BundleProblem, BundleResult,
                      bundle_adjust)
 from .correspondence import MIN_SUPPORT, PairEstimate, estimate_pair, hypothesis_frames

@@ -12,7 +12,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..camera import Rig
+from ..geometry.camera import Rig
 from ..detections import FrameDetections
 from ..skeleton import body_joints, convention_for
 

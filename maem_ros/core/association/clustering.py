@@ -47,13 +47,13 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.optimize import linear_sum_assignment
 
-from .geometry import normal_entries, reprojection_error, solve_normal
+from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 
-from .detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
-from .intsets import sorted_unique, unique_inverse
+from maem_ros.core.detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
+from maem_ros.core.intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
-    from .association import AssociationParams
+    from maem_ros.core.association.pipeline import AssociationParams
 
 METHODS = ("consistent", "paper", "spectral")
 #: objective weight (x tau_cost) of a cross pair that a geometric gate rejected. Weak: with
@@ -103,9 +103,9 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
 
 
 def _kernels(backend: str):
-    """core/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
+    """core/association/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
     (the numpy paths: the same results)."""
-    from . import clustering_kernel
+    from maem_ros.core.association import clustering_kernel
     if backend == "numba" and not clustering_kernel.have_numba():
         raise ValueError("backend: 'numba' requested but numba is not installed")
     return clustering_kernel if backend != "numpy" and clustering_kernel.have_numba() else None

@@ -1,4 +1,4 @@
-"""Numba kernels of the consistent clustering (core.clustering): the merge check, the
+"""Numba kernels of the consistent clustering (core.association.clustering): the merge check, the
 cluster-level table update and the greedy merge rounds that use both.
 
 The check and the update walk what the numpy paths compute with whole-array passes, per
@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import _SINGULAR, adjugate_solve, normal_cofactors
-from .jit import have_numba, jit
-from .triangulation_kernel import _entries
+from maem_ros.core.geometry.multiview import _SINGULAR, adjugate_solve, normal_cofactors
+from maem_ros.core.jit import have_numba, jit
+from maem_ros.core.triangulation.ransac_kernel import _entries
 
 # geometry's elementwise formulas, compiled for the scalars here (one home: geometry)
 _normal_cofactors = jit(normal_cofactors, inline=True)

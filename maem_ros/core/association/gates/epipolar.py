@@ -64,7 +64,7 @@ from typing import Mapping, NamedTuple, Sequence
 
 import numpy as np
 
-from .intsets import sorted_unique
+from maem_ros.core.intsets import sorted_unique
 
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
 #: small and that a block's points stream from memory as one run: 2048 against 1024 took the
@@ -634,7 +634,7 @@ def _rsqrt_within_bound() -> bool:
     """Whether the compiled float32 1/sqrt of the kernels (the instructions LLVM picks for
     this CPU) is within half of _RSQRT_ERR of the exact value; if not, the mixed kernel's
     error bound would not hold, and "mixed" runs in float64 instead."""
-    from .epipolar_kernel import rsqrt32
+    from maem_ros.core.association.gates.epipolar_kernel import rsqrt32
     return _rsqrt_probe(rsqrt32) <= _RSQRT_ERR / 2
 
 
@@ -642,7 +642,7 @@ def _rsqrt_within_bound() -> bool:
 def _refined_rsqrt_within_bound() -> bool:
     """Whether the refined float32 1/sqrt of a pair's second try is within half of
     _RSQRT_ERR_REFINED; if not, pairs the first bound cannot settle go to float64 at once."""
-    from .epipolar_kernel import rsqrt32_refined
+    from maem_ros.core.association.gates.epipolar_kernel import rsqrt32_refined
     return _rsqrt_probe(rsqrt32_refined) <= _RSQRT_ERR_REFINED / 2
 
 
@@ -672,7 +672,7 @@ _REMAINDER_PROBE = 15
 def _numba_kernels():
     """The numba kernels' module (compiled, or loaded from numba's on-disk cache, on first
     use)."""
-    from . import epipolar_kernel
+    from maem_ros.core.association.gates import epipolar_kernel
     return epipolar_kernel
 
 

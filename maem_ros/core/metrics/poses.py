@@ -12,7 +12,7 @@ Definitions (per sequence of frames):
 
 - MPJPE(pred, gt) = mean over counted joints of the Euclidean joint distance.
 - PA-MPJPE = MPJPE after aligning the prediction to the GT with the least-squares
-  similarity (rotation, translation, uniform scale; core/procrustes.py).
+  similarity (rotation, translation, uniform scale; core/geometry/procrustes.py).
 - Matching: per frame, Hungarian assignment (scipy linear_sum_assignment) of
   predictions to GT persons on MPJPE; only pairs with MPJPE < 500 mm are matched
   (pairs at or over 500 mm are priced prohibitively, so the assignment maximises
@@ -38,7 +38,7 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .procrustes import pa_mpjpe as _pa_mpjpe
+from maem_ros.core.geometry.procrustes import pa_mpjpe as _pa_mpjpe
 
 MATCH_THRESHOLD_M = 0.5
 AP_THRESHOLDS_MM = (75, 100, 125, 150)

@@ -1,6 +1,6 @@
 """Calibration files of other systems -> Camera lists: Qualisys ``.qca.txt`` and Pose2Sim ``Calib*.toml``.
 
-Both readers return cameras in our convention (core/camera.py): OpenCV pinhole K in px,
+Both readers return cameras in our convention (core/geometry/camera.py): OpenCV pinhole K in px,
 plumb_bob distortion, world -> camera R, t in metres, image size in px.
 
 Qualisys (QTM export, XML), read the way Pose2Sim's converter (``Pose2Sim.calibration.read_qca``
@@ -40,7 +40,7 @@ from typing import Mapping
 import cv2
 import numpy as np
 
-from .camera import Camera
+from maem_ros.core.geometry.camera import Camera
 
 if sys.version_info >= (3, 11):
     import tomllib

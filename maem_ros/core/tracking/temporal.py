@@ -49,15 +49,15 @@ from typing import Callable, Mapping
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .association import AssociationParams, associate, screen_levels, screen_subsets
-from .camera import Rig
-from .detections import Cluster, FrameDetections
-from . import epipolar
-from .geometry import dlt, reprojection_errors
-from .intsets import sorted_unique
-from .paramspec import Params, param
-from .procrustes import pa_mpjpe_finite
-from .skeleton import body_joints, joint_subset
+from maem_ros.core.association.pipeline import AssociationParams, associate, screen_levels, screen_subsets
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.detections import Cluster, FrameDetections
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.geometry.multiview import dlt, reprojection_errors
+from maem_ros.core.intsets import sorted_unique
+from maem_ros.core.paramspec import Params, param
+from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
+from maem_ros.core.skeleton import body_joints, joint_subset
 
 #: cluster flags (bit mask) of TemporalResult.flags
 FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view association)
@@ -581,7 +581,7 @@ class TemporalAssociator:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
         association's pair gates (bbox-centre reprojection, epipolar on mesh vertices or
         keypoints, PA-MPJPE cost of the lower camera's 3D pose aligned onto the other's under
-        tau_cost), the same tests (core.geometry, core.epipolar, core.procrustes) the cross-view
+        tau_cost), the same tests (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view
         association applies, on the few pairs inside the tracks' clusters only."""
         by_cam = view.by_cam
         ok = np.ones(ca.size, bool)

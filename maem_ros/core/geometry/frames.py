@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .camera import Rig
+from maem_ros.core.geometry.camera import Rig
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Numba kernel of the closed-form PA-MPJPE (core.procrustes.pa_mpjpe_columns), per pair.
+"""Numba kernel of the closed-form PA-MPJPE (core.geometry.procrustes.pa_mpjpe_columns), per pair.
 
 The numpy path runs ~150 vectorised steps over (S,) rows, each a pass over memory with its
 own temporaries (~1.1 us per pair for 13 joints). This kernel walks the same steps per pair
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .jit import have_numba, jit
-from .procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN, fill_key_matrix, fill_rotation
+from maem_ros.core.jit import have_numba, jit
+from maem_ros.core.geometry.procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN, fill_key_matrix, fill_rotation
 
 # procrustes' elementwise formulas, compiled for the scalars here (one home: procrustes)
 _fill_key_matrix = jit(fill_key_matrix, inline=True)

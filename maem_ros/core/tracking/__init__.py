@@ -1,0 +1,14 @@
+"""People over time: persistent ids and track-assisted association.
+
+- ``tracks``: :class:`Tracker` (Hungarian assignment on 3D distance, constant velocity);
+- ``temporal``: :class:`TemporalAssociator` (detections explained by existing 3D tracks first,
+  the full MAEM association only on the rest) and :class:`TemporalParams`;
+- ``bone_filter``: :class:`BoneLengthFilter` (bone-length plausibility on a track).
+
+Exports: Tracker, TemporalAssociator, TemporalParams, TemporalResult, BoneLengthFilter.
+"""
+from maem_ros.core.tracking.bone_filter import BoneLengthFilter
+from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams, TemporalResult
+from maem_ros.core.tracking.tracks import Tracker
+
+__all__ = ["BoneLengthFilter", "TemporalAssociator", "TemporalParams", "TemporalResult", "Tracker"]
