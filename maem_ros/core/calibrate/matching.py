@@ -61,6 +61,8 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
     """Clusters of every frame under the rig (R, t) (cameras with NaN poses are left out)."""
     C = data.num_cameras
     ok = np.all(np.isfinite(t), axis=1)
+    P = np.stack([data.rig[c].K_rect @ np.hstack([R[c], t[c][:, None]]) if ok[c]
+                  else np.full((3, 4), np.nan) for c in range(C)])
     Fs = {(a, b): fundamental(data.rig[a].K_rect, R[a], t[a], data.rig[b].K_rect, R[b], t[b])
           for a in range(C) for b in range(a + 1, C) if ok[a] and ok[b]}
     out = [[] for _ in range(5)]
@@ -76,7 +78,7 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
             sw, i, j = np.nonzero(cost < gate_px)
             for s_, i_, j_ in zip(sw, i, j):
                 edges.append((float(cost[s_, i_, j_]), a, sa.start + i_, b, sb.start + j_, int(s_)))
-        members = _greedy_clusters(edges)
+        members = _greedy_clusters(edges, _Consistency(data, P, gate_px))
         for root, rows in members.items():
             if len(rows) < 2:
                 continue
@@ -91,9 +93,34 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
                                                                  np.int64, bool))))
 
 
-def _greedy_clusters(edges: list) -> dict:
+class _Consistency:
+    """Whether detections (camera, row, swapped) are one person: the median reprojection
+    error (px) of their joints triangulated together stays under the gate (with three or more
+    views this rejects the wrong pairs an epipolar line alone cannot tell apart, e.g. people
+    in a row seen from cameras at their height)."""
+
+    def __init__(self, data: PeopleData, P: np.ndarray, gate_px: float):
+        self.data, self.P, self.gate = data, P, gate_px
+
+    def __call__(self, members: list[tuple[int, int, int]]) -> bool:
+        if len(members) < 3:
+            return True
+        cams = np.array([m[0] for m in members])
+        uv = np.stack([self.data.cameras[c].kpts2d[r][self.data.flip] if s
+                       else self.data.cameras[c].kpts2d[r] for c, r, s in members])
+        from .tracks import triangulate  # local: tracks imports this module
+        X = triangulate(self.P[cams], uv)
+        h = np.einsum("cij,jk->cik", self.P[cams][:, :, :3], X.T) + self.P[cams][:, :, 3:]
+        with np.errstate(all="ignore"):
+            err = np.linalg.norm(h[:, :2].transpose(0, 2, 1) / h[:, 2:].transpose(0, 2, 1) - uv, axis=2)
+            med = np.nanmedian(err)
+        return bool(np.isfinite(med) and med < self.gate)
+
+
+def _greedy_clusters(edges: list, consistent) -> dict:
     """Union-find over (cost, cam a, det a, cam b, det b, swapped) edges, cheapest first, never
-    joining two clusters that share a camera; returns {root: [(camera, det, swap vs root)]}."""
+    joining two clusters that share a camera or whose union is not ``consistent``; returns
+    {root: [(camera, det, swap vs root)]}."""
     parent: dict = {}
     swap: dict = {}  # swap of a node relative to its parent
     cams: dict = {}
@@ -113,8 +140,13 @@ def _greedy_clusters(edges: list) -> dict:
         (ra, sa), (rb, sb) = find((a, i)), find((b, j))
         if ra == rb or cams[ra] & cams[rb]:
             continue
+        srb = sa ^ sb ^ s
+        union = [(n[0], n[1], find(n)[1]) for n in parent if find(n)[0] == ra] + \
+                [(n[0], n[1], find(n)[1] ^ srb) for n in parent if find(n)[0] == rb]
+        if not consistent(union):
+            continue
         parent[rb] = ra
-        swap[rb] = sa ^ sb ^ s
+        swap[rb] = srb
         cams[ra] |= cams.pop(rb)
     groups: dict = {}
     for node in parent:

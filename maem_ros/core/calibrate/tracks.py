@@ -71,7 +71,8 @@ def link_tracks(data: PeopleData, clusters: Clusters, P: np.ndarray) -> Tracks:
         kp = np.where(clusters.swapped[m, None, None], kp[:, data.flip], kp)
         cu[c, clusters.person[m]] = kp
         cd[c, clusters.person[m]] = clusters.det[m]
-    centroid = np.nanmean(triangulate(P, cu), axis=1) if n else np.zeros((0, 3))
+    with np.errstate(all="ignore"):  # median over joints: a hallucinated limb cannot move it
+        centroid = np.nanmedian(triangulate(P, cu), axis=1) if n else np.zeros((0, 3))
     frame_of = np.zeros(n, np.int64)
     frame_of[clusters.person] = clusters.frame
     track_of = np.full(n, -1, np.int64)
