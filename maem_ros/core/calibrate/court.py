@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from ..geometry.camera import Rig
 from ..geometry.procrustes import procrustes_align
@@ -100,8 +102,36 @@ def locate_landmarks(points: CourtPoints, rig: Rig) -> np.ndarray:
 
 def court_similarity(points: CourtPoints, rig: Rig) -> Similarity:
     """The similarity from the rig's frame (z up on the people's floor) to court coordinates;
-    ValueError when fewer than two landmarks are located."""
-    X = locate_landmarks(points, rig)
+    ValueError when fewer than two landmarks are located. A closed-form start (landmarks
+    located in the rig's frame, single-view ones on the people's floor) is refined by
+    minimising the landmarks' reprojection error in every view that marks them (7 unknowns,
+    scipy least_squares), which no longer depends on the people's floor."""
+    sim = _fit(locate_landmarks(points, rig), points)
+    cams, idx, uv = [], [], []
+    for name, marks in points.pixels.items():
+        if name in rig:
+            for i, px in marks.items():
+                cams.append(rig.index(name))
+                idx.append(i)
+                uv.append(rig[name].undistort_points(px[None])[0])
+    if len(idx) < 4:
+        return sim
+    cams, idx, uv = np.array(cams), np.array(idx), np.array(uv)
+    P = projection_matrices(np.stack([c.K_rect for c in rig]), np.stack([c.R for c in rig]),
+                            np.stack([c.t for c in rig]))
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        Q = Rotation.from_rotvec(x[:3]).as_matrix()
+        X = (points.court[idx] - x[4:]) @ Q / np.exp(x[3])  # court -> rig frame
+        h = np.einsum("nij,nj->ni", P[cams][:, :, :3], X) + P[cams][:, :, 3]
+        return (h[:, :2] / h[:, 2:] - uv).ravel()
+
+    x0 = np.concatenate([Rotation.from_matrix(sim.Q).as_rotvec(), [np.log(sim.s)], sim.d])
+    sol = least_squares(residuals, x0, method="lm")
+    return Similarity(float(np.exp(sol.x[3])), Rotation.from_rotvec(sol.x[:3]).as_matrix(), sol.x[4:])
+
+
+def _fit(X: np.ndarray, points: CourtPoints) -> Similarity:
     ok = np.all(np.isfinite(X), axis=1)
     if ok.sum() < 2:
         raise ValueError(f"court points: only {int(ok.sum())} landmark(s) located (each needs "

@@ -111,7 +111,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         timings["time offsets"] = time.perf_counter() - clock
     clock = time.perf_counter()
     X = result.points.reshape(tracks.U.shape[1:4] + (3,))
-    sim, scale_source = _world(data, X, R, t, start.connected, opts, K, warnings)
+    sim, scale_source = _world(data, X, tracks.D, R, t, start.connected, opts, warnings)
     timings["world frame"] = time.perf_counter() - clock
     rig = _output_rig(data, R, t, sim, result, delta, start.connected)
     cams = _camera_reports(data, prob, result, sim, delta, start.connected)
@@ -143,7 +143,7 @@ def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray,
     return bundle_adjust(prob, opts_b), prob
 
 
-def _world(data: PeopleData, X, R, t, connected, opts: PeopleOptions, K, warnings):
+def _world(data: PeopleData, X, rows, R, t, connected, opts: PeopleOptions, warnings):
     """The similarity to the world frame and where its scale came from."""
     first = -R[connected][0].T @ t[connected][0]
     sim = floor_frame(X, data.feet, data.head, first)
@@ -154,7 +154,7 @@ def _world(data: PeopleData, X, R, t, connected, opts: PeopleOptions, K, warning
                              "and nose joints it is measured with")
         s, source = opts.person_height / h, f"person height {opts.person_height:g} m"
     else:
-        s = skeleton_scale(X, [c.kpts3d for c in data.cameras], data.names)
+        s = skeleton_scale(X, rows, [c.kpts3d for c in data.cameras], data.names)
         source = "metric skeletons"
         if not np.isfinite(s):
             s, source = 1.0, "none (arbitrary units)"

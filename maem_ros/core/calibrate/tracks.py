@@ -43,6 +43,9 @@ def triangulate(P: np.ndarray, uv: np.ndarray) -> np.ndarray:
     seen = np.all(np.isfinite(u), axis=2)
     A = np.zeros((u.shape[1], 4, 4))
     for c in range(C):  # a handful of cameras: the points are vectorised
+        if not np.all(np.isfinite(P[c])):
+            seen[c] = False
+            continue
         uz = np.where(seen[c, :, None], u[c], 0.0)
         r1 = uz[:, 0, None] * P[c, 2] - P[c, 0]
         r2 = uz[:, 1, None] * P[c, 2] - P[c, 1]
@@ -50,7 +53,7 @@ def triangulate(P: np.ndarray, uv: np.ndarray) -> np.ndarray:
         A += w * (r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :])
     n = seen.sum(0)
     X = np.full((u.shape[1], 3), np.nan)
-    ok = n >= 2
+    ok = (n >= 2) & np.all(np.isfinite(A), axis=(1, 2))
     if ok.any():
         vec = np.linalg.eigh(A[ok])[1][:, :, 0]
         with np.errstate(divide="ignore", invalid="ignore"):

@@ -56,14 +56,25 @@ def _bone_lengths(X: np.ndarray, names: tuple[str, ...]) -> dict[str, np.ndarray
     return out
 
 
-def skeleton_scale(X: np.ndarray, kpts3d: list[np.ndarray], names: tuple[str, ...]) -> float:
-    """Metres per rig unit: median over bones of (median metric length in the detections'
-    3D keypoints) / (median triangulated length); NaN without common bones."""
-    tri = _bone_lengths(X, names)
-    metric = _bone_lengths(np.concatenate(kpts3d), names)
-    ratios = [np.nanmedian(metric[k]) / np.nanmedian(tri[k]) for k in tri
-              if np.isfinite(tri[k]).any() and np.isfinite(metric[k]).any()]
-    return float(np.median(ratios)) if ratios else np.nan
+def skeleton_scale(X: np.ndarray, rows: np.ndarray, kpts3d: list[np.ndarray],
+                   names: tuple[str, ...]) -> float:
+    """Metres per rig unit: the median over every (camera, track, frame, bone) of the
+    detection's metric bone length (its camera-frame 3D keypoints) over the triangulated one.
+    X (T,F,J,3) rig units; rows (C,T,F) the detection row of each camera (-1 = none); NaN
+    without a common bone."""
+    ratios = []
+    tri = _bone_lengths(X, names)  # per bone: (T*F,)
+    for c, kp in enumerate(kpts3d):
+        have = rows[c].ravel() >= 0
+        if not have.any():
+            continue
+        metric = _bone_lengths(kp[rows[c].ravel()[have]], names)
+        for bone, length in tri.items():
+            with np.errstate(invalid="ignore", divide="ignore"):
+                r = metric[bone] / length[have]
+            ratios.append(r[np.isfinite(r) & (r > 0)])
+    ratios = np.concatenate(ratios) if ratios else np.zeros(0)
+    return float(np.median(ratios)) if ratios.size else np.nan
 
 
 def stature(X: np.ndarray, names: tuple[str, ...]) -> float:
