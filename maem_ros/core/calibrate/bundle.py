@@ -49,11 +49,13 @@ from .bundle_solver import (NormalEquations, Observations, State, project, reduc
                             robust_rho, skew, solve_step)
 
 __all__ = ["BundleProblem", "BundleOptions", "BundleResult", "bundle_adjust", "robust_rho",
-           "DEFAULT_SCHEDULE"]
+           "DEFAULT_SCHEDULE", "WARM_SCHEDULE"]
 
 #: (loss name, scale px, max LM iterations) of each stage, from wide to narrow
 DEFAULT_SCHEDULE: tuple[tuple[str, float, int], ...] = (
-    ("cauchy", 50.0, 30), ("cauchy", 20.0, 30), ("soft_l1", 5.0, 60))
+    ("cauchy", 50.0, 20), ("cauchy", 20.0, 20), ("soft_l1", 5.0, 40))
+#: the last stage alone: for a start that is already close (a re-run after new observations)
+WARM_SCHEDULE: tuple[tuple[str, float, int], ...] = (("soft_l1", 5.0, 40),)
 
 
 @dataclass
@@ -149,7 +151,7 @@ class BundleOptions:
     outlier_mads: float = 5.0
     reject_rounds: int = 2
     #: LM stops when the relative cost decrease of an accepted step is below this
-    ftol: float = 1e-7
+    ftol: float = 1e-6
     covariance: bool = False
 
 
@@ -278,6 +280,9 @@ def _bundle_adjust(prob: BundleProblem, opts: BundleOptions) -> BundleResult:
     residuals[ob.idx] = _residuals(st, ob)
     points = st.X.copy()
     points[prob.point_object >= 0] = prob.world_points_of(st.oR, st.ot)[prob.point_object >= 0]
+    solved = np.zeros(prob.points.shape[0], bool)
+    solved[prob.obs_point[active]] = True
+    points[~solved] = np.nan  # left out (fewer than two inlier cameras): not estimated
     result = BundleResult(R=st.R, t=st.t, focal_scale=st.s, k1=st.k1, points=points,
                           object_R=st.oR, object_t=st.ot, inliers=active, residuals=residuals,
                           iterations=iterations)
