@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from maem_ros.core.geometry.rig_formats import read_pose2sim_toml, read_qualisys, write_pose2sim_toml
+from maem_ros.core.geometry.rig_formats import read_qualisys, write_pose2sim_toml
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.interchange import MissingDataError, SceneFolder
 from maem_ros.core.sync import ApproximateTimeSync, capture_stamp_ns, match_capture_times

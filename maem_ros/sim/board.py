@@ -15,8 +15,8 @@ its own poses in front of it instead (photographed one camera at a time, as for 
 """
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -51,10 +51,8 @@ def board_texture(spec: BoardSpec) -> tuple[np.ndarray, float]:
                               value=255), px / spec.square
 
 
-@lru_cache(maxsize=16)
-def _rays(camera_key: tuple) -> np.ndarray:
+def _rays(cam: Camera) -> np.ndarray:
     """(H*s, W*s, 3) camera-frame rays (z = 1) of the supersampled raw pixel centres."""
-    cam = _CAMERAS[camera_key]
     s = SUPERSAMPLE
     u = (np.arange(cam.width * s) + 0.5) / s - 0.5
     v = (np.arange(cam.height * s) + 0.5) / s - 0.5
@@ -91,15 +89,21 @@ def _undistort_dense(cam: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndar
     return xy[..., 0], xy[..., 1]
 
 
-_CAMERAS: dict[tuple, Camera] = {}
+#: rays per lens and image size, the most recently used few (each is tens of MB)
+_RAYS: OrderedDict[tuple, np.ndarray] = OrderedDict()
+_RAYS_KEPT = 8
 
 
 def _camera_rays(cam: Camera) -> np.ndarray:
     """The camera's supersampled pixel rays, computed once per lens and image size."""
-    key = (cam.name, cam.width, cam.height, cam.distortion_model, tuple(cam.K.ravel()),
+    key = (cam.width, cam.height, cam.distortion_model, tuple(cam.K.ravel()),
            tuple(cam.K_rect.ravel()), tuple(cam.D))
-    _CAMERAS[key] = cam
-    return _rays(key)
+    if key not in _RAYS:
+        _RAYS[key] = _rays(cam)
+        while len(_RAYS) > _RAYS_KEPT:
+            _RAYS.popitem(last=False)
+    _RAYS.move_to_end(key)
+    return _RAYS[key]
 
 
 def render_board(cam: Camera, spec: BoardSpec, R_wb: np.ndarray, t_wb: np.ndarray,

@@ -144,8 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return write_board(args)
     try:
         config = scene_config(args)
-        folder = write_scene(args.out, config, images=args.images, progress=not args.quiet,
-                             gt_people=args.gt_people, intrinsics_only=args.intrinsics_only)
+        write_scene(args.out, config, images=args.images, progress=not args.quiet,
+                    gt_people=args.gt_people, intrinsics_only=args.intrinsics_only)
     except ValueError as e:
         print(f"maem-sim: {e}", file=sys.stderr)
         return 2
