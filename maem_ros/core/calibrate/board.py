@@ -436,6 +436,11 @@ def calibrate_extrinsics(spec: BoardSpec, detections: dict[tuple[int, int], Dete
                               f"consistent simultaneous board frames with the others: extrinsics "
                               f"cannot be computed for the whole rig")
     boards, used = _frame_boards(spec, views, R, t)
+    placed = {v.camera for kept in used for v, _ in kept}
+    if len(placed) < C:
+        raise NotSimultaneous(f"camera(s) {', '.join(names[c] for c in range(C) if c not in placed)} "
+                              f"have no board view that agrees with the initial rig: extrinsics "
+                              f"cannot be computed for the whole rig")
     prob, res = _bundle(spec, [K for K, _ in cameras], R, t, boards, used, root)
     err = res.errors()
     ok = res.inliers & np.isfinite(err)
