@@ -59,6 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="yaml: the rig YAML the nodes read; toml: a Pose2Sim/anipose Calib.toml "
                    "(default: from --out's suffix, else yaml)")
     p.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
+    p.add_argument("--k3", action="store_true", help="also estimate the k3 distortion term "
+                   "(wide-angle lenses; by default k3 = 0)")
     p.add_argument("--quiet", action="store_true", help="no per-camera summary")
 
 
@@ -180,7 +182,8 @@ def _spread(items: list, n: int) -> list:
     return [items[i] for i in np.linspace(0, len(items) - 1, n).round().astype(int)]
 
 
-def intrinsics_of(frames: Frames, spec: BoardSpec, known: Rig | None) -> dict[str, Intrinsics]:
+def intrinsics_of(frames: Frames, spec: BoardSpec, known: Rig | None,
+                  k3: bool = False) -> dict[str, Intrinsics]:
     """Per camera: the given intrinsics (``known``) or cv2.calibrateCamera's."""
     out = {}
     for cam, dets in frames.detections.items():
@@ -197,7 +200,7 @@ def intrinsics_of(frames: Frames, spec: BoardSpec, known: Rig | None) -> dict[st
             out[cam] = Intrinsics(c.K, c.D, c.width, c.height, float("nan"), 0)
             continue
         views = _spread([d for d in dets.values() if d is not None], MAX_INTRINSIC_VIEWS)
-        out[cam] = calibrate_intrinsics(views, spec, frames.sizes[cam], cam)
+        out[cam] = calibrate_intrinsics(views, spec, frames.sizes[cam], cam, k3=k3)
     return out
 
 
@@ -248,7 +251,7 @@ def run(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise SourceError(f"--intrinsics: {e}") from None
         frames = detect_source(args.source, spec, args.step)
-        intr = intrinsics_of(frames, spec, known)
+        intr = intrinsics_of(frames, spec, known, args.k3)
         names = list(intr)
         ext = None
         if not args.intrinsics_only:
