@@ -362,7 +362,7 @@ def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
     late = max([0.0] + [-o for o in offsets.values()])  # s, capture time beyond the stamps
     stop = stamps[-1] + 1 + int(round(late * 1e9)) if stamps else None
     received: dict[str, list] = {}
-    for m in bagio.read_messages(demo.path, topics, stop_ns=stop):
+    for m in bagio.read_messages(demo.path, topics, stop_ns=stop, info=demo.info):
         dets = msg_to_detections(m.decode(), m.topic, rig.names)
         received.setdefault(dets.camera, []).append(dets)
     # each camera's message captured nearest each frame (stamp + the rig's time_offset)
