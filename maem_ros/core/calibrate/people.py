@@ -38,6 +38,7 @@ class PeopleOptions:
     refine_intrinsics: bool = False
     estimate_time: bool = True
     max_offset_s: float = 0.15
+    time_rounds: int = 4
     person_height: float | None = None
     court: CourtPoints | None = None
     seed: int = 0
@@ -108,13 +109,14 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         clock = time.perf_counter()
         ok = np.flatnonzero(start.connected)
         observed = tracks
-        # a rig adjusted on unsynchronised observations absorbs part of an offset: estimate,
-        # adjust on the moved observations, estimate again from that rig
-        for _ in range(2):
+        # a rig adjusted on unsynchronised observations absorbs part of an offset (a camera
+        # turned along the people's main motion): estimate, adjust on the moved observations,
+        # estimate again from that rig, until the offsets settle
+        for _ in range(opts.time_rounds):
             P = projection_matrices(K, R, t)
             before = delta.copy()
             delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps)
-            if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.02):
+            if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
                 break
             tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]),
                             observed.D)
