@@ -17,7 +17,11 @@ deviation is sqrt(trace(cov) / 3): the RMS over the three world axes, metres.
 
 The pose confidence ranks poses by their predicted error: ``1 / (1 + e / ref_m)`` with e the
 RMS over the pose's finite joints of sqrt(trace(cov)) (the predicted 3D error, m); 1 for a
-perfect pose, 0.5 at ``ref_m``.
+perfect pose, 0.5 at ``ref_m``. The triangulation's ``pose_score: uncertainty`` (default)
+multiplies it with the paper's score (the members' mean detection score), so a well-triangulated
+false positive (a low-score bystander) still ranks low and a confident detection with a weak
+geometry or disagreeing views ranks below a well-supported one (doc/design.md gives the AP
+figures that chose it).
 """
 from __future__ import annotations
 
@@ -73,3 +77,12 @@ def pose_confidence(std: np.ndarray, ref_m: float) -> np.ndarray:
         e = np.sqrt(mean_var)
         conf = 1.0 / (1.0 + e / ref_m)
     return np.where(finite.any(-1), conf, 0.0)
+
+
+def pose_scores(detection_scores: np.ndarray, std: np.ndarray, mode: str, ref_m: float
+                ) -> np.ndarray:
+    """(P,) published score: ``paper`` = the members' mean detection score; ``uncertainty`` =
+    that times :func:`pose_confidence` of the per-joint std (P,J) m."""
+    if mode == "paper":
+        return np.asarray(detection_scores, dtype=np.float64)
+    return detection_scores * pose_confidence(std, ref_m)
