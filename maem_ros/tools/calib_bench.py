@@ -146,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--quick", action="store_true", help="two rigs per seed")
+    ap.add_argument("--only", default=None, help="only the scenes whose rig name contains this")
     ap.add_argument("--large", action="store_true",
                     help="also the timing target's scene: 8 cameras x 20 people x --frames")
     args = ap.parse_args(argv)
@@ -153,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     print(HEADER)
     with tempfile.TemporaryDirectory() as tmp:
         for sc in scenarios(args.quick, args.large, args.seeds):
+            if args.only and args.only not in sc[0]:
+                continue
             try:
                 row = run_one(*sc, frames=args.frames, tmp=Path(tmp))
             except ValueError as e:
