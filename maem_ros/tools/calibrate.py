@@ -11,7 +11,9 @@ SUBCOMMANDS = {"people": "maem_ros.tools.calibrate_people", "board": "maem_ros.t
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="maem-calibrate", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="maem-calibrate", description="calibrate a rig: people "
+                                 "(from the players) or board (ChArUco, checkerboard); how-to: "
+                                 "doc/calibration.md")
     sub = ap.add_subparsers(dest="command", required=True)
     for name, module in SUBCOMMANDS.items():
         if importlib.util.find_spec(module) is None:

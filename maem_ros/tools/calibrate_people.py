@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry.camera import Camera, Rig
+from ..core.geometry.camera import Rig
 from ..core.detections import FrameDetections
 from ..core.interchange import DEFAULT_FPS, index_frame_files, outputs_to_detections, read_maem_npz
 
@@ -49,7 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..core.calibrate.people import PeopleOptions, calibrate_people
+    from ..core.calibrate.people import calibrate_people
     from ..core.calibrate.people_data import people_data
     from .calibrate_report import print_summary, write_report
     try:
@@ -195,10 +195,10 @@ def _media(src: Path, intr: Rig, args):
         seq = []
         for k, img in enumerate(_images(what, limit, cv2)):
             seq.append(est.estimate(intr[cam], int(round(k * 1e9 / fps)), img))
-            if not isinstance(what, Path) or what.is_dir():
-                images[(cam, k)] = what[k] if isinstance(what, list) else None
+            if isinstance(what, list):  # image files can be overlaid in the report
+                images[(cam, k)] = what[k]
         frames[cam] = seq
-    return frames, fps, {k: v for k, v in images.items() if v is not None}
+    return frames, fps, images
 
 
 def _images(what, limit: int, cv2):

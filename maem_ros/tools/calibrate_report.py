@@ -3,6 +3,8 @@ top-down picture of the rig and the people's floor tracks (rig.png) and, where t
 images, one overlay per camera of the observed (green) and reprojected (magenta) keypoints."""
 from __future__ import annotations
 
+import warnings
+
 from pathlib import Path
 from typing import TextIO
 
@@ -47,7 +49,9 @@ def _top_down(result: PeopleCalibration, data: PeopleData, path: Path, plt) -> P
     fig, ax = plt.subplots(figsize=(9, 7))
     X = result.points
     feet = X[:, :, data.feet] if data.feet.size else X
-    floor = np.nanmean(feet, axis=2)  # (T,F,3)
+    with warnings.catch_warnings():  # frames without feet: NaN, not drawn
+        warnings.simplefilter("ignore", RuntimeWarning)  # nanmean of all-NaN
+        floor = np.nanmean(feet, axis=2)  # (T,F,3)
     for tr in floor:
         ok = np.all(np.isfinite(tr), axis=1)
         if ok.sum() >= 2:

@@ -28,14 +28,17 @@ from .world import Similarity, floor_frame, skeleton_scale, stature
 
 @dataclass
 class PeopleOptions:
-    """hypothesis_frames: frames the pair search uses; gates_px: epipolar gates (px) of the
+    """hypothesis_frames: frames the pair search uses; first_pass_frames: frames the first
+    bundle adjustment (from the rough start) uses; gates_px: epipolar gates (px) of the
     first and second matching; max_offset_s: largest time offset searched (s)."""
 
     hypothesis_frames: int = 15
+    first_pass_frames: int = 20
     gates_px: tuple[float, float] = (40.0, 12.0)
     refine_intrinsics: bool = False
     estimate_time: bool = True
     max_offset_s: float = 0.15
+    time_rounds: int = 4
     person_height: float | None = None
     court: CourtPoints | None = None
     seed: int = 0
@@ -94,19 +97,30 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
     for gate in opts.gates_px:
         clock = time.perf_counter()
         tracks = link_tracks(data, match_frames(data, R, t, gate), projection_matrices(K, R, t))
-        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm=result is not None)
+        warm = result is not None
+        # the rough start's long robust schedule on a subset of the frames (the rig is fixed
+        # by far fewer points than a game holds); the warm pass on all of them
+        frames = None if warm else hypothesis_frames(data, opts.first_pass_frames)
+        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm, frames)
         R, t = result.R, result.t
         timings[f"match+bundle {gate:g}px"] = time.perf_counter() - clock
     delta = np.zeros(C)
     if opts.estimate_time and data.num_frames >= 3:
         clock = time.perf_counter()
         ok = np.flatnonzero(start.connected)
-        P = projection_matrices(K, R, t)
-        delta[ok] = estimate_offsets(P[ok], tracks.U[ok], opts.max_offset_s * data.fps)
-        if np.any(np.abs(delta) > 0.02):
-            tracks = Tracks(np.stack([shift_in_time(tracks.U[c], delta[c]) for c in range(C)]),
-                            tracks.D)
-            result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm=True)
+        observed = tracks
+        # a rig adjusted on unsynchronised observations absorbs part of an offset (a camera
+        # turned along the people's main motion): estimate, adjust on the moved observations,
+        # estimate again from that rig, until the offsets settle
+        for _ in range(opts.time_rounds):
+            P = projection_matrices(K, R, t)
+            before = delta.copy()
+            delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps)
+            if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
+                break
+            tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]),
+                            observed.D)
+            result, prob = _adjust(tracks, K, R, t, opts, start.connected, True, None)
             R, t = result.R, result.t
         timings["time offsets"] = time.perf_counter() - clock
     clock = time.perf_counter()
@@ -121,12 +135,16 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
                              tracks=tracks)
 
 
-def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray, warm: bool):
+def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray, warm: bool,
+            frames: np.ndarray | None):
     """Bundle-adjust the tracks' observations (every (track, frame, joint) a free point)
-    from the rig (R, t); the observations of each detection form one outlier group."""
+    from the rig (R, t), only ``frames`` when given; the observations of each detection form
+    one outlier group."""
     C, T, F, J = tracks.shape
     U = tracks.U.copy()
     U[~connected] = np.nan
+    if frames is not None:
+        U[:, :, np.setdiff1d(np.arange(F), frames)] = np.nan
     seen = np.all(np.isfinite(U), axis=-1)
     c, tr, f, j = np.nonzero(seen)
     X0 = triangulate(projection_matrices(K[connected], R[connected], t[connected]), U[connected])

@@ -70,9 +70,9 @@ def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray) -
 
 
 def _best_delta(P_c, X, U_c, centre: float, reach: float) -> float:
-    """Scan 0.1 frame steps over centre +- reach, a parabola through the best three, then a
-    0.01 frame scan around it."""
-    grid = centre + np.arange(-reach, reach + 1e-9, 0.1)
+    """Scan 0.2 frame steps over centre +- reach, a parabola through the best three, then a
+    0.02 frame scan around it."""
+    grid = centre + np.arange(-reach, reach + 1e-9, 0.2)
     costs = _scan(P_c, X, U_c, grid)
     if not np.isfinite(costs).any():
         return centre
@@ -82,8 +82,8 @@ def _best_delta(P_c, X, U_c, centre: float, reach: float) -> float:
         c0, c1, c2 = costs[k - 1:k + 2]
         den = c0 - 2 * c1 + c2
         if den > 0:
-            best = grid[k] + 0.05 * (c0 - c2) / den
-    fine = best + np.arange(-0.06, 0.0601, 0.01)
+            best = grid[k] + 0.1 * (c0 - c2) / den
+    fine = best + np.arange(-0.1, 0.1001, 0.02)
     fine_costs = _scan(P_c, X, U_c, fine)
     return float(fine[int(np.argmin(fine_costs))]) if np.isfinite(fine_costs).any() else float(best)
 

@@ -13,6 +13,8 @@ The result is a similarity X_world = s Q X + d applied to the rig and the points
 """
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,7 +138,9 @@ def floor_frame(X: np.ndarray, feet: np.ndarray, head: np.ndarray, first_centre:
 def _body_up(X: np.ndarray, feet: np.ndarray, head: np.ndarray) -> np.ndarray:
     """Mean direction from the feet to the head over all people and frames (unit)."""
     top = X[:, :, head].reshape(-1, len(head), 3) if len(head) else X.reshape(-1, X.shape[2], 3)
-    v = np.nanmean(top, axis=1) - np.nanmean(X[:, :, feet].reshape(-1, len(feet), 3), axis=1)
+    with warnings.catch_warnings():  # people seen without head or feet give NaN: dropped below
+        warnings.simplefilter("ignore", RuntimeWarning)  # nanmean of all-NaN
+        v = np.nanmean(top, axis=1) - np.nanmean(X[:, :, feet].reshape(-1, len(feet), 3), axis=1)
     v = v[np.all(np.isfinite(v), axis=1) & (np.linalg.norm(v, axis=1) > 0)]
     if len(v) == 0:
         raise ValueError("world frame: no person seen with both feet and head")
