@@ -348,8 +348,8 @@ def offline(scene, frames: range, temporal: bool = False):
         res = stage.step(dets, scene.stamp_ns(f))
         poses = triangulate(scene.rig, dets, res.clusters, tri)
         joints = SPORTCENTER_13.select(poses.joints)
-        cov = SPORTCENTER_13.select(poses.joint_cov.reshape(len(poses), -1, 9)).reshape(
-            len(poses), -1, 3, 3)
+        cov = SPORTCENTER_13.select(poses.joint_cov.reshape(len(poses), -1, 9))
+        cov = cov.reshape(cov.shape[:2] + (3, 3))
         ids = res.track_ids if temporal else tracker.update(scene.stamp_ns(f), joints)
         joints, _, _ = filter_and_score(scene.stamp_ns(f), np.asarray(ids), joints, cov,
                                         poses.detection_scores, joint_filter, tri.pose_score,

@@ -173,7 +173,8 @@ class TriangulationNode(Node):
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(poses), cf.num_joints, 3))
             cov = self.convert(np.asarray(poses.joint_cov, dtype=np.float64).reshape(
-                len(poses), cf.num_joints, 9)).reshape(len(poses), -1, 3, 3)
+                len(poses), cf.num_joints, 9))
+            cov = cov.reshape(cov.shape[:2] + (3, 3))
             if poses.rejected is not None and poses.rejected.any():  # tau_member
                 self.diag.count("members_rejected", int(poses.rejected.sum()))
             far = mask_far_joints(joints, self.limits)
