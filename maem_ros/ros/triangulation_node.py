@@ -8,14 +8,14 @@ person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and `
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
 the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they
-come from core.tracking.Tracker on the converted joints (post-hoc, 3D proximity). A person whose track is not confirmed yet has id 4294967295 in poses
+come from core.tracking.tracks.Tracker on the converted joints (post-hoc, 3D proximity). A person whose track is not confirmed yet has id 4294967295 in poses
 (dropped unless ``publish_tentative``) and no markers. A stamp that steps back or far ahead is
 held until the next frames confirm the jump (then a stamp going back resets the tracker) or
 refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``max_people``
 clusters or member pixels beyond ``pixel_margin`` reject the frame; joints beyond
 ``world_extent`` become NaN (counted ``joints_beyond_world_extent``). With ``bone_tolerance`` a
 tracked person's limb joint whose bone length leaves the track's recent median by more than that
-fraction is NaN (core.bone_filter, counted ``joints_bone_implausible``).
+fraction is NaN (core.tracking.bone_filter, counted ``joints_bone_implausible``).
 """
 from __future__ import annotations
 
@@ -31,6 +31,7 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from maem_ros.core.tracking.bone_filter import BoneLengthFilter
+from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.limits import InputLimits, check_clusters, mask_far_joints
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
@@ -72,7 +73,7 @@ class TriangulationNodeParams(NodeParams):
                                 minimum=0.0, exclusive_minimum=True)
     bone_tolerance: float = param(0.0, "fraction: a tracked person's elbow, wrist, knee or ankle "
                                        "whose limb bone differs from the track's median length "
-                                       "by more than this is published NaN (core.bone_filter; "
+                                       "by more than this is published NaN (core.tracking.bone_filter; "
                                        "0 = off, the paper)", minimum=0.0)
     jump_tolerance: float = param(1.0, "s, a stamp this far ahead (beyond the time since the "
                                   "previous message) or any step back is held until the next "
@@ -80,7 +81,7 @@ class TriangulationNodeParams(NodeParams):
                                   exclusive_minimum=True)
 
 
-PARAMS = param_specs(TriangulationNodeParams, TriangulationParams)
+PARAMS = param_specs(TriangulationNodeParams, TriangulationParams, JointFilterParams)
 
 
 class TriangulationNode(Node):
@@ -101,6 +102,7 @@ class TriangulationNode(Node):
             self.limits = InputLimits(max_people=p["max_people"], pixel_margin=p["pixel_margin"],
                                       world_extent_m=p["world_extent"])
             self.guard = StampGuard(int(round(p["jump_tolerance"] * 1e9)))
+            self.joint_filter = JointFilterParams.from_mapping(p).make()
             self.bone_filter = (BoneLengthFilter(get_convention(p["output_convention"]).names,
                                                  p["bone_tolerance"])
                                 if p["bone_tolerance"] > 0 else None)
@@ -154,6 +156,8 @@ class TriangulationNode(Node):
             self.tracker.reset()
             if self.bone_filter is not None:
                 self.bone_filter.reset()
+            if self.joint_filter is not None:
+                self.joint_filter.reset()
             self.diag.count("tracker_resets")
             self.diag.log_throttled("tracker_reset", f"{self.topic}: stamps went back to "
                                     f"{verdict.accepted[0][0]} (confirmed by the next "
@@ -168,6 +172,8 @@ class TriangulationNode(Node):
                 poses = self._triangulate(self._P, *cf.dense(), self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(poses), cf.num_joints, 3))
+            cov = self.convert(np.asarray(poses.joint_cov, dtype=np.float64).reshape(
+                len(poses), cf.num_joints, 9)).reshape(len(poses), -1, 3, 3)
             if poses.rejected is not None and poses.rejected.any():  # tau_member
                 self.diag.count("members_rejected", int(poses.rejected.sum()))
             far = mask_far_joints(joints, self.limits)
@@ -180,21 +186,24 @@ class TriangulationNode(Node):
                 ids = cf.cluster_tracks()
                 if ids is None:
                     ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
+                joints, std, scores = filter_and_score(
+                    cf.stamp_ns, ids, joints, cov, np.asarray(poses.detection_scores),
+                    self.joint_filter, self.params.pose_score, self.params.score_ref_m)
                 if self.bone_filter is not None:
                     implausible = self.bone_filter.apply(ids, joints)
                     if implausible:
                         self.diag.count("joints_bone_implausible", implausible)
-            self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views),
-                         np.asarray(poses.scores))
+            self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views), scores, std)
         if not step.failed:
             self.diag.ok()
 
     def publish(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, views: np.ndarray,
-                scores: np.ndarray) -> None:
+                scores: np.ndarray, joint_std: np.ndarray) -> None:
+        """Poses (with per-joint std, m) and skeleton markers of one frame set."""
         keep = np.ones(len(ids), bool) if self.publish_tentative else ids >= 0
         with Stopwatch(self.diag, "encode"):
             poses_msg = wire.poses_to_msg(stamp_ns, self.frame_id, ids[keep], joints[keep],
-                                          views[keep], scores[keep])
+                                          views[keep], scores[keep], joint_std[keep])
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
         with Stopwatch(self.diag, "markers"):

@@ -102,7 +102,7 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
 
 
 def _kernels(backend: str):
-    """core/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
+    """core/association/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
     (the numpy paths: the same results)."""
     if backend == "numba" and not clustering_kernel.have_numba():
         raise ValueError("backend: 'numba' requested but numba is not installed")
