@@ -319,10 +319,9 @@ def detections_read(plan: FramePairs, key_a: np.ndarray, key_b: np.ndarray,
 def _known_ranges(rows: list[PointRows], dets: np.ndarray, n: int, mixed: bool) -> np.ndarray:
     """(D, blocks, 2) float64: the block ranges of the detections dets (frame-wide keys over
     the cameras' rows) in the kernel's block order (:func:`block_order`), NaN where a
-    camera's were not given (the kernel computes them when it first reads a block). A
-    decoder's ranges spare the kernel a pass over the points (on a large-load frame set,
-    2-core Xeon VM: the full-mesh level 1.9 ms less in alternating runs, the 1/8 screen
-    ~0.2 ms)."""
+    camera's were not given (the kernel computes them when it first reads a block). Ranges
+    made when the frame was prepared (PairGates.prepare) spare the kernel a pass over the
+    points."""
     order = block_order(n)
     given = [r.ranges for r in rows]
     if not mixed or all(g is None for g in given):

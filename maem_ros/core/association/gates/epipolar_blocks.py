@@ -244,7 +244,7 @@ def block32x2(a, b, d, gs, k, symmetric, fetch, next_a, next_b):
 @inline
 def block_range(x, ranges, d, r):
     """(min, max) of all coordinates of detection d's block r of float32 points x (2m,),
-    cached in ranges[d, r] (a decoder's, epipolar.screen_copies, when given); (inf, -inf) if
+    cached in ranges[d, r] (the prepared frame's, screening.screen_copies, when given); (inf, -inf) if
     one is NaN or inf. The cached case inlined (the kernel asks ~3 times a pair and block),
     the scan a call."""
     if ranges[d, r, 0] == ranges[d, r, 0]:

@@ -43,8 +43,8 @@ def screen_rows(x: np.ndarray | PointRows, stride: int) -> PointRows | None:
 
 
 class ScreenCopies(NamedTuple):
-    """What a decoder's pass over one camera's (N,n,2) float32 points leaves for the mesh
-    gate (:func:`screen_copies`)."""
+    """What the preparing pass over one camera frame's (N,n,2) float32 points leaves for the
+    mesh gate (:func:`screen_copies`, PairGates.prepare)."""
 
     #: {stride: (N,m,2) float32 read-only}: each screening subset, contiguous
     copies: dict[int, np.ndarray]
@@ -60,13 +60,12 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     (:func:`screen_rows`) copied contiguous (strides whose screen is off left out), the full
     set's and the copies' block ranges, and the first detection with an infinite coordinate.
 
-    For a decoder, whose finiteness check reads every point anyway: with numba, one pass
-    scans each detection (its block ranges are the finiteness check) and copies its runs (of
-    the finest subset and of one coarser subset nested in it) while they are in cache. The
-    gate then reads the copies where it would gather the same runs from scattered cache
-    lines (maem-bench --load large: 3.4-3.6 ms of gathers gone from the gate, 0.4-1 ms added
-    to decoding the 16 cameras; 2-core Xeon VM), and the ranges where its kernel would scan
-    the points again (:func:`_known_ranges`)."""
+    For PairGates.prepare, as each camera frame arrives (off the frame set's critical path):
+    with numba, one pass scans each detection (its block ranges) and copies its runs (of the
+    finest subset and of one coarser subset nested in it) while they are in cache. The gate
+    then reads the copies where it would gather the same runs from scattered cache lines,
+    and the ranges where its kernel would scan the points again
+    (epipolar._known_ranges)."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
     levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
