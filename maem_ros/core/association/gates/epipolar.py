@@ -340,8 +340,8 @@ def gather_buffer(size: int, dtype: np.dtype, slot: int = 0, align: int = 64) ->
     """(size,) ``dtype`` starting on an ``align``-byte boundary, in this thread's scratch
     memory ``slot`` (valid until the next call for that slot in this thread). Kept, not
     allocated per call: a fresh 7 MB buffer (the large load's 1/8 screen) came from new pages
-    now and then, and their first writes faulted (~380 page faults, +6 to +60 ms on a frame
-    on a 2-core VM), while memory reused from the previous frame is already mapped. Grown with
+    now and then, and their first writes page-faulted (hundreds of faults: an outlier frame),
+    while memory reused from the previous frame is already mapped. Grown with
     headroom (frame sets vary in size), as each growth faults its new pages once."""
     need = size * np.dtype(dtype).itemsize + align
     if not hasattr(_scratch, "raw"):

@@ -53,9 +53,9 @@ def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_ex
 #: float32 (u, v) are 32 KB, so 48 fill 1.5 MB of a 2 MB L2, the rest left to the kernel's
 #: other reads. On a large-load frame set's full-mesh level (814 pairs of 386 detections,
 #: one connected graph of degree ~4), counted in an LRU cache of 48 blocks: 937 block loads a
-#: round in the detection order, 720 in locality_order's; the level alone 9.4-9.6 -> 8.7-9.0
-#: ms, in the frame ~0.3 ms (alternating runs, 2-core Xeon VM; 24, 96 or 192: within noise of
-#: 48). The screens (one block each, their points in cache) gained nothing: not reordered
+#: round in the detection order, 720 in locality_order's, and the level is faster by a few
+#: percent in alternating runs (24, 96 or 192: within noise of 48). The screens (one block
+#: each, their points in cache) gained nothing: not reordered
 LOCALITY_BLOCKS = 48
 
 
@@ -278,8 +278,8 @@ def _with_rest(like, det_addr, pa, pb, blocks, n, sums, used, last, count_rest):
 
 #: runs prefetched ahead of the one gather_runs copies: the runs are separate cache lines
 #: (one every period points) that the hardware prefetchers do not follow across pages, so
-#: without the hint the copy waits for memory one line at a time (a large-load screen,
-#: 400 detections from cold memory: 4.7 ms without, 3.1 ms with 8 ahead)
+#: without the hint the copy waits for memory one line at a time (8 ahead: about a third
+#: less time for a large-load screen from cold memory; 16 or 32: no better)
 _RUNS_AHEAD = 8
 
 
