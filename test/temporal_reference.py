@@ -7,12 +7,16 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from maem_ros.core.association.gates import epipolar
-from maem_ros.core.detections import FrameDetections
+from maem_ros.core.detections import FrameDetections, vertex_subset
+from maem_ros.core.geometry.camera import fundamental_matrix
 from maem_ros.core.geometry.multiview import reprojection_errors
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.core.tracking.temporal import (_GATED, TemporalAssociator, _depth, _nanmedian, _project,
-                                    _verify)
+from maem_ros.core.tracking.temporal import _GATED, TemporalAssociator
+from maem_ros.core.tracking.track_geometry import median_depth as _depth
+from maem_ros.core.tracking.track_geometry import nanmedian as _nanmedian
+from maem_ros.core.tracking.track_geometry import project as _project
+from maem_ros.core.tracking.track_geometry import verify_clusters as _verify
 
 
 class ReferenceTemporalAssociator(TemporalAssociator):
@@ -112,11 +116,11 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
                 s = np.flatnonzero(ok & (key == k))
                 a, b = divmod(k, len(self.rig))
-                xa, xb = self._gate_points(by_cam[a]), self._gate_points(by_cam[b])
+                xa, xb = self._points(by_cam[a]), self._points(by_cam[b])
                 sums, used = epipolar.epipolar_sums(
-                    xa, xb, self._F[(a, b)], da[s], db[s], p.tau_mesh,
-                    symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
-                    backend=p.backend)
+                    xa, xb, fundamental_matrix(self.rig.cameras[a], self.rig.cameras[b]),
+                    da[s], db[s], p.tau_mesh, symmetric=p.epipolar_distance == "symmetric",
+                    early_exit=p.execution.early_exit, backend=p.execution.backend)
                 ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
@@ -131,3 +135,12 @@ class ReferenceTemporalAssociator(TemporalAssociator):
         passes = np.zeros((T, M, M), bool)
         passes[t, ma, mb] = passes[t, mb, ma] = ok
         return passes
+
+    def _points(self, fd: FrameDetections) -> np.ndarray:
+        """The (N,n,2) px the verification's epipolar test compares: 2D keypoints, or the
+        mesh vertices of the association's vertex subset."""
+        if self.tp.verify_epipolar == "sparse":
+            return fd.kpts2d
+        subset = vertex_subset(fd.num_vertices, self.params.vertex_stride,
+                               self.params.vertex_count)
+        return fd.verts2d if subset is None else fd.verts2d[:, subset]

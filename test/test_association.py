@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from maem_ros.core.association.gates import epipolar
-from maem_ros.core.association.pipeline import PAPER_PIPELINE, AssociationParams, associate
+from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
 from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.multiview import reprojection_errors
@@ -21,7 +21,7 @@ BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 #: settles them or the pair is redone in float64); its means are within the estimate's
 #: relative error bound (on one point up to ~2e-4, averaging down on full meshes)
 VARIANTS = [("numpy", "float64", 1e-9, 0.0)] + (
-    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", epipolar._RSQRT_ERR, 1e-4)]
+    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", epipolar.RSQRT_ERR, 1e-4)]
     if epipolar.have_numba() else [])
 
 
@@ -114,7 +114,7 @@ def scene(n_people: int = 5, n_cams: int = 4, seed: int = 0):
 ] + [{"backend": b} for b in BACKENDS])
 def test_noiseless_scene_gives_exactly_the_true_clusters(options):
     rig, frames, truth = scene(5, 4)
-    res = associate(rig, frames, AssociationParams(k_min=4, **options))
+    res = associate(rig, frames, AssociationParams.from_mapping({"k_min": 4, **options}))
     assert as_sets(res.clusters) == truth
     for c in res.clusters:
         assert np.all(c.costs < 1e-9)  # exact keypoints: PA-MPJPE 0 between true views
@@ -131,7 +131,7 @@ def test_noiseless_scene_gives_exactly_the_true_clusters(options):
 
 def test_many_people_many_cameras_with_numpy_and_numba_agree():
     rig, frames, truth = scene(8, 6, seed=3)
-    results = [associate(rig, frames, AssociationParams(k_min=6, backend=b)) for b in BACKENDS]
+    results = [associate(rig, frames, AssociationParams.from_mapping({"k_min": 6, "backend": b})) for b in BACKENDS]
     for res in results:
         assert as_sets(res.clusters) == truth
         assert all(np.isfinite(float(v)) for v in res.stats.values()), res.stats
@@ -221,7 +221,7 @@ def test_same_camera_conflict_drops_the_member_with_highest_mean_cost():
     deformed = p.joints + np.random.default_rng(5).normal(0, 0.06, p.joints.shape)
     frames, _ = frames_for(rig, {"cam0": [(p, None), (p, deformed)], "cam1": [(p, deformed)],
                                  "cam2": [(p, None)], "cam3": [(p, None)]})
-    res = associate(rig, frames, AssociationParams(k_min=4, **PAPER))
+    res = associate(rig, frames, AssociationParams.from_mapping({"k_min": 4, **PAPER}))
     assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)})}
     assert res.stats["conflicts_removed"] == 1
     exact, bent = (rig["cam0"].world_to_camera(x) for x in (p.joints, deformed))
@@ -486,7 +486,7 @@ def _chain_case_side_by_side():
 def test_consistent_clustering_keeps_apart_what_union_find_chains(case):
     rig, frames, truth = case()
     k_min = 3
-    paper = associate(rig, frames, AssociationParams(k_min=k_min, **PAPER))
+    paper = associate(rig, frames, AssociationParams.from_mapping({"k_min": k_min, **PAPER}))
     # the paper's pipeline chains the two people: one cluster, conflicts removed, one lost
     assert paper.stats["conflicts_removed"] >= 1
     assert as_sets(paper.clusters) != truth
@@ -508,11 +508,11 @@ def test_cost_cap_and_cost_joints_change_decisions():
     frames, _ = frames_for(rig, {"cam0": [(p, None)], "cam1": [(p, bent)]})
     both = {frozenset({(0, 0), (1, 0)})}
     base = dict(k_min=2, tau_cost=0.05)
-    res = associate(rig, frames, AssociationParams(cost_joints="all", **base))
+    res = associate(rig, frames, AssociationParams.from_mapping({"cost_joints": "all", **base}))
     assert res.clusters == [] and res.stats["rejected_cost"] == 1
     rest = ",".join(str(k) for k in range(3, J))
-    assert as_sets(associate(rig, frames, AssociationParams(cost_joints=rest, **base)).clusters) == both
-    assert as_sets(associate(rig, frames, AssociationParams(k_min=2, **PAPER)).clusters) == both
+    assert as_sets(associate(rig, frames, AssociationParams.from_mapping({"cost_joints": rest, **base})).clusters) == both
+    assert as_sets(associate(rig, frames, AssociationParams.from_mapping({"k_min": 2, **PAPER})).clusters) == both
     # a cap above the pair's cost lets it match with every joint
     full = associate(rig, frames, AssociationParams(k_min=2, cost_joints="all", tau_cost=5.0))
     assert as_sets(full.clusters) == both

@@ -16,8 +16,9 @@ from test_association import ring_rig
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.geometry import procrustes
 from maem_ros.core.geometry import procrustes_kernel
-from maem_ros.core.association.pipeline import (_BOUND_MARGIN, AssociationParams, _enumerate_pairs,
-                                       _fundamental_stack, _reprojection_gate, rig_geometry)
+from maem_ros.core.association.gates import rig_geometry
+from maem_ros.core.association.gates.reprojection import (BOUND_MARGIN, enumerate_pairs,
+                                                          reprojection_ok)
 from maem_ros.core.association.clustering import _disjoint_greedy, _members_padded, _verified_disjoint
 from maem_ros.core.detections import DetectionTable, FrameDetections
 from maem_ros.core.geometry.multiview import pair_reprojection_bound, pair_reprojection_errors
@@ -123,20 +124,19 @@ def test_reprojection_bound_never_exceeds_the_dlt_error_and_gate_decisions_are_t
     rng = np.random.default_rng(11)
     rig = ring_rig(5)
     table = _table(rig, rng, [30, 0, 25, 30, 28])
-    i, j = _enumerate_pairs(table)
-    P, _ = rig_geometry(rig)
+    i, j = enumerate_pairs(table.offsets)
+    P, stack = rig_geometry(rig).P, rig_geometry(rig).stack
     errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, reduce)
-    bound = pair_reprojection_bound(_fundamental_stack(rig), table.cam, table.centers, i, j,
+    bound = pair_reprojection_bound(stack, table.cam, table.centers, i, j,
                                     reduce)
     finite = np.isfinite(errors)
     assert finite.sum() > 1000 and np.isfinite(bound).all()
     assert np.all(bound[finite] <= errors[finite] * (1 + 1e-9))
     # the bound settles most pairs: the DLT runs on few
     for tau in (2.0, 10.0, 40.0):
-        params = AssociationParams(tau_reproj_bbox=tau, reproj_reduce=reduce)
         assert np.count_nonzero(bound > tau) > 0.5 * i.size
-        np.testing.assert_array_equal(_reprojection_gate(table, i, j, rig, params),
-                                      errors < tau)
+        np.testing.assert_array_equal(
+            reprojection_ok(stack, P, table.cam, table.centers, i, j, tau, reduce), errors < tau)
 
 
 @pytest.mark.skipif(not epipolar.have_numba(), reason="numba not installed")
@@ -150,26 +150,25 @@ def test_numba_reprojection_pass_enumerates_and_decides_like_the_numpy_path(redu
     rig = ring_rig(5)
     table = _table(rig, rng, [30, 0, 25, 30, 28])
     table.centers[[3, 40, 41]] = np.nan
-    i, j = _enumerate_pairs(table)
-    P, _ = rig_geometry(rig)
+    i, j = enumerate_pairs(table.offsets)
+    P, stack = rig_geometry(rig).P, rig_geometry(rig).stack
     errors = pair_reprojection_errors(P[table.cam], table.centers, i, j, reduce)
     assert np.isinf(errors).sum() > 100 and np.isfinite(errors).sum() > 1000
     ties = rng.choice(errors[np.isfinite(errors) & (errors < 60)], 5, replace=False)
     for tau in (2.0, 10.0, 40.0, *ties):
-        params = AssociationParams(tau_reproj_bbox=float(tau), reproj_reduce=reduce)
-        got_i, got_j, ok = reprojection_gate(table.offsets, _fundamental_stack(rig),
-                                             P[table.cam], table.centers, float(tau),
-                                             _BOUND_MARGIN, reduce == "max")
+        got_i, got_j, ok = reprojection_gate(table.offsets, stack, P[table.cam], table.centers,
+                                             float(tau), BOUND_MARGIN, reduce == "max")
         np.testing.assert_array_equal(got_i, i)
         np.testing.assert_array_equal(got_j, j)
-        np.testing.assert_array_equal(ok, _reprojection_gate(table, i, j, rig, params))
+        np.testing.assert_array_equal(
+            ok, reprojection_ok(stack, P, table.cam, table.centers, i, j, float(tau), reduce))
         np.testing.assert_array_equal(ok, errors < tau)
 
 
 def test_enumerated_pairs_are_the_sorted_upper_triangle_across_cameras():
     rng = np.random.default_rng(2)
     table = _table(ring_rig(6), rng, [4, 0, 7, 1, 0, 5])
-    i, j = _enumerate_pairs(table)
+    i, j = enumerate_pairs(table.offsets)
     ri, rj = np.triu_indices(len(table), 1)
     other = table.cam[ri] != table.cam[rj]
     ri, rj = ri[other], rj[other]

@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from maem_ros.core.association.pipeline import PAPER_PIPELINE, AssociationParams, associate
+from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
 from maem_ros.sim.rigs import load_rig
 from maem_ros.tools.bench_load import (body_template, make_frame, pa_mpjpe_one,
                                        straightforward_associate)
@@ -67,7 +67,7 @@ def load():
 def test_fast_and_straightforward_give_the_same_clusters(load, options):
     """The straightforward reference implements the paper's pipeline."""
     rig, frames = load
-    params = AssociationParams(**{**PAPER_PIPELINE, **options})
+    params = AssociationParams.from_mapping({**PAPER_PIPELINE, **options})
     for fr in frames:
         fast = [frozenset(map(tuple, c.members.tolist()))
                 for c in associate(rig, fr.frames, params).clusters]
@@ -84,7 +84,7 @@ def test_score_threshold_in_both_paths(load):
     name = rig.names[2]
     fr.frames[name].scores[:3] = 0.5
     fr.raw[name].scores[:3] = 0.5
-    params = AssociationParams(**PAPER_PIPELINE)
+    params = AssociationParams.from_mapping(PAPER_PIPELINE)
     fast = associate(rig, fr.frames, params)
     ref = straightforward_associate(rig, fr.raw, params)
     assert [frozenset(map(tuple, c.members.tolist())) for c in fast.clusters] == \

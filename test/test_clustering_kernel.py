@@ -14,7 +14,8 @@ from test_association import ring_rig
 
 from maem_ros.core.association import clustering
 from maem_ros.core.association import clustering_kernel
-from maem_ros.core.association.pipeline import AssociationParams, associate, rig_geometry
+from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.association.gates import rig_geometry
 from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, DetectionTable,
                                       FrameDetections, PairSet)
 from maem_ros.core.skeleton import joint_subset
@@ -49,7 +50,7 @@ def test_numba_merge_check_equals_the_numpy_check(seed, cams, people, noise, tau
     rng = np.random.default_rng(seed)
     rig = ring_rig(cams)
     table = _table(rig, rng, people, noise)
-    P, _ = rig_geometry(rig)
+    P = rig_geometry(rig).P
     joints = np.arange(J)
     numpy_check = clustering._Verifier(table, P, joints, tau, None)
     numba_check = clustering._Verifier(table, P, joints, tau, clustering_kernel)
@@ -226,7 +227,7 @@ def test_numba_merge_rounds_equal_the_numpy_rounds(seed, cams, people, noise, ta
     rig = ring_rig(cams)
     table = _table(rig, rng, people, noise)
     pairs = _pairs(table, rng, people, 0.08)
-    P, _ = rig_geometry(rig)
+    P = rig_geometry(rig).P
     params = AssociationParams(tau_cost=0.08, min_support=min_support, tau_verify=tau)
     gain, geometric = clustering._gain_matrix(table, pairs, params.tau_cost)
     out = []
@@ -263,13 +264,13 @@ def test_numba_and_numpy_clusterings_agree_on_bench_frames(bench_frames):
     for rig, frames in bench_frames:
         params = AssociationParams()
         result = associate(rig, frames, params)
-        P, _ = rig_geometry(rig)
+        P = rig_geometry(rig).P
         joints = joint_subset(params.cost_joints, result.table.num_joints)
         found = []
         for backend in ("numpy", "numba"):
             stats = dict.fromkeys(("merges", "merges_rejected", "moves"), 0.0)
             groups = clustering.cluster(result.table, result.pairs, P, joints,
-                                        AssociationParams(backend=backend), stats, None).groups
+                                        AssociationParams.from_mapping({"backend": backend}), stats, None).groups
             found.append(([g.tolist() for g in groups], stats))
         assert found[1] == found[0]
         assert found[0][1]["merges"] > 0

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from maem_ros.core.association.gates import epipolar
+from maem_ros.core.association.gates import epipolar, screening
 from maem_ros.core.geometry.camera import fundamental_matrix
 from test_association import VARIANTS, ring_rig, two_facing_cameras
 
@@ -198,12 +198,12 @@ def test_mixed_runs_in_float64_when_the_float32_rsqrt_is_outside_the_bound(monke
     first use fails, "mixed" must give the float64 sums."""
     if not epipolar.have_numba():
         return
-    assert epipolar._rsqrt_within_bound()  # on this machine the float32 path is taken
+    assert epipolar.rsqrt_within_bound()  # on this machine the float32 path is taken
     F, xa, xb, _ = _scene(5, 1500, 8.0, 3, 3)
     xa, xb = xa.astype(np.float32), xb.astype(np.float32)
     ia = jb = np.arange(3)
     exact = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="float64")
-    monkeypatch.setattr(epipolar, "_rsqrt_within_bound", lambda: False)
+    monkeypatch.setattr(epipolar, "rsqrt_within_bound", lambda: False)
     got = epipolar.epipolar_sums(xa, xb, F, ia, jb, 8.0, backend="numba", precision="mixed")
     np.testing.assert_array_equal(got[0], exact[0])
     np.testing.assert_array_equal(got[1], exact[1])
@@ -219,7 +219,7 @@ def test_a_pair_the_estimate_cannot_settle_is_settled_by_the_refined_float32_sum
     pair is summed in float64."""
     if not epipolar.have_numba():
         return
-    assert epipolar._refined_rsqrt_within_bound()  # on this machine the second try runs
+    assert epipolar.refined_rsqrt_within_bound()  # on this machine the second try runs
     F, xa, xb, _ = _scene(7, 4000, 8.0, 1, 1)
     xa, xb = xa.astype(np.float32), xb.astype(np.float32)
     one = np.zeros(1, np.int64)
@@ -230,7 +230,7 @@ def test_a_pair_the_estimate_cannot_settle_is_settled_by_the_refined_float32_sum
     got = epipolar.epipolar_sums(xa, xb, F, one, one, tau, backend="numba", precision="mixed")
     assert (got[0][0] < tau * got[1][0]) == above
     assert got[0][0] != exact[0][0] and got[0][0] == pytest.approx(exact[0][0], rel=1e-6)
-    monkeypatch.setattr(epipolar, "_refined_rsqrt_within_bound", lambda: False)
+    monkeypatch.setattr(epipolar, "refined_rsqrt_within_bound", lambda: False)
     got = epipolar.epipolar_sums(xa, xb, F, one, one, tau, backend="numba", precision="mixed")
     assert (got[0][0] < tau * got[1][0]) == above
     assert got[0][0] == exact[0][0]
@@ -318,7 +318,7 @@ def test_a_screen_read_in_place_sums_like_its_contiguous_copy(seed, n, stride, s
     same points."""
     _, points, F, rng = _ring_scene(seed, n, 8.0, 4)
     points = {c: x.astype(np.float32) for c, x in points.items()}
-    screen = {c: epipolar.screen_rows(x, stride) for c, x in points.items()}
+    screen = {c: screening.screen_rows(x, stride) for c, x in points.items()}
     copied = {c: rows.contiguous() for c, rows in screen.items()}
     assert all(rows.run and np.shares_memory(rows.flat, points[c]) for c, rows in screen.items())
     pairs = [(a, b) for a, b in F for _ in range(5)]
@@ -358,10 +358,10 @@ def test_the_kernels_function_attributes_reach_llvm(intrinsic, attribute):
     numba = pytest.importorskip("numba")
     import platform
 
-    from maem_ros.core.association.gates import epipolar_kernel
+    from maem_ros.core.association.gates import epipolar_jit
     if intrinsic == "estimated_rsqrt" and platform.machine().lower() not in ("x86_64", "amd64"):
         pytest.skip("the estimate alone is used on x86-64 only")
-    mark = getattr(epipolar_kernel, intrinsic)
+    mark = getattr(epipolar_jit, intrinsic)
 
     @numba.njit
     def plus_one(x):
@@ -369,7 +369,7 @@ def test_the_kernels_function_attributes_reach_llvm(intrinsic, attribute):
         return x + 1
 
     assert plus_one(1) == 2
-    assert getattr(epipolar_kernel, attribute) in plus_one.inspect_llvm(plus_one.signatures[0])
+    assert getattr(epipolar_jit, attribute) in plus_one.inspect_llvm(plus_one.signatures[0])
 
 
 def _runs(pa: np.ndarray, fk: np.ndarray) -> list[tuple[int, ...]]:

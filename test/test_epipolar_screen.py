@@ -5,13 +5,15 @@ every vertex."""
 from __future__ import annotations
 
 import dataclasses
+import gc
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
-from maem_ros.core.association.gates import epipolar
-from maem_ros.core.association.pipeline import AssociationParams, associate
+from maem_ros.core.association import AssociationParams, ExecutionParams, PairGates, associate
+from maem_ros.core.association.gates import epipolar, screening
+from maem_ros.core.detections import DetectionTable, FrameDetections
 
 #: a rectified pair (b = a shifted along x): epipolar lines are image rows, so a vertex's
 #: (symmetric and forward) distance is exactly its row offset |v_b - v_a|
@@ -22,7 +24,7 @@ TAU = 8.0
 MARGIN = 1.0
 #: relative tolerance of an accepted mean (numba "mixed": the 1/sqrt estimate's bound; every
 #: vertex here sits at one distance, so its error does not average out over the points)
-MEAN_REL = epipolar._RSQRT_ERR
+MEAN_REL = epipolar.RSQRT_ERR
 #: a coarser screening level before the screen
 COARSE = 32
 COARSE_MARGIN = 2.5
@@ -30,8 +32,8 @@ COARSE_MARGIN = 2.5
 
 def _screened_ids(n: int, stride: int) -> np.ndarray:
     """The vertex ids screen_rows keeps: the first SCREEN_RUN of every SCREEN_RUN * stride."""
-    k = np.arange(n // (epipolar.SCREEN_RUN * stride) * epipolar.SCREEN_RUN * stride)
-    return k[k % (epipolar.SCREEN_RUN * stride) < epipolar.SCREEN_RUN]
+    k = np.arange(n // (screening.SCREEN_RUN * stride) * screening.SCREEN_RUN * stride)
+    return k[k % (screening.SCREEN_RUN * stride) < screening.SCREEN_RUN]
 
 
 def _pair(on_screen: float, elsewhere: float, seed: int = 0, n: int = N,
@@ -52,10 +54,10 @@ def _pair(on_screen: float, elsewhere: float, seed: int = 0, n: int = N,
 
 
 def _gate(xa, xb, stride: int = STRIDE, margin: float = MARGIN):
-    screen_a, screen_b = epipolar.screen_rows(xa, stride), epipolar.screen_rows(xb, stride)
+    screen_a, screen_b = screening.screen_rows(xa, stride), screening.screen_rows(xb, stride)
     screen = None if screen_a is None else (screen_a, screen_b)
     one = np.zeros(1, np.int64)
-    return epipolar.screened_means((epipolar.point_rows(xa), epipolar.point_rows(xb)), screen,
+    return screening.screened_means((epipolar.point_rows(xa), epipolar.point_rows(xb)), screen,
                                    F_ROWS, one, one, TAU, margin)
 
 
@@ -66,13 +68,13 @@ def _full_mean(on_screen: float, elsewhere: float) -> float:
 
 def test_screen_rows_keeps_runs_of_consecutive_points_one_in_every_stride():
     x = np.arange(2 * N, dtype=np.float32).reshape(1, N, 2)
-    rows = epipolar.screen_rows(x, STRIDE)
+    rows = screening.screen_rows(x, STRIDE)
     ids = _screened_ids(N, STRIDE)
     np.testing.assert_array_equal(rows.points(0), x[0, ids])
     assert np.shares_memory(rows.flat, x)  # described in place, not copied
     assert rows.n == N // STRIDE
-    assert epipolar.screen_rows(x, 1) is None  # off
-    assert epipolar.screen_rows(x[:, :100], STRIDE) is None  # too few points to screen
+    assert screening.screen_rows(x, 1) is None  # off
+    assert screening.screen_rows(x[:, :100], STRIDE) is None  # too few points to screen
 
 
 def test_a_clear_subset_mean_decides_and_is_the_pairs_distance():
@@ -99,12 +101,12 @@ def test_a_subset_rejected_by_an_early_exit_before_half_its_points_is_not_read_a
     screen decides it, as it would without the early exit, and the full set is not read."""
     n = 3 * epipolar.BLOCK * STRIDE  # a subset of three blocks: the first is under half of it
     xa, xb = _pair(100.0, 1.0, n=n)
-    screen = epipolar.screen_rows(xa, STRIDE).n
+    screen = screening.screen_rows(xa, STRIDE).n
     assert 2 * np.diff(epipolar.block_order(screen)[0]) < screen
     for backend in epipolar.BACKENDS:
-        screen_a, screen_b = epipolar.screen_rows(xa, STRIDE), epipolar.screen_rows(xb, STRIDE)
+        screen_a, screen_b = screening.screen_rows(xa, STRIDE), screening.screen_rows(xb, STRIDE)
         one = np.zeros(1, np.int64)
-        keep, mean, evaluated = epipolar.screened_means(
+        keep, mean, evaluated = screening.screened_means(
             (epipolar.point_rows(xa), epipolar.point_rows(xb)), (screen_a, screen_b), F_ROWS,
             one, one, TAU, MARGIN, backend=backend)
         assert not keep[0] and np.isnan(mean[0])
@@ -145,9 +147,9 @@ def test_a_subset_with_most_points_missing_defers_to_the_full_set():
 
 def _two_levels(xa, xb):
     """The gate with the coarse level and the screen (as the association's default)."""
-    rows = [(epipolar.screen_rows(xa, k), epipolar.screen_rows(xb, k)) for k in (COARSE, STRIDE)]
+    rows = [(screening.screen_rows(xa, k), screening.screen_rows(xb, k)) for k in (COARSE, STRIDE)]
     one = np.zeros(1, np.int64)
-    return epipolar.frame_screened_means(
+    return screening.frame_screened_means(
         {0: epipolar.point_rows(xa), 1: epipolar.point_rows(xb)},
         [(dict(enumerate(r)), m) for r, m in zip(rows, (COARSE_MARGIN, MARGIN))], {(0, 1): F_ROWS},
         one, one, one + 1, one, TAU)
@@ -189,20 +191,20 @@ def test_the_two_levels_gathered_in_one_pass_give_what_each_level_gathered_gives
     def levels(apart: bool):
         out = []
         for k, m in ((COARSE, COARSE_MARGIN), (STRIDE, MARGIN)):
-            rows = {c: epipolar.screen_rows(full[c], k) for c in full}
+            rows = {c: screening.screen_rows(full[c], k) for c in full}
             if apart and k == COARSE:
                 rows = {c: dataclasses.replace(r, flat=r.flat.view()) for c, r in rows.items()}
             out.append((rows, m))
         return out
 
     def gate(apart: bool, backend: str = "auto"):
-        return epipolar.frame_screened_means(full, levels(apart), {(0, 1): F_ROWS}, 0 * ia, ia,
+        return screening.frame_screened_means(full, levels(apart), {(0, 1): F_ROWS}, 0 * ia, ia,
                                              0 * ia + 1, jb, TAU, backend=backend)
 
     if epipolar.have_numba():  # the one pass runs: both levels come back contiguous
-        plan = epipolar._frame_pairs(full, {(0, 1): F_ROWS}, 0 * ia, ia, 0 * ia + 1, jb)
-        for apart, runs in ((False, {0}), (True, {epipolar.SCREEN_RUN})):
-            got = epipolar._gathered_screens(plan, levels(apart), "auto")
+        plan = epipolar.frame_pairs(full, {(0, 1): F_ROWS}, 0 * ia, ia, 0 * ia + 1, jb)
+        for apart, runs in ((False, {0}), (True, {screening.SCREEN_RUN})):
+            got = screening._gathered_screens(plan, levels(apart), "auto")
             assert {r.run for level, _ in got for r in level.values()} == runs
     fused, apart = gate(False), gate(True)
     for got, want in zip(fused, apart):
@@ -235,10 +237,10 @@ def test_screen_copies_hold_each_screens_points_the_block_ranges_and_the_first_i
     x = rng.uniform(-100, 2000, (5, 2 * epipolar.BLOCK + 1001, 2)).astype(np.float32)
     x[1, ::7, 0] = np.nan
     x[2, epipolar.BLOCK + 3, 1] = -np.nan
-    copies, ranges, first_inf = epipolar.screen_copies(x, strides)
+    copies, ranges, first_inf = screening.screen_copies(x, strides)
     assert first_inf == -1 and sorted(copies) == sorted(s for s in strides if s > 1)
     for stride, got in copies.items():
-        screen = epipolar.screen_rows(x, stride)
+        screen = screening.screen_rows(x, stride)
         np.testing.assert_array_equal(got, screen._gather(screen.rows))
         assert not got.flags.writeable
     if epipolar.have_numba():  # the full set's and the copies made in the pass
@@ -252,10 +254,10 @@ def test_screen_copies_hold_each_screens_points_the_block_ranges_and_the_first_i
     else:
         assert ranges == {}
     x[3, 2000, 1], x[4, 5, 0] = -np.inf, np.inf
-    assert epipolar.screen_copies(x, strides).first_inf == 3
+    assert screening.screen_copies(x, strides).first_inf == 3
     x[3, 2000, 1] = 0.0
     x[4, 0, 1] = np.nan  # the inf shares its block with a NaN
-    assert epipolar.screen_copies(x, strides).first_inf == 4
+    assert screening.screen_copies(x, strides).first_inf == 4
 
 
 @pytest.mark.skipif(not epipolar.have_numba(), reason="block ranges are the numba kernel's")
@@ -270,7 +272,7 @@ def test_the_kernel_given_block_ranges_sums_what_it_sums_computing_them():
     b = a + rng.normal(0, 1, (6, 1, 1)).astype(np.float32)
     b[..., 1] += rng.uniform(0, 2 * TAU, (6, 1)).astype(np.float32)  # row offsets: F_ROWS
     a[2, 5000:5010] = np.nan
-    given = [epipolar.point_rows(x, epipolar.screen_copies(x, (8,)).block_ranges[1])
+    given = [epipolar.point_rows(x, screening.screen_copies(x, (8,)).block_ranges[1])
              for x in (a, b)]
     assert all(r.ranges is not None for r in given)
     ia, jb = np.repeat(np.arange(6), 6), np.tile(np.arange(6), 6)
@@ -294,79 +296,172 @@ def test_the_kernel_given_block_ranges_sums_what_it_sums_computing_them():
         epipolar.point_rows(a[:, :epipolar.BLOCK], given[0].ranges)
 
 
-def test_decoded_screen_copies_give_the_gate_what_it_gathers_itself(scene):
-    """Detections decoded with the gate's screening subsets copied (the association node's
-    path): the gate reads the copies (no gather of its own) and the block ranges, and every
-    decision and mean is the one it gives when it gathers the subsets and scans the blocks
-    itself, bit for bit; a detections subset (select) keeps its rows' copies and ranges."""
-    from maem_ros.core.association import pipeline as association
+def _decoded(scene, f, gates=None):
+    """Frame f of the scene decoded from its wire messages (as the association node receives
+    them), each prepared by ``gates`` when given."""
     from maem_ros.ros import wire
+    frames = {c: wire.msg_to_detections(wire.detections_to_msg(scene.detections(c, f)), "/d")
+              for c in scene.rig.names}
+    return frames if gates is None else {c: gates.prepare(fd) for c, fd in frames.items()}
+
+
+def test_prepared_frames_are_gated_exactly_as_unprepared_ones(scene):
+    """Frames prepared by the gates (the association node's path: PairGates.prepare as each
+    message is decoded) give the gate contiguous subsets (no gather of its own) and block
+    ranges, and every decision and mean is the one it gives when it gathers the subsets and
+    scans the blocks itself, bit for bit; a selection of a prepared frame (PairGates.select)
+    keeps its rows'."""
     params = AssociationParams(k_min=2)
-    strides = association.decode_screen_strides(params)
-    assert strides == (params.screen_coarse_stride, params.screen_stride) or \
-        not epipolar.have_numba()
+    gates = PairGates(scene.rig, params)
+    prepares = gates.execution.backend != "numpy" and epipolar.have_numba()
     for f in (0, scene.config.frames // 2):
-        msgs = {c: wire.detections_to_msg(scene.detections(c, f)) for c in scene.rig.names}
-        plain, copied = ({c: wire.msg_to_detections(m, "/d", screen_strides=s)
-                          for c, m in msgs.items()} for s in ((), strides))
-        runs = {rows.run for _, subsets in association._gate_points(
-            {k: copied[c] for k, c in enumerate(scene.rig.names)}, params).values()
-            for rows in subsets if rows is not None}
-        assert runs == ({0} if strides else {epipolar.SCREEN_RUN})
-        a, b = associate(scene.rig, plain, params), associate(scene.rig, copied, params)
+        plain, prepared = _decoded(scene, f), _decoded(scene, f, gates)
+        assert all(gates.is_prepared(fd) == prepares for fd in prepared.values())
+        assert not any(gates.is_prepared(fd) for fd in plain.values())
+        by_index = {k: prepared[c] for k, c in enumerate(scene.rig.names)}
+        runs = {rows.run for k in by_index for rows in gates.frame_set(by_index).points(k)[1]
+                if rows is not None}
+        assert runs == ({0} if prepares else {screening.SCREEN_RUN})
+        a = associate(scene.rig, plain, params)
+        b = associate(scene.rig, prepared, params, gates)
         assert [c.members.tolist() for c in a.clusters] == [c.members.tolist() for c in b.clusters]
-        for got, want in zip(_gate_means(scene, copied, params), _gate_means(scene, plain, params)):
+        for got, want in zip(_gate_decisions(scene, prepared, gates),
+                             _gate_decisions(scene, plain, gates)):
             np.testing.assert_array_equal(got, want)
-    if strides:
-        fd = copied[scene.rig.names[0]]
+    if prepares:
+        fd = prepared[scene.rig.names[0]]
         keep = np.array([0, fd.n - 1])
-        np.testing.assert_array_equal(fd.select(keep).screen_copy(strides[-1]),
-                                      fd.screen_copy(strides[-1])[keep])
-        copied_strides = [s for s in strides if fd.screen_copy(s) is not None]
-        assert copied_strides
-        for stride in [1] + copied_strides:
-            np.testing.assert_array_equal(fd.select(keep).block_ranges(stride),
-                                          fd.block_ranges(stride)[keep])
-        full, subsets = association._gate_points({0: fd}, params)[0]
-        # the kernel is given them
-        assert full.ranges is fd.block_ranges() is not None
-        assert all(r.ranges is fd.block_ranges(s) is not None
-                   for r, s in zip(subsets, strides) if s in copied_strides)
-        fd.verts2d = fd.verts2d.copy()  # new vertices: the copies no longer describe them
-        assert fd.screen_copy(strides[-1]) is None and fd.block_ranges() is None
+        part = gates.select(fd, keep)
+        assert gates.is_prepared(part)
+        (full, subsets), (part_full, part_subsets) = (gates.camera_points(x, None)
+                                                      for x in (fd, part))
+        assert full.ranges is not None
+        np.testing.assert_array_equal(part_full.ranges, full.ranges[keep])
+        assert any(rows is not None for rows in subsets)
+        for whole, rows in zip(subsets, part_subsets):
+            if whole is None:  # too few vertices for this level
+                assert rows is None
+                continue
+            assert whole.ranges is not None and rows.run == 0
+            for k, i in enumerate(keep.tolist()):
+                np.testing.assert_array_equal(rows.points(k), whole.points(i))
+            np.testing.assert_array_equal(rows.ranges, whole.ranges[keep])
+        fd.verts2d = fd.verts2d.copy()  # new vertices: what was prepared no longer describes them
+        assert not gates.is_prepared(fd)
+        assert gates.camera_points(fd, None)[0].ranges is None
 
 
-def _gate_means(scene, frames, params):
-    """(keep, mean) of the mesh gate on every cross-camera pair of the frame set."""
-    from maem_ros.core.association import pipeline as association
-    from maem_ros.core.detections import DetectionTable
+def test_prepared_frames_are_dropped_with_the_frames(scene):
+    """The gates keep a frame's prepared data only while the frame lives: a collected frame's
+    entry goes (a new object at its address is never mistaken for it)."""
+    gates = PairGates(scene.rig, AssociationParams())
+    if not gates.prepare_strides():
+        pytest.skip("nothing to prepare without numba")
+    frames = _decoded(scene, 0, gates)
+    assert gates.prepared_frames == len(frames)
+    first = scene.rig.names[0]
+    del frames[first]
+    gc.collect()
+    assert gates.prepared_frames == len(frames)
+    frames.clear()
+    gc.collect()
+    assert gates.prepared_frames == 0
+
+
+def _gate_decisions(scene, frames, gates):
+    """(stage, mean) of the pair gates on every cross-camera pair of the frame set."""
     by_index = {k: frames[c] for k, c in enumerate(scene.rig.names)}
     table = DetectionTable.build(by_index, len(scene.rig.names))
     i, j = np.triu_indices(len(table), 1)
     other = table.cam[i] != table.cam[j]
-    F = association._rig_cache(scene.rig).pairs
-    return association._epipolar_gate(table, i[other], j[other], F, params,
-                                      {"epipolar_points_fraction": 0.0})
+    i, j = i[other], j[other]
+    decided = gates.frame_set(by_index).decide(table.cam[i], table.det[i], table.cam[j],
+                                               table.det[j])
+    return decided.stage, decided.epi
 
 
 def test_screen_levels_follow_the_params():
-    params = AssociationParams()
+    params = ExecutionParams()
     assert params.screen_levels() == [(params.screen_coarse_stride, params.screen_coarse_margin),
                                       (params.screen_stride, params.screen_margin)]
-    assert AssociationParams(screen_coarse_stride=1).screen_levels() == [
+    assert ExecutionParams(screen_coarse_stride=1).screen_levels() == [
         (params.screen_stride, params.screen_margin)]
-    assert AssociationParams(screen_stride=1).screen_levels() == []  # the paper: every vertex
+    assert ExecutionParams(screen_stride=1).screen_levels() == []  # the paper: every vertex
     with pytest.raises(ValueError, match="^screen_coarse_stride: must be 1 .* coarser"):
-        AssociationParams(screen_coarse_stride=params.screen_stride)
+        ExecutionParams(screen_coarse_stride=params.screen_stride)
+    assert AssociationParams().execution == params
 
 
 def test_screened_and_full_mesh_association_give_the_same_clusters(scene):
     params = AssociationParams(k_min=2)
-    assert params.screen_stride > 1  # the default screens
-    full = dataclasses.replace(params, screen_stride=1)
+    assert params.execution.screen_stride > 1  # the default screens
+    full = params.replaced({"screen_stride": 1})
     for f in range(0, scene.config.frames, max(1, scene.config.frames // 4)):
         frames = {c: scene.detections(c, f) for c in scene.rig.names}
         fast, exact = associate(scene.rig, frames, params), associate(scene.rig, frames, full)
         assert ([c.members.tolist() for c in fast.clusters]
                 == [c.members.tolist() for c in exact.clusters])
         assert fast.stats["epipolar_points_fraction"] < exact.stats["epipolar_points_fraction"]
+
+
+@pytest.mark.parametrize("layout", ["f32", "q4"])
+def test_prepare_keeps_the_subsets_and_block_ranges_the_mesh_gate_reads(scene, layout):
+    """PairGates.prepare on a decoded frame: each screening level's subset copied contiguous
+    (the points screen_rows reads, NaN kept) with its block ranges, and the full set's block
+    ranges (with numba); a level with too few points has none; nothing kept on the frame."""
+    from maem_ros.ros import wire
+    rng = np.random.default_rng(3)
+    n, v = 3, 2000
+    xy = rng.uniform(0, 1000, (n, 2))
+    verts = rng.uniform(-50, 1500, (n, v, 2)).astype(np.float32)
+    verts[1, 7] = np.nan
+    dets = FrameDetections("cam0", 1, np.concatenate([xy, xy + 100], 1), np.ones(n),
+                           rng.uniform(0, 1000, (n, 5, 2)), rng.normal(0, 1, (n, 5, 3)), verts)
+    got = wire.msg_to_detections(wire.detections_to_msg(dets, layout), "/d")
+    gates = PairGates(scene.rig, AssociationParams())
+    fields = {k: v for k, v in vars(got).items()}
+    assert gates.prepare(got) is got
+    assert vars(got).keys() == fields.keys() and all(vars(got)[k] is v for k, v in fields.items())
+    full, (coarse, fine) = gates.camera_points(got, None)
+    assert coarse is None  # 2000 vertices: too few for a 1/32 screen
+    screen = screening.screen_rows(got.verts2d, 8)
+    want = screen._gather(screen.rows)
+    for i in range(n):
+        np.testing.assert_array_equal(fine.points(i), want[i])
+    assert np.isnan(fine.points(1)[7]).all()  # vertex 7: the last of detection 1's first run
+    if not gates.prepare_strides():
+        assert not gates.is_prepared(got) and full.ranges is None and fine.run
+        return
+    assert gates.is_prepared(got) and fine.run == 0
+    finite = np.array([0, 2])
+    np.testing.assert_array_equal(fine.ranges[finite, 0, 1], want[finite].max(axis=(1, 2)))
+    assert fine.ranges[1, 0].tolist() == [np.inf, -np.inf]  # a NaN in its copy
+    np.testing.assert_array_equal(full.ranges[finite, 0, 0], got.verts2d[finite].min(axis=(1, 2)))
+    np.testing.assert_array_equal(full.ranges[finite, 0, 1], got.verts2d[finite].max(axis=(1, 2)))
+    assert full.ranges.shape == (3, 1, 2) and full.ranges[1, 0].tolist() == [np.inf, -np.inf]
+
+
+@pytest.mark.parametrize("verify", ["mesh", "sparse"])
+def test_the_track_stage_decides_pairs_with_the_associations_gates(scene, verify):
+    """The association (candidates: enumeration and reprojection gate in one pass, then
+    decide_rows) and the track stage (decide on arbitrary pairs, the reprojection gate run
+    there) are the same gates: the same stage and mean for every pair, bit for bit; the track
+    stage's gates differ only in their epipolar mode and read the frames the association's
+    prepared."""
+    from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+    params = AssociationParams(k_min=2)
+    stage = TemporalAssociator(scene.rig, params, TemporalParams(verify_epipolar=verify))
+    assert stage.verify_gates.epipolar_gate == verify
+    frames = _decoded(scene, 1, stage.gates)
+    by_index = {k: frames[c] for k, c in enumerate(scene.rig.names)}
+    assert all(stage.verify_gates.is_prepared(fd) == bool(stage.gates.prepare_strides())
+               for fd in by_index.values())
+    table = DetectionTable.build(by_index, len(scene.rig))
+    gates = stage.gates.with_epipolar_gate(verify)
+    i, j, ok = gates.candidates(table)
+    rows = gates.frame_set(by_index).decide_rows(table, i, j, ok)
+    pairs = stage.verify_gates.frame_set(by_index).decide(table.cam[i], table.det[i],
+                                                          table.cam[j], table.det[j])
+    np.testing.assert_array_equal(rows.stage, pairs.stage)
+    np.testing.assert_array_equal(rows.epi, pairs.epi)
+    assert (rows.stage == 0).any() and (rows.stage == 1).any()

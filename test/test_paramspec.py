@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import pytest
 
-from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, ExecutionParams
 from maem_ros.core.paramspec import ParamError, Params, ParamSpec, param, param_specs
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.params import load_node_params
@@ -59,12 +59,55 @@ def test_from_mapping_ignores_other_keys_and_reads_shipped_params() -> None:
 
 def test_param_specs_joins_classes_and_rejects_a_name_twice() -> None:
     names = [s.name for s in param_specs(AssociationParams, TriangulationParams)]
-    assert names[:2] == ["tau_det", "tau_reproj_bbox"] and names[-5:] == ["tau_kps", "min_views",
-                                                                          "left_right",
-                                                                          "tau_member",
-                                                                          "ransac_backend"]
+    tri = [s.name for s in TriangulationParams.specs()]
+    assert names[:2] == ["tau_det", "tau_reproj_bbox"] and tri[:2] == ["tau_kps", "min_views"]
+    assert names == [s.name for s in AssociationParams.specs()] + tri
     with pytest.raises(TypeError, match="'tau_det' defined twice"):
         param_specs(AssociationParams, AssociationParams)
+
+
+#: the performance settings, apart from the method's thresholds since the pair gates were sealed
+EXECUTION = ["backend", "epipolar_precision", "early_exit", "screen_stride", "screen_margin",
+             "screen_coarse_stride", "screen_coarse_margin"]
+
+
+def test_method_and_execution_params_are_apart_and_read_from_the_old_flat_keys() -> None:
+    """AssociationParams holds the method's thresholds, its ExecutionParams how it runs; a
+    params file that names every parameter flat (as shipped, as before the split) loads the
+    same values into both, and an ``execution`` sub-mapping is read too."""
+    assert [s.name for s in ExecutionParams.specs()] == EXECUTION
+    assert not {s.name for s in AssociationParams.specs()} & set(EXECUTION)
+    assert len(AssociationParams.specs()) + len(EXECUTION) == 23
+    shipped = load_node_params("sportcenter.yaml", "association")
+    assert {"screen_stride", "screen_coarse_margin", "tau_mesh"} <= set(shipped)
+    old = {**shipped, "backend": "numpy", "early_exit": False, "screen_stride": 4,
+           "epipolar_precision": "float64", "tau_mesh": 7.5}
+    p = AssociationParams.from_mapping(old)
+    assert p.tau_mesh == 7.5 and p.execution == ExecutionParams(
+        backend="numpy", early_exit=False, screen_stride=4, epipolar_precision="float64",
+        screen_margin=shipped["screen_margin"], screen_coarse_stride=shipped["screen_coarse_stride"],
+        screen_coarse_margin=shipped["screen_coarse_margin"])
+    known = {s.name for s in AssociationParams.specs()} | set(EXECUTION)
+    assert p.as_mapping() == {**{s.name: s.default for s in AssociationParams.specs()},
+                              **ExecutionParams().as_mapping(),
+                              **{k: v for k, v in old.items() if k in known}}
+    assert AssociationParams.from_mapping(p.as_mapping()) == p
+    nested = AssociationParams.from_mapping({"tau_mesh": 7.5, "execution": {"screen_stride": 4}})
+    assert nested.execution.screen_stride == 4 and nested.tau_mesh == 7.5
+    paper = p.replaced(PAPER_PIPELINE)
+    assert paper.clustering == "paper" and paper.execution.screen_levels() == []
+    assert paper.execution.backend == "numpy" and p.clustering == "consistent"
+    with pytest.raises(ParamError, match="^screen_stride: must be >= 1"):
+        AssociationParams.from_mapping({"screen_stride": 0})
+    with pytest.raises(ValueError, match="^execution: expected a mapping"):
+        AssociationParams.from_mapping({"execution": 3})
+
+
+def test_the_association_node_declares_both_groups_flat() -> None:
+    from maem_ros.ros import association_node
+    names = [s.name for s in association_node.PARAMS]
+    assert set(EXECUTION) <= set(names) and {"tau_mesh", "tau_cost", "temporal"} <= set(names)
+    assert len(names) == len(set(names))
 
 
 def test_every_node_parameter_has_a_description() -> None:

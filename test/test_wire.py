@@ -13,7 +13,6 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from visualization_msgs.msg import Marker
 
-from maem_ros.core.association.gates import epipolar
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
@@ -227,33 +226,16 @@ def test_detections_decoder_rejects_values(field, index, value, name, reason):
     assert "detection" in ei.value.problem
 
 
-@pytest.mark.parametrize("layout", ["f32", "q4"])
-def test_detections_decoder_copies_the_screens_in_the_pass_that_checks_verts2d(layout):
-    """With screen_strides the decoder copies the mesh gate's screening subsets of verts2d
-    (the points screen_rows reads, NaN kept) and its block ranges (with numba), and still
-    rejects an inf vertex, naming the detection, as without them."""
+def test_detections_decoder_rejects_an_inf_vertex_of_a_large_mesh_naming_the_detection():
+    """The decoder's finiteness check of verts2d (NaN = missing is allowed, inf never is) on a
+    mesh the size of the pair gates' screening subsets: the detection is named."""
     dets = make_dets(3, 5, 2000)
     dets.verts2d[1, 7] = np.nan
-    got = wire.msg_to_detections(wire.detections_to_msg(dets, layout), TOPIC,
-                                 screen_strides=(8, 32))
-    assert got.screen_copy(32) is None  # 2000 vertices: too few for a 1/32 screen
-    screen = epipolar.screen_rows(got.verts2d, 8)
-    np.testing.assert_array_equal(got.screen_copy(8), screen._gather(screen.rows))
-    assert np.isnan(got.screen_copy(8)[1, 7]).all()
-    ranges = got.block_ranges()
-    if epipolar.have_numba():
-        np.testing.assert_array_equal(got.block_ranges(8)[[0, 2], 0, 1],
-                                      got.screen_copy(8)[[0, 2]].max(axis=(1, 2)))
-        assert got.block_ranges(8)[1, 0].tolist() == [np.inf, -np.inf]  # a NaN in its copy
-        finite = np.array([0, 2])
-        np.testing.assert_array_equal(ranges[finite, 0, 0], got.verts2d[finite].min(axis=(1, 2)))
-        np.testing.assert_array_equal(ranges[finite, 0, 1], got.verts2d[finite].max(axis=(1, 2)))
-        assert ranges.shape == (3, 1, 2) and ranges[1, 0].tolist() == [np.inf, -np.inf]
-    else:
-        assert ranges is None
+    got = wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC)
+    assert np.isnan(got.verts2d[1, 7]).all()
     dets.verts2d[2, 1000, 1] = np.inf
     with pytest.raises(wire.WireError) as ei:
-        wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC, screen_strides=(8, 32))
+        wire.msg_to_detections(wire.detections_to_msg(dets), TOPIC)
     assert (ei.value.field, ei.value.reason, ei.value.problem) == \
         ("verts2d", "nonfinite", "inf in detection 2")
 

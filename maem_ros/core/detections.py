@@ -7,12 +7,28 @@ association only compares them up to a similarity transform).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Iterable
 
 import numpy as np
 
 from maem_ros.core.errors import InputError
 
+
+@lru_cache(maxsize=32)
+def vertex_subset(num_vertices: int, stride: int = 1, count: int = 0) -> np.ndarray | None:
+    """Indices of the vertices the mesh gate uses, or None for all of them.
+
+    Every ``stride``-th vertex; then, if ``0 < count`` < that many, ``count`` of them spread
+    evenly over the index range (fixed topology: the same spots in every detection).
+    """
+    if stride == 1 and (count <= 0 or count >= num_vertices):
+        return None
+    idx = np.arange(0, num_vertices, stride, dtype=np.int64)
+    if 0 < count < idx.size:
+        idx = idx[np.unique(np.linspace(0, idx.size - 1, count).round().astype(np.int64))]
+    idx.setflags(write=False)
+    return idx
 
 
 @dataclass
@@ -24,7 +40,7 @@ class FrameDetections:
     verts2d (N,V,2) px, float32 (V may be 0 when no mesh is available; NaN = vertex missing,
     e.g. outside what the compact wire layout can carry). ``stamp_ns`` is the image capture
     time in integer nanoseconds. ``mesh_subset`` = (mesh vertices, stride, count) when verts2d
-    holds the fixed-topology subset core.association.gates.epipolar.vertex_subset(*mesh_subset) of the mesh
+    holds the fixed-topology subset vertex_subset(*mesh_subset) of the mesh
     (announced on the wire), None when it holds the whole mesh.
     """
 
@@ -36,11 +52,10 @@ class FrameDetections:
     kpts3d: np.ndarray
     verts2d: np.ndarray
     mesh_subset: tuple[int, int, int] | None = None
+    #: what :meth:`validate` (or the decoder, :meth:`mark_validated`) checked: the camera, the
+    #: subset and the very array objects (held, compared by identity: an array replaced since
+    #: is checked again, and a held array's id cannot be reused by another)
     _validated: tuple = field(default=(), init=False, repr=False, compare=False)
-    #: (verts2d they were made from, {stride: (N,m,2) float32}, {stride: (N,blocks,2)
-    #: float32}): the mesh gate's screening subsets of verts2d copied by the decoder, and the
-    #: block ranges of verts2d (stride 1) and of the copies (:meth:`attach_screens`)
-    _screens: tuple = field(default=(), init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.bboxes = np.asarray(self.bboxes, dtype=np.float64)
@@ -74,7 +89,6 @@ class FrameDetections:
         """Full-mesh index of each verts2d column (sorted), None when verts2d is the whole mesh."""
         if self.mesh_subset is None:
             return None
-        from maem_ros.core.association.gates.epipolar import vertex_subset  # local: epipolar is the home of the subset rule
         ids = vertex_subset(*self.mesh_subset)
         return np.arange(self.mesh_subset[0]) if ids is None else ids
 
@@ -90,50 +104,19 @@ class FrameDetections:
 
     def select(self, index: np.ndarray) -> "FrameDetections":
         """Subset by boolean mask or integer index (copies); validated when self is (every
-        check of :meth:`validate` is per detection or on shapes the subset keeps), with the
-        attached screening copies' rows."""
+        check of :meth:`validate` is per detection or on shapes the subset keeps)."""
         out = FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
                               self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
                               self.mesh_subset)
-        if self._validated and self._validated == self._arrays():
+        if self._is_validated():
             out.mark_validated()
-        if self._screens and self._screens[0] is self.verts2d:
-            out.attach_screens({s: a[index] for s, a in self._screens[1].items()},
-                               {s: a[index] for s, a in self._screens[2].items()})
         return out
-
-    def attach_screens(self, copies: dict[int, np.ndarray],
-                       block_ranges: dict[int, np.ndarray] | None = None) -> "FrameDetections":
-        """Keep contiguous copies of the mesh gate's screening subsets of verts2d and the
-        block ranges of verts2d and of the copies (``core.association.gates.epipolar.screen_copies``: {stride:
-        (N,m,2) float32}; {stride: (N, blocks, 2) float32}, stride 1 = verts2d), made where
-        verts2d was read anyway (the decoder), for the gate to read instead of making them
-        again. They stay valid while verts2d is the same array (as for
-        :meth:`mark_validated`)."""
-        self._screens = (self.verts2d, dict(copies), dict(block_ranges or {}))
-        return self
-
-    def screen_copy(self, stride: int) -> np.ndarray | None:
-        """The attached copy of the screening subset of ``stride`` (see :meth:`attach_screens`),
-        None if there is none or verts2d was replaced since."""
-        if not self._screens or self._screens[0] is not self.verts2d:
-            return None
-        return self._screens[1].get(int(stride))
-
-    def block_ranges(self, stride: int = 1) -> np.ndarray | None:
-        """The attached block ranges of verts2d (stride 1) or of its screening copy of
-        ``stride`` (see :meth:`attach_screens`), None if there are none or verts2d was
-        replaced since."""
-        if not self._screens or self._screens[0] is not self.verts2d:
-            return None
-        return self._screens[2].get(int(stride))
 
     def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
         """These detections with verts2d cut to the fixed-topology subset
-        ``core.association.gates.epipolar.vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
+        ``vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
         (self when verts2d holds exactly those already). ValueError when verts2d lacks some of
         them (it holds a different subset)."""
-        from maem_ros.core.association.gates.epipolar import vertex_subset  # local: epipolar is the home of the subset rule
         mesh = self.mesh_vertices
         want = vertex_subset(mesh, int(stride), int(count))
         have = self.vertex_ids
@@ -154,16 +137,27 @@ class FrameDetections:
                                (mesh, int(stride), int(count)))
 
     def _arrays(self) -> tuple:
-        return (self.camera, self.mesh_subset) + tuple(
-            (id(a), a.shape) for a in (self.bboxes, self.scores, self.kpts2d, self.kpts3d,
-                                       self.verts2d))
+        return (self.camera, self.mesh_subset, self.bboxes, self.scores, self.kpts2d,
+                self.kpts3d, self.verts2d)
+
+    def _is_validated(self) -> bool:
+        """Whether the fields are the objects :meth:`mark_validated` / :meth:`validate` saw
+        (arrays by identity, of the shapes they had)."""
+        token, now = self._validated, self._arrays()
+        return (len(token) == len(now) + 1 and token[0] == now[0] and token[1] == now[1]
+                and all(a is b for a, b in zip(token[2:], now[2:]))
+                and token[-1] == tuple(a.shape for a in now[2:]))
 
     def mark_validated(self) -> "FrameDetections":
         """Record that the caller (the wire decoder) checked everything :meth:`validate` checks,
         so consumers do not check the same arrays twice. Replacing an array re-enables the
         check; writing into the arrays in place afterwards is the writer's responsibility."""
-        self._validated = self._arrays()
+        self._validated = self._token()
         return self
+
+    def _token(self) -> tuple:
+        arrays = self._arrays()
+        return arrays + (tuple(a.shape for a in arrays[2:]),)
 
     def validate(self, known_cameras: Iterable[str] | None = None) -> "FrameDetections":
         """Raise InputError (a ValueError, with a reason) naming the first bad field; return self
@@ -171,7 +165,7 @@ class FrameDetections:
         where = f"detections of camera {self.camera!r}"
         if known_cameras is not None and self.camera not in set(known_cameras):
             raise ValueError(f"{where}: camera: unknown camera {self.camera!r}")
-        if self._validated and self._validated == self._arrays():
+        if self._is_validated():
             return self
         if self.bboxes.ndim != 2 or self.bboxes.shape[1] != 4:
             raise InputError(f"{where}: bbox: expected shape (N,4), got {self.bboxes.shape}",
@@ -206,7 +200,7 @@ class FrameDetections:
         if np.any((self.scores < 0) | (self.scores > 1)):
             raise ValueError(f"{where}: score: outside [0, 1] in detection "
                              f"{int(np.argmax((self.scores < 0) | (self.scores > 1)))}")
-        self._validated = self._arrays()
+        self._validated = self._token()
         return self
 
 

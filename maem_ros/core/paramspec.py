@@ -152,6 +152,10 @@ class Params:
         """An instance from the known keys of a params dict (others are ignored); validated."""
         return cls(**{s.name: d[s.name] for s in cls.specs() if s.name in d})
 
+    def as_mapping(self) -> dict[str, Any]:
+        """Every parameter's value by name (what :meth:`from_mapping` reads back)."""
+        return {spec.name: getattr(self, spec.name) for spec in self.specs()}
+
 
 def param_specs(*classes: type[Params]) -> tuple[ParamSpec, ...]:
     """The specs of several parameter classes (one node's parameters); a name twice is a bug."""

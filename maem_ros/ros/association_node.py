@@ -37,8 +37,8 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from maem_ros.core.association import pipeline as association
-from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.association import AssociationParams, ExecutionParams
+from maem_ros.core.association import warmup as warmup_association
 from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
@@ -63,7 +63,8 @@ RIG_DESCRIPTION = "rig YAML, camera-JSON folder or shipped rig name (config/rigs
 
 @dataclass
 class AssociationNodeParams(NodeParams):
-    """The association node's own parameters (the method's are core AssociationParams)."""
+    """The association node's own parameters (the method's are core AssociationParams, how it
+    runs core ExecutionParams)."""
 
     rig: str = param("", RIG_DESCRIPTION)
     cameras: list = param([], "cameras to subscribe (default: every rig camera)")
@@ -97,7 +98,7 @@ class AssociationNodeParams(NodeParams):
                                    "local) at start")
 
 
-PARAMS = param_specs(AssociationNodeParams, AssociationParams, TemporalParams)
+PARAMS = param_specs(AssociationNodeParams, AssociationParams, ExecutionParams, TemporalParams)
 #: core.tracking.temporal stats reported as cumulative counts in /diagnostics
 TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_ended",
                 "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
@@ -125,10 +126,10 @@ class AssociationNode(Node):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         # compile/load the numba kernels now, not on the first frame
-        association.warmup(self.params.backend, self.params.epipolar_gate)
-        # the gate's screening subsets copied as each message is decoded (off the frame
-        # set's critical path: the other cameras' messages are still on their way)
-        self.screen_strides = association.decode_screen_strides(self.params)
+        warmup_association(self.params.execution.backend, self.params.epipolar_gate)
+        # each camera frame is prepared for the pair gates as its message is decoded (off the
+        # frame set's critical path: the other cameras' messages are still on their way)
+        self.gates = self.temporal.gates
         wire.warm_cdr_decoder()
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]
@@ -181,9 +182,9 @@ class AssociationNode(Node):
         with RejectErrors(self.diag, topic, "bad_detections") as step:
             with Stopwatch(self.diag, "decode"):
                 dets = wire.msg_to_detections(wire.cdr_to_cloud(data, topic), topic,
-                                              self.rig.names, expected_camera=cam,
-                                              screen_strides=self.screen_strides)
+                                              self.rig.names, expected_camera=cam)
                 check_detections(dets, self.rig, self.limits, topic)
+                self.gates.prepare(dets)
         if step.failed:
             return
         now = self._now_ns()

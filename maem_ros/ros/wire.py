@@ -14,7 +14,7 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   vertex coordinates, so people whose rectified vertices are negative or beyond 4096 px (wide,
   strongly distorted cameras) lose nothing; optionally ``kpts2d_q4`` (uint16 x 2J, 65535 = not seen) instead
   of ``kpts2d``. A vertex subset is announced by ``verts2d_subset`` (uint32 x 3: full mesh
-  vertices, stride, count; core.association.gates.epipolar.vertex_subset gives the ids) in every point.
+  vertices, stride, count; core.detections.vertex_subset gives the ids) in every point.
 * clusters (``/maem/clusters``), one point per (cluster, member view): ``cluster``(uint32, index in
   the frame) ``camera``(uint16, index in the rig's camera order) ``detection``(uint16, index in
   that camera's detections message) ``score``(f32) ``cost``(f32, mean PA-MPJPE m to the rest of
@@ -47,8 +47,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.colors import id_rgb
-from maem_ros.core.detections import FrameDetections
-from maem_ros.core.association.gates.epipolar import screen_copies
+from maem_ros.core.detections import FrameDetections, vertex_subset
 from maem_ros.core.geometry.frames import FrameTransform
 from maem_ros.core.errors import InputError
 
@@ -403,7 +402,6 @@ def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
         raise WireError(topic, SUBSET_FIELD, f"detection {row} announces {sub[row].tolist()}, "
                         f"detection 0 {sub[0].tolist()}", "bad_subset")
     mesh, stride, count = (int(x) for x in sub[0])
-    from maem_ros.core.association.gates.epipolar import vertex_subset
     if stride < 1 or mesh < v:
         raise WireError(topic, SUBSET_FIELD, f"(mesh {mesh}, stride {stride}, count {count}) "
                         f"for {v} vertices", "bad_subset")
@@ -417,16 +415,13 @@ def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
 
 def msg_to_detections(msg: PointCloud2, topic: str,
                       known_cameras: Sequence[str] | None = None,
-                      expected_camera: str | None = None,
-                      screen_strides: Sequence[int] = ()) -> FrameDetections:
+                      expected_camera: str | None = None) -> FrameDetections:
     """PointCloud2 -> FrameDetections, validated once (the result is marked validated, so the
     association does not check the arrays again); f32 verts2d is a view of msg.data, q4 codes
     are decoded once into one float32 array (NaN = missing).
 
     ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
-    (the camera whose topic this came from). ``screen_strides``: the mesh gate's screening
-    subsets of verts2d to copy in the pass that checks verts2d
-    (core.association.pipeline.decode_screen_strides; FrameDetections.attach_screens).
+    (the camera whose topic this came from).
     """
     cam = msg.header.frame_id
     if known_cameras is not None and cam not in known_cameras:
@@ -468,20 +463,11 @@ def msg_to_detections(msg: PointCloud2, topic: str,
     else:
         _check_finite(topic, "kpts2d", fields["kpts2d"], allow_nan=True)  # NaN = not seen
         kpts2d = fields["kpts2d"]
-    copies: dict[int, np.ndarray] = {}
-    ranges: dict[int, np.ndarray] = {}
-    if vname == "verts2d_q4":
+    if vname == "verts2d_q4":  # 65535 = vertex missing (NaN); a code is never inf
         origin = fields.get(ORIGIN_FIELD)
         if origin is not None:
             _check_finite(topic, ORIGIN_FIELD, origin)
         verts2d = decode_q4(fields[vname], origin=origin)
-        if screen_strides:
-            copies, ranges, _ = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
-    elif screen_strides:  # the check and the copies in one pass
-        verts2d = fields["verts2d"]
-        copies, ranges, row = screen_copies(verts2d.reshape(n, v, 2), screen_strides)
-        if row >= 0:
-            raise WireError(topic, "verts2d", f"inf in detection {row}", "nonfinite")
     else:
         verts2d = fields["verts2d"]
         _check_finite(topic, "verts2d", verts2d, allow_nan=True)  # NaN = missing vertex
@@ -497,7 +483,7 @@ def msg_to_detections(msg: PointCloud2, topic: str,
         camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
         scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
         kpts3d=fields["kpts3d"].reshape(n, j, 3), verts2d=verts2d.reshape(n, v, 2),
-        mesh_subset=subset).mark_validated().attach_screens(copies, ranges)
+        mesh_subset=subset).mark_validated()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -80,6 +80,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--temporal-frames", type=int, default=30,
                    help="frames of the temporal on/off comparison (0 = skip it)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dump", default=None, metavar="PATH",
+                   help="write every frame's clusters (members, costs as exact hex floats) of "
+                        "the fast path, the paper pipeline and the temporal run to PATH (JSON), "
+                        "to compare two versions' decisions")
     from .live import add_live_arguments
     add_live_arguments(p)
     return p
@@ -113,14 +117,10 @@ def run(args: argparse.Namespace) -> dict:
     import numpy as np
     from threadpoolctl import threadpool_limits
 
-    import dataclasses
-
-    from maem_ros.core.association.pipeline import (PAPER_PIPELINE, AssociationParams, associate,
-                                    decode_screen_strides)
-    from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
+    from maem_ros.core.association import AssociationParams
+    from maem_ros.core.triangulation.ransac import TriangulationParams
     from ..params import load_node_params
-    from ..ros import wire
-    from .bench_load import body_template, load_bench_rig, make_frame, straightforward_associate
+    from .bench_load import body_template, load_bench_rig, make_frame
 
     for name in ("vertices", "keypoints", "players", "frames", "repeats"):
         if getattr(args, name) < 1:
@@ -137,122 +137,151 @@ def run(args: argparse.Namespace) -> dict:
         template = body_template(args.vertices, args.keypoints, args.seed)
         load = [make_frame(rig, template, rng, args.players, args.extras, stamp_ns=k)
                 for k in range(args.frames)]
-        t0 = time.perf_counter()
-        associate(rig, load[0].frames, aparams)  # warm-up: JIT load/compile, caches
-        warmup_ms = (time.perf_counter() - t0) * 1e3
+        timed = _time_node_path(args, rig, load, aparams, tparams)
+        paper = _paper_vs_straightforward(args, rig, load, aparams)
+    out = _summary(args, rig, load, aparams, timed, paper)
+    dump = {"association": [_cluster_rows(res.clusters) for res, _ in timed["results"]],
+            "paper": paper["dump"]}
+    if args.temporal_frames:
+        with threadpool_limits(limits=1):
+            out["temporal"] = _temporal(args, rig, aparams, template, dump)
+    if args.dump:
+        with open(args.dump, "w", encoding="utf-8") as f:
+            json.dump(dump, f)
+    return out
 
-        assoc_ms, tri_ms, decode_ms, stage_ms, results = [], [], [], {}, []
-        # CPU time of this process beside wall time: on a shared machine the wall time also
-        # counts the time other processes held the core
-        assoc_cpu_ms, tri_cpu_ms = [], []
-        screens = decode_screen_strides(aparams)
-        for fr in load:
-            msgs = {c: wire.detections_to_msg(fd, args.wire) for c, fd in fr.frames.items()}
-            for _ in range(args.repeats):
-                # the node path: decode + validate once per message (f32: views of msg.data),
-                # the gate's screening subsets copied in the same pass
-                t = time.perf_counter()
-                frames = {c: wire.msg_to_detections(m, f"/{c}/detections",
-                                                    screen_strides=screens)
-                          for c, m in msgs.items()}
-                decode_ms.append((time.perf_counter() - t) * 1e3)
-                c = time.process_time()
-                res = associate(rig, frames, aparams)
-                assoc_cpu_ms.append((time.process_time() - c) * 1e3)
-                t, c = time.perf_counter(), time.process_time()
-                poses = triangulate(rig, frames, res.clusters, tparams)
-                tri_ms.append((time.perf_counter() - t) * 1e3)
-                tri_cpu_ms.append((time.process_time() - c) * 1e3)
-                assoc_ms.append(res.stats["t_total_ms"])
-                for k, v in res.stats.items():
-                    if k.startswith("t_"):
-                        stage_ms.setdefault(k, []).append(v)
-            results.append((res, poses))
 
-        # the straightforward implementation is the paper's pipeline: compare like with like
-        paper = dataclasses.replace(aparams, **PAPER_PIPELINE)
-        straight_ms, paper_ms, identical = [], [], True
-        for fr in load[:args.straightforward_frames]:
+def _time_node_path(args: argparse.Namespace, rig, load, aparams, tparams) -> dict:
+    """The node path on every frame, ``args.repeats`` times: decode + validate each camera's
+    message (f32: views of msg.data), prepare it for the pair gates, associate, triangulate.
+    Per-run wall and CPU times (CPU time beside wall time: on a shared machine the wall time
+    also counts the time other processes held the core), stage times, the last results."""
+    from maem_ros.core.association import PairGates, associate
+    from maem_ros.core.triangulation.ransac import triangulate
+    from ..ros import wire
+
+    t0 = time.perf_counter()
+    gates = PairGates(rig, aparams)
+    associate(rig, {c: gates.prepare(fd) for c, fd in load[0].frames.items()}, aparams,
+              gates)  # warm-up: JIT load/compile, caches
+    timed: dict = {"warmup_ms": (time.perf_counter() - t0) * 1e3, "stages": {}, "results": []}
+    for key in ("assoc", "assoc_cpu", "tri", "tri_cpu", "decode"):
+        timed[key] = []
+    for fr in load:
+        msgs = {c: wire.detections_to_msg(fd, args.wire) for c, fd in fr.frames.items()}
+        for _ in range(args.repeats):
             t = time.perf_counter()
-            ref = straightforward_associate(rig, fr.raw, paper)
-            straight_ms.append((time.perf_counter() - t) * 1e3)
-            fast = [associate(rig, fr.frames, paper) for _ in range(args.repeats)]
-            paper_ms.extend(r.stats["t_total_ms"] for r in fast)
-            identical &= _as_sets(ref) == _as_sets([c.members for c in fast[0].clusters])
+            frames = {c: gates.prepare(wire.msg_to_detections(m, f"/{c}/detections"))
+                      for c, m in msgs.items()}
+            timed["decode"].append((time.perf_counter() - t) * 1e3)
+            c = time.process_time()
+            res = associate(rig, frames, aparams, gates)
+            timed["assoc_cpu"].append((time.process_time() - c) * 1e3)
+            t, c = time.perf_counter(), time.process_time()
+            poses = triangulate(rig, frames, res.clusters, tparams)
+            timed["tri"].append((time.perf_counter() - t) * 1e3)
+            timed["tri_cpu"].append((time.process_time() - c) * 1e3)
+            timed["assoc"].append(res.stats["t_total_ms"])
+            for k, v in res.stats.items():
+                if k.startswith("t_"):
+                    timed["stages"].setdefault(k, []).append(v)
+        timed["results"].append((res, poses))
+    return timed
 
+
+def _paper_vs_straightforward(args: argparse.Namespace, rig, load, aparams) -> dict:
+    """The paper's pipeline, fast path against the straightforward implementation (the
+    straightforward implementation is the paper's pipeline: like with like)."""
+    from maem_ros.core.association import PAPER_PIPELINE, associate
+    from .bench_load import straightforward_associate
+
+    paper = aparams.replaced(PAPER_PIPELINE)
+    out: dict = {"straight": [], "fast": [], "identical": True, "dump": []}
+    for fr in load[:args.straightforward_frames]:
+        t = time.perf_counter()
+        ref = straightforward_associate(rig, fr.raw, paper)
+        out["straight"].append((time.perf_counter() - t) * 1e3)
+        fast = [associate(rig, fr.frames, paper) for _ in range(args.repeats)]
+        out["fast"].extend(r.stats["t_total_ms"] for r in fast)
+        out["identical"] &= _as_sets(ref) == _as_sets([c.members for c in fast[0].clusters])
+        out["dump"].append(_cluster_rows(fast[0].clusters))
+    return out
+
+
+def _summary(args: argparse.Namespace, rig, load, aparams, timed: dict, paper: dict) -> dict:
+    """The result dict of the timed runs."""
+    import numpy as np
+
+    from ..ros import wire
+
+    results, straight_ms = timed["results"], paper["straight"]
     recovered = sum(len(set(fr.truth) & set(_as_sets([c.members for c in res.clusters])))
                     for fr, (res, _) in zip(load, results))
-    assoc_med = _percentile(assoc_ms, 50)
-    straight_med = _percentile(straight_ms, 50)
-    paper_med = _percentile(paper_ms, 50)
+    straight_med, paper_med = _percentile(straight_ms, 50), _percentile(paper["fast"], 50)
     out = {
-        "cameras": len(rig),
-        "detections_per_camera": args.players + args.extras,
-        "vertices": args.vertices,
-        "keypoints": args.keypoints,
-        "people_per_frame": args.players,
-        "frames": args.frames,
-        "repeats": args.repeats,
-        "threads": 1,
-        "backend": args.backend,
-        "rig": args.rig,
-        "seed": args.seed,
-        "clustering": aparams.clustering,
-        "load": args.load,
-        "association_ms_median": assoc_med,
-        "association_ms_min": min(assoc_ms),
-        "association_ms_p90": _percentile(assoc_ms, 90),
-        "association_cpu_ms_median": _percentile(assoc_cpu_ms, 50),
-        "association_cpu_ms_min": min(assoc_cpu_ms),
-        "triangulation_ms_median": _percentile(tri_ms, 50),
-        "triangulation_ms_min": min(tri_ms),
-        "triangulation_cpu_ms_median": _percentile(tri_cpu_ms, 50),
-        "triangulation_cpu_ms_min": min(tri_cpu_ms),
+        "cameras": len(rig), "detections_per_camera": args.players + args.extras,
+        "vertices": args.vertices, "keypoints": args.keypoints,
+        "people_per_frame": args.players, "frames": args.frames, "repeats": args.repeats,
+        "threads": 1, "backend": args.backend, "rig": args.rig, "seed": args.seed,
+        "clustering": aparams.clustering, "load": args.load,
+        "association_ms_median": _percentile(timed["assoc"], 50),
+        "association_ms_min": min(timed["assoc"]),
+        "association_ms_p90": _percentile(timed["assoc"], 90),
+        "association_cpu_ms_median": _percentile(timed["assoc_cpu"], 50),
+        "association_cpu_ms_min": min(timed["assoc_cpu"]),
+        "triangulation_ms_median": _percentile(timed["tri"], 50),
+        "triangulation_ms_min": min(timed["tri"]),
+        "triangulation_cpu_ms_median": _percentile(timed["tri_cpu"], 50),
+        "triangulation_cpu_ms_min": min(timed["tri_cpu"]),
         "load_average_1min": os.getloadavg()[0],
-        "wire": args.wire,
-        "wire_decode_ms_median": _percentile(decode_ms, 50),
+        "wire": args.wire, "wire_decode_ms_median": _percentile(timed["decode"], 50),
         "wire_bytes_per_camera": int(np.median([len(wire.detections_to_msg(fd, args.wire).data)
                                                 for fd in load[0].frames.values()])),
-        "triangulation_ms_p90": _percentile(tri_ms, 90),
+        "triangulation_ms_p90": _percentile(timed["tri"], 90),
         "paper_association_ms_median": paper_med,
         "straightforward_association_ms_median": straight_med,
         "straightforward_frames": len(straight_ms),
         "speedup": straight_med / paper_med if straight_ms else float("nan"),
-        "clusters_identical": bool(identical) if straight_ms else None,
-        "true_clusters_recovered": recovered,
-        "true_clusters": args.players * args.frames,
+        "clusters_identical": bool(paper["identical"]) if straight_ms else None,
+        "true_clusters_recovered": recovered, "true_clusters": args.players * args.frames,
         "triangulated_people_median": _percentile([len(p) for _, p in results], 50),
-        "warmup_ms": warmup_ms,
-        "stage_ms_median": {k[2:-3]: _percentile(v, 50) for k, v in stage_ms.items()},
+        "warmup_ms": timed["warmup_ms"],
+        "stage_ms_median": {k[2:-3]: _percentile(v, 50) for k, v in timed["stages"].items()},
     }
     out["targets"] = {k: {"target": v, "met": bool(out[k] >= v if k == "speedup" else out[k] <= v)}
                       for k, v in TARGETS[args.load].items()}
-    if args.temporal_frames:
-        with threadpool_limits(limits=1):
-            out["temporal"] = _temporal(args, rig, aparams, template)
     return out
 
 
-def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
+def _cluster_rows(clusters, track_ids=None) -> list:
+    """Clusters as JSON rows: [members [[camera, detection], ...], costs as hex floats (exact,
+    NaN included)] (and the track id when given)."""
+    rows = [[c.members.tolist(), [float(v).hex() for v in c.costs]] for c in clusters]
+    if track_ids is not None:
+        rows = [r + [int(t)] for r, t in zip(rows, track_ids)]
+    return rows
+
+
+def _temporal(args: argparse.Namespace, rig, aparams, template, dump: dict) -> dict:
     """Temporal on vs off on the load in motion (module docstring)."""
     import numpy as np
 
-    from maem_ros.core.association.pipeline import associate, decode_screen_strides
+    from maem_ros.core.association import associate
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from ..ros import wire
     from .bench_load import make_sequence
 
     seq = make_sequence(rig, template, np.random.default_rng(args.seed + 1), args.players,
                         args.extras, args.temporal_frames)
-    screens = decode_screen_strides(aparams)
     on, off, first, left = [], [], [], []
+    dump["temporal"] = []
     for _ in range(max(1, args.repeats // 5)):  # whole sequences: the tracker is stateful
         stage = TemporalAssociator(rig, aparams, TemporalParams())
         for f, fr in enumerate(seq):
             # decoded as the node receives them (not timed: the node decodes each message
             # as it arrives)
-            frames = {c: wire.msg_to_detections(wire.detections_to_msg(fd, args.wire),
-                                                f"/{c}/detections", screen_strides=screens)
+            frames = {c: stage.gates.prepare(wire.msg_to_detections(
+                          wire.detections_to_msg(fd, args.wire), f"/{c}/detections"))
                       for c, fd in fr.frames.items()}
             t = time.perf_counter()
             res = stage.step(frames, frames[rig.names[0]].stamp_ns)
@@ -260,8 +289,9 @@ def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
             (first if f == 0 else on).append(ms)
             if f:
                 left.append(res.stats["detections_left"])
+            dump["temporal"].append(_cluster_rows(res.clusters, res.track_ids))
             t = time.perf_counter()
-            associate(rig, frames, aparams)
+            associate(rig, frames, aparams, stage.gates)
             off.append((time.perf_counter() - t) * 1e3)
     found = len(set(seq[-1].truth) & set(_as_sets([c.members for c in res.clusters])))
     on_med, off_med = _percentile(on, 50), _percentile(off, 50)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.association import AssociationParams
 from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 
@@ -278,7 +278,7 @@ def straightforward_associate(rig: Rig, raw: dict[str, RawDetections],
                     if params.reproj_gate and not err < params.tau_reproj_bbox:
                         continue
                     if sub is None:
-                        from maem_ros.core.association.gates.epipolar import vertex_subset
+                        from maem_ros.core.detections import vertex_subset
                         sub = vertex_subset(A.verts.shape[1], params.vertex_stride,
                                             params.vertex_count)
                         sub = np.arange(A.verts.shape[1]) if sub is None else sub

@@ -19,7 +19,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from maem_ros.core.association.pipeline import PAPER_PIPELINE
+from maem_ros.core.association import PAPER_PIPELINE
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
@@ -409,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def load_params(path: str):
-    from maem_ros.core.association.pipeline import AssociationParams
+    from maem_ros.core.association import AssociationParams
     from maem_ros.core.triangulation.ransac import TriangulationParams
     assoc = AssociationParams.from_mapping(load_node_params(path, "association"))
     tri = TriangulationParams.from_mapping(load_node_params(path, "triangulation"))
@@ -455,7 +455,7 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         skips.add("dets_view_without_camera", f"dets/{stray}/ has no cameras/{stray}.json")
     total = max(folder.num_frames, gt[0].shape[0] if gt is not None else 0)
     n = total if args.frames is None else min(args.frames, total)
-    configs = ([(name, dataclasses.replace(assoc, **o)) for name, o in ABLATION] if args.ablation
+    configs = ([(name, assoc.replaced(o)) for name, o in ABLATION] if args.ablation
                else [("full", assoc)])
     if args.explain and args.temporal == "on":
         raise ValueError("--explain breaks down the per-frame association: use --temporal off")
@@ -498,7 +498,7 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
                         explain_run(run, result, rig, ids, gts[-1], gt_masks[-1],
                                     np.flatnonzero(present))
     report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
-                              "association_params": dataclasses.asdict(assoc),
+                              "association_params": assoc.as_mapping(),
                               "triangulation_params": dataclasses.asdict(tri),
                               "evaluated_frames": frame_ids, "frames_considered": n}
     if gt is None:

@@ -200,7 +200,7 @@ def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, by
     (the reference recall): the association node's TemporalAssociator (track-assisted or the
     per-frame pipeline, as ``params_file`` says), triangulation, and the triangulation node's
     ``publish_tentative`` rule; stamp -> (P,13,3) world m."""
-    from maem_ros.core.association.pipeline import AssociationParams
+    from maem_ros.core.association import AssociationParams
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate

@@ -122,7 +122,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     import cv2
     import numpy as np
 
-    from maem_ros.core.association.pipeline import AssociationParams, associate
+    from maem_ros.core.association import AssociationParams, associate
     from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.geometry.camera import Rig
     from maem_ros.core.skeleton import get_convention

@@ -47,15 +47,14 @@ import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.optimize import linear_sum_assignment
 
+import maem_ros.core.association.clustering_kernel as clustering_kernel
 from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
-
 from maem_ros.core.detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
 from maem_ros.core.intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
-    from maem_ros.core.association.pipeline import AssociationParams
+    from maem_ros.core.association.params import AssociationParams
 
-METHODS = ("consistent", "paper", "spectral")
 #: objective weight (x tau_cost) of a cross pair that a geometric gate rejected. Weak: with
 #: realistic noise a true pair fails the 8 px mesh gate now and then (hard simulator noise:
 #: 1 % of true pairs are above 7.6 px), and geometry is checked on the whole cluster anyway;
@@ -97,7 +96,7 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
         return _paper(table, pairs, stats, pair_cost)
     if params.clustering == "spectral":
         return _spectral(table, stats, pair_cost)
-    kernels = _kernels(params.backend)
+    kernels = _kernels(params.execution.backend)
     return _consistent(table, pairs, _Verifier(table, P, joints, params.tau_verify, kernels),
                        params, stats, kernels)
 
@@ -105,7 +104,6 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
 def _kernels(backend: str):
     """core/association/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
     (the numpy paths: the same results)."""
-    from maem_ros.core.association import clustering_kernel
     if backend == "numba" and not clustering_kernel.have_numba():
         raise ValueError("backend: 'numba' requested but numba is not installed")
     return clustering_kernel if backend != "numpy" and clustering_kernel.have_numba() else None
@@ -542,33 +540,6 @@ def cost_matrix(rows: np.ndarray, pair_cost: PairCost) -> np.ndarray:
     Cm = np.full((rows.size, rows.size), np.nan)
     Cm[r, c] = Cm[c, r] = pair_cost(rows[r], rows[c])
     return Cm
-
-
-def mean_costs(groups: list[np.ndarray], pair_cost: PairCost) -> list[np.ndarray]:
-    """Per group (table rows), each member's mean pose cost (m) to the rest (member m aligned
-    onto n for m < n; NaN if alone), all groups' pairs in one batch, groups of one size
-    reduced together."""
-    out: list[np.ndarray] = [np.zeros(0)] * len(groups)
-    sizes = np.array([g.size for g in groups], np.int64)
-    batches = [(m, np.flatnonzero(sizes == m)) for m in np.unique(sizes).tolist()]
-    r, c, a, b = {}, {}, [], []
-    for m, which in batches:
-        r[m], c[m] = np.triu_indices(m, 1)
-        rows = np.stack([groups[k] for k in which.tolist()])  # (G,m)
-        a.append(rows[:, r[m]].ravel())
-        b.append(rows[:, c[m]].ravel())
-    a = np.concatenate(a + [np.zeros(0, np.int64)])
-    b = np.concatenate(b + [np.zeros(0, np.int64)])
-    flat = pair_cost(a, b) if a.size else np.zeros(0)
-    k = 0
-    for m, which in batches:
-        Cm = np.full((which.size, m, m), np.nan)
-        n = which.size * r[m].size
-        Cm[:, r[m], c[m]] = Cm[:, c[m], r[m]] = flat[k:k + n].reshape(which.size, -1)
-        k += n
-        for g, mean in zip(which.tolist(), mean_to_rest(Cm, np.ones(m, bool))):
-            out[g] = mean
-    return out
 
 
 def mean_to_rest(Cm: np.ndarray, alive: np.ndarray) -> np.ndarray:

@@ -19,13 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.geometry.multiview import _SINGULAR, adjugate_solve, normal_cofactors
+from maem_ros.core.geometry.multiview_kernel import SINGULAR, adjugate, cofactors, view_entries
 from maem_ros.core.jit import have_numba, jit
-from maem_ros.core.triangulation.ransac_kernel import _entries
-
-# geometry's elementwise formulas, compiled for the scalars here (one home: geometry)
-_normal_cofactors = jit(normal_cofactors, inline=True)
-_adjugate_solve = jit(adjugate_solve, inline=True)
 
 def consistent(E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray,
                rows: np.ndarray, tau: float) -> np.ndarray:
@@ -141,7 +136,7 @@ def warmup() -> None:
 @jit
 def _verifier_entries(P, uv, usable, E):
     for r in range(P.shape[0]):
-        _entries(P[r], uv[r, :, 0], uv[r, :, 1], usable[r], E[:, r])
+        view_entries(P[r], uv[r, :, 0], uv[r, :, 1], usable[r], E[:, r])
         for j in range(usable.shape[1]):
             if not usable[r, j]:
                 E[:, r, j] = 0.0
@@ -189,11 +184,11 @@ def _consistent(E, P, uv, usable, rows, tau, ok):
 @jit(inline=True)
 def _solve(n):
     """geometry.solve_normal of one system's entries n (9,): (x, y, z), NaN if singular."""
-    cof = _normal_cofactors(n[0], n[1], n[2], n[3], n[4], n[5])
+    cof = cofactors(n[0], n[1], n[2], n[3], n[4], n[5])
     det, trace = cof[6], cof[7]
-    if not abs(det) > _SINGULAR * trace * trace * trace:
+    if not abs(det) > SINGULAR * trace * trace * trace:
         det = np.nan
-    return _adjugate_solve(cof[:6], det, n[6], n[7], n[8])
+    return adjugate(cof[:6], det, n[6], n[7], n[8])
 
 
 @jit(inline=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 #: relative determinant below which the normal equations are treated as singular
-_SINGULAR = 1e-13
+SINGULAR = 1e-13
 
 
 def dlt(P: np.ndarray, uv: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
@@ -66,7 +66,7 @@ def solve_normal(E: np.ndarray) -> np.ndarray:
     E = E.reshape(9, -1)
     cof = normal_cofactors(E[0], E[1], E[2], E[3], E[4], E[5])
     det, trace = cof[6], cof[7]
-    det[~(np.abs(det) > _SINGULAR * trace * trace * trace)] = np.nan  # singular
+    det[~(np.abs(det) > SINGULAR * trace * trace * trace)] = np.nan  # singular
     # computed coordinate-first (contiguous) and returned as a (...,3) view
     X = np.stack(adjugate_solve(cof[:6], det, E[6], E[7], E[8]))
     return np.moveaxis(X.reshape((3,) + shape), 0, -1)

@@ -15,17 +15,18 @@ from __future__ import annotations
 
 import numpy as np
 
+from maem_ros.core.geometry.procrustes_terms import (ADJ_ENTRY, ADJ_MINOR, ADJ_SIGN, fill_key_matrix,
+                                                   fill_rotation)
 from maem_ros.core.jit import have_numba, jit
-from maem_ros.core.geometry.procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN, fill_key_matrix, fill_rotation
 
-# procrustes' elementwise formulas, compiled for the scalars here (one home: procrustes)
+# the elementwise formulas of procrustes_terms, compiled for the scalars here
 _fill_key_matrix = jit(fill_key_matrix, inline=True)
 _fill_rotation = jit(fill_rotation, inline=True)
 
 #: the adjugate table as kernel arguments (global arrays would keep numba from caching)
-_ADJUGATE = (np.ascontiguousarray(_ADJ_ENTRY, np.int64),
-             np.ascontiguousarray(_ADJ_MINOR, np.int64),
-             np.ascontiguousarray(_ADJ_SIGN, np.float64))
+_ADJUGATE = (np.ascontiguousarray(ADJ_ENTRY, np.int64),
+             np.ascontiguousarray(ADJ_MINOR, np.int64),
+             np.ascontiguousarray(ADJ_SIGN, np.float64))
 
 def pair_costs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, max_steps: int,
                min_gap: float) -> tuple[np.ndarray, np.ndarray]:

@@ -3,6 +3,8 @@
 - ``tracks``: :class:`Tracker` (Hungarian assignment on 3D distance, constant velocity);
 - ``temporal``: :class:`TemporalAssociator` (detections explained by existing 3D tracks first,
   the full MAEM association only on the rest) and :class:`TemporalParams`;
+- ``track_filter`` (the track stage's Kalman root + smoothed joints) and ``track_geometry``
+  (its batched projections, triangulation and cluster verification);
 - ``bone_filter``: :class:`BoneLengthFilter` (bone-length plausibility on a track).
 
 Exports: Tracker, TemporalAssociator, TemporalParams, TemporalResult, BoneLengthFilter.

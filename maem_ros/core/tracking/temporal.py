@@ -49,15 +49,18 @@ from typing import Callable, Mapping
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from maem_ros.core.association.pipeline import AssociationParams, associate, screen_levels, screen_subsets
+from maem_ros.core.association.gates import FrameSet, PairGates
+from maem_ros.core.association.params import AssociationParams
+from maem_ros.core.association.pipeline import associate
+from maem_ros.core.detections import PASSED, Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
-from maem_ros.core.detections import Cluster, FrameDetections
-from maem_ros.core.association.gates import epipolar
-from maem_ros.core.geometry.multiview import dlt, reprojection_errors
-from maem_ros.core.intsets import sorted_unique
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import body_joints, joint_subset
+from maem_ros.core.tracking.track_filter import Tracker3D
+from maem_ros.core.tracking.track_geometry import (mean_distance, nanmedian, project,
+                                                   rays_nearest, triangulate_members,
+                                                   verify_clusters)
 
 #: cluster flags (bit mask) of TemporalResult.flags
 FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view association)
@@ -126,183 +129,12 @@ class TemporalResult:
     stats: dict[str, float] = field(default_factory=dict)
 
 
-# ---------------------------------------------------------------------------------------
-# track state
-# ---------------------------------------------------------------------------------------
-@dataclass
-class Track:
-    """One person followed through time. x (6,) root position (m) and velocity (m/s), Pc (6,6)
-    its covariance; offsets (J,3) body joints minus root (m, NaN = never seen)."""
-
-    key: int
-    x: np.ndarray
-    Pc: np.ndarray
-    offsets: np.ndarray
-    hits: int = 1
-    misses: int = 0
-    id: int = -1
-
-    @property
-    def joints(self) -> np.ndarray:
-        """(J,3) predicted / current body joints, world m."""
-        return self.x[:3] + self.offsets
-
-
-def _root(joints: np.ndarray) -> np.ndarray:
-    """(...,3) mean of the finite joints of (...,J,3); NaN if none."""
-    ok = np.isfinite(joints).all(-1)
-    n = ok.sum(-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(ok[..., None], joints, 0.0).sum(-2) / n[..., None]
-
-
-class Tracker3D:
-    """Kalman root + smoothed offsets for a list of tracks; see the module docstring."""
-
-    def __init__(self, params: TemporalParams):
-        self.p = params
-        self.tracks: list[Track] = []
-        self._next_key = 0
-        self._next_id = 0
-
-    def reset(self) -> None:
-        """End every track (the id counter keeps counting)."""
-        self.tracks = []
-
-    def predict(self, dt: float) -> None:
-        """Move every track forward by dt seconds (constant velocity, white acceleration)."""
-        if not self.tracks or dt <= 0:
-            return
-        F = np.eye(6)
-        F[:3, 3:] = dt * np.eye(3)
-        q = self.p.accel_std ** 2
-        Q1 = q * np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]])
-        Q = np.kron(Q1, np.eye(3))
-        for t in self.tracks:  # one 6x6 product per person
-            t.x = F @ t.x
-            t.Pc = F @ t.Pc @ F.T + Q
-
-    def start(self, joints: np.ndarray) -> Track:
-        """A tentative track from a triangulated pose (J,3)."""
-        root = _root(joints)
-        Pc = np.diag([self.p.meas_std ** 2] * 3 + [4.0] * 3)  # velocity unknown: ~2 m/s std
-        t = Track(self._next_key, np.concatenate([root, np.zeros(3)]), Pc, joints - root)
-        self._next_key += 1
-        self.tracks.append(t)
-        self._confirm(t)
-        return t
-
-    def update(self, t: Track, joints: np.ndarray, meas_std: float | None = None) -> None:
-        """Kalman update of the root with a pose (J,3) (NaN = unseen), smooth the offsets."""
-        root = _root(joints)
-        if np.isfinite(root).all():
-            r = (meas_std or self.p.meas_std) ** 2
-            S = t.Pc[:3, :3] + r * np.eye(3)
-            K = t.Pc[:, :3] @ np.linalg.inv(S)
-            t.x = t.x + K @ (root - t.x[:3])
-            t.Pc = (np.eye(6) - K[:, :3] @ np.eye(3, 6)) @ t.Pc
-            new = joints - root
-            a = self.p.joint_alpha
-            seen, known = np.isfinite(new).all(-1), np.isfinite(t.offsets).all(-1)
-            blend = np.where((seen & known)[:, None], a * new + (1 - a) * t.offsets, t.offsets)
-            t.offsets = np.where((seen & ~known)[:, None], new, blend)
-        t.hits += 1
-        t.misses = 0
-        self._confirm(t)
-
-    def _confirm(self, t: Track) -> None:
-        if t.id < 0 and t.hits >= self.p.confirm_hits:
-            t.id = self._next_id
-            self._next_id += 1
-
-
-# ---------------------------------------------------------------------------------------
-# geometry helpers (batched)
-# ---------------------------------------------------------------------------------------
-def _project(P: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project X (...,3) with P (...,3,4) broadcast: (uv (...,2) px, depth (...)); NaN behind."""
-    h = np.einsum("...ij,...j->...i", P[..., :3], X) + P[..., 3]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        uv = h[..., :2] / h[..., 2:3]
-    return np.where((h[..., 2:3] > 0), uv, np.nan), h[..., 2]
-
-
-def _depth(P: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """(T,) median depth (m) of the points X (T,J,3) in the camera P (3,4); NaN if none in front."""
-    _, z = _project(P, X)
-    return _nanmedian(np.where(z > 0, z, np.nan))
-
-
-def _nanmedian(a: np.ndarray) -> np.ndarray:
-    """Median over the last axis ignoring NaN; NaN where all are NaN. One sort (NaN sorts last)
-    instead of np.nanmedian, whose generic path has a large fixed cost per call on small
-    arrays."""
-    srt = np.sort(a, axis=-1)
-    n = np.isfinite(a).sum(-1)
-    lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
-    hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
-    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
-
-
-def _triangulate_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Joints X (T,J,3) from members padded to M views and each member's median reprojection
-    error (T,M) px (inf where absent or not reprojectable).
-
-    P (T,M,3,4), uv (T,M,J,2), present (T,M).
-    """
-    w = present.astype(np.float64)  # (T,M)
-    Pj = np.broadcast_to(P[:, None], (P.shape[0], uv.shape[2]) + P.shape[1:])  # (T,J,M,3,4)
-    X = dlt(Pj, uv.transpose(0, 2, 1, 3), np.broadcast_to(w[:, None], Pj.shape[:3]))
-    proj, _ = _project(P[:, :, None], X[:, None])  # (T,M,J,2)
-    with np.errstate(invalid="ignore"):
-        err = np.linalg.norm(proj - uv, axis=-1)
-    err = np.where(np.isfinite(err), err, np.nan)
-    med = _nanmedian(err)
-    return X, np.where(present & np.isfinite(med), med, np.inf)
-
-
-def _verify(P: np.ndarray, uv: np.ndarray, present: np.ndarray, passes: np.ndarray,
-            tau_px: float, min_support: float) -> tuple[np.ndarray, np.ndarray]:
-    """Geometric verification of clusters padded to M members, as in the consistent clustering:
-    every member must pass the pair gates with at least ``min_support`` of the other members
-    (passes (T,M,M) bool) and reproject under tau_px (median over the body joints triangulated
-    from all kept members). The worst member (least support, then largest error) is dropped
-    until all pass or fewer than 2 remain. Returns (kept (T,M), joints (T,J,3) of the kept
-    members, NaN where fewer than 2 are kept)."""
-    keep = present.copy()
-    for _ in range(max(present.shape[1] - 1, 1)):  # at most M-1 drops, batched over clusters
-        X, err = _triangulate_members(P, uv, keep)
-        others = np.maximum(keep.sum(1, keepdims=True) - 1, 1)
-        support = (passes & keep[:, None, :]).sum(2) / others  # (T,M)
-        bad = keep & ((err >= tau_px) | (support < min_support))
-        todo = bad.any(1) & (keep.sum(1) >= 2)
-        if not todo.any():
-            break
-        # least support first; the error (px, < 1e6) breaks ties
-        badness = np.where(keep, (1.0 - support) * 1e6 + np.minimum(err, 1e6 - 1), -1.0)
-        worst = np.argmax(badness, axis=1)
-        keep[np.flatnonzero(todo), worst[todo]] = False
-    X[keep.sum(1) < 2] = np.nan
-    return keep, X
-
-
-def _rays_nearest(cam_P: np.ndarray, center: np.ndarray, uv: np.ndarray, X_pred: np.ndarray
-                  ) -> np.ndarray:
-    """(J,3) points on the back-projected rays of uv (J,2) nearest to X_pred (J,3): one view
-    plus the prediction (the view fixes the direction, the prediction the depth)."""
-    M_inv = np.linalg.inv(cam_P[:, :3])
-    d = (M_inv @ np.concatenate([uv, np.ones((len(uv), 1))], axis=1).T).T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    s = np.einsum("jk,jk->j", X_pred - center, d)
-    return center + s[:, None] * d
-
-
 class _FrameView:
     """One frame set as the track stage reads it, built once per frame and shared by both
     assignment passes: every camera's detections padded to N rows (C = the rig's cameras;
-    absent cameras and padding rows are NaN and invalid), the epipolar point rows of each
-    camera (built on first use), and the pair-gate results already computed this frame."""
+    absent cameras and padding rows are NaN and invalid), the pair gates of the frame set
+    (their gate points built on first use), and the pair-gate results already computed this
+    frame."""
 
     def __init__(self, stage: "TemporalAssociator", by_cam: dict[int, FrameDetections],
                  body: np.ndarray):
@@ -323,22 +155,9 @@ class _FrameView:
             self.valid[c, ok] = True
             if ok.size:
                 self.ok[c] = ok
-        self._rows: dict[int, tuple[epipolar.PointRows, list[epipolar.PointRows | None]]] = {}
+        self.gates: FrameSet = stage.verify_gates.frame_set(by_cam)
         self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
         self._known_ok = np.zeros(0, bool)
-
-    def points(self, c: int) -> "tuple[epipolar.PointRows, list[epipolar.PointRows | None]]":
-        """Camera c's points for the verification's epipolar gate and their screening subsets
-        (association.screen_subsets, the decoder's copies where it made them; none for
-        keypoints), converted once per frame."""
-        if c not in self._rows:
-            fd = self.by_cam[c]
-            points = self.stage._gate_points(fd)
-            whole = fd if points is fd.verts2d else None  # the decoder's copies describe it
-            full = epipolar.point_rows(points, whole.block_ranges() if whole else None)
-            mesh = self.stage.tp.verify_epipolar == "mesh"
-            self._rows[c] = (full, screen_subsets(full, self.stage.params, whole) if mesh else [])
-        return self._rows[c]
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
                 ) -> np.ndarray:
@@ -384,8 +203,10 @@ class TemporalAssociator:
         self.tp = temporal
         self.tracker = Tracker3D(temporal)
         self._P = np.stack([c.P for c in rig.cameras])
-        self._F = rig.fundamental_matrices()
-        self._pair_F = epipolar.pair_matrices(self._F)  # as the kernels take them, once
+        #: the association's pair gates (frames prepared as they arrive: prepare), and the
+        #: same gates with the verification's epipolar test (verify_epipolar)
+        self.gates = PairGates(rig, params)
+        self.verify_gates = self.gates.with_epipolar_gate(temporal.verify_epipolar)
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
@@ -399,7 +220,7 @@ class TemporalAssociator:
     def step(self, frames: Mapping[str, FrameDetections], stamp_ns: int) -> TemporalResult:
         """Associate one synchronised frame set (keyed by camera name) at stamp_ns (int ns)."""
         if not self.tp.temporal:
-            res = associate(self.rig, frames, self.params)
+            res = associate(self.rig, frames, self.params, self.gates)
             n = len(res.clusters)
             return TemporalResult(res.clusters, np.full(n, -1, np.int64), np.zeros(n, np.uint8),
                                   dict(res.stats))
@@ -422,8 +243,9 @@ class TemporalAssociator:
         keep = {c: np.flatnonzero(~u) for c, u in used.items()}
         stats["detections_left"] = float(sum(
             int((by_cam[c].scores[k] >= self.params.tau_det).sum()) for c, k in keep.items()))
-        res = associate(self.rig, {self.rig.names[c]: by_cam[c].select(k) if used[c].any()
-                                   else by_cam[c] for c, k in keep.items()}, self.params)
+        res = associate(self.rig, {self.rig.names[c]: self.gates.select(by_cam[c], k)
+                                   if used[c].any() else by_cam[c] for c, k in keep.items()},
+                        self.params, self.gates)
         stats["t_associate_ms"] = (time.perf_counter() - t1) * 1e3
         for k, v in res.stats.items():
             stats.setdefault(k, v)
@@ -456,8 +278,8 @@ class TemporalAssociator:
         view = _FrameView(self, by_cam, body)
         pred = np.stack([t.joints for t in tracks])  # (T,J,3)
         sig = np.sqrt(np.stack([t.Pc[0, 0] + t.Pc[1, 1] + t.Pc[2, 2] for t in tracks]) / 3.0)
-        _, z = _project(self._P[:, None, None], pred[None])  # (C,T,J) m, all cameras at once
-        depth = _nanmedian(np.where(z > 0, z, np.nan))  # (C,T)
+        _, z = project(self._P[:, None, None], pred[None])  # (C,T,J) m, all cameras at once
+        depth = nanmedian(np.where(z > 0, z, np.nan))  # (C,T)
         gate = np.minimum(self.tp.gate_px + self.tp.gate_sigma * self._focal[:, None] * sig
                           / depth, self.tp.gate_max_px).T  # (T,C) px
         cand = self._assign(view, pred, gate)
@@ -494,7 +316,7 @@ class TemporalAssociator:
                               FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
             elif t.id >= 0 and present[i].any() and self.tp.one_view:
                 c, d = self._one_view(present[i], keep[i], cam[i], det[i])
-                self.tracker.update(t, _rays_nearest(self._P[c], self._centers[c],
+                self.tracker.update(t, rays_nearest(self._P[c], self._centers[c],
                                                      body_kpts(c, d), t.joints),
                                     meas_std=self.tp.one_view_std)
                 stats["tracks_one_view"] += 1
@@ -514,9 +336,9 @@ class TemporalAssociator:
         (detections padded per camera); only the assignment runs per camera. Returns the
         candidate detection (T,C) of each track in each camera (-1 = none)."""
         T, C = len(joints), len(self.rig)
-        uv, _ = _project(self._P[:, None, None], joints[None])  # (C,T,J,2)
+        uv, _ = project(self._P[:, None, None], joints[None])  # (C,T,J,2)
         diff = np.linalg.norm(uv[:, :, None] - view.kp2[:, None], axis=-1)  # (C,T,N,J)
-        cost = _nanmedian(diff)  # (C,T,N)
+        cost = nanmedian(diff)  # (C,T,N)
         okc = view.valid[:, None] & np.isfinite(cost) & (cost < gate.T[:, :, None])
         if self.tp.pose_weight > 0:
             # the pose term only orders the candidates of a track or of a detection with more
@@ -524,7 +346,7 @@ class TemporalAssociator:
             # its cost (any other choice for its row or column is gated)
             contested = okc & ((okc.sum(2, keepdims=True) > 1) | (okc.sum(1, keepdims=True) > 1))
             cost = cost + self.tp.pose_weight * self._pose_cost(contested, joints, view.kp3,
-                                                                 self.params.backend)
+                                                                 self.params.execution.backend)
         cand = np.full((T, C), -1, np.int64)
         for c, ok in view.ok.items():  # one Hungarian per camera
             gated = okc[c][:, ok]
@@ -545,7 +367,7 @@ class TemporalAssociator:
         present = det >= 0
         uv = np.where(present[:, :, None, None], view.kp2[cam, np.maximum(det, 0)], np.nan)
         passes = self._pair_gates(view, cam, det, present)
-        keep, X = _verify(self._P[cam], uv, present, passes, self.params.tau_verify,
+        keep, X = verify_clusters(self._P[cam], uv, present, passes, self.params.tau_verify,
                           self.params.min_support)
         return cam, det, present, keep, X
 
@@ -580,29 +402,14 @@ class TemporalAssociator:
     def _gate_pairs(self, view: "_FrameView", ca: np.ndarray, cb: np.ndarray, da: np.ndarray,
                     db: np.ndarray) -> np.ndarray:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
-        association's pair gates (bbox-centre reprojection, epipolar on mesh vertices or
-        keypoints, PA-MPJPE cost of the lower camera's 3D pose aligned onto the other's under
-        tau_cost), the same tests (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view
-        association applies, on the few pairs inside the tracks' clusters only."""
+        association's pair gates (core.association.gates: bbox-centre reprojection, epipolar
+        on keypoints or mesh vertices, ``verify_epipolar``) and the PA-MPJPE cost of the lower
+        camera's 3D pose aligned onto the other's under tau_cost, on the few pairs inside the
+        tracks' clusters only. The cost here is the pose alone (no epipolar term: the
+        verification's epipolar test is on keypoints by default)."""
         by_cam = view.by_cam
-        ok = np.ones(ca.size, bool)
         p = self.params
-        if p.reproj_gate and ca.size:
-            uv = np.stack([view.centers[ca, da], view.centers[cb, db]], axis=1)  # (S,2,2)
-            Ps = np.stack([self._P[ca], self._P[cb]], axis=1)
-            ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
-        if self.tp.verify_epipolar != "none" and ok.any():
-            s = np.flatnonzero(ok)
-            cams = sorted_unique(np.concatenate([ca[s], cb[s]])).tolist()
-            rows = {c: view.points(c) for c in cams}
-            # every camera pair in one kernel call per level; missing (NaN) points are not
-            # counted
-            ok[s] = epipolar.frame_screened_means(
-                {c: full for c, (full, _) in rows.items()},
-                screen_levels(rows, p), self._pair_F,
-                ca[s], da[s], cb[s], db[s], p.tau_mesh,
-                symmetric=p.epipolar_distance == "symmetric", early_exit=p.early_exit,
-                backend=p.backend, precision=p.epipolar_precision)[0]
+        ok = view.gates.decide(ca, da, cb, db).stage == PASSED
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)
@@ -612,17 +419,9 @@ class TemporalAssociator:
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            ok[s] = pa_mpjpe_finite(X, Y, p.backend) < p.tau_cost  # NaN (too few joints) fails
+            # NaN (too few joints) fails
+            ok[s] = pa_mpjpe_finite(X, Y, p.execution.backend) < p.tau_cost
         return ok
-
-    def _gate_points(self, fd: FrameDetections) -> np.ndarray:
-        """The (N,n,2) px the verification's epipolar gate compares (``verify_epipolar``):
-        2D keypoints, or mesh vertices (the association's vertex subset)."""
-        if self.tp.verify_epipolar == "sparse":
-            return fd.kpts2d
-        subset = epipolar.vertex_subset(fd.num_vertices, self.params.vertex_stride,
-                                        self.params.vertex_count)
-        return fd.verts2d if subset is None else fd.verts2d[:, subset]
 
     @staticmethod
     def _one_view(present: np.ndarray, keep: np.ndarray, cam: np.ndarray, det: np.ndarray
@@ -643,7 +442,7 @@ class TemporalAssociator:
                              ([t for t in tracks if t.key not in out], False)):
             if not group or taken.all():
                 continue
-            d = _mean_distance(np.stack([t.joints for t in group]), joints)  # (G,K)
+            d = mean_distance(np.stack([t.joints for t in group]), joints)  # (G,K)
             d[:, taken] = np.inf
             ok = np.isfinite(d) & (d < self.tp.reid_m)
             rows, cols = linear_sum_assignment(np.where(ok, d, _GATED))
@@ -686,7 +485,7 @@ class TemporalAssociator:
             present[k, :len(m)] = True
             for j, (c, d) in enumerate(m.tolist()):
                 uv[k, j] = by_cam[c].kpts2d[d][body]
-        X, _ = _triangulate_members(self._P[cam], uv, present)
+        X, _ = triangulate_members(self._P[cam], uv, present)
         return X
 
     def _age(self, out: dict[int, list], stats: dict[str, float]) -> None:
@@ -720,13 +519,3 @@ class TemporalAssociator:
 def keep_idx(keep: dict[int, np.ndarray], members: np.ndarray) -> np.ndarray:
     """Map members' detection indices in the per-camera subsets back to the indices as given."""
     return np.array([keep[int(c)][int(d)] for c, d in members.tolist()], np.int64)
-
-
-def _mean_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """(G,K) mean distance (m) over joints finite in both of A (G,J,3) and B (K,J,3)."""
-    both = np.isfinite(A).all(-1)[:, None] & np.isfinite(B).all(-1)[None]
-    with np.errstate(invalid="ignore"):
-        d = np.linalg.norm(A[:, None] - B[None], axis=-1)
-    n = both.sum(-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, np.where(both, d, 0.0).sum(-1) / n, np.inf)

@@ -14,27 +14,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.geometry.multiview import _SINGULAR
-from maem_ros.core.jit import jit
-
-try:  # numba is optional: the numpy path gives the same results, only slower
-    import numba as _numba
-except ImportError:  # pragma: no cover - exercised only without numba
-    _numba = None
+from maem_ros.core.geometry.multiview_kernel import SINGULAR, view_entries
+from maem_ros.core.jit import have_numba, jit
 
 BACKENDS = ("auto", "numba", "numpy")
-
-
-def have_numba() -> bool:
-    return _numba is not None
 
 
 def use_numba(backend: str) -> bool:
     """Whether ``backend`` (auto | numba | numpy) runs the numba kernel; ValueError when numba
     is requested but not installed."""
-    if backend == "numba" and _numba is None:
+    if backend == "numba" and not have_numba():
         raise ValueError("ransac_backend: 'numba' requested but numba is not installed")
-    return backend == "numba" or (backend == "auto" and _numba is not None)
+    return backend == "numba" or (backend == "auto" and have_numba())
 
 
 def ransac_keypoints(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray,
@@ -59,39 +50,13 @@ def ransac_keypoints(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: 
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernel now, so a node's first frame
     does not pay for it. No-op without numba."""
-    if _numba is not None:
+    if have_numba():
         ransac_keypoints(np.zeros((1, 2, 3, 4)), np.zeros((1, 2, 1, 2)), np.ones((1, 2, 1), bool),
                          np.ones((1, 2)), 1.0, 2)
 
 
 # every loop below runs over the keypoints j innermost (contiguous, independent): LLVM
 # vectorises them with exact SIMD division and square root, no fast-math needed
-
-
-@jit
-def _entries(P, u, v, usable, E):
-    """geometry.normal_entries of one view for all keypoints: P (3,4), u, v, usable (J,)
-    -> E (9,J); rows r1 = u P3 - P1, r2 = v P3 - P2, uv = 0 where unusable."""
-    for j in range(u.shape[0]):
-        uu = u[j] if usable[j] else 0.0
-        vv = v[j] if usable[j] else 0.0
-        a0 = uu * P[2, 0] - P[0, 0]
-        a1 = uu * P[2, 1] - P[0, 1]
-        a2 = uu * P[2, 2] - P[0, 2]
-        a3 = uu * P[2, 3] - P[0, 3]
-        b0 = vv * P[2, 0] - P[1, 0]
-        b1 = vv * P[2, 1] - P[1, 1]
-        b2 = vv * P[2, 2] - P[1, 2]
-        b3 = vv * P[2, 3] - P[1, 3]
-        E[0, j] = a0 * a0 + b0 * b0
-        E[1, j] = a0 * a1 + b0 * b1
-        E[2, j] = a0 * a2 + b0 * b2
-        E[3, j] = a1 * a1 + b1 * b1
-        E[4, j] = a1 * a2 + b1 * b2
-        E[5, j] = a2 * a2 + b2 * b2
-        E[6, j] = a0 * a3 + b0 * b3
-        E[7, j] = a1 * a3 + b1 * b3
-        E[8, j] = a2 * a3 + b2 * b3
 
 
 @jit
@@ -106,7 +71,7 @@ def _solve(n, X):
         c22 = n[0, j] * n[3, j] - n[1, j] * n[1, j]
         det = n[0, j] * c00 + n[1, j] * c01 + n[2, j] * c02
         trace = n[0, j] + n[3, j] + n[5, j]
-        if not (abs(det) > _SINGULAR * trace * trace * trace):
+        if not (abs(det) > SINGULAR * trace * trace * trace):
             det = np.nan
         X[0, j] = -((c00 * n[6, j] + c01 * n[7, j] + c02 * n[8, j]) / det)
         X[1, j] = -((c01 * n[6, j] + c11 * n[7, j] + c12 * n[8, j]) / det)
@@ -144,7 +109,7 @@ def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
     total = np.empty(J)
     for c in range(C):
         for m in range(M):
-            _entries(P[c, m], u[c, m], v[c, m], usable[c, m], E[m])
+            view_entries(P[c, m], u[c, m], v[c, m], usable[c, m], E[m])
         best_key[:] = -np.inf
         for a in range(M):  # view pairs in np.triu_indices(M, 1) order
             for b in range(a + 1, M):

@@ -1,8 +1,8 @@
-"""The numba kernel of the association's bbox-centre reprojection gate (core/association/pipeline.py),
-imported only when numba is installed.
+"""The numba kernel of the bbox-centre reprojection gate (gates/reprojection.py), imported only
+when numba is installed.
 
-One pass over every candidate pair of a frame set (the pairs of core.association.pipeline's
-_enumerate_pairs, in its order) with nothing but scalars: the epipolar lower bound of
+One pass over every candidate pair of a frame set (the pairs of reprojection.enumerate_pairs,
+in its order) with nothing but scalars: the epipolar lower bound of
 geometry.pair_reprojection_bound rejects most pairs, the others get the two-view DLT of
 geometry.pair_reprojection_errors. The numpy path materialises ~20 arrays of the pair count
 (75,000 pairs in 16 cameras x 25 detections); this pass keeps everything in registers and is
@@ -11,18 +11,16 @@ several times faster.
 Decisions equal the numpy path's: the bound only rejects with a relative margin far above its
 rounding (its arithmetic order does not matter), and the DLT and reprojection are the numpy
 path's float64 operations in the same order (no fast-math: no reassociation, no fused
-multiply-add), so the errors compared with tau are the same numbers. The DLT steps are the
-triangulation kernel's entries (core/triangulation/ransac_kernel.py: _entries) and geometry's
-cofactor solve as core/association/clustering_kernel.py compiles it for scalars.
+multiply-add), so the errors compared with tau are the same numbers. The DLT steps are
+core.geometry.multiview_kernel's (multiview's normal entries and cofactor solve, compiled
+for scalars).
 """
 from __future__ import annotations
 
 import numba as nb
 import numpy as np
 
-from maem_ros.core.association.clustering_kernel import _adjugate_solve, _normal_cofactors
-from maem_ros.core.geometry.multiview import _SINGULAR
-from maem_ros.core.triangulation.ransac_kernel import _entries
+from maem_ros.core.geometry.multiview_kernel import SINGULAR, adjugate, cofactors, view_entries
 
 _OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
 
@@ -52,11 +50,11 @@ def _pair_errors(P, U, V, usable, E, pi, pj, todo, reduce_max, tau, ok):
         j = pj[s]
         n0, n1, n2 = E[0, i] + E[0, j], E[1, i] + E[1, j], E[2, i] + E[2, j]
         n3, n4, n5 = E[3, i] + E[3, j], E[4, i] + E[4, j], E[5, i] + E[5, j]
-        cof = _normal_cofactors(n0, n1, n2, n3, n4, n5)
+        cof = cofactors(n0, n1, n2, n3, n4, n5)
         det, trace = cof[6], cof[7]
-        if not abs(det) > _SINGULAR * trace * trace * trace:
+        if not abs(det) > SINGULAR * trace * trace * trace:
             det = np.nan
-        x0, x1, x2 = _adjugate_solve(cof[:6], det, E[6, i] + E[6, j], E[7, i] + E[7, j],
+        x0, x1, x2 = adjugate(cof[:6], det, E[6, i] + E[6, j], E[7, i] + E[7, j],
                                      E[8, i] + E[8, j])
         ei = _view_error(P, i, x0, x1, x2, U[i], V[i])
         ej = _view_error(P, j, x0, x1, x2, U[j], V[j])
@@ -67,7 +65,7 @@ def _pair_errors(P, U, V, usable, E, pi, pj, todo, reduce_max, tau, ok):
 @nb.njit(**_OPTS)
 def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
     """(i, j, ok) of every pair of rows (i in camera a, j in camera b, a < b; camera c's rows
-    offsets[c]:offsets[c+1]) in core.association.pipeline._enumerate_pairs' order; ok: bbox-centre
+    offsets[c]:offsets[c+1]) in reprojection.enumerate_pairs' order; ok: bbox-centre
     reprojection error < tau px. F (C,C,3,3) as geometry.pair_reprojection_bound's, P (N,3,4)
     and uv (N,2) each row's projection and bbox centre (rectified px)."""
     C = offsets.shape[0] - 1
@@ -84,7 +82,7 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
         usable[n] = np.isfinite(uv[n, 0]) and np.isfinite(uv[n, 1])
     E = np.empty((9, N))  # each view's share of every pair's DLT system
     for n in range(N):
-        _entries(P[n], uv[n:n + 1, 0], uv[n:n + 1, 1], usable[n:n + 1], E[:, n:n + 1])
+        view_entries(P[n], uv[n:n + 1, 0], uv[n:n + 1, 1], usable[n:n + 1], E[:, n:n + 1])
     scale = 0.5 if not reduce_max else np.sqrt(0.5)
     limit = tau * (1.0 + margin)
     # the centres' coordinates apart and contiguous, and one camera's bounds at a time: the
