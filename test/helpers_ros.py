@@ -289,6 +289,23 @@ def pipeline_params(**extra: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     return assoc, tri
 
 
+def stall(graph: Graph, release: threading.Event) -> threading.Event:
+    """Block the graph's executor (one callback that waits for ``release``, at most 30 s): the
+    node under test is busy, as under CPU starvation, while DDS keeps receiving. Returns an
+    Event set once the executor is blocked."""
+    started = threading.Event()
+    node = graph.client("stall")
+    timer = None
+
+    def block() -> None:
+        timer.cancel()
+        started.set()
+        release.wait(30.0)
+
+    timer = node.create_timer(0.01, block)
+    return started
+
+
 def start_pipeline(graph: Graph, **extra: Any):
     from maem_ros.ros.association_node import AssociationNode
     from maem_ros.ros.triangulation_node import TriangulationNode

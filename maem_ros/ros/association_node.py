@@ -221,15 +221,28 @@ class AssociationNode(Node):
         backlog waiting) each frame set completes, and is handled, as soon as its messages
         are in, instead of after all of the backlog was received. When stale sets are skipped
         (the default) the whole backlog is received first: which set is the newest is known
-        only then."""
+        only then. At most ``queue_size`` rounds (what the DDS histories can hold when this
+        starts): messages that keep arriving while it takes them never keep the node from
+        deciding."""
         self._taking = True
         try:
-            while self._take_round():
+            for _ in range(self.sync.queue_size):
+                if not self._take_round():
+                    break
                 if not self._skip_stale:
                     ready, self._ready = self._ready, []
                     self._emit(ready + self.sync.poll(self._now_ns(), complete_only=True))
         finally:
             self._taking = False
+
+    def _receive_round(self) -> None:
+        """One round of taking, receive only (the sets it completes wait in ``_ready`` for
+        the next decision): a callback must not decide while the node works on sets."""
+        taking, self._taking = self._taking, True
+        try:
+            self._take_round()
+        finally:
+            self._taking = taking
 
     def _take_round(self) -> int:
         """Receive (decode and queue) at most one waiting message per camera; how many."""
@@ -253,7 +266,7 @@ class AssociationNode(Node):
             if self.backlog.still_fresh(fs.ready_ns, fs.stamp_ns, k < len(sets) - 1):
                 self.process(fs)
             if len(sets) > 1:  # a backlog: keep the DDS history from overwriting what arrived
-                self._take_round()
+                self._receive_round()
 
     def _sync_counters(self) -> None:
         """Report the synchroniser's drops (``sync_<reason>``), resets and state changes."""
