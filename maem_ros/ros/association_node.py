@@ -197,10 +197,12 @@ class AssociationNode(Node):
         handled as they complete), then poll: a frame set is declared partial only when its
         missing camera's message has not reached this process within max_wait of the
         reference's arrival (rmw receive time), never because the node was busy. Waiting
-        messages also stop being overwritten in the keep-last history."""
-        self._take_all()
+        messages also stop being overwritten in the keep-last history. When messages were
+        left waiting (see _take_all) only complete sets go out now; the next callback, right
+        away, decides the rest."""
+        drained = self._take_all()
         ready, self._ready = self._ready, []
-        ready += self.sync.poll(self._now_ns())
+        ready += self.sync.poll(self._now_ns(), complete_only=not drained)
         if not self.sync.pending():
             # nothing waits for max_wait: a poll would find nothing (each executor wake-up
             # costs CPU); _receive re-arms the timer with the next queued message
@@ -215,23 +217,27 @@ class AssociationNode(Node):
                                         [fs.stamp_ns for fs in ready])
         self._handle(ready)
 
-    def _take_all(self) -> None:
+    def _take_all(self) -> bool:
         """Receive every message waiting in the DDS queues, one per camera per round: the
         cameras' messages come in stamp order together, so after a stall (every camera's
         backlog waiting) each frame set completes, and is handled, as soon as its messages
         are in, instead of after all of the backlog was received. When stale sets are skipped
-        (the default) the whole backlog is received first: which set is the newest is known
-        only then. At most ``queue_size`` rounds (what the DDS histories can hold when this
-        starts): messages that keep arriving while it takes them never keep the node from
-        deciding."""
+        (the default) the backlog is received first, which set is the newest is known only
+        then, in at most ``queue_size`` rounds (what the DDS histories hold when this starts):
+        messages that keep arriving faster than they are taken never keep the node from
+        deciding. Whether nothing was left waiting."""
         self._taking = True
         try:
-            for _ in range(self.sync.queue_size):
-                if not self._take_round():
-                    break
+            rounds = 0
+            while self._take_round():
                 if not self._skip_stale:
                     ready, self._ready = self._ready, []
                     self._emit(ready + self.sync.poll(self._now_ns(), complete_only=True))
+                    continue
+                rounds += 1
+                if rounds >= self.sync.queue_size:
+                    return False
+            return True
         finally:
             self._taking = False
 
