@@ -18,9 +18,9 @@ or pixels beyond ``pixel_margin`` are rejected; a node that fell behind skips th
 waited for it longer than the backlog bound, counted ``dropped/behind``: ``max_backlog`` s, by
 default 4 frame periods (core.backlog; ``keep_every_set: true`` processes every set, for
 replays that want every frame; /diagnostics ``behind``, ``behind/for_s``, ``backlog/*``),
-runs core.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
-tracks' predictions first, core.association.associate on the rest; clusters carry track ids) or
-core.association.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
+runs core.tracking.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
+tracks' predictions first, core.association.pipeline.associate on the rest; clusters carry track ids) or
+core.association.pipeline.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
 thresholds and publishes ``/maem/clusters`` (PointCloud2, one point per (cluster, member view), see
 wire.py; an empty cloud for a frame set without clusters, so downstream still sees every frame).
 A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all tracks.
@@ -53,7 +53,7 @@ from maem_ros.ros.overload import NodeBacklog
 
 NODE_NAME = "association"
 
-#: core.association.AssociationResult.stats keys reported as cumulative counts in /diagnostics
+#: core.association.pipeline.AssociationResult.stats keys reported as cumulative counts in /diagnostics
 GATE_COUNTS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
                "matched_pairs", "conflicts_removed", "clusters_below_k_min")
 #: ... and as per-stage times (stats key -> /diagnostics stage, ms)
@@ -97,7 +97,7 @@ class AssociationNodeParams(NodeParams):
 
 
 PARAMS = param_specs(AssociationNodeParams, BacklogParams, AssociationParams, TemporalParams)
-#: core.temporal stats reported as cumulative counts in /diagnostics
+#: core.tracking.temporal stats reported as cumulative counts in /diagnostics
 TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_ended",
                 "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
 
