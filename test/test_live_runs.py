@@ -42,10 +42,13 @@ def test_accounting_explains_frames_without_poses_by_the_nodes_counts() -> None:
     assoc = {"count/sync_sets": "95", "dropped/behind": "7", "dropped/dds_lost": "30",
              "dropped/association_error": "1"}
     tri = {"frames_dropped": "3", "dropped/behind": "2", "dropped/bad_clusters": "1"}
-    acc = accounting(100, 16, assoc, tri)
-    assert acc == {"frames_without_poses": 16, "no_set": 5, "skipped_association": 7,
-                   "skipped_triangulation": 2, "other_drops": 2, "unaccounted": 0}
-    assert accounting(100, 20, assoc, tri)["unaccounted"] == 4
+    acc = accounting(100, 16, 6, assoc, tri)
+    assert acc == {"frames_without_poses": 16, "no_set": 5, "no_set_counted": 5,
+                   "skipped_association": 7, "skipped_triangulation": 2, "other_drops": 2,
+                   "unaccounted": 0}
+    assert accounting(100, 20, 6, assoc, tri)["unaccounted"] == 4
+    # no /diagnostics from the association: nothing is explained
+    assert accounting(100, 100, 6, {}, {})["unaccounted"] == 100
 
 
 def test_aggregate_reports_the_median_and_the_worst_against_the_targets() -> None:

@@ -54,8 +54,9 @@ class BacklogParams(Params):
 
     max_backlog: float = param(0.0, "s, a frame that waited longer than this for the node (it "
                                     "fell behind) is skipped unless it is the newest, counted "
-                                    "dropped/behind; 0 = automatic: 4 frame periods (median "
-                                    "stamp interval), at least 0.05 s", minimum=0.0)
+                                    f"dropped/behind; 0 = automatic: {BACKLOG_PERIODS:g} frame "
+                                    f"periods (median stamp interval), at least "
+                                    f"{MIN_BACKLOG_S:g} s", minimum=0.0)
     keep_every_set: bool = param(False, "process every frame however far behind (bag replays "
                                         "that want every frame: maem-demo, maem-play faster "
                                         "than real time); default: a live node skips stale "

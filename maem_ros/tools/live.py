@@ -391,8 +391,8 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
         "triangulation_dropped": {k: v for k, v in tri.items() if k.startswith("dropped/")},
         # every frame without poses counted by a node? (live_runs.accounting)
-        "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)), assoc,
-                                 tri),
+        "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)),
+                                 len(rig), assoc, tri),
         # the longest time a node was behind (skipping, or working on stale frames), s
         "behind_longest_s": max(float(kv.get("behind/longest_s", 0)) for kv in (assoc, tri)),
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),

@@ -116,25 +116,30 @@ def _nanpct(x, q: float) -> float | None:
     return round(float(np.percentile(x, q)), 1) if len(x) else None
 
 
-def accounting(frames_published: int, frames_without_poses: int, assoc: dict[str, str],
-               tri: dict[str, str]) -> dict[str, int]:
+def accounting(frames_published: int, frames_without_poses: int, cameras: int,
+               assoc: dict[str, str], tri: dict[str, str]) -> dict[str, int]:
     """Whether every frame without poses is counted by a node (``assoc`` / ``tri``: the
-    nodes' last /diagnostics values): ``no_set`` frames the
-    association made no frame set of (their messages counted dropped/dds_lost or sync_*),
-    ``skipped_association`` / ``skipped_triangulation`` (dropped/behind), ``other_drops``
-    (the nodes' other per-set drops) and ``unaccounted``: frames without poses none of those
-    explains (0 when every one is counted)."""
+    nodes' last /diagnostics values): ``no_set`` frames the association made no frame set of,
+    of which ``no_set_counted`` have their messages counted (the association's per-message
+    drops, dds_lost and sync_*, over ``cameras``), ``skipped_association`` /
+    ``skipped_triangulation`` (dropped/behind), ``other_drops`` (the nodes' other per-frame
+    drops) and ``unaccounted``: frames without poses none of those explains (0 when every one
+    is counted; all of them when the association's /diagnostics never came)."""
     sets = int(float(assoc.get("count/sync_sets", 0)))
     no_set = max(0, frames_published - sets)
+    message_drops = sum(int(float(v)) for k, v in assoc.items()
+                        if k == "dropped/dds_lost" or k.startswith("dropped/sync_"))
+    no_set_counted = min(no_set, message_drops // max(cameras, 1))
     behind_a = int(float(assoc.get("dropped/behind", 0)))
     behind_t = int(float(tri.get("dropped/behind", 0)))
     set_level = ("association_error", "internal_error")
     other = sum(int(float(assoc.get(f"dropped/{r}", 0))) for r in set_level) + \
         int(float(tri.get("frames_dropped", 0))) - behind_t
-    explained = no_set + behind_a + behind_t + other
+    explained = no_set_counted + behind_a + behind_t + other
     return {"frames_without_poses": frames_without_poses, "no_set": no_set,
-            "skipped_association": behind_a, "skipped_triangulation": behind_t,
-            "other_drops": other, "unaccounted": max(0, frames_without_poses - explained)}
+            "no_set_counted": no_set_counted, "skipped_association": behind_a,
+            "skipped_triangulation": behind_t, "other_drops": other,
+            "unaccounted": max(0, frames_without_poses - explained)}
 
 
 def summary(report: dict[str, Any]) -> dict[str, Any]:
