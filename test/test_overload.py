@@ -139,18 +139,24 @@ def _stall_under_traffic(graph, traffic: SteadyTraffic, listener: Listener) -> N
     sent = traffic.sent
     last = traffic.stamp(sent - 1)
     assert wait_for(lambda: listener.poses.has(last), 20.0, graph), "the newest frame skipped"
-    d.wait_value("/association", "received/camera_0/detections", lambda v: v == sent,
-                 timeout=20.0, graph=graph)
-    d.wait_value("/association", "frames_processed",
-                 lambda v: v + d.value("/association", "dropped/behind") ==
-                 d.value("/association", "count/sync_sets"), timeout=20.0, graph=graph)
+    cams = len(traffic.cams)
+
+    def accounted(kv: dict[str, str]) -> bool:
+        """Every message received, every set processed or skipped, and a frame that made no
+        set has its messages counted (the diagnostics of one moment: all counters agree)."""
+        drops = {k.split("/", 1)[1]: int(v) for k, v in kv.items() if k.startswith("dropped/")}
+        sets = int(kv.get("count/sync_sets", -1))
+        return (int(kv.get("received/camera_0/detections", -1)) == sent
+                and int(kv.get("frames_processed", -1)) + drops.get("behind", 0) == sets
+                and (sent - sets) * cams <= sum(n for r, n in drops.items() if r != "behind"))
+
+    wait_for(lambda: accounted(d.get("/association")), 20.0, graph)
     kv = d.get("/association")
-    drops = {k.split("/", 1)[1]: int(v) for k, v in kv.items() if k.startswith("dropped/")}
-    # nothing but skipped sets and messages the synchroniser or DDS could not hold is lost,
-    # and a frame that made no set has its messages counted
-    assert all(r == "behind" or r == "dds_lost" or r.startswith("sync_") for r in drops), kv
+    assert accounted(kv), kv
+    # nothing but skipped sets and messages the synchroniser or DDS could not hold is lost
+    assert all(k[len("dropped/"):] in ("behind", "dds_lost") or k.startswith("dropped/sync_")
+               for k in kv if k.startswith("dropped/")), kv
     no_set = sent - int(kv["count/sync_sets"])
-    assert no_set * len(traffic.cams) <= sum(n for r, n in drops.items() if r != "behind"), kv
     stalled = newest - first_stalled + 1
     assert int(kv["dropped/behind"]) + no_set >= stalled // 2, (stalled, kv)
     assert kv["backlog/policy"] == "skip stale" and float(kv["backlog/bound_ms"]) == \
