@@ -54,6 +54,7 @@ def test_node_that_fell_behind_skips_the_stale_sets_by_default(graph, scene, kee
     counts four dropped/behind, instead of working through all five at growing latency; with
     keep_every_set (a replay that wants every frame) it processes all five."""
     g = start_pipeline(graph, association={"keep_every_set": keep_every_set})
+    assert g["assoc"].backlog.policy.params.keep_every_set is keep_every_set
     release = threading.Event()
     started = stall(graph, release)
     assert wait_for(started.is_set, 10.0)

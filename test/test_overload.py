@@ -17,8 +17,8 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import PointCloud2
 
-from helpers_ros import (RELIABLE, DiagnosticsReader, Recorder, killed_on_exit, stall,
-                         start_pipeline, wait_for)
+from helpers_ros import (LIVE_POLICY, RELIABLE, DiagnosticsReader, Recorder, killed_on_exit,
+                         stall, start_pipeline, wait_for)
 from maem_ros import bagio
 from maem_ros.ros import wire
 
@@ -105,7 +105,7 @@ def test_a_node_stalled_for_a_second_publishes_the_newest_sets_and_counts_the_sk
     process is counted dropped/behind (processed + skipped = sets made; a frame whose
     messages the synchroniser could not hold has them counted), and /diagnostics says it was
     behind and for how long."""
-    g = start_pipeline(graph)
+    g = start_pipeline(graph, association=LIVE_POLICY, triangulation=LIVE_POLICY)
     listener = Listener(graph)
     traffic = SteadyTraffic(g, scene)
     try:
@@ -183,12 +183,12 @@ def _detections_bag(path: Path, scene, frames: int, fps: float) -> list[int]:
 @pytest.mark.parametrize("lockstep", [True, False], ids=["lockstep", "free-running"])
 def test_a_lockstep_replay_faster_than_real_time_skips_nothing(graph, scene, tmp_path, lockstep):
     """maem-play of a 60 fps detections bag at 10x real time into the nodes with their live
-    default policy: in lockstep (each frame when the last one's clusters came) every frame gets
+    default policy: in lockstep (each frame when the last one's poses came) every frame gets
     its clusters and poses and nothing is skipped, and the player says so; free-running, the
     nodes fall behind and skip frames, each counted (the player warns about it)."""
-    g = start_pipeline(graph)
+    g = start_pipeline(graph, association=LIVE_POLICY, triangulation=LIVE_POLICY)
     stamps = _detections_bag(tmp_path / "bag", scene, 24, 60.0)
-    args = ["--lockstep", "/maem/clusters", "--lockstep-timeout", "20"] if lockstep else []
+    args = ["--lockstep", "/maem/poses", "--lockstep-timeout", "20"] if lockstep else []
     cmd = [sys.executable, "-m", "maem_ros.ros.player_node", str(tmp_path / "bag"),
            "--rate", "10", "--wait-subscribers", "20", "--delay", "0.3", *args]
     with killed_on_exit(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
