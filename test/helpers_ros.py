@@ -277,16 +277,40 @@ def play(g: dict[str, Any], scene, frames, cameras=None, rate_hz: float = RATE_H
 #: association thresholds of the graph tests: the paper's gates, tau_det 0.5 because the sim's
 #: detection scores straddle 0.9 (with 0.9 only ~70% of the players get 4 views)
 ASSOC = dict(rig="sportcenter6", tau_det=0.5, tau_reproj_bbox=10.0, tau_mesh=8.0, k_min=4,
-             slop=0.005, max_wait=1.0, min_cameras=2, diagnostics_period=0.2)
+             slop=0.005, max_wait=1.0, min_cameras=2, diagnostics_period=0.2,
+             keep_every_set=True)
+#: the live overload policy (skip stale frames), which the graph tests turn off above: they
+#: check every frame, and on one executor shared by both nodes and the test's own
+#: subscriptions a node waits for the other's work as if it were behind; test_overload.py
+#: and test_live_receive.py test the policy with these
+LIVE_POLICY = dict(keep_every_set=False)
 
 
 def pipeline_params(**extra: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     assoc = dict(ASSOC)
     tri = dict(rig="sportcenter6", tau_kps=20.0, output_convention="sportcenter_13",
-               track_min_hits=3, marker_lifetime=0.5, diagnostics_period=0.2)
+               track_min_hits=3, marker_lifetime=0.5, diagnostics_period=0.2,
+               keep_every_set=True)
     assoc.update(extra.get("association", {}))
     tri.update(extra.get("triangulation", {}))
     return assoc, tri
+
+
+def stall(graph: Graph, release: threading.Event) -> threading.Event:
+    """Block the graph's executor (one callback that waits for ``release``, at most 30 s): the
+    node under test is busy, as under CPU starvation, while DDS keeps receiving. Returns an
+    Event set once the executor is blocked."""
+    started = threading.Event()
+    node = graph.client("stall")
+    timer = None
+
+    def block() -> None:
+        timer.cancel()
+        started.set()
+        release.wait(30.0)
+
+    timer = node.create_timer(0.01, block)
+    return started
 
 
 def start_pipeline(graph: Graph, **extra: Any):

@@ -3,6 +3,7 @@ in place, every pending message taken before the synchroniser decides, rmw recei
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -10,36 +11,20 @@ from rclpy.duration import Duration
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
-from helpers_ros import start_pipeline, wait_for
+from helpers_ros import stall, start_pipeline, wait_for
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
 from maem_ros.ros import wire
 from maem_ros.ros.common import arrival_ns
 
 
-def stall(graph, release: threading.Event) -> threading.Event:
-    """Block the graph's executor (one callback that waits for ``release``): the node under
-    test is busy, as under CPU starvation, while DDS keeps receiving. Returns an Event set once
-    the executor is blocked."""
-    started = threading.Event()
-    node = graph.client("stall")
-    timer = None
-
-    def block() -> None:
-        timer.cancel()
-        started.set()
-        release.wait(30.0)
-
-    timer = node.create_timer(0.01, block)
-    return started
-
-
 def test_busy_node_takes_every_pending_message_before_a_set_goes_partial(graph, scene):
     """While the executor is blocked, three frames of all six cameras reach the node's DDS
     queues (acknowledged) and wait there far longer than max_wait. Once the node runs again its
     poll timer is served first; taking every pending message before deciding, all three sets
-    are complete."""
-    g = start_pipeline(graph, association={"max_wait": 0.001, "poll_period": 0.005})
+    are complete (keep_every_set: all three are processed, though stale)."""
+    g = start_pipeline(graph, association={"max_wait": 0.001, "poll_period": 0.005,
+                                           "keep_every_set": True})
     release = threading.Event()
     started = stall(graph, release)
     assert wait_for(started.is_set, 10.0)
@@ -62,11 +47,14 @@ def test_busy_node_takes_every_pending_message_before_a_set_goes_partial(graph, 
     assert {int(c) for c in g["clusters"].by_stamp[stamps[0]].camera} == set(range(len(cams)))
 
 
-def test_node_that_fell_behind_skips_sets_beyond_max_backlog(graph, scene):
-    """Five frames wait while the executor is blocked; with max_backlog 50 ms the node
-    processes the newest two (within 50 ms of frame 4 at 30 fps) and counts three
-    dropped/behind, instead of working through all five at growing latency."""
-    g = start_pipeline(graph, association={"max_backlog": 0.05})
+@pytest.mark.parametrize("keep_every_set", [False, True])
+def test_node_that_fell_behind_skips_the_stale_sets_by_default(graph, scene, keep_every_set):
+    """Five frames (30 fps stamps) wait 0.4 s while the executor is blocked: beyond the
+    default backlog bound (4 frame periods, 133 ms), so the node processes only the newest and
+    counts four dropped/behind, instead of working through all five at growing latency; with
+    keep_every_set (a replay that wants every frame) it processes all five."""
+    g = start_pipeline(graph, association={"keep_every_set": keep_every_set})
+    assert g["assoc"].backlog.policy.params.keep_every_set is keep_every_set
     release = threading.Event()
     started = stall(graph, release)
     assert wait_for(started.is_set, 10.0)
@@ -80,13 +68,18 @@ def test_node_that_fell_behind_skips_sets_beyond_max_backlog(graph, scene):
                 g["player"].publish(dets)
         for pub in g["player"].pubs.values():
             assert pub.wait_for_all_acked(Duration(seconds=10))
+        time.sleep(0.4)
     finally:
         release.set()
     assert wait_for(lambda: g["clusters"].has(stamp(4)), 20.0, graph)
     d = g["diags"]
-    d.wait_value("/association", "dropped/behind", lambda v: v == 3, graph=graph)
-    assert d.value("/association", "frames_processed") == 2
-    assert sorted(g["clusters"].by_stamp) == [stamp(3), stamp(4)]
+    processed = 5 if keep_every_set else 1
+    d.wait_value("/association", "frames_processed", lambda v: v == processed, graph=graph)
+    assert d.value("/association", "dropped/behind") == 5 - processed
+    assert sorted(g["clusters"].by_stamp) == [stamp(f) for f in range(5 - processed, 5)]
+    kv = d.get("/association")
+    assert kv["backlog/policy"] == ("keep every set" if keep_every_set else "skip stale"), kv
+    d.wait_value("/association", "behind/episodes", lambda v: v >= 1, graph=graph)
 
 
 def test_raw_detections_garbage_is_dropped_as_bad_cdr_and_the_node_goes_on(graph, scene):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.sync import ApproximateTimeSync, FrameSet, SyncDrop, skip_behind
+from maem_ros.core.sync import ApproximateTimeSync, FrameSet, SyncDrop
 
 MS = 1_000_000
 PERIOD = 33 * MS
@@ -492,11 +492,21 @@ def test_arrival_after_now_is_clamped_to_now() -> None:
     assert [fs.missing for fs in s.poll(T0 + 150 * MS)] == [["cam3"]]
 
 
-def test_skip_behind_keeps_the_sets_within_the_backlog_of_the_newest() -> None:
-    sets = [FrameSet(T0 + k * PERIOD, {"cam0": k}) for k in range(5)]
-    kept, skipped = skip_behind(sets, 50 * MS)
-    assert [fs.stamp_ns for fs in kept] == [T0 + 3 * PERIOD, T0 + 4 * PERIOD]
-    assert [fs.stamp_ns for fs in skipped] == [T0 + k * PERIOD for k in range(3)]
-    assert skip_behind(sets, 0) == (sets, [])
-    assert skip_behind(sets[:1], MS) == (sets[:1], [])
-    assert skip_behind([], MS) == ([], [])
+def test_ready_time_is_the_last_arrival_or_the_wait_deadline_not_when_polled() -> None:
+    """A complete set is ready when its last message arrived; a set missing a camera when its
+    max_wait ran out, however late the caller polls: what the caller's backlog is measured
+    from."""
+    s = make()
+    for k, cam in enumerate(CAMS):
+        s.add(cam, T0, cam, now_ns=T0 + 40 * MS, arrival_ns=T0 + (5 + k) * MS, poll=False)
+    (complete,) = s.poll(T0 + 40 * MS)
+    assert complete.ready_ns == T0 + 8 * MS
+    stamps = [T0 + PERIOD, T0 + 2 * PERIOD]
+    for t in stamps:  # cam3 goes silent
+        for cam in CAMS[:3]:
+            s.add(cam, t, cam, now_ns=t + 2 * MS, arrival_ns=t + 2 * MS)
+    assert s.poll(stamps[0] + 100 * MS) == []
+    late = s.poll(stamps[1] + 400 * MS)  # the caller polls late
+    assert [fs.stamp_ns for fs in late] == stamps
+    assert [fs.missing for fs in late] == [["cam3"], ["cam3"]]
+    assert [fs.ready_ns for fs in late] == [t + 2 * MS + 150 * MS for t in stamps]

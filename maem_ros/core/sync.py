@@ -79,11 +79,15 @@ def match_capture_times(reference_ns: Sequence[int], stamps_ns: Sequence[int],
 @dataclass
 class FrameSet:
     """Messages of one instant: items by camera name, missing cameras in rig order;
-    ``stamp_ns`` is the reference message's capture time (stamp + its camera's time offset)."""
+    ``stamp_ns`` is the reference message's capture time (stamp + its camera's time offset);
+    ``ready_ns``: when the set could first go out (its last message arrived, or its wait for a
+    missing camera ran out; never before the set ahead of it), on the caller's clock: how long
+    it then waits for the caller is the caller's backlog (core.backlog)."""
 
     stamp_ns: int
     items: dict[str, Any]
     missing: list[str] = field(default_factory=list)
+    ready_ns: int = 0
 
 
 class SyncDrop(str, Enum):
@@ -189,6 +193,7 @@ class ApproximateTimeSync:
         self._lag: dict[str, deque[int]] = {}  # last lags relative to the other cameras, ns
         self._lagging: set[str] = set()  # not waited for until their lag falls back
         self._last_emitted: int | None = None
+        self._last_ready = 0  # ready_ns of the last emitted set
 
     def reset(self) -> None:
         """Drop every queued and held message (counted ``reset``) and forget all stamps."""
@@ -396,9 +401,12 @@ class ApproximateTimeSync:
                 self._drop(SyncDrop.TOO_FEW_CAMERAS)
                 continue
             self.stats.timeouts += bool(awaited)
-            out.append(self._emit(ref.stamp_ns, present))
+            ready = max(heads[c].arrival_ns for c in present)
+            if awaited:
+                ready = max(ready, ref.arrival_ns + max(self._wait_ns(c) for c in awaited))
+            out.append(self._emit(ref.stamp_ns, present, min(now_ns, ready)))
 
-    def _emit(self, stamp_ns: int, present: list[str]) -> FrameSet:
+    def _emit(self, stamp_ns: int, present: list[str], ready_ns: int) -> FrameSet:
         items = {c: self._queues[c].popleft().item for c in present}
         missing = [c for c in self.cameras if c not in items]
         for c in missing:
@@ -407,21 +415,8 @@ class ApproximateTimeSync:
         self.stats.sets += 1
         if missing:
             self.stats.partial_sets += 1
-        return FrameSet(stamp_ns, items, missing)
-
-
-def skip_behind(sets: Sequence[FrameSet], max_backlog_ns: int
-                ) -> tuple[list[FrameSet], list[FrameSet]]:
-    """(kept, skipped): of frame sets ready together (a node that fell behind), those whose
-    stamp is more than ``max_backlog_ns`` older than the newest are skipped, so a live node
-    catches up at once instead of working through stale frames at growing latency (each
-    skipped set is a frame the caller counts as dropped). ``max_backlog_ns`` 0 keeps all."""
-    sets = list(sets)
-    if max_backlog_ns <= 0 or len(sets) < 2:
-        return sets, []
-    newest = max(fs.stamp_ns for fs in sets)
-    kept = [fs for fs in sets if newest - fs.stamp_ns <= max_backlog_ns]
-    return kept, [fs for fs in sets if newest - fs.stamp_ns > max_backlog_ns]
+        self._last_ready = max(self._last_ready, ready_ns)
+        return FrameSet(stamp_ns, items, missing, self._last_ready)
 
 
 @dataclass

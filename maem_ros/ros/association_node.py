@@ -16,8 +16,10 @@ graph; a camera lagging beyond
 ``max_wait`` is not waited for (``max_lag`` compensates a known lag); one camera's stale/future
 stamps are dropped for that camera, a jump of most cameras or of /clock resets the queues; every
 dropped message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message
-or pixels beyond ``pixel_margin`` are rejected; with ``max_backlog`` a node that fell behind skips
-the stale sets, ``dropped/behind``),
+or pixels beyond ``pixel_margin`` are rejected; a node that fell behind skips the frame sets that
+waited for it longer than the backlog bound, counted ``dropped/behind``: ``max_backlog`` s, by
+default 4 frame periods (core.backlog; ``keep_every_set: true`` processes every set, for
+replays that want every frame; /diagnostics ``behind``, ``behind/for_s``, ``backlog/*``),
 runs core.tracking.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
 tracks' predictions first, core.association.pipeline.associate on the rest; clusters carry track ids) or
 core.association.pipeline.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
@@ -39,15 +41,17 @@ from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core.association import AssociationParams, ExecutionParams
 from maem_ros.core.association import warmup as warmup_association
+from maem_ros.core.backlog import BacklogParams
 from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
-from maem_ros.core.sync import ApproximateTimeSync, SyncStats, skip_behind
+from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_DEPTH, DATA_QOS, ConfigError, Diagnostics, NodeParams,
                                  RejectErrors, Stopwatch, arrival_ns, data_qos, declare_params,
                                  load_rig_param, publish_rig_tf, run_node, subscribe_counted,
                                  take_pending)
+from maem_ros.ros.overload import NodeBacklog
 
 NODE_NAME = "association"
 
@@ -78,9 +82,6 @@ class AssociationNodeParams(NodeParams):
     queue_size: int = param(DATA_DEPTH, "messages per camera held (DDS reader history and "
                                          "synchroniser queue): a stall this many frames long "
                                          "loses nothing", minimum=1)
-    max_backlog: float = param(0.0, "s, of frame sets ready at once (the node fell behind) skip "
-                                    "those older than this behind the newest, counted "
-                                    "dropped/behind (0 = process every set)", minimum=0.0)
     poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0,
                                exclusive_minimum=True)
     max_lag: float = param(0.0, "s, wait up to this lag (+ max_wait) for a camera that lags the "
@@ -98,7 +99,8 @@ class AssociationNodeParams(NodeParams):
                                    "local) at start")
 
 
-PARAMS = param_specs(AssociationNodeParams, AssociationParams, ExecutionParams, TemporalParams)
+PARAMS = param_specs(AssociationNodeParams, BacklogParams, AssociationParams, ExecutionParams,
+                     TemporalParams)
 #: core.tracking.temporal stats reported as cumulative counts in /diagnostics
 TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_ended",
                 "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
@@ -145,8 +147,9 @@ class AssociationNode(Node):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self._sync_seen = SyncStats()
-        self.max_backlog_ns = int(round(p["max_backlog"] * 1e9))
         self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p), "frame set(s)")
+        self._skip_stale = not p["keep_every_set"]
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
         self._ready: list = []  # sets a stream reset replayed while receiving
@@ -199,10 +202,12 @@ class AssociationNode(Node):
         handled as they complete), then poll: a frame set is declared partial only when its
         missing camera's message has not reached this process within max_wait of the
         reference's arrival (rmw receive time), never because the node was busy. Waiting
-        messages also stop being overwritten in the keep-last history."""
-        self._take_all()
+        messages also stop being overwritten in the keep-last history. When messages were
+        left waiting (see _take_all) only complete sets go out now; the next callback, right
+        away, decides the rest."""
+        drained = self._take_all()
         ready, self._ready = self._ready, []
-        ready += self.sync.poll(self._now_ns())
+        ready += self.sync.poll(self._now_ns(), complete_only=not drained)
         if not self.sync.pending():
             # nothing waits for max_wait: a poll would find nothing (each executor wake-up
             # costs CPU); _receive re-arms the timer with the next queued message
@@ -210,28 +215,45 @@ class AssociationNode(Node):
         self._emit(ready)
 
     def _emit(self, ready: list) -> None:
-        """Handle frame sets ready together, the ones max_backlog leaves behind skipped."""
-        sets, skipped = skip_behind(ready, self.max_backlog_ns)
-        if skipped:
-            self.diag.reject("behind", f"{len(skipped)} frame set(s) more than max_backlog "
-                             f"{self.max_backlog_ns / 1e9:g} s behind the newest skipped (node "
-                             f"too slow for the input rate)", n=len(skipped))
-        self._handle(sets)
+        """Handle frame sets ready together, the ones that waited beyond the backlog bound
+        skipped (the newest never)."""
+        if ready:
+            ready = self.backlog.select(ready, [fs.ready_ns for fs in ready],
+                                        [fs.stamp_ns for fs in ready])
+        self._handle(ready)
 
-    def _take_all(self) -> None:
+    def _take_all(self) -> bool:
         """Receive every message waiting in the DDS queues, one per camera per round: the
         cameras' messages come in stamp order together, so after a stall (every camera's
         backlog waiting) each frame set completes, and is handled, as soon as its messages
-        are in, instead of after all of the backlog was received. With max_backlog the whole
-        backlog is received first: which sets are stale is known only then."""
+        are in, instead of after all of the backlog was received. When stale sets are skipped
+        (the default) the backlog is received first, which set is the newest is known only
+        then, in at most ``queue_size`` rounds (what the DDS histories hold when this starts):
+        messages that keep arriving faster than they are taken never keep the node from
+        deciding. Whether nothing was left waiting."""
         self._taking = True
         try:
+            rounds = 0
             while self._take_round():
-                if self.max_backlog_ns <= 0:
+                if not self._skip_stale:
                     ready, self._ready = self._ready, []
                     self._emit(ready + self.sync.poll(self._now_ns(), complete_only=True))
+                    continue
+                rounds += 1
+                if rounds >= self.sync.queue_size:
+                    return False
+            return True
         finally:
             self._taking = False
+
+    def _receive_round(self) -> None:
+        """One round of taking, receive only (the sets it completes wait in ``_ready`` for
+        the next decision): a callback must not decide while the node works on sets."""
+        taking, self._taking = self._taking, True
+        try:
+            self._take_round()
+        finally:
+            self._taking = taking
 
     def _take_round(self) -> int:
         """Receive (decode and queue) at most one waiting message per camera; how many."""
@@ -250,10 +272,12 @@ class AssociationNode(Node):
 
     def _handle(self, sets) -> None:
         self._sync_counters()
-        for fs in sets:
-            self.process(fs)
+        for k, fs in enumerate(sets):
+            # a set that went stale while the ones ahead of it were processed is skipped too
+            if self.backlog.still_fresh(fs.ready_ns, fs.stamp_ns, k < len(sets) - 1):
+                self.process(fs)
             if len(sets) > 1:  # a backlog: keep the DDS history from overwriting what arrived
-                self._take_round()
+                self._receive_round()
 
     def _sync_counters(self) -> None:
         """Report the synchroniser's drops (``sync_<reason>``), resets and state changes."""

@@ -163,8 +163,8 @@ class Diagnostics:
     cumulative counters (gate rejections ...), ``missing/<camera>`` frame sets without it,
     ``matched_publishers/<topic>`` / ``matched_subscribers/<topic>`` DDS-matched endpoints of
     each subscription / publisher (see :meth:`connections`), plus free-form ``set(key, value)``
-    entries. Level: WARN when frames were dropped or cameras missing during the last period,
-    else OK. Thread-safe.
+    entries and what each :meth:`add_source` returns. Level: WARN when frames were dropped or
+    cameras missing during the last period or a source warns, else OK. Thread-safe.
     """
 
     def __init__(self, node: Node, period_s: float = 1.0, hardware_id: str = "maem_ros"):
@@ -184,6 +184,7 @@ class Diagnostics:
         self._warn_missing = 0
         self._last_log: dict[str, float] = {}
         self._suppressed: dict[str, int] = defaultdict(int)
+        self._sources: list[Callable[[], tuple[Mapping[str, str], str | None]]] = []
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         # steady clock: with use_sim_time a ROS-time timer stalls whenever /clock does
         self._timer = node.create_timer(period_s, self.publish,
@@ -247,6 +248,12 @@ class Diagnostics:
     def set(self, key: str, value: Any) -> None:
         with self._lock:
             self._values[key] = str(value)
+
+    def add_source(self, source: Callable[[], tuple[Mapping[str, str], str | None]]) -> None:
+        """``source()`` is called at every publish: its values join the status, and its
+        warning (a sentence, or None) is appended to the message and makes the level WARN
+        (a state that lasts, such as a node being behind)."""
+        self._sources.append(source)
 
     @property
     def total_dropped(self) -> int:
@@ -312,6 +319,12 @@ class Diagnostics:
         if dropped or missing:
             level = DiagnosticStatus.WARN
             message += f"; last period: {dropped} dropped, {missing} missing camera slots"
+        for source in self._sources:
+            values, warning = source()
+            kv.update(values)
+            if warning:
+                level = DiagnosticStatus.WARN
+                message += f"; {warning}"
         status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
                                   message=message, hardware_id=self._hardware_id,
                                   values=[KeyValue(key=k, value=v) for k, v in kv.items()])

@@ -2,11 +2,14 @@
 
 Messages are published as the serialized CDR bytes stored in the bag (no decode/re-encode).
 Timing: message with log time t is published at wall time w0 + (t - t0) / rate.
---lockstep TOPIC...: after each camera frame (the images sharing one log time) the player waits
-until every TOPIC (patterns resolved on the live graph, any message type whose first field is a
+--lockstep TOPIC...: after each camera frame (the images sharing one log time; in a bag played
+without images, the /<cam>/detections sharing one) the player waits until every TOPIC (patterns resolved on the live graph, any message type whose first field is a
 std_msgs/Header, e.g. /maem/clusters) has delivered a message stamped at or after that frame's
 image stamp, at most --lockstep-timeout s, then goes on at --rate from there: a bag replayed
-into frontends slower than the recording loses no frame to queue overflow or sync timeouts.
+into frontends slower than the recording loses no frame to queue overflow or sync timeouts, and a
+replay faster than real time none to the nodes' overload policy (they never fall behind).
+Without it a replay faster than real time (--rate > 1) says that live nodes skip the frames
+they fall behind on unless run with ``keep_every_set: true``.
 --reliable-images publishes the images reliable (keep last 10) instead of best effort, so a
 frontend subscribing reliable (image_reliability: reliable) receives every one.
 Looping replays the same bytes, so header stamps are NOT rewritten: they jump back at each
@@ -221,6 +224,7 @@ class BagPlayer:
             self.clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         self.published = 0
         self.lockstep: Lockstep | None = None
+        self.frame_topics = lockstep_frame_topics(self.info.topics, list(self.pubs))
 
     def publish_clock(self, bag_ns: int) -> None:
         if self.clock_pub is not None:
@@ -302,7 +306,7 @@ class BagPlayer:
                 self.pubs[m.topic].publish(m.data)
                 self.published += 1
                 last = m.log_time_ns
-                if self.lockstep is not None and self.info.topics[m.topic] in _IMAGE_TYPES:
+                if self.lockstep is not None and m.topic in self.frame_topics:
                     frame = (m.log_time_ns, _stamp_ns(m.data))
             if frame is not None and self.lockstep is not None:  # the last frame too
                 self.lockstep.wait(frame[1], self.opts.lockstep_timeout_s)
@@ -310,6 +314,14 @@ class BagPlayer:
                 break
             wall0 = pacer.wall_target(last + gap)  # next pass starts one period after the last
         return self.published
+
+
+def lockstep_frame_topics(bag_topics: dict[str, str], played: Sequence[str]) -> set[str]:
+    """The played topics whose messages make up a camera frame for --lockstep: the images, or
+    in a replay without images the per-camera detections (PointCloud2 ``*/detections``)."""
+    images = {t for t in played if bag_topics[t] in _IMAGE_TYPES}
+    return images or {t for t in played if bag_topics[t] == bagio.POINT_CLOUD2
+                      and t.endswith("/detections")}
 
 
 def _stamp_ns(data: bytes) -> int:
@@ -413,6 +425,10 @@ def main(args: Sequence[str] | None = None) -> int:
             raise ValueError(f"{opts.bag}: no topic to play (bag topics: {sorted(player.info.topics)})")
         log.info(f"playing {opts.bag}: {len(player.pubs)} topics, rate {opts.rate}"
                  f"{', loop' if opts.loop else ''}{', /clock' if opts.clock else ''}")
+        if opts.rate > 1 and not opts.lockstep:
+            log.warning(f"rate {opts.rate:g}: faster than real time, live nodes skip the frames "
+                        f"they fall behind on (counted dropped/behind); to process every frame "
+                        f"use --lockstep or run them with keep_every_set:=true")
         player.wait_ready()
         t0 = time.monotonic()
         n = player.play()
@@ -421,7 +437,8 @@ def main(args: Sequence[str] | None = None) -> int:
             log.warning("some reliable messages were not acknowledged by all subscribers")
         if player.lockstep is not None:
             log.info(f"lockstep on {player.lockstep.topics}: {player.lockstep.timeouts} "
-                     f"frame(s) timed out")
+                     f"frame(s) timed out; every frame waited for the graph, so no node fell "
+                     f"behind and skipped one")
         log.info(f"published {n} messages in {elapsed:.2f} s"
                  f"{' (interrupted)' if stop.is_set() else ''}"
                  f"{f'; skipped topics: {sorted(player.skipped)}' if player.skipped else ''}")

@@ -87,14 +87,23 @@ def wanted(topic: str, opts: RecordOptions) -> bool:
     return opts.all_topics and topic not in _HIDDEN
 
 
+#: messages each recorder subscription holds (keep last). Unlike the live nodes (core.backlog)
+#: the recorder never skips a message for being late: a recording wants every message and
+#: nothing downstream waits for it, so a recorder that falls behind (a slow disk, a CPU stall)
+#: writes the backlog late instead; this depth bounds that backlog's memory: ~3 s of a 30 fps
+#: stream, 1.7 s at 60 fps, after which the oldest are overwritten
+RECORD_DEPTH = 100
+
+
 def subscription_qos(publishers) -> "QoSProfile":  # noqa: F821 - rclpy imported lazily
-    """Match the publishers: best effort if any is, transient local if all are; keep last 100."""
+    """Match the publishers: best effort if any is, transient local if all are; keep last
+    RECORD_DEPTH."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     best_effort = any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
                       for p in publishers)
     latched = bool(publishers) and all(
         p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_DEPTH,
                       reliability=ReliabilityPolicy.BEST_EFFORT if best_effort
                       else ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched

@@ -15,7 +15,11 @@ refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``
 clusters or member pixels beyond ``pixel_margin`` reject the frame; joints beyond
 ``world_extent`` become NaN (counted ``joints_beyond_world_extent``). With ``bone_tolerance`` a
 tracked person's limb joint whose bone length leaves the track's recent median by more than that
-fraction is NaN (core.tracking.bone_filter, counted ``joints_bone_implausible``).
+fraction is NaN (core.tracking.bone_filter, counted ``joints_bone_implausible``). Every clusters message
+already waiting is taken before any is processed: those that waited for the node longer than the
+backlog bound (``max_backlog``, by default 4 frame periods; core.backlog) are skipped unless
+newest, counted ``dropped/behind`` (``keep_every_set: true`` processes every one, for replays that
+want every frame; /diagnostics ``behind``, ``behind/for_s``, ``backlog/*``).
 """
 from __future__ import annotations
 
@@ -30,6 +34,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
+from maem_ros.core.backlog import BacklogParams
 from maem_ros.core.tracking.bone_filter import BoneLengthFilter
 from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.limits import InputLimits, check_clusters, mask_far_joints
@@ -39,8 +44,9 @@ from maem_ros.core.sync import StampGuard
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
 from maem_ros.ros.common import (DATA_QOS, MARKER_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, declare_params, load_rig_param,
-                                 run_node, subscribe_counted)
+                                 RejectErrors, Stopwatch, arrival_ns, declare_params,
+                                 load_rig_param, run_node, subscribe_counted, take_pending)
+from maem_ros.ros.overload import NodeBacklog
 
 NODE_NAME = "triangulation"
 
@@ -81,7 +87,8 @@ class TriangulationNodeParams(NodeParams):
                                   exclusive_minimum=True)
 
 
-PARAMS = param_specs(TriangulationNodeParams, TriangulationParams, JointFilterParams)
+PARAMS = param_specs(TriangulationNodeParams, BacklogParams, TriangulationParams,
+                     JointFilterParams)
 
 
 class TriangulationNode(Node):
@@ -119,11 +126,15 @@ class TriangulationNode(Node):
         self.marker_lifetime_periods = p["marker_lifetime_periods"]
         self._arrivals: deque[float] = deque(maxlen=16)
         self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p),
+                                   "clusters message(s)")
+        self._arrived: list[tuple[PointCloud2, int]] = []  # taken, not decided on yet
+        self._taking = False
         self.pose_pub = self.create_publisher(PointCloud2, p["poses_topic"], DATA_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, p["skeletons_topic"], MARKER_QOS)
         self.topic = self.resolve_topic_name(p["clusters_topic"])
         self.sub = subscribe_counted(self, self.diag, PointCloud2, self.topic, self.on_clusters,
-                                     DATA_QOS)
+                                     DATA_QOS, with_info=True)
         self.get_logger().info(f"{self.topic} -> {self.pose_pub.topic_name}, "
                                f"{self.marker_pub.topic_name} ({self.output.name})")
 
@@ -139,31 +150,60 @@ class TriangulationNode(Node):
         period = float(np.median(np.diff(self._arrivals)))
         return max(self.marker_lifetime, self.marker_lifetime_periods * period)
 
-    def on_clusters(self, msg: PointCloud2) -> None:
+    def on_clusters(self, msg: PointCloud2, info) -> None:
+        """One clusters message: queue it; then (unless taking already) take every other one
+        waiting in the DDS queue and decide on all of them together."""
         self._arrivals.append(time.monotonic())
+        self._arrived.append((msg, arrival_ns(self.get_clock().now().nanoseconds, info)))
+        if self._taking:
+            return
+        self._taking = True
+        try:
+            take_pending(self.sub)
+        finally:
+            self._taking = False
+        batch, self._arrived = self._arrived, []
+        self._decide([f for f in (self._decode(m, ready) for m, ready in batch) if f])
+
+    def _decode(self, msg: PointCloud2, ready_ns: int) -> tuple[wire.ClusterFrame, int] | None:
+        """(frame, ready time) of one message, None (counted) when it is bad."""
         with RejectErrors(self.diag, self.topic, "bad_clusters") as step:
             with Stopwatch(self.diag, "decode"):
                 cf = wire.msg_to_clusters(msg, self.topic, len(self.rig))
                 check_clusters(len(np.unique(cf.cluster)), cf.camera, cf.kpts2d, self.rig,
                                self.limits, f"{self.topic} {cf.stamp_ns}")
-        if step.failed:
+        return None if step.failed else (cf, ready_ns)
+
+    def _decide(self, frames: list[tuple[wire.ClusterFrame, int]]) -> None:
+        """Stamp guard, then the overload policy, then process what is left in order."""
+        accepted = []
+        for cf, ready in frames:
+            verdict = self.guard.push(cf.stamp_ns, (cf, ready),
+                                      self.get_clock().now().nanoseconds)
+            for reason, (bad, _) in verdict.dropped:
+                self.diag.reject(reason, f"{self.topic}: stamp {bad.stamp_ns} does not continue "
+                                 f"the stream (last {self.guard.last}); frame ignored")
+            if verdict.jumped_back:
+                self._reset_tracks(verdict.accepted[0][0])
+            accepted += [item for _, item in verdict.accepted]
+        if not accepted:
             return
-        verdict = self.guard.push(cf.stamp_ns, cf, self.get_clock().now().nanoseconds)
-        for reason, bad in verdict.dropped:
-            self.diag.reject(reason, f"{self.topic}: stamp {bad.stamp_ns} does not continue the "
-                             f"stream (last {self.guard.last}); frame ignored")
-        if verdict.jumped_back:
-            self.tracker.reset()
-            if self.bone_filter is not None:
-                self.bone_filter.reset()
-            if self.joint_filter is not None:
-                self.joint_filter.reset()
-            self.diag.count("tracker_resets")
-            self.diag.log_throttled("tracker_reset", f"{self.topic}: stamps went back to "
-                                    f"{verdict.accepted[0][0]} (confirmed by the next "
-                                    f"{self.guard.confirm} frames); tracker reset")
-        for _, frame in verdict.accepted:
-            self.process(frame)
+        kept = self.backlog.select(accepted, [r for _, r in accepted],
+                                   [cf.stamp_ns for cf, _ in accepted])
+        for k, (cf, ready) in enumerate(kept):
+            if self.backlog.still_fresh(ready, cf.stamp_ns, k < len(kept) - 1):
+                self.process(cf)
+
+    def _reset_tracks(self, stamp_ns: int) -> None:
+        self.tracker.reset()
+        if self.bone_filter is not None:
+            self.bone_filter.reset()
+        if self.joint_filter is not None:
+            self.joint_filter.reset()
+        self.diag.count("tracker_resets")
+        self.diag.log_throttled("tracker_reset", f"{self.topic}: stamps went back to "
+                                f"{stamp_ns} (confirmed by the next {self.guard.confirm} "
+                                f"frames); tracker reset")
 
     def process(self, cf: wire.ClusterFrame) -> None:
         """Triangulate, convert, track and publish one clusters frame."""

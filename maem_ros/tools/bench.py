@@ -355,9 +355,10 @@ def main(argv: list[str] | None = None) -> int:
     args = _load_defaults(_parser().parse_args(argv))
     try:
         if args.live:
-            from .live import check_live_arguments, run_live
+            from .live import check_live_arguments
+            from .live_runs import run_repeated
             check_live_arguments(args)
-            result = run_live(args)
+            result = run_repeated(args)
         else:
             result = run(args)
     except ValueError as e:

@@ -13,7 +13,10 @@ a user sees from the fusion machine, with a progress line. --frontends instead r
 maem-frontend per camera (synthetic backend on /<cam>/image_raw/compressed: it regenerates the
 full-resolution detections of each image stamp from the bag's scene description; association
 max_wait 1 s as the six frontends share the CPU) and plays the bag's images without its
-recorded detections, by default at rate 0.05. At the end every process gets SIGINT and its exit
+recorded detections, by default at rate 0.05. The association and triangulation run with
+``keep_every_set: true``: the demo scores every frame, so nodes that fall behind on this machine
+process every frame late instead of skipping the stale ones as a live graph does (said in the
+output). At the end every process gets SIGINT and its exit
 code is checked. --no-graph runs the core pipeline on the bag's recorded (vertex-subset)
 detections in this process instead.
 
@@ -142,6 +145,8 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
         fe["scene_rig"] = str(scene_config.get("rig", ""))
     if max_wait_s is not None:
         nodes["association"]["max_wait"] = float(max_wait_s)
+    for name in ("association", "triangulation"):  # the demo scores every frame of the bag
+        nodes[name]["keep_every_set"] = True
     out.write_text(yaml.safe_dump(data, sort_keys=False))
     return out
 
@@ -518,6 +523,9 @@ def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: lis
                           max_wait_s=BACKENDS[a.backend][2] if a.frontends else None,
                           frontends=a.frontends, backend=a.backend if a.frontends else None)
     lockstep = a.frontends and a.backend in LOCKSTEP_BACKENDS
+    log("every frame is processed however late (association and triangulation "
+        "keep_every_set: true; a live graph skips the frames it falls behind on)"
+        + ("; the replay goes in lockstep with /maem/clusters" if lockstep else ""))
     run = run_graph(play_bag, demo, stamps, params, a.out, a.rate, a.keep_going,
                     startup_timeout_s=a.startup_timeout, frontends=a.frontends,
                     lockstep=lockstep)

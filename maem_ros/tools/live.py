@@ -7,6 +7,7 @@ sets, CPU per process and recall against ground truth.
     maem-bench --live --bag bags/demo --rate 30      # the bag's recorded /<cam>/detections
     maem-bench --live --vertex-stride 8              # a vertex subset, announced on the wire
     maem-bench --live --wire q4 --vertex-count 500   # 500 vertices spread over the mesh
+    maem-bench --live --rate 60 --frames 600 --runs 5 --stress 5   # worst of 5, a CPU hog
 
 Detections: from ``--bag`` (its /<cam>/detections and /maem/gt_poses), else regenerated from the
 params file's synthetic scene (every publisher builds its camera's messages before the clock
@@ -19,7 +20,9 @@ association's frame sets that missed a camera (its /diagnostics). Recall = groun
 with a pose within 500 mm MPJPE (Hungarian), live and offline (core association +
 triangulation on the same decoded messages in this process). Every process gets the shipped
 Fast DDS profile (config/fastdds.xml) unless FASTRTPS_DEFAULT_PROFILES_FILE is set or
-``--no-profile``.
+``--no-profile``. The nodes run with their live overload policy (stale frames skipped, counted
+dropped/behind; ``accounting`` says whether every frame without poses was counted);
+``--keep-every-set`` turns it off. ``--runs`` / ``--stress``: tools/live_runs.py.
 """
 from __future__ import annotations
 
@@ -253,13 +256,15 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
     from maem_ros.params import load_node_params
     from maem_ros.ros.common import DDS_PROFILE_VARS, load_rig_param, use_shipped_dds_profile
     from maem_ros.tools.latency import write_params
+    from maem_ros.tools.live_runs import accounting, hog_window, start_hog, stress_figures
     from maem_ros.tools.processes import ProcessGroup, module_command, node_command
 
-    assoc_over = {**({"max_wait": a.max_wait} if a.max_wait else {}),
-                  **({"max_backlog": a.max_backlog} if a.max_backlog else {})} or None
+    policy = {**({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
+              **({"keep_every_set": True} if a.keep_every_set else {})}
+    assoc_over = {**({"max_wait": a.max_wait} if a.max_wait else {}), **policy} or None
     params = write_params(a.params, work / "params.yaml",
                           frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
-                          association=assoc_over)
+                          association=assoc_over, triangulation=policy or None)
     if a.bag is not None:
         from maem_ros import bagio
         rig_yaml = bagio.read_rig_yaml(a.bag)
@@ -275,7 +280,7 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         for v in DDS_PROFILE_VARS:
             env.pop(v, None)
     group = ProcessGroup(work / "logs", env)
-    listener = None
+    listener = hog = None
     try:
         for kind in ("association", "triangulation"):
             group.start(kind, node_command(kind, params))
@@ -309,6 +314,9 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         procs = list(group.procs.values())
         cpu0 = {p.name: p.cpu_seconds() for p in procs}
         t0 = time.time() + 0.5
+        if a.stress:
+            hog_at = hog_window(t0, len(stamps), a.rate, a.stress)
+            hog = start_hog(hog_at[0], a.stress)
         (work / "start.tmp").write_text(repr(t0))
         (work / "start.tmp").rename(work / "start")  # atomic: a publisher never reads it half
         end = t0 + len(stamps) / a.rate
@@ -337,6 +345,8 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
                   file=sys.stderr)
         if listener is not None:
             listener.close()
+        if hog is not None and hog.poll() is None:
+            hog.kill()
     sent = {s: t0 + f / a.rate for f, s in enumerate(stamps)}
     lat_by_frame = {f: (poses[s][0] - sent[s]) * 1e3 for f, s in enumerate(stamps) if s in poses}
     lat = np.array(list(lat_by_frame.values()))
@@ -351,7 +361,8 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
     report = {
         "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
         "wire": a.wire, "vertex_stride": a.vertex_stride, "vertex_count": a.vertex_count,
-        "max_backlog_s": a.max_backlog or 0.0,
+        "max_backlog_s": a.max_backlog or 0.0,  # 0: the nodes' automatic bound
+        "keep_every_set": bool(a.keep_every_set),
         "publisher_netns": a.publisher_netns,
         "message_mb": round(float(size) / 1e6, 3),
         "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
@@ -378,6 +389,12 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         "missing_camera_counts": {k.split("/", 1)[1]: int(v) for k, v in assoc.items()
                                   if k.startswith("missing/")},
         "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
+        "triangulation_dropped": {k: v for k, v in tri.items() if k.startswith("dropped/")},
+        # every frame without poses counted by a node? (live_runs.accounting)
+        "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)),
+                                 len(rig), assoc, tri),
+        # the longest time a node was behind (skipping, or working on stale frames), s
+        "behind_longest_s": max(float(kv.get("behind/longest_s", 0)) for kv in (assoc, tri)),
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
         "association_stage_ms_median": _stage_medians(assoc),
         "triangulation_stage_ms_median": _stage_medians(tri),
@@ -394,6 +411,9 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         # backstop when the stall held the GIL)
         "forced_exits": forced,
     }
+    if a.stress:
+        report["stress"] = stress_figures(report["latency_ms_by_frame"], a.rate,
+                                          hog_at[0] - t0, hog_at[1] - t0)
     return report
 
 
@@ -426,8 +446,13 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
                         "subset; 0 = all)")
     g.add_argument("--max-wait", type=float, default=None, help="--live: association max_wait, s")
     g.add_argument("--max-backlog", type=float, default=None,
-                   help="--live: association max_backlog, s (skip frame sets that far behind "
-                        "the newest when the node fell behind)")
+                   help="--live: the nodes' max_backlog, s (skip frames that waited that long "
+                        "for the node; default: their automatic bound, 4 frame periods)")
+    g.add_argument("--keep-every-set", action="store_true",
+                   help="--live: the nodes process every frame however far behind (what a "
+                        "replay wanting every frame sets; the live default skips stale ones)")
+    from maem_ros.tools.live_runs import add_arguments as add_runs_arguments
+    add_runs_arguments(g)
     g.add_argument("--drain", type=float, default=3.0,
                    help="--live: seconds to wait for the last poses")
     g.add_argument("--startup-timeout", type=float, default=180.0,
@@ -450,6 +475,8 @@ def check_live_arguments(a: argparse.Namespace) -> None:
         raise ValueError(f"--vertex-count: must be >= 0, got {a.vertex_count}")
     if a.bag is not None and not Path(a.bag).exists():
         raise ValueError(f"--bag: {str(a.bag)!r} does not exist")
+    from maem_ros.tools.live_runs import check_arguments as check_runs_arguments
+    check_runs_arguments(a)
 
 
 def _publisher_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,122 @@
+"""The live overload policy (core/backlog.py) with an injected clock."""
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from maem_ros.core.backlog import (BACKLOG_PERIODS, MIN_BACKLOG_S, Backlog, BacklogParams)
+
+MS = 1_000_000
+T0 = 1_700_000_000_000_000_000
+
+
+def fed(rate_hz: float, frames: int = 40, **params) -> Backlog:
+    """A policy that has seen ``frames`` stamps at ``rate_hz``."""
+    b = Backlog(BacklogParams(**params))
+    for k in range(frames):
+        b.observe(T0 + int(round(k * 1e9 / rate_hz)))
+    return b
+
+
+def test_the_automatic_bound_follows_the_frame_rate() -> None:
+    assert Backlog(BacklogParams()).bound_ns() == int(MIN_BACKLOG_S * 1e9)  # rate unknown yet
+    assert fed(60).bound_ns() == pytest.approx(BACKLOG_PERIODS * 1e9 / 60, abs=MS)
+    assert fed(30).bound_ns() == pytest.approx(BACKLOG_PERIODS * 1e9 / 30, abs=MS)
+    assert fed(200).bound_ns() == int(MIN_BACKLOG_S * 1e9)  # the floor
+    assert fed(60, max_backlog=0.25).bound_ns() == 250 * MS
+    assert fed(60, keep_every_set=True).bound_ns() is None
+
+
+def test_the_frame_period_ignores_repeats_and_restarts_after_a_loop() -> None:
+    b = fed(30, frames=10)
+    b.observe(T0 + int(round(9 * 1e9 / 30)))  # the same frame again: no interval
+    assert b.period_ns() == pytest.approx(33_333_333, abs=1)
+    b.observe(T0)  # the bag looped
+    assert b.period_ns() is None
+    for k in range(1, 5):
+        b.observe(T0 + k * 20 * MS)
+    assert b.period_ns() == 20 * MS
+
+
+def test_frames_that_waited_beyond_the_bound_are_skipped_but_never_the_newest() -> None:
+    b = fed(60)  # bound ~66.7 ms
+    now = T0 + 10**9
+    frames = ["a", "b", "c", "d", "e"]
+    waited_ms = [300, 200, 100, 40, 5]
+    kept, skipped = b.select(frames, [now - w * MS for w in waited_ms], now)
+    assert kept == ["d", "e"] and skipped == ["a", "b", "c"]
+    kept, skipped = b.select(["x", "y"], [now - 900 * MS, now - 800 * MS], now)
+    assert kept == ["y"] and skipped == ["x"]  # everything stale: the newest still goes
+    assert b.skipped == 4
+    kept, skipped = fed(60, keep_every_set=True).select(frames, [now - w * MS for w in
+                                                                 waited_ms], now)
+    assert kept == frames and skipped == []
+
+
+def test_a_frame_that_went_stale_while_others_were_processed() -> None:
+    b = fed(30)  # bound ~133 ms
+    assert not b.is_stale(T0, T0 + 130 * MS) and b.is_stale(T0, T0 + 140 * MS)
+    assert not fed(30, keep_every_set=True).is_stale(T0, T0 + 10**10)
+
+
+def test_an_episode_behind_lasts_from_the_first_skip_until_the_backlog_is_low_again() -> None:
+    b = fed(60)
+    t = T0 + 10**9
+    b.select(["f"], [t - 5 * MS], t)
+    st0 = b.status(t)
+    assert not st0.behind and st0.episodes == 0 and st0.behind_for_s == 0
+    b.select(["a", "b"], [t + 100 * MS - 600 * MS, t + 100 * MS - MS], t + 100 * MS)
+    st1 = b.status(t + 300 * MS)
+    assert st1.behind and st1.behind_for_s == pytest.approx(0.2)
+    assert st1.max_backlog_s == pytest.approx(0.001)  # the kept one's wait, not the skipped
+    b.select(["c"], [t + 400 * MS - 60 * MS], t + 400 * MS)  # still above half the bound
+    assert b.status(t + 400 * MS).behind
+    b.select(["d"], [t + 500 * MS - 10 * MS], t + 500 * MS)  # caught up
+    st2 = b.status(t + 600 * MS)
+    assert not st2.behind and st2.episodes == 1 and st2.behind_for_s == 0
+    assert st2.longest_s == pytest.approx(0.4) and st2.behind_total_s == pytest.approx(0.4)
+    assert st2.skipped == 1
+
+
+def test_keep_every_set_still_reports_being_behind() -> None:
+    """Nothing is skipped, but a node working on frames older than a live node's bound is
+    behind (for how long is in /diagnostics)."""
+    b = fed(60, keep_every_set=True)
+    t = T0 + 10**9
+    b.select(["a", "b"], [t - 500 * MS, t - 480 * MS], t)
+    st1 = b.status(t + 100 * MS)
+    assert st1.behind and math.isnan(st1.bound_s) and st1.last_backlog_s == pytest.approx(0.5)
+    assert st1.skipped == 0
+
+
+def test_an_episode_ends_when_the_input_stops() -> None:
+    b = fed(60)
+    t = T0 + 10**9
+    b.select(["a", "b"], [t - 500 * MS, t], t)
+    assert b.status(t + 100 * MS).behind
+    st1 = b.status(t + 5 * 10**9)
+    assert not st1.behind and st1.episodes == 1 and st1.longest_s == 0
+
+
+@settings(max_examples=200, deadline=None)
+@given(waited=st.lists(st.integers(0, 2000), min_size=1, max_size=40),
+       bound_ms=st.integers(1, 500))
+def test_selection_keeps_order_the_newest_and_exactly_the_fresh_ones(waited, bound_ms) -> None:
+    b = Backlog(BacklogParams(max_backlog=bound_ms / 1e3))
+    now = T0 + 10**10
+    frames = list(range(len(waited)))
+    kept, skipped = b.select(frames, [now - w * MS for w in waited], now)
+    assert sorted(kept + skipped) == frames and kept == sorted(kept)
+    assert kept[-1] == frames[-1]
+    assert all(waited[k] <= bound_ms for k in kept[:-1])
+    assert all(waited[k] > bound_ms for k in skipped)
+    assert b.skipped == len(skipped)
+
+
+def test_bad_parameters_name_the_parameter() -> None:
+    with pytest.raises(ValueError, match="max_backlog"):
+        BacklogParams(max_backlog=-0.1)
+    with pytest.raises(ValueError, match="keep_every_set"):
+        BacklogParams(keep_every_set="yes")
