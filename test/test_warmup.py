@@ -78,6 +78,7 @@ def copied_install(tmp_path: Path) -> tuple[Path, dict]:
     return site, env
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(1200)
 def test_copied_install_caches_next_to_itself_and_recompiles_changed_sources(
         tmp_path: Path) -> None:

@@ -1,5 +1,8 @@
 """One home for compiling core's optional numba kernels (clustering, procrustes and
-triangulation kernels; the epipolar kernel keeps its own fast-math variants)."""
+triangulation kernels; the epipolar kernel keeps its own fast-math variants), and for warming
+numba's on-disk cache of all of them (maem-warmup, doc/cold_start.md): the kernels are found
+through each core module's own ``warmup()``; :func:`stale_kernel_files` catches what numba's
+cache check misses (a kernel's imports changed, not its own file)."""
 from __future__ import annotations
 
 import hashlib

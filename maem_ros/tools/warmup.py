@@ -32,9 +32,12 @@ from maem_ros.core import jit
 #: shipped params files whose association/triangulation settings the node-path pass runs
 SHIPPED_PARAMS = ("demo.yaml", "sportcenter.yaml", "humanm3.yaml", "mediapipe.yaml")
 #: simulated frame set of the node-path pass: rig, people seen by all cameras, extras per camera,
-#: frames (>= 2: the second frame runs the track-assisted path), vertices and keypoints
-SCENE_RIG, SCENE_PLAYERS, SCENE_EXTRAS, SCENE_FRAMES = "sportcenter6", 4, 1, 3
-SCENE_VERTICES, SCENE_KEYPOINTS = 18439, 70
+#: frames (>= 2: the second frame runs the track-assisted path), mesh vertices (more than two of
+#: the epipolar kernel's 4096-point blocks: the block ranges of a screened mesh then take
+#: another array layout) and keypoints
+SCENE_RIG, SCENE_PLAYERS, SCENE_EXTRAS, SCENE_FRAMES = "sportcenter6", 4, 1, 2
+SCENE_VERTICES, SCENE_KEYPOINTS = 9000, 70
+WIRES = ("f32", "q4")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -69,6 +72,8 @@ def node_paths() -> int:
     template = body_template(SCENE_VERTICES, SCENE_KEYPOINTS, 0)
     seq = make_sequence(rig, template, np.random.default_rng(0), SCENE_PLAYERS, SCENE_EXTRAS,
                         SCENE_FRAMES)
+    sent = {layout: [{c: wire.detections_to_msg(fd, layout) for c, fd in fr.frames.items()}
+                     for fr in seq] for layout in WIRES}
     runs = 0
     for name in SHIPPED_PARAMS:
         a = load_node_params(name, "association")
@@ -76,12 +81,11 @@ def node_paths() -> int:
         tparams = TriangulationParams.from_mapping(load_node_params(name, "triangulation"))
         association_warmup(aparams.backend, aparams.epipolar_gate)  # as the node starts
         screens = decode_screen_strides(aparams)
-        for layout in ("f32", "q4"):
+        for layout in WIRES:
             stage = TemporalAssociator(rig, aparams, TemporalParams.from_mapping(a))
-            for fr in seq:
-                frames = {c: wire.msg_to_detections(wire.detections_to_msg(fd, layout),
-                                                    f"/{c}/detections", screen_strides=screens)
-                          for c, fd in fr.frames.items()}
+            for msgs in sent[layout]:
+                frames = {c: wire.msg_to_detections(m, f"/{c}/detections", screen_strides=screens)
+                          for c, m in msgs.items()}
                 res = stage.step(frames, frames[rig.names[0]].stamp_ns)
                 triangulate(rig, frames, res.clusters, tparams)
                 runs += 1
