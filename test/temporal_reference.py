@@ -1,5 +1,5 @@
 """The track stage's straightforward implementation (a per-camera loop of small numpy calls,
-as core/temporal.py had it before it was batched over cameras), kept here only as the reference
+as core/tracking/temporal.py had it before it was batched over cameras), kept here only as the reference
 that test_temporal_equivalence.py compares the batched stage against, frame by frame."""
 from __future__ import annotations
 
@@ -90,7 +90,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
         gates (bbox-centre reprojection, epipolar on mesh vertices or keypoints, PA-MPJPE cost
         of the lower camera's 3D pose aligned onto the other's under tau_cost), the same tests
-        (core.geometry, core.epipolar, core.procrustes) the cross-view association applies, on
+        (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view association applies, on
         the few pairs inside the tracks' clusters only."""
         T, M = present.shape
         a_idx, b_idx = np.triu_indices(M, 1)

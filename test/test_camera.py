@@ -1,4 +1,4 @@
-"""core/camera.py (geometry, rig I/O), core/detections.py validation, params.py loading."""
+"""core/geometry/camera.py (geometry, rig I/O), core/detections.py validation, params.py loading."""
 from __future__ import annotations
 
 import json
@@ -377,5 +377,5 @@ def test_non_pinhole_intrinsics_rejected(K):
 
 def test_nan_vertices_are_missing_not_invalid() -> None:
     """A vertex the compact wire layout cannot carry arrives as NaN: valid, it takes no part in
-    the epipolar gate (core.epipolar)."""
+    the epipolar gate (core.association.gates.epipolar)."""
     assert _with("verts2d", lambda a: _set(a, (1, 0, 1), np.nan)).validate() is not None

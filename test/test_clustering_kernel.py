@@ -1,4 +1,4 @@
-"""The consistent clustering's numba kernels (core/clustering_kernel.py) give the numpy paths'
+"""The consistent clustering's numba kernels (core/association/clustering_kernel.py) give the numpy paths'
 results: the merge check's verdicts on candidate clusters (members padded anywhere, joints
 unusable, points behind a camera, too few rays), the cluster-level table update, and the
 greedy merge rounds (labels and stats, on random tables with tied gains and refused merges,

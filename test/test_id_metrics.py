@@ -1,4 +1,4 @@
-"""IDF1 and ID switches (core/id_metrics.py) on hand-made trajectories with hand-computed answers."""
+"""IDF1 and ID switches (core/metrics/identity.py) on hand-made trajectories with hand-computed answers."""
 from __future__ import annotations
 
 import numpy as np

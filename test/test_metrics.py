@@ -1,4 +1,4 @@
-"""Metrics (core/metrics.py, core/procrustes.py) on hand-computed examples."""
+"""Metrics (core/metrics/poses.py, core/geometry/procrustes.py) on hand-computed examples."""
 from __future__ import annotations
 
 import numpy as np

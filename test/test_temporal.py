@@ -1,4 +1,4 @@
-"""Track-assisted association (core/temporal.py) on constructed sequences with known answers:
+"""Track-assisted association (core/tracking/temporal.py) on constructed sequences with known answers:
 exact pinhole cameras, rigid bodies walking at known velocities, known identity of every row."""
 from __future__ import annotations
 

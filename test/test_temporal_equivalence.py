@@ -1,4 +1,4 @@
-"""The batched track stage (core/temporal.py) makes exactly the decisions of its straightforward
+"""The batched track stage (core/tracking/temporal.py) makes exactly the decisions of its straightforward
 per-camera implementation (test/temporal_reference.py): every frame's clusters, members, costs,
 track ids, flags and statistics, and the tracks' states, on the bench load in motion (several
 seeds, people walking through each other) and on constructed crossing / occlusion sequences."""

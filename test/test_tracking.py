@@ -1,4 +1,4 @@
-"""Persistent ids (core/tracking.py)."""
+"""Persistent ids (core/tracking/tracks.py)."""
 from __future__ import annotations
 
 import numpy as np
@@ -125,7 +125,7 @@ def test_bad_input() -> None:
 
 
 def test_bone_filter_marks_implausible_limb_joints_only():
-    """core.bone_filter: a wrist 60 % off the track's forearm length becomes NaN, the rest of
+    """core.tracking.bone_filter: a wrist 60 % off the track's forearm length becomes NaN, the rest of
     the body and untracked people are untouched; a wrong elbow does not condemn its wrist."""
     from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.skeleton import SPORTCENTER_13
@@ -154,7 +154,7 @@ def test_bone_filter_marks_implausible_limb_joints_only():
 
 class _BoneFilterLoop:
     """The bone filter read literally (one deque of lengths per track, one person at a time):
-    the reference of the batched core.bone_filter.BoneLengthFilter."""
+    the reference of the batched core.tracking.bone_filter.BoneLengthFilter."""
 
     def __init__(self, names, tolerance, history, min_samples, max_tracks):
         from collections import deque
@@ -232,7 +232,7 @@ def _run_bone_filters(fast, ref, bodies, rng) -> int:
 
 class _TrackerLoop:
     """The tracker read literally (one object per track, one matched person at a time): the
-    reference of the array-based core.tracking.Tracker."""
+    reference of the array-based core.tracking.tracks.Tracker."""
 
     def __init__(self, gate_m, min_hits, timeout_s):
         self.gate, self.min_hits, self.timeout = gate_m, min_hits, int(round(timeout_s * 1e9))

@@ -1,4 +1,4 @@
-"""The fused RANSAC kernel (core.triangulation_kernel) against the numpy path and against a
+"""The fused RANSAC kernel (core.triangulation.ransac_kernel) against the numpy path and against a
 straightforward per-cluster, per-keypoint loop (SVD least squares), on random geometry with
 outlier views, missing (NaN) keypoints, absent members and zero scores."""
 from __future__ import annotations

@@ -24,7 +24,7 @@ class FrameDetections:
     verts2d (N,V,2) px, float32 (V may be 0 when no mesh is available; NaN = vertex missing,
     e.g. outside what the compact wire layout can carry). ``stamp_ns`` is the image capture
     time in integer nanoseconds. ``mesh_subset`` = (mesh vertices, stride, count) when verts2d
-    holds the fixed-topology subset core.epipolar.vertex_subset(*mesh_subset) of the mesh
+    holds the fixed-topology subset core.association.gates.epipolar.vertex_subset(*mesh_subset) of the mesh
     (announced on the wire), None when it holds the whole mesh.
     """
 
@@ -105,7 +105,7 @@ class FrameDetections:
     def attach_screens(self, copies: dict[int, np.ndarray],
                        block_ranges: dict[int, np.ndarray] | None = None) -> "FrameDetections":
         """Keep contiguous copies of the mesh gate's screening subsets of verts2d and the
-        block ranges of verts2d and of the copies (``core.epipolar.screen_copies``: {stride:
+        block ranges of verts2d and of the copies (``core.association.gates.epipolar.screen_copies``: {stride:
         (N,m,2) float32}; {stride: (N, blocks, 2) float32}, stride 1 = verts2d), made where
         verts2d was read anyway (the decoder), for the gate to read instead of making them
         again. They stay valid while verts2d is the same array (as for
@@ -130,7 +130,7 @@ class FrameDetections:
 
     def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
         """These detections with verts2d cut to the fixed-topology subset
-        ``core.epipolar.vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
+        ``core.association.gates.epipolar.vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
         (self when verts2d holds exactly those already). ValueError when verts2d lacks some of
         them (it holds a different subset)."""
         from maem_ros.core.association.gates.epipolar import vertex_subset  # local: epipolar is the home of the subset rule

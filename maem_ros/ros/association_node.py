@@ -16,9 +16,9 @@ stamps are dropped for that camera, a jump of most cameras or of /clock resets t
 dropped message is counted as ``dropped/sync_<reason>``; more than ``max_detections`` per message
 or pixels beyond ``pixel_margin`` are rejected; with ``max_backlog`` a node that fell behind skips
 the stale sets, ``dropped/behind``),
-runs core.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
-tracks' predictions first, core.association.associate on the rest; clusters carry track ids) or
-core.association.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
+runs core.tracking.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
+tracks' predictions first, core.association.pipeline.associate on the rest; clusters carry track ids) or
+core.association.pipeline.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
 thresholds and publishes ``/maem/clusters`` (PointCloud2, one point per (cluster, member view), see
 wire.py; an empty cloud for a frame set without clusters, so downstream still sees every frame).
 A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all tracks.
@@ -49,7 +49,7 @@ from maem_ros.ros.common import (DATA_DEPTH, DATA_QOS, ConfigError, Diagnostics,
 
 NODE_NAME = "association"
 
-#: core.association.AssociationResult.stats keys reported as cumulative counts in /diagnostics
+#: core.association.pipeline.AssociationResult.stats keys reported as cumulative counts in /diagnostics
 GATE_COUNTS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
                "matched_pairs", "conflicts_removed", "clusters_below_k_min")
 #: ... and as per-stage times (stats key -> /diagnostics stage, ms)
@@ -96,7 +96,7 @@ class AssociationNodeParams(NodeParams):
 
 
 PARAMS = param_specs(AssociationNodeParams, AssociationParams, TemporalParams)
-#: core.temporal stats reported as cumulative counts in /diagnostics
+#: core.tracking.temporal stats reported as cumulative counts in /diagnostics
 TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_ended",
                 "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
 

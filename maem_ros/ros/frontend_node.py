@@ -53,7 +53,7 @@ class FrontendNodeParams(NodeParams):
     vertex_stride: int = param(1, "keep every n-th mesh vertex in verts2d (announced on the "
                                   "wire)", minimum=1)
     vertex_count: int = param(0, "then keep this many of them, spread over the mesh (0 = all; "
-                                 "core.epipolar.vertex_subset, announced on the wire)", minimum=0)
+                                 "core.association.gates.epipolar.vertex_subset, announced on the wire)", minimum=0)
     wire_vertices: str = param("f32", "verts2d layout: f32, or q4 (uint16, 1/16 px, half the "
                                       "bytes)", choices=("f32", "q4"))
     wire_keypoints: str = param("f32", "kpts2d layout: f32 or q4", choices=("f32", "q4"))

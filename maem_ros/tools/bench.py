@@ -17,7 +17,7 @@ pixels, per-pair distances), and checks both give identical clusters.
                                                 # (tools/live.py)
 
 Temporal on/off (same run): the load in motion (tools/bench_load.make_sequence: the same people
-walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.temporal's
+walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.tracking.temporal's
 track-assisted association and through the per-frame association; per-frame times after the
 first frame (steady state: tracks explain the known people, cross-view association runs on the
 rest), the first frame apart, and the detections left to the cross-view stage; each frame

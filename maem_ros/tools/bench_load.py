@@ -257,7 +257,7 @@ def pa_mpjpe_one(X: np.ndarray, Y: np.ndarray) -> float:
 def straightforward_associate(rig: Rig, raw: dict[str, RawDetections],
                               params: AssociationParams) -> list[np.ndarray]:
     """Reference MAEM association; returns clusters as (M,2) (camera index, detection) arrays,
-    sorted like core.association.associate's."""
+    sorted like core.association.pipeline.associate's."""
     names = [n for n in rig.names if n in raw]
     sub = None
     edges = []

@@ -63,7 +63,7 @@ from maem_ros import bagio
 from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
                                      check_scene, ensure_bag, image_topic, load_bag,
                                      log, make_demo_bag, trim_bag)
-from maem_ros.tools.demo_report import (LATENCY_DEFINITION, format_timing, latencies_ms,
+from maem_ros.tools.demo_report import (GraphRun, LATENCY_DEFINITION, format_timing, latencies_ms,
                                         print_accuracy, print_run_summary, recorded_diagnostics,
                                         recorded_poses, score, stage_timing, write_pictures)
 from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
@@ -175,18 +175,6 @@ def missing_links(listener: ArrivalListener, cameras: Sequence[str],
     links = fusion_links(cameras, "image_raw/compressed" if frontends else None, sources=False)
     return listed + [f"{link} not matched" for link in unmatched_links(
         listener.diagnostics_snapshot(), links, at_least={"matched_subscribers/maem/poses": 2})]
-
-
-@dataclass
-class GraphRun:
-    """Outcome of one graph replay."""
-
-    exit_codes: dict[str, int | None]
-    crashed: dict[str, str]  # process -> what happened (+ log tail)
-    image_t: dict[int, int]
-    poses_t: dict[int, int]
-    wall_s: float
-    record: Path
 
 
 class DemoError(RuntimeError):

@@ -89,7 +89,7 @@ class MemberErrors:
 def member_reprojection_errors(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray,
                                score: np.ndarray, present: np.ndarray,
                                params: TriangulationParams) -> tuple[Any, MemberErrors]:
-    """Triangulate dense member arrays (core.triangulation.pad_members) and measure: (Poses,
+    """Triangulate dense member arrays (core.triangulation.ransac.pad_members) and measure: (Poses,
     px errors of every finite joint in every member view, split by kept / rejected member)."""
     poses = triangulate_members(P_rig, cam, uv, score, present, params)
     if poses.mirrored is not None:  # views relabelled left/right are compared as such

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -18,8 +19,17 @@ from maem_ros.tools.demo_bag import DemoBag, image_topic
 from maem_ros.tools.evaluate import format_table
 from maem_ros.tools.plots import plot_court
 
-if TYPE_CHECKING:
-    from maem_ros.tools.demo import GraphRun
+@dataclass
+class GraphRun:
+    """Outcome of one graph replay (tools/demo.run_graph)."""
+
+    exit_codes: dict[str, int | None]
+    crashed: dict[str, str]  # process -> what happened (+ log tail)
+    image_t: dict[int, int]
+    poses_t: dict[int, int]
+    wall_s: float
+    record: Path
+
 
 LATENCY_DEFINITION = (
     "latency = wall time (monotonic clock of the demo's listener node) at which /maem/poses with "

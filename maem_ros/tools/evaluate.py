@@ -86,9 +86,9 @@ Input handling (never a crash mid-sequence; every case is counted and reported a
 valid (F,K) bool, score (F,K), id (F,K) int64 track id (-1 = none: tentative track or no
 prediction); F = scene frames considered, K = most people in one frame.
 Identities: with temporal on (the params file's 'temporal', on when absent, or --temporal) ids
-are the association's track ids (core/temporal.py), with temporal off those of the post-hoc 3D
-tracker (core/tracking.py, the triangulation node's track_* params; also for the oracle row).
-IDF1 / IDP / IDR and ID switches (core/id_metrics.py: Ristani et al. 2016; CLEAR MOT switches)
+are the association's track ids (core/tracking/temporal.py), with temporal off those of the post-hoc 3D
+tracker (core/tracking/tracks.py, the triangulation node's track_* params; also for the oracle row).
+IDF1 / IDP / IDR and ID switches (core/metrics/identity.py: Ristani et al. 2016; CLEAR MOT switches)
 are scored against the GT persons of gt.npz (column = identity), MPJPE < 500 mm as a match;
 hypotheses matching no GT person of their frame (e.g. tracked referees) are left out ("players
 only"; idf1_all_hyp keeps them). --explain breaks down the per-frame association, so it implies
@@ -145,7 +145,7 @@ class Run:
     metrics: dict[str, Any] = field(default_factory=dict)
     causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
     ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
-    tracker: Any = None  # core.temporal.TemporalAssociator, or core.tracking.Tracker (post-hoc)
+    tracker: Any = None  # core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:

@@ -149,7 +149,7 @@ def rig_update(stamp_ns: int, rig: Rig, court_size: tuple[float, float] = (28.0,
 
 
 def rig_transforms(stamp_ns: int, frames: Sequence[frames_.FrameTransform]) -> FrameTransforms:
-    """The rig's world -> camera transforms (``core.frames.rig_transforms``: translation = the
+    """The rig's world -> camera transforms (``core.geometry.frames.rig_transforms``: translation = the
     camera centre, rotation = R^T) as Foxglove FrameTransforms at ``stamp_ns``."""
     ts = timestamp(stamp_ns)
     return FrameTransforms(transforms=[

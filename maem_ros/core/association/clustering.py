@@ -103,7 +103,7 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
 
 
 def _kernels(backend: str):
-    """core/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
+    """core/association/clustering_kernel.py when ``backend`` runs numba (auto: when installed), else None
     (the numpy paths: the same results)."""
     from maem_ros.core.association import clustering_kernel
     if backend == "numba" and not clustering_kernel.have_numba():

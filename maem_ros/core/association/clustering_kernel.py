@@ -1,4 +1,4 @@
-"""Numba kernels of the consistent clustering (core.clustering): the merge check, the
+"""Numba kernels of the consistent clustering (core.association.clustering): the merge check, the
 cluster-level table update and the greedy merge rounds that use both.
 
 The check and the update walk what the numpy paths compute with whole-array passes, per

@@ -7,11 +7,11 @@ For every camera pair (a, b), a < b in rig order (DESIGN.md §1):
    is >= tau_reproj_bbox, or if the point lies behind either camera (it does not reproject
    into that view; epipolar geometry alone cannot see this).
 3. Epipolar gate on the survivors: mean point-to-epipolar-line distance over all mesh
-   vertices ("mesh") or 2D keypoints ("sparse"); rejected if >= tau_mesh (core/epipolar.py).
+   vertices ("mesh") or 2D keypoints ("sparse"); rejected if >= tau_mesh (core/association/gates/epipolar.py).
 4. Pair cost: PA-MPJPE (metres) between the two detections' 3D keypoints on ``cost_joints``
    (default the 13 body joints), plus ``cost_epipolar_weight`` x the pair's mean epipolar
    distance as a fraction of tau_mesh; pairs above ``tau_cost`` never match.
-5. Clustering (core/clustering.py), ``clustering``:
+5. Clustering (core/association/clustering.py), ``clustering``:
    ``consistent`` (default): best-first merges over all camera pairs at once, each merge
    verified at cluster level (no two detections of one camera, most cross pairs gated,
    every member's reprojection error of the triangulated body joints under tau_verify),
@@ -292,7 +292,7 @@ def warmup(backend: str = "auto", epipolar_gate: str = "mesh") -> None:
 
 
 def _reprojection_kernel(backend: str):
-    """The numba pass of enumeration + reprojection gate (core/reprojection_kernel.py; same
+    """The numba pass of enumeration + reprojection gate (core/association/gates/reprojection_kernel.py; same
     pairs, order and decisions as _enumerate_pairs + _reprojection_gate), or None for the
     numpy path (``backend`` numpy, or numba not installed)."""
     if backend == "numpy" or not epipolar.have_numba():
@@ -410,7 +410,7 @@ class PoseCosts:
     b, each pair computed once (the gates', the clustering's and the clusters' costs share it).
 
     The rows' 3D keypoints are laid out once coordinate-first (3,J,N), the layout the batched
-    closed-form Procrustes (core/procrustes.py) computes on.
+    closed-form Procrustes (core/geometry/procrustes.py) computes on.
     """
 
     def __init__(self, table: DetectionTable, joints: np.ndarray, backend: str = "auto"):

@@ -365,7 +365,7 @@ class Rig:
     @classmethod
     def load(cls, path: str | Path) -> "Rig":
         """Load from a rig YAML, a folder of MAEM camera JSONs, a scene folder with cameras/, a
-        Qualisys ``.qca.txt`` or a Pose2Sim ``Calib*.toml`` (core/calibration.py)."""
+        Qualisys ``.qca.txt`` or a Pose2Sim ``Calib*.toml`` (core/geometry/rig_formats.py)."""
         from maem_ros.core.geometry.rig_formats import is_calibration_file, read_calibration
 
         p = Path(path)

@@ -157,7 +157,7 @@ def pa_mpjpe_pairs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, backend: s
     """(S,) PA-MPJPE of detection a[s] aligned onto b[s]: :func:`pa_mpjpe_columns` of
     ``columns[:, :, a]`` onto ``columns[:, :, b]`` for columns (3,J,N) float64 finite.
 
-    backend: ``numba`` (core/procrustes_kernel.py: the same steps per pair, reading the
+    backend: ``numba`` (core/geometry/procrustes_kernel.py: the same steps per pair, reading the
     columns in place; ~1e-16 relative from numpy's summation order), ``numpy``, or ``auto``
     (numba when installed). Near-degenerate pairs take the SVD path in both."""
     from maem_ros.core.geometry import procrustes_kernel

@@ -1,4 +1,4 @@
-"""Numba kernel of the closed-form PA-MPJPE (core.procrustes.pa_mpjpe_columns), per pair.
+"""Numba kernel of the closed-form PA-MPJPE (core.geometry.procrustes.pa_mpjpe_columns), per pair.
 
 The numpy path runs ~150 vectorised steps over (S,) rows, each a pass over memory with its
 own temporaries (~1.1 us per pair for 13 joints). This kernel walks the same steps per pair

@@ -1,6 +1,6 @@
 """Calibration files of other systems -> Camera lists: Qualisys ``.qca.txt`` and Pose2Sim ``Calib*.toml``.
 
-Both readers return cameras in our convention (core/camera.py): OpenCV pinhole K in px,
+Both readers return cameras in our convention (core/geometry/camera.py): OpenCV pinhole K in px,
 plumb_bob distortion, world -> camera R, t in metres, image size in px.
 
 Qualisys (QTM export, XML), read the way Pose2Sim's converter (``Pose2Sim.calibration.read_qca``

@@ -1,7 +1,7 @@
 """Identity metrics of tracked 3D poses against ground-truth identities: IDF1 and ID switches.
 
 A (GT person, hypothesis) pair *matches* in a frame when both are present and their MPJPE
-(core.metrics.mpjpe, GT-masked joints) is below ``threshold_m`` (0.5 m, as Recall@500).
+(core.metrics.poses.mpjpe, GT-masked joints) is below ``threshold_m`` (0.5 m, as Recall@500).
 
 - IDF1 (Ristani et al., ECCV-W 2016, "Performance measures and a data set for multi-target,
   multi-camera tracking"): one global one-to-one assignment of GT trajectories to hypothesis

@@ -12,7 +12,7 @@ Definitions (per sequence of frames):
 
 - MPJPE(pred, gt) = mean over counted joints of the Euclidean joint distance.
 - PA-MPJPE = MPJPE after aligning the prediction to the GT with the least-squares
-  similarity (rotation, translation, uniform scale; core/procrustes.py).
+  similarity (rotation, translation, uniform scale; core/geometry/procrustes.py).
 - Matching: per frame, Hungarian assignment (scipy linear_sum_assignment) of
   predictions to GT persons on MPJPE; only pairs with MPJPE < 500 mm are matched
   (pairs at or over 500 mm are priced prohibitively, so the assignment maximises

@@ -581,7 +581,7 @@ class TemporalAssociator:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
         association's pair gates (bbox-centre reprojection, epipolar on mesh vertices or
         keypoints, PA-MPJPE cost of the lower camera's 3D pose aligned onto the other's under
-        tau_cost), the same tests (core.geometry, core.epipolar, core.procrustes) the cross-view
+        tau_cost), the same tests (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view
         association applies, on the few pairs inside the tracks' clusters only."""
         by_cam = view.by_cam
         ok = np.ones(ca.size, bool)

@@ -1,6 +1,6 @@
-"""Fused numba kernel of the per-keypoint RANSAC triangulation (core.triangulation).
+"""Fused numba kernel of the per-keypoint RANSAC triangulation (core.triangulation.ransac).
 
-The numpy path (core.triangulation._ransac_numpy) materialises every hypothesis' reprojection
+The numpy path (core.triangulation.ransac._ransac_numpy) materialises every hypothesis' reprojection
 into every view as (C,M,Q,J) arrays: ~15 memory passes over 3 M doubles for 22 people in 16
 cameras (Q = 120 view pairs). This kernel walks the same computation per cluster and keypoint
 with nothing but a few scalars and an (M,9) scratch of normal-matrix entries, in the same

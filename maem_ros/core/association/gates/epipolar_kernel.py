@@ -1,10 +1,10 @@
-"""The numba kernels of core/epipolar.py (imported only when numba is installed).
+"""The numba kernels of core/association/gates/epipolar.py (imported only when numba is installed).
 
 Every kernel is a module-level function so numba's on-disk cache (``cache=True``) finds it again
 in a new process: a kernel defined in a closure is hashed with the closure's compiled callees,
 whose identity changes from process to process, so each process recompiled them (~10 s per
 node start) and added new cache files. The arithmetic, its error bound and the decisions are
-documented in core/epipolar.py.
+documented in core/association/gates/epipolar.py.
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
-"""The numba kernel of the association's bbox-centre reprojection gate (core/association.py),
+"""The numba kernel of the association's bbox-centre reprojection gate (core/association/pipeline.py),
 imported only when numba is installed.
 
-One pass over every candidate pair of a frame set (the pairs of core.association's
+One pass over every candidate pair of a frame set (the pairs of core.association.pipeline's
 _enumerate_pairs, in its order) with nothing but scalars: the epipolar lower bound of
 geometry.pair_reprojection_bound rejects most pairs, the others get the two-view DLT of
 geometry.pair_reprojection_errors. The numpy path materialises ~20 arrays of the pair count
@@ -11,8 +11,8 @@ Decisions equal the numpy path's: the bound only rejects with a relative margin 
 rounding (its arithmetic order does not matter), and the DLT and reprojection are the numpy
 path's float64 operations in the same order (no fast-math: no reassociation, no fused
 multiply-add), so the errors compared with tau are the same numbers. The DLT steps are the
-triangulation kernel's entries (core/triangulation_kernel.py: _entries) and geometry's
-cofactor solve as core/clustering_kernel.py compiles it for scalars.
+triangulation kernel's entries (core/triangulation/ransac_kernel.py: _entries) and geometry's
+cofactor solve as core/association/clustering_kernel.py compiles it for scalars.
 """
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ def _pair_errors(P, U, V, usable, E, pi, pj, todo, reduce_max, tau, ok):
 @nb.njit(**_OPTS)
 def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
     """(i, j, ok) of every pair of rows (i in camera a, j in camera b, a < b; camera c's rows
-    offsets[c]:offsets[c+1]) in core.association._enumerate_pairs' order; ok: bbox-centre
+    offsets[c]:offsets[c+1]) in core.association.pipeline._enumerate_pairs' order; ok: bbox-centre
     reprojection error < tau px. F (C,C,3,3) as geometry.pair_reprojection_bound's, P (N,3,4)
     and uv (N,2) each row's projection and bbox centre (rectified px)."""
     C = offsets.shape[0] - 1
