@@ -20,14 +20,14 @@ WARMUP = Path(sys.executable).parent / "maem-warmup"
 #: numba's counters of every core kernel as JSON
 PROBE = """
 import json, sys
-from maem_ros.core import jit
+from maem_ros.core import kernel_cache as kc
 from maem_ros.tools import warmup
-before = jit.kernel_counts()
-jit.warm_kernels(jit.core_modules(sys.argv[2:]))
+before = kc.kernel_counts()
+kc.warm_kernels(kc.core_modules(sys.argv[2:]))
 if sys.argv[1] == "nodes":
     warmup.node_paths()
-stats = jit.kernel_stats(before)
-print(json.dumps({"file": jit.__file__,
+stats = kc.kernel_stats(before)
+print(json.dumps({"file": kc.__file__,
                   "kernels": {s.name: [s.loaded, s.compiled, s.cache_dir] for s in stats}}))
 """
 TRIANGULATION = "maem_ros.core.triangulation"

@@ -24,10 +24,11 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
-from maem_ros.core import jit
+from maem_ros.core import kernel_cache as kc
+from maem_ros.core.jit import have_numba
 
 #: shipped params files whose association/triangulation settings the node-path pass runs
 SHIPPED_PARAMS = ("demo.yaml", "sportcenter.yaml", "humanm3.yaml", "mediapipe.yaml")
@@ -96,24 +97,24 @@ def warm(only: Sequence[str] = (), clean: bool = False, say=print) -> dict:
     """Passes 1 and 2 (pass 2 without ``only``); returns a summary (kernels loaded, compiled,
     deleted as stale, cache directories, seconds)."""
     t0 = time.monotonic()
-    modules = jit.core_modules(only)
-    found = jit.dispatchers()  # nothing is loaded yet: imports do not call kernels
-    stale = list(jit.kernel_files(found)) if clean else jit.stale_kernel_files(found)
-    deleted = jit.purge_cache(stale, found) if stale else 0
+    modules = kc.core_modules(only)
+    found = kc.dispatchers()  # nothing is loaded yet: imports do not call kernels
+    stale = list(kc.kernel_files(found)) if clean else kc.stale_kernel_files(found)
+    deleted = kc.purge_cache(stale, found) if stale else 0
     for f in stale:
         say(f"maem-warmup: deleting the cached kernels of {f.name} ("
             + ("--clean)" if clean else "stale: built from other sources than its imports' "
                                         "current ones)"))
-    before = jit.kernel_counts()
-    jit.warm_kernels(modules)
+    before = kc.kernel_counts()
+    kc.warm_kernels(modules)
     node_runs = 0
     if not only:
         try:
             node_runs = node_paths()
         except ImportError as e:  # the ROS message wheels: the nodes cannot run either
             say(f"maem-warmup: node-path pass skipped ({e}); the kernels' own warm-ups ran")
-    stats = jit.kernel_stats(before)
-    jit.record_sources(jit.dispatchers())
+    stats = kc.kernel_stats(before)
+    kc.record_sources(kc.dispatchers())
     return {"loaded": sum(s.loaded for s in stats), "compiled": sum(s.compiled for s in stats),
             "kernels": len(stats), "stale_files": [f.name for f in stale],
             "deleted_files": deleted, "node_frame_sets": node_runs,
@@ -124,13 +125,13 @@ def warm(only: Sequence[str] = (), clean: bool = False, say=print) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    if not jit.have_numba():
+    if not have_numba():
         print("maem-warmup: numba is not installed: nothing to compile (the numpy paths run)")
         return 0
     say = (lambda text: None) if a.quiet else print
-    unknown = [p for p in a.only if not jit.core_modules([p])]
+    unknown = [p for p in a.only if not kc.core_modules([p])]
     if unknown:
-        print(f"maem-warmup: --only {unknown[0]!r}: no module of {jit.CORE} starts with it",
+        print(f"maem-warmup: --only {unknown[0]!r}: no module of {kc.CORE} starts with it",
               file=sys.stderr)
         return 2
     out = warm(a.only, a.clean, say)
