@@ -24,8 +24,9 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from maem_ros.core import kernel_cache as kc
 from maem_ros.core.jit import have_numba
@@ -93,7 +94,8 @@ def node_paths() -> int:
     return runs
 
 
-def warm(only: Sequence[str] = (), clean: bool = False, say=print) -> dict:
+def warm(only: Sequence[str] = (), clean: bool = False,
+         say: Callable[[str], None] = print) -> dict[str, Any]:
     """Passes 1 and 2 (pass 2 without ``only``); returns a summary (kernels loaded, compiled,
     deleted as stale, cache directories, seconds)."""
     t0 = time.monotonic()
@@ -123,12 +125,16 @@ def warm(only: Sequence[str] = (), clean: bool = False, say=print) -> dict:
             "seconds": time.monotonic() - t0, "per_kernel": stats}
 
 
+def _silent(text: str) -> None:
+    """--quiet: the per-kernel lines are not printed."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
     if not have_numba():
         print("maem-warmup: numba is not installed: nothing to compile (the numpy paths run)")
         return 0
-    say = (lambda text: None) if a.quiet else print
+    say: Callable[[str], None] = _silent if a.quiet else print
     unknown = [p for p in a.only if not kc.core_modules([p])]
     if unknown:
         print(f"maem-warmup: --only {unknown[0]!r}: no module of {kc.CORE} starts with it",
