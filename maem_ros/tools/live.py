@@ -56,7 +56,7 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
     """(stamp ns, serialized /<camera>/detections) per frame, in order."""
     if bag is not None:
         from maem_ros.ros import wire
-        from maem_ros.tools import bagio
+        from maem_ros import bagio
         out = []
         for m in bagio.read_messages(bag, [f"/{camera}/detections"]):
             if len(out) >= frames:
@@ -261,7 +261,7 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
                           frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
                           association=assoc_over)
     if a.bag is not None:
-        from maem_ros.tools import bagio
+        from maem_ros import bagio
         rig_yaml = bagio.read_rig_yaml(a.bag)
         if rig_yaml:
             (work / "rig.yaml").write_text(rig_yaml)
