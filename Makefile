@@ -15,10 +15,15 @@ TORCH := torch==2.13.0
 
 MEDIAPIPE := mediapipe==0.10.21
 MP_STAMP := $(VENV)/.mediapipe
+# numba kernels compiled into their on-disk cache (maem_ros/**/__pycache__) as part of the
+# install, so the first demo / node start loads them instead of compiling; redone when a core
+# source changes (maem-warmup recompiles only kernels whose imports changed)
+KERNELS_STAMP := $(VENV)/.kernels
+CORE_SOURCES := $(shell find maem_ros/core -name '*.py')
 
 .PHONY: venv test demo bench clean mediapipe pose2sim-demo
 
-venv: $(STAMP) $(TF2_STAMP)
+venv: $(STAMP) $(TF2_STAMP) $(KERNELS_STAMP)
 
 # The optional mediapipe frontend: its runtime deps as the [mediapipe] extra, the wheel (models
 # included) with --no-deps, as its own requirements pin numpy<2 and opencv-contrib-python. `make
@@ -43,16 +48,20 @@ $(TF2_STAMP): $(STAMP) $(TF2_SOURCES)
 	bash ros_msgs/build.sh $(VENV)
 	touch $(TF2_STAMP)
 
-test: $(STAMP) $(TF2_STAMP) $(MP_STAMP)
+$(KERNELS_STAMP): $(STAMP) $(CORE_SOURCES) maem_ros/tools/warmup.py
+	$(VENV)/bin/maem-warmup --quiet
+	touch $(KERNELS_STAMP)
+
+test: $(STAMP) $(TF2_STAMP) $(MP_STAMP) $(KERNELS_STAMP)
 	$(PY) -m pytest -q test
 
-demo: $(STAMP) $(TF2_STAMP)
+demo: $(STAMP) $(TF2_STAMP) $(KERNELS_STAMP)
 	$(VENV)/bin/maem-demo
 
 pose2sim-demo: mediapipe
 	$(VENV)/bin/maem-pose2sim-demo
 
-bench: $(STAMP)
+bench: $(STAMP) $(KERNELS_STAMP)
 	$(VENV)/bin/maem-bench
 
 clean:
