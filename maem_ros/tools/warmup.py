@@ -62,8 +62,8 @@ def node_paths() -> int:
     wire codec): without them, raises ImportError."""
     import numpy as np
 
-    from maem_ros.core.association.pipeline import AssociationParams, decode_screen_strides
-    from maem_ros.core.association.pipeline import warmup as association_warmup
+    from maem_ros.core.association import AssociationParams
+    from maem_ros.core.association import warmup as association_warmup
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
     from maem_ros.params import load_node_params
@@ -81,13 +81,14 @@ def node_paths() -> int:
         a = load_node_params(name, "association")
         aparams = AssociationParams.from_mapping(a)
         tparams = TriangulationParams.from_mapping(load_node_params(name, "triangulation"))
-        association_warmup(aparams.backend, aparams.epipolar_gate)  # as the node starts
-        screens = decode_screen_strides(aparams)
+        association_warmup(aparams.execution.backend, aparams.epipolar_gate)  # as the node starts
         for layout in WIRES:
             stage = TemporalAssociator(rig, aparams, TemporalParams.from_mapping(a))
             for msgs in sent[layout]:
-                frames = {c: wire.msg_to_detections(m, f"/{c}/detections", screen_strides=screens)
+                frames = {c: wire.msg_to_detections(m, f"/{c}/detections")
                           for c, m in msgs.items()}
+                for fd in frames.values():  # as the node prepares each decoded frame
+                    stage.gates.prepare(fd)
                 res = stage.step(frames, frames[rig.names[0]].stamp_ns)
                 triangulate(rig, frames, res.clusters, tparams)
                 runs += 1

@@ -61,7 +61,7 @@ def reprojection_kernel(backend: str) -> Callable | None:
     return reprojection_gate
 
 
-def warmup(backend: str) -> None:
+def warmup(backend: str = "auto") -> None:
     """Compile (or load from numba's on-disk cache) the reprojection kernel now."""
     kernel = reprojection_kernel(backend)
     if kernel is not None:
