@@ -38,10 +38,10 @@ from __future__ import annotations
 
 import statistics
 from collections import Counter, deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Sequence
-
+from typing import Any
 
 #: consecutive late samples that make a camera lagging (one sample under the window rejoins it)
 LAG_SAMPLES = 2

@@ -37,15 +37,28 @@ from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core.association import pipeline as association
 from maem_ros.core.association.pipeline import AssociationParams
-from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats, skip_behind
+from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_DEPTH, DATA_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, arrival_ns, data_qos, declare_params,
-                                 load_rig_param, publish_rig_tf, run_node, subscribe_counted,
-                                 take_pending)
+from maem_ros.ros.common import (
+    DATA_DEPTH,
+    DATA_QOS,
+    ConfigError,
+    Diagnostics,
+    NodeParams,
+    RejectErrors,
+    Stopwatch,
+    arrival_ns,
+    data_qos,
+    declare_params,
+    load_rig_param,
+    publish_rig_tf,
+    run_node,
+    subscribe_counted,
+    take_pending,
+)
 
 NODE_NAME = "association"
 

@@ -30,8 +30,16 @@ from maem_ros.capture import Capture, Poll, make_source, to_bgr
 from maem_ros.core.geometry.camera import Camera
 from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, Stopwatch,
-                                 declare_params, default_camera_name, load_rig_param, run_node)
+from maem_ros.ros.common import (
+    IMAGE_QOS,
+    ConfigError,
+    Diagnostics,
+    Stopwatch,
+    declare_params,
+    default_camera_name,
+    load_rig_param,
+    run_node,
+)
 
 EXIT_SOURCE_FAILED = 2
 

@@ -17,19 +17,24 @@ import sys
 import threading
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import (InvalidHandle, InvalidParameterTypeException,
-                              InvalidParameterValueException, ParameterException)
+from rclpy.exceptions import (
+    InvalidHandle,
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterException,
+)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from maem_ros.core.errors import InputError
@@ -335,7 +340,7 @@ class RejectErrors:
         self._diag, self._where, self._reason = diag, where, reason
         self.failed = False
 
-    def __enter__(self) -> "RejectErrors":
+    def __enter__(self) -> RejectErrors:
         return self
 
     def __exit__(self, exc_type, e, tb) -> bool:
@@ -457,7 +462,7 @@ class Stopwatch:
     def __init__(self, diag: Diagnostics, stage: str):
         self._diag, self._stage = diag, stage
 
-    def __enter__(self) -> "Stopwatch":
+    def __enter__(self) -> Stopwatch:
         self._t0 = time.perf_counter()
         return self
 

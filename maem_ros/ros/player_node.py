@@ -21,12 +21,11 @@ import importlib
 import sys
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Iterator, Sequence
 
 from maem_ros import bagio
-from maem_ros.ros.cli import (EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args,
-                              stop_on_signals)
+from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args, stop_on_signals
 
 _IMAGE_TYPES = (bagio.IMAGE, bagio.COMPRESSED_IMAGE)
 
@@ -216,8 +215,8 @@ class BagPlayer:
                 t, msgtype, self.info.qos.get(t, ()), opts.reliable_images))
         self.clock_pub = None
         if opts.clock:
-            from rosgraph_msgs.msg import Clock
             from rclpy.qos import QoSProfile
+            from rosgraph_msgs.msg import Clock
             self.clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         self.published = 0
         self.lockstep: Lockstep | None = None

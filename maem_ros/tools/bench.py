@@ -1,13 +1,13 @@
 """maem-bench: time MAEM association and triangulation on the standard load, one CPU thread.
 
-Standard load (tools/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob
-distortion), 12 detections per camera (10 players seen by every camera + 2 extra people per
-camera), 70 keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px
-pixel noise, fixed seed. ``--load large``: 16 cameras on a ring around the court (``ring16``),
-25 detections per camera (22 players seen by every camera + 3 extras per camera), full mesh. Times the full association (all stages) and the triangulation per
-frame (median, p90), and in the same run a straightforward association written the way the
-method reads (loops over detection pairs, per-pair OpenCV undistortion of the raw vertex
-pixels, per-pair distances), and checks both give identical clusters.
+Standard load (tools/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob distortion),
+12 detections per camera (10 players seen by every camera + 2 extra people per camera), 70
+keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px pixel noise, fixed
+seed. ``--load large``: 16 cameras on a ring around the court (``ring16``), 25 detections per camera
+(22 players seen by every camera + 3 extras per camera), full mesh. Times the full association (all
+stages) and the triangulation per frame (median, p90), and in the same run a straightforward
+association written the way the method reads (loops over detection pairs, per-pair OpenCV
+undistortion of the raw vertex pixels, per-pair distances), and checks both give identical clusters.
 
     maem-bench                 # human-readable summary
     maem-bench --load large    # 16 cameras x 25 detections
@@ -109,15 +109,20 @@ def _percentile(values, q: float) -> float:
 
 def run(args: argparse.Namespace) -> dict:
     """Build the load, time both paths, return the result dict."""
+    import dataclasses
+
     import cv2
     import numpy as np
     from threadpoolctl import threadpool_limits
 
-    import dataclasses
-
-    from maem_ros.core.association.pipeline import (PAPER_PIPELINE, AssociationParams, associate,
-                                    decode_screen_strides)
+    from maem_ros.core.association.pipeline import (
+        PAPER_PIPELINE,
+        AssociationParams,
+        associate,
+        decode_screen_strides,
+    )
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
+
     from ..params import load_node_params
     from ..ros import wire
     from .bench_load import body_template, load_bench_rig, make_frame, straightforward_associate
@@ -239,6 +244,7 @@ def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
 
     from maem_ros.core.association.pipeline import associate, decode_screen_strides
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+
     from ..ros import wire
     from .bench_load import make_sequence
 

@@ -20,8 +20,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from maem_ros.core.association.pipeline import AssociationParams
-from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 
 #: half-extent of the court area players stand on (world x, y metres; court 28 x 15 m)
 COURT_HALF = (13.0, 6.5)

@@ -43,29 +43,50 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
 
+from maem_ros import bagio
 from maem_ros.core.association import pipeline as association
-from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
 from maem_ros.core.association.pipeline import associate
-from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.errors import InputError
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
 from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
 from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
 from maem_ros.ros.wire import msg_to_detections
-from maem_ros import bagio
-from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
-                                     check_scene, ensure_bag, image_topic, load_bag,
-                                     log, make_demo_bag, trim_bag)
-from maem_ros.tools.demo_report import (GraphRun, LATENCY_DEFINITION, format_timing, latencies_ms,
-                                        print_accuracy, print_run_summary, recorded_diagnostics,
-                                        recorded_poses, score, stage_timing, write_pictures)
+from maem_ros.tools.demo_bag import (
+    BAG_VERTICES,
+    DEMO_SCENE,
+    JPEG_QUALITY,
+    DemoBag,
+    check_scene,
+    ensure_bag,
+    image_topic,
+    load_bag,
+    log,
+    make_demo_bag,
+    trim_bag,
+)
+from maem_ros.tools.demo_report import (
+    LATENCY_DEFINITION,
+    GraphRun,
+    format_timing,
+    latencies_ms,
+    print_accuracy,
+    print_run_summary,
+    recorded_diagnostics,
+    recorded_poses,
+    score,
+    stage_timing,
+    write_pictures,
+)
 from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
 from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
 

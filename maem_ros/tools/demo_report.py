@@ -3,9 +3,10 @@ recorded /diagnostics, end-to-end latency and drops, and the snapshot pictures."
 from __future__ import annotations
 
 import os
-from pathlib import Path
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -18,6 +19,7 @@ from maem_ros.ros.wire import UNTRACKED_ID, msg_to_poses
 from maem_ros.tools.demo_bag import DemoBag, image_topic
 from maem_ros.tools.evaluate import format_table
 from maem_ros.tools.plots import plot_court
+
 
 @dataclass
 class GraphRun:

@@ -12,9 +12,10 @@ import json
 import sys
 import time
 from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -23,6 +24,7 @@ from maem_ros.core.association.pipeline import PAPER_PIPELINE
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
+
 from ..params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
@@ -145,7 +147,8 @@ class Run:
     metrics: dict[str, Any] = field(default_factory=dict)
     causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
     ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
-    tracker: Any = None  # core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
+    #: core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
+    tracker: Any = None
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
@@ -196,6 +199,7 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
     from maem_ros.core.association.pipeline import associate
     from maem_ros.core.tracking.temporal import TemporalAssociator
     from maem_ros.core.triangulation.ransac import triangulate
+
     from .explain import oracle_clusters
     result = ids = None
     stamp = min(fd.stamp_ns for fd in frames.values())
@@ -236,6 +240,7 @@ def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np
     gt / gt_mask: the frame's present GT persons; gt_index: their person index in gt.npz
     (= the ids in det_ids.npz)."""
     from maem_ros.core.metrics.poses import match_frame
+
     from .explain import explain_frame, row_persons
     _, cols, _ = match_frame(run.preds[-1], gt, gt_mask)
     lost = np.setdiff1d(np.arange(len(gt)), cols)

@@ -18,7 +18,7 @@ first stage of the pipeline that made it unreachable, in pipeline order:
 from __future__ import annotations
 
 from collections import Counter
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from scipy.sparse import coo_matrix

@@ -24,12 +24,12 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Sequence
 
+from maem_ros import bagio
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import CONVENTIONS
-from maem_ros import bagio
 from maem_ros.viz.scene import camera_info_fields
 
 EXIT_BAD_INPUT = 2

@@ -24,8 +24,8 @@ import os
 import subprocess
 import sys
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 POSE2SIM_VERSION = "0.10.49"
 DEMO_PREFIX = "Pose2Sim/Demo_MultiPerson/"
@@ -97,10 +97,10 @@ def run_offline(root: Path, frames: int | None) -> dict:
     import numpy as np
 
     from maem_ros.core.association.pipeline import AssociationParams, associate
-    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.geometry.camera import Rig
-    from maem_ros.core.skeleton import get_convention
     from maem_ros.core.skeleton import convert as convert_joints
+    from maem_ros.core.skeleton import get_convention
+    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.tracking.tracks import Tracker
     from maem_ros.core.triangulation.ransac import TriangulationParams, pad_members
     from maem_ros.frontend.base import make_estimator

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -189,7 +189,7 @@ class Camera:
         }
 
     @classmethod
-    def from_camera_info(cls, name: str, info: Mapping, R: np.ndarray, t: np.ndarray) -> "Camera":
+    def from_camera_info(cls, name: str, info: Mapping, R: np.ndarray, t: np.ndarray) -> Camera:
         """Build from a CameraInfo-shaped dict plus world->camera extrinsics (not in CameraInfo)."""
         P = _as_matrix(info["p"], (3, 4), f"camera {name!r} camera_info.p")
         K_rect = P[:, :3] if np.any(P[:, :3]) else None
@@ -200,7 +200,7 @@ class Camera:
     # ---- MAEM authors' camera JSON ------------------------------------------
     @classmethod
     def from_maem_json(cls, data: Mapping, name: str | None = None,
-                       default_size: tuple[int, int] | None = None) -> "Camera":
+                       default_size: tuple[int, int] | None = None) -> Camera:
         """Parse a MAEM/xrmocap camera JSON dict.
 
         Accepts ``extrinsic_r`` + ``extrinsic_t`` or a 4x4 ``extrinsic`` (world->camera), a 3x3 or
@@ -274,7 +274,7 @@ class Camera:
         return d
 
     @classmethod
-    def from_dict(cls, name: str, d: Mapping) -> "Camera":
+    def from_dict(cls, name: str, d: Mapping) -> Camera:
         missing = [k for k in ("width", "height", "K", "R", "t") if k not in d]
         if missing:
             raise ValueError(f"camera {name!r}: missing {', '.join(missing)}")
@@ -363,7 +363,7 @@ class Rig:
 
     # ---- I/O ----------------------------------------------------------------
     @classmethod
-    def load(cls, path: str | Path) -> "Rig":
+    def load(cls, path: str | Path) -> Rig:
         """Load from a rig YAML, a folder of MAEM camera JSONs, a scene folder with cameras/, a
         Qualisys ``.qca.txt`` or a Pose2Sim ``Calib*.toml`` (core/geometry/rig_formats.py)."""
         from maem_ros.core.geometry.rig_formats import is_calibration_file, read_calibration
@@ -382,7 +382,7 @@ class Rig:
 
     @classmethod
     def from_json_folder(cls, folder: str | Path,
-                         default_size: tuple[int, int] | None = None) -> "Rig":
+                         default_size: tuple[int, int] | None = None) -> Rig:
         """Cameras named by JSON file stem, in natural order (camera_2 before camera_10)."""
         folder = Path(folder)
         files = sorted(folder.glob("*.json"), key=lambda f: _natural_key(f.stem))
@@ -404,7 +404,7 @@ class Rig:
             (folder / f"{cam.name}.json").write_text(json.dumps(cam.to_maem_json(), indent=2))
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "Rig":
+    def from_yaml(cls, path: str | Path) -> Rig:
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())

@@ -15,8 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from maem_ros.core.geometry.procrustes import (
+    _ADJ_ENTRY,
+    _ADJ_MINOR,
+    _ADJ_SIGN,
+    fill_key_matrix,
+    fill_rotation,
+)
 from maem_ros.core.jit import have_numba, jit
-from maem_ros.core.geometry.procrustes import _ADJ_ENTRY, _ADJ_MINOR, _ADJ_SIGN, fill_key_matrix, fill_rotation
 
 # procrustes' elementwise formulas, compiled for the scalars here (one home: procrustes)
 _fill_key_matrix = jit(fill_key_matrix, inline=True)
