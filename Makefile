@@ -1,4 +1,6 @@
 # The two commands of the README: `make demo` and `make test`.
+# `make test-fast`: the unit and core tests only (no ROS, colcon, download or slow test);
+# `make lint`: ruff and mypy on maem_ros/ (make test runs it first).
 # Both create .venv in the repo and install everything from the package registries.
 PYTHON ?= python3
 VENV := .venv
@@ -16,7 +18,7 @@ TORCH := torch==2.13.0
 MEDIAPIPE := mediapipe==0.10.21
 MP_STAMP := $(VENV)/.mediapipe
 
-.PHONY: venv test demo bench clean mediapipe pose2sim-demo
+.PHONY: venv test test-fast lint demo bench clean mediapipe pose2sim-demo
 
 venv: $(STAMP) $(TF2_STAMP)
 
@@ -43,8 +45,18 @@ $(TF2_STAMP): $(STAMP) $(TF2_SOURCES)
 	bash ros_msgs/build.sh $(VENV)
 	touch $(TF2_STAMP)
 
-test: $(STAMP) $(TF2_STAMP) $(MP_STAMP)
+# the test markers (setup.cfg [tool:pytest]) that make test-fast leaves out
+SLOW_KINDS := not ros and not slow and not colcon and not network
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check maem_ros
+	$(VENV)/bin/mypy
+
+test: lint $(TF2_STAMP) $(MP_STAMP)
 	$(PY) -m pytest -q test
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q test -m "$(SLOW_KINDS)"
 
 demo: $(STAMP) $(TF2_STAMP)
 	$(VENV)/bin/maem-demo

@@ -58,7 +58,7 @@ def _field(d: Mapping, key: str, shape: tuple[int | None, ...], where: str) -> n
     except (TypeError, ValueError):
         raise ValueError(f"{where}: field {key!r}: not numeric") from None
     if len(shape) == 1 and shape[0] is not None and arr.size == shape[0]:
-        arr = arr.reshape(shape)  # bbox may be stored (1,4); a scalar may be stored (1,)
+        arr = arr.reshape(shape[0])  # bbox may be stored (1,4); a scalar may be stored (1,)
     if shape == () and arr.size == 1:
         arr = arr.reshape(())
     if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)):
@@ -445,7 +445,7 @@ class SceneFolder:
         """det_ids.npz from {(view, frame): (N,) GT person per detection, -1 = false positive}."""
         arrays = {det_ids_key(v, f): np.asarray(a, dtype=np.int64) for (v, f), a in ids.items()}
         with open(self.root / DET_IDS, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+            np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]  # numpy's stub: **kwds
 
     def det_ids(self) -> dict[str, np.ndarray]:
         """{"<view>/<frame:06d>": (N,) int64} from det_ids.npz; ValueError naming a bad file."""

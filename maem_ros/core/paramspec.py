@@ -144,7 +144,7 @@ class Params:
         for f in fields(cls):  # type: ignore[arg-type]
             if PARAM_METADATA not in f.metadata:
                 continue
-            default = f.default if f.default is not MISSING else f.default_factory()
+            default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[operator]  # set when no default
             out.append(ParamSpec(f.name, default, **f.metadata[PARAM_METADATA]))
         return tuple(out)
 

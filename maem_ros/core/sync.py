@@ -133,7 +133,7 @@ class ApproximateTimeSync:
         self.stats = SyncStats()
         self._events: list[SyncEvent] = []
         self._queues: dict[str, deque[_Msg]] = {c: deque() for c in cameras}
-        self._held: dict[str, deque[tuple[str, _Msg]]] = {c: deque() for c in cameras}
+        self._held: dict[str, deque[tuple[SyncDrop, _Msg]]] = {c: deque() for c in cameras}
         self._clear()
 
     # -- state ----------------------------------------------------------------------------

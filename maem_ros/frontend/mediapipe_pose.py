@@ -158,7 +158,7 @@ class MediapipeEstimator(Estimator):
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image -> detections (rectified px, camera metres)."""
-        check_bgr_image(image, "mediapipe", camera.name)
+        image = check_bgr_image(image, "mediapipe", camera.name)
         self.stats["frames"] += 1
         h, w = image.shape[:2]
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

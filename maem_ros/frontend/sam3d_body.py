@@ -165,7 +165,7 @@ class Sam3dBodyEstimator(Estimator):
     # ---- per frame ------------------------------------------------------------------------
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image (raw with option ``rectify``) -> detections."""
-        check_bgr_image(image, "sam3d_body", camera.name)
+        image = check_bgr_image(image, "sam3d_body", camera.name)
         rect = self.rectifier(camera)
         if self.rectify:
             image = rect.rectify(image)

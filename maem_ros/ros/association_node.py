@@ -301,8 +301,10 @@ class AssociationNode(Node):
             with Stopwatch(self.diag, "encode"):
                 out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, fs.items,
                                            result.clusters,
-                                           result.track_ids if tracked else None,
-                                           result.flags if tracked else None)
+                                           # wire's hints say Sequence[int]; it takes the (K,)
+                                           # int arrays (wire is being rewritten)
+                                           result.track_ids if tracked else None,  # type: ignore[arg-type]
+                                           result.flags if tracked else None)  # type: ignore[arg-type]
         if step.failed:
             return
         self.pub.publish(out)

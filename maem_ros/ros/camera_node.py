@@ -211,7 +211,7 @@ class CameraNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    return run_node(CameraNode, args, "camera", until=lambda node: node.done,
+    return run_node(CameraNode, args, "camera", until=lambda node: node.done,  # type: ignore[attr-defined]
                     specs=(SOURCE,) + PARAMS, doc=__doc__)
 
 

@@ -406,7 +406,7 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         # (Jazzy 7.1) passes the (msg, info) tuple as one argument
         msg, info = taken if len(taken) == 2 else taken[0]
         diag.input(topic)
-        lost = gaps.lost(info, sub.get_publisher_count)
+        lost = gaps.lost(info, sub.get_publisher_count)  # type: ignore[attr-defined]  # set below
         if lost:
             diag.reject("dds_lost", f"{topic}: {lost} message(s) overwritten in the DDS history "
                         f"before this node took them (node too slow for the input rate)", n=lost)
@@ -415,7 +415,8 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         else:
             callback(msg)
 
-    on_message.__signature__ = _MSG_INFO_SIGNATURE  # rclpy: a callback that wants the info
+    # rclpy: a callback that wants the info
+    on_message.__signature__ = _MSG_INFO_SIGNATURE  # type: ignore[attr-defined]
     sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
     return sub
 

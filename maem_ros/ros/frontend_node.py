@@ -245,6 +245,7 @@ class FrontendNode(Node):
 
     def _publish_overlay(self, rect, dets, stamp_ns: int) -> None:
         from maem_ros.frontend.overlay import draw_detections
+        assert self.overlay_pub is not None  # called only with publish_overlay
         with Stopwatch(self.diag, "overlay"):
             self.overlay_pub.publish(wire.bgr_to_image(draw_detections(rect, dets), stamp_ns,
                                                        self.camera_name))

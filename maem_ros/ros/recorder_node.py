@@ -12,9 +12,13 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from maem_ros import bagio
 from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args, stop_on_signals
+
+if TYPE_CHECKING:  # rclpy is imported when the recorder runs (the CLI parses without it)
+    from rclpy.qos import QoSProfile
 
 _HIDDEN = ("/rosout", "/parameter_events")
 
@@ -64,7 +68,7 @@ def wanted(topic: str, opts: RecordOptions) -> bool:
     return opts.all_topics and topic not in _HIDDEN
 
 
-def subscription_qos(publishers) -> QoSProfile:  # noqa: F821 - rclpy imported lazily
+def subscription_qos(publishers) -> QoSProfile:
     """Match the publishers: best effort if any is, transient local if all are; keep last 100."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     best_effort = any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT

@@ -209,7 +209,8 @@ class TriangulationNode(Node):
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
         with Stopwatch(self.diag, "markers"):
-            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
+            # wire's hint says Sequence[int]; it takes the (K,) int array (wire is being rewritten)
+            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,  # type: ignore[arg-type]
                                             self.output.bones, self.lifetime_s())
         self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))

@@ -25,6 +25,7 @@ thus holds about 16 % of the vertices instead of 43 % by area.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -130,7 +131,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _lin(*terms) -> np.ndarray:
     """sum of coefficient (P,) or scalar times vector (P,3)."""
-    out = 0.0
+    out: Any = 0.0  # the sum becomes an array at the first vector term
     for c, v in terms:
         out = out + (c[..., None] if isinstance(c, np.ndarray) else c) * v
     return out

@@ -345,8 +345,8 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     kp = skel.keypoints
     shift = gt_kpts[idx].mean(axis=1, keepdims=True) - kp.mean(axis=1, keepdims=True)
     kp = kp + shift  # the estimator fits the person's image position
-    depth = 1.0 + (0.0 if params.exact else np.clip(params.depth_sigma * rng.standard_normal(n), -0.4, 0.4))
-    depth = np.broadcast_to(depth, (n,))[:, None, None]
+    depth_n = 1.0 + (0.0 if params.exact else np.clip(params.depth_sigma * rng.standard_normal(n), -0.4, 0.4))
+    depth = np.broadcast_to(depth_n, (n,))[:, None, None]
     kc = world_to_camera(camera, kp)
     vc = _camera_vertices(camera, body, skel, h, w, shift)  # (n,3,V)
     jit = 1.0 + 2.0 * occ[:, None, None]
@@ -363,7 +363,8 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     kpts3d = depth * kc
     if params.kpt3d_sigma > 0:
         kpts3d = kpts3d + params.kpt3d_sigma * kscale * rng.standard_normal(kpts3d.shape)
-    bbox_raw = _silhouette_box(camera, *gt_raw_verts, rng, params.bbox_px)
+    u_raw, v_raw = gt_raw_verts
+    bbox_raw = _silhouette_box(camera, u_raw, v_raw, rng, params.bbox_px)
     return SimDetections(
         person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
         kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), kpts3d=kpts3d,
@@ -489,7 +490,8 @@ def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.n
     """The first ``k`` candidate bodies (in order) fully in front of the lens fold and > 60 % inside
     the raw image: their indices (m,) and raw px (u, v) each (m,V). Meshes are evaluated one
     candidate at a time, only until ``k`` are found."""
-    found, us, vs = [], [], []
+    found: list[int] = []
+    us, vs = [], []
     for i in range(len(height)):
         if len(found) == k:
             break
@@ -510,7 +512,7 @@ _FIELDS = ("person", "scores", "bbox_raw", "bbox_rect", "kpts2d_rect", "kpts2d_r
 
 
 def _concat(a: SimDetections, b: SimDetections) -> SimDetections:
-    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},
+    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},  # type: ignore[arg-type]  # _FIELDS: array fields
                          verts_source=a.verts_source.concat(b.verts_source),
                          verts_rows=np.concatenate([a.verts_rows, b.verts_rows + len(a.verts_source)]))
 

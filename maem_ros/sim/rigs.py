@@ -51,7 +51,8 @@ def _camera(name: str, eye, target, size: tuple[int, int], f: float, D=(0.0,) * 
     K = np.array([[f, 0.0, (w - 1) / 2 + pp_shift[0]], [0.0, f * aspect, (h - 1) / 2 + pp_shift[1]],
                   [0.0, 0.0, 1.0]])
     R, t = look_at(np.asarray(eye, float), np.asarray(target, float), roll)
-    return Camera(name=name, K=K, R=R, t=t, width=w, height=h, distortion_model="plumb_bob", D=list(D))
+    return Camera(name=name, K=K, R=R, t=t, width=w, height=h, distortion_model="plumb_bob",
+                  D=np.asarray(D, float))
 
 
 def sportcenter6() -> Rig:

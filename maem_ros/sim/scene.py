@@ -74,9 +74,10 @@ class SceneConfig:
         unknown = sorted(set(d) - known)
         if unknown:
             raise ValueError(f"scene config: unknown key(s) {', '.join(unknown)}")
-        return cls(**{k: (int(v) if k in ("frames", "seed", "num_vertices", "players", "bystanders",
-                                             "start_stamp_ns") and isinstance(v, float) and v.is_integer()
-                          else v) for k, v in d.items()})
+        values = {k: (int(v) if k in ("frames", "seed", "num_vertices", "players", "bystanders",
+                                      "start_stamp_ns") and isinstance(v, float) and v.is_integer()
+                      else v) for k, v in d.items()}
+        return cls(**values)  # type: ignore[arg-type]  # each value is checked in __post_init__
 
 
 class Scene:

@@ -146,6 +146,7 @@ def run(args: argparse.Namespace) -> dict:
         associate(rig, load[0].frames, aparams)  # warm-up: JIT load/compile, caches
         warmup_ms = (time.perf_counter() - t0) * 1e3
 
+        stage_ms: dict[str, list[float]]
         assoc_ms, tri_ms, decode_ms, stage_ms, results = [], [], [], {}, []
         # CPU time of this process beside wall time: on a shared machine the wall time also
         # counts the time other processes held the core
@@ -176,6 +177,7 @@ def run(args: argparse.Namespace) -> dict:
 
         # the straightforward implementation is the paper's pipeline: compare like with like
         paper = dataclasses.replace(aparams, **PAPER_PIPELINE)
+        paper_ms: list[float]
         straight_ms, paper_ms, identical = [], [], True
         for fr in load[:args.straightforward_frames]:
             t = time.perf_counter()
@@ -251,6 +253,8 @@ def _temporal(args: argparse.Namespace, rig, aparams, template) -> dict:
     seq = make_sequence(rig, template, np.random.default_rng(args.seed + 1), args.players,
                         args.extras, args.temporal_frames)
     screens = decode_screen_strides(aparams)
+    on: list[float]
+    first: list[float]
     on, off, first, left = [], [], [], []
     for _ in range(max(1, args.repeats // 5)):  # whole sequences: the tracker is stateful
         stage = TemporalAssociator(rig, aparams, TemporalParams())

@@ -346,7 +346,7 @@ def _check_crashes(group: ProcessGroup, watched: list[str], crashed: dict[str, s
                                 f"the replay anyway):\n  {crashed[name]}")
 
 
-def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: list[int], idle_s: float,
+def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: Sequence[int], idle_s: float,
            nodes: list[str], crashed: dict[str, str], keep_going: bool) -> None:
     """Wait until every frame has its poses, or no new poses arrived for ``idle_s``."""
     last_n, last_change = -1, time.monotonic()
@@ -595,7 +595,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
               f"{reproj['reprojection_px_mean']:.1f} px, median "
               f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
               f"{reproj['reprojection_px_mean_inliers']:.1f} px "
-              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "
+              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "  # type: ignore[operator]
               f"{reproj['reprojection_pairs']} joint-views); all members "
               f"{reproj['reprojection_px_mean_all_members']:.1f} px "
               f"({reproj['reprojection_members_rejected']} of {reproj['reprojection_members']} "

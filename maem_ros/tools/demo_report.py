@@ -168,7 +168,8 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
     projected through the camera's distortion."""
     msg = next(bagio.read_messages(demo.path, [image_topic(cam)], start_ns=stamp,
                                    stop_ns=stamp + 1)).decode()
-    img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_COLOR)
+    img: np.ndarray = cv2.imdecode(  # type: ignore[assignment]  # the demo bag's own JPEGs
+        np.asarray(msg.data, np.uint8), cv2.IMREAD_COLOR)
     camera = rig[cam]
 
     def draw(joints: np.ndarray, colour, thick: int, label: str | None) -> None:

@@ -164,7 +164,7 @@ def load_gt(folder: SceneFolder) -> tuple[np.ndarray, np.ndarray] | None:
     get_convention(convention)  # unknown convention -> ValueError naming it
     xyz = to_sportcenter13(pose[..., :3], convention)
     if convention == "mhr70":
-        mask = np.take(mask, SPORTCENTER_13.from_mhr70, axis=-1)
+        mask = np.take(mask, SPORTCENTER_13.from_mhr70, axis=-1)  # type: ignore[arg-type]  # defined
     return xyz, mask
 
 
@@ -468,6 +468,7 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             if masked:
                 skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
             if args.explain:
+                assert ids is not None  # --explain loaded det_ids (checked above)
                 for run, result in zip(runs, results):
                     if not run.oracle:
                         explain_run(run, result, rig, ids, gts[-1], gt_masks[-1],

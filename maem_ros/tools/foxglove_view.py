@@ -168,12 +168,11 @@ class Player:
                     self.bridge.publish_calibration(cam, stamp, camera_info_fields(msg))
             self.sent += 1
         except Exception as e:  # noqa: BLE001 - a bad message must not end the replay
-            if not isinstance(e, ValueError):
-                e = f"{type(e).__name__}: {e}"
+            why = e if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
             n = self.rejected.get(m.topic, 0)
             self.rejected[m.topic] = n + 1
             if n == 0:
-                self.log(f"skipped {m.topic} at log time {m.log_time_ns}: {e} (further skips "
+                self.log(f"skipped {m.topic} at log time {m.log_time_ns}: {why} (further skips "
                          f"on this topic are counted)")
 
 

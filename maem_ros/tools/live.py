@@ -56,9 +56,9 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
                     wire_layout: str, stride: int, count: int = 0) -> list[tuple[int, bytes]]:
     """(stamp ns, serialized /<camera>/detections) per frame, in order."""
     if bag is not None:
+        from maem_ros import bagio
         from maem_ros.ros import wire
-        from maem_ros.tools import bagio
-        out = []
+        out: list[tuple[int, bytes]] = []
         for m in bagio.read_messages(bag, [f"/{camera}/detections"]):
             if len(out) >= frames:
                 break
@@ -262,7 +262,7 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
                           frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
                           association=assoc_over)
     if a.bag is not None:
-        from maem_ros.tools import bagio
+        from maem_ros import bagio
         rig_yaml = bagio.read_rig_yaml(a.bag)
         if rig_yaml:
             (work / "rig.yaml").write_text(rig_yaml)
@@ -332,9 +332,9 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
             time.sleep(0.05)
         codes = group.stop(timeout_s=15.0)
         forced = group.forced_exits()
-        if failed := [n for n, c in codes.items() if c != 0]:
+        if failed_names := [n for n, c in codes.items() if c != 0]:
             # the work folder and its logs go when the run ends: say here why they failed
-            print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed)}",
+            print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed_names)}",
                   file=sys.stderr)
         if listener is not None:
             listener.close()
@@ -344,8 +344,10 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
     gt = ground_truth(params, a.bag, stamps)
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
     live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
-    assoc = next((kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
-    tri = next((kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
+    assoc: dict[str, str] = next(
+        (kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
+    tri: dict[str, str] = next(
+        (kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
     size = np.median([len(d) for m in messages.values() for _, d in m])
     received = sum(int(v) for k, v in assoc.items()
                    if k.startswith("received/") and k.endswith("/detections"))

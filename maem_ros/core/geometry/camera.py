@@ -13,6 +13,7 @@ import re
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -61,7 +62,9 @@ class Camera:
     height: int
     distortion_model: str = "plumb_bob"
     D: np.ndarray = field(default_factory=lambda: np.zeros(5))
-    K_rect: np.ndarray | None = None  # (3,3) intrinsics of the rectified image
+    #: (3,3) intrinsics of the rectified image, an np.ndarray after __post_init__; None (the
+    #: default) = a copy of K. Typed Any: the constructor takes None, the instance never has it
+    K_rect: Any = None
 
     def __post_init__(self) -> None:
         self.K = _as_matrix(self.K, (3, 3), f"camera {self.name!r} K")
@@ -238,7 +241,7 @@ class Camera:
         else:
             width, height = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
         return cls(name=cam_name, K=K, R=R, t=t, width=width, height=height,
-                   distortion_model=model, D=D)
+                   distortion_model=model, D=np.asarray(D, float))
 
     def to_maem_json(self) -> dict:
         """MAEM/xrmocap camera JSON dict (extrinsic_r + extrinsic_t, 3x3 intrinsic)."""

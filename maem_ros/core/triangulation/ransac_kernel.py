@@ -20,7 +20,7 @@ from maem_ros.core.jit import jit
 try:  # numba is optional: the numpy path gives the same results, only slower
     import numba as _numba
 except ImportError:  # pragma: no cover - exercised only without numba
-    _numba = None
+    _numba = None  # type: ignore[assignment]  # None = numba missing
 
 BACKENDS = ("auto", "numba", "numpy")
 
