@@ -114,6 +114,8 @@ def test_bench_large_load_reduced():
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_bench_live_reduced_run(scene, tmp_path):
     """maem-bench --live: 6 publisher processes through association + triangulation (at 10 fps:
     the test checks the tool and its report, not this machine's speed under CI load). The
@@ -146,6 +148,7 @@ def test_bench_live_rejects_bad_arguments():
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.ros
 def test_live_publisher_stops_cleanly_on_sigint(tmp_path):
     """A camera publisher of maem-bench --live that SIGINT reaches while it waits for its
     subscriber ends like a node: between steps, exit code 0, its node torn down."""

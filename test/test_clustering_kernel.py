@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from test_association import ring_rig
+from helpers_scene import ring_rig
 
 from maem_ros.core.association import clustering
 from maem_ros.core.association import clustering_kernel

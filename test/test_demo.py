@@ -155,6 +155,8 @@ def test_offline_demo_accuracy(tmp_path, bag, capsys):
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
     """The default: the bag's recorded detections at rate 1.0 -> association + triangulation."""
     out = tmp_path / "out"
@@ -174,6 +176,8 @@ def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_graph_demo_reduced(tmp_path, bag):
     """--frontends: the real node graph (9 processes + player + recorder) on 12 frames."""
     out = tmp_path / "out"
@@ -200,6 +204,8 @@ def test_graph_demo_reduced(tmp_path, bag):
 
 
 @pytest.mark.timeout(90)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_graph_demo_reports_node_failure(tmp_path, bag):
     """A node that cannot start (bad parameter) is named with its log, exit code 1, no hang."""
     params = yaml.safe_load((REPO / "config" / "demo.yaml").read_text())

@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.geometry.camera import fundamental_matrix
-from test_association import VARIANTS, ring_rig, two_facing_cameras
+from helpers_scene import ring_rig
+from test_association import VARIANTS, two_facing_cameras
 
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 

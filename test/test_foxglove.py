@@ -378,6 +378,7 @@ def test_bag_without_rig_needs_rig_option(tmp_path):
 # live graph source: the node, fed by a test publisher
 # ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("transport", ["compressed", "raw"])
+@pytest.mark.ros
 def test_live_node_serves_graph_topics(tmp_path, transport):
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
@@ -469,6 +470,7 @@ def test_live_node_serves_graph_topics(tmp_path, transport):
         assert abs(float(bgr.mean()) - 60) < 2
 
 
+@pytest.mark.ros
 def test_live_node_bad_rig_exits_2():
     res = subprocess.run([str(BIN / "maem-foxglove"), "--ros-args", "-p", "rig:=/no/such/rig"],
                          capture_output=True, text=True, timeout=60)
@@ -476,6 +478,7 @@ def test_live_node_bad_rig_exits_2():
     assert "parameter 'rig'" in res.stderr
 
 
+@pytest.mark.ros
 def test_live_node_sends_rig_without_data_under_sim_time(tmp_path):
     """Court, frustums, transforms and calibrations reach a client with no data flowing, even
     with use_sim_time and no /clock (the resend timer runs on a steady clock)."""

@@ -57,7 +57,7 @@ def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
     """association + triangulation started with -r __ns:=/team read /team/<cam>/detections and
     deliver /team/maem/poses; a second params file overrides the first (what works for a
     namespaced node: rcl's ``-p node:name:=value`` only matches a node in /)."""
-    sim = pytest.importorskip("maem_ros.sim.scene")
+    import maem_ros.sim.scene as sim
     scene = sim.Scene(sim.SceneConfig(rig="sportcenter6", frames=4, seed=3, difficulty="easy",
                                       num_vertices=500))
     params = tmp_path / "params.yaml"
@@ -113,6 +113,9 @@ def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
 _GET_PARAM = """
 import sys, rclpy
 from rcl_interfaces.srv import GetParameters
+
+# node command lines, namespaces, parameters, diagnostics
+pytestmark = pytest.mark.ros
 rclpy.init()
 node = rclpy.create_node("param_get")
 cli = node.create_client(GetParameters, sys.argv[1] + "/get_parameters")

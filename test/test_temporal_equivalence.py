@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from temporal_reference import ReferenceTemporalAssociator
-from test_temporal import PARAMS, Walker, frame, ring_rig
+from helpers_scene import ring_rig
+from test_temporal import PARAMS, Walker, frame
 
 from maem_ros.core.association.pipeline import AssociationParams
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
