@@ -18,6 +18,9 @@ from maem_ros.ros import wire
 from maem_ros.ros.common import DATA_QOS
 from maem_ros.ros.probe import fusion_links
 
+# node command lines (--help too), namespaces, parameters, diagnostics
+pytestmark = pytest.mark.ros
+
 BIN = Path(sys.executable).parent
 PARAM_NODES = {"frontend": "maem_ros.ros.frontend_node",
                "association": "maem_ros.ros.association_node",
@@ -113,9 +116,6 @@ def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
 _GET_PARAM = """
 import sys, rclpy
 from rcl_interfaces.srv import GetParameters
-
-# node command lines, namespaces, parameters, diagnostics
-pytestmark = pytest.mark.ros
 rclpy.init()
 node = rclpy.create_node("param_get")
 cli = node.create_client(GetParameters, sys.argv[1] + "/get_parameters")
