@@ -100,7 +100,11 @@ def test_noiseless_clusters_exact() -> None:
     assert isinstance(out, Poses) and out.joints.shape == (4, 70, 3)
     np.testing.assert_allclose(out.joints, X, atol=1e-6)
     assert (out.views == 6).all() and (out.inliers == 6).all()
-    np.testing.assert_allclose(out.scores, 0.95)
+    # the default score: the paper's (mean detection score) times the confidence, which is 1 for
+    # exact views up to the prior noise
+    assert np.all((out.scores > 0.5 * 0.95) & (out.scores < 0.95))
+    paper = triangulate(rig, frames, clusters, TriangulationParams(pose_score="paper"))
+    np.testing.assert_allclose(paper.scores, 0.95)
 
 
 def test_cluster_order_and_subsets_of_views() -> None:
@@ -181,7 +185,8 @@ def test_score_weighted_refit_matches_weighted_dlt() -> None:
     frames = project_frames(rig, X, noise_px=3.0, rng=np.random.default_rng(2))
     for k, cam in enumerate(rig):
         frames[cam.name].scores[:] = [0.3, 0.9, 0.6, 1.0][k]
-    out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(4)])], TriangulationParams(tau_kps=50.0))
+    out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(4)])],
+                      TriangulationParams(tau_kps=50.0, pose_score="paper"))
     assert (out.inliers == 4).all()
     P = np.stack([c.P for c in rig])
     uv = np.stack([frames[c.name].kpts2d[0] for c in rig], axis=1)  # (J,4,2)

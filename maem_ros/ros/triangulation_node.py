@@ -179,6 +179,8 @@ class TriangulationNode(Node):
                 poses = self._triangulate(self._P, *cf.dense(), self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(poses), cf.num_joints, 3))
+            std = self.convert(np.asarray(poses.joint_std, dtype=np.float64).reshape(
+                len(poses), cf.num_joints, 1))[..., 0]
             if poses.rejected is not None and poses.rejected.any():  # tau_member
                 self.diag.count("members_rejected", int(poses.rejected.sum()))
             far = mask_far_joints(joints, self.limits)
@@ -196,16 +198,17 @@ class TriangulationNode(Node):
                     if implausible:
                         self.diag.count("joints_bone_implausible", implausible)
             self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views),
-                         np.asarray(poses.scores))
+                         np.asarray(poses.scores), std)
         if not step.failed:
             self.diag.ok()
 
     def publish(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, views: np.ndarray,
-                scores: np.ndarray) -> None:
+                scores: np.ndarray, joint_std: np.ndarray) -> None:
+        """Poses (with per-joint std, m) and skeleton markers of one frame set."""
         keep = np.ones(len(ids), bool) if self.publish_tentative else ids >= 0
         with Stopwatch(self.diag, "encode"):
             poses_msg = wire.poses_to_msg(stamp_ns, self.frame_id, ids[keep], joints[keep],
-                                          views[keep], scores[keep])
+                                          views[keep], scores[keep], joint_std[keep])
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
         with Stopwatch(self.diag, "markers"):

@@ -22,7 +22,9 @@ PointCloud2 layouts (one point per row, little-endian, packed, height 1):
   With temporal association also ``track``(uint32 track id, 4294967295 = tentative) and
   ``track_flags``(uint8, core.tracking.temporal FLAG_* bits: 1 tracked, 2 fewer than k_min views).
 * poses (``/maem/poses``), one point per person: ``id``(uint32 track id, 4294967295 = not yet
-  confirmed) ``joints``(f32 x 3J world m, NaN = missing) ``views``(uint16) ``score``(f32).
+  confirmed) ``joints``(f32 x 3J world m, NaN = missing) ``views``(uint16) ``score``(f32, see
+  core/triangulation/uncertainty.py), optionally ``joint_std``(f32 x J, per-joint standard
+  deviation in m, NaN where the joint is missing; decoders that read fields by name ignore it).
 
 Decoders build one numpy structured dtype from msg.fields and view msg.data with np.frombuffer
 (no copy of the payload). Any problem raises :class:`WireError` (a ValueError) naming topic,
@@ -82,6 +84,7 @@ CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, 
 #: UNTRACKED_ID = tentative) ``track_flags``(uint8, core.tracking.temporal FLAG_* bits)
 CLUSTER_TRACK_TYPES = {"track": U32, "track_flags": PointField.UINT8}
 POSE_TYPES = {"id": U32, "joints": F32, "views": U16, "score": F32}
+POSE_OPTIONAL = {"joint_std": F32}
 
 
 class WireError(InputError):
@@ -634,7 +637,8 @@ def msg_to_clusters(msg: PointCloud2, topic: str, num_cameras: int) -> ClusterFr
 # ---------------------------------------------------------------------------------------------
 @dataclass
 class PoseFrame:
-    """Decoded /maem/poses: ids (P,) int64, joints (P,J,3) world m (NaN = missing), views, scores."""
+    """Decoded /maem/poses: ids (P,) int64, joints (P,J,3) world m (NaN = missing), views, scores,
+    joint_std (P,J) m or None when the message has no ``joint_std`` field."""
 
     stamp_ns: int
     frame_id: str
@@ -642,28 +646,35 @@ class PoseFrame:
     joints: np.ndarray
     views: np.ndarray
     scores: np.ndarray
+    joint_std: np.ndarray | None = None
 
 
 def poses_to_msg(stamp_ns: int, frame_id: str, ids: np.ndarray, joints: np.ndarray,
-                 views: np.ndarray, scores: np.ndarray) -> PointCloud2:
-    """Persons -> PointCloud2; ids < 0 (tentative tracks) are sent as UNTRACKED_ID."""
+                 views: np.ndarray, scores: np.ndarray,
+                 joint_std: np.ndarray | None = None) -> PointCloud2:
+    """Persons -> PointCloud2; ids < 0 (tentative tracks) are sent as UNTRACKED_ID; the
+    ``joint_std`` field (P,J) m is written when given."""
     joints = np.asarray(joints, dtype=np.float64)
     p = int(joints.shape[0])
     j = int(joints.shape[1]) if joints.ndim == 3 else 0
-    msg, rec = _new_cloud(stamp_ns, frame_id, [("id", U32, 1), ("joints", F32, 3 * j),
-                                               ("views", U16, 1), ("score", F32, 1)], p)
+    fields = [("id", U32, 1), ("joints", F32, 3 * j), ("views", U16, 1), ("score", F32, 1)]
+    if joint_std is not None:
+        fields.append(("joint_std", F32, j))
+    msg, rec = _new_cloud(stamp_ns, frame_id, fields, p)
     if p:
         ids = np.asarray(ids, dtype=np.int64)
         rec["id"] = np.where(ids < 0, UNTRACKED_ID, ids).astype(np.uint32)
         rec["joints"] = joints.reshape(p, 3 * j)
         rec["views"] = np.clip(np.asarray(views), 0, 65535).astype(np.uint16)
         rec["score"] = np.asarray(scores, dtype=np.float32)
+        if joint_std is not None:
+            rec["joint_std"] = np.asarray(joint_std, dtype=np.float32).reshape(p, j)
     return _set_data(msg, rec)
 
 
 def msg_to_poses(msg: PointCloud2, topic: str) -> PoseFrame:
     """PointCloud2 -> PoseFrame (NaN joints allowed, inf not)."""
-    rec = _view_cloud(msg, topic, POSE_TYPES)
+    rec = _view_cloud(msg, topic, POSE_TYPES, POSE_OPTIONAL)
     for name in ("id", "views", "score"):
         if _count(msg, name) != 1:
             raise WireError(topic, name, f"count {_count(msg, name)}, expected 1", "bad_count")
@@ -678,7 +689,22 @@ def msg_to_poses(msg: PointCloud2, topic: str) -> PoseFrame:
                      ids=f["id"][:, 0].astype(np.int64),
                      joints=f["joints"].reshape(n, c3 // 3, 3).astype(np.float64),
                      views=f["views"][:, 0].astype(np.int64),
-                     scores=f["score"][:, 0].astype(np.float64))
+                     scores=f["score"][:, 0].astype(np.float64),
+                     joint_std=_pose_joint_std(msg, rec, topic, c3 // 3))
+
+
+def _pose_joint_std(msg: PointCloud2, rec: np.ndarray, topic: str, j: int) -> np.ndarray | None:
+    """The optional ``joint_std`` field (P,J) m of a poses message, None when absent."""
+    if "joint_std" not in (rec.dtype.names or ()):
+        return None
+    if _count(msg, "joint_std") != j:
+        raise WireError(topic, "joint_std", f"count {_count(msg, 'joint_std')}, expected J={j}",
+                        "bad_count")
+    std = _field(rec, "joint_std")
+    _check_finite(topic, "joint_std", std, "person", allow_nan=True)
+    if (std < 0).any():
+        raise WireError(topic, "joint_std", "negative standard deviation", "bad_value")
+    return std.reshape(len(rec), j).astype(np.float64)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.triangulation.ransac_kernel import BACKENDS, ransac_keypoints, use_numba
+from maem_ros.core.triangulation.uncertainty import joint_covariance, joint_std, pose_confidence
 
 #: a view whose detection score is 0 still counts as a view, with this tiny DLT weight
 _MIN_WEIGHT = 1e-3
@@ -53,6 +54,17 @@ class TriangulationParams(Params):
                               minimum=0.0)
     ransac_backend: str = param("auto", "RANSAC kernel (auto = numba when installed, else the "
                                         "numpy path; the same results)", choices=BACKENDS)
+    pose_score: str = param("uncertainty", "a pose's score: uncertainty (the members' mean "
+                                           "detection score times a confidence from the joints' "
+                                           "predicted error, core/triangulation/uncertainty.py) "
+                                           "or paper (mean detection score of the members)",
+                            choices=("uncertainty", "paper"))
+    noise_prior_px: float = param(2.0, "px, prior keypoint noise of the joint covariance",
+                                  minimum=0.0, exclusive_minimum=True)
+    noise_prior_dof: float = param(2.0, "weight of noise_prior_px in residual degrees of freedom",
+                                   minimum=0.0)
+    score_ref_m: float = param(0.05, "m, predicted pose error that halves the uncertainty score",
+                               minimum=0.0, exclusive_minimum=True)
 
 
 @dataclass
@@ -63,8 +75,10 @@ class Poses:
     inliers (P,J) inlier views used per joint (0 where NaN); scores (P,) mean detection
     score of the members; mirrored (P,M) True where member m's left/right labels were swapped
     (``left_right``; member order of the cluster, M = most members of any cluster), else None;
-    rejected (P,M) True where member m was left out as a whole (``tau_member``), else None.
-    ``views`` counts the members used (rejected ones excluded).
+    rejected (P,M) True where member m was left out as a whole (``tau_member``), else None;
+    joint_std (P,J) per-joint standard deviation, m (core/triangulation/uncertainty.py; NaN
+    where the joint is missing). ``views`` counts the members used (rejected ones excluded).
+    ``scores`` follow ``pose_score``.
     """
 
     joints: np.ndarray
@@ -73,6 +87,7 @@ class Poses:
     scores: np.ndarray
     mirrored: np.ndarray | None = None
     rejected: np.ndarray | None = None
+    joint_std: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.joints.shape[0])
@@ -155,7 +170,7 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
     J = uv.shape[2]
     if C == 0:
         return Poses(np.zeros((0, J, 3)), np.zeros(0, np.int64), np.zeros((0, J), np.int64),
-                     np.zeros(0))
+                     np.zeros(0), joint_std=np.zeros((0, J)))
     poses = _ransac_members(P_rig, cam, uv, score, present, params)
     if params.tau_member > 0:
         rejected = _rejected_members(P_rig[cam], uv, present, poses, params.tau_member)
@@ -199,9 +214,14 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
         X, n_inl = ransac_keypoints(P, uv, usable, weight, params.tau_kps, params.min_views)
     else:
         X, n_inl = _ransac_numpy(P, uv, usable, weight, params.tau_kps, params.min_views)
-    mean_score = (score * present).sum(1) / np.maximum(present.sum(1), 1)
-    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), mean_score,
-                 mirrored)
+    cov, _ = joint_covariance(P, X, uv, usable, params.tau_kps, params.noise_prior_px,
+                              params.noise_prior_dof)
+    std = joint_std(cov)
+    scores = (score * present).sum(1) / np.maximum(present.sum(1), 1)  # the paper's
+    if params.pose_score == "uncertainty":
+        scores = scores * pose_confidence(std, params.score_ref_m)
+    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), scores,
+                 mirrored, joint_std=std)
 
 
 def _ransac_numpy(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray,

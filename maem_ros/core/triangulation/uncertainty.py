@@ -1,0 +1,79 @@
+"""Per-joint uncertainty of a triangulated point, and the pose confidence built on it.
+
+A joint X (world m) triangulated from the views m that support it (reprojection error under
+``tau_kps`` at X) has the first-order covariance of the least-squares estimate
+
+    cov(X) = s^2 (sum_m J_m^T J_m)^-1,   J_m = d pi(P_m X) / dX   (2x3, px/m)
+
+where s^2 is the keypoint noise variance (px^2). s^2 is estimated from the views' own residuals
+r_m (px) with a prior of ``prior_px`` worth ``prior_dof`` degrees of freedom, since two views
+leave one residual degree of freedom only:
+
+    s^2 = (prior_dof * prior_px^2 + sum_m |r_m|^2) / (prior_dof + 2 n - 3).
+
+So a joint seen by few views at a narrow angle (a weak geometry) and a joint whose views disagree
+(a wrong member, a bad keypoint) both get a large uncertainty. The published per-joint standard
+deviation is sqrt(trace(cov) / 3): the RMS over the three world axes, metres.
+
+The pose confidence ranks poses by their predicted error: ``1 / (1 + e / ref_m)`` with e the
+RMS over the pose's finite joints of sqrt(trace(cov)) (the predicted 3D error, m); 1 for a
+perfect pose, 0.5 at ``ref_m``. The triangulation's ``pose_score: uncertainty`` (default)
+multiplies it with the paper's score (the members' mean detection score), so a well-triangulated
+false positive (a low-score bystander) still ranks low and a confident detection with a weak
+geometry or disagreeing views ranks below a well-supported one (doc/design.md gives the AP
+figures that chose it).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: below this |det| the normal matrix of a joint is singular (one view, or rays at ~0 angle)
+_SINGULAR_DET = 1e-30
+
+
+def joint_covariance(P: np.ndarray, X: np.ndarray, uv: np.ndarray, usable: np.ndarray,
+                     tau_px: float, prior_px: float, prior_dof: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance (C,J,3,3) m^2 of every triangulated joint and its supporting views (C,J).
+
+    P (C,M,3,4) world -> rectified px of each member view; X (C,J,3) world m (NaN = missing);
+    uv (C,M,J,2) px; usable (C,M,J) views that observed the joint. A view supports a joint when
+    its reprojection error at X is under ``tau_px``. Joints with fewer than two supporting views
+    or a singular geometry get NaN.
+    """
+    C, M, J = usable.shape
+    Xh = np.concatenate([X, np.ones((C, J, 1))], axis=-1)  # (C,J,4)
+    x = np.einsum("cmik,cjk->cmji", P, Xh)  # (C,M,J,3) homogeneous image points
+    z = x[..., 2]
+    with np.errstate(all="ignore"):
+        proj = x[..., :2] / z[..., None]
+        r2 = ((proj - uv) ** 2).sum(-1)  # (C,M,J) px^2
+        support = usable & (z > 0) & (r2 < tau_px * tau_px)
+        # d(u, v)/dX = (P[:2, :3] - (u, v)^T P[2, :3]) / z
+        jac = (P[:, :, None, :2, :3] - proj[..., :, None] * P[:, :, None, 2:3, :3]) / z[..., None, None]
+        jac = np.where(support[..., None, None], jac, 0.0)
+        H = np.einsum("cmjai,cmjak->cjik", jac, jac)  # (C,J,3,3) px^2/m^2
+        n = support.sum(1)  # (C,J)
+        dof = np.maximum(2 * n - 3, 0)
+        s2 = (prior_dof * prior_px ** 2 + np.where(support, r2, 0.0).sum(1)) / (prior_dof + dof)
+    ok = (n >= 2) & np.isfinite(X).all(-1) & (np.abs(np.linalg.det(H)) > _SINGULAR_DET)
+    cov = np.full((C, J, 3, 3), np.nan)
+    if ok.any():
+        cov[ok] = np.linalg.inv(H[ok]) * s2[ok][:, None, None]
+    return cov, n
+
+
+def joint_std(cov: np.ndarray) -> np.ndarray:
+    """(…,J) per-joint standard deviation, m: sqrt(trace(cov)/3), the RMS over world axes."""
+    return np.sqrt(np.trace(cov, axis1=-2, axis2=-1) / 3.0)
+
+
+def pose_confidence(std: np.ndarray, ref_m: float) -> np.ndarray:
+    """(P,) confidence in (0, 1] from per-joint std (P,J) m: 1 / (1 + e / ref_m), e = RMS over
+    finite joints of the predicted 3D error sqrt(3) * std; 0 for a pose with no finite joint."""
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(std)
+        mean_var = np.where(finite, 3.0 * std ** 2, 0.0).sum(-1) / finite.sum(-1)
+        e = np.sqrt(mean_var)
+        conf = 1.0 / (1.0 + e / ref_m)
+    return np.where(finite.any(-1), conf, 0.0)
