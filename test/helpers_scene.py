@@ -28,12 +28,14 @@ def look_at(name: str, eye, target=(0.0, 0.0, 1.0), f: float = 1000.0,
     return Camera(name=name, K=K, R=R, t=-R @ eye, width=w, height=h)
 
 
-def ring_rig(n: int = 4, radius: float = 12.0, height: float = 5.0, phase: float = 0.3) -> Rig:
-    """``n`` cameras ``cam0``.. evenly on a circle of ``radius`` m at ``height`` m, the first at
-    angle ``phase`` rad, all looking at (0, 0, 1)."""
+def ring_rig(n: int = 4, radius: float = 12.0, height: float = 5.0, phase: float = 0.3,
+             squash: float = 1.0, size: tuple[int, int] = (1280, 960)) -> Rig:
+    """``n`` cameras ``cam0``.. evenly spaced in angle on a ring at ``height`` m, the first at
+    angle ``phase`` rad, all looking at (0, 0, 1): a circle of ``radius`` m, or with ``squash``
+    < 1 an ellipse whose y semi-axis is ``squash * radius`` (a court's shape); images ``size``."""
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + phase
-    return Rig([look_at(f"cam{i}", (radius * np.cos(a), radius * np.sin(a), height))
-                for i, a in enumerate(ang)])
+    return Rig([look_at(f"cam{i}", (radius * np.cos(a), squash * radius * np.sin(a), height),
+                        size=size) for i, a in enumerate(ang)])
 
 
 def project_detections(cam: Camera, joints: np.ndarray, verts: np.ndarray | None = None, *,
