@@ -256,6 +256,7 @@ def bench_frames():
     return sets
 
 
+@pytest.mark.slow
 def test_numba_and_numpy_clusterings_agree_on_bench_frames(bench_frames):
     """The consistent clustering of each frame set's gated pairs: the same groups and stats
     with the numba kernels as with the numpy paths (and merges refused on the way)."""

@@ -76,6 +76,7 @@ def test_kernel_decisions_equal_the_reference_and_the_full_mean(seed, n, symmetr
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 3000), symmetric=st.booleans(),
        rel=st.sampled_from([1e-3, 1e-5, 1e-7, 1e-9, 0.0]), above=st.booleans(),
        offset=st.sampled_from([0.0, 1500.0, -700.0]))
+@pytest.mark.slow
 def test_mixed_precision_decides_like_float64_at_the_threshold(seed, n, symmetric, rel, above,
                                                                 offset):
     if not epipolar.have_numba():

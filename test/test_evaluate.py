@@ -46,6 +46,7 @@ def run_eval(scene: Path, tmp_path: Path, params: str, *extra: str) -> dict:
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_exact_scene_scores_perfectly_with_pred_and_plots(tmp_path):
     folder = exact_scene(tmp_path / "scene")
     pred = tmp_path / "pred.npz"
@@ -135,6 +136,7 @@ def test_zero_noise_sim_scene_through_maem_eval(tmp_path):
     assert rep["mpjpe_mean"] < 1.0 and rep["mpjpe_median"] < 1.0
 
 
+@pytest.mark.slow
 def test_maem_sim_images_and_gt_people(tmp_path, capsys):
     import cv2
     from maem_ros.tools import simulate

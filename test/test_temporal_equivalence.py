@@ -54,6 +54,7 @@ def run_both(rig, seq, params: AssociationParams, temporal: TemporalParams) -> i
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("verify", ["sparse", "mesh"])
+@pytest.mark.slow
 def test_batched_stage_equals_the_reference_on_the_bench_load_in_motion(seed, verify):
     rig = load_bench_rig("sportcenter6")
     template = body_template(400, 70, seed)
