@@ -333,19 +333,27 @@ def offline(scene, frames: range, temporal: bool = False):
     from maem_ros.core.association.pipeline import AssociationParams
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.tracking.tracks import Tracker
+    from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 
     ap = AssociationParams.from_mapping(ASSOC)
     stage = TemporalAssociator(scene.rig, ap, TemporalParams(temporal=temporal))
     tracker = Tracker(gate_m=0.5, min_hits=3, timeout_s=1.0)
+    joint_filter = JointFilterParams().make()
+    tri = TriangulationParams(tau_kps=20.0)
     out = []
     for f in frames:
         dets = {c: wire.msg_to_detections(wire.detections_to_msg(scene.detections(c, f)), "t")
                 for c in scene.rig.names}
         res = stage.step(dets, scene.stamp_ns(f))
-        poses = triangulate(scene.rig, dets, res.clusters, TriangulationParams(tau_kps=20.0))
+        poses = triangulate(scene.rig, dets, res.clusters, tri)
         joints = SPORTCENTER_13.select(poses.joints)
+        cov = SPORTCENTER_13.select(poses.joint_cov.reshape(len(poses), -1, 9)).reshape(
+            len(poses), -1, 3, 3)
         ids = res.track_ids if temporal else tracker.update(scene.stamp_ns(f), joints)
+        joints, _, _ = filter_and_score(scene.stamp_ns(f), np.asarray(ids), joints, cov,
+                                        poses.detection_scores, joint_filter, tri.pose_score,
+                                        tri.score_ref_m)
         out.append((res.clusters, joints, ids))
     return out
 

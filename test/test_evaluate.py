@@ -54,7 +54,9 @@ def test_exact_scene_scores_perfectly_with_pred_and_plots(tmp_path):
                    "--plot-frame", "2")
     assert set(evaluate.METRIC_KEYS) <= set(rep)
     assert rep["frames"] == 4 and rep["recall"] == 1.0 and rep["ap75"] == 1.0
-    assert rep["mpjpe_mean"] < 1.0 and rep["pa_mpjpe_mean"] < 1.0
+    # exact views: the per-frame triangulation is exact; the joint filter (on by default) blends
+    # in the constant-velocity prediction, weighted by the prior keypoint noise: a few mm
+    assert rep["mpjpe_mean"] < 5.0 and rep["pa_mpjpe_mean"] < 5.0
     assert rep["association_ms_median"] > 0
     assert rep["skips"] == {}
     with np.load(pred) as z:
@@ -63,7 +65,7 @@ def test_exact_scene_scores_perfectly_with_pred_and_plots(tmp_path):
         # predictions come in cluster order: match each to its GT person
         for f in range(4):
             d = np.linalg.norm(z["pose"][f][:, None] - gt[f][None], axis=-1).mean(-1)
-            assert np.all(d.min(1) < 1e-3)
+            assert np.all(d.min(1) < 5e-3)
     names = sorted(p.name for p in (tmp_path / "plots").iterdir())
     assert names == ["ap_vs_threshold.png", "court_frame_000002.png", "per_frame_mpjpe.png"]
     assert all((tmp_path / "plots" / n).stat().st_size > 5000 for n in names)

@@ -256,14 +256,16 @@ class BagPlayer:
         return ok
 
     def _messages(self, start_ns: int) -> Iterator[bagio.BagMessage]:
-        return bagio.read_messages(self.opts.bag, list(self.pubs), start_ns=start_ns)
+        return bagio.read_messages(self.opts.bag, list(self.pubs), start_ns=start_ns,
+                                   info=self.info)
 
     def _publish_latched_before(self, start_ns: int) -> None:
         """Latched topics (e.g. /maem/scene) recorded before --start are published first."""
         latched = [t for t in self.pubs if t == bagio.SCENE_TOPIC or any(
             q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in self.info.qos.get(t, ()))]
         if latched and start_ns > self.info.start_ns:
-            for m in bagio.read_messages(self.opts.bag, latched, stop_ns=start_ns):
+            for m in bagio.read_messages(self.opts.bag, latched, stop_ns=start_ns,
+                                         info=self.info):
                 self.pubs[m.topic].publish(m.data)
                 self.published += 1
 
@@ -393,10 +395,12 @@ def main(args: Sequence[str] | None = None) -> int:
     ours, ros_args = split_ros_args(sys.argv if args is None else ["maem-play", *args])
     opts = parse_args(ours)
     try:
-        bagio.bag_info(opts.bag)  # a bad bag: one line before any ROS set-up
+        info = bagio.bag_info(opts.bag)  # a bad bag: one line before any ROS set-up
     except bagio.BagError as e:
         print(f"maem-play: {e}", file=sys.stderr, flush=True)
         return EXIT_BAD_INPUT
+    if info.damage:  # cut short by a crash: every complete message is played
+        print(f"maem-play: warning: {info.damage}", file=sys.stderr, flush=True)
     stop = stop_on_signals("maem-play")
     if not init_ros(ros_args, "maem-play"):
         return EXIT_BAD_INPUT

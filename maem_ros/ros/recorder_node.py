@@ -1,5 +1,12 @@
 """maem-record: record live topics into a rosbag2 (MCAP) bag, closed cleanly on SIGINT/SIGTERM.
 
+Crash-safe (bagio.writer): chunks reach the disk at least every --chunk-duration s, metadata.yaml
+is rewritten atomically at the start, on every split and every few seconds, so a killed
+recorder loses about the last second and leaves a bag every reader opens (``maem-bag recover``
+makes it whole). --max-bag-duration / --max-bag-size split the recording into files like
+rosbag2; the same settings are ROS parameters (``-p max_bag_duration:=60``; a flag wins). A
+full disk stops the recorder with one line saying what the bag holds (exit code 1).
+
 Subscriptions take the serialized CDR bytes (raw=True) and write them unchanged; log time is the
 receive time on the node clock (as rosbag2 does). Topic types come from the ROS graph, polled
 until every requested topic is found (late publishers are picked up). The subscription QoS
@@ -11,10 +18,11 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 from maem_ros import bagio
+from maem_ros.bagio import WriteOptions
 from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args, stop_on_signals
 
 if TYPE_CHECKING:  # rclpy is imported when the recorder runs (the CLI parses without it)
@@ -32,7 +40,7 @@ class RecordOptions:
     duration_s: float = 0.0
     discovery_timeout_s: float = 10.0
     poll_s: float = 0.5
-    compress: bool = False
+    write_flags: dict[str, Any] = field(default_factory=dict)  # WriteOptions given as flags
 
 
 def parse_args(argv: Sequence[str]) -> RecordOptions:
@@ -48,16 +56,30 @@ def parse_args(argv: Sequence[str]) -> RecordOptions:
                    help="stop after S seconds (default: until SIGINT)")
     p.add_argument("--discovery-timeout", type=float, default=10.0, metavar="S",
                    help="warn about requested topics not seen after S seconds (polling goes on)")
-    p.add_argument("--compress", action="store_true", help="zstd MCAP chunk compression")
+    for spec in WriteOptions.specs():  # one definition: the ROS parameters use the same specs
+        flag = "--" + spec.name.replace("_", "-")
+        extra = f" [{spec.constraints()}]" if spec.constraints() else ""
+        if spec.ptype is bool:
+            p.add_argument(flag, action="store_true", default=None, help=spec.description)
+        else:
+            unit = spec.description.split(",")[0]  # "s, ..." / "MB, ..."
+            p.add_argument(flag, type=spec.ptype, default=None, metavar=unit.upper(),
+                           help=f"{spec.description} (default {spec.default:g}){extra}")
     a = p.parse_args(list(argv))
     if not (a.topics or a.all_maem or a.all_topics):
         p.error("nothing to record: give --topics, --all-maem or --all")
     for t in a.topics:
         if not t.startswith("/"):
             p.error(f"--topics: {t!r} must be an absolute topic name (start with '/')")
+    flags = {s.name: getattr(a, s.name) for s in WriteOptions.specs()
+             if getattr(a, s.name) is not None}
+    try:
+        WriteOptions(**flags)
+    except ValueError as e:
+        p.error(f"--{str(e).replace('_', '-')}")
     return RecordOptions(out=a.out, topics=list(dict.fromkeys(a.topics)), all_maem=a.all_maem,
                          all_topics=a.all_topics, duration_s=max(0.0, a.duration),
-                         discovery_timeout_s=a.discovery_timeout, compress=a.compress)
+                         discovery_timeout_s=a.discovery_timeout, write_flags=flags)
 
 
 def wanted(topic: str, opts: RecordOptions) -> bool:
@@ -92,6 +114,7 @@ class Recorder:
         self.received = 0
         self.t_start = time.monotonic()
         self.warned_missing = False
+        self.error: bagio.BagWriteError | None = None
 
     def poll_graph(self) -> None:
         """Subscribe to newly visible wanted topics (first advertised type)."""
@@ -126,9 +149,23 @@ class Recorder:
 
     def _callback(self, topic: str, msgtype: str):
         def on_message(data: bytes) -> None:
-            self.writer.write_raw(topic, msgtype, data, self.node.get_clock().now().nanoseconds)
             self.received += 1
+            if self.error is not None:
+                return
+            try:
+                self.writer.write_raw(topic, msgtype, data,
+                                      self.node.get_clock().now().nanoseconds)
+            except bagio.BagWriteError as e:
+                self.error = e
         return on_message
+
+    def tick(self) -> None:
+        """Timer: write the open chunk / metadata.yaml when due."""
+        if self.error is None:
+            try:
+                self.writer.tick()
+            except bagio.BagWriteError as e:
+                self.error = e
 
 
 def _bag_qos(node, topic: str):
@@ -140,6 +177,15 @@ def _bag_qos(node, topic: str):
     if any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in pubs):
         return bagio.QOS_SENSOR
     return bagio.QOS_RELIABLE
+
+
+def write_options(node, opts: RecordOptions) -> WriteOptions:
+    """The node's WriteOptions parameters, overridden by the flags given (ConfigError, one
+    line, on a bad parameter)."""
+    from maem_ros.ros.common import declare_params
+    values = declare_params(node, WriteOptions.specs())
+    values.update(opts.write_flags)
+    return WriteOptions(**values)
 
 
 def _drain(executor, recorder: Recorder, max_s: float = 2.0) -> None:
@@ -165,27 +211,38 @@ def main(args: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     node = rclpy.create_node("maem_recorder")
     try:
-        writer = bagio.BagWriter(opts.out, compress=opts.compress)
-    except Exception as e:  # noqa: BLE001 - rosbags WriterError / OSError: report, exit non-zero
-        print(f"maem-record: output bag {opts.out!r}: {e}", file=sys.stderr)
+        writer = bagio.BagWriter(opts.out, options=write_options(node, opts))
+    except ValueError as e:  # ConfigError: a bad ROS parameter
+        print(f"maem-record: {e}", file=sys.stderr)
         shutdown_ros(node)
-        return 2
+        return EXIT_BAD_INPUT
+    except OSError as e:  # exists already, no permission, full disk
+        print(f"maem-record: output bag {opts.out!r}: {e.strerror or e}", file=sys.stderr)
+        shutdown_ros(node)
+        return EXIT_BAD_INPUT
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     rec = Recorder(node, opts, writer)
     try:
         rec.poll_graph()
         node.create_timer(opts.poll_s, rec.poll_graph)
+        node.create_timer(min(0.1, writer.options.chunk_duration / 4), rec.tick)
         deadline = time.monotonic() + opts.duration_s if opts.duration_s else None
-        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+        while not stop.is_set() and rec.error is None and \
+                (deadline is None or time.monotonic() < deadline):
             executor.spin_once(timeout_sec=0.1)
-        _drain(executor, rec)
+        if rec.error is None:
+            _drain(executor, rec)
     finally:
         writer.close()
         executor.shutdown(timeout_sec=1.0)
         shutdown_ros(node)
+    if rec.error is not None:
+        print(f"maem-record: {rec.error.strerror}", file=sys.stderr, flush=True)
+        return 1
     per_topic = ", ".join(f"{t}: {n}" for t, n in writer.counts.items()) or "no topics"
-    print(f"maem-record: wrote {writer.message_count} messages to {opts.out} ({per_topic})"
+    print(f"maem-record: wrote {writer.message_count} messages to {opts.out} in "
+          f"{len(writer.files)} file(s) ({per_topic}); received {rec.received}"
           f"{f'; not recorded: {sorted(rec.rejected)}' if rec.rejected else ''}", flush=True)
     return 0
 

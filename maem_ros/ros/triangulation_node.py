@@ -36,6 +36,7 @@ from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
 from maem_ros.core.sync import StampGuard
 from maem_ros.core.tracking.bone_filter import BoneLengthFilter
+from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
 from maem_ros.ros.common import (
@@ -91,7 +92,7 @@ class TriangulationNodeParams(NodeParams):
                                   exclusive_minimum=True)
 
 
-PARAMS = param_specs(TriangulationNodeParams, TriangulationParams)
+PARAMS = param_specs(TriangulationNodeParams, TriangulationParams, JointFilterParams)
 
 
 class TriangulationNode(Node):
@@ -112,6 +113,7 @@ class TriangulationNode(Node):
             self.limits = InputLimits(max_people=p["max_people"], pixel_margin=p["pixel_margin"],
                                       world_extent_m=p["world_extent"])
             self.guard = StampGuard(int(round(p["jump_tolerance"] * 1e9)))
+            self.joint_filter = JointFilterParams.from_mapping(p).make()
             self.bone_filter = (BoneLengthFilter(get_convention(p["output_convention"]).names,
                                                  p["bone_tolerance"])
                                 if p["bone_tolerance"] > 0 else None)
@@ -165,6 +167,8 @@ class TriangulationNode(Node):
             self.tracker.reset()
             if self.bone_filter is not None:
                 self.bone_filter.reset()
+            if self.joint_filter is not None:
+                self.joint_filter.reset()
             self.diag.count("tracker_resets")
             self.diag.log_throttled("tracker_reset", f"{self.topic}: stamps went back to "
                                     f"{verdict.accepted[0][0]} (confirmed by the next "
@@ -179,8 +183,8 @@ class TriangulationNode(Node):
                 poses = self._triangulate(self._P, *cf.dense(), self.params)
             joints = self.convert(np.asarray(poses.joints, dtype=np.float64).reshape(
                 len(poses), cf.num_joints, 3))
-            std = self.convert(np.asarray(poses.joint_std, dtype=np.float64).reshape(
-                len(poses), cf.num_joints, 1))[..., 0]
+            cov = self.convert(np.asarray(poses.joint_cov, dtype=np.float64).reshape(
+                len(poses), cf.num_joints, 9)).reshape(len(poses), -1, 3, 3)
             if poses.rejected is not None and poses.rejected.any():  # tau_member
                 self.diag.count("members_rejected", int(poses.rejected.sum()))
             far = mask_far_joints(joints, self.limits)
@@ -193,12 +197,14 @@ class TriangulationNode(Node):
                 ids = cf.cluster_tracks()
                 if ids is None:
                     ids = np.asarray(self.tracker.update(cf.stamp_ns, joints), dtype=np.int64)
+                joints, std, scores = filter_and_score(
+                    cf.stamp_ns, ids, joints, cov, np.asarray(poses.detection_scores),
+                    self.joint_filter, self.params.pose_score, self.params.score_ref_m)
                 if self.bone_filter is not None:
                     implausible = self.bone_filter.apply(ids, joints)
                     if implausible:
                         self.diag.count("joints_bone_implausible", implausible)
-            self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views),
-                         np.asarray(poses.scores), std)
+            self.publish(cf.stamp_ns, ids, joints, np.asarray(poses.views), scores, std)
         if not step.failed:
             self.diag.ok()
 

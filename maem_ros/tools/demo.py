@@ -379,7 +379,7 @@ def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
     if not any(t in demo.info.topics for t in topics):
         raise ValueError(f"bag {str(demo.path)!r}: no /<camera>/detections to run --no-graph on")
     stop = stamps[-1] + 1 if stamps else None
-    for m in bagio.read_messages(demo.path, topics, stop_ns=stop):
+    for m in bagio.read_messages(demo.path, topics, stop_ns=stop, info=demo.info):
         dets = msg_to_detections(m.decode(), m.topic, rig.names)
         if dets.stamp_ns in frames:
             frames[dets.stamp_ns][dets.camera] = dets

@@ -93,21 +93,23 @@ def make_demo_bag(out: Path, frames: int = DEMO_SCENE["frames"], seed: int = DEM
 
 def ensure_bag(bag: Path | None, frames: int) -> Path:
     """The bag given with --bag (which must exist: it is never created here), or the default
-    demo bag, generated (seeded) when missing."""
+    demo bag, generated (seeded) when missing. Whether a folder is a bag is bagio's call (a
+    bag without metadata.yaml, as a killed recorder leaves, is one)."""
     if bag is not None:
         if not bag.exists():
             raise bagio.BagError(f"--bag {str(bag)!r}: no such file or directory (maem-demo "
                                  f"--make-bag DIR builds a demo bag)")
-        if not (bag / "metadata.yaml").is_file():
-            raise bagio.BagError(f"--bag {str(bag)!r}: not a rosbag2 folder (no metadata.yaml)")
+        bagio.bag_info(bag)  # BagError: not a rosbag2 folder / not MCAP / nothing complete
         return bag
     bag = default_bag()
-    if not (bag / "metadata.yaml").is_file():
-        if bag.exists():
-            raise bagio.BagError(f"default bag {str(bag)!r}: not a rosbag2 folder "
-                                 f"(no metadata.yaml)")
+    if not bag.exists():
         log(f"no bag at {str(bag)!r}: generating the demo bag (seeded)")
         make_demo_bag(bag, frames=frames)
+    else:
+        try:
+            bagio.bag_info(bag)
+        except bagio.BagError as e:
+            raise bagio.BagError(f"default bag: {e}") from None
     return bag
 
 
@@ -135,16 +137,19 @@ class DemoBag:
 def load_bag(path: Path) -> DemoBag:
     """Read a demo bag's metadata, image stamps and ground truth; ValueError when unusable."""
     info = bagio.bag_info(path)
+    if info.damage:  # cut short by a crash: the demo runs on every complete frame
+        log(f"warning: {info.damage}")
     cams = sorted(t.split("/")[1] for t in info.topics if t.endswith("/image_raw/compressed"))
     if not cams:
         raise ValueError(f"bag {str(path)!r}: no /<camera>/image_raw/compressed topic")
     rig_yaml = bagio.read_rig_yaml(path)
     if not rig_yaml:
         raise ValueError(f"bag {str(path)!r}: no rig in metadata custom_data ({bagio.CUSTOM_RIG})")
-    stamps = sorted({m.log_time_ns for m in bagio.read_messages(path, [image_topic(cams[0])])})
+    stamps = sorted({m.log_time_ns for m in bagio.read_messages(path, [image_topic(cams[0])],
+                                                                info=info)})
     convention = info.custom.get(bagio.CUSTOM_GT_CONVENTION)
     gt = {}
-    for m in bagio.read_messages(path, [bagio.GT_TOPIC]):
+    for m in bagio.read_messages(path, [bagio.GT_TOPIC], info=info):
         pf = msg_to_poses(m.decode(), bagio.GT_TOPIC)
         gt[pf.stamp_ns] = to_sportcenter13(pf.joints, convention)
     return DemoBag(path, info, cams, stamps, bagio.read_scene_config(path), rig_yaml, gt)
@@ -177,6 +182,6 @@ def trim_bag(src: DemoBag, dst: Path, frames: int) -> Path:
         for topic, msgtype in src.info.topics.items():
             qos = src.info.qos.get(topic)
             w.add_topic(topic, msgtype, qos[0] if qos else None)
-        for m in bagio.read_messages(src.path, stop_ns=stop):
+        for m in bagio.read_messages(src.path, stop_ns=stop, info=src.info):
             w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns)
     return dst

@@ -143,12 +143,14 @@ class Run:
     oracle: bool = False  # association from det_ids.npz instead of associate()
     preds: list[np.ndarray] = field(default_factory=list)   # per evaluated frame (K,13,3)
     scores: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,)
+    stds: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,13) joint std m
     assoc_ms: list[float] = field(default_factory=list)
     metrics: dict[str, Any] = field(default_factory=dict)
     causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
     ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
     #: core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
     tracker: Any = None
+    joint_filter: Any = None  # core.tracking.joint_filter.JointFilter (None: off)
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
@@ -216,19 +218,17 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
             clusters = result.clusters
         run.assoc_ms.append(1e3 * (time.perf_counter() - t0))
         poses = triangulate(rig, frames, clusters, tri_params)
-        joints = np.asarray(poses.joints, dtype=np.float64)
-        joints = (to_sportcenter13(joints) if len(joints)
-                  else np.zeros((0, SPORTCENTER_13.num_joints, 3)))
-        if ids is None:  # post-hoc 3D tracker, as the triangulation node with temporal off
-            ids = run.tracker.update(stamp, joints)
+        joints, std, scores, ids = _published(run, poses, stamp, ids, tri_params)
         valid = np.isfinite(joints).all(-1).any(-1)
         run.preds.append(joints[valid])
-        run.scores.append(np.asarray(poses.scores, dtype=np.float64)[valid])
+        run.scores.append(scores[valid])
+        run.stds.append(std[valid])
         run.ids.append(np.asarray(ids, np.int64)[valid])
     except ValueError as e:
         skips.add("pipeline_error", f"{run.name}, frame {frame}: {e}")
         run.preds.append(np.zeros((0, SPORTCENTER_13.num_joints, 3)))
         run.scores.append(np.zeros(0))
+        run.stds.append(np.zeros((0, SPORTCENTER_13.num_joints)))
         run.ids.append(np.zeros(0, np.int64))
     return result
 
@@ -327,22 +327,45 @@ def format_id_lines(runs: Sequence[Run]) -> list[str]:
     return out
 
 
+def _published(run: Run, poses, stamp: int, ids, tri_params
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """What the triangulation node publishes for one frame's poses: sportcenter_13 joints (P,13,3)
+    world m, their std (P,13) m, scores (P,) and track ids (P,) (the post-hoc 3D tracker's when
+    ``ids`` is None, as the node does with temporal off), joints filtered over time when the run
+    has a joint filter."""
+    from maem_ros.core.tracking.joint_filter import filter_and_score
+    n = len(poses)
+    joints = to_sportcenter13(np.asarray(poses.joints, dtype=np.float64)) if n else \
+        np.zeros((0, SPORTCENTER_13.num_joints, 3))
+    cov = (to_sportcenter13(np.asarray(poses.joint_cov).reshape(n, -1, 9)).reshape(n, -1, 3, 3)
+           if n else np.zeros((0, SPORTCENTER_13.num_joints, 3, 3)))
+    if ids is None:
+        ids = run.tracker.update(stamp, joints)
+    ids = np.asarray(ids, np.int64)
+    joints, std, scores = filter_and_score(stamp, ids, joints, cov,
+                                           np.asarray(poses.detection_scores), run.joint_filter,
+                                           tri_params.pose_score, tri_params.score_ref_m)
+    return joints, std, scores, ids
+
+
 def write_pred(path: Path, run: Run, frame_ids: Sequence[int], num_frames: int) -> None:
     """pose (F,K,13,3) world m (NaN = missing), valid (F,K), score (F,K), id (F,K) int64 track id
-    (-1 = none); F = frames considered."""
+    (-1 = none), joint_std (F,K,13) m (per-joint standard deviation); F = frames considered."""
     k = max([len(p) for p in run.preds], default=0)
     pose = np.full((num_frames, k, SPORTCENTER_13.num_joints, 3), np.nan)
     valid = np.zeros((num_frames, k), bool)
     score = np.zeros((num_frames, k))
     ids = np.full((num_frames, k), -1, np.int64)
-    for f, p, s, i in zip(frame_ids, run.preds, run.scores, run.ids):
+    std = np.full((num_frames, k, SPORTCENTER_13.num_joints), np.nan)
+    for f, p, s, i, sd in zip(frame_ids, run.preds, run.scores, run.ids, run.stds):
         pose[f, :len(p)] = p
         valid[f, :len(p)] = True
         score[f, :len(p)] = s
         ids[f, :len(p)] = i
+        std[f, :len(p)] = sd
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as fh:
-        np.savez_compressed(fh, pose=pose, valid=valid, score=score, id=ids,
+        np.savez_compressed(fh, pose=pose, valid=valid, score=score, id=ids, joint_std=std,
                             convention=np.array(SPORTCENTER_13.name))
 
 
@@ -414,6 +437,12 @@ def make_tracker(rig, assoc, params_path: str, temporal: str | None):
                    timeout_s=tri.get("track_timeout", 1.0))
 
 
+def make_joint_filter(params_path: str):
+    """The triangulation node's joint filter (its joint_filter* parameters), or None when off."""
+    from maem_ros.core.tracking.joint_filter import JointFilterParams
+    return JointFilterParams.from_mapping(load_node_params(params_path, "triangulation")).make()
+
+
 def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     """Run the evaluation described by parsed CLI args; returns the JSON report dict."""
     assoc, tri = load_params(args.params)
@@ -436,8 +465,8 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     if args.explain and args.temporal == "on":
         raise ValueError("--explain breaks down the per-frame association: use --temporal off")
     temporal = "off" if args.explain else args.temporal
-    runs = [Run(name, a, tracker=make_tracker(rig, a, args.params, temporal))
-            for name, a in configs]
+    runs = [Run(name, a, tracker=make_tracker(rig, a, args.params, temporal),
+                joint_filter=make_joint_filter(args.params)) for name, a in configs]
     det_ids = None
     if args.oracle or args.explain:
         if not folder.has_det_ids:
@@ -446,7 +475,8 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         det_ids = folder.det_ids()
     if args.oracle:
         runs.insert(0, Run("oracle (GT association)", assoc, oracle=True,
-                           tracker=make_tracker(rig, assoc, args.params, "off")))
+                           tracker=make_tracker(rig, assoc, args.params, "off"),
+                           joint_filter=make_joint_filter(args.params)))
     frame_ids, gts, gt_masks, gt_ids = [], [], [], []
     for f in tqdm(range(n), desc="maem-eval", unit="frame", disable=args.quiet, file=sys.stderr):
         if gt is not None and f >= gt[0].shape[0]:

@@ -92,6 +92,8 @@ def read_pose_series(bag: str | Path, topic: str) -> PoseSeries:
         info = bagio.bag_info(bag)
     except (ValueError, OSError) as e:
         raise InputError(str(e)) from None
+    if info.damage:  # cut short by a crash: every complete message is exported
+        print(f"maem-export: warning: {info.damage}", file=sys.stderr, flush=True)
     if topic not in info.topics:
         poses = sorted(t for t, ty in info.topics.items() if ty == bagio.POINT_CLOUD2)
         hint = (f"; --topic {bagio.GT_TOPIC} exports the ground truth" if bagio.GT_TOPIC in poses
@@ -102,7 +104,7 @@ def read_pose_series(bag: str | Path, topic: str) -> PoseSeries:
         raise InputError(f"bag {str(bag)!r}: topic {topic!r} is {info.topics[topic]}, expected "
                          f"{bagio.POINT_CLOUD2} (poses layout)")
     stamps, ids, joints, j = [], [], [], None
-    for m in bagio.read_messages(bag, [topic]):
+    for m in bagio.read_messages(bag, [topic], info=info):
         try:
             frame = wire.msg_to_poses(m.decode(), topic)
         except (ValueError, KeyError) as e:

@@ -31,7 +31,7 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.triangulation.ransac_kernel import BACKENDS, ransac_keypoints, use_numba
-from maem_ros.core.triangulation.uncertainty import joint_covariance, joint_std, pose_confidence
+from maem_ros.core.triangulation.uncertainty import joint_covariance, joint_std, pose_scores
 
 #: a view whose detection score is 0 still counts as a view, with this tiny DLT weight
 _MIN_WEIGHT = 1e-3
@@ -76,9 +76,10 @@ class Poses:
     score of the members; mirrored (P,M) True where member m's left/right labels were swapped
     (``left_right``; member order of the cluster, M = most members of any cluster), else None;
     rejected (P,M) True where member m was left out as a whole (``tau_member``), else None;
-    joint_std (P,J) per-joint standard deviation, m (core/triangulation/uncertainty.py; NaN
-    where the joint is missing). ``views`` counts the members used (rejected ones excluded).
-    ``scores`` follow ``pose_score``.
+    joint_std (P,J) per-joint standard deviation, m, and joint_cov (P,J,3,3) the joints'
+    covariance, m^2 (core/triangulation/uncertainty.py; NaN where the joint is missing);
+    detection_scores (P,) the members' mean detection score (the paper's score). ``views`` counts
+    the members used (rejected ones excluded). ``scores`` follow ``pose_score``.
     """
 
     joints: np.ndarray
@@ -88,6 +89,8 @@ class Poses:
     mirrored: np.ndarray | None = None
     rejected: np.ndarray | None = None
     joint_std: np.ndarray | None = None
+    joint_cov: np.ndarray | None = None
+    detection_scores: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.joints.shape[0])
@@ -170,7 +173,8 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
     J = uv.shape[2]
     if C == 0:
         return Poses(np.zeros((0, J, 3)), np.zeros(0, np.int64), np.zeros((0, J), np.int64),
-                     np.zeros(0), joint_std=np.zeros((0, J)))
+                     np.zeros(0), joint_std=np.zeros((0, J)), joint_cov=np.zeros((0, J, 3, 3)),
+                     detection_scores=np.zeros(0))
     poses = _ransac_members(P_rig, cam, uv, score, present, params)
     if params.tau_member > 0:
         rejected = _rejected_members(P_rig[cam], uv, present, poses, params.tau_member)
@@ -217,11 +221,10 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
     cov, _ = joint_covariance(P, X, uv, usable, params.tau_kps, params.noise_prior_px,
                               params.noise_prior_dof)
     std = joint_std(cov)
-    scores = (score * present).sum(1) / np.maximum(present.sum(1), 1)  # the paper's
-    if params.pose_score == "uncertainty":
-        scores = scores * pose_confidence(std, params.score_ref_m)
-    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64), scores,
-                 mirrored, joint_std=std)
+    detection_scores = (score * present).sum(1) / np.maximum(present.sum(1), 1)
+    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64),
+                 pose_scores(detection_scores, std, params.pose_score, params.score_ref_m),
+                 mirrored, joint_std=std, joint_cov=cov, detection_scores=detection_scores)
 
 
 def _ransac_numpy(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray,

@@ -77,3 +77,12 @@ def pose_confidence(std: np.ndarray, ref_m: float) -> np.ndarray:
         e = np.sqrt(mean_var)
         conf = 1.0 / (1.0 + e / ref_m)
     return np.where(finite.any(-1), conf, 0.0)
+
+
+def pose_scores(detection_scores: np.ndarray, std: np.ndarray, mode: str, ref_m: float
+                ) -> np.ndarray:
+    """(P,) published score: ``paper`` = the members' mean detection score; ``uncertainty`` =
+    that times :func:`pose_confidence` of the per-joint std (P,J) m."""
+    if mode == "paper":
+        return np.asarray(detection_scores, dtype=np.float64)
+    return detection_scores * pose_confidence(std, ref_m)
