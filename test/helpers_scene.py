@@ -38,6 +38,11 @@ def ring_rig(n: int = 4, radius: float = 12.0, height: float = 5.0, phase: float
                         size=size) for i, a in enumerate(ang)])
 
 
+#: ring_rig keywords of a court-shaped ring (an ellipse, HD images): the geometry the
+#: triangulation, uncertainty and joint filter tests set their bounds on
+COURT_RING = dict(phase=0.0, squash=0.8, size=(1920, 1080))
+
+
 def project_detections(cam: Camera, joints: np.ndarray, verts: np.ndarray | None = None, *,
                        centres: np.ndarray | None = None, kpts3d_world: np.ndarray | None = None,
                        scores: float | Sequence[float] | np.ndarray = 0.95, stamp_ns: int = 0,

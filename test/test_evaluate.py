@@ -156,6 +156,7 @@ def test_maem_sim_images_and_gt_people(tmp_path, capsys):
     assert "no_such_rig" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_oracle_and_explain_on_simulated_scenes(tmp_path):
     """maem-sim writes det_ids.npz; --oracle scores 100 % on a noiseless scene; on a noisy one
     every lost person-frame gets exactly one cause (the counts add up to the losses)."""

@@ -8,11 +8,8 @@ import numpy as np
 from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 from maem_ros.core.triangulation.uncertainty import joint_covariance, joint_std, pose_confidence
 
-from helpers_scene import project_frames, ring_rig
+from helpers_scene import COURT_RING, project_frames, ring_rig
 from test_triangulation import cluster, people
-
-#: the court-shaped ring (an ellipse, HD images) the bounds below were set on
-COURT_RING = dict(phase=0.0, squash=0.8, size=(1920, 1080))
 
 
 def test_noise_free_joints_have_the_prior_noise_only():
