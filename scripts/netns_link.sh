@@ -43,7 +43,7 @@ fi
 # than ipfrag_max_dist (64) fragments from the same address, which six publishers sending
 # 64 kB datagrams (44 fragments each) at once exceed (seen: 5 of 1,240 datagrams lost, each a
 # ~170 ms reliable-retransmission stall and partial sets). 0 switches the check off, as a
-# fusion machine receiving several cameras from one machine should (README, Deployment).
+# fusion machine receiving several cameras from one machine should (doc/multi-machine.md).
 for ns in maem_cam maem_fus; do
     ip netns exec $ns sysctl -qw net.ipv4.ipfrag_max_dist=0
 done

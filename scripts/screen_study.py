@@ -10,7 +10,7 @@ decisions differ from the full mesh's.
 
     .venv/bin/python scripts/screen_study.py [--quick]
 
-The numbers behind screen_margin and screen_coarse_margin (doc/DESIGN_CHANGES.md, section 1).
+The numbers behind screen_margin and screen_coarse_margin (doc/design.md §9.3).
 """
 from __future__ import annotations
 

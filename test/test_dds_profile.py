@@ -1,4 +1,4 @@
-"""config/fastdds.xml: well-formed, the transports the README describes, used by default."""
+"""config/fastdds.xml: well-formed, the transports doc/multi-machine.md describes, used by default."""
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET

@@ -1,4 +1,4 @@
-"""Architecture rules (brief / DESIGN.md): core/ never imports rclpy or message packages, ros/
+"""Architecture rules (doc/design.md §2): core/ never imports rclpy or message packages, ros/
 imports neither tools/ nor sim/, bags and capture are ROS-free packages of their own."""
 from __future__ import annotations
 

@@ -34,7 +34,7 @@ def test_blazepose_maps_to_sportcenter_13_and_coco_17():
     x = np.arange(2 * 33 * 3, dtype=float).reshape(2, 33, 3)
     sc = convert(x, SPORTCENTER_13, "blazepose_33")
     np.testing.assert_array_equal(sc[:, 5], x[:, 15])  # left wrist
-    # the MHR70 path gives the same joints by name as the index table of DESIGN §7
+    # the MHR70 path gives the same joints by name as the index table of doc/design.md §7
     mhr = np.arange(70 * 2, dtype=float).reshape(70, 2)
     np.testing.assert_array_equal(convert(mhr, SPORTCENTER_13, "mhr70"),
                                   SPORTCENTER_13.select(mhr))

@@ -26,7 +26,7 @@ ROSDEP_KEY = {
 #: keys rosdistro lacks, defined in the repository's rosdep.yaml
 CUSTOM_KEYS = {"python3-threadpoolctl-pip", "python3-foxglove-sdk-pip", "python3-ezc3d-pip"}
 #: imports of the optional SAM 3D Body backend (frontend/sam3d_body.py): installed with the
-#: model's own repository, not by rosdep (README, SAM 3D Body)
+#: model's own repository, not by rosdep (doc/sam3d-body.md)
 #: mediapipe: the optional mediapipe frontend's wheel (make mediapipe, pip --no-deps); tomli:
 #: imported only on Python < 3.11 (ROS 2 Jazzy's Python 3.12 has tomllib)
 OPTIONAL = {"torch", "detectron2", "sam_3d_body", "tools", "mediapipe", "tomli"}

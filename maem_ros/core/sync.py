@@ -3,7 +3,7 @@
 message_filters is not available from PyPI, so this is the project's own. Every call
 passes ``now_ns`` (the caller's clock: wall or sim time), which keeps it testable.
 
-Rules (DESIGN.md §5):
+Rules (doc/design.md §5):
 
 - Each camera has a short queue, kept sorted by stamp (at most ``queue_size``
   messages; when full the oldest is dropped, reason ``queue_full``).

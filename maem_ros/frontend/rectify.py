@@ -1,4 +1,4 @@
-"""Undistort raw camera images into the rectified pinhole image of the rig (DESIGN.md §4).
+"""Undistort raw camera images into the rectified pinhole image of the rig (doc/design.md §4).
 
 Every 2D coordinate the frontend publishes is in the rectified image with
 intrinsics ``camera.K_rect`` and the calibration's image size, so the image is

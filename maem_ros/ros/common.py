@@ -1,6 +1,6 @@
 """Shared node plumbing: QoS profiles, validated parameters, /diagnostics, the main() runner.
 
-QoS (chosen deliberately, see README):
+QoS (chosen deliberately, see doc/design.md §4):
   * images: sensor data (best effort, keep last 2): a slow frontend drops stale frames instead of
     queueing them, and best-effort subscribers also accept reliable camera drivers.
   * detections / clusters / poses: reliable, keep last 10, volatile: every processed frame reaches
@@ -49,8 +49,9 @@ RELIABLE_IMAGE_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
                                 reliability=ReliabilityPolicy.RELIABLE,
                                 durability=DurabilityPolicy.VOLATILE)
 #: messages kept per per-frame stream (detections, clusters, poses) at both ends, writer and
-#: reader: a node starved of CPU for a while (0.2-0.4 s measured on the 2-core test machine)
-#: finds every message of the stall still queued instead of overwritten (dropped/dds_lost),
+#: reader: ~1 s at 30 fps, so a node starved of CPU for a while (a few hundred ms happen on a
+#: loaded machine) finds every message of the stall still queued instead of overwritten
+#: (dropped/dds_lost),
 #: and the upstream node's backlog, sent as a burst afterwards, fits
 DATA_DEPTH = 32
 
@@ -525,12 +526,12 @@ def make_executor(context=None):
     """The executor a node process spins on ``context`` (rclpy's default when None), chosen
     by ``MAEM_EXECUTOR``: ``single`` (default), rclpy's SingleThreadedExecutor, or ``events``,
     rclpy's experimental EventsExecutor (Jazzy 7.1), which dispatches from rmw callbacks in C++
-    instead of rebuilding a wait set in Python on every wake-up (~1 ms of CPU each here for a
-    node with six subscriptions, two timers and the parameter services; idle with a 100 Hz
-    timer: 4 % of a core against 11-13 %). Both run the callbacks in this thread, one at a
-    time. Not the default: with the association node's poll timer armed only while a frame
-    set waits, the two cost the same within this machine's noise (closed loop: 14.9 vs 15.6 ms
-    of CPU per frame set), and the EventsExecutor is marked experimental upstream."""
+    instead of rebuilding a wait set in Python on every wake-up (a cost that grows with the
+    node's subscriptions, timers and parameter services, and shows most on an idle node woken
+    by a fast timer). Both run the callbacks in this thread, one at a time. Not the default:
+    with the association node's poll timer armed only while a frame set waits, the two cost
+    the same within measurement noise in a closed loop, and the EventsExecutor is marked
+    experimental upstream."""
     import os
 
     choice = os.environ.get(EXECUTOR_VAR, "single") or "single"
@@ -572,10 +573,10 @@ def keep_freed_memory(prefault_mb: int = 0) -> bool:
 
     Why: every received 1.8 MB full-mesh message is one rmw buffer and one Python bytes object
     (and decoded arrays), each above glibc's default mmap / trim thresholds, so each was mapped
-    fresh and page-faulted in. A page fault costs ~10-20 us on the KVM guests measured here:
-    ~440 faults, 5-30 ms, per message taken, and ~9,000 in the first association step, which
-    made the first frame sets of a live stream 0.2-1.3 s late (the node, near its CPU budget at
-    30 fps, then took seconds to catch up). With the heap kept and prefaulted, the receive path
+    fresh and page-faulted in: hundreds of faults per message taken and thousands in the first
+    association step, which made the first frame sets of a live stream late (the node, near
+    its CPU budget at 30 fps, then took seconds to catch up; page faults are expensive in
+    virtual machines). With the heap kept and prefaulted, the receive path
     takes no page fault from the first message on. Memory stays at the process's peak use."""
     import ctypes
     import ctypes.util
@@ -653,7 +654,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
             return EXIT_CONFIG_ERROR
         # what start-up loaded (modules, compiled kernels, the node) lives as long as the
         # process: out of the collector's reach, a full collection no longer walks its ~160k
-        # objects (~100 ms, a frame set late, in the association node)
+        # objects (long enough to make a frame set late, in the association node)
         gc.collect()
         gc.freeze()
         executor.add_node(node)
@@ -689,7 +690,7 @@ def load_rig_param(value: str, name: str = "rig"):
 def publish_rig_tf(node: Node, rig, world_frame: str):
     """Publish world -> every rig camera once on /tf_static (transient local, so late joiners
     get it); the publisher, or None with one log line when tf2_msgs is not importable (it is
-    built by ``make``, see README)."""
+    built by ``make``, see doc/design.md §4)."""
     from maem_ros.core.geometry.frames import rig_transforms
     from maem_ros.ros import wire
 
@@ -697,7 +698,7 @@ def publish_rig_tf(node: Node, rig, world_frame: str):
         from tf2_msgs.msg import TFMessage
     except ImportError:
         node.get_logger().warning("TF skipped: tf2_msgs is not importable (make builds it from "
-                                  "its upstream definition; see README, TF)")
+                                  "its upstream definition; see doc/design.md §4)")
         return None
     pub = node.create_publisher(TFMessage, wire.TF_STATIC_TOPIC, TF_STATIC_QOS)
     pub.publish(wire.tf_message(rig_transforms(rig, world_frame),

@@ -1,4 +1,4 @@
-"""core <-> ROS messages: the only module that knows the wire layouts (DESIGN.md §4).
+"""core <-> ROS messages: the only module that knows the wire layouts (doc/design.md §4).
 
 PointCloud2 layouts (one point per row, little-endian, packed, height 1):
 
@@ -140,10 +140,9 @@ def cdr_to_cloud(data: bytes, topic: str):
     the decoders here read, its ``data`` a numpy view into ``data`` (no copy).
 
     Why not rclpy's own deserialisation: it converts the uint8[] payload into an array.array
-    element by element, ~3 ms per 1.8 MB full-mesh detections message on this machine (six
-    cameras: ~18 ms a frame, more than the association), where the rosbags decoder on a
-    memoryview takes ~0.01-0.1 ms. WireError (reason ``bad_cdr``) for bytes that are no
-    PointCloud2."""
+    element by element, which for six 1.8 MB full-mesh detections messages a frame cost more
+    than the association itself, where the rosbags decoder on a memoryview slices the payload
+    without touching it. WireError (reason ``bad_cdr``) for bytes that are no PointCloud2."""
     from maem_ros import bagio
     try:
         # a memoryview: rosbags slices it for the uint8[] payload (a bytes slice would copy)
@@ -154,8 +153,8 @@ def cdr_to_cloud(data: bytes, topic: str):
 
 
 def warm_cdr_decoder() -> None:
-    """Build the PointCloud2 decoder cdr_to_cloud uses now (rosbags generates it on first use,
-    0.1-0.9 s here), so the first frame after start-up does not pay for it."""
+    """Build the PointCloud2 decoder cdr_to_cloud uses now (rosbags generates and compiles it
+    on first use), so the first frame after start-up does not pay for it."""
     from rclpy.serialization import serialize_message
     cdr_to_cloud(bytes(serialize_message(PointCloud2())), "warm-up")
 
@@ -305,8 +304,9 @@ def decode_q4(code: np.ndarray, dtype=np.float32, origin: np.ndarray | None = No
     """uint16 q4 codes (N, 2K) -> px (``dtype``), NaN where the code is Q4_MISSING (one copy);
     ``origin`` (N, 2) px is added to every (u, v).
 
-    Written for speed on a full mesh (442k codes: ~0.2 ms instead of ~3 ms here): cast, then
-    scale in place (a multiply that casts on the way is 10x slower), the origin added to each
+    Written for speed on a full mesh (442k codes, an order of magnitude faster than the
+    obvious expression): cast, then scale in place (a multiply that casts on the way is much
+    slower), the origin added to each
     (u, v) pair as one complex number (contiguous rows; a broadcast over pairs has an inner
     loop of length 2; complex addition is the same two float additions), NaN written only
     when a code is missing."""

@@ -25,8 +25,9 @@ report.json also has people_per_frame (people on /maem/poses per played frame),
 reprojection_px_mean (see demo_metrics.REPROJECTION_DEFINITION) and bone_length_cv.
 
 --backend mediapipe runs the frontends on the bag's images with multi-person BlazePose (the
-optional mediapipe extra; default params config/mediapipe.yaml). Four CPU frontends take
-0.3-2.5 s per image each, far slower than the 60 fps capture, so the replay goes in lockstep:
+optional mediapipe extra; default params config/mediapipe.yaml). Four CPU frontends can take
+seconds per image each on a small machine, far slower than the 60 fps capture, so the replay
+goes in lockstep:
 maem-play publishes the next frame as soon as /maem/clusters has the last one (--lockstep,
 at most 60 s per frame), at --rate (default 1) from there, and the images go reliable
 (--reliable-images, frontends image_reliability: reliable): no image is lost to a full
@@ -93,14 +94,14 @@ from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_co
 #: default playback rate of the recorded detections: real time
 DEFAULT_RATE = 1.0
 #: default playback rate with --frontends (1.5 fps): each synthetic frontend regenerates
-#: 18,439-vertex detections of ~12 people per image (~55 ms CPU); all six get a frame at the
-#: same moment and share 2 cores with the rest of the machine (0.2-0.4 s per frame here), so
-#: faster replays drop frames
+#: 18,439-vertex detections of ~12 people per image, a CPU-heavy step; all six get a frame at
+#: the same moment and share the machine's cores with the rest of the graph, so on a small
+#: machine faster replays drop frames
 FRONTENDS_RATE = 0.05
 #: --backend -> (default params file, default playback rate with frontends (None: FRONTENDS_RATE),
-#: association max_wait s). mediapipe: four CPU frontends at 0.3-2.5 s per image (machine load)
-#: share 2 cores, so one 60 fps frame is played every 2 s and the association waits up to 3 s
-#: for a frame's last camera
+#: association max_wait s). mediapipe: four CPU frontends, each taking up to seconds per
+#: image on a small machine, share its cores, so the replay goes in lockstep and the
+#: association waits up to 3 s for a frame's last camera
 BACKENDS = {"synthetic": ("demo.yaml", None, 1.0), "mediapipe": ("mediapipe.yaml", 1.0, 3.0)}
 #: backends whose replay goes in lockstep with the graph (the player publishes the next frame
 #: when /maem/clusters has the last one, images reliable): CPU frontends slower than the

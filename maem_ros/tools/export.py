@@ -2,7 +2,7 @@
 
     maem-export BAG --format trc|c3d|csv --out DIR [--topic /maem/poses] [--min-frames N]
 
-Reads the poses layout (DESIGN.md §4: ``id``, ``joints`` 3J world metres, NaN = missing) from
+Reads the poses layout (doc/design.md §4: ``id``, ``joints`` 3J world metres, NaN = missing) from
 ``--topic`` (``/maem/poses`` from the triangulation node, or ``/maem/gt_poses`` in bags written
 by maem-make-bag), sorted by header stamp.
 

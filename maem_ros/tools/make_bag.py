@@ -8,7 +8,7 @@ Per camera <cam> of the rig and frame k (stamp = start + round(k * 1e9 / fps) ns
 log time): /<cam>/camera_info, /<cam>/image_raw/compressed (the image file's bytes unchanged,
 format "jpeg"/"png"; from --videos, frame k of
 <cam>.mp4|avi|mov|mkv decoded and JPEG-encoded at --jpeg-quality), /<cam>/detections (MAEM npz
--> rectified detections, DESIGN §4 layout);
+-> rectified detections, doc/design.md §4 layout);
 per frame /maem/gt_poses (Poses layout, id = GT person index, NaN = masked joint, views 0,
 score 1). A scene folder adds its scene.json as a latched /maem/scene std_msgs/String at the first
 stamp and in metadata custom_data (``maem.scene``); the rig YAML is stored as ``maem.rig``.
@@ -234,7 +234,7 @@ def vertex_subset(num_vertices: int, keep: int) -> np.ndarray | None:
 
 
 def detections_message(path: Path, camera: Camera, stamp: int, max_vertices: int):
-    """PointCloud2 of one npz (rectified detections, DESIGN §4 layout)."""
+    """PointCloud2 of one npz (rectified detections, doc/design.md §4 layout)."""
     dets = outputs_to_detections(read_maem_npz(path), camera, stamp, where=f"npz {str(path)!r} outputs")
     idx = vertex_subset(dets.num_vertices, max_vertices)
     if idx is not None:

@@ -120,7 +120,7 @@ class ProcessGroup:
         running = [n for n, p in self.procs.items() if p.popen.poll() is None]
         if running:
             # 15 s: ten nodes leaving DDS at once (shared-memory segments unmapped) can take
-            # several seconds on a busy 2-core machine; a kill there would be a false failure
+            # several seconds on a busy small machine; a kill there would be a false failure
             self.stop([n for n in running if n != "recorder"], timeout_s=15.0)
             if "recorder" in running:
                 self.stop(["recorder"], timeout_s=10.0)

@@ -60,7 +60,7 @@ METHODS = ("consistent", "paper", "spectral")
 #: realistic noise a true pair fails the 8 px mesh gate now and then (hard simulator noise:
 #: 1 % of true pairs are above 7.6 px), and geometry is checked on the whole cluster anyway;
 #: -0.25 against -1.0 raised recall on hard scenes by 2-8 points at equal medium recall
-#: (3 rigs x 3 seeds; see the README's clustering numbers)
+#: (3 rigs x 3 seeds; see doc/design.md §9.2)
 REJECTED_PAIR_GAIN = -0.25
 #: objective weight (x tau_cost) of a pair that passed the geometric gates but costs more than
 #: tau_cost: it never starts a merge, and neither rewards nor penalises a cluster holding it
@@ -444,7 +444,7 @@ def _move_scores(G: np.ndarray, S: np.ndarray, label: np.ndarray, camset: np.nda
 def _cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int, kernels=None) -> np.ndarray:
     """(N, k) float64: per row i and cluster c < k, the sum of matrix[i, j] (N,N) over the
     rows j with label[j] == c, added in ascending j from 0.0 (a one-hot matmul would add
-    them in BLAS's order, and took 1.5 ms on the large bench load; kernels: the same sums
+    them in BLAS's order, and costs an (N, k) one-hot matrix product; kernels: the same sums
     compiled)."""
     if kernels is not None:
         return kernels.cluster_sums(matrix, label, k)

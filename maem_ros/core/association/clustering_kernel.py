@@ -415,10 +415,9 @@ def _descending_order(g):
     """np.argsort(-g, kind="stable") of positive finite g: g descending, ties in index order.
 
     An LSD radix sort (stable) of the bits of g, inverted: for positive floats the bits
-    ascend with the value. numba's argsort(kind="mergesort") took 0.38 ms per frame set of
-    the large load (a first round has ~5,000 candidates), this 0.14 ms: 6 passes of 11 bits,
-    the histograms counted in one read, the passes where every key has the same digit (most
-    of the exponent's) skipped."""
+    ascend with the value. Faster than numba's argsort(kind="mergesort") on the thousands of
+    candidates of a first round (linear in n): 6 passes of 11 bits, the histograms counted in
+    one read, the passes where every key has the same digit (most of the exponent's) skipped."""
     n = g.size
     key = np.empty(n, np.uint64)
     count = np.zeros((6, 2049), np.int64)

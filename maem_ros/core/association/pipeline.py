@@ -1,6 +1,6 @@
 """MAEM stage 2: cross-view association of per-camera detections into people (clusters).
 
-For every camera pair (a, b), a < b in rig order (DESIGN.md §1):
+For every camera pair (a, b), a < b in rig order (doc/design.md §1):
 1. tau_det: detections with score < tau_det take no part.
 2. Reprojection gate: the two bbox centres are DLT-triangulated and reprojected into both
    views (rectified px); the pair is rejected if the error (mean of the two views, or max)

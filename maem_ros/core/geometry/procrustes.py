@@ -115,8 +115,8 @@ _QCP_MAX_STEPS = 60
 def pa_mpjpe_columns(Xt: np.ndarray, Yt: np.ndarray) -> np.ndarray:
     """(S,) PA-MPJPE of Xt onto Yt given coordinate-first (3,J,S) float64, finite (any strides).
 
-    Closed form per pair, vectorised over S (one stacked LAPACK SVD costs ~2-3 us per 3x3
-    matrix, dominating the association's cost stage): the optimal rotation is the unit
+    Closed form per pair, vectorised over S (a stacked LAPACK SVD per 3x3 matrix dominated
+    the association's cost stage): the optimal rotation is the unit
     quaternion of the largest eigenvalue of Horn's 4x4 key matrix of the cross-covariance
     (quaternion characteristic polynomial, Theobald 2005 / Liu et al. 2010): the eigenvalue by
     Newton from an upper bound, the eigenvector from the adjugate of (K - lambda I). The

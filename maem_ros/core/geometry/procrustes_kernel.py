@@ -1,10 +1,10 @@
 """Numba kernel of the closed-form PA-MPJPE (core.geometry.procrustes.pa_mpjpe_columns), per pair.
 
 The numpy path runs ~150 vectorised steps over (S,) rows, each a pass over memory with its
-own temporaries (~1.1 us per pair for 13 joints). This kernel walks the same steps per pair
+own temporaries. This kernel walks the same steps per pair
 with scalars: the same float64 operations in the same order (no fast-math: no reassociation,
 no fused multiply-add); each detection's keypoints are centred once per call (not once per
-pair: 1.5 -> 1.3 ms for the ~5,000 pairs of a large-load frame set), joints contiguous. Only
+pair: a detection takes part in many pairs), joints contiguous. Only
 the einsum reductions (H, the squared norms) may sum in another order than numpy's, a
 relative difference of ~1e-16 in the costs (bit-identical on 6,000 random pairs here;
 test_association_fast_paths.py compares them). The key matrix and the rotation are

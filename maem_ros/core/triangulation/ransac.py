@@ -16,7 +16,7 @@ the lower-scored views is kept.
 
 Everything is batched: all clusters, view pairs and joints are solved in array
 operations, with the 3x3 normal equations of the DLT solved in closed form (numpy's
-per-matrix SVD/LAPACK calls cost ~2 us each, far too slow for ~10^4 small systems).
+per-matrix SVD/LAPACK calls have a fixed cost each, far too much for ~10^4 small systems).
 """
 from __future__ import annotations
 

@@ -67,11 +67,10 @@ import numpy as np
 from maem_ros.core.intsets import sorted_unique
 
 #: points per contiguous block (SIMD-friendly, long enough that the per-block overhead stays
-#: small and that a block's points stream from memory as one run: 2048 against 1024 took the
-#: large load's epipolar stage from 42 to 39 ms, 4096 against 2048 its full-mesh level from
-#: 14.1-14.6 to 13.5 ms and its 1/8 screen from 3.3-3.4 to 2.9-3.0 ms (alternating runs, 2-core
-#: Xeon VM); the early exit is tested once per block, so longer blocks sum a little more of a
-#: rejected pair); blocks are visited in a fixed shuffled order
+#: small and that a block's points stream from memory as one run: each doubling from 1024 to
+#: 4096 made the large load's epipolar stage faster in alternating runs, 8192 no more; the
+#: early exit is tested once per block, so longer blocks sum a little more of a rejected
+#: pair); blocks are visited in a fixed shuffled order
 BLOCK = 4096
 #: a point whose line has ||(F x)_12|| <= EPIPOLE_NORM ||F|| is at the epipole (its line is
 #: rounding noise): distance inf, the pair is rejected. ~1e-6 px from the epipole of a
@@ -184,12 +183,12 @@ def point_rows(x: np.ndarray | PointRows, ranges: np.ndarray | None = None) -> P
         if ranges.shape != (N, -(-n // BLOCK), 2) or x.dtype != np.float32:
             raise ValueError(f"epipolar points: block ranges {ranges.shape} do not describe "
                              f"{x.dtype} points {x.shape}")
-        rows = point_rows(x)  # dataclasses.replace took ~5 us a call, 48 a large-load set
+        rows = point_rows(x)  # not dataclasses.replace: its overhead, ~50 calls a frame set
         return PointRows(rows.flat, rows.rows, rows.n, rows.run, rows.period, ranges)
     if x.dtype not in (np.float32, np.float64) or not x.dtype.isnative:
         x = x.astype(np.float64)
     if N and n and x.flags.c_contiguous and x.flags.aligned:
-        # the common case as a plain view (as_strided and ctypes cost ~10 us a call)
+        # the common case as a plain view (as_strided and ctypes cost more per call)
         flat = x.reshape(-1).view()
         flat.flags.writeable = False
         return PointRows(flat, np.arange(N, dtype=np.int64) * (2 * n), n)
@@ -489,9 +488,8 @@ def _known_ranges(rows: list[PointRows], dets: np.ndarray, n: int, mixed: bool) 
     """(D, blocks, 2) float64: the block ranges of the detections dets (frame-wide keys over
     the cameras' rows) in the kernel's block order (:func:`block_order`), NaN where a
     camera's were not given (the kernel computes them when it first reads a block). A
-    decoder's ranges spare the kernel a pass over the points (on a large-load frame set,
-    2-core Xeon VM: the full-mesh level 1.9 ms less in alternating runs, the 1/8 screen
-    ~0.2 ms)."""
+    decoder's ranges spare the kernel a pass over the points (most of it at the full-mesh
+    level, whose points come from memory)."""
     order = block_order(n)
     given = [r.ranges for r in rows]
     if not mixed or all(g is None for g in given):
@@ -510,8 +508,8 @@ def _gather_buffer(size: int, dtype: np.dtype, slot: int = 0, align: int = 64) -
     """(size,) ``dtype`` starting on an ``align``-byte boundary, in this thread's scratch
     memory ``slot`` (valid until the next call for that slot in this thread). Kept, not
     allocated per call: a fresh 7 MB buffer (the large load's 1/8 screen) came from new pages
-    now and then, and their first writes faulted (~380 page faults, +6 to +60 ms on a frame
-    on a 2-core VM), while memory reused from the previous frame is already mapped. Grown with
+    now and then, and their first writes page-faulted (hundreds of faults: an outlier frame),
+    while memory reused from the previous frame is already mapped. Grown with
     headroom (frame sets vary in size), as each growth faults its new pages once."""
     need = size * np.dtype(dtype).itemsize + align
     if not hasattr(_scratch, "raw"):
@@ -717,9 +715,10 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     scans each detection (its block ranges are the finiteness check) and copies its runs (of
     the finest subset and of one coarser subset nested in it) while they are in cache. The
     gate then reads the copies where it would gather the same runs from scattered cache
-    lines (maem-bench --load large: 3.4-3.6 ms of gathers gone from the gate, 0.4-1 ms added
-    to decoding the 16 cameras; 2-core Xeon VM), and the ranges where its kernel would scan
-    the points again (:func:`_known_ranges`)."""
+    lines when the frame set is complete (on maem-bench --load large the gate loses more
+    gather time than decoding gains, and decoding happens while the other cameras' messages
+    are still arriving), and the ranges where its kernel would scan the points again
+    (:func:`_known_ranges`)."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
     levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
@@ -773,8 +772,8 @@ def _gathered_screens(plan: _FramePairs, screens: Sequence[ScreenLevel], backend
     contiguous, for the numba kernel: one pass over each detection's points copies the finest
     level's runs and, of them, a coarser level's (its runs are every k-th of the finest's when
     its period is a multiple of the finest's). The coarse level's own gather, a second pass
-    over scattered cache lines, took 1.1-1.2 ms of a large-load frame set; the copies add
-    ~0.4 ms to the screen's pass (2-core Xeon VM). The levels as they are where that does not
+    over scattered cache lines, cost more than the copies add to the screen's pass (which
+    reads those cache lines anyway). The levels as they are where that does not
     apply (the numpy backend reads the runs in place; other layouts are gathered level by
     level in the kernel call)."""
     if not screens or len(screens) > 2 or backend == "numpy" or _numba is None:

@@ -69,10 +69,9 @@ prefetch_l2 = _prefetch_intrinsic(2, "L2")
 
 #: LLVM function attribute: vectorise with 512-bit registers where the CPU has them. LLVM's
 #: tuning for Intel server cores (and some others) caps vectors at 256 bits to avoid the clock
-#: penalty of early AVX-512 parts; these float32 loops are compute-bound, and 512-bit vectors
-#: made the epipolar stage of maem-bench --load large ~20 % faster (39 against 48 ms in
-#: alternating runs on a 2-core Xeon VM), while the same setting process-wide
-#: (NUMBA_CPU_FEATURES) slowed the float64 triangulation kernel by ~15 %: so per function
+#: penalty of early AVX-512 parts; these float32 loops are compute-bound, so 512-bit vectors
+#: make them faster (maem-bench --load large, alternating runs), while the same setting
+#: process-wide (NUMBA_CPU_FEATURES) slowed the float64 triangulation kernel: so per function
 _WIDE = '"prefer-vector-width"="512"'
 
 
@@ -80,9 +79,9 @@ _WIDE = '"prefer-vector-width"="512"'
 #: Newton step. x86's estimates are documented within 1.5 * 2^-12 relative (rsqrtps; the
 #: AVX-512 rsqrt14ps that 512-bit loops take, 2^-14), inside epipolar._RSQRT_ERR = 2^-10, so
 #: the error bound covers them (and epipolar._rsqrt_within_bound checks it at first use). A
-#: Newton step is 4 vector operations, twice per point of ~36: without it (and with
-#: refined_pair's second try for the pairs the wider bound cannot settle) the large load's
-#: three kernel levels took 20.1-20.4 -> 18.2-19.3 ms (alternating runs, 2-core Xeon VM).
+#: Newton step is 4 vector operations, twice per point of ~36: leaving it out (with
+#: refined_pair's second try for the pairs the wider bound cannot settle) saves about that
+#: share of the kernel levels' arithmetic.
 #: Only on x86-64: other targets' estimates are coarser (AArch64's frsqrte: 8 bits), so they
 #: keep LLVM's Newton steps
 _ESTIMATE = '"reciprocal-estimates"="sqrtf:0,vec-sqrtf:0"'
@@ -115,7 +114,7 @@ estimated_rsqrt = _function_attribute(_ESTIMATE, "Mark the calling float32 kerne
 @inline
 def points(like, address, start, count):
     """count coordinates from element start of the detection at address: a view without
-    reference counting (a typed list of the cameras' arrays costs ~20 ns per access in the
+    reference counting (a typed list of the cameras' arrays pays it on every access in the
     hot loop); the caller keeps the arrays alive."""
     return nb.carray(pointer_like(like, address + start * like.itemsize), (count,))
 
@@ -168,16 +167,15 @@ def block64(a, b, fs, fk, ha, symmetric):
 #: points per chunk of the float32 block loops. Before each chunk they prefetch the same share
 #: of the next pair's blocks (CHUNK x 8 bytes of each): spread over the block's arithmetic,
 #: the next blocks stream in from memory while this one is summed. (All of them at the start
-#: of a block: no gain, the requests queue up and the arithmetic waits behind them.) On a
-#: large-load frame set (2-core Xeon VM, slow memory), alternating runs: full level 16.3-16.9
-#: -> 14.7-15.5 ms, 1/8 screen 3.9 -> 3.6 ms (the README's figures); chunks of 128 the same,
-#: of 512 about half the gain
+#: of a block: no gain, the requests queue up and the arithmetic waits behind them.) This
+#: helps most where memory is slow (the full level, the 1/8 screen of the large load, in
+#: alternating runs); chunks of 128 gain the same, of 512 about half
 CHUNK = 256
 
 
 #: fewest points per detection for which the block loops prefetch the next pair's blocks: a
 #: coarser screen's gathered points stay in cache (on a large-load frame set the 1/32 screen's
-#: 576 points per detection are 1.8 MB in all), and its chunked loop cost 0.4 ms more
+#: 576 points per detection are 1.8 MB in all), where the chunked loop only adds work
 FETCH_MIN_POINTS = 2048
 
 
@@ -512,7 +510,7 @@ def settle(s, p, e, m, rest, tau, early_exit, sums, err, used, alive):
     exit, ``rest`` points still to come (alive[s] False; the block loop notes the block).
     Only scalars and the result arrays: the float64 case is settle64, a call the caller
     makes (an array passed on to a call from inlined code costs the loop reference counting
-    on every pair, ~45 ns: the large load's 1/32 screen took 2.25 instead of 2.0 ms)."""
+    on every pair, which showed in the 1/32 screen of the large load)."""
     sums[s] += p
     err[s] += e
     used[s] += m
@@ -694,9 +692,9 @@ def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_ex
 #: float32 (u, v) are 32 KB, so 48 fill 1.5 MB of a 2 MB L2, the rest left to the kernel's
 #: other reads. On a large-load frame set's full-mesh level (814 pairs of 386 detections,
 #: one connected graph of degree ~4), counted in an LRU cache of 48 blocks: 937 block loads a
-#: round in the detection order, 720 in locality_order's; the level alone 9.4-9.6 -> 8.7-9.0
-#: ms, in the frame ~0.3 ms (alternating runs, 2-core Xeon VM; 24, 96 or 192: within noise of
-#: 48). The screens (one block each, their points in cache) gained nothing: not reordered
+#: round in the detection order, 720 in locality_order's, and the level is faster by a few
+#: percent in alternating runs (24, 96 or 192: within noise of 48). The screens (one block
+#: each, their points in cache) gained nothing: not reordered
 LOCALITY_BLOCKS = 48
 
 
@@ -912,8 +910,8 @@ def _with_rest(like, det_addr, pa, pb, blocks, n, used, last, count_rest):
 
 #: runs prefetched ahead of the one gather_runs copies: the runs are separate cache lines
 #: (one every period points) that the hardware prefetchers do not follow across pages, so
-#: without the hint the copy waits for memory one line at a time (a large-load screen,
-#: 400 detections from cold memory: 4.7 ms without, 3.1 ms with 8 ahead)
+#: without the hint the copy waits for memory one line at a time (8 ahead: about a third
+#: less time for a large-load screen from cold memory; 16 or 32: no better)
 _RUNS_AHEAD = 8
 
 
