@@ -182,3 +182,49 @@ def test_real_qualisys_file(pose2sim_demo):
         assert (c.width, c.height) == (1088, 1920)
         assert 1650 < c.K[0, 0] < 1700
         assert c.world_to_camera(p)[2] > 0
+
+
+def test_pose2sim_toml_writer_round_trips(tmp_path):
+    """write_pose2sim_toml -> the project's reader: the same cameras (k3 kept when non-zero, a
+    fisheye and a rational_polynomial camera too), in the Pose2Sim/anipose layout."""
+    from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
+    from maem_ros.sim.rigs import build_rig
+    cams = build_rig("sportcenter6").cameras[:2] + build_rig("humanm3_3").cameras[:1]
+    cams[2].name = "pinhole"
+    cams.append(Camera("fish eye", [[300.0, 0, 320], [0, 301, 240], [0, 0, 1]], cams[0].R, [1.0, 2, 3],
+                       640, 480, "equidistant", [0.1, -0.02, 0.003, -0.0004], time_offset=0.02))
+    cams.append(Camera("rational", cams[2].K, cams[2].R, cams[2].t, 2048, 1536,
+                       "rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.05, 0.0, 0.01]))
+    path = tmp_path / "Calib.toml"
+    write_pose2sim_toml(path, cams, error_px=0.31)
+    back = read_pose2sim_toml(path)
+    assert [c.name for c in back] == [c.name for c in cams]
+    for a, b in zip(cams, back):
+        assert (b.width, b.height, b.distortion_model) == (a.width, a.height, a.distortion_model)
+        np.testing.assert_array_equal(b.K, a.K)
+        np.testing.assert_array_equal(b.D, a.D)
+        np.testing.assert_array_equal(b.t, a.t)
+        np.testing.assert_allclose(b.R, a.R, atol=1e-14)  # through Rodrigues
+        assert b.time_offset == a.time_offset
+    text = path.read_text()
+    import tomllib
+    data = tomllib.loads(text)
+    assert data["metadata"] == {"adjusted": False, "error": 0.31}
+    first = data[cams[0].name]
+    assert set(first) == {"name", "size", "matrix", "distortions", "rotation", "translation",
+                          "fisheye"}
+    assert first["fisheye"] is False and len(first["distortions"]) == 5  # k3 != 0 in sportcenter6
+    assert len(data["pinhole"]["distortions"]) == 4  # humanm3: pinhole, k1 k2 p1 p2 = 0
+    assert data["fish eye"]["fisheye"] is True
+
+
+def test_pose2sim_toml_writer_bad_input(tmp_path):
+    from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
+    from maem_ros.sim.rigs import build_rig
+    cam = build_rig("humanm3_3")[0]
+    cam.name = "metadata"
+    with pytest.raises(ValueError, match="'metadata' clashes"):
+        write_pose2sim_toml(tmp_path / "Calib.toml", [cam])
+    cam.name = "twice"
+    with pytest.raises(ValueError, match="duplicate camera names"):
+        write_pose2sim_toml(tmp_path / "Calib.toml", [cam, cam])

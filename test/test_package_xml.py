@@ -22,10 +22,11 @@ ROSDEP_KEY = {
     "yaml": "python3-yaml", "rosbags": "python3-rosbags-pip", "tqdm": "python3-tqdm",
     "matplotlib": "python3-matplotlib", "numba": "python3-numba",
     "threadpoolctl": "python3-threadpoolctl-pip",
-    "foxglove": "python3-foxglove-sdk-pip", "ezc3d": "python3-ezc3d-pip",
+    "foxglove": "python3-foxglove-sdk-pip", "ezc3d": "python3-ezc3d-pip", "mcap": "python3-mcap-pip",
 }
 #: keys rosdistro lacks, defined in the repository's rosdep.yaml
-CUSTOM_KEYS = {"python3-threadpoolctl-pip", "python3-foxglove-sdk-pip", "python3-ezc3d-pip"}
+CUSTOM_KEYS = {"python3-threadpoolctl-pip", "python3-foxglove-sdk-pip", "python3-ezc3d-pip",
+               "python3-mcap-pip"}
 #: imports of the optional SAM 3D Body backend (frontend/sam3d_body.py): installed with the
 #: model's own repository, not by rosdep (doc/sam3d-body.md)
 #: mediapipe: the optional mediapipe frontend's wheel (make mediapipe, pip --no-deps); tomli:

@@ -2,7 +2,9 @@
 
 A scene folder (what ``maem-sim`` writes and ``maem-eval`` reads)::
 
-    cameras/<view>.json          MAEM camera JSON (world->camera extrinsics), one per view
+    cameras/<view>.json          MAEM camera JSON (world->camera extrinsics, optional time_offset s),
+                                 one per view (intrinsics only in a scene made for calibration)
+    gt_rig.yaml                  optional (simulator): the true rig, extrinsics and time offsets
     dets/<view>/<frame:06d>.npz  SAM 3D Body outputs as the MAEM authors save them, RAW image px
     gt.npz                       xrmocap keypoints3d: pose (F,P,K,4) metres, mask (F,P,K), convention
     det_ids.npz                  optional: GT person of every detection, key "<view>/<frame:06d>",
@@ -29,6 +31,7 @@ import numpy as np
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.errors import InputError
 from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.sync import capture_stamp_ns, match_capture_times
 
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
 REQUIRED_KEYS = ("bbox", "bbox_score", "pred_keypoints_3d", "pred_keypoints_2d", "pred_keypoints_2d_verts")
@@ -340,11 +343,14 @@ class SceneFolder:
 
     # ---- writing --------------------------------------------------------------------------
     @classmethod
-    def create(cls, root: str | Path, rig: Rig, info: Mapping | None = None) -> SceneFolder:
-        """Make the folder, write cameras/ and (when given) scene.json."""
+    def create(cls, root: str | Path, rig: Rig, info: Mapping | None = None,
+               extrinsics: bool = True) -> SceneFolder:
+        """Make the folder, write cameras/ (``extrinsics`` False: intrinsics only, for
+        calibration; such a scene's :attr:`rig` cannot be read, Rig.load_intrinsics reads it)
+        and (when given) scene.json."""
         root = Path(root)
         root.mkdir(parents=True, exist_ok=True)
-        rig.to_json_folder(root / "cameras")
+        rig.to_json_folder(root / "cameras", extrinsics=extrinsics)
         if info is not None:
             (root / "scene.json").write_text(json.dumps(dict(info), indent=2))
         return cls(root)
@@ -433,6 +439,30 @@ class SceneFolder:
         path = self.frame_files(view)[int(frame)]
         return outputs_to_detections(outputs, self.rig[view], self.stamp_ns(frame),
                                      where=f"npz {str(path)!r} outputs")
+
+    def capture_frame(self, view: str, frame: int) -> int | None:
+        """The view's frame whose capture time (stamp + its camera's time_offset) is nearest
+        ``frame``'s stamp, within half a period (None: no such frame); ``frame`` itself when the
+        camera has no offset."""
+        offset = self.rig[view].time_offset
+        if not offset:
+            return int(frame)
+        files = sorted(self.frame_files(view))
+        idx = match_capture_times([self.stamp_ns(frame)], [self.stamp_ns(g) for g in files],
+                                  offset, int(0.5e9 / self.fps))[0]
+        return files[idx] if idx >= 0 else None
+
+    def detections_at(self, view: str, frame: int) -> FrameDetections:
+        """The view's detections captured nearest the time of ``frame`` (:meth:`capture_frame`),
+        stamped with their capture time: the offline pipeline's frame set member."""
+        captured = self.capture_frame(view, frame)
+        if captured is None:
+            raise MissingDataError(f"scene {str(self.root)!r}: view {view!r} has no frame "
+                                   f"captured near frame {frame} (time_offset "
+                                   f"{self.rig[view].time_offset:+.4f} s)")
+        dets = self.detections(view, captured)
+        dets.stamp_ns = capture_stamp_ns(dets.stamp_ns, self.rig[view].time_offset)
+        return dets
 
     def gt(self) -> tuple[np.ndarray, np.ndarray, str]:
         return read_gt(self.root / "gt.npz")

@@ -33,23 +33,53 @@ Rules (doc/design.md §5):
   whole stream), the synchroniser resets: queued messages are dropped (``reset``), the reset
   is counted once (``stats.resets``) and the held messages are replayed on the new timeline.
   A step back within ``slop`` or a repeated stamp is dropped (``out_of_order``).
+- Time offsets: a camera's message stamp + its rig ``time_offset`` (Camera.time_offset, s) is
+  its true capture time. :func:`capture_stamp_ns` is the one place that adds it: the
+  synchroniser (``time_offsets``) queues, compares and emits capture times, and the offline
+  pipeline matches frames by them (:func:`match_capture_times`).
 """
 from __future__ import annotations
 
 import statistics
 from collections import Counter, deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
+
+import numpy as np
 
 #: consecutive late samples that make a camera lagging (one sample under the window rejoins it)
 LAG_SAMPLES = 2
 
 
+def capture_stamp_ns(stamp_ns: int | np.ndarray, time_offset_s: float) -> int | np.ndarray:
+    """A camera's true capture time (ns): its message stamp (ns) + its rig time_offset (s)."""
+    offset_ns = int(round(float(time_offset_s) * 1e9))
+    if isinstance(stamp_ns, np.ndarray):
+        return stamp_ns.astype(np.int64) + offset_ns
+    return int(stamp_ns) + offset_ns
+
+
+def match_capture_times(reference_ns: Sequence[int], stamps_ns: Sequence[int],
+                        time_offset_s: float, tolerance_ns: int) -> np.ndarray:
+    """Offline frame matching: for each reference time (ns), the index into ``stamps_ns`` (one
+    camera's message stamps, ns, sorted) whose capture time (stamp + ``time_offset_s``) is
+    nearest, or -1 when none lies within ``tolerance_ns``."""
+    ref = np.asarray(reference_ns, dtype=np.int64)
+    cap = capture_stamp_ns(np.asarray(stamps_ns, dtype=np.int64), time_offset_s)
+    if cap.size == 0:
+        return np.full(ref.shape, -1, dtype=np.int64)
+    right = np.clip(np.searchsorted(cap, ref), 0, cap.size - 1)
+    left = np.clip(right - 1, 0, cap.size - 1)
+    nearest = np.where(np.abs(cap[left] - ref) <= np.abs(cap[right] - ref), left, right)
+    return np.where(np.abs(cap[nearest] - ref) <= int(tolerance_ns), nearest, -1)
+
+
 @dataclass
 class FrameSet:
-    """Messages of one instant: items by camera name, missing cameras in rig order."""
+    """Messages of one instant: items by camera name, missing cameras in rig order;
+    ``stamp_ns`` is the reference message's capture time (stamp + its camera's time offset)."""
 
     stamp_ns: int
     items: dict[str, Any]
@@ -102,12 +132,23 @@ class _Msg:
 
 
 class ApproximateTimeSync:
-    """Group per-camera messages whose stamps lie within ``slop_ns`` of a reference."""
+    """Group per-camera messages whose capture times lie within ``slop_ns`` of a reference.
+
+    ``time_offsets``: camera -> s added to its stamps (the rig's time_offset; absent = 0).
+    """
 
     def __init__(self, cameras: Sequence[str], slop_ns: int, max_wait_ns: int,
                  min_cameras: int = 2, queue_size: int = 16, dead_after_sets: int = 3,
-                 max_lag_ns: int = 0, jump_ns: int = 1_000_000_000):
+                 max_lag_ns: int = 0, jump_ns: int = 1_000_000_000,
+                 time_offsets: Mapping[str, float] | None = None):
         cameras = list(cameras)
+        offsets = dict(time_offsets or {})
+        unknown = sorted(set(offsets) - set(cameras))
+        if unknown:
+            raise ValueError(f"time_offsets: unknown camera(s) {unknown}; expected some of {cameras}")
+        if not all(np.isfinite(float(v)) for v in offsets.values()):
+            raise ValueError(f"time_offsets: must be finite seconds, got {offsets}")
+        self.time_offsets = {c: float(offsets.get(c, 0.0)) for c in cameras}
         if not cameras or len(set(cameras)) != len(cameras):
             raise ValueError(f"cameras: need a non-empty list of distinct names, got {cameras}")
         for name, value in (("slop_ns", slop_ns), ("max_wait_ns", max_wait_ns),
@@ -187,6 +228,8 @@ class ApproximateTimeSync:
             arrival_ns: int | None = None, poll: bool = True) -> list[FrameSet]:
         """Queue one message and return the frame sets that became complete.
 
+        ``stamp_ns``: the message's stamp; the camera's time offset is added here.
+
         ``arrival_ns`` (same clock as ``now_ns``, at most ``now_ns``): when the message reached
         this process, if it waited before the caller took it (a busy node: the transport's
         receive time); the ``max_wait`` deadline and the lag are measured from it. Default
@@ -199,7 +242,8 @@ class ApproximateTimeSync:
         now_ns = int(now_ns)
         arrival_ns = now_ns if arrival_ns is None else min(int(arrival_ns), now_ns)
         self.stats.received += 1
-        out = self._accept(camera, _Msg(int(stamp_ns), arrival_ns, item))
+        stamp_ns = capture_stamp_ns(stamp_ns, self.time_offsets[camera])
+        out = self._accept(camera, _Msg(stamp_ns, arrival_ns, item))
         return out + self.poll(now_ns) if poll else out
 
     def _baseline(self, camera: str) -> int | None:

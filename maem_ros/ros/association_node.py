@@ -8,7 +8,9 @@ and decoded in place, wire.cdr_to_cloud: rclpy's own deserialisation of a 1.8 MB
 message costs more than its association), takes every pending message of all cameras before the
 synchroniser decides (a busy executor would run the poll timer first and leave messages of the
 frame in the DDS queues) and counts ``max_wait`` and lags from each message's rmw receive time,
-groups them with core.sync.ApproximateTimeSync (``slop``, ``max_wait``, ``min_cameras``; while
+groups them by capture time (stamp + the rig camera's ``time_offset``; the published frame set is
+stamped with the reference's capture time) with core.sync.ApproximateTimeSync (``slop``,
+``max_wait``, ``min_cameras``; while
 a message waits in it a timer polls every ``poll_period`` so a silent camera never stalls the
 graph; a camera lagging beyond
 ``max_wait`` is not waited for (``max_lag`` compensates a known lag); one camera's stale/future
@@ -148,7 +150,8 @@ class AssociationNode(Node):
                 self.cameras, int(round(p["slop"] * 1e9)), int(round(p["max_wait"] * 1e9)),
                 p["min_cameras"], queue_size=p["queue_size"],
                 max_lag_ns=int(round(p["max_lag"] * 1e9)),
-                jump_ns=int(round(p["jump_tolerance"] * 1e9)))
+                jump_ns=int(round(p["jump_tolerance"] * 1e9)),
+                time_offsets={c: self.rig[c].time_offset for c in self.cameras})
             self.limits = InputLimits(max_detections=p["max_detections"],
                                       pixel_margin=p["pixel_margin"])
         except ValueError as e:

@@ -43,11 +43,19 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def simulate_motion(num_frames: int, fps: float, players: int, bystanders: int, seed: int) -> Motion:
-    """Simulate ``players`` + ``bystanders`` persons for ``num_frames`` frames at ``fps``."""
+def simulate_motion(num_frames: int, fps: float, players: int, bystanders: int, seed: int,
+                    lead: int = 0) -> Motion:
+    """Simulate ``players`` + ``bystanders`` persons for ``num_frames`` frames at ``fps``.
+
+    ``lead``: also keep that many warm-up frames before frame 0 (at the start of the arrays;
+    at most the one second of warm-up): the motion a camera whose capture runs early sees.
+    Frames 0.. are the same whatever ``lead`` and however many frames follow.
+    """
     if num_frames < 1 or fps <= 0 or players < 0 or bystanders < 0 or players + bystanders < 1:
         raise ValueError(f"motion: need frames >= 1, fps > 0 and at least one person "
                          f"(frames={num_frames}, fps={fps}, players={players}, bystanders={bystanders})")
+    if not 0 <= lead <= int(round(fps)):
+        raise ValueError(f"motion: lead {lead} outside 0..{int(round(fps))} (one second of warm-up)")
     rng = np.random.default_rng([int(seed), 7001])
     P = players + bystanders
     is_player = np.arange(P) < players
@@ -72,9 +80,11 @@ def simulate_motion(num_frames: int, fps: float, players: int, bystanders: int, 
 
     dt = 1.0 / fps
     warm = int(round(fps))
+    num_frames += lead
+    warm -= lead
     play_side = int(rng.integers(0, 2)) * 2 - 1  # +1: attacking the +x basket
     play_end = rng.uniform(3.0, 4.5)
-    rebound_at = warm * dt + rng.uniform(0.5, 1.3)  # crowding shows even in 3 s scenes
+    rebound_at = (warm + lead) * dt + rng.uniform(0.5, 1.3)  # crowding shows even in 3 s scenes
     rebound_set = np.zeros(P, bool)
     raise_until = np.zeros(P)
     out = {k: np.zeros((num_frames, P)) for k in ("speed", "heading", "phase", "crouch", "arm", "yaw")}
@@ -194,10 +204,12 @@ ANGLE_FLOOR = {"elbow_l": 0.03, "elbow_r": 0.03, "knee_l": 0.03, "knee_r": 0.03,
                "sh_abd_r": 0.04, "hip_abd_l": 0.0, "hip_abd_r": 0.0, "finger_curl": 0.05}
 
 
-def pose_style(num_frames: int, fps: float, persons: int, seed: int) -> dict[str, np.ndarray]:
-    """Smooth per-person angle offsets (F,P) rad: two random sinusoids (0.1-0.6 Hz) per angle."""
+def pose_style(num_frames: int, fps: float, persons: int, seed: int,
+               first_frame: int = 0) -> dict[str, np.ndarray]:
+    """Smooth per-person angle offsets (F,P) rad: two random sinusoids (0.1-0.6 Hz) per angle,
+    for frames ``first_frame`` .. ``first_frame + num_frames - 1`` (negative: before frame 0)."""
     rng = np.random.default_rng([int(seed), 7002])
-    t = np.arange(num_frames)[:, None, None] / fps  # (F,1,1)
+    t = (np.arange(num_frames) + first_frame)[:, None, None] / fps  # (F,1,1)
     out = {}
     for key, amp in STYLE_AMPLITUDE.items():
         freq = rng.uniform(0.1, 0.6, (1, persons, 2))

@@ -5,6 +5,8 @@
   the SportCenter EPFL calibration (k1 ~ -0.35, k2 ~ 0.12).
 * ``humanm3_4`` / ``humanm3_3``: 4 / 3 person-height (1.4-2 m) pinhole cameras near the court
   corners, 2048x1536, f ~ 1200 px, 20-35 m from the centre, as in Human-M3.
+* ``lab4``: 4 cameras on a 3 m ring, 1.6-2.2 m high, around a volume at the origin, 800x600,
+  f ~ 560 px, moderate radial distortion (k1 ~ -0.2): a room for calibration-board sequences.
 
 ``python -m maem_ros.sim.rigs [OUT_DIR]`` writes the rig YAMLs (default: config/rigs/).
 """
@@ -22,7 +24,7 @@ COURT_WIDTH = 15.0  # m, along world y
 #: basket centres (x, y, z) in world metres (rim 3.05 m high, 1.575 m in from the baseline)
 BASKETS = np.array([[-COURT_LENGTH / 2 + 1.575, 0.0, 3.05], [COURT_LENGTH / 2 - 1.575, 0.0, 3.05]])
 
-RIG_NAMES = ("sportcenter6", "humanm3_4", "humanm3_3")
+RIG_NAMES = ("sportcenter6", "humanm3_4", "humanm3_3", "lab4")
 
 
 def court_corners(margin: float = 0.0, z: float = 0.0) -> np.ndarray:
@@ -92,10 +94,25 @@ def _humanm3(n: int) -> Rig:
     return Rig(cams)
 
 
+def lab4() -> Rig:
+    """4 cameras around a room-sized volume (a board-calibration rig), distorted."""
+    # (eye xyz, f px, k1, k2, p1, p2, roll rad, principal point shift px)
+    spec = [
+        ((3.0, 0.2, 1.8), 560.0, -0.21, 0.06, 0.0008, -0.0005, 0.01, (6.0, -4.0)),
+        ((0.3, 3.1, 2.2), 548.0, -0.19, 0.05, -0.0006, 0.0004, -0.02, (-5.0, 3.0)),
+        ((-2.9, -0.4, 1.6), 575.0, -0.23, 0.07, 0.0003, 0.0007, 0.015, (3.0, 5.0)),
+        ((-0.2, -3.0, 2.0), 555.0, -0.20, 0.055, -0.0004, -0.0003, -0.01, (-4.0, -6.0)),
+    ]
+    cams = [_camera(f"camera_{i}", eye, (0.0, 0.0, 1.0), (800, 600), f, (k1, k2, p1, p2, 0.0), roll,
+                    pp, aspect=1.004)
+            for i, (eye, f, k1, k2, p1, p2, roll, pp) in enumerate(spec)]
+    return Rig(cams)
+
+
 def build_rig(name: str) -> Rig:
     """The named synthetic rig, computed (no file access)."""
     builders = {"sportcenter6": sportcenter6, "humanm3_4": lambda: _humanm3(4),
-                "humanm3_3": lambda: _humanm3(3)}
+                "humanm3_3": lambda: _humanm3(3), "lab4": lab4}
     if name not in builders:
         raise ValueError(f"rig: unknown synthetic rig {name!r}, expected one of {sorted(builders)}")
     return builders[name]()

@@ -19,10 +19,25 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.camera import Camera, Rig
 
 from .body import BodyModel, Skeleton, forward_kinematics, gait_angles
-from .motion import ANGLE_FLOOR, Motion, pose_style, simulate_motion
+from .motion import ANGLE_FLOOR, Motion, _wrap, pose_style, simulate_motion
 from .noise import PRESETS, PersonState, SimDetections, get_preset, simulate
 from .render import Renderer
 from .rigs import load_rig
+
+#: s, the largest per-camera capture offset a scene simulates (the motion's warm-up is 1 s)
+MAX_TIME_OFFSET_S = 0.9
+#: Motion fields indexed by frame
+_PER_FRAME = ("pos", "speed", "heading", "phase", "crouch", "arm_raise", "head_yaw")
+
+
+def _with_time_offsets(rig: Rig, offsets: Mapping[str, float]) -> Rig:
+    """The rig with each named camera's time_offset set (the scene's ground truth)."""
+    unknown = sorted(set(offsets) - set(rig.names))
+    if unknown:
+        raise ValueError(f"scene config time_offsets: unknown camera(s) {unknown}; the rig has "
+                         f"{rig.names}")
+    return Rig([dataclasses.replace(c, time_offset=offsets.get(c.name, c.time_offset))
+                for c in rig])
 
 
 @dataclass
@@ -38,6 +53,10 @@ class SceneConfig:
     players: int = 10
     bystanders: int = 2
     start_stamp_ns: int = 1_700_000_000_000_000_000
+    #: camera -> s: that camera captures frame k at stamp(k) + offset (it samples the motion at
+    #: its own time while stamping the nominal time); written into the scene's rig as
+    #: Camera.time_offset. |offset| < MAX_TIME_OFFSET_S
+    time_offsets: dict = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         checks = [
@@ -59,12 +78,21 @@ class SceneConfig:
         for name, ok, want in checks:
             if not ok:
                 raise ValueError(f"scene config {name}: {getattr(self, name)!r} is not {want}")
+        if not isinstance(self.time_offsets, Mapping) or not all(
+                isinstance(v, (int, float)) and np.isfinite(v) and abs(v) < MAX_TIME_OFFSET_S
+                for v in self.time_offsets.values()):
+            raise ValueError(f"scene config time_offsets: {self.time_offsets!r} is not a mapping "
+                             f"camera -> seconds within +-{MAX_TIME_OFFSET_S}")
+        self.time_offsets = {str(k): float(v) for k, v in self.time_offsets.items()}
         if self.players + self.bystanders < 1:
             raise ValueError("scene config players/bystanders: the scene needs at least one person")
         self.fps = float(self.fps)
 
     def to_dict(self) -> dict[str, Any]:
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        if not out["time_offsets"]:  # recorded only when used: older readers know no such key
+            del out["time_offsets"]
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SceneConfig:
@@ -89,13 +117,23 @@ class Scene:
         elif isinstance(config, Mapping):
             config = SceneConfig.from_dict(config)
         self.config = config
-        self.rig: Rig = load_rig(config.rig)
+        self.rig: Rig = _with_time_offsets(load_rig(config.rig), config.time_offsets)
         self.num_frames = config.frames
         self.fps = config.fps
         self.noise = get_preset(config.difficulty)
-        self.motion: Motion = simulate_motion(config.frames, config.fps, config.players, config.bystanders,
-                                              config.seed)
-        self.style = pose_style(config.frames, config.fps, config.players + config.bystanders, config.seed)
+        # frames kept before 0 and after the last for cameras capturing off the nominal time
+        pad = int(np.ceil(max(map(abs, config.time_offsets.values()), default=0.0) * config.fps))
+        pad += bool(pad)
+        self._lead = pad
+        persons = config.players + config.bystanders
+        self._motion = simulate_motion(config.frames + pad, config.fps, config.players,
+                                       config.bystanders, config.seed, lead=pad)
+        self._style = pose_style(config.frames + 2 * pad, config.fps, persons, config.seed,
+                                 first_frame=-pad)
+        frames = slice(pad, pad + config.frames)
+        self.motion: Motion = dataclasses.replace(self._motion, **{
+            k: getattr(self._motion, k)[frames] for k in _PER_FRAME})
+        self.style = {k: v[frames] for k, v in self._style.items()}
         self.body = BodyModel(config.num_vertices)
         self.is_player = np.arange(config.players + config.bystanders) < config.players
         self.team = self.motion.team
@@ -135,32 +173,60 @@ class Scene:
             del self._cache[old]
         return value
 
-    def person_state(self, frame: int) -> PersonState:
-        """Shape, root, heading and joint angles (rad) of every person at ``frame``."""
-        f = self._check_frame(frame)
-        m = self.motion
-        angles = gait_angles(m.speed[f], m.phase[f], m.crouch[f], m.arm_raise[f], m.head_yaw[f])
-        for key, offset in self.style.items():
-            angles[key] = angles[key] + offset[f] * (1.0 - 0.7 * m.arm_raise[f] * key.startswith("sh_"))
+    def capture_position(self, camera: str | int, frame: int) -> float:
+        """Where in time (fractional frame index) ``camera`` captures ``frame``: frame +
+        its time offset x fps."""
+        return self._check_frame(frame) + self.rig[camera].time_offset * self.fps
+
+    def _at(self, values: np.ndarray, position: float, angle: bool = False) -> np.ndarray:
+        """(F+2 pad, ...) per-frame values at a fractional frame index (linear; angles along
+        the shorter arc)."""
+        x = position + self._lead
+        i = int(np.floor(x))
+        w = x - i
+        if w == 0.0:
+            return values[i]
+        step = values[i + 1] - values[i]
+        return values[i] + w * (_wrap(step) if angle else step)
+
+    def person_state(self, frame: int | float) -> PersonState:
+        """Shape, root, heading and joint angles (rad) of every person at ``frame`` (a
+        fractional frame index between frames: the motion interpolated)."""
+        f = self._check_frame(frame) if isinstance(frame, (int, np.integer)) else float(frame)
+        m, at = self._motion, self._at
+        arm = at(m.arm_raise, f)
+        angles = gait_angles(at(m.speed, f), at(m.phase, f, True), at(m.crouch, f), arm,
+                             at(m.head_yaw, f))
+        for key, offset in self._style.items():
+            angles[key] = angles[key] + at(offset, f) * (1.0 - 0.7 * arm * key.startswith("sh_"))
         for key, floor in ANGLE_FLOOR.items():
             angles[key] = np.maximum(angles[key], floor)
-        return PersonState(m.height, m.width, m.pos[f], m.heading[f], angles, self.is_player)
+        return PersonState(m.height, m.width, at(m.pos, f), at(m.heading, f, True), angles,
+                           self.is_player)
 
-    def skeleton(self, frame: int) -> Skeleton:
+    def skeleton(self, frame: int | float) -> Skeleton:
         def make():
             s = self.person_state(frame)
             return forward_kinematics(s.height, s.width, s.angles, s.root_xy, s.heading)
-        return self._cached(("skel", int(frame)), make)
+        key = int(frame) if isinstance(frame, (int, np.integer)) else float(frame)
+        return self._cached(("skel", key), make)
 
     def gt_keypoints(self, frame: int) -> np.ndarray:
         """(P,70,3) MHR70 keypoints, world metres."""
         return self.skeleton(frame).keypoints.copy()
 
-    def vertices(self, frame: int) -> np.ndarray:
+    def vertices(self, frame: int | float) -> np.ndarray:
         """(P,V,3) mesh vertices, world metres (vertex k = same body spot in every frame)."""
         m = self.motion
-        return self._cached(("verts", int(frame)),
+        key = int(frame) if isinstance(frame, (int, np.integer)) else float(frame)
+        return self._cached(("verts", key),
                             lambda: self.body.vertices(self.skeleton(frame), m.height, m.width))
+
+    def _captured(self, camera: str | int, frame: int) -> int | float:
+        """The frame position ``camera`` samples for ``frame`` (the frame itself without an
+        offset, so synchronised scenes stay exactly as before)."""
+        position = self.capture_position(camera, frame)
+        return int(frame) if position == int(frame) else position
 
     # ---- detections ---------------------------------------------------------------------------
     def _camera(self, camera: str | int) -> tuple[Camera, int]:
@@ -174,8 +240,10 @@ class Scene:
 
         def make():
             rng = np.random.default_rng([self.config.seed, 4242, ci, f])
-            skel = self.skeleton(f)
-            return simulate(cam, rng, self.noise, self.body, self.person_state(f), skel.points, gt_skel=skel)
+            at = self._captured(camera, f)
+            skel = self.skeleton(at)
+            return simulate(cam, rng, self.noise, self.body, self.person_state(at), skel.points,
+                            gt_skel=skel)
         return self._cached(("det", ci, f), make)
 
     def detections(self, camera: str | int, frame: int) -> FrameDetections:
@@ -215,4 +283,5 @@ class Scene:
         """(H,W,3) BGR uint8 RAW (distorted) image of ``camera`` at ``frame``."""
         cam, _ = self._camera(camera)
         f = self._check_frame(frame)
-        return self._renderer.render(cam, self.vertices(f), self.skeleton(f).points)
+        at = self._captured(camera, f)
+        return self._renderer.render(cam, self.vertices(at), self.skeleton(at).points)

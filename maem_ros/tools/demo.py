@@ -57,6 +57,7 @@ from maem_ros.core.association import pipeline as association
 from maem_ros.core.association.pipeline import associate
 from maem_ros.core.errors import InputError
 from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.sync import capture_stamp_ns, match_capture_times
 from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
 from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
@@ -379,11 +380,23 @@ def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
     topics = [f"/{c}/detections" for c in demo.cameras]
     if not any(t in demo.info.topics for t in topics):
         raise ValueError(f"bag {str(demo.path)!r}: no /<camera>/detections to run --no-graph on")
-    stop = stamps[-1] + 1 if stamps else None
+    offsets = {c: rig[c].time_offset for c in rig.names}
+    late = max([0.0] + [-o for o in offsets.values()])  # s, capture time beyond the stamps
+    stop = stamps[-1] + 1 + int(round(late * 1e9)) if stamps else None
+    received: dict[str, list] = {}
     for m in bagio.read_messages(demo.path, topics, stop_ns=stop, info=demo.info):
         dets = msg_to_detections(m.decode(), m.topic, rig.names)
-        if dets.stamp_ns in frames:
-            frames[dets.stamp_ns][dets.camera] = dets
+        received.setdefault(dets.camera, []).append(dets)
+    # each camera's message captured nearest each frame (stamp + the rig's time_offset)
+    tolerance = int(np.median(np.diff(stamps)) // 2) if len(stamps) > 1 else 0
+    for cam, msgs in received.items():
+        msgs.sort(key=lambda d: d.stamp_ns)
+        index = match_capture_times(stamps, [d.stamp_ns for d in msgs], offsets[cam], tolerance)
+        for s, k in zip(stamps, index):
+            if k >= 0:
+                dets = msgs[k]
+                dets.stamp_ns = capture_stamp_ns(dets.stamp_ns, offsets[cam])
+                frames[s][cam] = dets
     out, ms = {}, []
     for s in stamps:
         t0 = time.perf_counter()

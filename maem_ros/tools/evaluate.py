@@ -180,7 +180,8 @@ def load_frame(folder: SceneFolder, views: Sequence[str], frame: int, skips: Ski
     out, missing = {}, []
     for view in views:
         try:
-            out[view] = folder.detections(view, frame)
+            # a camera with a rig time_offset contributes its frame captured nearest this one
+            out[view] = folder.detections_at(view, frame)
         except MissingDataError as e:
             missing.append(str(e))
         except ValueError as e:

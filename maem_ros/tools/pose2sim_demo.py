@@ -30,6 +30,7 @@ from typing import Any
 
 POSE2SIM_VERSION = "0.10.49"
 DEMO_PREFIX = "Pose2Sim/Demo_MultiPerson/"
+BOARD_DEMO_PREFIX = "Pose2Sim/Demo_SinglePerson/calibration/"
 
 
 def cache_dir() -> Path:
@@ -47,6 +48,28 @@ def fetch_demo(cache: Path | None = None, timeout_s: float = 600.0) -> Path:
     demo = cache / DEMO_PREFIX
     if (demo / "calibration" / "Calib.qca.txt").is_file() and len(list((demo / "videos").glob("*.mp4"))) == 4:
         return demo
+    wheel = _wheel(cache, timeout_s)
+    _extract(wheel, cache, lambda m: m.startswith(DEMO_PREFIX)
+             and (m.endswith(".mp4") or m.endswith(".qca.txt")), f"{DEMO_PREFIX} videos/calibration")
+    return demo
+
+
+def fetch_board_demo(cache: Path | None = None, timeout_s: float = 600.0) -> Path:
+    """Demo_SinglePerson's calibration folder from the same wheel: Calib.qca.txt and
+    intrinsics/int_camXX_img/*.jpg (checkerboard photos, 4x7 inner corners, 60 mm squares,
+    taken one camera at a time); RuntimeError when the wheel cannot be had."""
+    cache = (cache or cache_dir()) / f"pose2sim-{POSE2SIM_VERSION}"
+    calib = cache / BOARD_DEMO_PREFIX
+    if (calib / "Calib.qca.txt").is_file() and len(list(calib.glob("intrinsics/*/*.jpg"))) >= 4:
+        return calib
+    wheel = _wheel(cache, timeout_s)
+    _extract(wheel, cache, lambda m: m.startswith(BOARD_DEMO_PREFIX)
+             and (m.endswith(".jpg") or m.endswith(".qca.txt")), f"{BOARD_DEMO_PREFIX} images")
+    return calib
+
+
+def _wheel(cache: Path, timeout_s: float) -> Path:
+    """The pose2sim wheel in ``cache``, downloaded by pip on first use."""
     cache.mkdir(parents=True, exist_ok=True)
     wheels = sorted(cache.glob(f"pose2sim-{POSE2SIM_VERSION}-*.whl"))
     if not wheels:
@@ -61,17 +84,20 @@ def fetch_demo(cache: Path | None = None, timeout_s: float = 600.0) -> Path:
         if done.returncode != 0 or not wheels:
             tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["no output"]
             raise RuntimeError(f"pip download pose2sim=={POSE2SIM_VERSION} failed: {tail[0]}")
+    return wheels[0]
+
+
+def _extract(wheel: Path, cache: Path, wanted, what: str) -> None:
+    """Extract the wheel's members ``wanted(name)`` into ``cache``."""
     try:
-        with zipfile.ZipFile(wheels[0]) as z:
-            members = [m for m in z.namelist() if m.startswith(DEMO_PREFIX)
-                       and (m.endswith(".mp4") or m.endswith(".qca.txt"))]
+        with zipfile.ZipFile(wheel) as z:
+            members = [m for m in z.namelist() if wanted(m)]
             if not members:
-                raise RuntimeError(f"wheel {wheels[0].name}: no {DEMO_PREFIX} videos/calibration")
+                raise RuntimeError(f"wheel {wheel.name}: no {what}")
             z.extractall(cache, members)
     except zipfile.BadZipFile:
-        wheels[0].unlink()
-        raise RuntimeError(f"wheel {wheels[0].name}: not a zip file (removed; run again)") from None
-    return demo
+        wheel.unlink()
+        raise RuntimeError(f"wheel {wheel.name}: not a zip file (removed; run again)") from None
 
 
 def build_parser() -> argparse.ArgumentParser:

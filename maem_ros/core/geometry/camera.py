@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +65,9 @@ class Camera:
     #: (3,3) intrinsics of the rectified image, an np.ndarray after __post_init__; None (the
     #: default) = a copy of K. Typed Any: the constructor takes None, the instance never has it
     K_rect: Any = None
+    #: s, added to this camera's message stamps to give its true capture time (a camera whose
+    #: stamps run 40 ms early has +0.04); core.sync.capture_stamp_ns applies it
+    time_offset: float = 0.0
 
     def __post_init__(self) -> None:
         self.K = _as_matrix(self.K, (3, 3), f"camera {self.name!r} K")
@@ -90,6 +93,13 @@ class Camera:
         if ortho_err > 1e-3 or abs(np.linalg.det(self.R) - 1.0) > 1e-3:
             raise ValueError(f"camera {self.name!r} R: not a rotation (det={np.linalg.det(self.R):.4f}, "
                              f"max |R R^T - I| = {ortho_err:.2g})")
+        try:
+            self.time_offset = float(self.time_offset)
+        except (TypeError, ValueError):
+            raise ValueError(f"camera {self.name!r} time_offset: {self.time_offset!r} is not a "
+                             f"number of seconds") from None
+        if not np.isfinite(self.time_offset):
+            raise ValueError(f"camera {self.name!r} time_offset: {self.time_offset} is not finite")
         self.width, self.height = int(self.width), int(self.height)
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera {self.name!r} image size: {self.width}x{self.height} is not positive")
@@ -208,7 +218,8 @@ class Camera:
 
         Accepts ``extrinsic_r`` + ``extrinsic_t`` or a 4x4 ``extrinsic`` (world->camera), a 3x3 or
         3x4 ``intrinsic``, coefficients k1..k6 p1 p2 (missing = 0). A missing image size takes
-        ``default_size`` (width, height) or, failing that, twice the principal point.
+        ``default_size`` (width, height) or, failing that, twice the principal point. An optional
+        ``time_offset`` (s, this project's key; absent = 0) is kept.
         """
         cam_name = name or data.get("name") or "camera"
         where = f"camera {cam_name!r}"
@@ -224,7 +235,8 @@ class Camera:
             E = _as_matrix(data["extrinsic"], (4, 4), f"{where} extrinsic")
             R, t = E[:3, :3], E[:3, 3]
         else:
-            raise ValueError(f"{where}: needs extrinsic_r + extrinsic_t or a 4x4 extrinsic")
+            raise ValueError(f"{where}: needs extrinsic_r + extrinsic_t or a 4x4 extrinsic (intrinsics "
+                             f"only: calibrate the rig first, maem-calibrate)")
         if data.get("world2cam") is False:
             R = np.asarray(R, dtype=np.float64).T
             t = -R @ np.asarray(t, dtype=np.float64).ravel()
@@ -241,16 +253,18 @@ class Camera:
         else:
             width, height = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
         return cls(name=cam_name, K=K, R=R, t=t, width=width, height=height,
-                   distortion_model=model, D=np.asarray(D, float))
+                   distortion_model=model, D=np.asarray(D, float),
+                   time_offset=data.get("time_offset", 0.0))
 
-    def to_maem_json(self) -> dict:
-        """MAEM/xrmocap camera JSON dict (extrinsic_r + extrinsic_t, 3x3 intrinsic)."""
+    def to_maem_json(self, extrinsics: bool = True) -> dict:
+        """MAEM/xrmocap camera JSON dict (extrinsic_r + extrinsic_t, 3x3 intrinsic); without
+        ``extrinsics`` the intrinsics only (read back by :meth:`Rig.load_intrinsics`)."""
         coeff = dict.fromkeys(("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2"), 0.0)
         if self.is_fisheye:
             coeff.update(zip(("k1", "k2", "k3", "k4"), map(float, self.D)))
         else:
             coeff.update(zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), map(float, self.D)))
-        return {
+        out = {
             "class_name": "FisheyeCameraParameter" if self.is_fisheye else "PinholeCameraParameter",
             "convention": "opencv",
             "name": self.name,
@@ -263,17 +277,27 @@ class Camera:
             "height": self.height,
             "world2cam": True,
             **coeff,
+            **({"time_offset": self.time_offset} if self.time_offset else {}),
         }
+        if not extrinsics:
+            for key in ("extrinsic_r", "extrinsic_t", "world2cam"):
+                del out[key]
+        return out
 
     # ---- rig YAML entry ----------------------------------------------------
-    def to_dict(self) -> dict:
+    def to_dict(self, extrinsics: bool = True) -> dict:
+        """Rig YAML entry (``extrinsics`` False: no R, t; read by Rig.load_intrinsics)."""
         d = {
             "width": self.width, "height": self.height,
             "K": self.K.tolist(), "R": self.R.tolist(), "t": self.t.tolist(),
             "distortion_model": self.distortion_model, "D": self.D.tolist(),
         }
+        if not extrinsics:
+            del d["R"], d["t"]
         if not np.array_equal(self.K_rect, self.K):
             d["K_rect"] = self.K_rect.tolist()
+        if self.time_offset:
+            d["time_offset"] = self.time_offset
         return d
 
     @classmethod
@@ -283,7 +307,8 @@ class Camera:
             raise ValueError(f"camera {name!r}: missing {', '.join(missing)}")
         return cls(name=name, K=d["K"], R=d["R"], t=d["t"], width=d["width"], height=d["height"],
                    distortion_model=d.get("distortion_model", "plumb_bob"),
-                   D=d.get("D", []), K_rect=d.get("K_rect"))
+                   D=d.get("D", []), K_rect=d.get("K_rect"),
+                   time_offset=d.get("time_offset", 0.0))
 
 
 def _maem_distortion_model(data: Mapping, coeff: Mapping[str, float]) -> str:
@@ -384,9 +409,10 @@ class Rig:
                          f"Qualisys .qca.txt or a Pose2Sim .toml")
 
     @classmethod
-    def from_json_folder(cls, folder: str | Path,
-                         default_size: tuple[int, int] | None = None) -> Rig:
-        """Cameras named by JSON file stem, in natural order (camera_2 before camera_10)."""
+    def from_json_folder(cls, folder: str | Path, default_size: tuple[int, int] | None = None,
+                         defaults: Mapping | None = None) -> Rig:
+        """Cameras named by JSON file stem, in natural order (camera_2 before camera_10);
+        ``defaults``: keys a file may lack."""
         folder = Path(folder)
         files = sorted(folder.glob("*.json"), key=lambda f: _natural_key(f.stem))
         if not files:
@@ -397,17 +423,42 @@ class Rig:
                 data = json.loads(f.read_text())
             except (OSError, json.JSONDecodeError) as e:
                 raise ValueError(f"rig camera file {str(f)!r}: unreadable JSON ({e})") from None
-            cams.append(Camera.from_maem_json(data, name=f.stem, default_size=default_size))
+            if not isinstance(data, dict):
+                raise ValueError(f"rig camera file {str(f)!r}: expected a JSON object")
+            cams.append(Camera.from_maem_json({**(defaults or {}), **data}, name=f.stem,
+                                              default_size=default_size))
         return cls(cams)
 
-    def to_json_folder(self, folder: str | Path) -> None:
+    def to_json_folder(self, folder: str | Path, extrinsics: bool = True) -> None:
+        """One MAEM camera JSON per camera (``extrinsics`` False: intrinsics only)."""
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         for cam in self:
-            (folder / f"{cam.name}.json").write_text(json.dumps(cam.to_maem_json(), indent=2))
+            (folder / f"{cam.name}.json").write_text(json.dumps(cam.to_maem_json(extrinsics),
+                                                                indent=2))
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> Rig:
+    def load_intrinsics(cls, path: str | Path) -> Rig:
+        """K, distortion, image size and time_offset of every camera in any rig file or folder
+        :meth:`load` reads, extrinsics optional (intrinsics-only camera JSONs or YAML entries
+        are accepted) and discarded: every camera gets R = I, t = 0, a placeholder for a
+        calibration to replace, never a pose."""
+        p = Path(path)
+        if p.is_dir() or p.suffix.lower() in (".yaml", ".yml"):
+            placeholder = {"extrinsic_r": np.eye(3).tolist(), "extrinsic_t": [0.0, 0.0, 0.0],
+                           "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}
+            if p.is_dir():
+                rig = cls.from_json_folder(p / "cameras" if (p / "cameras").is_dir() else p,
+                                           defaults=placeholder)
+            else:
+                rig = cls.from_yaml(p, defaults=placeholder)
+        else:
+            rig = cls.load(p)
+        return cls([replace(c, R=np.eye(3), t=np.zeros(3)) for c in rig])
+
+    @classmethod
+    def from_yaml(cls, path: str | Path, defaults: Mapping | None = None) -> Rig:
+        """A rig YAML (``cameras: {name: {...}}``); ``defaults``: keys an entry may lack."""
         path = Path(path)
         try:
             data = yaml.safe_load(path.read_text())
@@ -415,8 +466,13 @@ class Rig:
             raise ValueError(f"rig {str(path)!r}: cannot read ({e.strerror})") from None
         if not isinstance(data, dict) or not isinstance(data.get("cameras"), dict) or not data["cameras"]:
             raise ValueError(f"rig {str(path)!r}: expected a mapping 'cameras: {{name: {{...}}}}'")
-        return cls([Camera.from_dict(str(n), d) for n, d in data["cameras"].items()])
+        bad = [str(n) for n, d in data["cameras"].items() if not isinstance(d, dict)]
+        if bad:
+            raise ValueError(f"rig {str(path)!r}: camera(s) {bad} are not mappings")
+        return cls([Camera.from_dict(str(n), {**(defaults or {}), **d})
+                    for n, d in data["cameras"].items()])
 
-    def to_yaml(self, path: str | Path) -> None:
-        data = {"cameras": {c.name: c.to_dict() for c in self}}
+    def to_yaml(self, path: str | Path, extrinsics: bool = True) -> None:
+        """Write the rig YAML (``extrinsics`` False: intrinsics only, for Rig.load_intrinsics)."""
+        data = {"cameras": {c.name: c.to_dict(extrinsics) for c in self}}
         Path(path).write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))

@@ -19,12 +19,18 @@ Qualisys (QTM export, XML), read the way Pose2Sim's converter (``Pose2Sim.calibr
   rotated by it) rotates the pinhole camera about its optical axis (K, size, distortion, R, t);
 * cameras are sorted by serial in natural order.
 
-Pose2Sim TOML (``[cam_name]`` tables with size, matrix, distortions k1 k2 p1 p2, rotation as a
-Rodrigues vector and translation in metres, both world -> camera, fisheye false; a ``[metadata]``
-table is skipped).
+Qualisys cameras are hardware-synchronised: their ``time_offset`` is 0.
+
+Pose2Sim TOML (``[cam_name]`` tables with size, matrix, distortions k1 k2 p1 p2 (k3 and, for
+rational_polynomial, k4-k6 may follow, as anipose writes them), rotation as a Rodrigues vector
+and translation in metres, both world -> camera, fisheye false; a ``[metadata]`` table is skipped;
+an optional ``time_offset`` (s, this project's key, ignored by Pose2Sim and anipose) is kept).
+:func:`write_pose2sim_toml` writes the same layout.
 """
 from __future__ import annotations
 
+import json
+import math
 import re
 import sys
 import xml.etree.ElementTree as ET
@@ -184,10 +190,65 @@ def _pose2sim_camera(key: str, table: Mapping, where: str) -> Camera:
     if len(size) != 2:
         raise ValueError(f"{where}: size must be [width, height], got {table['size']}")
     fisheye = bool(table.get("fisheye", False))
+    model = "equidistant" if fisheye else "rational_polynomial" if D.size > 5 else "plumb_bob"
     R = cv2.Rodrigues(rvec)[0]
     return Camera(name=name, K=table["matrix"], R=R, t=table["translation"],
                   width=int(round(size[0])), height=int(round(size[1])),
-                  distortion_model="equidistant" if fisheye else "plumb_bob", D=D)
+                  distortion_model=model, D=D, time_offset=table.get("time_offset", 0.0))
+
+
+def _toml_value(value) -> str:
+    """A float / bool / list of those as TOML (floats by repr: they read back bit-identical)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[ " + ", ".join(_toml_value(v) for v in value) + ",]"
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"pose2sim toml: {x} cannot be written")
+    return repr(x)
+
+
+def _toml_key(name: str) -> str:
+    return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else json.dumps(name)
+
+
+def pose2sim_toml_text(cameras: list[Camera], error_px: float | None = None) -> str:
+    """A Pose2Sim/anipose ``Calib.toml`` for ``cameras`` (layout in the module doc).
+
+    Per camera: name, size [w, h], matrix (K), distortions (k1 k2 p1 p2, then k3.. only when
+    non-zero), rotation (Rodrigues, world -> camera), translation (m), fisheye, and
+    ``time_offset`` (s) when non-zero. ``[metadata]``: adjusted = false, error = ``error_px``
+    (reprojection RMS, px; 0.0 when unknown) as Pose2Sim writes it. ``K_rect`` (a rectified
+    image's intrinsics) has no place in this format and is not written.
+    """
+    tables = []
+    for cam in cameras:
+        D = [float(d) for d in cam.D]
+        keep = 4 if cam.is_fisheye else max(4, max((i + 1 for i, d in enumerate(D) if d), default=0))
+        rvec = cv2.Rodrigues(cam.R)[0].ravel()
+        lines = [f"[{_toml_key(cam.name)}]", f"name = {json.dumps(cam.name)}",
+                 f"size = {_toml_value([float(cam.width), float(cam.height)])}",
+                 f"matrix = {_toml_value([list(row) for row in cam.K])}",
+                 f"distortions = {_toml_value(D[:keep])}",
+                 f"rotation = {_toml_value(list(rvec))}",
+                 f"translation = {_toml_value(list(cam.t))}",
+                 f"fisheye = {_toml_value(cam.is_fisheye)}"]
+        if cam.time_offset:
+            lines.append(f"time_offset = {_toml_value(cam.time_offset)}")
+        tables.append("\n".join(lines))
+    tables.append(f"[metadata]\nadjusted = false\nerror = {_toml_value(error_px or 0.0)}")
+    return "\n\n".join(tables) + "\n"
+
+
+def write_pose2sim_toml(path: str | Path, cameras: list[Camera], error_px: float | None = None) -> None:
+    """Write ``cameras`` as a Pose2Sim/anipose ``Calib.toml`` (see :func:`pose2sim_toml_text`)."""
+    if any(c.name == "metadata" for c in cameras):
+        raise ValueError("pose2sim toml: a camera named 'metadata' clashes with the metadata table")
+    names = [c.name for c in cameras]
+    if len(set(names)) != len(names):
+        raise ValueError(f"pose2sim toml: duplicate camera names {names}")
+    Path(path).write_text(pose2sim_toml_text(cameras, error_px))
 
 
 def is_calibration_file(path: Path) -> bool:
