@@ -229,6 +229,7 @@ def test_cli_calibrates_intrinsics_and_extrinsics_in_one_run(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.network
 def test_pose2sim_demo_checkerboard_photos(tmp_path):
     """Real photos: Demo_SinglePerson's checkerboard (4x7 inner corners, 60 mm), one camera at a
     time: focal lengths within 2 % of that demo's Qualisys calibration, RMS <= 1 px."""
