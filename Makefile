@@ -1,4 +1,6 @@
 # The two commands of the README: `make demo` and `make test`.
+# `make test-fast`: the unit and core tests only (no ROS, colcon, download or slow test);
+# `make lint`: ruff and mypy on maem_ros/ (make test runs it first).
 # Both create .venv in the repo and install everything from the package registries.
 PYTHON ?= python3
 VENV := .venv
@@ -21,7 +23,7 @@ MP_STAMP := $(VENV)/.mediapipe
 KERNELS_STAMP := $(VENV)/.kernels
 CORE_SOURCES := $(shell find maem_ros/core -name '*.py')
 
-.PHONY: venv test demo bench clean mediapipe pose2sim-demo
+.PHONY: venv test test-fast lint demo bench clean mediapipe pose2sim-demo
 
 venv: $(STAMP) $(TF2_STAMP) $(KERNELS_STAMP)
 
@@ -52,8 +54,18 @@ $(KERNELS_STAMP): $(STAMP) $(CORE_SOURCES) maem_ros/tools/warmup.py
 	$(VENV)/bin/maem-warmup --quiet
 	touch $(KERNELS_STAMP)
 
-test: $(STAMP) $(TF2_STAMP) $(MP_STAMP) $(KERNELS_STAMP)
+# the test markers (setup.cfg [tool:pytest]) that make test-fast leaves out
+SLOW_KINDS := not ros and not slow and not colcon and not network
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check maem_ros
+	$(VENV)/bin/mypy
+
+test: lint $(TF2_STAMP) $(MP_STAMP) $(KERNELS_STAMP)
 	$(PY) -m pytest -q test
+
+test-fast: $(STAMP) $(KERNELS_STAMP)
+	$(PY) -m pytest -q test -m "$(SLOW_KINDS)"
 
 demo: $(STAMP) $(TF2_STAMP) $(KERNELS_STAMP)
 	$(VENV)/bin/maem-demo

@@ -19,6 +19,21 @@ import pytest  # noqa: E402 - after the environment above
 from helpers_ros import SCENE, Graph  # noqa: E402
 
 
+#: markers a test gets from the fixtures it uses (markers: setup.cfg [tool:pytest]; make test-fast
+#: deselects ros, slow, colcon and network); tests that start nodes otherwise are marked in their file
+FIXTURE_MARKERS = {
+    "graph": ("ros",),  # an in-process node graph on a DDS participant
+    "pose2sim_demo": ("network", "slow"),  # downloads the pose2sim wheel once per cache
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        for fixture in item.fixturenames:
+            for name in FIXTURE_MARKERS.get(fixture, ()):
+                item.add_marker(name)
+
+
 @pytest.fixture
 def graph():
     """An in-process node graph on a private Context (helpers_ros.Graph), closed after the test."""
@@ -30,7 +45,7 @@ def graph():
 @pytest.fixture(scope="module")
 def scene():
     """The graph tests' synthetic scene (helpers_ros.SCENE), epipolar kernel compiled."""
-    sim = pytest.importorskip("maem_ros.sim.scene")
+    import maem_ros.sim.scene as sim
     from maem_ros.core.association.pipeline import AssociationParams, associate
     sc = sim.Scene(sim.SceneConfig(**SCENE))
     # compile the epipolar kernel (numba) before any node runs: a first-frame stall longer than

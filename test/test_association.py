@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from helpers_scene import look_at, ring_rig
 
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
@@ -28,22 +29,6 @@ VARIANTS = [("numpy", "float64", 1e-9, 0.0)] + (
 # ---------------------------------------------------------------------------------------
 # scene construction
 # ---------------------------------------------------------------------------------------
-def look_at(name: str, eye, target=(0.0, 0.0, 1.0), f: float = 1000.0) -> Camera:
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    K = np.array([[f, 0, 640.0], [0, f, 480.0], [0, 0, 1]])
-    return Camera(name=name, K=K, R=R, t=-R @ eye, width=1280, height=960)
-
-
-def ring_rig(n: int = 4, radius: float = 12.0, height: float = 5.0) -> Rig:
-    ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + 0.3
-    return Rig([look_at(f"cam{i}", (radius * np.cos(a), radius * np.sin(a), height))
-                for i, a in enumerate(ang)])
-
-
 class Body:
     """A person: V surface-ish vertices and J joints (world m), centre = bbox anchor."""
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from test_association import ring_rig
+from helpers_scene import ring_rig
 
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.geometry import procrustes

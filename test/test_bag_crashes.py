@@ -79,6 +79,7 @@ def test_open_chunk_reaches_the_disk_after_chunk_duration(tmp_path):
     assert bagio.bag_info(tmp_path / "bag").damage == ""
 
 
+@pytest.mark.slow
 def test_split_by_duration_and_size_read_by_rosbags_too(tmp_path, demo_messages):
     info = bagio.bag_info(DEMO_BAG)
     for name, opts, files in [("dur", bagio.WriteOptions(max_bag_duration=0.3), 4),
@@ -206,6 +207,7 @@ def test_maem_bag_refuses_what_is_no_bag_in_one_line(tmp_path):
 
 
 @needs_demo
+@pytest.mark.slow
 def test_export_and_demo_read_a_cut_bag_without_metadata(tmp_path):
     bag = _cut_demo(tmp_path, 0.6, metadata=False)
     info = bagio.bag_info(bag)

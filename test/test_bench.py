@@ -26,6 +26,7 @@ def _bench(*args: str, timeout: float = 120.0, env: dict | None = None
                           capture_output=True, text=True, timeout=timeout, env=env)
 
 
+@pytest.mark.slow
 def test_bench_json_reduced_load():
     proc = _bench("--vertices", "500", "--frames", "1", "--repeats", "1",
                   "--straightforward-frames", "1", "--json")
@@ -46,6 +47,7 @@ def test_bench_json_reduced_load():
     assert set(out["targets"]) == {"association_ms_median", "speedup", "triangulation_ms_median"}
 
 
+@pytest.mark.slow
 def test_bench_rejects_bad_arguments():
     proc = _bench("--vertices", "0", "--json")
     assert proc.returncode == 2 and "--vertices" in proc.stderr
@@ -64,6 +66,7 @@ def load():
     {"vertex_stride": 4}, {"tau_mesh": 2.0, "k_min": 2}, {"tau_reproj_bbox": 40.0, "k_min": 3},
     {"backend": "numpy"},
 ])
+@pytest.mark.slow
 def test_fast_and_straightforward_give_the_same_clusters(load, options):
     """The straightforward reference implements the paper's pipeline."""
     rig, frames = load
@@ -102,6 +105,7 @@ def test_reference_pa_mpjpe_is_zero_for_a_similarity():
     assert pa_mpjpe_one(X + rng.normal(0, 0.1, X.shape), X) > 0.01
 
 
+@pytest.mark.slow
 def test_bench_large_load_reduced():
     proc = _bench("--load", "large", "--vertices", "300", "--frames", "1", "--repeats", "1",
                   "--straightforward-frames", "0", "--json", timeout=240)
@@ -114,6 +118,8 @@ def test_bench_large_load_reduced():
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_bench_live_reduced_run(scene, tmp_path):
     """maem-bench --live: 6 publisher processes through association + triangulation (at 10 fps:
     the test checks the tool and its report, not this machine's speed under CI load). The
@@ -146,6 +152,7 @@ def test_bench_live_rejects_bad_arguments():
 
 
 @pytest.mark.timeout(120)
+@pytest.mark.ros
 def test_live_publisher_stops_cleanly_on_sigint(tmp_path):
     """A camera publisher of maem-bench --live that SIGINT reaches while it waits for its
     subscriber ends like a node: between steps, exit code 0, its node torn down."""

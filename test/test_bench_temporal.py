@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 from test_bench import _bench
 
 from maem_ros.core.association.pipeline import AssociationParams
@@ -12,6 +13,7 @@ from maem_ros.sim.rigs import load_rig
 from maem_ros.tools.bench_load import body_template, make_sequence
 
 
+@pytest.mark.slow
 def test_bench_reports_temporal_on_and_off():
     proc = _bench("--vertices", "300", "--frames", "1", "--repeats", "1",
                   "--straightforward-frames", "0", "--temporal-frames", "6", "--json")
@@ -35,6 +37,7 @@ def test_the_load_in_motion_moves_the_same_people():
     assert [r.stats["detections_left"] for r in ids[1:]] == [6] * 4  # the per-camera extras
 
 
+@pytest.mark.slow
 def test_bench_rejects_negative_temporal_frames(capsys):
     proc = _bench("--temporal-frames", "-1")
     assert proc.returncode == 2 and "--temporal-frames" in proc.stderr

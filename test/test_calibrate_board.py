@@ -86,6 +86,7 @@ def test_rendered_board_is_detected_at_its_true_corners(board):
     assert np.sqrt(np.mean(e ** 2)) < 0.3 and e.max() < 1.0, (np.sqrt(np.mean(e ** 2)), e.max())
 
 
+@pytest.mark.slow
 def test_cli_one_camera_at_a_time_gives_intrinsics_only(tmp_path):
     """Photos taken one camera at a time (numbered alike in every camera): one line says
     extrinsics cannot be computed, the intrinsics are written (and read back as such)."""
@@ -127,6 +128,7 @@ def test_cli_bad_input_one_line_exit_2(tmp_path, args, message):
         done.stderr
 
 
+@pytest.mark.slow
 def test_cli_intrinsics_missing_a_camera(tmp_path):
     rig_path = two_camera_rig(tmp_path)
     assert run_cli("maem-sim", tmp_path / "seq", "--rig", rig_path, "--board", CHARUCO,
@@ -229,6 +231,7 @@ def test_cli_calibrates_intrinsics_and_extrinsics_in_one_run(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.network
 def test_pose2sim_demo_checkerboard_photos(tmp_path):
     """Real photos: Demo_SinglePerson's checkerboard (4x7 inner corners, 60 mm), one camera at a
     time: focal lengths within 2 % of that demo's Qualisys calibration, RMS <= 1 px."""

@@ -59,6 +59,7 @@ def _one_line_exit_2(r, *words):
         assert w in lines[0], lines[0]
 
 
+@pytest.mark.slow
 def test_no_intrinsics_for_a_camera(scene, tmp_path):
     intr = tmp_path / "cameras"
     shutil.copytree(scene / "cameras", intr)
@@ -67,6 +68,7 @@ def test_no_intrinsics_for_a_camera(scene, tmp_path):
     _one_line_exit_2(r, "no intrinsics", "camera_2")
 
 
+@pytest.mark.slow
 def test_fewer_than_two_cameras_with_people(scene, tmp_path):
     one = tmp_path / "one"
     shutil.copytree(scene / "cameras", one / "cameras")
@@ -76,6 +78,7 @@ def test_fewer_than_two_cameras_with_people(scene, tmp_path):
     _one_line_exit_2(r, "fewer than two cameras")
 
 
+@pytest.mark.slow
 def test_unreadable_court_points(scene, tmp_path):
     bad = tmp_path / "court.yaml"
     bad.write_text("landmarks: [1, 2\n")

@@ -27,6 +27,7 @@ def _up_error_deg(rig_est, rig_true) -> float:
 
 
 @pytest.mark.parametrize("cameras", [2, 5])
+@pytest.mark.slow
 def test_noise_free_rig_recovered_exactly(tmp_path, cameras):
     rig, dets, scene = _scene(tmp_path, cameras)
     res = calibrate_people(people_data(scene.rig, dets, 30.0), PeopleOptions())
@@ -53,6 +54,7 @@ def _phantom(det: FrameDetections, rng) -> FrameDetections:
                            np.vstack([det.verts2d, fp.verts2d]))
 
 
+@pytest.mark.slow
 def test_false_positive_and_referee_in_every_view(tmp_path):
     rig, dets, scene = _scene(tmp_path, 4, frames=12, difficulty="easy", bystanders=1)
     rng = np.random.default_rng(0)
@@ -67,6 +69,7 @@ def _swapped(det: FrameDetections, flip_full: np.ndarray) -> FrameDetections:
     return dataclasses.replace(det, kpts2d=det.kpts2d[:, flip_full], kpts3d=det.kpts3d[:, flip_full])
 
 
+@pytest.mark.slow
 def test_one_view_with_left_and_right_swapped(tmp_path):
     from maem_ros.core.skeleton import MHR70_NAMES
     flip = np.array([MHR70_NAMES.index(n.replace("left_", "@").replace("right_", "left_").replace("@", "right_"))
@@ -100,6 +103,7 @@ def test_camera_sharing_few_people_is_reported(tmp_path):
         assert others["rot_max"] < 1.0
 
 
+@pytest.mark.slow
 def test_court_points_fix_the_world_frame(tmp_path):
     rig, dets, scene = _scene(tmp_path, 4)
     court = np.array([[-14, -7.5, 0], [14, -7.5, 0], [14, 7.5, 0], [-14, 7.5, 0], [0, 0, 0],
@@ -118,6 +122,7 @@ def test_court_points_fix_the_world_frame(tmp_path):
         assert rotation_angle_deg(res.rig[cam.name].R, cam.R) < 0.05
 
 
+@pytest.mark.slow
 def test_person_height_sets_the_scale(tmp_path):
     rig, dets, scene = _scene(tmp_path, 3)
     base = calibrate_people(people_data(scene.rig, dets, 30.0), PeopleOptions(estimate_time=False))

@@ -20,6 +20,9 @@ from maem_ros.ros.common import IMAGE_QOS
 
 from helpers_ros import ros_node
 
+# every test runs the camera node
+pytestmark = pytest.mark.ros
+
 W, H = 160, 120
 LEVELS = [20 * i + 10 for i in range(10)]  # frame i is uniformly LEVELS[i] grey
 

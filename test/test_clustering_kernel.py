@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from test_association import ring_rig
+from helpers_scene import ring_rig
 
 from maem_ros.core.association import clustering
 from maem_ros.core.association import clustering_kernel
@@ -257,6 +257,7 @@ def bench_frames():
     return sets
 
 
+@pytest.mark.slow
 def test_numba_and_numpy_clusterings_agree_on_bench_frames(bench_frames):
     """The consistent clustering of each frame set's gated pairs: the same groups and stats
     with the numba kernels as with the numpy paths (and merges refused on the way)."""

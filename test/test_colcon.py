@@ -14,6 +14,9 @@ from pathlib import Path
 import pytest
 from helpers_ros import OutputWatcher, killed_on_exit
 
+# builds the package with colcon and runs its nodes with ros2 run
+pytestmark = [pytest.mark.colcon, pytest.mark.ros, pytest.mark.slow]
+
 REPO = Path(__file__).resolve().parents[1]
 #: what the package build needs from the source tree (no .venv, bags, tests)
 SOURCES = ("setup.py", "setup.cfg", "package.xml", "README.md", "resource", "config", "maem_ros")

@@ -51,6 +51,7 @@ def test_committed_bag_contents_and_size():
     demo.check_scene(d)  # the current simulator regenerates this bag's people
 
 
+@pytest.mark.slow
 def test_make_demo_bag_small(tmp_path):
     from maem_ros.ros.wire import msg_to_detections
     out = demo.make_demo_bag(tmp_path / "bag", frames=3)
@@ -67,6 +68,7 @@ def test_make_demo_bag_small(tmp_path):
         demo.make_demo_bag(out, frames=3)
 
 
+@pytest.mark.slow
 def test_ensure_bag_generates_only_the_default_and_rejects_non_bags(tmp_path, monkeypatch):
     import maem_ros.tools.demo_bag as demo_bag
     with pytest.raises(bagio.BagError, match="no such file"):  # --bag /typo: nothing created
@@ -88,6 +90,7 @@ def test_check_scene_detects_other_simulator(tmp_path, bag):
         demo.check_scene(d)
 
 
+@pytest.mark.slow
 def test_trim_bag_keeps_first_frames_and_metadata(tmp_path, bag):
     d = demo.load_bag(bag)
     out = demo.trim_bag(d, tmp_path / "trim", 4)
@@ -142,6 +145,7 @@ def test_played_frames(bag):
 
 
 # ---- runs ---------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_offline_demo_accuracy(tmp_path, bag, capsys):
     code = demo.main(["--bag", str(bag), "--out", str(tmp_path), "--no-graph", "--frames", "10"])
     assert code == 0
@@ -155,6 +159,8 @@ def test_offline_demo_accuracy(tmp_path, bag, capsys):
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
     """The default: the bag's recorded detections at rate 1.0 -> association + triangulation."""
     out = tmp_path / "out"
@@ -174,6 +180,8 @@ def test_graph_demo_plays_recorded_detections_in_real_time(tmp_path, bag):
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_graph_demo_reduced(tmp_path, bag):
     """--frontends: the real node graph (9 processes + player + recorder) on 12 frames."""
     out = tmp_path / "out"
@@ -200,6 +208,8 @@ def test_graph_demo_reduced(tmp_path, bag):
 
 
 @pytest.mark.timeout(90)
+@pytest.mark.ros
+@pytest.mark.slow
 def test_graph_demo_reports_node_failure(tmp_path, bag):
     """A node that cannot start (bad parameter) is named with its log, exit code 1, no hang."""
     params = yaml.safe_load((REPO / "config" / "demo.yaml").read_text())

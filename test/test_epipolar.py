@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 
 from maem_ros.core.association.gates import epipolar, screening
 from maem_ros.core.geometry.camera import fundamental_matrix
-from test_association import VARIANTS, ring_rig, two_facing_cameras
+from helpers_scene import ring_rig
+from test_association import VARIANTS, two_facing_cameras
 
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 
@@ -75,6 +76,7 @@ def test_kernel_decisions_equal_the_reference_and_the_full_mean(seed, n, symmetr
 @given(seed=st.integers(0, 10_000), n=st.integers(1, 3000), symmetric=st.booleans(),
        rel=st.sampled_from([1e-3, 1e-5, 1e-7, 1e-9, 0.0]), above=st.booleans(),
        offset=st.sampled_from([0.0, 1500.0, -700.0]))
+@pytest.mark.slow
 def test_mixed_precision_decides_like_float64_at_the_threshold(seed, n, symmetric, rel, above,
                                                                 offset):
     if not epipolar.have_numba():

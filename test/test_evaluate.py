@@ -1,7 +1,6 @@
 """maem-sim / maem-eval end to end: exact scenes score perfectly, bad inputs are counted skips."""
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,10 +12,6 @@ from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.tools import evaluate
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
-HAVE_PIPELINE = all(importlib.util.find_spec(m) is not None for m in
-                    ("maem_ros.core.association.pipeline", "maem_ros.core.triangulation.ransac", "maem_ros.core.metrics.poses"))
-HAVE_SIM = importlib.util.find_spec("maem_ros.sim.scene") is not None
-needs_pipeline = pytest.mark.skipif(not HAVE_PIPELINE, reason="core association/triangulation/metrics missing")
 
 
 def exact_scene(root: Path, frames: int = 4, people: int = 3, vertices: int = 300) -> SceneFolder:
@@ -51,7 +46,7 @@ def run_eval(scene: Path, tmp_path: Path, params: str, *extra: str) -> dict:
     return json.loads(out.read_text())
 
 
-@needs_pipeline
+@pytest.mark.slow
 def test_exact_scene_scores_perfectly_with_pred_and_plots(tmp_path):
     folder = exact_scene(tmp_path / "scene")
     pred = tmp_path / "pred.npz"
@@ -76,7 +71,6 @@ def test_exact_scene_scores_perfectly_with_pred_and_plots(tmp_path):
     assert all((tmp_path / "plots" / n).stat().st_size > 5000 for n in names)
 
 
-@needs_pipeline
 def test_bad_inputs_are_counted_skips_not_crashes(tmp_path, capsys):
     folder = exact_scene(tmp_path / "scene", frames=5)
     root, views = folder.root, folder.views
@@ -101,7 +95,6 @@ def test_bad_inputs_are_counted_skips_not_crashes(tmp_path, capsys):
     assert "corrupt_npz: 2" in err and "view_without_dets: 1" in err
 
 
-@needs_pipeline
 def test_frames_beyond_gt_and_bad_files_exit_cleanly(tmp_path, capsys):
     folder = exact_scene(tmp_path / "scene", frames=3, people=2)
     pose, mask, conv = folder.gt()
@@ -119,7 +112,6 @@ def test_frames_beyond_gt_and_bad_files_exit_cleanly(tmp_path, capsys):
     assert "tau_det" in capsys.readouterr().err
 
 
-@needs_pipeline
 def test_ablation_rows(tmp_path, capsys):
     folder = exact_scene(tmp_path / "scene", frames=2, people=2, vertices=100)
     rep = run_eval(folder.root, tmp_path, "humanm3.yaml", "--ablation")
@@ -130,7 +122,6 @@ def test_ablation_rows(tmp_path, capsys):
     assert all(name in out for name, _ in evaluate.ABLATION)
 
 
-@pytest.mark.skipif(not (HAVE_PIPELINE and HAVE_SIM), reason="sim scene or core pipeline missing")
 @pytest.mark.timeout(120)
 def test_zero_noise_sim_scene_through_maem_eval(tmp_path):
     from maem_ros.tools import simulate
@@ -147,7 +138,7 @@ def test_zero_noise_sim_scene_through_maem_eval(tmp_path):
     assert rep["mpjpe_mean"] < 1.0 and rep["mpjpe_median"] < 1.0
 
 
-@pytest.mark.skipif(not HAVE_SIM, reason="sim scene missing")
+@pytest.mark.slow
 def test_maem_sim_images_and_gt_people(tmp_path, capsys):
     import cv2
     from maem_ros.tools import simulate
@@ -165,8 +156,7 @@ def test_maem_sim_images_and_gt_people(tmp_path, capsys):
     assert "no_such_rig" in capsys.readouterr().err
 
 
-@needs_pipeline
-@pytest.mark.skipif(not HAVE_SIM, reason="simulator missing")
+@pytest.mark.slow
 def test_oracle_and_explain_on_simulated_scenes(tmp_path):
     """maem-sim writes det_ids.npz; --oracle scores 100 % on a noiseless scene; on a noisy one
     every lost person-frame gets exactly one cause (the counts add up to the losses)."""

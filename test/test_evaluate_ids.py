@@ -3,13 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_evaluate import exact_scene, needs_pipeline, run_eval
+from test_evaluate import exact_scene, run_eval
 
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.tools import evaluate
 
 
-@needs_pipeline
 @pytest.mark.parametrize("temporal", ["on", "off"])
 def test_pred_ids_follow_each_person_and_score_idf1(tmp_path, capsys, temporal):
     folder = exact_scene(tmp_path / "scene", frames=8)

@@ -70,6 +70,7 @@ def known(tmp_path_factory):
     return path, decoded
 
 
+@pytest.mark.slow
 def test_trc_per_track_matches_bag(known, tmp_path):
     bag, frames = known
     res = run_export(str(bag), "--format", "trc", "--out", str(tmp_path))
@@ -110,6 +111,7 @@ print(json.dumps({"labels": list(t.getColumnLabels()), "units": t.getTableMetaDa
 """
 
 
+@pytest.mark.slow
 def test_trc_read_by_opensim(known, tmp_path):
     """OpenSim's own TRC reader (TRCFileAdapter) gets the same markers, times and values."""
     if importlib.util.find_spec("opensim") is None:  # find, not import (see _OPENSIM_READ)
@@ -138,6 +140,7 @@ def test_trc_zup_keeps_world_axes(known, tmp_path):
     np.testing.assert_allclose(trc["xyz"], expected_grid(frames, 7) * 1000.0, atol=6e-4)
 
 
+@pytest.mark.slow
 def test_c3d_all_tracks_read_back_with_ezc3d(known, tmp_path):
     bag, frames = known
     res = run_export(str(bag), "--format", "c3d", "--out", str(tmp_path))
@@ -160,6 +163,7 @@ def test_c3d_all_tracks_read_back_with_ezc3d(known, tmp_path):
         assert (res_[n * 13:(n + 1) * 13][~missing] >= 0).all()
 
 
+@pytest.mark.slow
 def test_csv_long_format_matches_bag(known, tmp_path):
     bag, frames = known
     res = run_export(str(bag), "--format", "csv", "--out", str(tmp_path))
@@ -178,6 +182,7 @@ def test_csv_long_format_matches_bag(known, tmp_path):
     assert any(int(r["id"]) == wire.UNTRACKED_ID for r in rows)
 
 
+@pytest.mark.slow
 def test_min_frames_drops_short_tracks(known, tmp_path):
     bag, _ = known
     res = run_export(str(bag), "--format", "trc", "--out", str(tmp_path), "--min-frames", "3")
@@ -216,6 +221,7 @@ def small_image_bag(tmp_path_factory):
     (["--min-frames", "99"], "no tracked person to export"),
     (["--convention", "coco_17"], "13 joints, convention coco_17 has 17"),
 ])
+@pytest.mark.slow
 def test_bad_inputs_one_line_exit_2(small_image_bag, tmp_path, args, needle):
     bag = small_image_bag
     res = run_export(str(bag), "--format", "trc", "--out", str(tmp_path / "out"), *args)
@@ -224,6 +230,7 @@ def test_bad_inputs_one_line_exit_2(small_image_bag, tmp_path, args, needle):
     assert len(lines) == 1 and needle in lines[0], res.stderr
 
 
+@pytest.mark.slow
 def test_bad_bag_and_out(tmp_path):
     res = run_export(str(tmp_path / "missing"), "--format", "csv", "--out", str(tmp_path))
     assert res.returncode == 2 and "not a rosbag2 folder" in res.stderr
@@ -236,6 +243,7 @@ def test_bad_bag_and_out(tmp_path):
     assert "--out" in res.stderr and "cannot create" in res.stderr
 
 
+@pytest.mark.slow
 def test_irregular_and_single_frame_bags(tmp_path):
     frames = known_frames(num_frames=4, dropped=())
     s, ids, j = frames[2]

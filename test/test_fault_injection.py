@@ -26,7 +26,8 @@ from maem_ros.ros.common import DATA_QOS
 
 from helpers_ros import Graph, bad_messages, fresh_detections, start_pipeline, wait_for
 
-pytestmark = pytest.mark.timeout(150)
+# node graphs under faults
+pytestmark = [pytest.mark.timeout(150), pytest.mark.ros]
 
 PERIOD_S = 0.1  # 10 Hz
 T0 = 1_700_000_000_000_000_000

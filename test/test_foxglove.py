@@ -250,6 +250,7 @@ def _decoded_frames(known):
     return {s: (ids, j.astype(np.float32).astype(np.float64)) for s, ids, j in known.frames}
 
 
+@pytest.mark.slow
 def test_bag_source_channels_and_messages(image_bag):
     bag, known = image_bag
     cams = known.rig.names
@@ -301,6 +302,7 @@ def test_bag_source_channels_and_messages(image_bag):
     assert set(client.log_times["/maem/skeletons"]) <= set(frames)
 
 
+@pytest.mark.slow
 def test_two_bags_merged_images_from_one_poses_from_the_other(tmp_path):
     """As after `make demo`: the camera bag (rig, images) plus a recorder bag (poses only)."""
     frames = known_frames(num_frames=3, dropped=())
@@ -330,6 +332,7 @@ def test_bag_source_bad_inputs_exit_2(image_bag, args, needle):
     assert len(lines) == 1 and needle in lines[0], res.stderr
 
 
+@pytest.mark.slow
 def test_bad_message_is_skipped_and_the_replay_goes_on(tmp_path):
     write_poses_bag(tmp_path / "bag", known_frames(num_frames=4, dropped=()), images=True,
                     malformed=(1,))
@@ -358,6 +361,7 @@ def test_port_in_use_exit_2(image_bag):
     assert res.stderr.count("\n") == 1 and f"--port {port}: cannot listen" in res.stderr, res.stderr
 
 
+@pytest.mark.slow
 def test_help_lists_bag_options_and_node_parameters():
     res = subprocess.run([str(BIN / "maem-foxglove"), "--help"], capture_output=True, text=True,
                          timeout=60)
@@ -367,6 +371,7 @@ def test_help_lists_bag_options_and_node_parameters():
         assert needle in res.stdout, needle
 
 
+@pytest.mark.slow
 def test_bag_without_rig_needs_rig_option(tmp_path):
     write_poses_bag(tmp_path / "norig", known_frames(num_frames=2, dropped=()), store_rig=False)
     res = subprocess.run([str(BIN / "maem-foxglove"), "--bag", str(tmp_path / "norig")],
@@ -378,6 +383,7 @@ def test_bag_without_rig_needs_rig_option(tmp_path):
 # live graph source: the node, fed by a test publisher
 # ---------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("transport", ["compressed", "raw"])
+@pytest.mark.ros
 def test_live_node_serves_graph_topics(tmp_path, transport):
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
@@ -469,6 +475,7 @@ def test_live_node_serves_graph_topics(tmp_path, transport):
         assert abs(float(bgr.mean()) - 60) < 2
 
 
+@pytest.mark.ros
 def test_live_node_bad_rig_exits_2():
     res = subprocess.run([str(BIN / "maem-foxglove"), "--ros-args", "-p", "rig:=/no/such/rig"],
                          capture_output=True, text=True, timeout=60)
@@ -476,6 +483,7 @@ def test_live_node_bad_rig_exits_2():
     assert "parameter 'rig'" in res.stderr
 
 
+@pytest.mark.ros
 def test_live_node_sends_rig_without_data_under_sim_time(tmp_path):
     """Court, frustums, transforms and calibrations reach a client with no data flowing, even
     with use_sim_time and no /clock (the resend timer runs on a steady clock)."""

@@ -1,8 +1,6 @@
 """Frontend backends: npz and synthetic return the right FrameDetections for a stamp."""
 from __future__ import annotations
 
-import importlib.util
-
 import numpy as np
 import pytest
 
@@ -122,10 +120,8 @@ class _Verts(Estimator):
         return _Verts.last
 
 
-HAS_SIM = importlib.util.find_spec("maem_ros.sim.scene") is not None
 
 
-@pytest.mark.skipif(not HAS_SIM, reason="maem_ros.sim.scene not written yet")
 def test_synthetic_backend_matches_scene():
     from maem_ros.sim.scene import Scene, SceneConfig
     from maem_ros.frontend.synthetic import scene_config_dict
@@ -150,7 +146,6 @@ def test_synthetic_backend_matches_scene():
         scene_config_dict({"scene_dict": "{not json"})
 
 
-@pytest.mark.skipif(not HAS_SIM, reason="maem_ros.sim.scene not written yet")
 def test_npz_backend_reproduces_synthetic_backend(tmp_path):
     """maem-sim's npz files (RAW px, float32) decode to the simulator's own rectified detections."""
     from maem_ros.tools import simulate

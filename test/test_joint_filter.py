@@ -9,7 +9,8 @@ import pytest
 from maem_ros.core.tracking.joint_filter import JointFilter, JointFilterParams, filter_and_score
 from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 
-from test_triangulation import cluster, make_frames, ring_rig
+from helpers_scene import COURT_RING, project_frames, ring_rig
+from test_triangulation import cluster
 
 FPS = 30
 DT_NS = int(1e9 / FPS)
@@ -33,7 +34,7 @@ def run(rig, seq, members_at, noise_px=1.5, filt: JointFilter | None = None, see
     errors, scores, stds = [], [], []
     tri = TriangulationParams()
     for f, X in enumerate(seq):
-        frames = make_frames(rig, X, noise_px=noise_px, seed=seed + f)
+        frames = project_frames(rig, X, noise_px=noise_px, rng=np.random.default_rng(seed + f))
         poses = triangulate(rig, frames, [cluster(*[(k, 0) for k in members_at(f)])], tri)
         joints, std, score = filter_and_score(f * DT_NS, np.array([7]), poses.joints,
                                               poses.joint_cov, poses.detection_scores, filt,
@@ -47,7 +48,7 @@ def run(rig, seq, members_at, noise_px=1.5, filt: JointFilter | None = None, see
 def test_two_view_updates_with_weak_geometry_lean_on_the_track():
     """Frames 10-29 are seen by two neighbouring cameras only (rays ~30 deg apart): raw
     triangulation is off along the rays, the filtered pose much less; both carry a higher std."""
-    rig = ring_rig(12, radius=10.0)
+    rig = ring_rig(12, radius=10.0, **COURT_RING)
     seq = walker(30)
     views = lambda f: [0, 3, 6, 9] if f < 10 else [0, 1]  # noqa: E731
     raw, raw_score, raw_std = run(rig, seq, views, noise_px=3.0)
@@ -61,7 +62,7 @@ def test_two_view_updates_with_weak_geometry_lean_on_the_track():
 def test_a_sharp_turn_seen_by_enough_views_is_followed():
     """A 90 degree turn at 3 m/s: with four good views the filter follows within a frame or
     two instead of overshooting along the old direction."""
-    rig = ring_rig(8, radius=10.0)
+    rig = ring_rig(8, radius=10.0, **COURT_RING)
     seq = walker(30, turn_at=15, speed=3.0)
     views = lambda f: [0, 2, 4, 6]  # noqa: E731
     raw, _, _ = run(rig, seq, views)
@@ -73,7 +74,7 @@ def test_a_sharp_turn_seen_by_enough_views_is_followed():
 def test_turn_with_a_detection_missing_in_all_but_two_views_is_not_far_off():
     """The issue's case: a sharp turn while only two (neighbouring) views see the person; the
     prediction alone would be ~10 cm off after three frames, the published pose is not."""
-    rig = ring_rig(12, radius=10.0)
+    rig = ring_rig(12, radius=10.0, **COURT_RING)
     seq = walker(30, turn_at=15, speed=3.0)
     views = lambda f: [0, 3, 6, 9] if f < 15 else [0, 1]  # noqa: E731
     filt, score, _ = run(rig, seq, views, noise_px=2.0, filt=JointFilter())

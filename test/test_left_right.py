@@ -3,22 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers_scene import look_at, project_detections
 
 from maem_ros.core.association.pipeline import Cluster
-from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import BLAZEPOSE_33, SPORTCENTER_13
 from maem_ros.core.triangulation.ransac import TriangulationParams, mirror_permutation, triangulate
-
-
-def look_at(name: str, centre: np.ndarray, target=np.array([0.0, 0.0, 1.0])) -> Camera:
-    z = target - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    K = [[1000.0, 0, 640], [0, 1000.0, 360], [0, 0, 1]]
-    return Camera(name, K, R, -R @ centre, 1280, 720)
 
 
 def body(rng) -> np.ndarray:
@@ -37,22 +28,18 @@ def body(rng) -> np.ndarray:
 def scene():
     rng = np.random.default_rng(3)
     angles = np.radians([0, 70, 160, 250])
-    rig = Rig([look_at(f"c{k}", np.array([4 * np.cos(a), 4 * np.sin(a), 2.0]))
+    rig = Rig([look_at(f"c{k}", [4 * np.cos(a), 4 * np.sin(a), 2.0], size=(1280, 720))
                for k, a in enumerate(angles)])
     return rig, body(rng)
 
 
 def frames_of(rig: Rig, X: np.ndarray, swapped: set[str], scores=None) -> dict[str, FrameDetections]:
+    """One exact detection of body X per camera; the cameras in ``swapped`` label its left and
+    right keypoints the other way round."""
     perm = mirror_permutation(33)
-    out = {}
-    for k, cam in enumerate(rig):
-        uv = cam.project_rectified(X)
-        if cam.name in swapped:
-            uv = uv[perm]
-        s = 0.9 if scores is None else scores[k]
-        out[cam.name] = FrameDetections(cam.name, 0, [[0, 0, 10, 10]], [s], uv[None],
-                                        np.zeros((1, 33, 3)), np.zeros((1, 0, 2)))
-    return out
+    return {cam.name: project_detections(cam, (X[perm] if cam.name in swapped else X)[None],
+                                         scores=0.9 if scores is None else scores[k])
+            for k, cam in enumerate(rig)}
 
 
 def test_mirror_permutation():

@@ -213,6 +213,7 @@ def test_poll_timer_runs_only_while_a_set_waits(graph, scene):
     assert {int(c) for c in g["clusters"].by_stamp[scene.stamp_ns(0)].camera} <= {0, 1, 2}
 
 
+@pytest.mark.ros
 def test_executor_choice_and_a_bad_one(monkeypatch) -> None:
     """MAEM_EXECUTOR picks the nodes' executor; anything else is a one-line ConfigError."""
     import rclpy
@@ -240,6 +241,7 @@ def test_executor_choice_and_a_bad_one(monkeypatch) -> None:
 @pytest.mark.parametrize("variable,value,node", [
     ("MAEM_EXECUTOR", "threads", "association_node"),
     ("MAEM_HEAP_PREFAULT_MB", "lots", "triangulation_node")])
+@pytest.mark.ros
 def test_node_with_a_bad_environment_setting_exits_2_with_one_line(variable, value, node) -> None:
     import os
     import subprocess

@@ -77,6 +77,7 @@ def test_video_bag_round_trip(videos, capsys):
     assert Rig.load(videos / "back.yaml").names == rig.names
 
 
+@pytest.mark.slow
 def test_video_bag_cli_with_fps_and_qualisys_rig(tmp_path):
     """The console command users run, on a Qualisys calibration; --fps overrides the videos'."""
     qca = tmp_path / "Calib.qca.txt"

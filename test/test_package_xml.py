@@ -7,6 +7,7 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -50,6 +51,7 @@ def third_party_imports() -> dict[str, set[str]]:
     return out
 
 
+@pytest.mark.slow
 def test_every_runtime_import_has_an_exec_depend() -> None:
     root = ET.parse(REPO / "package.xml").getroot()
     assert root.get("format") == "3"

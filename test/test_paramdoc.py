@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from maem_ros.core.association import AssociationParams
 from maem_ros.core.triangulation import TriangulationParams
 from maem_ros.tools import paramdoc
@@ -25,6 +27,7 @@ def _table_rows(text: str, name: str) -> list[str]:
     return [line for line in body.strip().splitlines()[2:]]
 
 
+@pytest.mark.slow
 def test_readme_and_parameter_reference_are_current() -> None:
     """Fails when a parameter, default, bound or description changed and the documents were
     not regenerated (run the command the failure prints)."""
@@ -54,6 +57,7 @@ def _help_parameter_names(script: str) -> list[str]:
     return [line.split()[0] for line in listed.splitlines() if line.startswith("  ")]
 
 
+@pytest.mark.slow
 def test_every_node_table_lists_what_the_node_help_lists() -> None:
     """Each node's table holds exactly the parameters its console script's --help shows, in
     that order; escaped pipes (choices such as 'mean|max' in a description) keep every row at
@@ -69,6 +73,7 @@ def test_every_node_table_lists_what_the_node_help_lists() -> None:
             assert len(cells) == 5, row
 
 
+@pytest.mark.slow
 def test_check_fails_on_a_stale_table_and_write_repairs_it(tmp_path: Path) -> None:
     readme = (REPO / "README.md").read_text()
     good_row = next(r for r in _table_rows(readme, "method") if r.startswith("| `tau_mesh`"))

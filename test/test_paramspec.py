@@ -118,6 +118,7 @@ def test_every_node_parameter_has_a_description() -> None:
             assert spec.check(spec.default) == spec.default, (mod.__name__, spec.name)
 
 
+@pytest.mark.ros
 def test_a_new_core_field_is_a_validated_read_only_ros_parameter() -> None:
     """What an added field gets in a node: declaration with descriptor, ints for doubles, and a
     one-line ConfigError naming it."""

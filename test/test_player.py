@@ -21,6 +21,9 @@ from maem_ros import bagio
 
 from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
 
+# every test runs the player node
+pytestmark = pytest.mark.ros
+
 T0 = 1_700_000_000_000_000_000
 # irregular spacing (s) on /t1; /t2 interleaved 10 ms after each /t1 message
 OFFSETS = [0.0, 0.1, 0.25, 0.3, 0.5, 0.55, 0.8]

@@ -13,9 +13,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from maem_ros import bagio
 from maem_ros.tools.make_bag import main as make_bag_main
+
+# the mediapipe graph on the pose2sim footage (network: the fixture)
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 

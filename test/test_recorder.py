@@ -18,6 +18,9 @@ from maem_ros import bagio
 
 from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
 
+# every test runs the recorder node
+pytestmark = pytest.mark.ros
+
 N = 60
 
 

@@ -18,6 +18,9 @@ from maem_ros.ros import wire
 from maem_ros.ros.common import DATA_QOS
 from maem_ros.ros.probe import fusion_links
 
+# node command lines (--help too), namespaces, parameters, diagnostics
+pytestmark = pytest.mark.ros
+
 BIN = Path(sys.executable).parent
 PARAM_NODES = {"frontend": "maem_ros.ros.frontend_node",
                "association": "maem_ros.ros.association_node",
@@ -57,7 +60,7 @@ def test_namespaced_graph_publishes_under_the_namespace(tmp_path: Path) -> None:
     """association + triangulation started with -r __ns:=/team read /team/<cam>/detections and
     deliver /team/maem/poses; a second params file overrides the first (what works for a
     namespaced node: rcl's ``-p node:name:=value`` only matches a node in /)."""
-    sim = pytest.importorskip("maem_ros.sim.scene")
+    import maem_ros.sim.scene as sim
     scene = sim.Scene(sim.SceneConfig(rig="sportcenter6", frames=4, seed=3, difficulty="easy",
                                       num_vertices=500))
     params = tmp_path / "params.yaml"

@@ -17,7 +17,8 @@ from maem_ros.ros.common import DATA_QOS
 from helpers_ros import (Recorder, match_players, offline, pipeline_params, play, start_pipeline,
                          wait_for)
 
-pytestmark = pytest.mark.timeout(150)
+# in-process node graphs
+pytestmark = [pytest.mark.timeout(150), pytest.mark.ros]
 
 
 @pytest.mark.parametrize("temporal", [False, True], ids=["temporal_off", "temporal_on"])
@@ -103,7 +104,7 @@ def test_poses_match_ground_truth_with_stable_ids(graph, scene, temporal):
 
 def test_frontend_npz_backend_replays_a_scene_folder(graph, tmp_path):
     """maem-sim folder (MAEM npz, raw px) -> frontend npz backend -> rectified detections."""
-    sim = pytest.importorskip("maem_ros.sim.scene")
+    import maem_ros.sim.scene as sim
     from sensor_msgs.msg import Image
 
     from maem_ros.ros.common import IMAGE_QOS
@@ -147,7 +148,7 @@ def test_marker_lifetime_follows_the_frame_period(graph):
 def test_frontend_sends_q4_and_an_announced_vertex_subset(graph):
     """wire_vertices q4 + vertex_stride/vertex_count: the frontend publishes verts2d_q4 and
     verts2d_subset; the decoder gives the announced subset of the scene's vertices (1/32 px)."""
-    sim = pytest.importorskip("maem_ros.sim.scene")
+    import maem_ros.sim.scene as sim
     from sensor_msgs.msg import Image
 
     from maem_ros.core.association.gates import epipolar

@@ -18,13 +18,13 @@ from maem_ros.ros import wire
 
 from helpers_ros import wait_for
 
-pytestmark = pytest.mark.timeout(240)
+# the node graph as processes
+pytestmark = [pytest.mark.timeout(240), pytest.mark.ros, pytest.mark.slow]
 
 FRAMES = 8
 
 
 def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
-    pytest.importorskip("maem_ros.sim.scene")
     from maem_ros.tools.latency import GraphProcesses, ReplayClient, make_scene, match_mpjpe, write_params
 
     params = write_params(

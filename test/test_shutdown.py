@@ -15,7 +15,8 @@ from maem_ros.ros.cli import SHUTDOWN_STALLED, STALLED_WITH_GIL
 
 from helpers_ros import ros_node, wait_for
 
-pytestmark = pytest.mark.timeout(60)
+# node shutdown and the Fast DDS teardown guard
+pytestmark = [pytest.mark.timeout(60), pytest.mark.ros]
 
 #: a process whose main loop ignores the stop request (a stalled callback or teardown)
 STALLED = textwrap.dedent("""

@@ -208,6 +208,7 @@ def test_raw_outputs_layout_and_raw_vs_rectified(scene_med):
         np.testing.assert_allclose(box[2:] - box[:2], d.bboxes[i, 2:] - d.bboxes[i, :2], atol=1e-3)
 
 
+@pytest.mark.slow
 def test_detections_deterministic_per_seed():
     cfg = dict(rig="humanm3_3", frames=5, num_vertices=200, difficulty="hard")
     a, b = Scene(SceneConfig(**cfg, seed=5)), Scene(SceneConfig(**cfg, seed=5))

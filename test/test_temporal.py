@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from test_association import look_at, ring_rig
+from helpers_scene import look_at, ring_rig
 
 from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.core.geometry.camera import Rig

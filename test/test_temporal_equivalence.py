@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from temporal_reference import ReferenceTemporalAssociator
-from test_temporal import PARAMS, Walker, frame, ring_rig
+from helpers_scene import ring_rig
+from test_temporal import PARAMS, Walker, frame
 
 from maem_ros.core.association.pipeline import AssociationParams
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
@@ -53,6 +54,7 @@ def run_both(rig, seq, params: AssociationParams, temporal: TemporalParams) -> i
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("verify", ["sparse", "mesh"])
+@pytest.mark.slow
 def test_batched_stage_equals_the_reference_on_the_bench_load_in_motion(seed, verify):
     rig = load_bench_rig("sportcenter6")
     template = body_template(400, 70, seed)

@@ -53,6 +53,7 @@ def _association(tmp_path: Path, env: dict | None = None) -> subprocess.Popen:
                             cwd=tmp_path, env=env)
 
 
+@pytest.mark.ros
 def test_tf_static_reaches_a_late_subscriber_in_another_process(tmp_path: Path) -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
     from maem_ros.core.geometry.camera import Rig
@@ -75,6 +76,7 @@ def test_tf_static_reaches_a_late_subscriber_in_another_process(tmp_path: Path) 
         np.testing.assert_allclose(t.translation, cam.center, atol=1e-9)
 
 
+@pytest.mark.ros
 def test_without_tf2_msgs_the_node_runs_and_says_tf_is_skipped(tmp_path: Path) -> None:
     """A machine where the tf2_msgs build was skipped: one clear line, the node works."""
     import os
@@ -92,6 +94,7 @@ def test_without_tf2_msgs_the_node_runs_and_says_tf_is_skipped(tmp_path: Path) -
     assert len(skipped) == 1 and "tf2_msgs is not importable" in skipped[0], out.text()
 
 
+@pytest.mark.ros
 def test_player_replays_tf_static_of_a_bag(tmp_path: Path) -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
     from maem_ros import bagio

@@ -171,6 +171,7 @@ def test_sim_camera_with_an_offset_samples_the_motion_at_its_own_time(tmp_path):
         Scene({**base, "time_offsets": {"camera_1": 2.0}})
 
 
+@pytest.mark.slow
 def test_maem_sim_time_offsets_and_intrinsics_only(tmp_path):
     import subprocess
     import sys
@@ -198,6 +199,7 @@ def test_maem_sim_time_offsets_and_intrinsics_only(tmp_path):
     assert bad.returncode == 2 and "expected CAMERA=SECONDS" in bad.stderr
 
 
+@pytest.mark.slow
 def test_maem_eval_applies_the_rig_offsets(tmp_path):
     """A scene whose camera_1 captures 2 frames late: maem-eval with the rig's time_offset
     pairs its frames by capture time (as good as a synchronised scene); the same scene with the

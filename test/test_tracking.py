@@ -191,6 +191,7 @@ class _BoneFilterLoop:
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), history=st.integers(5, 12), min_samples=st.integers(1, 5))
+@pytest.mark.slow
 def test_bone_filter_equals_a_per_person_loop(seed, history, min_samples):
     """Random crowds over many frames: ids coming and going (more than the filter keeps, so
     the oldest are forgotten), untracked people, an id twice in a frame, missing joints and
@@ -286,6 +287,7 @@ class _TrackerLoop:
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), min_hits=st.integers(1, 4))
+@pytest.mark.slow
 def test_tracker_equals_a_per_track_loop(seed, min_hits):
     """People walking, leaving and coming back, missing joints, a pose with none, repeated
     and jumping stamps, timeouts and a stamp going back: the same ids every frame."""

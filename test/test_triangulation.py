@@ -6,48 +6,11 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from helpers_scene import project_frames, ring_rig
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.geometry.camera import Camera, Rig
-from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.multiview import dlt
 from maem_ros.core.triangulation.ransac import Poses, TriangulationParams, triangulate
-
-
-def look_at(centre, target=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
-    """world->camera R, t of a camera at ``centre`` looking at ``target`` (z up world)."""
-    centre = np.asarray(centre, float)
-    z = np.asarray(target, float) - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    return R, -R @ centre
-
-
-def ring_rig(n: int = 6, radius: float = 12.0, height: float = 5.0, phase: float = 0.0) -> Rig:
-    cams = []
-    for k in range(n):
-        a = phase + 2 * np.pi * k / n
-        R, t = look_at([radius * np.cos(a), 0.8 * radius * np.sin(a), height])
-        cams.append(Camera(f"cam{k}", K=[[1000, 0, 960], [0, 1000, 540], [0, 0, 1]], R=R, t=t,
-                           width=1920, height=1080))
-    return Rig(cams)
-
-
-def make_frames(rig: Rig, people: np.ndarray, scores: float | np.ndarray = 0.95,
-                noise_px: float = 0.0, seed: int = 0) -> dict[str, FrameDetections]:
-    """Every camera sees every person (detection index = person index)."""
-    rng = np.random.default_rng(seed)
-    P, J = people.shape[:2]
-    sc = np.broadcast_to(np.asarray(scores, float), (P,)).copy()
-    frames = {}
-    for cam in rig:
-        uv = cam.project_rectified(people) + rng.normal(scale=noise_px, size=(P, J, 2))
-        lo, hi = uv.min(1), uv.max(1)
-        frames[cam.name] = FrameDetections(cam.name, 0, np.concatenate([lo, hi], 1), sc.copy(), uv,
-                                           np.zeros((P, J, 3)), np.zeros((P, 0, 2)))
-    return frames
 
 
 def cluster(*members: tuple[int, int]) -> SimpleNamespace:
@@ -131,7 +94,7 @@ def test_dlt_rejects_bad_shapes() -> None:
 def test_noiseless_clusters_exact() -> None:
     rig = ring_rig(6)
     X = people(4, 70)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     clusters = [cluster(*[(c, p) for c in range(6)]) for p in range(4)]
     out = triangulate(rig, frames, clusters, TriangulationParams())
     assert isinstance(out, Poses) and out.joints.shape == (4, 70, 3)
@@ -147,7 +110,7 @@ def test_noiseless_clusters_exact() -> None:
 def test_cluster_order_and_subsets_of_views() -> None:
     rig = ring_rig(5)
     X = people(3, 13, seed=3)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     # clusters of different sizes and member order, detection index != cluster index
     clusters = [cluster((4, 2), (0, 2)), cluster((1, 0), (3, 0), (2, 0)),
                 cluster((2, 1), (0, 1), (3, 1), (4, 1))]
@@ -160,7 +123,7 @@ def test_cluster_order_and_subsets_of_views() -> None:
 def test_ransac_rejects_outlier_view() -> None:
     rig = ring_rig(5)
     X = people(1, 70, seed=5)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     kp = frames["cam3"].kpts2d
     kp[0, :, :] += [60.0, -45.0]  # view 3 is wrong on every joint by 75 px
     out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(5)])], TriangulationParams(tau_kps=20.0))
@@ -175,7 +138,7 @@ def test_ransac_rejects_outlier_view() -> None:
 def test_nan_where_fewer_than_two_views() -> None:
     rig = ring_rig(3)
     X = people(1, 6, seed=7)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     frames["cam0"].kpts2d[0, 0] = np.nan  # joint 0: only cam1, cam2 left -> still fine
     frames["cam1"].kpts2d[0, 1] = np.nan  # joint 1: cam0, cam2
     frames["cam2"].kpts2d[0, 1] = np.nan  # joint 1: now only cam0 -> NaN
@@ -193,7 +156,7 @@ def test_nan_where_fewer_than_two_views() -> None:
 def test_no_agreeing_pair_is_nan() -> None:
     rig = ring_rig(3)
     X = people(1, 4, seed=8)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     frames["cam1"].kpts2d[0, 0] += 200.0
     frames["cam2"].kpts2d[0, 0] -= 300.0
     out = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0))], TriangulationParams(tau_kps=5.0))
@@ -206,7 +169,7 @@ def test_tie_on_inliers_prefers_lower_error() -> None:
     rig = ring_rig(4)
     truth = np.array([[[0.2, 0.1, 1.0]]])
     other = truth + [0.0, 0.0, 0.8]  # a second candidate point, far in every view
-    frames = make_frames(rig, truth)
+    frames = project_frames(rig, truth)
     for k, name in enumerate(["cam0", "cam1"]):  # views 0,1 agree on `other`, slightly noisy
         frames[name].kpts2d[0, 0] = rig[name].project_rectified(other[0, 0]) + [1.5 * (-1) ** k, 1.0]
     # views 2,3 agree exactly on `truth`: both hypotheses have 2 inliers, truth has 0 error
@@ -219,7 +182,7 @@ def test_tie_on_inliers_prefers_lower_error() -> None:
 def test_score_weighted_refit_matches_weighted_dlt() -> None:
     rig = ring_rig(4)
     X = people(1, 10, seed=11)
-    frames = make_frames(rig, X, noise_px=3.0, seed=2)
+    frames = project_frames(rig, X, noise_px=3.0, rng=np.random.default_rng(2))
     for k, cam in enumerate(rig):
         frames[cam.name].scores[:] = [0.3, 0.9, 0.6, 1.0][k]
     out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(4)])],
@@ -236,14 +199,14 @@ def test_score_weighted_refit_matches_weighted_dlt() -> None:
 
 def test_empty_inputs() -> None:
     rig = ring_rig(3)
-    frames = make_frames(rig, people(2, 13))
+    frames = project_frames(rig, people(2, 13))
     out = triangulate(rig, frames, [])
     assert out.joints.shape == (0, 13, 3) and out.views.shape == (0,) and len(out) == 0
 
 
 def test_bad_cluster_members() -> None:
     rig = ring_rig(3)
-    frames = make_frames(rig, people(2, 5))
+    frames = project_frames(rig, people(2, 5))
     with pytest.raises(ValueError, match="detection 5 out of range"):
         triangulate(rig, frames, [cluster((0, 0), (1, 5))])
     with pytest.raises(ValueError, match="camera index"):
@@ -267,7 +230,7 @@ def test_params_validation() -> None:
 def test_min_views_parameter() -> None:
     rig = ring_rig(4)
     X = people(1, 5)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     frames["cam3"].kpts2d[0, 0] = np.nan
     out = triangulate(rig, frames, [cluster(*[(c, 0) for c in range(4)])], TriangulationParams(min_views=4))
     assert np.isnan(out.joints[0, 0]).all()
@@ -275,10 +238,10 @@ def test_min_views_parameter() -> None:
 
 
 def test_real_cluster_type_if_available() -> None:
-    association = pytest.importorskip("maem_ros.core.association.pipeline")
+    from maem_ros.core.association import pipeline as association
     rig = ring_rig(3)
     X = people(1, 5)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     cl = association.Cluster(members=np.array([[0, 0], [1, 0], [2, 0]]), costs=np.zeros(3))
     np.testing.assert_allclose(triangulate(rig, frames, [cl]).joints[0], X[0], atol=1e-6)
 
@@ -286,7 +249,7 @@ def test_real_cluster_type_if_available() -> None:
 def test_speed_ten_people_six_views() -> None:
     """Loose regression bound (the target, <= 2 ms on one thread, is measured by maem-bench)."""
     rig = ring_rig(6)
-    frames = make_frames(rig, people(10, 70), noise_px=2.0)
+    frames = project_frames(rig, people(10, 70), noise_px=2.0, rng=np.random.default_rng(0))
     clusters = [cluster(*[(c, p) for c in range(6)]) for p in range(10)]
     triangulate(rig, frames, clusters)
     times = []
@@ -299,7 +262,7 @@ def test_speed_ten_people_six_views() -> None:
 
 def test_simulated_scene_exact_without_noise() -> None:
     """Noise-free simulated court: GT-built clusters triangulate to the GT joints."""
-    scene_mod = pytest.importorskip("maem_ros.sim.scene")
+    import maem_ros.sim.scene as scene_mod
     from maem_ros.core.metrics.poses import evaluate_sequence
 
     scene = scene_mod.Scene(scene_mod.SceneConfig(frames=2, difficulty="none", num_vertices=50,
@@ -327,7 +290,7 @@ def test_tau_member_leaves_out_a_wrong_detection_as_a_whole() -> None:
     joints but the cluster still lists cam2; tau_member drops it and re-triangulates."""
     rig = ring_rig(4)
     X = people(2, 12, seed=3)
-    frames = make_frames(rig, X, noise_px=0.5, seed=1)
+    frames = project_frames(rig, X, noise_px=0.5, rng=np.random.default_rng(1))
     frames["cam2"].kpts2d[0, :8] = frames["cam2"].kpts2d[1, :8]
     cl = [cluster((0, 0), (1, 0), (2, 0), (3, 0))]
     paper = triangulate(rig, frames, cl, TriangulationParams())
@@ -337,7 +300,7 @@ def test_tau_member_leaves_out_a_wrong_detection_as_a_whole() -> None:
     assert out.views[0] == 3 and (out.inliers[0] == 3).all()
     np.testing.assert_allclose(out.joints[0], X[0], atol=0.02)
     # a good cluster loses nothing; two views are never split (no third view to vote)
-    clean = make_frames(rig, X, noise_px=0.5, seed=1)
+    clean = project_frames(rig, X, noise_px=0.5, rng=np.random.default_rng(1))
     good = triangulate(rig, clean, cl, TriangulationParams(tau_member=15.0))
     assert not good.rejected.any() and good.views[0] == 4
     two = triangulate(rig, frames, [cluster((1, 0), (2, 0))], TriangulationParams(tau_member=15.0))

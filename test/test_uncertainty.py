@@ -8,15 +8,16 @@ import numpy as np
 from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 from maem_ros.core.triangulation.uncertainty import joint_covariance, joint_std, pose_confidence
 
-from test_triangulation import cluster, make_frames, people, ring_rig
+from helpers_scene import COURT_RING, project_frames, ring_rig
+from test_triangulation import cluster, people
 
 
 def test_noise_free_joints_have_the_prior_noise_only():
     """Exact views: no residual, so the std is the prior noise propagated through the geometry,
     and it scales linearly with the prior."""
-    rig = ring_rig(4)
+    rig = ring_rig(4, **COURT_RING)
     X = people(1, 13, seed=3)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     members = cluster(*[(k, 0) for k in range(4)])
     p1 = triangulate(rig, frames, [members], TriangulationParams(noise_prior_px=1.0))
     p2 = triangulate(rig, frames, [members], TriangulationParams(noise_prior_px=2.0))
@@ -29,13 +30,13 @@ def test_noise_free_joints_have_the_prior_noise_only():
 def test_predicted_std_matches_the_spread_under_known_noise():
     """Gaussian pixel noise of sigma px on 4 views: the per-axis errors fall within 1 and 2
     predicted standard deviations about as often as a Gaussian's (68 %, 95 %)."""
-    rig = ring_rig(4)
+    rig = ring_rig(4, **COURT_RING)
     sigma = 2.0
     params = TriangulationParams(noise_prior_px=sigma, noise_prior_dof=50.0, tau_kps=50.0)
     errs, stds = [], []
     for seed in range(40):
         X = people(3, 13, seed=seed)
-        frames = make_frames(rig, X, noise_px=sigma, seed=seed + 100)
+        frames = project_frames(rig, X, noise_px=sigma, rng=np.random.default_rng(seed + 100))
         poses = triangulate(rig, frames, [cluster(*[(k, p) for k in range(4)]) for p in range(3)],
                             params)
         errs.append((poses.joints - X).reshape(-1, 3))
@@ -50,14 +51,14 @@ def test_predicted_std_matches_the_spread_under_known_noise():
 
 
 def test_narrow_baseline_and_disagreeing_views_raise_the_std():
-    rig = ring_rig(12)
+    rig = ring_rig(12, **COURT_RING)
     X = people(1, 13, seed=5)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     wide = triangulate(rig, frames, [cluster((0, 0), (3, 0))])  # rays ~90 deg apart
     narrow = triangulate(rig, frames, [cluster((0, 0), (1, 0))])  # neighbours: ~30 deg
     assert np.nanmean(narrow.joint_std) > 1.5 * np.nanmean(wide.joint_std)
     # one view 8 px off on every joint: its residual enters s^2
-    shifted = make_frames(rig, X)
+    shifted = project_frames(rig, X)
     shifted["cam3"].kpts2d[:] += 8.0
     four = [cluster((0, 0), (1, 0), (3, 0), (6, 0))]
     clean = triangulate(rig, frames, four)
@@ -68,9 +69,9 @@ def test_narrow_baseline_and_disagreeing_views_raise_the_std():
 def test_score_ranks_a_good_pose_above_a_two_view_pose_with_a_large_residual():
     """The issue's case: the score of a 4-view consistent pose beats the score of a 2-view pose
     whose views disagree by 12 px, although both members have the same detection score."""
-    rig = ring_rig(4)
+    rig = ring_rig(4, **COURT_RING)
     X = people(2, 13, seed=7)
-    frames = make_frames(rig, X, noise_px=1.0, seed=1)
+    frames = project_frames(rig, X, noise_px=1.0, rng=np.random.default_rng(1))
     frames["cam1"].kpts2d[1] += 12.0  # person 1's second view disagrees
     good = cluster(*[(k, 0) for k in range(4)])
     weak = cluster((0, 1), (1, 1))
@@ -83,9 +84,9 @@ def test_score_ranks_a_good_pose_above_a_two_view_pose_with_a_large_residual():
 
 
 def test_missing_joints_stay_nan_and_singular_geometry_is_nan():
-    rig = ring_rig(3)
+    rig = ring_rig(3, **COURT_RING)
     X = people(1, 5, seed=2)
-    frames = make_frames(rig, X)
+    frames = project_frames(rig, X)
     for fd in frames.values():
         fd.kpts2d[0, 2] = np.nan  # joint 2 seen nowhere
     poses = triangulate(rig, frames, [cluster((0, 0), (1, 0), (2, 0))])

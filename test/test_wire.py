@@ -322,6 +322,7 @@ field_st = st.builds(lambda name, off, dt, count: PointField(name=name, offset=o
 @given(fields=st.lists(field_st, max_size=8), width=st.integers(0, 4), height=st.integers(0, 2),
        point_step=st.integers(0, 80), row_step=st.integers(0, 400), big=st.booleans(),
        data=st.binary(max_size=400), frame_id=st.sampled_from(["camera_0", "x", ""]))
+@pytest.mark.slow
 def test_garbage_clouds_raise_only_wire_errors(fields, width, height, point_step, row_step, big,
                                                data, frame_id):
     msg = PointCloud2(height=height, width=width, fields=fields, is_bigendian=big,

@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import heapq
 import struct
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Iterable, Iterator
+from typing import IO
 
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader

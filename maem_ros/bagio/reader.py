@@ -16,16 +16,15 @@ from __future__ import annotations
 
 import heapq
 import json
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from rosbags.interfaces import Qos
 
 from maem_ros.bagio import mcapfile, metadata
 from maem_ros.bagio.mcapfile import FileScan
-from maem_ros.bagio.messages import (CUSTOM_GT_CONVENTION, CUSTOM_RIG,  # noqa: F401
-                                     CUSTOM_SCENE, SCENE_TOPIC, deserialize)
+from maem_ros.bagio.messages import CUSTOM_GT_CONVENTION, CUSTOM_RIG, CUSTOM_SCENE, SCENE_TOPIC, deserialize  # noqa: F401
 from maem_ros.bagio.metadata import BagError
 
 

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from mcap.records import Channel, Chunk, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
-from mcap.writer import CompressionType, Writer as McapWriter
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
 
 from maem_ros.bagio import mcapfile, metadata, reader
 from maem_ros.bagio.mcapfile import FileScan

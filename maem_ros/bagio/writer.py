@@ -29,13 +29,21 @@ from pathlib import Path
 from typing import Any
 
 import mcap
-from mcap.writer import CompressionType, Writer as McapWriter
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
 from rosbags.interfaces import Qos
 from rosbags.rosbag2.metadata import dump_qos_v8
 
 from maem_ros.bagio import metadata
-from maem_ros.bagio.messages import (QOS_RELIABLE, QOS_SENSOR, is_image_type, known_type,
-                                     msgtype_of, schema_text, serialize)
+from maem_ros.bagio.messages import (
+    QOS_RELIABLE,
+    QOS_SENSOR,
+    is_image_type,
+    known_type,
+    msgtype_of,
+    schema_text,
+    serialize,
+)
 from maem_ros.core.paramspec import Params, param
 
 MB = 1_000_000
@@ -260,7 +268,7 @@ class BagWriter:
             if self._syncer is not None:
                 self._syncer.stop()
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -25,8 +25,9 @@ the episodes were (/diagnostics).
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Generic, Sequence, TypeVar
+from typing import Generic, TypeVar
 
 import numpy as np
 
@@ -169,7 +170,8 @@ class Backlog(Generic[T]):
         return max(int(round(MIN_BACKLOG_S * 1e9)), int(BACKLOG_PERIODS * period))
 
     def _end_episode(self, end_ns: int) -> None:
-        length = max(0, end_ns - self._episode_start)
+        start = self._episode_start if self._episode_start is not None else end_ns
+        length = max(0, end_ns - start)
         self._episodes += 1
         self._total_ns += length
         self._longest_ns = max(self._longest_ns, length)

@@ -21,15 +21,16 @@ import json
 import os
 import re
 import uuid
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.errors import InputError
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.sync import capture_stamp_ns, match_capture_times
 
 #: keys every per-detection dict must hold (pred_cam_t and focal_length are optional)
@@ -60,11 +61,12 @@ def _field(d: Mapping, key: str, shape: tuple[int | None, ...], where: str) -> n
     except (TypeError, ValueError):
         raise ValueError(f"{where}: field {key!r}: not numeric") from None
     if len(shape) == 1 and shape[0] is not None and arr.size == shape[0]:
-        arr = arr.reshape(shape)  # bbox may be stored (1,4); a scalar may be stored (1,)
+        arr = arr.reshape(shape[0])  # bbox may be stored (1,4); a scalar may be stored (1,)
     if shape == () and arr.size == 1:
         arr = arr.reshape(())
     if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)):
-        want = "(" + ",".join("N" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+        want = ("(" + ",".join("N" if s is None else str(s) for s in shape)
+                + ("," if len(shape) == 1 else "") + ")")
         raise ValueError(f"{where}: field {key!r}: expected shape {want}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{where}: field {key!r}: contains NaN or inf")
@@ -118,7 +120,8 @@ def read_maem_npz(path: str | Path) -> list[dict]:
     if raw.dtype != object:
         if raw.size == 0:
             return []
-        raise ValueError(f"npz {str(path)!r}: 'outputs' is a {raw.dtype} array, expected an object array of dicts")
+        raise ValueError(f"npz {str(path)!r}: 'outputs' is a {raw.dtype} array, "
+                         "expected an object array of dicts")
     items = raw.item() if raw.ndim == 0 else list(raw.ravel())
     if isinstance(items, Mapping):
         items = [items]
@@ -179,7 +182,8 @@ def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: 
     for i, f in enumerate(fields):
         if f["pred_keypoints_2d"].shape[0] != j or f["pred_keypoints_2d_verts"].shape[0] != v:
             raise ValueError(f"{where}[{i}]: {f['pred_keypoints_2d'].shape[0]} keypoints / "
-                             f"{f['pred_keypoints_2d_verts'].shape[0]} vertices, but detection 0 has {j} / {v}")
+                             f"{f['pred_keypoints_2d_verts'].shape[0]} vertices, "
+                             f"but detection 0 has {j} / {v}")
     bboxes = np.stack([f["bbox"] for f in fields])
     size = bboxes[:, 2:] - bboxes[:, :2]
     raw = np.concatenate([0.5 * (bboxes[:, None, :2] + bboxes[:, None, 2:]),
@@ -258,7 +262,8 @@ def read_gt(path: str | Path) -> tuple[np.ndarray, np.ndarray, str]:
     bad = mask & ~np.all(np.isfinite(pose[..., :3]), axis=-1)
     if bad.any():
         f, p, k = np.argwhere(bad)[0]
-        raise ValueError(f"gt {str(path)!r}: field {key!r}: NaN/inf at frame {f} person {p} joint {k} under mask")
+        raise ValueError(f"gt {str(path)!r}: field {key!r}: NaN/inf at frame {f} person {p} "
+                         f"joint {k} under mask")
     convention = str(data["convention"]) if "convention" in data else "sportcenter_13"
     pose = pose.copy()
     pose[~mask, :3] = np.nan
@@ -339,7 +344,7 @@ class SceneFolder:
     # ---- writing --------------------------------------------------------------------------
     @classmethod
     def create(cls, root: str | Path, rig: Rig, info: Mapping | None = None,
-               extrinsics: bool = True) -> "SceneFolder":
+               extrinsics: bool = True) -> SceneFolder:
         """Make the folder, write cameras/ (``extrinsics`` False: intrinsics only, for
         calibration; such a scene's :attr:`rig` cannot be read, Rig.load_intrinsics reads it)
         and (when given) scene.json."""
@@ -470,7 +475,7 @@ class SceneFolder:
         """det_ids.npz from {(view, frame): (N,) GT person per detection, -1 = false positive}."""
         arrays = {det_ids_key(v, f): np.asarray(a, dtype=np.int64) for (v, f), a in ids.items()}
         with open(self.root / DET_IDS, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
+            np.savez_compressed(fh, **arrays)  # type: ignore[arg-type]  # numpy's stub: **kwds
 
     def det_ids(self) -> dict[str, np.ndarray]:
         """{"<view>/<frame:06d>": (N,) int64} from det_ids.npz; ValueError naming a bad file."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 try:  # numba is optional: every kernel has a numpy path with the same results
     import numba as _numba
 except ImportError:  # pragma: no cover - exercised only without numba
-    _numba = None
+    _numba = None  # type: ignore[assignment]  # None = numba missing
 
 
 def have_numba() -> bool:

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.errors import InputError
+from maem_ros.core.geometry.camera import Rig
 
 
 class LimitError(InputError):

@@ -17,8 +17,9 @@ float, str; a list default is a string array). Pure Python: no rclpy here.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, dataclass, field, fields
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -143,7 +144,7 @@ class Params:
         for f in fields(cls):  # type: ignore[arg-type]
             if PARAM_METADATA not in f.metadata:
                 continue
-            default = f.default if f.default is not MISSING else f.default_factory()
+            default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[operator]  # set when no default
             out.append(ParamSpec(f.name, default, **f.metadata[PARAM_METADATA]))
         return tuple(out)
 

@@ -76,7 +76,7 @@ class KeypointConvention:
             raise ValueError(f"keypoints: expected 70 MHR70 joints on axis {axis}, got {mhr70.shape[axis]}")
         return np.take(mhr70, self.from_mhr70, axis=axis)
 
-    def indices_in(self, source: "KeypointConvention") -> tuple[int, ...]:
+    def indices_in(self, source: KeypointConvention) -> tuple[int, ...]:
         """Index in ``source`` of each of this convention's joints (matched by name)."""
         idx = {n: i for i, n in enumerate(source.names)}
         missing = [n for n in self.names if n not in idx]
@@ -130,7 +130,8 @@ def get_convention(name: str) -> KeypointConvention:
     try:
         return CONVENTIONS[name]
     except KeyError:
-        raise ValueError(f"keypoint convention: unknown {name!r}, expected one of {sorted(CONVENTIONS)}") from None
+        raise ValueError(f"keypoint convention: unknown {name!r}, "
+                         f"expected one of {sorted(CONVENTIONS)}") from None
 
 
 def convention_for(num_joints: int) -> KeypointConvention:

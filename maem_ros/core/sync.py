@@ -42,12 +42,12 @@ from __future__ import annotations
 
 import statistics
 from collections import Counter, deque
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
-
 
 #: consecutive late samples that make a camera lagging (one sample under the window rejoins it)
 LAG_SAMPLES = 2
@@ -178,7 +178,7 @@ class ApproximateTimeSync:
         self.stats = SyncStats()
         self._events: list[SyncEvent] = []
         self._queues: dict[str, deque[_Msg]] = {c: deque() for c in cameras}
-        self._held: dict[str, deque[tuple[str, _Msg]]] = {c: deque() for c in cameras}
+        self._held: dict[str, deque[tuple[SyncDrop, _Msg]]] = {c: deque() for c in cameras}
         self._clear()
 
     # -- state ----------------------------------------------------------------------------

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
 
 
 class Estimator(ABC):

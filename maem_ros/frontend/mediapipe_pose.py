@@ -11,9 +11,10 @@ person is found. Per person:
 * kpts2d: the 33 image landmarks (rectified px; the node passes the rectified image); a landmark
   whose visibility is under ``min_visibility`` is NaN (not seen: BlazePose places occluded
   landmarks anyway, and such guesses are what disagrees most between views);
-* kpts3d: the 33 ``pose_world_landmarks`` (all of them: the association compares whole bodies) (metres, hip-centred, model axes) moved into the
-  camera frame (OpenCV axes, metres) by the pose that best projects them onto the image
-  landmarks (cv2.solvePnP, SQPnP, on the landmarks with visibility >= ``pnp_min_visibility``);
+* kpts3d: the 33 ``pose_world_landmarks`` (all of them: the association compares whole bodies)
+  (metres, hip-centred, model axes) moved into the camera frame (OpenCV axes, metres) by the pose
+  that best projects them onto the image landmarks (cv2.solvePnP, SQPnP, on the landmarks with
+  visibility >= ``pnp_min_visibility``);
 * score: mean landmark visibility over the body joints (shoulders, elbows, wrists, hips, knees,
   ankles): MediaPipe gives no detection score, visibility says how much of the body it saw;
 * bbox: the segmentation mask's bounding box (x1 y1 x2 y2 rectified px);
@@ -47,16 +48,17 @@ Options (frontend parameters; unknown keys are ignored):
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import cv2
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.skeleton import BLAZEPOSE_33, KeypointConvention, convert, get_convention
-from .base import Estimator, check_bgr_image, option_float, option_int
 
+from .base import Estimator, check_bgr_image, option_float, option_int
 
 MEDIAPIPE_VERSION = "0.10.21"
 INSTALL_HELP = (
@@ -156,7 +158,7 @@ class MediapipeEstimator(Estimator):
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image -> detections (rectified px, camera metres)."""
-        check_bgr_image(image, "mediapipe", camera.name)
+        image = check_bgr_image(image, "mediapipe", camera.name)
         self.stats["frames"] += 1
         h, w = image.shape[:2]
         rgb = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)

@@ -12,16 +12,25 @@ files are undistorted here with the rig's camera.
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.interchange import (DEFAULT_FPS, MissingDataError, frame_at_stamp, index_frame_files,
-                                outputs_to_detections, read_maem_npz)
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.interchange import (
+    DEFAULT_FPS,
+    MissingDataError,
+    frame_at_stamp,
+    index_frame_files,
+    outputs_to_detections,
+    read_maem_npz,
+)
+
 from .base import Estimator, option_float, option_int
+
 
 class NpzEstimator(Estimator):
     """Reads ``<dets_dir>/<camera>/<frame>.npz`` for the frame nearest the stamp."""

@@ -5,7 +5,7 @@ drawn on the rectified image (``Rectifier.rectify``), not on the raw one.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import cv2
 import numpy as np

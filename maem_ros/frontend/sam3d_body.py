@@ -47,15 +47,17 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.skeleton import KeypointConvention, get_convention
+
 from .base import Estimator, check_bgr_image, option_float
 from .rectify import Rectifier
 
@@ -163,7 +165,7 @@ class Sam3dBodyEstimator(Estimator):
     # ---- per frame ------------------------------------------------------------------------
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image (raw with option ``rectify``) -> detections."""
-        check_bgr_image(image, "sam3d_body", camera.name)
+        image = check_bgr_image(image, "sam3d_body", camera.name)
         rect = self.rectifier(camera)
         if self.rectify:
             image = rect.rectify(image)
@@ -230,7 +232,6 @@ class Sam3dBodyEstimator(Estimator):
                               ) -> FrameDetections:
         """Official per-person dicts (rectified px, K_rect) -> FrameDetections (drops invalid)."""
         where = f"sam3d_body output of camera {camera.name!r}"
-        n = len(outputs)
         bboxes = np.stack([_arr(o, "bbox", (4,), where) for o in outputs])
         kp3d = np.stack([_arr(o, "pred_keypoints_3d", (MHR_NUM_KEYPOINTS, 3), where) for o in outputs])
         kp2d = np.stack([_arr(o, "pred_keypoints_2d", (MHR_NUM_KEYPOINTS, 2), where) for o in outputs])

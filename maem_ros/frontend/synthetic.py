@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
+
 from .base import Estimator
 
 #: frontend option -> SceneConfig field

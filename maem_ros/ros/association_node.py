@@ -42,15 +42,28 @@ from sensor_msgs.msg import PointCloud2
 from maem_ros.core.association import AssociationParams, ExecutionParams
 from maem_ros.core.association import warmup as warmup_association
 from maem_ros.core.backlog import BacklogParams
-from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.core.limits import InputLimits, check_detections
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
+from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_DEPTH, DATA_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, arrival_ns, data_qos, declare_params,
-                                 load_rig_param, publish_rig_tf, run_node, subscribe_counted,
-                                 take_pending)
+from maem_ros.ros.common import (
+    DATA_DEPTH,
+    DATA_QOS,
+    ConfigError,
+    Diagnostics,
+    NodeParams,
+    RejectErrors,
+    Stopwatch,
+    arrival_ns,
+    data_qos,
+    declare_params,
+    load_rig_param,
+    publish_rig_tf,
+    run_node,
+    subscribe_counted,
+    take_pending,
+)
 from maem_ros.ros.overload import NodeBacklog
 
 NODE_NAME = "association"
@@ -316,8 +329,10 @@ class AssociationNode(Node):
             with Stopwatch(self.diag, "encode"):
                 out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, fs.items,
                                            result.clusters,
-                                           result.track_ids if tracked else None,
-                                           result.flags if tracked else None)
+                                           # wire's hints say Sequence[int]; it takes the (K,)
+                                           # int arrays (wire is being rewritten)
+                                           result.track_ids if tracked else None,  # type: ignore[arg-type]
+                                           result.flags if tracked else None)  # type: ignore[arg-type]
         if step.failed:
             return
         self.pub.publish(out)

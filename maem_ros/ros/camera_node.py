@@ -30,8 +30,16 @@ from maem_ros.capture import Capture, Poll, make_source, to_bgr
 from maem_ros.core.geometry.camera import Camera
 from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (IMAGE_QOS, ConfigError, Diagnostics, Stopwatch,
-                                 declare_params, default_camera_name, load_rig_param, run_node)
+from maem_ros.ros.common import (
+    IMAGE_QOS,
+    ConfigError,
+    Diagnostics,
+    Stopwatch,
+    declare_params,
+    default_camera_name,
+    load_rig_param,
+    run_node,
+)
 
 EXIT_SOURCE_FAILED = 2
 
@@ -203,7 +211,7 @@ class CameraNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    return run_node(CameraNode, args, "camera", until=lambda node: node.done,
+    return run_node(CameraNode, args, "camera", until=lambda node: node.done,  # type: ignore[attr-defined]
                     specs=(SOURCE,) + PARAMS, doc=__doc__)
 
 

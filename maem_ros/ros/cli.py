@@ -9,7 +9,8 @@ import signal
 import sys
 import threading
 import time
-from typing import TYPE_CHECKING, Sequence
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from rclpy.context import Context
@@ -127,7 +128,8 @@ def init_ros(args: Sequence[str] | None, name: str) -> bool:
         print(f"[{name}] invalid configuration: {problem}", file=sys.stderr, flush=True)
         return False
     try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        rclpy.init(args=None if args is None else list(args),
+                   signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:  # noqa: BLE001 - RCLError / UnknownROSArgsError from the C layer
         what = "unknown ROS arguments" if type(e).__name__ == "UnknownROSArgsError" else \
             "ROS arguments"

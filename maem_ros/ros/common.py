@@ -17,19 +17,24 @@ import sys
 import threading
 import time
 from collections import defaultdict, deque
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import (InvalidHandle, InvalidParameterTypeException,
-                              InvalidParameterValueException, ParameterException)
+from rclpy.exceptions import (
+    InvalidHandle,
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    ParameterException,
+)
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy)
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 
 from maem_ros.core.errors import InputError
@@ -349,7 +354,7 @@ class RejectErrors:
         self._diag, self._where, self._reason = diag, where, reason
         self.failed = False
 
-    def __enter__(self) -> "RejectErrors":
+    def __enter__(self) -> RejectErrors:
         return self
 
     def __exit__(self, exc_type, e, tb) -> bool:
@@ -415,7 +420,7 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         # (Jazzy 7.1) passes the (msg, info) tuple as one argument
         msg, info = taken if len(taken) == 2 else taken[0]
         diag.input(topic)
-        lost = gaps.lost(info, sub.get_publisher_count)
+        lost = gaps.lost(info, sub.get_publisher_count)  # type: ignore[attr-defined]  # set below
         if lost:
             diag.reject("dds_lost", f"{topic}: {lost} message(s) overwritten in the DDS history "
                         f"before this node took them (node too slow for the input rate)", n=lost)
@@ -424,7 +429,8 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         else:
             callback(msg)
 
-    on_message.__signature__ = _MSG_INFO_SIGNATURE  # rclpy: a callback that wants the info
+    # rclpy: a callback that wants the info
+    on_message.__signature__ = _MSG_INFO_SIGNATURE  # type: ignore[attr-defined]
     sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
     return sub
 
@@ -471,7 +477,7 @@ class Stopwatch:
     def __init__(self, diag: Diagnostics, stage: str):
         self._diag, self._stage = diag, stage
 
-    def __enter__(self) -> "Stopwatch":
+    def __enter__(self) -> Stopwatch:
         self._t0 = time.perf_counter()
         return self
 

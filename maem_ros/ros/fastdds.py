@@ -129,7 +129,9 @@ def detach_discovery_listener(node: Node, timeout_s: int = 5) -> bool:
     if rclpy.get_rmw_implementation_identifier() != "rmw_fastrtps_cpp" or not node.context.ok():
         return False
     fastdds = _fastdds()
-    prefix = own_guid_prefix(node) if fastdds is not None else None
+    if fastdds is None:
+        return False
+    prefix = own_guid_prefix(node)
     if prefix is None:
         return False
     domain_id = node.context.get_domain_id()

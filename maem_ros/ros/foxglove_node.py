@@ -28,9 +28,18 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, declare_params, load_rig_param,
-                                 run_node)
+from maem_ros.ros.common import (
+    DATA_QOS,
+    IMAGE_QOS,
+    ConfigError,
+    Diagnostics,
+    NodeParams,
+    RejectErrors,
+    Stopwatch,
+    declare_params,
+    load_rig_param,
+    run_node,
+)
 from maem_ros.viz.scene import camera_info_fields
 
 NODE_NAME = "foxglove"
@@ -97,9 +106,10 @@ class FoxgloveNode(Node):
             info = self.resolve_topic_name(f"{cam}/camera_info")
             self.subs.append(self.create_subscription(
                 Image if raw else CompressedImage, image,
-                lambda m, c=cam, t=image: self.on_image(c, t, m), IMAGE_QOS))
+                lambda m, c=cam, t=image: self.on_image(c, t, m), IMAGE_QOS))  # type: ignore[misc]
             self.subs.append(self.create_subscription(
-                CameraInfo, info, lambda m, c=cam, t=info: self.on_info(c, t, m), IMAGE_QOS))
+                CameraInfo, info, lambda m, c=cam, t=info: self.on_info(c, t, m),  # type: ignore[misc]
+                IMAGE_QOS))
         # steady clock: with use_sim_time and no /clock yet a ROS-time timer would never fire
         self.timer = self.create_timer(p["static_period"], self.bridge.tick,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))

@@ -6,8 +6,9 @@ Run one per camera, in the camera's namespace::
     maem-frontend --ros-args -p rig:=sportcenter6 -p backend:=synthetic -r __ns:=/camera_0
 
 Subscribes ``image_raw`` (sensor_msgs/Image) or ``image_raw/compressed`` (CompressedImage), best
-effort (``image_reliability: reliable`` for a replay that must not lose an image); publishes ``detections`` (reliable, keep last 10) stamped with the image stamp, and with
-``publish_overlay`` ``detections/overlay`` (Image bgr8, the rectified image with the detections).
+effort (``image_reliability: reliable`` for a replay that must not lose an image); publishes
+``detections`` (reliable, keep last 10) stamped with the image stamp, and with ``publish_overlay``
+``detections/overlay`` (Image bgr8, the rectified image with the detections).
 The image is decoded (and rectified) only when the backend or the overlay needs it.
 ``max_rate`` decimates on the stamp grid (one image per 1/max_rate s interval of the stamp), so
 frontends that cannot keep up with the cameras all keep the same instants and the association
@@ -25,10 +26,21 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS,
-                                 ConfigError, Diagnostics, NodeParams, RejectErrors, Stopwatch,
-                                 declare_params, default_camera_name, load_rig_param, run_node,
-                                 subscribe_counted)
+from maem_ros.ros.common import (
+    DATA_QOS,
+    IMAGE_QOS,
+    RELIABLE_IMAGE_QOS,
+    ConfigError,
+    Diagnostics,
+    NodeParams,
+    RejectErrors,
+    Stopwatch,
+    declare_params,
+    default_camera_name,
+    load_rig_param,
+    run_node,
+    subscribe_counted,
+)
 
 NODE_NAME = "frontend"
 
@@ -53,7 +65,8 @@ class FrontendNodeParams(NodeParams):
     vertex_stride: int = param(1, "keep every n-th mesh vertex in verts2d (announced on the "
                                   "wire)", minimum=1)
     vertex_count: int = param(0, "then keep this many of them, spread over the mesh (0 = all; "
-                                 "core.association.gates.epipolar.vertex_subset, announced on the wire)", minimum=0)
+                                 "core.association.gates.epipolar.vertex_subset, announced on the "
+                                 "wire)", minimum=0)
     wire_vertices: str = param("f32", "verts2d layout: f32, or q4 (uint16, 1/16 px, half the "
                                       "bytes)", choices=("f32", "q4"))
     wire_keypoints: str = param("f32", "kpts2d layout: f32 or q4", choices=("f32", "q4"))
@@ -232,6 +245,7 @@ class FrontendNode(Node):
 
     def _publish_overlay(self, rect, dets, stamp_ns: int) -> None:
         from maem_ros.frontend.overlay import draw_detections
+        assert self.overlay_pub is not None  # called only with publish_overlay
         with Stopwatch(self.diag, "overlay"):
             self.overlay_pub.publish(wire.bgr_to_image(draw_detections(rect, dets), stamp_ns,
                                                        self.camera_name))

@@ -11,7 +11,7 @@ the status is WARN with "behind for X s". Skipped frames are counted ``dropped/b
 """
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 from rclpy.node import Node
 

@@ -3,9 +3,10 @@
 Messages are published as the serialized CDR bytes stored in the bag (no decode/re-encode).
 Timing: message with log time t is published at wall time w0 + (t - t0) / rate.
 --lockstep TOPIC...: after each camera frame (the images sharing one log time; in a bag played
-without images, the /<cam>/detections sharing one) the player waits until every TOPIC (patterns resolved on the live graph, any message type whose first field is a
-std_msgs/Header, e.g. /maem/clusters) has delivered a message stamped at or after that frame's
-image stamp, at most --lockstep-timeout s, then goes on at --rate from there: a bag replayed
+without images, the /<cam>/detections sharing one) the player waits until every TOPIC
+(patterns resolved on the live graph, any message type whose first field is a std_msgs/Header,
+e.g. /maem/clusters) has delivered a message stamped at or after that frame's image stamp, at
+most --lockstep-timeout s, then goes on at --rate from there: a bag replayed
 into frontends slower than the recording loses no frame to queue overflow or sync timeouts, and a
 replay faster than real time none to the nodes' overload policy (they never fall behind).
 Without it a replay faster than real time (--rate > 1) says that live nodes skip the frames
@@ -24,12 +25,11 @@ import importlib
 import sys
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Iterator, Sequence
 
 from maem_ros import bagio
-from maem_ros.ros.cli import (EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args,
-                              stop_on_signals)
+from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args, stop_on_signals
 
 _IMAGE_TYPES = (bagio.IMAGE, bagio.COMPRESSED_IMAGE)
 
@@ -171,7 +171,9 @@ class Pacer:
 
     def __init__(self, rate: float, stop: threading.Event, tick=None, tick_s: float = 0.025):
         self.rate, self.stop, self.tick, self.tick_s = rate, stop, tick, tick_s
-        self.wall0 = self.bag0 = None
+        # both set by anchor() before the first wait
+        self.wall0: int = None  # type: ignore[assignment]
+        self.bag0: int = None  # type: ignore[assignment]
 
     def anchor(self, bag_ns: int, wall_ns: int | None = None) -> None:
         self.bag0, self.wall0 = bag_ns, time.monotonic_ns() if wall_ns is None else wall_ns
@@ -219,8 +221,8 @@ class BagPlayer:
                 t, msgtype, self.info.qos.get(t, ()), opts.reliable_images))
         self.clock_pub = None
         if opts.clock:
-            from rosgraph_msgs.msg import Clock
             from rclpy.qos import QoSProfile
+            from rosgraph_msgs.msg import Clock
             self.clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         self.published = 0
         self.lockstep: Lockstep | None = None

@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -48,7 +49,7 @@ class BackgroundNode:
         self._stop = threading.Event()
         self.thread = threading.Thread(target=self._spin, daemon=True)
 
-    def start(self) -> "BackgroundNode":
+    def start(self) -> BackgroundNode:
         self.thread.start()
         return self
 
@@ -73,7 +74,7 @@ class BackgroundNode:
         self.executor.shutdown(timeout_sec=1.0)
         shutdown_ros(self.node, self.context)
 
-    def __enter__(self) -> "BackgroundNode":
+    def __enter__(self) -> BackgroundNode:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -17,13 +17,16 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 from maem_ros import bagio
 from maem_ros.bagio import WriteOptions
-from maem_ros.ros.cli import (EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args,
-                              stop_on_signals)
+from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_args, stop_on_signals
+
+if TYPE_CHECKING:  # rclpy is imported when the recorder runs (the CLI parses without it)
+    from rclpy.qos import QoSProfile
 
 _HIDDEN = ("/rosout", "/parameter_events")
 
@@ -95,7 +98,7 @@ def wanted(topic: str, opts: RecordOptions) -> bool:
 RECORD_DEPTH = 100
 
 
-def subscription_qos(publishers) -> "QoSProfile":  # noqa: F821 - rclpy imported lazily
+def subscription_qos(publishers) -> QoSProfile:  # noqa: F821 - rclpy imported lazily
     """Match the publishers: best effort if any is, transient local if all are; keep last
     RECORD_DEPTH."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy

@@ -7,13 +7,14 @@ Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2
 person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and ``/maem/skeletons``
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
-the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they
-come from core.tracking.tracks.Tracker on the converted joints (post-hoc, 3D proximity). A person whose track is not confirmed yet has id 4294967295 in poses
-(dropped unless ``publish_tentative``) and no markers. A stamp that steps back or far ahead is
-held until the next frames confirm the jump (then a stamp going back resets the tracker) or
-refute it (then it is dropped as ``stale_stamp``/``future_stamp``). More than ``max_people``
-clusters or member pixels beyond ``pixel_margin`` reject the frame; joints beyond
-``world_extent`` become NaN (counted ``joints_beyond_world_extent``). With ``bone_tolerance`` a
+the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they come
+from core.tracking.tracks.Tracker on the converted joints (post-hoc, 3D proximity). A person whose
+track is not confirmed yet has id 4294967295 in poses (dropped unless ``publish_tentative``) and no
+markers. A stamp that steps back or far ahead is held until the next frames confirm the jump (then a
+stamp going back resets the tracker) or refute it (then it is dropped as
+``stale_stamp``/``future_stamp``). More than ``max_people`` clusters or member pixels beyond
+``pixel_margin`` reject the frame; joints beyond ``world_extent`` become NaN (counted
+``joints_beyond_world_extent``). With ``bone_tolerance`` a
 tracked person's limb joint whose bone length leaves the track's recent median by more than that
 fraction is NaN (core.tracking.bone_filter, counted ``joints_bone_implausible``). Every clusters message
 already waiting is taken before any is processed: those that waited for the node longer than the
@@ -35,17 +36,29 @@ from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
 from maem_ros.core.backlog import BacklogParams
-from maem_ros.core.tracking.bone_filter import BoneLengthFilter
-from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.limits import InputLimits, check_clusters, mask_far_joints
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS, convert, get_convention
 from maem_ros.core.sync import StampGuard
+from maem_ros.core.tracking.bone_filter import BoneLengthFilter
+from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (DATA_QOS, MARKER_QOS, ConfigError, Diagnostics, NodeParams,
-                                 RejectErrors, Stopwatch, arrival_ns, declare_params,
-                                 load_rig_param, run_node, subscribe_counted, take_pending)
+from maem_ros.ros.common import (
+    DATA_QOS,
+    MARKER_QOS,
+    ConfigError,
+    Diagnostics,
+    NodeParams,
+    RejectErrors,
+    Stopwatch,
+    arrival_ns,
+    declare_params,
+    load_rig_param,
+    run_node,
+    subscribe_counted,
+    take_pending,
+)
 from maem_ros.ros.overload import NodeBacklog
 
 NODE_NAME = "triangulation"
@@ -248,7 +261,8 @@ class TriangulationNode(Node):
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
         with Stopwatch(self.diag, "markers"):
-            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
+            # wire's hint says Sequence[int]; it takes the (K,) int array (wire is being rewritten)
+            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,  # type: ignore[arg-type]
                                             self.output.bones, self.lifetime_s())
         self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))

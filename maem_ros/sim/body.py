@@ -25,6 +25,7 @@ thus holds about 16 % of the vertices instead of 43 % by area.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -76,7 +77,8 @@ NOISE_GROUPS = ("torso", "limb", "extremity", "face", "foot", "hand")
 PART_GROUP = {"head": "face", "neck": "torso", "chest": "torso", "abdomen": "torso", "pelvis": "torso",
               "upper_arm_l": "limb", "upper_arm_r": "limb", "forearm_l": "limb", "forearm_r": "limb",
               "hand_l": "hand", "hand_r": "hand", "thigh_l": "limb", "thigh_r": "limb", "shin_l": "limb",
-              "shin_r": "limb", "foot_l": "foot", "foot_r": "foot", "shoulders": "torso", "hips_band": "torso"}
+              "shin_r": "limb", "foot_l": "foot", "foot_r": "foot", "shoulders": "torso",
+              "hips_band": "torso"}
 
 
 def _joint_group(name: str) -> str:
@@ -129,7 +131,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _lin(*terms) -> np.ndarray:
     """sum of coefficient (P,) or scalar times vector (P,3)."""
-    out = 0.0
+    out: Any = 0.0  # the sum becomes an array at the first vector term
     for c, v in terms:
         out = out + (c[..., None] if isinstance(c, np.ndarray) else c) * v
     return out
@@ -208,7 +210,7 @@ def forward_kinematics(height: np.ndarray, width: np.ndarray, angles: dict[str, 
     return Skeleton(points=world, refs=refs)
 
 
-def _limb_dir(theta, beta, sg, f, l, u):
+def _limb_dir(theta, beta, sg, f, l, u):  # noqa: E741 - f, l, u: front, lateral, up axes
     """Unit direction: flexion theta forward from 'down', abduction beta outward (side sign sg)."""
     return _lin((np.sin(theta) * np.cos(beta), f), (sg * np.sin(beta), l), (-np.cos(theta) * np.cos(beta), u))
 
@@ -233,8 +235,10 @@ def _arm(put, side, sg, sh, a, H, s, f_t, l_t, u_t) -> None:
     across = _front(th_h, f_t, u_t)  # thumb side (front when the arm hangs)
     palm = _unit(_cross(d_h, across) * sg)  # palm normal, medial when the arm hangs
     curl = a["finger_curl"]
-    fingers = {"index": (0.026, 0.085, (0.040, 0.024, 0.020)), "middle": (0.008, 0.088, (0.045, 0.028, 0.022)),
-               "ring": (-0.011, 0.084, (0.042, 0.026, 0.021)), "pinky": (-0.027, 0.077, (0.033, 0.019, 0.018))}
+    fingers = {"index": (0.026, 0.085, (0.040, 0.024, 0.020)),
+               "middle": (0.008, 0.088, (0.045, 0.028, 0.022)),
+               "ring": (-0.011, 0.084, (0.042, 0.026, 0.021)),
+               "pinky": (-0.027, 0.077, (0.033, 0.019, 0.018))}
     dirs = _phalanx_dirs(d_h, palm, curl)  # the same for the four fingers
     for name, (off, base, lengths) in fingers.items():
         p = wrist + _lin((base * s, d_h), (off * s, across))

@@ -169,7 +169,8 @@ def _steer(pos, vel, target, vmax, dt) -> np.ndarray:
         p = pos + ahead * vel
         diff = p[:, None, :] - p[None, :, :]
         gap = np.linalg.norm(diff, axis=2) + np.eye(len(pos)) * 1e3
-        push = np.where((gap < SEPARATION)[..., None], diff / gap[..., None] * (SEPARATION - gap)[..., None], 0.0)
+        push = np.where((gap < SEPARATION)[..., None],
+                        diff / gap[..., None] * (SEPARATION - gap)[..., None], 0.0)
         desired = desired + gain * push.sum(axis=1)
     dv = desired - vel
     n = np.linalg.norm(dv, axis=1, keepdims=True)

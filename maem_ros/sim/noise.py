@@ -59,10 +59,19 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from maem_ros.core.geometry.camera import Camera
-from .body import ANGLE_KEYS, JOINT_GROUP, NOISE_GROUPS, BodyModel, Skeleton, forward_kinematics, gait_angles
+
+from .body import ANGLE_KEYS, JOINT_GROUP, BodyModel, Skeleton, forward_kinematics, gait_angles
 from .rigs import COURT_LENGTH, COURT_WIDTH
-from .view import (camera_to_normalised_xy, camera_to_rectified, camera_to_rectified_xy, distort_points,
-                   inside_image_xy, normalised_to_raw_xy, project_raw_xy, world_to_camera)
+from .view import (
+    camera_to_normalised_xy,
+    camera_to_rectified,
+    camera_to_rectified_xy,
+    distort_points,
+    inside_image_xy,
+    normalised_to_raw_xy,
+    project_raw_xy,
+    world_to_camera,
+)
 
 _SAMPLES_PER_PART = 12
 
@@ -107,8 +116,8 @@ class NoiseParams:
 
 PRESETS: dict[str, NoiseParams] = {
     "none": NoiseParams(exact=True, angle_sigma=0.0, heading_sigma=0.0, shape_sigma=0.0, kpt3d_sigma=0.0,
-                        depth_sigma=0.0, kpt2d_px=0.0, vert2d_px=0.0, bbox_px=0.0, gross_rate=0.0, min_visible=0.0,
-                        miss_rate=0.0, fp_rate=0.0),
+                        depth_sigma=0.0, kpt2d_px=0.0, vert2d_px=0.0, bbox_px=0.0, gross_rate=0.0,
+                        min_visible=0.0, miss_rate=0.0, fp_rate=0.0),
     "easy": NoiseParams(angle_sigma=0.05, heading_sigma=0.03, shape_sigma=0.02, kpt3d_sigma=0.008,
                         depth_sigma=0.06, kpt2d_px=0.6, vert2d_px=0.3, bbox_px=1.0, gross_rate=0.02,
                         min_visible=0.15, min_height_px=16.0, miss_rate=0.005, fp_rate=0.1),
@@ -156,7 +165,7 @@ class VertexSource:
     def __len__(self) -> int:
         return len(self.depth)
 
-    def concat(self, other: "VertexSource") -> "VertexSource":
+    def concat(self, other: VertexSource) -> VertexSource:
         return VertexSource(self.camera, *(np.concatenate([getattr(self, f), getattr(other, f)])
                                            for f in ("rect_px", "rect_f32", "cam_m", "depth")))
 
@@ -208,7 +217,8 @@ class SimDetections:
     def verts3d(self) -> np.ndarray:
         """(N,V,3) float32 camera-frame m of the vertices (with the depth error)."""
         src, rows = self.verts_source, self.verts_rows
-        return self._once("3d", lambda: _scaled_f32(src.depth[rows, None, None], src.cam_m[rows].transpose(0, 2, 1)))
+        return self._once("3d", lambda: _scaled_f32(src.depth[rows, None, None],
+                                                    src.cam_m[rows].transpose(0, 2, 1)))
 
 
 def visibility(camera: Camera, sample_world: np.ndarray, part_of_sample: np.ndarray,
@@ -254,7 +264,8 @@ def _occluded(u: np.ndarray, v: np.ndarray, boxes: np.ndarray, nearer: np.ndarra
     Only pairs whose sample extent overlaps the occluder's overall box are compared.
     """
     P, S = u.shape
-    ext = np.stack([np.fmin.reduce(u, 1), np.fmin.reduce(v, 1), np.fmax.reduce(u, 1), np.fmax.reduce(v, 1)], 1)
+    ext = np.stack([np.fmin.reduce(u, 1), np.fmin.reduce(v, 1),
+                    np.fmax.reduce(u, 1), np.fmax.reduce(v, 1)], 1)
     whole = np.stack([np.fmin.reduce(boxes[..., 0], 1), np.fmin.reduce(boxes[..., 1], 1),
                       np.fmax.reduce(boxes[..., 2], 1), np.fmax.reduce(boxes[..., 3], 1)], 1)
     with np.errstate(invalid="ignore"):
@@ -327,20 +338,22 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
         h = state.height[idx] * (1 + params.shape_sigma * rng.standard_normal(n))
         w = state.width[idx] * (1 + params.shape_sigma * rng.standard_normal(n))
         yaw = state.heading[idx] + params.heading_sigma * rng.standard_normal(n)
-        ang = {k: v + ANGLE_SCALE[k] * params.angle_sigma * rng.standard_normal(n) for k, v in sub_angles.items()}
+        ang = {k: v + ANGLE_SCALE[k] * params.angle_sigma * rng.standard_normal(n)
+               for k, v in sub_angles.items()}
         gross = _gross_limb_errors(rng, ang, params.gross_rate * (1 + 2 * occ))
     skel = forward_kinematics(h, w, ang, state.root_xy[idx], yaw)
     kp = skel.keypoints
     shift = gt_kpts[idx].mean(axis=1, keepdims=True) - kp.mean(axis=1, keepdims=True)
     kp = kp + shift  # the estimator fits the person's image position
-    depth = 1.0 + (0.0 if params.exact else np.clip(params.depth_sigma * rng.standard_normal(n), -0.4, 0.4))
-    depth = np.broadcast_to(depth, (n,))[:, None, None]
+    depth_n = 1.0 + (0.0 if params.exact else np.clip(params.depth_sigma * rng.standard_normal(n), -0.4, 0.4))
+    depth = np.broadcast_to(depth_n, (n,))[:, None, None]
     kc = world_to_camera(camera, kp)
     vc = _camera_vertices(camera, body, skel, h, w, shift)  # (n,3,V)
     jit = 1.0 + 2.0 * occ[:, None, None]
     gscale = np.asarray(params.group_scale, dtype=np.float64)
     kscale = gscale[JOINT_GROUP][None, :, None]  # (1,70,1)
-    k2 = camera_to_rectified(camera, kc) + params.kpt2d_px * kscale * jit * rng.standard_normal(kp.shape[:2] + (2,))
+    k2 = camera_to_rectified(camera, kc) \
+        + params.kpt2d_px * kscale * jit * rng.standard_normal(kp.shape[:2] + (2,))
     v2 = np.stack(camera_to_rectified_xy(camera, vc.transpose(0, 2, 1)), axis=-1)
     if params.vert2d_px > 0:
         z = rng.standard_normal(v2.shape).reshape(n, -1)  # (n, 2V): u, v of vertex k at 2k, 2k+1
@@ -350,7 +363,8 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     kpts3d = depth * kc
     if params.kpt3d_sigma > 0:
         kpts3d = kpts3d + params.kpt3d_sigma * kscale * rng.standard_normal(kpts3d.shape)
-    bbox_raw = _silhouette_box(camera, *gt_raw_verts, rng, params.bbox_px)
+    u_raw, v_raw = gt_raw_verts
+    bbox_raw = _silhouette_box(camera, u_raw, v_raw, rng, params.bbox_px)
     return SimDetections(
         person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
         kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), kpts3d=kpts3d,
@@ -476,7 +490,8 @@ def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.n
     """The first ``k`` candidate bodies (in order) fully in front of the lens fold and > 60 % inside
     the raw image: their indices (m,) and raw px (u, v) each (m,V). Meshes are evaluated one
     candidate at a time, only until ``k`` are found."""
-    found, us, vs = [], [], []
+    found: list[int] = []
+    us, vs = [], []
     for i in range(len(height)):
         if len(found) == k:
             break
@@ -497,7 +512,7 @@ _FIELDS = ("person", "scores", "bbox_raw", "bbox_rect", "kpts2d_rect", "kpts2d_r
 
 
 def _concat(a: SimDetections, b: SimDetections) -> SimDetections:
-    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},
+    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},  # type: ignore[arg-type]  # _FIELDS: array fields
                          verts_source=a.verts_source.concat(b.verts_source),
                          verts_rows=np.concatenate([a.verts_rows, b.verts_rows + len(a.verts_source)]))
 

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from maem_ros.core.geometry.camera import Camera
+
 from .body import PART_CLASS, PART_NAMES, BodyModel
 from .rigs import BASKETS, COURT_LENGTH, COURT_WIDTH
 from .view import project_raw
@@ -157,7 +158,8 @@ def _background(cam: Camera, step: int = 8) -> np.ndarray:
     apron = floor & (np.abs(fx) <= hx + 4) & (np.abs(fy) <= hy + 3.5)
     lane = court & (np.abs(fy) <= 2.45) & (np.abs(fx) >= hx - 5.8)
     img = np.empty((h, w, 3), np.float32)
-    stands = np.array([70, 60, 55], np.float32) + 25 * np.sin(np.arange(h, dtype=np.float32) / 9.0)[:, None, None]
+    stands = np.array([70, 60, 55], np.float32) \
+        + 25 * np.sin(np.arange(h, dtype=np.float32) / 9.0)[:, None, None]
     img[:] = stands
     img[floor] = _FLOOR_OUT
     img[apron] = np.array(_FLOOR_OUT) * 1.15
@@ -175,10 +177,11 @@ def _background(cam: Camera, step: int = 8) -> np.ndarray:
         uv = project_raw(cam, np.array([[b[0] + np.sign(b[0]) * 1.2, 0.0, 0.0], [b[0] + np.sign(b[0]) * 1.2,
                                                                                    0.0, 3.3]]))
         if np.all(np.isfinite(uv)):
-            cv2.line(out, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[1]).astype(int)), (90, 90, 90),
-                     thick * 3, cv2.LINE_AA)
+            cv2.line(out, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[1]).astype(int)),
+                     (90, 90, 90), thick * 3, cv2.LINE_AA)
         a = np.linspace(0, 2 * np.pi, 24)
-        rim = project_raw(cam, np.column_stack([b[0] + 0.23 * np.cos(a), 0.23 * np.sin(a), np.full(24, b[2])]))
+        rim = project_raw(cam, np.column_stack([b[0] + 0.23 * np.cos(a), 0.23 * np.sin(a),
+                                                np.full(24, b[2])]))
         if np.all(np.isfinite(rim)):
             cv2.polylines(out, [np.round(rim).astype(np.int32)], True, (20, 80, 230), thick, cv2.LINE_AA)
     noise = np.random.default_rng(len(cam.name) * 131 + w).integers(-6, 7, out.shape, dtype=np.int16)

@@ -53,17 +53,18 @@ def _camera(name: str, eye, target, size: tuple[int, int], f: float, D=(0.0,) * 
     K = np.array([[f, 0.0, (w - 1) / 2 + pp_shift[0]], [0.0, f * aspect, (h - 1) / 2 + pp_shift[1]],
                   [0.0, 0.0, 1.0]])
     R, t = look_at(np.asarray(eye, float), np.asarray(target, float), roll)
-    return Camera(name=name, K=K, R=R, t=t, width=w, height=h, distortion_model="plumb_bob", D=list(D))
+    return Camera(name=name, K=K, R=R, t=t, width=w, height=h, distortion_model="plumb_bob",
+                  D=np.asarray(D, float))
 
 
 def sportcenter6() -> Rig:
     """6 elevated, strongly distorted cameras around the court (like SportCenter EPFL)."""
     # (eye xyz, target xyz, (w, h), f px, k1, k2, p1, p2, k3, roll rad, principal point shift px)
     spec = [
-        ((-6.8, -12.8, 7.1), (-4.0, -4.5, 0.0), (1376, 992), 648.0, -0.34, 0.12, -0.004, 0.0008, -0.012, 0.010,
-         (-9.0, -20.0)),
-        ((6.9, -13.0, 7.4), (3.0, -2.0, 0.0), (1536, 1200), 720.0, -0.31, 0.10, 0.002, -0.0010, -0.010, -0.008,
-         (6.0, -14.0)),
+        ((-6.8, -12.8, 7.1), (-4.0, -4.5, 0.0), (1376, 992), 648.0, -0.34, 0.12, -0.004, 0.0008, -0.012,
+         0.010, (-9.0, -20.0)),
+        ((6.9, -13.0, 7.4), (3.0, -2.0, 0.0), (1536, 1200), 720.0, -0.31, 0.10, 0.002, -0.0010, -0.010,
+         -0.008, (6.0, -14.0)),
         ((16.2, -2.5, 6.4), (8.0, -1.0, 0.0), (1328, 896), 625.0, -0.36, 0.13, -0.003, 0.0006, -0.014, 0.012,
          (12.0, -10.0)),
         ((7.0, 12.9, 7.3), (3.0, 2.0, 0.0), (1376, 992), 646.0, -0.35, 0.124, -0.0068, -0.0006, -0.0125,
@@ -110,8 +111,8 @@ def lab4() -> Rig:
 
 def build_rig(name: str) -> Rig:
     """The named synthetic rig, computed (no file access)."""
-    builders = {"sportcenter6": sportcenter6, "humanm3_4": lambda: _humanm3(4), "humanm3_3": lambda: _humanm3(3),
-                "lab4": lab4}
+    builders = {"sportcenter6": sportcenter6, "humanm3_4": lambda: _humanm3(4),
+                "humanm3_3": lambda: _humanm3(3), "lab4": lab4}
     if name not in builders:
         raise ValueError(f"rig: unknown synthetic rig {name!r}, expected one of {sorted(builders)}")
     return builders[name]()

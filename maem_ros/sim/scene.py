@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import dataclasses
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
-from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig
+
 from .body import BodyModel, Skeleton, forward_kinematics, gait_angles
 from .motion import ANGLE_FLOOR, Motion, _wrap, pose_style, simulate_motion
 from .noise import PRESETS, PersonState, SimDetections, get_preset, simulate
@@ -68,7 +70,8 @@ class SceneConfig:
             ("players", isinstance(self.players, (int, np.integer)) and self.players >= 0, "an integer >= 0"),
             ("bystanders", isinstance(self.bystanders, (int, np.integer)) and self.bystanders >= 0,
              "an integer >= 0"),
-            ("start_stamp_ns", isinstance(self.start_stamp_ns, (int, np.integer)) and self.start_stamp_ns >= 0,
+            ("start_stamp_ns",
+             isinstance(self.start_stamp_ns, (int, np.integer)) and self.start_stamp_ns >= 0,
              "an integer >= 0"),
             ("rig", isinstance(self.rig, str) and bool(self.rig), "a rig name or path"),
         ]
@@ -92,16 +95,17 @@ class SceneConfig:
         return out
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "SceneConfig":
+    def from_dict(cls, d: Mapping[str, Any]) -> SceneConfig:
         if not isinstance(d, Mapping):
             raise ValueError(f"scene config: expected a mapping, got {type(d).__name__}")
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
             raise ValueError(f"scene config: unknown key(s) {', '.join(unknown)}")
-        return cls(**{k: (int(v) if k in ("frames", "seed", "num_vertices", "players", "bystanders",
-                                             "start_stamp_ns") and isinstance(v, float) and v.is_integer()
-                          else v) for k, v in d.items()})
+        values = {k: (int(v) if k in ("frames", "seed", "num_vertices", "players", "bystanders",
+                                      "start_stamp_ns") and isinstance(v, float) and v.is_integer()
+                      else v) for k, v in d.items()}
+        return cls(**values)  # type: ignore[arg-type]  # each value is checked in __post_init__
 
 
 class Scene:

@@ -21,7 +21,7 @@ def fold_radius(camera: Camera) -> float:
 
 @lru_cache(maxsize=64)
 def _fold_radius(model: str, D: tuple, K: tuple) -> float:
-    cam = Camera("fold", np.reshape(K, (3, 3)), np.eye(3), np.zeros(3), 100, 100, model, list(D))
+    cam = Camera("fold", np.reshape(K, (3, 3)), np.eye(3), np.zeros(3), 100, 100, model, np.asarray(D, float))
     if not cam.has_distortion:
         return float("inf")
     r = np.linspace(0.0, 6.0, 1201)[1:]

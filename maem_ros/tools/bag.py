@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Sequence
+from collections.abc import Sequence
 
 from maem_ros.bagio import BagError, bag_info
 from maem_ros.bagio.recover import format_report, recover

@@ -1,13 +1,13 @@
 """maem-bench: time MAEM association and triangulation on the standard load, one CPU thread.
 
-Standard load (tools/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob
-distortion), 12 detections per camera (10 players seen by every camera + 2 extra people per
-camera), 70 keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px
-pixel noise, fixed seed. ``--load large``: 16 cameras on a ring around the court (``ring16``),
-25 detections per camera (22 players seen by every camera + 3 extras per camera), full mesh. Times the full association (all stages) and the triangulation per
-frame (median, p90), and in the same run a straightforward association written the way the
-method reads (loops over detection pairs, per-pair OpenCV undistortion of the raw vertex
-pixels, per-pair distances), and checks both give identical clusters.
+Standard load (tools/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob distortion),
+12 detections per camera (10 players seen by every camera + 2 extra people per camera), 70
+keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px pixel noise, fixed
+seed. ``--load large``: 16 cameras on a ring around the court (``ring16``), 25 detections per camera
+(22 players seen by every camera + 3 extras per camera), full mesh. Times the full association (all
+stages) and the triangulation per frame (median, p90), and in the same run a straightforward
+association written the way the method reads (loops over detection pairs, per-pair OpenCV
+undistortion of the raw vertex pixels, per-pair distances), and checks both give identical clusters.
 
     maem-bench                 # human-readable summary
     maem-bench --load large    # 16 cameras x 25 detections
@@ -113,12 +113,14 @@ def _percentile(values, q: float) -> float:
 
 def run(args: argparse.Namespace) -> dict:
     """Build the load, time both paths, return the result dict."""
+
     import cv2
     import numpy as np
     from threadpoolctl import threadpool_limits
 
     from maem_ros.core.association import AssociationParams
     from maem_ros.core.triangulation.ransac import TriangulationParams
+
     from ..params import load_node_params
     from .bench_load import body_template, load_bench_rig, make_frame
 
@@ -158,6 +160,7 @@ def _time_node_path(args: argparse.Namespace, rig, load, aparams, tparams) -> di
     also counts the time other processes held the core), stage times, the last results."""
     from maem_ros.core.association import PairGates, associate
     from maem_ros.core.triangulation.ransac import triangulate
+
     from ..ros import wire
 
     t0 = time.perf_counter()
@@ -193,6 +196,7 @@ def _paper_vs_straightforward(args: argparse.Namespace, rig, load, aparams) -> d
     """The paper's pipeline, fast path against the straightforward implementation (the
     straightforward implementation is the paper's pipeline: like with like)."""
     from maem_ros.core.association import PAPER_PIPELINE, associate
+
     from .bench_load import straightforward_associate
 
     paper = aparams.replaced(PAPER_PIPELINE)
@@ -268,12 +272,16 @@ def _temporal(args: argparse.Namespace, rig, aparams, template, dump: dict) -> d
 
     from maem_ros.core.association import associate
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+
     from ..ros import wire
     from .bench_load import make_sequence
 
     seq = make_sequence(rig, template, np.random.default_rng(args.seed + 1), args.players,
                         args.extras, args.temporal_frames)
-    on, off, first, left = [], [], [], []
+    on: list[float] = []
+    off: list[float] = []
+    first: list[float] = []
+    left: list[float] = []
     dump["temporal"] = []
     for _ in range(max(1, args.repeats // 5)):  # whole sequences: the tracker is stateful
         stage = TemporalAssociator(rig, aparams, TemporalParams())

@@ -14,14 +14,15 @@ Procrustes, Hungarian, union-find, conflict removal, K_min.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from maem_ros.core.association import AssociationParams
-from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 
 #: half-extent of the court area players stand on (world x, y metres; court 28 x 15 m)
 COURT_HALF = (13.0, 6.5)
@@ -40,7 +41,7 @@ def ring_rig(num_cameras: int = 16) -> Rig:
         K = np.array([[1000.0, 0.0, 959.5 + k % 5], [0.0, 1000.0, 539.5 - k % 4], [0.0, 0.0, 1.0]])
         cams.append(Camera(name=f"camera_{k}", K=K, R=R, t=t, width=1920, height=1080,
                            distortion_model="plumb_bob",
-                           D=[-0.08 - 0.002 * (k % 4), 0.02, 0.0005, -0.0003, 0.0]))
+                           D=np.array([-0.08 - 0.002 * (k % 4), 0.02, 0.0005, -0.0003, 0.0])))
     return Rig(cams)
 
 
@@ -178,7 +179,7 @@ def _people(rig: Rig, template, rng: np.random.Generator, players: int, extras: 
     """(verts, joints, camera indices that see it, is player) per person, players first."""
     cams = rig.cameras
     taken: list[np.ndarray] = []
-    people = []
+    people: list[tuple[np.ndarray, np.ndarray, Sequence[int], bool]] = []
     for _ in range(players):
         v, j = _person(template, rng)
         p = _place(cams, rng, taken)
@@ -194,6 +195,7 @@ def _people(rig: Rig, template, rng: np.random.Generator, players: int, extras: 
 def _detect_people(rig: Rig, people: list, rng: np.random.Generator, px_noise: float,
                    stamp_ns: int, players: int) -> BenchFrame:
     """Every camera's detections of ``people`` (shuffled order) and the true player clusters."""
+    truth: dict[int, set[tuple[int, int]]]
     frames, raw, truth = {}, {}, {k: set() for k in range(players)}
     for c, cam in enumerate(rig.cameras):
         seen = [k for k, person in enumerate(people) if c in person[2]]
@@ -330,7 +332,7 @@ def _clusters(edges, raw, rig, params) -> list[np.ndarray]:
                     mean = np.mean([C[m, n] for n in alive if n != m])
                     if mean > worst_cost:
                         worst, worst_cost = m, mean
-            alive.remove(worst)
+            alive.remove(worst)  # type: ignore[arg-type]  # dup is not empty: a member was taken
         if len(alive) >= params.k_min:
             out.append(np.array([members[m] for m in alive], dtype=np.int64))
     return sorted(out, key=lambda m: tuple(m[0]))

@@ -19,17 +19,24 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np
 
-from maem_ros.core.calibrate.board import (BoardSpec, CornerDetector, Detection, Intrinsics,
-                                    NotSimultaneous, calibrate_extrinsics, calibrate_intrinsics)
-from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
+from maem_ros.core.calibrate.board import (
+    BoardSpec,
+    CornerDetector,
+    Detection,
+    Intrinsics,
+    NotSimultaneous,
+    calibrate_extrinsics,
+    calibrate_intrinsics,
+)
 from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")

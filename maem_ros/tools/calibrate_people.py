@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.geometry.camera import Rig
 from ..core.detections import FrameDetections
+from ..core.geometry.camera import Rig
 from ..core.interchange import DEFAULT_FPS, index_frame_files, outputs_to_detections, read_maem_npz
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")

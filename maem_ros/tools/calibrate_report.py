@@ -4,7 +4,6 @@ images, one overlay per camera of the observed (green) and reprojected (magenta)
 from __future__ import annotations
 
 import warnings
-
 from pathlib import Path
 from typing import TextIO
 

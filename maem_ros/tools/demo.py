@@ -47,30 +47,51 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
 
+from maem_ros import bagio
 from maem_ros.core.association import pipeline as association
-from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
 from maem_ros.core.association.pipeline import associate
-from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.errors import InputError
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.sync import capture_stamp_ns, match_capture_times
+from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
 from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
 from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
 from maem_ros.ros.wire import msg_to_detections
-from maem_ros import bagio
-from maem_ros.tools.demo_bag import (BAG_VERTICES, DEMO_SCENE, JPEG_QUALITY, DemoBag,
-                                     check_scene, ensure_bag, image_topic, load_bag,
-                                     log, make_demo_bag, trim_bag)
-from maem_ros.tools.demo_report import (GraphRun, LATENCY_DEFINITION, format_timing, latencies_ms,
-                                        print_accuracy, print_run_summary, recorded_diagnostics,
-                                        recorded_poses, score, stage_timing, write_pictures)
+from maem_ros.tools.demo_bag import (
+    BAG_VERTICES,
+    DEMO_SCENE,
+    JPEG_QUALITY,
+    DemoBag,
+    check_scene,
+    ensure_bag,
+    image_topic,
+    load_bag,
+    log,
+    make_demo_bag,
+    trim_bag,
+)
+from maem_ros.tools.demo_report import (
+    LATENCY_DEFINITION,
+    GraphRun,
+    format_timing,
+    latencies_ms,
+    print_accuracy,
+    print_run_summary,
+    recorded_diagnostics,
+    recorded_poses,
+    score,
+    stage_timing,
+    write_pictures,
+)
 from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
 from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
 
@@ -332,7 +353,7 @@ def _check_crashes(group: ProcessGroup, watched: list[str], crashed: dict[str, s
                                 f"the replay anyway):\n  {crashed[name]}")
 
 
-def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: list[int], idle_s: float,
+def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: Sequence[int], idle_s: float,
            nodes: list[str], crashed: dict[str, str], keep_going: bool) -> None:
     """Wait until every frame has its poses, or no new poses arrived for ``idle_s``."""
     last_n, last_change = -1, time.monotonic()
@@ -596,7 +617,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
               f"{reproj['reprojection_px_mean']:.1f} px, median "
               f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
               f"{reproj['reprojection_px_mean_inliers']:.1f} px "
-              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "
+              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "  # type: ignore[operator]
               f"{reproj['reprojection_pairs']} joint-views); all members "
               f"{reproj['reprojection_px_mean_all_members']:.1f} px "
               f"({reproj['reprojection_members_rejected']} of {reproj['reprojection_members']} "

@@ -6,23 +6,24 @@ import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from maem_ros import bagio
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros.wire import msg_to_poses
 from maem_ros.sim.scene import Scene, SceneConfig
-from maem_ros import bagio
 from maem_ros.tools import make_bag
 from maem_ros.tools.evaluate import to_sportcenter13
 from maem_ros.tools.simulate import gt_arrays
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 #: the committed demo bag's scene (maem-demo --make-bag)
-DEMO_SCENE = {"rig": "sportcenter6", "frames": 30, "fps": 30.0, "seed": 0, "difficulty": "medium",
-              "num_vertices": 18439, "players": 10, "bystanders": 2,
-              "start_stamp_ns": 1_700_000_000_000_000_000}
+DEMO_SCENE: dict[str, Any] = {"rig": "sportcenter6", "frames": 30, "fps": 30.0, "seed": 0,
+                              "difficulty": "medium", "num_vertices": 18439, "players": 10,
+                              "bystanders": 2, "start_stamp_ns": 1_700_000_000_000_000_000}
 #: demo bag size knobs: JPEG quality of the rendered images, mesh vertices kept per detection
 JPEG_QUALITY = 35
 BAG_VERTICES = 256
@@ -179,8 +180,8 @@ def trim_bag(src: DemoBag, dst: Path, frames: int) -> Path:
         for key, value in src.info.custom.items():
             w.set_custom(key, value)
         for topic, msgtype in src.info.topics.items():
-            qos = src.info.qos.get(topic) or [None]
-            w.add_topic(topic, msgtype, qos[0])
+            qos = src.info.qos.get(topic)
+            w.add_topic(topic, msgtype, qos[0] if qos else None)
         for m in bagio.read_messages(src.path, stop_ns=stop, info=src.info):
             w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns)
     return dst

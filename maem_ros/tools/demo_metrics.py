@@ -7,18 +7,18 @@ measured the same way as the simulator's bag.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
+from maem_ros import bagio
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import KeypointConvention
-from maem_ros.core.triangulation.ransac import (TriangulationParams, mirror_permutation,
-                                         triangulate_members)
+from maem_ros.core.triangulation.ransac import TriangulationParams, mirror_permutation, triangulate_members
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_clusters
-from maem_ros import bagio
 
 CLUSTERS_TOPIC = "/maem/clusters"
 REPROJECTION_DEFINITION = (
@@ -49,7 +49,7 @@ def people_per_frame(stamps: Sequence[int], poses: Mapping[int, Any]) -> list[in
 
 
 def reprojection_errors(record: Path, rig: Rig, params: TriangulationParams,
-                        stamps: Sequence[int]) -> "MemberErrors":
+                        stamps: Sequence[int]) -> MemberErrors:
     """Every finite (joint, member view) reprojection error (px) of the recorded clusters."""
     errs = MemberErrors()
     if not (record / "metadata.yaml").is_file():
@@ -75,7 +75,7 @@ class MemberErrors:
     members: int = 0
     members_rejected: int = 0
 
-    def add(self, other: "MemberErrors") -> None:
+    def add(self, other: MemberErrors) -> None:
         self.kept += other.kept
         self.rejected += other.rejected
         self.members += other.members

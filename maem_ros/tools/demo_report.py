@@ -3,9 +3,10 @@ recorded /diagnostics, end-to-end latency and drops, and the snapshot pictures."
 from __future__ import annotations
 
 import os
-from pathlib import Path
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Sequence
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -18,6 +19,7 @@ from maem_ros.ros.wire import UNTRACKED_ID, msg_to_poses
 from maem_ros.tools.demo_bag import DemoBag, image_topic
 from maem_ros.tools.evaluate import format_table
 from maem_ros.tools.plots import plot_court
+
 
 @dataclass
 class GraphRun:
@@ -166,7 +168,8 @@ def snapshot_png(path: Path, demo: DemoBag, rig, cam: str, stamp: int, pred: Any
     projected through the camera's distortion."""
     msg = next(bagio.read_messages(demo.path, [image_topic(cam)], start_ns=stamp,
                                    stop_ns=stamp + 1)).decode()
-    img = cv2.imdecode(np.asarray(msg.data, np.uint8), cv2.IMREAD_COLOR)
+    img: np.ndarray = cv2.imdecode(  # type: ignore[assignment]  # the demo bag's own JPEGs
+        np.asarray(msg.data, np.uint8), cv2.IMREAD_COLOR)
     camera = rig[cam]
 
     def draw(joints: np.ndarray, colour, thick: int, label: str | None) -> None:

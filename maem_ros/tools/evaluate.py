@@ -12,9 +12,10 @@ import json
 import sys
 import time
 from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -23,6 +24,7 @@ from maem_ros.core.association import PAPER_PIPELINE
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
+
 from ..params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
@@ -146,7 +148,8 @@ class Run:
     metrics: dict[str, Any] = field(default_factory=dict)
     causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
     ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
-    tracker: Any = None  # core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
+    #: core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
+    tracker: Any = None
     joint_filter: Any = None  # core.tracking.joint_filter.JointFilter (None: off)
 
 
@@ -163,7 +166,7 @@ def load_gt(folder: SceneFolder) -> tuple[np.ndarray, np.ndarray] | None:
     get_convention(convention)  # unknown convention -> ValueError naming it
     xyz = to_sportcenter13(pose[..., :3], convention)
     if convention == "mhr70":
-        mask = np.take(mask, SPORTCENTER_13.from_mhr70, axis=-1)
+        mask = np.take(mask, SPORTCENTER_13.from_mhr70, axis=-1)  # type: ignore[arg-type]  # defined
     return xyz, mask
 
 
@@ -199,6 +202,7 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
     from maem_ros.core.association.pipeline import associate
     from maem_ros.core.tracking.temporal import TemporalAssociator
     from maem_ros.core.triangulation.ransac import triangulate
+
     from .explain import oracle_clusters
     result = ids = None
     stamp = min(fd.stamp_ns for fd in frames.values())
@@ -237,6 +241,7 @@ def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np
     gt / gt_mask: the frame's present GT persons; gt_index: their person index in gt.npz
     (= the ids in det_ids.npz)."""
     from maem_ros.core.metrics.poses import match_frame
+
     from .explain import explain_frame, row_persons
     _, cols, _ = match_frame(run.preds[-1], gt, gt_mask)
     lost = np.setdiff1d(np.arange(len(gt)), cols)
@@ -326,8 +331,9 @@ def format_id_lines(runs: Sequence[Run]) -> list[str]:
 def _published(run: Run, poses, stamp: int, ids, tri_params
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What the triangulation node publishes for one frame's poses: sportcenter_13 joints (P,13,3)
-    world m, their std (P,13) m, scores (P,) and track ids (P,) (the post-hoc 3D tracker's when ``ids`` is None, as
-    the node does with temporal off), joints filtered over time when the run has a joint filter."""
+    world m, their std (P,13) m, scores (P,) and track ids (P,) (the post-hoc 3D tracker's when
+    ``ids`` is None, as the node does with temporal off), joints filtered over time when the run
+    has a joint filter."""
     from maem_ros.core.tracking.joint_filter import filter_and_score
     n = len(poses)
     joints = to_sportcenter13(np.asarray(poses.joints, dtype=np.float64)) if n else \
@@ -493,6 +499,7 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             if masked:
                 skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
             if args.explain:
+                assert ids is not None  # --explain loaded det_ids (checked above)
                 for run, result in zip(runs, results):
                     if not run.oracle:
                         explain_run(run, result, rig, ids, gts[-1], gt_masks[-1],

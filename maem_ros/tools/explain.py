@@ -18,7 +18,7 @@ first stage of the pipeline that made it unreachable, in pipeline order:
 from __future__ import annotations
 
 from collections import Counter
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -35,6 +35,7 @@ def row_persons(result: AssociationResult, rig_names: list[str],
                 det_ids: Mapping[str, np.ndarray]) -> np.ndarray:
     """(N,) GT person of every table row (-1 = false positive or unknown)."""
     table = result.table
+    assert table is not None, "explain needs the association's table"
     out = np.full(len(table), -1, np.int64)
     for c in np.unique(table.cam):
         ids = det_ids.get(rig_names[int(c)])
@@ -63,11 +64,12 @@ def explain_frame(result: AssociationResult, persons: np.ndarray, lost: np.ndarr
                   k_min: int) -> Counter:
     """Counter of CAUSES over the lost GT person ids ``lost`` of one frame set."""
     table, pairs = result.table, result.pairs
+    assert table is not None and pairs is not None, "explain needs the association's table"
     out: Counter = Counter()
     group_of = np.full(len(table), -1, np.int64)
     for g, rows in enumerate(result.groups):
         group_of[rows] = g
-    conflicted = np.zeros(len(table), bool)
+    conflicted = np.zeros(len(table), np.bool_)
     conflicted[result.conflicts] = True
     stage_ok = {"reproj_gate": pairs.stage != REJECTED_REPROJ,
                 "epipolar_gate": ~np.isin(pairs.stage, (REJECTED_REPROJ, REJECTED_EPIPOLAR)),

@@ -27,15 +27,15 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
+from maem_ros import bagio
 from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
 from maem_ros.ros import wire
-from maem_ros import bagio
 
 #: poses id of a person without a confirmed track
 UNTRACKED = wire.UNTRACKED_ID

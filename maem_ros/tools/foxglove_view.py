@@ -24,12 +24,12 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Sequence
 
+from maem_ros import bagio
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import CONVENTIONS
-from maem_ros import bagio
 from maem_ros.viz.scene import camera_info_fields
 
 EXIT_BAD_INPUT = 2
@@ -168,12 +168,11 @@ class Player:
                     self.bridge.publish_calibration(cam, stamp, camera_info_fields(msg))
             self.sent += 1
         except Exception as e:  # noqa: BLE001 - a bad message must not end the replay
-            if not isinstance(e, ValueError):
-                e = f"{type(e).__name__}: {e}"
+            why = e if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
             n = self.rejected.get(m.topic, 0)
             self.rejected[m.topic] = n + 1
             if n == 0:
-                self.log(f"skipped {m.topic} at log time {m.log_time_ns}: {e} (further skips "
+                self.log(f"skipped {m.topic} at log time {m.log_time_ns}: {why} (further skips "
                          f"on this topic are counted)")
 
 

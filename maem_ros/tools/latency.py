@@ -19,9 +19,10 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import yaml
@@ -35,6 +36,7 @@ from maem_ros.ros.frontend_node import PARAMS, backend_options
 from maem_ros.ros.probe import ReplayClient
 from maem_ros.sim.scene import Scene, SceneConfig
 from maem_ros.tools.processes import Proc, ProcessGroup, node_command
+
 
 # ---------------------------------------------------------------------------------------------
 # processes
@@ -56,7 +58,7 @@ class GraphProcesses:
     def procs(self) -> list[Proc]:
         return list(self.group.procs.values())
 
-    def start(self) -> "GraphProcesses":
+    def start(self) -> GraphProcesses:
         for c in self.cameras:
             self.group.start(f"frontend_{c}", node_command("frontend", self.params_file, f"/{c}"))
         for kind in ("association", "triangulation"):

@@ -33,8 +33,9 @@ import shutil
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -58,9 +59,9 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
                     wire_layout: str, stride: int, count: int = 0) -> list[tuple[int, bytes]]:
     """(stamp ns, serialized /<camera>/detections) per frame, in order."""
     if bag is not None:
-        from maem_ros.ros import wire
         from maem_ros import bagio
-        out = []
+        from maem_ros.ros import wire
+        out: list[tuple[int, bytes]] = []
         for m in bagio.read_messages(bag, [f"/{camera}/detections"]):
             if len(out) >= frames:
                 break
@@ -339,9 +340,9 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
             time.sleep(0.05)
         codes = group.stop(timeout_s=15.0)
         forced = group.forced_exits()
-        if failed := [n for n, c in codes.items() if c != 0]:
+        if failed_names := [n for n, c in codes.items() if c != 0]:
             # the work folder and its logs go when the run ends: say here why they failed
-            print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed)}",
+            print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed_names)}",
                   file=sys.stderr)
         if listener is not None:
             listener.close()
@@ -353,8 +354,10 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
     gt = ground_truth(params, a.bag, stamps)
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
     live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
-    assoc = next((kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
-    tri = next((kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
+    assoc: dict[str, str] = next(
+        (kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
+    tri: dict[str, str] = next(
+        (kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
     size = np.median([len(d) for m in messages.values() for _, d in m])
     received = sum(int(v) for k, v in assoc.items()
                    if k.startswith("received/") and k.endswith("/detections"))

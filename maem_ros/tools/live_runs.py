@@ -21,7 +21,8 @@ import statistics
 import subprocess
 import sys
 import time
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 #: latency (ms) under which a run counts as recovered after the hog: the issue's target
 RECOVERED_MS = 50.0
@@ -167,7 +168,8 @@ def aggregate(summaries: list[dict[str, Any]], rate: float) -> dict[str, Any]:
     """Median and worst over the runs of every figure, and the issue's targets against the
     worst (60 fps: ``TARGETS_60``; below: ``TARGETS_30``)."""
     keys = [k for k in summaries[0] if k != "load_average_1min"]
-    median, worst = {}, {}
+    median: dict[str, Any] = {}
+    worst: dict[str, Any] = {}
     for k in keys:
         values = [s[k] for s in summaries]
         if any(v is None for v in values):  # a run that never recovered is the worst

@@ -7,7 +7,8 @@
 Per camera <cam> of the rig and frame k (stamp = start + round(k * 1e9 / fps) ns, also the bag
 log time): /<cam>/camera_info, /<cam>/image_raw/compressed (the image file's bytes unchanged,
 format "jpeg"/"png"; from --videos, frame k of
-<cam>.mp4|avi|mov|mkv decoded and JPEG-encoded at --jpeg-quality), /<cam>/detections (MAEM npz -> rectified detections, doc/design.md §4 layout);
+<cam>.mp4|avi|mov|mkv decoded and JPEG-encoded at --jpeg-quality), /<cam>/detections (MAEM npz
+-> rectified detections, doc/design.md §4 layout);
 per frame /maem/gt_poses (Poses layout, id = GT person index, NaN = masked joint, views 0,
 score 1). A scene folder adds its scene.json as a latched /maem/scene std_msgs/String at the first
 stamp and in metadata custom_data (``maem.scene``); the rig YAML is stored as ``maem.rig``.
@@ -22,9 +23,9 @@ import json
 import re
 import sys
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np

@@ -23,8 +23,8 @@ import argparse
 import importlib
 import re
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Callable, Sequence
 
 from ..core.paramspec import ParamSpec
 
@@ -71,7 +71,7 @@ def table_sources() -> dict[str, Callable[[], Sequence[ParamSpec]]]:
     """Table name -> function returning its specs, in document order."""
     out: dict[str, Callable[[], Sequence[ParamSpec]]] = {"method": method_specs}
     for node in NODE_MODULES:
-        out[node] = lambda node=node: node_specs(node)
+        out[node] = lambda node=node: node_specs(node)  # type: ignore[misc]  # node bound by default
     return out
 
 

@@ -24,8 +24,9 @@ import os
 import subprocess
 import sys
 import zipfile
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
+from typing import Any
 
 POSE2SIM_VERSION = "0.10.49"
 DEMO_PREFIX = "Pose2Sim/Demo_MultiPerson/"
@@ -123,10 +124,10 @@ def run_offline(root: Path, frames: int | None) -> dict:
     import numpy as np
 
     from maem_ros.core.association import AssociationParams, associate
-    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.geometry.camera import Rig
-    from maem_ros.core.skeleton import get_convention
     from maem_ros.core.skeleton import convert as convert_joints
+    from maem_ros.core.skeleton import get_convention
+    from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.tracking.tracks import Tracker
     from maem_ros.core.triangulation.ransac import TriangulationParams, pad_members
     from maem_ros.frontend.base import make_estimator
@@ -145,7 +146,8 @@ def run_offline(root: Path, frames: int | None) -> dict:
                       node["triangulation"].get("track_timeout", 1.0))
     tolerance = float(node["triangulation"].get("bone_tolerance", 0.0))
     bone_filter = BoneLengthFilter(out_conv.names, tolerance) if tolerance > 0 else None
-    ests = {c.name: make_estimator("mediapipe", node["frontend"], rig) for c in rig}
+    # MediapipeEstimator each (make_estimator's type is the base class): its .stats counters
+    ests: dict[str, Any] = {c.name: make_estimator("mediapipe", node["frontend"], rig) for c in rig}
     rects = {c.name: Rectifier(c) for c in rig}
     caps = {c.name: cv2.VideoCapture(str(root / "videos" / f"{c.name}.mp4")) for c in rig}
     fps = caps[rig.names[0]].get(cv2.CAP_PROP_FPS) or 60.0
@@ -203,7 +205,7 @@ def bench_frontend(root: Path, frames: int) -> dict:
     options = load_node_params("mediapipe.yaml", "frontend")
     per_image, rectify_ms, people, calls, images = [], [], [], 0, 0
     for cam in rig:
-        est = make_estimator("mediapipe", options, rig)
+        est: Any = make_estimator("mediapipe", options, rig)  # a MediapipeEstimator (.stats)
         rect = Rectifier(cam)
         cap = cv2.VideoCapture(str(root / "videos" / f"{cam.name}.mp4"))
         for k in range(frames):

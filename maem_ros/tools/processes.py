@@ -7,9 +7,9 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 from maem_ros.ros.cli import SHUTDOWN_STALLED, STALLED_WITH_GIL
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import os
 import random
 import resource
 import shutil
@@ -29,9 +28,9 @@ import subprocess
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
 
 from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
@@ -67,7 +66,7 @@ class Source:
     where: dict[str, dict[bytes, list[int]]]  # topic -> data -> positions in seqs[topic]
 
     @classmethod
-    def load(cls, bag: Path) -> "Source":
+    def load(cls, bag: Path) -> Source:
         seqs: dict[str, list[bytes]] = defaultdict(list)
         for m in bagio.read_messages(bag):
             seqs[m.topic].append(m.data)
@@ -80,7 +79,7 @@ class Source:
                     where[t][padded].append(i)
         return cls(dict(seqs), where)
 
-    def check(self, msgs: Iterable[bagio.BagMessage], last: dict | None = None) -> "Checked":
+    def check(self, msgs: Iterable[bagio.BagMessage], last: dict | None = None) -> Checked:
         """Stream ``msgs`` once: how many, how many are not byte-identical to one of the bag's
         on their topic (garbled), how many per-topic successions skip messages of the player's
         loop (holes), the newest log time. ``last`` carries the per-topic state across calls
@@ -120,7 +119,7 @@ class Feed:
     def __init__(self, bag: Path, log: Path):
         self.bag, self.log = bag, log
 
-    def __enter__(self) -> "Feed":
+    def __enter__(self) -> Feed:
         self.out = open(self.log, "w")
         self.proc = subprocess.Popen([*PLAY, str(self.bag), "--loop", "--reliable-images",
                                       "--delay", "0.5"], stdout=self.out, stderr=subprocess.STDOUT)
@@ -192,7 +191,7 @@ def kill_run(out: Path, source: Source, rng: random.Random, low_traffic: bool,
              max_delay_s: float = 5.0) -> KillResult:
     """Record from the running feed, SIGKILL after a random delay, ``maem-bag recover``."""
     args = LOW_TRAFFIC if low_traffic else ["--all"]
-    for attempt in range(3):  # a recorder that never gets a message (DDS) is started again
+    for attempt in range(3):  # noqa: B007 - read after the loop; a recorder that never gets a message (DDS) is started again
         proc = start_recorder(out, args, out.with_suffix(".log"))
         if wait_data(out, proc, 4096 if low_traffic else 1 << 20, 30.0):
             break
@@ -359,7 +358,7 @@ class Tmpfs:
     def __init__(self, path: Path, size_mb: float):
         self.path, self.size_mb, self.ok, self.why = path, size_mb, False, ""
 
-    def __enter__(self) -> "Tmpfs":
+    def __enter__(self) -> Tmpfs:
         self.path.mkdir(parents=True, exist_ok=True)
         proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={int(self.size_mb)}m",
                                "tmpfs", str(self.path)], capture_output=True, text=True)

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 from tqdm import tqdm
@@ -44,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="maem-sim", description=__doc__.splitlines()[0], epilog=EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", type=Path, help="scene folder to write (created; existing files overwritten)")
-    p.add_argument("--rig", default="sportcenter6", help="shipped rig name or rig file (default sportcenter6)")
+    p.add_argument("--rig", default="sportcenter6",
+                   help="shipped rig name or rig file (default sportcenter6)")
     p.add_argument("--frames", type=int, default=90, help="number of frames (default 90)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     p.add_argument("--difficulty", default="medium", choices=("none", "easy", "medium", "hard"),

@@ -24,13 +24,17 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Mapping
+from collections.abc import Mapping
 
 import foxglove
 import numpy as np
-from foxglove.channels import (CameraCalibrationChannel, CompressedImageChannel,
-                               FrameTransformsChannel, ImageAnnotationsChannel,
-                               SceneUpdateChannel)
+from foxglove.channels import (
+    CameraCalibrationChannel,
+    CompressedImageChannel,
+    FrameTransformsChannel,
+    ImageAnnotationsChannel,
+    SceneUpdateChannel,
+)
 from foxglove.websocket import ServerListener
 
 from maem_ros.core.geometry.camera import Rig
@@ -58,7 +62,7 @@ def annotations_topic(cam: str) -> str:
 class _Listener(ServerListener):
     """Marks the static messages due when any client subscribes to anything."""
 
-    def __init__(self, bridge: "FoxgloveBridge"):
+    def __init__(self, bridge: FoxgloveBridge):
         self._bridge = bridge
 
     def on_subscribe(self, client, channel) -> None:

@@ -6,19 +6,39 @@ Image coordinates are RAW (distorted) px, as in ``/<cam>/image_raw``. Stamps are
 """
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
-from foxglove.messages import (CameraCalibration, Color, CompressedImage, CubePrimitive,
-                               FrameTransform, FrameTransforms, ImageAnnotations, LinePrimitive,
-                               LinePrimitiveLineType, Point2, Point3, PointsAnnotation,
-                               PointsAnnotationType, Pose, Quaternion, SceneEntity,
-                               SceneEntityDeletion, SceneEntityDeletionType, SceneUpdate,
-                               SpherePrimitive, TextAnnotation, TextPrimitive, Timestamp, Vector3)
+from foxglove.messages import (
+    CameraCalibration,
+    Color,
+    CompressedImage,
+    CubePrimitive,
+    FrameTransform,
+    FrameTransforms,
+    ImageAnnotations,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Point2,
+    Point3,
+    PointsAnnotation,
+    PointsAnnotationType,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneEntityDeletion,
+    SceneEntityDeletionType,
+    SceneUpdate,
+    SpherePrimitive,
+    TextAnnotation,
+    TextPrimitive,
+    Timestamp,
+    Vector3,
+)
 
+from maem_ros.core.colors import id_rgb
 from maem_ros.core.geometry import frames as frames_
 from maem_ros.core.geometry.camera import Camera, Rig
-from maem_ros.core.colors import id_rgb
 
 WORLD = "world"
 #: poses ``id`` of a person without a confirmed track, drawn grey without an id label (the value

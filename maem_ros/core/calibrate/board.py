@@ -83,7 +83,7 @@ class BoardSpec:
                                  f"names such as DICT_4X4_50, DICT_5X5_100)")
 
     @classmethod
-    def parse(cls, text: str) -> "BoardSpec":
+    def parse(cls, text: str) -> BoardSpec:
         """``charuco:7x5:0.12:0.09:DICT_4X4_50`` or ``checkerboard:9x6:0.025``."""
         kind = text.split(":", 1)[0]
         m = _SPEC_RE.get(kind, _SPEC_RE["charuco"]).match(text.strip())
@@ -116,7 +116,7 @@ class BoardSpec:
         return np.column_stack([(k % self.cols + 1) * self.square,
                                 (k // self.cols + 1) * self.square, np.zeros(k.size)])
 
-    def charuco_board(self) -> "cv2.aruco.CharucoBoard":
+    def charuco_board(self) -> cv2.aruco.CharucoBoard:
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         return cv2.aruco.CharucoBoard(self.squares, self.square, self.marker, dictionary)
 

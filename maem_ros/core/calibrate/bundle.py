@@ -45,8 +45,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .bundle_solver import (NormalEquations, Observations, State, project, reduced_system,
-                            robust_rho, skew, solve_step)
+from .bundle_solver import (
+    NormalEquations,
+    Observations,
+    State,
+    project,
+    reduced_system,
+    robust_rho,
+    skew,
+    solve_step,
+)
 
 __all__ = ["BundleProblem", "BundleOptions", "BundleResult", "bundle_adjust", "robust_rho",
            "DEFAULT_SCHEDULE", "WARM_SCHEDULE"]

@@ -55,7 +55,7 @@ class State:
         self.refine_focal, self.refine_k1 = refine_focal, refine_k1
         self.dc = 6 + int(refine_focal) + int(refine_k1)
 
-    def updated(self, dcam: np.ndarray, dpt: np.ndarray, dobj: np.ndarray) -> "State":
+    def updated(self, dcam: np.ndarray, dpt: np.ndarray, dobj: np.ndarray) -> State:
         """State after a step: cameras (C,dc), free points (P,3), objects (O,6); rotations are
         perturbed on the left, R <- exp([d]x) R."""
         R = Rotation.from_rotvec(dcam[:, :3]).as_matrix() @ self.R

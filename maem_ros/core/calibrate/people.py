@@ -14,8 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..geometry.camera import Rig
-from .bundle import (DEFAULT_SCHEDULE, WARM_SCHEDULE, BundleOptions, BundleProblem, BundleResult,
-                     bundle_adjust)
+from .bundle import DEFAULT_SCHEDULE, WARM_SCHEDULE, BundleOptions, BundleProblem, BundleResult, bundle_adjust
 from .correspondence import MIN_SUPPORT, PairEstimate, estimate_pair, hypothesis_frames
 from .court import CourtPoints, court_similarity
 from .initial_rig import InitialRig, initial_rig

@@ -7,13 +7,13 @@ left/right permutation used to undo a detector's swapped sides.
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..geometry.camera import Rig
 from ..detections import FrameDetections
+from ..geometry.camera import Rig
 from ..skeleton import body_joints, convention_for
 
 #: foot joints (their lowest point touches the floor), matched by name in any convention

@@ -14,7 +14,6 @@ The result is a similarity X_world = s Q X + d applied to the rig and the points
 from __future__ import annotations
 
 import warnings
-
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,7 +43,7 @@ class Similarity:
         Rn = R @ self.Q.T
         return Rn, self.s * t - Rn @ self.d
 
-    def then(self, other: "Similarity") -> "Similarity":
+    def then(self, other: Similarity) -> Similarity:
         """This similarity followed by ``other``."""
         return Similarity(other.s * self.s, other.Q @ self.Q, other.s * other.Q @ self.d + other.d)
 

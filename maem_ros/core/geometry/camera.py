@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -61,7 +62,9 @@ class Camera:
     height: int
     distortion_model: str = "plumb_bob"
     D: np.ndarray = field(default_factory=lambda: np.zeros(5))
-    K_rect: np.ndarray | None = None  # (3,3) intrinsics of the rectified image
+    #: (3,3) intrinsics of the rectified image, an np.ndarray after __post_init__; None (the
+    #: default) = a copy of K. Typed Any: the constructor takes None, the instance never has it
+    K_rect: Any = None
     #: s, added to this camera's message stamps to give its true capture time (a camera whose
     #: stamps run 40 ms early has +0.04); core.sync.capture_stamp_ns applies it
     time_offset: float = 0.0
@@ -199,7 +202,7 @@ class Camera:
         }
 
     @classmethod
-    def from_camera_info(cls, name: str, info: Mapping, R: np.ndarray, t: np.ndarray) -> "Camera":
+    def from_camera_info(cls, name: str, info: Mapping, R: np.ndarray, t: np.ndarray) -> Camera:
         """Build from a CameraInfo-shaped dict plus world->camera extrinsics (not in CameraInfo)."""
         P = _as_matrix(info["p"], (3, 4), f"camera {name!r} camera_info.p")
         K_rect = P[:, :3] if np.any(P[:, :3]) else None
@@ -210,7 +213,7 @@ class Camera:
     # ---- MAEM authors' camera JSON ------------------------------------------
     @classmethod
     def from_maem_json(cls, data: Mapping, name: str | None = None,
-                       default_size: tuple[int, int] | None = None) -> "Camera":
+                       default_size: tuple[int, int] | None = None) -> Camera:
         """Parse a MAEM/xrmocap camera JSON dict.
 
         Accepts ``extrinsic_r`` + ``extrinsic_t`` or a 4x4 ``extrinsic`` (world->camera), a 3x3 or
@@ -250,7 +253,8 @@ class Camera:
         else:
             width, height = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
         return cls(name=cam_name, K=K, R=R, t=t, width=width, height=height,
-                   distortion_model=model, D=D, time_offset=data.get("time_offset", 0.0))
+                   distortion_model=model, D=np.asarray(D, float),
+                   time_offset=data.get("time_offset", 0.0))
 
     def to_maem_json(self, extrinsics: bool = True) -> dict:
         """MAEM/xrmocap camera JSON dict (extrinsic_r + extrinsic_t, 3x3 intrinsic); without
@@ -297,7 +301,7 @@ class Camera:
         return d
 
     @classmethod
-    def from_dict(cls, name: str, d: Mapping) -> "Camera":
+    def from_dict(cls, name: str, d: Mapping) -> Camera:
         missing = [k for k in ("width", "height", "K", "R", "t") if k not in d]
         if missing:
             raise ValueError(f"camera {name!r}: missing {', '.join(missing)}")
@@ -387,7 +391,7 @@ class Rig:
 
     # ---- I/O ----------------------------------------------------------------
     @classmethod
-    def load(cls, path: str | Path) -> "Rig":
+    def load(cls, path: str | Path) -> Rig:
         """Load from a rig YAML, a folder of MAEM camera JSONs, a scene folder with cameras/, a
         Qualisys ``.qca.txt`` or a Pose2Sim ``Calib*.toml`` (core/geometry/rig_formats.py)."""
         from maem_ros.core.geometry.rig_formats import is_calibration_file, read_calibration
@@ -406,7 +410,7 @@ class Rig:
 
     @classmethod
     def from_json_folder(cls, folder: str | Path, default_size: tuple[int, int] | None = None,
-                         defaults: Mapping | None = None) -> "Rig":
+                         defaults: Mapping | None = None) -> Rig:
         """Cameras named by JSON file stem, in natural order (camera_2 before camera_10);
         ``defaults``: keys a file may lack."""
         folder = Path(folder)
@@ -434,7 +438,7 @@ class Rig:
                                                                 indent=2))
 
     @classmethod
-    def load_intrinsics(cls, path: str | Path) -> "Rig":
+    def load_intrinsics(cls, path: str | Path) -> Rig:
         """K, distortion, image size and time_offset of every camera in any rig file or folder
         :meth:`load` reads, extrinsics optional (intrinsics-only camera JSONs or YAML entries
         are accepted) and discarded: every camera gets R = I, t = 0, a placeholder for a
@@ -453,7 +457,7 @@ class Rig:
         return cls([replace(c, R=np.eye(3), t=np.zeros(3)) for c in rig])
 
     @classmethod
-    def from_yaml(cls, path: str | Path, defaults: Mapping | None = None) -> "Rig":
+    def from_yaml(cls, path: str | Path, defaults: Mapping | None = None) -> Rig:
         """A rig YAML (``cameras: {name: {...}}``); ``defaults``: keys an entry may lack."""
         path = Path(path)
         try:

@@ -118,7 +118,7 @@ def reprojection_error(P: np.ndarray, X: np.ndarray, uv: np.ndarray) -> np.ndarr
     Xh = np.empty((4, C, Q, J))
     Xh[:3] = np.moveaxis(X, -1, 0)
     Xh[3] = 1.0
-    Xh = Xh.reshape(4, C, Q * J).transpose(1, 0, 2)
+    Xh = Xh.reshape(4, C, Q * J).transpose(1, 0, 2)  # type: ignore[assignment]  # (C,4,Q*J) view
     Pk = np.moveaxis(P, 2, 0)  # (3,C,M,4)
     z = np.matmul(Pk[2], Xh).reshape(C, M, Q, J)
     with np.errstate(divide="ignore", invalid="ignore"):

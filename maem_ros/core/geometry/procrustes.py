@@ -9,8 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.geometry.procrustes_terms import (ADJ_ENTRY, ADJ_MINOR, ADJ_SIGN, fill_key_matrix,
-                                                   fill_rotation)
+from maem_ros.core.geometry.procrustes_terms import (
+    ADJ_ENTRY,
+    ADJ_MINOR,
+    ADJ_SIGN,
+    fill_key_matrix,
+    fill_rotation,
+)
 
 #: fewer valid joints than this leave the similarity under-determined -> NaN
 MIN_JOINTS = 3

@@ -15,8 +15,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.geometry.procrustes_terms import (ADJ_ENTRY, ADJ_MINOR, ADJ_SIGN, fill_key_matrix,
-                                                   fill_rotation)
+from maem_ros.core.geometry.procrustes_terms import (
+    ADJ_ENTRY,
+    ADJ_MINOR,
+    ADJ_SIGN,
+    fill_key_matrix,
+    fill_rotation,
+)
 from maem_ros.core.jit import have_numba, jit
 
 # the elementwise formulas of procrustes_terms, compiled for the scalars here

@@ -20,7 +20,7 @@ people the GT does not hold; false positives are what AP measures.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment

@@ -33,7 +33,8 @@ Definitions (per sequence of frames):
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -184,7 +185,7 @@ def evaluate_sequence(preds: Sequence[np.ndarray], scores: Sequence[np.ndarray],
     e = np.concatenate(errs + [np.zeros(0)]) * 1e3
     pa = np.concatenate(pa_errs + [np.zeros(0)]) * 1e3
     pa = pa[np.isfinite(pa)]  # a matched pair with < 3 joints has no Procrustes fit
-    out = {
+    out: dict[str, Any] = {
         "frames": n,
         "recall": matched_gt / total_gt if total_gt else float("nan"),
         "mpjpe_mean": float(e.mean()) if e.size else float("nan"),

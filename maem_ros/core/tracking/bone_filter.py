@@ -13,7 +13,7 @@ lengths of the bone. Untracked people (id < 0) pass unchanged.
 from __future__ import annotations
 
 import warnings
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

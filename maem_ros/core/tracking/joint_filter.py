@@ -32,7 +32,7 @@ class JointFilterParams(Params):
     joint_filter_gap: float = param(0.5, "s, a track unseen this long restarts its joint filter",
                                     minimum=0.0, exclusive_minimum=True)
 
-    def make(self) -> "JointFilter | None":
+    def make(self) -> JointFilter | None:
         """The filter these parameters describe (None when off)."""
         return JointFilter(self.joint_accel_std, self.joint_filter_gap) if self.joint_filter else None
 

@@ -21,13 +21,13 @@ per-matrix SVD/LAPACK calls have a fixed cost each, far too much for ~10^4 small
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
-from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.detections import Cluster, FrameDetections
+from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.triangulation.ransac_kernel import BACKENDS, ransac_keypoints, use_numba
@@ -78,8 +78,8 @@ class Poses:
     rejected (P,M) True where member m was left out as a whole (``tau_member``), else None;
     joint_std (P,J) per-joint standard deviation, m, and joint_cov (P,J,3,3) the joints'
     covariance, m^2 (core/triangulation/uncertainty.py; NaN where the joint is missing);
-    detection_scores (P,) the members' mean detection score (the paper's score). ``views`` counts the members used (rejected ones excluded).
-    ``scores`` follow ``pose_score``.
+    detection_scores (P,) the members' mean detection score (the paper's score). ``views`` counts
+    the members used (rejected ones excluded). ``scores`` follow ``pose_score``.
     """
 
     joints: np.ndarray
@@ -293,7 +293,7 @@ def consistent_left_right(P: np.ndarray, uv: np.ndarray, score: np.ndarray, pres
         X = solve_normal(Ea + Eb)  # (C,Q,J,3)
         # each pair as a one-view, one-hypothesis "cluster" of reprojection_error
         Q = len(ia)
-        flat = lambda a: a.reshape(C * Q, 1, *a.shape[2:])  # noqa: E731
+        flat = lambda a: a.reshape(C * Q, 1, *a.shape[2:])  # noqa: E731, B023 - used in this iteration
         ea = reprojection_error(flat(P[:, ia]), flat(X), flat(first[:, ia])).reshape(C, Q, J)
         eb = reprojection_error(flat(P[:, ib]), flat(X), flat(uv[:, ib])).reshape(C, Q, J)
         e = np.where(use & np.isfinite(ea) & np.isfinite(eb), 0.5 * (ea + eb), np.nan)
