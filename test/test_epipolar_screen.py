@@ -79,7 +79,8 @@ def test_screen_rows_keeps_runs_of_consecutive_points_one_in_every_stride():
 
 def test_a_clear_subset_mean_decides_and_is_the_pairs_distance():
     keep, mean, evaluated = _gate(*_pair(5.0, 7.9))
-    assert keep[0] and mean[0] == pytest.approx(5.0, abs=1e-4)
+    # within the 1/sqrt estimate's bound: x86-64 without AVX-512 estimates to 12 bits, not 14
+    assert keep[0] and mean[0] == pytest.approx(5.0, rel=MEAN_REL)
     assert evaluated == N // STRIDE  # the full set was not read
     keep, mean, _ = _gate(*_pair(TAU + MARGIN + 0.5, 1.0))
     assert not keep[0] and np.isnan(mean[0])  # rejected by the subset (full mean ~2 px)
@@ -159,7 +160,7 @@ def test_screen_levels_decide_coarse_to_fine_each_within_its_margin():
     coarse, fine = N // COARSE, N // STRIDE
     # clear on the coarse subset: decided there, with its mean (the rest is never read)
     keep, mean, evaluated = _two_levels(*_pair(7.9, 7.9, on_coarse=2.0))
-    assert keep[0] and mean[0] == pytest.approx(2.0, abs=1e-4) and evaluated == coarse
+    assert keep[0] and mean[0] == pytest.approx(2.0, rel=MEAN_REL) and evaluated == coarse
     keep, mean, evaluated = _two_levels(*_pair(1.0, 1.0, on_coarse=TAU + COARSE_MARGIN + 0.5))
     assert not keep[0] and np.isnan(mean[0]) and evaluated == coarse
     # within the coarse margin, clear on the screen: the screen decides
@@ -291,7 +292,7 @@ def test_the_kernel_given_block_ranges_sums_what_it_sums_computing_them():
                                          TAU, early_exit=False)
     np.testing.assert_array_equal(used64, got[1])
     assert not np.array_equal(sums64, got[0])
-    np.testing.assert_allclose(sums64, got[0], rtol=1e-5)
+    np.testing.assert_allclose(sums64, got[0], rtol=MEAN_REL)
     with pytest.raises(ValueError, match="block ranges .* do not describe"):
         epipolar.point_rows(a[:, :epipolar.BLOCK], given[0].ranges)
 
