@@ -198,67 +198,6 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
     """Refine ``prob`` (see the module docstring): the robust schedule, then up to
     ``reject_rounds`` rounds of outlier rejection each followed by the schedule's last stage."""
     opts = opts or BundleOptions()
-    C = prob.num_cameras
-    free_cam = np.ones(C, bool)
-    free_cam[list(opts.fixed_cameras)] = False
-    st = _State(prob, opts)
-    active = _constrained(prob, np.ones(prob.obs_camera.size, bool))
-    iterations = []
-    for loss, scale, max_it in opts.schedule:
-        st, n = _levenberg_marquardt(st, prob, active, loss, scale, max_it, free_cam, opts)
-        iterations.append(n)
-    loss, scale, max_it = opts.schedule[-1]
-    for _ in range(opts.reject_rounds):
-        keep = _reject_outliers(st, prob, active, opts)
-        if np.array_equal(keep, active):
-            break
-        active = keep
-        st, n = _levenberg_marquardt(st, prob, active, loss, scale, max_it, free_cam, opts)
-        iterations.append(n)
-    residuals = np.full((prob.obs_camera.size, 2), np.nan)
-    ob = _Observations(prob, _constrained(prob, np.ones_like(active)) & _evaluable(prob, active))
-    residuals[ob.idx] = _project(st, ob, False)[0]
-    result = BundleResult(R=st.R, t=st.t, focal_scale=st.s, k1=st.k1, points=st.X,
-                          object_R=st.oR, object_t=st.ot, inliers=active, residuals=residuals,
-                          iterations=iterations)
-    if opts.covariance:
-        result.camera_cov = _camera_covariance(st, prob, active, free_cam)
-    return result
-
-
-def _constrained(prob: BundleProblem, keep: np.ndarray) -> np.ndarray:
-    """``keep`` less the observations of free points seen by fewer than two cameras and of
-    objects with fewer than four observations (their structure block would be singular)."""
-    keep = keep.copy()
-    for _ in range(2):
-        free = keep & (prob.point_object[prob.obs_point] < 0)
-        key = prob.obs_point[free] * prob.num_cameras + prob.obs_camera[free]
-        pts = np.unique(key) // prob.num_cameras
-        ncam = np.bincount(pts, minlength=prob.points.shape[0])
-        keep &= ~((prob.point_object[prob.obs_point] < 0) & (ncam[prob.obs_point] < 2))
-        rigid = keep & (prob.point_object[prob.obs_point] >= 0)
-        nobs = np.bincount(prob.point_object[prob.obs_point[rigid]],
-                           minlength=max(1, prob.object_R.shape[0]))
-        obj = prob.point_object[prob.obs_point]
-        keep &= ~((obj >= 0) & (nobs[np.maximum(obj, 0)] < 4))
-    return keep
-
-
-def _evaluable(prob: BundleProblem, active: np.ndarray) -> np.ndarray:
-    """Observations whose point (or object) is estimated by the active set."""
-    solved_pt = np.zeros(prob.points.shape[0], bool)
-    solved_pt[prob.obs_point[active]] = True
-    obj = prob.point_object
-    solved_obj = np.zeros(max(1, prob.object_R.shape[0]), bool)
-    solved_obj[obj[prob.obs_point[active]][obj[prob.obs_point[active]] >= 0]] = True
-    p = prob.obs_point
-    return np.where(obj[p] >= 0, solved_obj[np.maximum(obj[p], 0)], solved_pt[p])
-
-
-def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> BundleResult:
-    """Refine ``prob`` (see the module docstring): the robust schedule, then up to
-    ``reject_rounds`` rounds of outlier rejection each followed by the schedule's last stage."""
-    opts = opts or BundleOptions()
     # the dense products are small: one BLAS thread (threads only contend on a shared machine)
     with threadpool_limits(limits=1):
         return _bundle_adjust(prob, opts)
