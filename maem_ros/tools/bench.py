@@ -363,10 +363,10 @@ def main(argv: list[str] | None = None) -> int:
     args = _load_defaults(_parser().parse_args(argv))
     try:
         if args.live:
-            from .live import check_live_arguments
+            from .live import check_live_arguments, run_live
             from .live_runs import run_repeated
             check_live_arguments(args)
-            result = run_repeated(args)
+            result = run_repeated(args, run_live)
         else:
             result = run(args)
     except ValueError as e:

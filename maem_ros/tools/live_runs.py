@@ -21,7 +21,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 #: latency (ms) under which a run counts as recovered after the hog: the issue's target
@@ -188,11 +188,11 @@ def aggregate(summaries: list[dict[str, Any]], rate: float) -> dict[str, Any]:
     return {"runs": len(summaries), "median": median, "worst": worst, "targets": met}
 
 
-def run_repeated(a: argparse.Namespace) -> dict[str, Any]:
-    """``a.runs`` live runs one after the other: each run's summary, the median, the worst
-    (with a single run: that run's full report, with its summary)."""
-    from maem_ros.tools.live import run_live
-
+def run_repeated(a: argparse.Namespace,
+                 run_live: Callable[[argparse.Namespace], dict[str, Any]]) -> dict[str, Any]:
+    """``a.runs`` live runs (``run_live``: tools/live.run_live) one after the other: each run's
+    summary, the median, the worst (with a single run: that run's full report, with its
+    summary)."""
     reports = []
     for k in range(a.runs):
         r = run_live(a)

@@ -14,7 +14,7 @@ passes:
 2. the nodes' path on a small simulated frame set, decoded from both detection wires (f32,
    q4) as the association node decodes them, for every shipped params file: association
    (track-assisted, as the node runs it), triangulation. This catches signatures that depend on
-   the data's layout (e.g. block ranges of screened meshes of several blocks).
+   the data's layout (e.g. block ranges of subsampled copies of meshes of several blocks).
 
 Before compiling, cached kernels whose imported sources changed since they were cached are
 deleted (numba itself only notices a change of the kernel's own file).
@@ -35,7 +35,7 @@ from maem_ros.core.jit import have_numba
 SHIPPED_PARAMS = ("demo.yaml", "sportcenter.yaml", "humanm3.yaml", "mediapipe.yaml")
 #: simulated frame set of the node-path pass: rig, people seen by all cameras, extras per camera,
 #: frames (>= 2: the second frame runs the track-assisted path), mesh vertices (more than two of
-#: the epipolar kernel's 4096-point blocks: the block ranges of a screened mesh then take
+#: the epipolar kernel's 4096-point blocks: the block ranges of a subsampled mesh copy then take
 #: another array layout) and keypoints
 SCENE_RIG, SCENE_PLAYERS, SCENE_EXTRAS, SCENE_FRAMES = "sportcenter6", 4, 1, 2
 SCENE_VERTICES, SCENE_KEYPOINTS = 9000, 70
