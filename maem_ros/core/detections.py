@@ -6,9 +6,9 @@ association only compares them up to a similarity transform).
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Iterable
 
 import numpy as np
 
@@ -98,11 +98,11 @@ class FrameDetections:
         return 0.5 * (self.bboxes[:, :2] + self.bboxes[:, 2:])
 
     @classmethod
-    def empty(cls, camera: str, stamp_ns: int, num_joints: int, num_vertices: int) -> "FrameDetections":
+    def empty(cls, camera: str, stamp_ns: int, num_joints: int, num_vertices: int) -> FrameDetections:
         return cls(camera, stamp_ns, np.zeros((0, 4)), np.zeros(0), np.zeros((0, num_joints, 2)),
                    np.zeros((0, num_joints, 3)), np.zeros((0, num_vertices, 2), np.float32))
 
-    def select(self, index: np.ndarray) -> "FrameDetections":
+    def select(self, index: np.ndarray) -> FrameDetections:
         """Subset by boolean mask or integer index (copies); validated when self is (every
         check of :meth:`validate` is per detection or on shapes the subset keeps)."""
         out = FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
@@ -112,7 +112,7 @@ class FrameDetections:
             out.mark_validated()
         return out
 
-    def with_vertex_subset(self, stride: int = 1, count: int = 0) -> "FrameDetections":
+    def with_vertex_subset(self, stride: int = 1, count: int = 0) -> FrameDetections:
         """These detections with verts2d cut to the fixed-topology subset
         ``vertex_subset(mesh_vertices, stride, count)``, announced in mesh_subset
         (self when verts2d holds exactly those already). ValueError when verts2d lacks some of
@@ -148,7 +148,7 @@ class FrameDetections:
                 and all(a is b for a, b in zip(token[2:], now[2:]))
                 and token[-1] == tuple(a.shape for a in now[2:]))
 
-    def mark_validated(self) -> "FrameDetections":
+    def mark_validated(self) -> FrameDetections:
         """Record that the caller (the wire decoder) checked everything :meth:`validate` checks,
         so consumers do not check the same arrays twice. Replacing an array re-enables the
         check; writing into the arrays in place afterwards is the writer's responsibility."""
@@ -159,7 +159,7 @@ class FrameDetections:
         arrays = self._arrays()
         return arrays + (tuple(a.shape for a in arrays[2:]),)
 
-    def validate(self, known_cameras: Iterable[str] | None = None) -> "FrameDetections":
+    def validate(self, known_cameras: Iterable[str] | None = None) -> FrameDetections:
         """Raise InputError (a ValueError, with a reason) naming the first bad field; return self
         when valid."""
         where = f"detections of camera {self.camera!r}"
@@ -251,7 +251,7 @@ class DetectionTable:
 
     @classmethod
     def build(cls, frames: dict[int, FrameDetections], num_cameras: int,
-              keep: dict[int, np.ndarray] | None = None) -> "DetectionTable":
+              keep: dict[int, np.ndarray] | None = None) -> DetectionTable:
         """Table of ``frames`` (keyed by camera index); ``keep[c]`` = detection indices to take
         (default: all), in increasing order."""
         cams = sorted(frames)

@@ -40,16 +40,17 @@ camera has detections, then the paper's conflict removal.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.cluster.vq import kmeans2
 from scipy.optimize import linear_sum_assignment
 
 import maem_ros.core.association.clustering_kernel as clustering_kernel
-from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 from maem_ros.core.detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
+from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 from maem_ros.core.intsets import sorted_unique, unique_inverse
 
 if TYPE_CHECKING:
@@ -85,7 +86,7 @@ class Found:
 
 
 def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.ndarray,
-            params: "AssociationParams", stats: dict[str, float], pair_cost: PairCost) -> Found:
+            params: AssociationParams, stats: dict[str, float], pair_cost: PairCost) -> Found:
     """Cluster the table's rows with ``params.clustering`` (see the module docstring).
 
     P (C,3,4) the rig's rectified projections; joints: keypoint indices of the pair cost and
@@ -186,8 +187,8 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float, kernels=None
     return gain, geometric
 
 
-def _consistent(table: DetectionTable, pairs: PairSet, verify: "_Verifier",
-                params: "AssociationParams", stats: dict[str, float], kernels) -> Found:
+def _consistent(table: DetectionTable, pairs: PairSet, verify: _Verifier,
+                params: AssociationParams, stats: dict[str, float], kernels) -> Found:
     gain, geometric = _gain_matrix(table, pairs, params.tau_cost, kernels)
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
@@ -308,7 +309,7 @@ def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
 
 
 def _verified_disjoint(a: np.ndarray, b: np.ndarray, size: np.ndarray, label: np.ndarray,
-                       verify: "_Verifier", n: int) -> tuple[np.ndarray, np.ndarray]:
+                       verify: _Verifier, n: int) -> tuple[np.ndarray, np.ndarray]:
     """(taken, failed) indices k of the candidate merges (a[k], b[k]) (cluster labels < n,
     best first): the best-first pass over the merges that pass the check (from three members
     on), and the merges the check refused on the way.

@@ -22,6 +22,7 @@ import numpy as np
 from maem_ros.core.geometry.multiview_kernel import SINGULAR, adjugate, cofactors, view_entries
 from maem_ros.core.jit import have_numba, jit
 
+
 def consistent(E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray,
                rows: np.ndarray, tau: float) -> np.ndarray:
     """(K,) whether every member of candidate k (rows[k], -1 = padding) has a median

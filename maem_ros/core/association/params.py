@@ -3,8 +3,9 @@ switches) holding :class:`ExecutionParams` (how it runs: core.association.gates)
 overrides that give the MAEM paper's pipeline."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from maem_ros.core.association.gates.execution import EVERY_VERTEX, ExecutionParams
 from maem_ros.core.paramspec import Params, param
@@ -78,7 +79,7 @@ class AssociationParams(Params):
                              f"{type(self.execution).__name__}")
 
     @classmethod
-    def from_mapping(cls, d: Mapping[str, Any]) -> "AssociationParams":
+    def from_mapping(cls, d: Mapping[str, Any]) -> AssociationParams:
         """An instance from the known keys of a params dict (others are ignored); validated.
         The execution settings are read from the same flat keys (as the node declares them
         and params files have always named them) and from an optional ``execution``
@@ -95,6 +96,6 @@ class AssociationParams(Params):
         """Every parameter by its flat name (the method's and the execution settings)."""
         return {**super().as_mapping(), **self.execution.as_mapping()}
 
-    def replaced(self, overrides: Mapping[str, Any]) -> "AssociationParams":
+    def replaced(self, overrides: Mapping[str, Any]) -> AssociationParams:
         """A copy with ``overrides`` (flat names of either group, e.g. PAPER_PIPELINE)."""
         return type(self).from_mapping({**self.as_mapping(), **overrides})

@@ -25,8 +25,8 @@ All 2D input is rectified pinhole px (FrameDetections), so only Camera.P and F a
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 
@@ -36,8 +36,15 @@ import maem_ros.core.geometry.procrustes_kernel as procrustes_kernel
 from maem_ros.core.association.gates import PairGates
 from maem_ros.core.association.gates import warmup as warmup_gates
 from maem_ros.core.association.params import PAPER_PIPELINE, AssociationParams
-from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, Cluster,
-                                      DetectionTable, FrameDetections, PairSet)
+from maem_ros.core.detections import (
+    PASSED,
+    REJECTED_COST,
+    REJECTED_EPIPOLAR,
+    Cluster,
+    DetectionTable,
+    FrameDetections,
+    PairSet,
+)
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_pairs
 from maem_ros.core.intsets import sorted_unique

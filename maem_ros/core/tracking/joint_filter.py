@@ -14,7 +14,6 @@ measurement. Everything is batched over a frame's tracks and joints.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass
 
 import numpy as np

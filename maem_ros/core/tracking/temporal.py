@@ -43,8 +43,8 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -54,13 +54,18 @@ from maem_ros.core.association.params import AssociationParams
 from maem_ros.core.association.pipeline import associate
 from maem_ros.core.detections import PASSED, Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
-from maem_ros.core.paramspec import Params, param
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
+from maem_ros.core.paramspec import Params, param
 from maem_ros.core.skeleton import body_joints, joint_subset
 from maem_ros.core.tracking.track_filter import Tracker3D
-from maem_ros.core.tracking.track_geometry import (mean_distance, nanmedian, project,
-                                                   rays_nearest, triangulate_members,
-                                                   verify_clusters)
+from maem_ros.core.tracking.track_geometry import (
+    mean_distance,
+    nanmedian,
+    project,
+    rays_nearest,
+    triangulate_members,
+    verify_clusters,
+)
 
 #: cluster flags (bit mask) of TemporalResult.flags
 FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view association)
@@ -136,7 +141,7 @@ class _FrameView:
     (their gate points built on first use), and the pair-gate results already computed this
     frame."""
 
-    def __init__(self, stage: "TemporalAssociator", by_cam: dict[int, FrameDetections],
+    def __init__(self, stage: TemporalAssociator, by_cam: dict[int, FrameDetections],
                  body: np.ndarray):
         self.stage, self.by_cam = stage, by_cam
         C = len(stage.rig)
@@ -329,7 +334,7 @@ class TemporalAssociator:
         stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
         return out
 
-    def _assign(self, view: "_FrameView", joints: np.ndarray, gate: np.ndarray) -> np.ndarray:
+    def _assign(self, view: _FrameView, joints: np.ndarray, gate: np.ndarray) -> np.ndarray:
         """Per camera, Hungarian assignment of detections to the tracks' skeletons joints (T,J,3)
         on the median 2D body-keypoint distance (px) under gate (T,C) px. The distances of
         every track to every detection of every camera are one batched computation
@@ -355,7 +360,7 @@ class TemporalAssociator:
             cand[rows[real], c] = ok[cols[real]]
         return cand
 
-    def _verify_candidates(self, view: "_FrameView", cand: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _verify_candidates(self, view: _FrameView, cand: np.ndarray) -> tuple[np.ndarray, ...]:
         """Verification of the candidates (T,C) (module docstring, step 4). Returns members
         padded to (T,M): cam, det, present, kept, and joints X (T,J,3)."""
         T, C = cand.shape
@@ -384,7 +389,7 @@ class TemporalAssociator:
             out[c, t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[c, n], joints[t], backend))
         return out
 
-    def _pair_gates(self, view: "_FrameView", cam: np.ndarray, det: np.ndarray,
+    def _pair_gates(self, view: _FrameView, cam: np.ndarray, det: np.ndarray,
                     present: np.ndarray) -> np.ndarray:
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
         gates (:meth:`_gate_pairs`); a pair already tested this frame (the refinement pass
@@ -399,7 +404,7 @@ class TemporalAssociator:
         passes[t, ma, mb] = passes[t, mb, ma] = ok
         return passes
 
-    def _gate_pairs(self, view: "_FrameView", ca: np.ndarray, cb: np.ndarray, da: np.ndarray,
+    def _gate_pairs(self, view: _FrameView, ca: np.ndarray, cb: np.ndarray, da: np.ndarray,
                     db: np.ndarray) -> np.ndarray:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
         association's pair gates (core.association.gates: bbox-centre reprojection, epipolar

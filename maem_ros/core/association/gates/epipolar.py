@@ -58,17 +58,28 @@ which rejects the pair.
 from __future__ import annotations
 
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Mapping
 
 import numpy as np
 
-from maem_ros.core.association.gates.epipolar_constants import (BACKENDS, BLOCK, EPIPOLE_NORM,
-                                                                PRECISIONS, RSQRT_ERR,
-                                                                RSQRT_ERR_REFINED)
-from maem_ros.core.association.gates.point_rows import (PairMatrices, PointRows, block_indices,
-                                                        block_order, pair_matrices, point_rows)
+from maem_ros.core.association.gates.epipolar_constants import (
+    BACKENDS,
+    BLOCK,
+    EPIPOLE_NORM,
+    PRECISIONS,
+    RSQRT_ERR,
+    RSQRT_ERR_REFINED,
+)
+from maem_ros.core.association.gates.point_rows import (
+    PairMatrices,
+    PointRows,
+    block_indices,
+    block_order,
+    pair_matrices,
+    point_rows,
+)
 from maem_ros.core.detections import vertex_subset
 from maem_ros.core.intsets import sorted_unique
 from maem_ros.core.jit import have_numba

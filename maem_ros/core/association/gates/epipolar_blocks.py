@@ -8,12 +8,26 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.association.gates.epipolar_constants import (BOUND_SLACK, EPIPOLE_NORM,
-                                                                KEY_NEG_INF, KEY_POS_INF, RSQRT_ERR,
-                                                                RSQRT_ERR_REFINED, U32)
-from maem_ros.core.association.gates.epipolar_jit import (estimated_rsqrt, inline, inline32, jit,
-                                                          jit32, plain, points, prefetch_l2,
-                                                          wide_vectors)
+from maem_ros.core.association.gates.epipolar_constants import (
+    BOUND_SLACK,
+    EPIPOLE_NORM,
+    KEY_NEG_INF,
+    KEY_POS_INF,
+    RSQRT_ERR,
+    RSQRT_ERR_REFINED,
+    U32,
+)
+from maem_ros.core.association.gates.epipolar_jit import (
+    estimated_rsqrt,
+    inline,
+    inline32,
+    jit,
+    jit32,
+    plain,
+    points,
+    prefetch_l2,
+    wide_vectors,
+)
 
 #: squared line norm at (or below) which a point is at the epipole (F of unit norm)
 _Q_EPIPOLE = EPIPOLE_NORM ** 2

@@ -7,7 +7,6 @@ from __future__ import annotations
 import numba as nb
 from numba.core import cgutils
 
-
 # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
 # survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
 # reassoc lets the sums vectorise

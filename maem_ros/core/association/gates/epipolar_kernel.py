@@ -12,13 +12,34 @@ from __future__ import annotations
 
 import numpy as np
 
-from maem_ros.core.association.gates.epipolar_blocks import (FETCH_MIN_POINTS, block32x2,
-                                                             block_range, decided, float32_f,
-                                                             key_range, key_values, next_blocks,
-                                                             pair64_into, pair_bound, refined_pair,
-                                                             rest_present, settle, settle64, single)
-from maem_ros.core.association.gates.epipolar_jit import (estimated_rsqrt, inline, inline32, jit32,
-                                                          plain, points, prefetch, wide_vectors)
+from maem_ros.core.association.gates.epipolar_blocks import (
+    FETCH_MIN_POINTS,
+    block32x2,
+    block_range,
+    decided,
+    float32_f,
+    key_range,
+    key_values,
+    next_blocks,
+    pair64_into,
+    pair_bound,
+    refined_pair,
+    rest_present,
+    settle,
+    settle64,
+    single,
+)
+from maem_ros.core.association.gates.epipolar_jit import (
+    estimated_rsqrt,
+    inline,
+    inline32,
+    jit32,
+    plain,
+    points,
+    prefetch,
+    wide_vectors,
+)
+
 
 @plain
 def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit,

@@ -16,19 +16,29 @@ the same way (its subsets read in place), only slower.
 from __future__ import annotations
 
 import weakref
-from typing import Callable, Mapping, NamedTuple, Protocol
+from collections.abc import Callable, Mapping
+from typing import NamedTuple, Protocol
 
 import numpy as np
 
 from maem_ros.core.association.gates.epipolar import PointRows, point_rows
 from maem_ros.core.association.gates.execution import ExecutionParams
-from maem_ros.core.association.gates.reprojection import (BOUND_MARGIN, enumerate_pairs,
-                                                          reprojection_kernel, reprojection_ok)
+from maem_ros.core.association.gates.reprojection import (
+    BOUND_MARGIN,
+    enumerate_pairs,
+    reprojection_kernel,
+    reprojection_ok,
+)
 from maem_ros.core.association.gates.rig_geometry import RigGeometry, rig_geometry
-from maem_ros.core.association.gates.screening import (frame_screened_means, screen_copies,
-                                                       screen_rows)
-from maem_ros.core.detections import (PASSED, REJECTED_EPIPOLAR, REJECTED_REPROJ,
-                                      DetectionTable, FrameDetections, vertex_subset)
+from maem_ros.core.association.gates.screening import frame_screened_means, screen_copies, screen_rows
+from maem_ros.core.detections import (
+    PASSED,
+    REJECTED_EPIPOLAR,
+    REJECTED_REPROJ,
+    DetectionTable,
+    FrameDetections,
+    vertex_subset,
+)
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.jit import have_numba
 
@@ -114,7 +124,7 @@ class PairGates:
         self.execution: ExecutionParams = params.execution
         self._prepared = _PreparedFrames() if prepared is None else prepared
 
-    def with_epipolar_gate(self, mode: str) -> "PairGates":
+    def with_epipolar_gate(self, mode: str) -> PairGates:
         """The same gates with the epipolar gate in ``mode`` (mesh | sparse | none), reading
         the frames prepared by this one."""
         return PairGates(self.rig, self.params, mode, self._prepared)
@@ -186,7 +196,7 @@ class PairGates:
               if p.reproj_gate and i.size else None)
         return i, j, ok
 
-    def frame_set(self, frames: Mapping[int, FrameDetections]) -> "FrameSet":
+    def frame_set(self, frames: Mapping[int, FrameDetections]) -> FrameSet:
         """The gates of one frame set (frames keyed by camera index in the rig)."""
         return FrameSet(self, dict(frames))
 

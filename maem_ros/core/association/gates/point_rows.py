@@ -3,9 +3,9 @@ runs, with block ranges) and the fundamental matrices of a rig's camera pairs
 (:class:`PairMatrices`), and the fixed block order every backend walks."""
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Mapping
 
 import numpy as np
 
@@ -57,7 +57,7 @@ class PointRows:
         """Point indices k (0 <= k < n) -> their positions p in a detection's row."""
         return k if not self.run else (k // self.run) * self.period + k % self.run
 
-    def contiguous(self) -> "PointRows":
+    def contiguous(self) -> PointRows:
         """The same points, each detection's n points contiguous (a copy when read in runs)."""
         return self if not self.run else point_rows(self._gather(self.rows))
 

@@ -9,7 +9,7 @@ enumeration of a frame set's pairs and the gate run in one pass (reprojection_ke
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

@@ -22,7 +22,7 @@ class RigGeometry(NamedTuple):
     pairs: PairMatrices  # F as the epipolar kernels take them
 
 
-_GEOMETRY: "weakref.WeakKeyDictionary[Rig, RigGeometry]" = weakref.WeakKeyDictionary()
+_GEOMETRY: weakref.WeakKeyDictionary[Rig, RigGeometry] = weakref.WeakKeyDictionary()
 
 
 def rig_geometry(rig: Rig) -> RigGeometry:

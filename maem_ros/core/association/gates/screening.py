@@ -6,15 +6,21 @@ with their block ranges that a camera frame's one preparing pass makes
 """
 from __future__ import annotations
 
-from typing import Mapping, NamedTuple, Sequence
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
-from maem_ros.core.association.gates.epipolar import (FramePairs, PairMatrices, frame_pairs,
-                                                      gather_buffer, detections_read,
-                                                      level_sums, numba_kernels)
-from maem_ros.core.association.gates.epipolar_constants import (BLOCK, SCREEN_MIN_POINTS,
-                                                                SCREEN_RUN)
+from maem_ros.core.association.gates.epipolar import (
+    FramePairs,
+    PairMatrices,
+    detections_read,
+    frame_pairs,
+    gather_buffer,
+    level_sums,
+    numba_kernels,
+)
+from maem_ros.core.association.gates.epipolar_constants import BLOCK, SCREEN_MIN_POINTS, SCREEN_RUN
 from maem_ros.core.association.gates.point_rows import PointRows, point_rows
 from maem_ros.core.jit import have_numba
 
@@ -144,7 +150,7 @@ def _gathered_screens(plan: FramePairs, screens: Sequence[ScreenLevel], backend:
     coarse = gather_buffer(dets.size * 2 * n_coarse, dtype, 2).reshape(dets.size, 2 * n_coarse)
     numba_kernels().gather_runs(flats[0], det_addr, run, period, out, every, coarse)
     gathered = []
-    for (level, margin), buffer, size in zip(screens, [coarse, out][-len(screens):],
+    for (_level, margin), buffer, size in zip(screens, [coarse, out][-len(screens):],
                                              [n_coarse, n][-len(screens):]):
         flat = buffer.reshape(-1).view()
         flat.setflags(write=False)
