@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from maem_ros import bagio
-from maem_ros.tools import demo
+from maem_ros.tools.demo import demo
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_BAG = REPO / "bags" / "demo"
@@ -29,7 +29,7 @@ def run_cli(args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
     """maem-demo as a subprocess (killed by subprocess.run on timeout). The timeouts are
     generous: a graph of up to 12 processes starts in 10-20 s on a quiet 2-core machine but took
     over 100 s at load 17."""
-    return subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", *args], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "maem_ros.tools.demo.demo", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=timeout_s,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
@@ -70,7 +70,7 @@ def test_make_demo_bag_small(tmp_path):
 
 @pytest.mark.slow
 def test_ensure_bag_generates_only_the_default_and_rejects_non_bags(tmp_path, monkeypatch):
-    import maem_ros.tools.demo_bag as demo_bag
+    import maem_ros.tools.demo.demo_bag as demo_bag
     with pytest.raises(bagio.BagError, match="no such file"):  # --bag /typo: nothing created
         demo.ensure_bag(tmp_path / "typo", frames=2)
     assert not (tmp_path / "typo").exists()

@@ -204,7 +204,7 @@ def test_maem_eval_applies_the_rig_offsets(tmp_path):
     """A scene whose camera_1 captures 2 frames late: maem-eval with the rig's time_offset
     pairs its frames by capture time (as good as a synchronised scene); the same scene with the
     offset erased from the rig pairs wrong frames and loses accuracy."""
-    from maem_ros.tools.evaluate import build_parser, evaluate_scene
+    from maem_ros.tools.eval.evaluate import build_parser, evaluate_scene
     from maem_ros.tools.simulate import write_scene
     from maem_ros.sim.scene import SceneConfig
     base = dict(rig="humanm3_3", frames=14, difficulty="easy", players=4, bystanders=0,

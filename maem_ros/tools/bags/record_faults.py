@@ -50,7 +50,7 @@ def command(script: str, module: str) -> list[str]:
 
 PLAY = command("maem-play", "maem_ros.ros.player_node")
 RECORD = command("maem-record", "maem_ros.ros.recorder_node")
-BAG = command("maem-bag", "maem_ros.tools.bag")
+BAG = command("maem-bag", "maem_ros.tools.bags.bag")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -24,8 +24,7 @@ from maem_ros.core.association import PAPER_PIPELINE
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
-
-from ..params import load_node_params
+from maem_ros.params import load_node_params
 
 METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
                "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames",

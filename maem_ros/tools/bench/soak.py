@@ -1,8 +1,8 @@
 """maem-soak: run the multi-process graph for minutes; report RSS per node and every drop.
 
-    maem-soak --minutes 10 --rate 10            (python -m maem_ros.tools.soak)
+    maem-soak --minutes 10 --rate 10            (python -m maem_ros.tools.bench.soak)
 
-Starts the graph of tools/latency.py (one synthetic frontend per camera, association,
+Starts the graph of tools/bench/latency.py (one synthetic frontend per camera, association,
 triangulation as separate processes), publishes one tiny image per camera per scene frame at
 ``--rate`` Hz for ``--minutes`` (a scene that long, so stamps never go back) with optional
 faults (``--lag-camera``, ``--stale-every``), samples each node's resident memory (VmRSS) every
@@ -31,7 +31,7 @@ import yaml
 from maem_ros.params import load_node_params
 from maem_ros.ros.common import load_rig_param
 from maem_ros.ros.probe import ReplayClient
-from maem_ros.tools.latency import Faults, GraphProcesses, make_scene, write_params
+from maem_ros.tools.bench.latency import Faults, GraphProcesses, make_scene, write_params
 
 
 def rss_mb(pid: int) -> float:

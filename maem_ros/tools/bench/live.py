@@ -12,7 +12,7 @@ sets, CPU per process and recall against ground truth.
 Detections: from ``--bag`` (its /<cam>/detections and /maem/gt_poses), else regenerated from the
 params file's synthetic scene (every publisher builds its camera's messages before the clock
 starts, so generating them costs nothing during the run). Each camera's publisher process
-(``python -m maem_ros.tools.live --publish CAM``) sends frame f at T0 + f / rate (wall clock);
+(``python -m maem_ros.tools.bench.live --publish CAM``) sends frame f at T0 + f / rate (wall clock);
 maem-association and maem-triangulation run as nodes with the params file. This process
 subscribes /maem/poses: latency = arrival - scheduled publish time of that frame. Frames
 without poses = published frames that never got a /maem/poses message. Partial sets = the
@@ -22,7 +22,7 @@ triangulation on the same decoded messages in this process). Every process gets 
 Fast DDS profile (config/fastdds.xml) unless FASTRTPS_DEFAULT_PROFILES_FILE is set or
 ``--no-profile``. The nodes run with their live overload policy (stale frames skipped, counted
 dropped/behind; ``accounting`` says whether every frame without poses was counted);
-``--keep-every-set`` turns it off. ``--runs`` / ``--stress``: tools/live_runs.py.
+``--keep-every-set`` turns it off. ``--runs`` / ``--stress``: tools/bench/live_runs.py.
 """
 from __future__ import annotations
 
@@ -70,7 +70,7 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
         if not out:
             raise ValueError(f"bag {str(bag)!r}: no /{camera}/detections")
         return out
-    from maem_ros.tools.latency import make_scene
+    from maem_ros.tools.bench.latency import make_scene
     scene = make_scene(params_file)
     return [(scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride, count))
             for f in range(min(frames, scene.num_frames))]
@@ -81,9 +81,9 @@ def ground_truth(params_file: Path, bag: Path | None, stamps: Sequence[int]
     """stamp -> (P,13,3) world m ground-truth players (sportcenter_13, NaN = masked joint)."""
     from maem_ros.core.skeleton import SPORTCENTER_13
     if bag is not None:
-        from maem_ros.tools.demo_bag import load_bag
+        from maem_ros.tools.demo.demo_bag import load_bag
         return dict(load_bag(bag).gt)
-    from maem_ros.tools.latency import make_scene
+    from maem_ros.tools.bench.latency import make_scene
     scene = make_scene(params_file)
     frame = {scene.stamp_ns(f): f for f in range(scene.num_frames)}
     return {s: SPORTCENTER_13.select(scene.gt_keypoints(frame[s])[scene.is_player])
@@ -186,7 +186,7 @@ def _unready(listener, cameras: Sequence[str]) -> list[str]:
 
 def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[int]) -> float:
     """Fraction of ground-truth players of ``stamps`` with a pose within RECALL_MM."""
-    from maem_ros.tools.latency import match_mpjpe
+    from maem_ros.tools.bench.latency import match_mpjpe
     hit = total = 0
     for s in stamps:
         want = gt.get(s)
@@ -256,8 +256,8 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
 def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
     from maem_ros.params import load_node_params
     from maem_ros.ros.common import DDS_PROFILE_VARS, load_rig_param, use_shipped_dds_profile
-    from maem_ros.tools.latency import write_params
-    from maem_ros.tools.live_runs import accounting, hog_window, start_hog, stress_figures
+    from maem_ros.tools.bench.latency import write_params
+    from maem_ros.tools.bench.live_runs import accounting, hog_window, start_hog, stress_figures
     from maem_ros.tools.processes import ProcessGroup, module_command, node_command
 
     policy = {**({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
@@ -286,7 +286,7 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
         for kind in ("association", "triangulation"):
             group.start(kind, node_command(kind, params))
         for cam in rig.names:
-            cmd = module_command("maem_ros.tools.live", "--publish", cam, "--params", str(params),
+            cmd = module_command("maem_ros.tools.bench.live", "--publish", cam, "--params", str(params),
                                  "--work", str(work), "--frames", str(a.frames), "--rate",
                                  f"{a.rate}", "--wire", a.wire, "--vertex-stride",
                                  str(a.vertex_stride), "--vertex-count", str(a.vertex_count))
@@ -454,7 +454,7 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--keep-every-set", action="store_true",
                    help="--live: the nodes process every frame however far behind (what a "
                         "replay wanting every frame sets; the live default skips stale ones)")
-    from maem_ros.tools.live_runs import add_arguments as add_runs_arguments
+    from maem_ros.tools.bench.live_runs import add_arguments as add_runs_arguments
     add_runs_arguments(g)
     g.add_argument("--drain", type=float, default=3.0,
                    help="--live: seconds to wait for the last poses")
@@ -478,12 +478,12 @@ def check_live_arguments(a: argparse.Namespace) -> None:
         raise ValueError(f"--vertex-count: must be >= 0, got {a.vertex_count}")
     if a.bag is not None and not Path(a.bag).exists():
         raise ValueError(f"--bag: {str(a.bag)!r} does not exist")
-    from maem_ros.tools.live_runs import check_arguments as check_runs_arguments
+    from maem_ros.tools.bench.live_runs import check_arguments as check_runs_arguments
     check_runs_arguments(a)
 
 
 def _publisher_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m maem_ros.tools.live")
+    p = argparse.ArgumentParser(prog="python -m maem_ros.tools.bench.live")
     p.add_argument("--publish", required=True, help="camera name")
     p.add_argument("--params", required=True)
     p.add_argument("--work", required=True)

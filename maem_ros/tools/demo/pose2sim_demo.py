@@ -134,7 +134,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.params import load_node_params
     from maem_ros.ros.wire import UNTRACKED_ID, PoseFrame
-    from maem_ros.tools import demo_metrics as dm
+    from maem_ros.tools.demo import demo_metrics as dm
     rig = Rig.load(root / "calibration" / "Calib.qca.txt")
     node = {n: load_node_params("mediapipe.yaml", n) for n in ("frontend", "association",
                                                               "triangulation")}
@@ -236,7 +236,8 @@ def bench_frontend(root: Path, frames: int) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    from maem_ros.tools import demo, make_bag
+    from maem_ros.tools.bags import make_bag
+    from maem_ros.tools.demo import demo
     try:
         root = fetch_demo(a.cache)
     except RuntimeError as e:

@@ -66,7 +66,7 @@ from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params, resolve_config_path
 from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
 from maem_ros.ros.wire import msg_to_detections
-from maem_ros.tools.demo_bag import (
+from maem_ros.tools.demo.demo_bag import (
     BAG_VERTICES,
     DEMO_SCENE,
     JPEG_QUALITY,
@@ -79,7 +79,7 @@ from maem_ros.tools.demo_bag import (
     make_demo_bag,
     trim_bag,
 )
-from maem_ros.tools.demo_report import (
+from maem_ros.tools.demo.demo_report import (
     LATENCY_DEFINITION,
     GraphRun,
     format_timing,
@@ -92,7 +92,7 @@ from maem_ros.tools.demo_report import (
     stage_timing,
     write_pictures,
 )
-from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
+from maem_ros.tools.eval.evaluate import _jsonable, load_params, to_sportcenter13
 from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
 
 #: default playback rate of the recorded detections: real time
@@ -601,7 +601,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
     """people_per_frame, reprojection and bone-length stability of the recorded run (printed)."""
     from maem_ros.core.skeleton import get_convention
     from maem_ros.params import load_node_params
-    from maem_ros.tools import demo_metrics as dm
+    from maem_ros.tools.demo import demo_metrics as dm
     _, tri = load_params(str(params))
     conv = get_convention(load_node_params(params, "triangulation")
                           .get("output_convention", "sportcenter_13"))

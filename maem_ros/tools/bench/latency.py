@@ -1,6 +1,6 @@
 """Replay a synthetic scene through the multi-process node graph; report latency, drops, CPU.
 
-    python -m maem_ros.tools.latency --params config/demo.yaml --frames 150 --rate 30
+    python -m maem_ros.tools.bench.latency --params config/demo.yaml --frames 150 --rate 30
 
 Starts one frontend per rig camera, the association and the triangulation node as separate
 processes (``python -m maem_ros.ros.<node> --ros-args --params-file P``), publishes a tiny
