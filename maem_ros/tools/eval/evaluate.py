@@ -447,9 +447,46 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     """Run the evaluation described by parsed CLI args; returns the JSON report dict."""
     assoc, tri = load_params(args.params)
     folder = SceneFolder(args.scene)
-    rig = folder.rig
     skips = SkipLog()
     gt = load_gt(folder)
+    views = _usable_views(folder, skips)
+    total = max(folder.num_frames, gt[0].shape[0] if gt is not None else 0)
+    n = total if args.frames is None else min(args.frames, total)
+    runs, det_ids = _make_runs(args, folder, assoc)
+    truth = _run_frames(args, folder, views, runs, tri, gt, det_ids, n, skips)
+    report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
+                              "association_params": assoc.as_mapping(),
+                              "triangulation_params": dataclasses.asdict(tri),
+                              "evaluated_frames": truth.frame_ids, "frames_considered": n}
+    if gt is None:
+        log("maem-eval: scene has no gt.npz: predictions only, no metrics")
+        report["frames"] = len(truth.frame_ids)
+    else:
+        log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
+            f"{len(truth.frame_ids)}/{n} frames evaluated, params {args.params}")
+        report.update(_score_runs(args, runs, truth, log))
+    report["skips"] = dict(skips.counts)
+    report["skip_examples"] = skips.examples
+    log("skipped / excluded inputs:" if skips.counts else "skipped / excluded inputs: none")
+    for line in skips.lines():
+        log(line)
+    _write_outputs(args, report, runs, truth, folder.rig, n, gt is not None, log)
+    return report
+
+
+@dataclass
+class _Truth:
+    """The evaluated frames and, per frame, the ground truth of the people present in it."""
+
+    frame_ids: list[int] = field(default_factory=list)
+    gts: list[np.ndarray] = field(default_factory=list)  # (P,J,3) world m
+    gt_masks: list[np.ndarray] = field(default_factory=list)  # (P,J) bool, joint annotated
+    gt_ids: list[np.ndarray] = field(default_factory=list)  # (P,) gt.npz column = identity
+
+
+def _usable_views(folder: SceneFolder, skips: SkipLog) -> list[str]:
+    """The rig's views that have detection files (the others, and detection folders of no
+    camera, are counted as skips)."""
     views = []
     for view in folder.views:
         if folder.frame_files(view):
@@ -458,8 +495,14 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             skips.add("view_without_dets", f"view {view!r}: no npz in dets/{view}/")
     for stray in folder.unknown_det_views():
         skips.add("dets_view_without_camera", f"dets/{stray}/ has no cameras/{stray}.json")
-    total = max(folder.num_frames, gt[0].shape[0] if gt is not None else 0)
-    n = total if args.frames is None else min(args.frames, total)
+    return views
+
+
+def _make_runs(args: argparse.Namespace, folder: SceneFolder, assoc
+               ) -> tuple[list[Run], dict[str, np.ndarray] | None]:
+    """The configurations to run (the full one, the ablation rows, the oracle first) and the
+    GT person of every detection when --oracle / --explain need it."""
+    rig = folder.rig
     configs = ([(name, assoc.replaced(o)) for name, o in ABLATION] if args.ablation
                else [("full", assoc)])
     if args.explain and args.temporal == "on":
@@ -477,7 +520,15 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         runs.insert(0, Run("oracle (GT association)", assoc, oracle=True,
                            tracker=make_tracker(rig, assoc, args.params, "off"),
                            joint_filter=make_joint_filter(args.params)))
-    frame_ids, gts, gt_masks, gt_ids = [], [], [], []
+    return runs, det_ids
+
+
+def _run_frames(args: argparse.Namespace, folder: SceneFolder, views: list[str], runs: list[Run],
+                tri, gt, det_ids, n: int, skips: SkipLog) -> _Truth:
+    """Every run on the first ``n`` frames (their predictions go into the runs), with --explain
+    the cause of each lost person; returns the evaluated frames' ground truth."""
+    rig = folder.rig
+    truth = _Truth()
     for f in tqdm(range(n), desc="maem-eval", unit="frame", disable=args.quiet, file=sys.stderr):
         if gt is not None and f >= gt[0].shape[0]:
             skips.add("frame_without_gt", f"frame {f} >= {gt[0].shape[0]} GT frames")
@@ -488,66 +539,63 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         ids = ({v: det_ids[key] for v in frames if (key := det_ids_key(v, f)) in det_ids}
                if det_ids is not None else None)
         results = [run_frame(run, rig, frames, tri, skips, f, ids) for run in runs]
-        frame_ids.append(f)
-        if gt is not None:
-            present = gt[1][f].any(-1)
-            gts.append(gt[0][f, present])
-            gt_masks.append(gt[1][f, present])
-            gt_ids.append(np.flatnonzero(present))  # gt.npz column = identity
-            masked = int((~gt[1][f, present]).sum())
-            if masked:
-                skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
-            if args.explain:
-                assert ids is not None  # --explain loaded det_ids (checked above)
-                for run, result in zip(runs, results):
-                    if not run.oracle:
-                        explain_run(run, result, rig, ids, gts[-1], gt_masks[-1],
-                                    np.flatnonzero(present))
-    report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
-                              "association_params": assoc.as_mapping(),
-                              "triangulation_params": dataclasses.asdict(tri),
-                              "evaluated_frames": frame_ids, "frames_considered": n}
-    if gt is None:
-        log("maem-eval: scene has no gt.npz: predictions only, no metrics")
-        report["frames"] = len(frame_ids)
-    else:
-        for run in runs:
-            run.metrics = score_run(run, gts, gt_masks, gt_ids)
-        main_run = runs[-1]
-        report.update({k: main_run.metrics.get(k) for k in METRIC_KEYS})
-        report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
-        if args.ablation:
-            report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}}
-                                  for r in runs if not r.oracle]
-        log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
-            f"{len(frame_ids)}/{n} frames evaluated, params {args.params}")
-        log(format_table([(r.name, r.metrics) for r in runs]))
-        log("identities:")
-        for line in format_id_lines(runs):
-            log(line)
-        if args.oracle:
-            report["oracle"] = {k: runs[0].metrics.get(k) for k in METRIC_KEYS}
+        truth.frame_ids.append(f)
+        if gt is None:
+            continue
+        present = gt[1][f].any(-1)
+        truth.gts.append(gt[0][f, present])
+        truth.gt_masks.append(gt[1][f, present])
+        truth.gt_ids.append(np.flatnonzero(present))  # gt.npz column = identity
+        masked = int((~gt[1][f, present]).sum())
+        if masked:
+            skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
         if args.explain:
-            explained = [r for r in runs if not r.oracle]
-            report["explain"] = {r.name: dict(r.causes) for r in explained}
-            log("lost GT person-frames by first cause:")
-            log(format_causes(explained))
-    report["skips"] = dict(skips.counts)
-    report["skip_examples"] = skips.examples
-    log("skipped / excluded inputs:" if skips.counts else "skipped / excluded inputs: none")
-    for line in skips.lines():
+            assert ids is not None  # --explain loaded det_ids (checked above)
+            for run, result in zip(runs, results):
+                if not run.oracle:
+                    explain_run(run, result, rig, ids, truth.gts[-1], truth.gt_masks[-1],
+                                np.flatnonzero(present))
+    return truth
+
+
+def _score_runs(args: argparse.Namespace, runs: list[Run], truth: _Truth, log) -> dict[str, Any]:
+    """Metrics of every run against the ground truth, logged as tables; the report's entries."""
+    for run in runs:
+        run.metrics = score_run(run, truth.gts, truth.gt_masks, truth.gt_ids)
+    main_run = runs[-1]
+    report: dict[str, Any] = {k: main_run.metrics.get(k) for k in METRIC_KEYS}
+    report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
+    if args.ablation:
+        report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}}
+                              for r in runs if not r.oracle]
+    log(format_table([(r.name, r.metrics) for r in runs]))
+    log("identities:")
+    for line in format_id_lines(runs):
         log(line)
+    if args.oracle:
+        report["oracle"] = {k: runs[0].metrics.get(k) for k in METRIC_KEYS}
+    if args.explain:
+        explained = [r for r in runs if not r.oracle]
+        report["explain"] = {r.name: dict(r.causes) for r in explained}
+        log("lost GT person-frames by first cause:")
+        log(format_causes(explained))
+    return report
+
+
+def _write_outputs(args: argparse.Namespace, report: dict[str, Any], runs: list[Run],
+                   truth: _Truth, rig, n: int, has_gt: bool, log) -> None:
+    """--pred, --plots (scenes with ground truth) and --json."""
     if args.pred:
-        write_pred(args.pred, runs[-1], frame_ids, n)
+        write_pred(args.pred, runs[-1], truth.frame_ids, n)
         log(f"predictions -> {str(args.pred)!r}")
-    if args.plots and gt is not None:
+    if args.plots and has_gt:
         from .plots import write_plots
-        written = write_plots(args.plots, runs, frame_ids, gts, gt_masks, rig, args.plot_frame)
+        written = write_plots(args.plots, runs, truth.frame_ids, truth.gts, truth.gt_masks, rig,
+                              args.plot_frame)
         log(f"plots -> {', '.join(str(p) for p in written)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(_jsonable(report), indent=2))
-    return report
 
 
 def main(argv: Sequence[str] | None = None) -> int:
