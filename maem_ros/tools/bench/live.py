@@ -22,7 +22,8 @@ triangulation on the same decoded messages in this process). Every process gets 
 Fast DDS profile (config/fastdds.xml) unless FASTRTPS_DEFAULT_PROFILES_FILE is set or
 ``--no-profile``. The nodes run with their live overload policy (stale frames skipped, counted
 dropped/behind; ``accounting`` says whether every frame without poses was counted);
-``--keep-every-set`` turns it off. ``--runs`` / ``--stress``: tools/bench/live_runs.py.
+``--keep-every-set`` turns it off. ``--runs`` / ``--stress``: tools/bench/live_runs.py. The
+report's figures: tools/bench/live_report.py.
 """
 from __future__ import annotations
 
@@ -30,17 +31,16 @@ import argparse
 import os
 import pickle
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-#: poses within this MPJPE (m) of a ground-truth player count as recalling it
-RECALL_MM = 500.0
+from maem_ros.tools.bench.live_report import Observed, live_report
 
 
 # ---------------------------------------------------------------------------------------------
@@ -74,20 +74,6 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
     scene = make_scene(params_file)
     return [(scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride, count))
             for f in range(min(frames, scene.num_frames))]
-
-
-def ground_truth(params_file: Path, bag: Path | None, stamps: Sequence[int]
-                 ) -> dict[int, np.ndarray]:
-    """stamp -> (P,13,3) world m ground-truth players (sportcenter_13, NaN = masked joint)."""
-    from maem_ros.core.skeleton import SPORTCENTER_13
-    if bag is not None:
-        from maem_ros.tools.demo.demo_bag import load_bag
-        return dict(load_bag(bag).gt)
-    from maem_ros.tools.bench.latency import make_scene
-    scene = make_scene(params_file)
-    frame = {scene.stamp_ns(f): f for f in range(scene.num_frames)}
-    return {s: SPORTCENTER_13.select(scene.gt_keypoints(frame[s])[scene.is_player])
-            for s in stamps if s in frame}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -184,57 +170,6 @@ def _unready(listener, cameras: Sequence[str]) -> list[str]:
                                   fusion_links(cameras, image_topic=None))
 
 
-def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[int]) -> float:
-    """Fraction of ground-truth players of ``stamps`` with a pose within RECALL_MM."""
-    from maem_ros.tools.bench.latency import match_mpjpe
-    hit = total = 0
-    for s in stamps:
-        want = gt.get(s)
-        if want is None:
-            continue
-        total += len(want)
-        if s in poses:
-            hit += len(match_mpjpe(poses[s], want, RECALL_MM / 1e3)[0])
-    return hit / total if total else float("nan")
-
-
-def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, bytes]]]
-                  ) -> dict[int, np.ndarray]:
-    """The nodes' pipeline on the same messages in this process, every frame set complete
-    (the reference recall): the association node's TemporalAssociator (track-assisted or the
-    per-frame pipeline, as ``params_file`` says), triangulation, and the triangulation node's
-    ``publish_tentative`` rule; stamp -> (P,13,3) world m."""
-    from maem_ros.core.association import AssociationParams
-    from maem_ros.core.skeleton import SPORTCENTER_13, convert
-    from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
-    from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
-    from maem_ros.params import load_node_params
-    from maem_ros.ros import wire
-    from maem_ros.ros.triangulation_node import PARAMS as TRIANGULATION_PARAMS
-
-    assoc = load_node_params(params_file, "association")
-    tri = {s.name: s.default for s in TRIANGULATION_PARAMS}
-    tri.update(load_node_params(params_file, "triangulation"))
-    temporal = TemporalAssociator(rig, AssociationParams.from_mapping(assoc),
-                                  TemporalParams.from_mapping(assoc))
-    tp = TriangulationParams.from_mapping(tri)
-    by_stamp: dict[int, dict] = {}
-    for cam, msgs in messages.items():
-        for stamp, data in msgs:
-            by_stamp.setdefault(stamp, {})[cam] = wire.msg_to_detections(
-                wire.cdr_to_cloud(data, f"/{cam}/detections"), f"/{cam}/detections")
-    out = {}
-    for stamp, frames in sorted(by_stamp.items()):
-        res = temporal.step(frames, stamp)
-        keep = np.ones(len(res.clusters), bool)
-        if temporal.tp.temporal and not tri["publish_tentative"]:
-            keep = np.asarray(res.track_ids) >= 0
-        clusters = [c for c, k in zip(res.clusters, keep) if k]
-        joints = np.asarray(triangulate(rig, frames, clusters, tp).joints, np.float64)
-        out[stamp] = convert(joints, SPORTCENTER_13) if len(joints) else np.zeros((0, 13, 3))
-    return out
-
-
 def _ros_env(env: dict[str, str]) -> list[str]:
     """NAME=value of the variables the publishers need (``ip netns exec`` keeps the environment,
     spelled out so a sudo wrapper cannot drop them)."""
@@ -254,11 +189,18 @@ def run_live(a: argparse.Namespace) -> dict[str, Any]:
 
 
 def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
+    params, rig = _write_live_params(a, work)
+    env, profile = _live_env(a)
+    run = _run_graph(a, work, params, rig, env)
+    return live_report(a, params, rig, profile, run)
+
+
+def _write_live_params(a: argparse.Namespace, work: Path) -> tuple[Path, Any]:
+    """WORK/params.yaml (--params with the frontend's scene size and the nodes' overload
+    policy; the bag's rig when --bag has one) and the rig it names."""
     from maem_ros.params import load_node_params
-    from maem_ros.ros.common import DDS_PROFILE_VARS, load_rig_param, use_shipped_dds_profile
+    from maem_ros.ros.common import load_rig_param
     from maem_ros.tools.bench.latency import write_params
-    from maem_ros.tools.bench.live_runs import accounting, hog_window, start_hog, stress_figures
-    from maem_ros.tools.processes import ProcessGroup, module_command, node_command
 
     policy = {**({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
               **({"keep_every_set": True} if a.keep_every_set else {})}
@@ -274,164 +216,140 @@ def _run_live(a: argparse.Namespace, work: Path) -> dict[str, Any]:
             params = write_params(params, work / "params.yaml",
                                   association={"rig": str(work / "rig.yaml")},
                                   triangulation={"rig": str(work / "rig.yaml")})
-    rig = load_rig_param(load_node_params(params, "association").get("rig", ""))
+    return params, load_rig_param(load_node_params(params, "association").get("rig", ""))
+
+
+def _live_env(a: argparse.Namespace) -> tuple[dict[str, str], str | None]:
+    """The child processes' environment, and the shipped DDS profile it names (None: the
+    user's, or Fast DDS defaults with --no-profile)."""
+    from maem_ros.ros.common import DDS_PROFILE_VARS, use_shipped_dds_profile
+
     profile = None if a.no_profile else use_shipped_dds_profile()
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
     if a.no_profile:
         for v in DDS_PROFILE_VARS:
             env.pop(v, None)
-    group = ProcessGroup(work / "logs", env)
-    listener = hog = None
+    return env, profile
+
+
+@dataclass
+class _Graph:
+    """The run's processes: the nodes and publishers, this process's listener, the CPU hog."""
+
+    group: Any  # tools/processes.ProcessGroup
+    listener: Any = None
+    hog: subprocess.Popen | None = None
+
+
+def _run_graph(a: argparse.Namespace, work: Path, params: Path, rig, env: dict[str, str]
+               ) -> Observed:
+    """Start the nodes and one publisher per camera, wait until every link matched, run the
+    timed publication, stop everything."""
+    from maem_ros.tools.processes import ProcessGroup
+
+    graph = _Graph(ProcessGroup(work / "logs", env))
     try:
-        for kind in ("association", "triangulation"):
-            group.start(kind, node_command(kind, params))
-        for cam in rig.names:
-            cmd = module_command("maem_ros.tools.bench.live", "--publish", cam, "--params", str(params),
-                                 "--work", str(work), "--frames", str(a.frames), "--rate",
-                                 f"{a.rate}", "--wire", a.wire, "--vertex-stride",
-                                 str(a.vertex_stride), "--vertex-count", str(a.vertex_count))
-            cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
-                                                                else [])
-            if a.publisher_netns:  # the camera machines: another network namespace
-                cmd = ["ip", "netns", "exec", a.publisher_netns, "env", *_ros_env(env), *cmd]
-            group.start(f"publisher_{cam}", cmd)
-        listener = _listener()
-        deadline = time.monotonic() + a.startup_timeout
-        while not all((work / f"{c}.ready").exists() for c in rig.names):
-            if group.dead():
-                raise RuntimeError(f"process exited during start-up: {group.dead()}\n"
-                                   f"{group.logs()}")
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"publishers not ready after {a.startup_timeout:.0f} s\n"
-                                   f"{group.logs()}")
-            time.sleep(0.1)
-        while unready := _unready(listener, rig.names):
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"graph not matched after {a.startup_timeout:.0f} s: {unready}"
-                                   f"\n{group.logs()}")
-            time.sleep(0.05)
-        messages = {c: pickle.loads((work / f"{c}.pkl").read_bytes()) for c in rig.names}
-        stamps = [s for s, _ in messages[rig.names[0]]]
-        procs = list(group.procs.values())
-        cpu0 = {p.name: p.cpu_seconds() for p in procs}
-        t0 = time.time() + 0.5
-        if a.stress:
-            hog_at = hog_window(t0, len(stamps), a.rate, a.stress)
-            hog = start_hog(hog_at[0], a.stress)
-        (work / "start.tmp").write_text(repr(t0))
-        (work / "start.tmp").rename(work / "start")  # atomic: a publisher never reads it half
-        end = t0 + len(stamps) / a.rate
-        while time.time() < end + a.drain and not (time.time() > end and stamps[-1] in
-                                                   listener.poses):
-            failed = {n: c for n, c in group.dead().items() if c != 0}
-            if failed:
-                raise RuntimeError(f"process failed during the run: {failed}\n{group.logs()}")
-            time.sleep(0.05)
-        wall = time.time() - t0
-        cpu1 = {p.name: p.cpu_seconds() for p in procs}
-        time.sleep(1.2)  # one more /diagnostics period
-        with listener.lock:
-            poses = dict(listener.poses)
-            diags = dict(listener.diagnostics)
+        _start_graph(a, graph.group, work, params, rig, env)
+        graph.listener = _listener()
+        _wait_ready(a, graph, work, rig)
+        run = _timed_run(a, graph, work, rig)
     finally:
-        publishers = [n for n in group.procs if n.startswith("publisher_")]
-        stop_by = time.monotonic() + 10.0  # they exit by themselves after the last frame
-        while time.monotonic() < stop_by and len(group.dead(publishers)) < len(publishers):
-            time.sleep(0.05)
-        codes = group.stop(timeout_s=15.0)
-        forced = group.forced_exits()
-        if failed_names := [n for n, c in codes.items() if c != 0]:
-            # the work folder and its logs go when the run ends: say here why they failed
-            print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed_names)}",
-                  file=sys.stderr)
-        if listener is not None:
-            listener.close()
-        if hog is not None and hog.poll() is None:
-            hog.kill()
-    sent = {s: t0 + f / a.rate for f, s in enumerate(stamps)}
-    lat_by_frame = {f: (poses[s][0] - sent[s]) * 1e3 for f, s in enumerate(stamps) if s in poses}
-    lat = np.array(list(lat_by_frame.values()))
-    gt = ground_truth(params, a.bag, stamps)
-    from maem_ros.core.skeleton import SPORTCENTER_13, convert
-    live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
-    assoc: dict[str, str] = next(
-        (kv for n, kv in diags.items() if n.strip("/").endswith("association")), {})
-    tri: dict[str, str] = next(
-        (kv for n, kv in diags.items() if n.strip("/").endswith("triangulation")), {})
-    size = np.median([len(d) for m in messages.values() for _, d in m])
-    received = sum(int(v) for k, v in assoc.items()
-                   if k.startswith("received/") and k.endswith("/detections"))
-    report = {
-        "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
-        "wire": a.wire, "vertex_stride": a.vertex_stride, "vertex_count": a.vertex_count,
-        "max_backlog_s": a.max_backlog or 0.0,  # 0: the nodes' automatic bound
-        "keep_every_set": bool(a.keep_every_set),
-        "publisher_netns": a.publisher_netns,
-        "message_mb": round(float(size) / 1e6, 3),
-        "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
-        # what reached the association: messages taken (counted before decoding) of those sent
-        "messages_sent": len(stamps) * len(rig),
-        "messages_received": received,
-        "received_mbit_s": round(received * float(size) * 8 / 1e6 / max(wall, 1e-9), 1),
-        "dds_profile": profile or os.environ.get(DDS_PROFILE_VARS[0]) or "Fast DDS default",
-        "load_average_1min": round(os.getloadavg()[0], 2),
-        "latency_ms_median": float(np.median(lat)) if len(lat) else None,
-        "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
-        "latency_ms_max": float(lat.max()) if len(lat) else None,
-        # where the tail is: (frame index, ms) of the five slowest frames
-        "slowest_frames": [(f, round(ms, 1)) for f, ms in
-                           sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]],
-        # every frame's latency in publish order (None: no poses): where a stall starts and
-        # whether the node recovers from it
-        "latency_ms_by_frame": [round(lat_by_frame[f], 1) if f in lat_by_frame else None
-                                for f in range(len(stamps))],
-        "frames_without_poses": int(sum(s not in poses for s in stamps)),
-        "partial_sets": int(float(assoc.get("count/sync_partial_sets", 0))),
-        # where they happen: frames whose best-seen person has fewer views than the run's best
-        "frames_with_fewer_views": _fewer_views(poses, stamps),
-        "missing_camera_counts": {k.split("/", 1)[1]: int(v) for k, v in assoc.items()
-                                  if k.startswith("missing/")},
-        "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
-        "triangulation_dropped": {k: v for k, v in tri.items() if k.startswith("dropped/")},
-        # every frame without poses counted by a node? (live_runs.accounting)
-        "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)),
-                                 len(rig), assoc, tri),
-        # the longest time a node was behind (skipping, or working on stale frames), s
-        "behind_longest_s": max(float(kv.get("behind/longest_s", 0)) for kv in (assoc, tri)),
-        "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
-        "association_stage_ms_median": _stage_medians(assoc),
-        "triangulation_stage_ms_median": _stage_medians(tri),
-        "association_stage_ms_p99": _stage_medians(assoc, "p99"),
-        "triangulation_stage_ms_p99": _stage_medians(tri, "p99"),
-        "recall_live": recall(live, gt, stamps),
-        "recall_offline": recall(offline_poses(rig, params, messages), gt, stamps),
-        "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
-        # CPU time per published frame: what a process needs of one core at this rate (< 1000 /
-        # rate ms to keep up), less dependent on what else loads the machine than the latency
-        "cpu_ms_per_frame": {n: round(1e3 * (cpu1[n] - cpu0[n]) / len(stamps), 2) for n in cpu0},
-        "exit_codes": codes,
-        # processes whose shutdown watchdog ended a stalled teardown (exit code 0; 1 from its
-        # backstop when the stall held the GIL)
-        "forced_exits": forced,
-    }
+        codes, forced = _stop_graph(graph)
+    run.codes, run.forced = codes, forced
+    return run
+
+
+def _start_graph(a: argparse.Namespace, group, work: Path, params: Path, rig,
+                 env: dict[str, str]) -> None:
+    from maem_ros.tools.processes import module_command, node_command
+
+    for kind in ("association", "triangulation"):
+        group.start(kind, node_command(kind, params))
+    for cam in rig.names:
+        cmd = module_command("maem_ros.tools.bench.live", "--publish", cam, "--params", str(params),
+                             "--work", str(work), "--frames", str(a.frames), "--rate",
+                             f"{a.rate}", "--wire", a.wire, "--vertex-stride",
+                             str(a.vertex_stride), "--vertex-count", str(a.vertex_count))
+        cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
+                                                            else [])
+        if a.publisher_netns:  # the camera machines: another network namespace
+            cmd = ["ip", "netns", "exec", a.publisher_netns, "env", *_ros_env(env), *cmd]
+        group.start(f"publisher_{cam}", cmd)
+
+
+def _wait_ready(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> None:
+    """Until every publisher built its messages and every link of the graph matched (raises
+    RuntimeError with the logs after --startup-timeout s or when a process exits)."""
+    group = graph.group
+    deadline = time.monotonic() + a.startup_timeout
+    while not all((work / f"{c}.ready").exists() for c in rig.names):
+        if group.dead():
+            raise RuntimeError(f"process exited during start-up: {group.dead()}\n"
+                               f"{group.logs()}")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"publishers not ready after {a.startup_timeout:.0f} s\n"
+                               f"{group.logs()}")
+        time.sleep(0.1)
+    while unready := _unready(graph.listener, rig.names):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"graph not matched after {a.startup_timeout:.0f} s: {unready}"
+                               f"\n{group.logs()}")
+        time.sleep(0.05)
+
+
+def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observed:
+    """Give the publishers a common start time (with --stress, start the CPU hog), wait for
+    the last poses (at most --drain s after the last frame), collect what the listener saw."""
+    from maem_ros.tools.bench.live_runs import hog_window, start_hog
+
+    group, listener = graph.group, graph.listener
+    messages = {c: pickle.loads((work / f"{c}.pkl").read_bytes()) for c in rig.names}
+    stamps = [s for s, _ in messages[rig.names[0]]]
+    procs = list(group.procs.values())
+    cpu0 = {p.name: p.cpu_seconds() for p in procs}
+    t0 = time.time() + 0.5
+    hog_at = None
     if a.stress:
-        report["stress"] = stress_figures(report["latency_ms_by_frame"], a.rate,
-                                          hog_at[0] - t0, hog_at[1] - t0)
-    return report
+        hog_at = hog_window(t0, len(stamps), a.rate, a.stress)
+        graph.hog = start_hog(hog_at[0], a.stress)
+    (work / "start.tmp").write_text(repr(t0))
+    (work / "start.tmp").rename(work / "start")  # atomic: a publisher never reads it half
+    end = t0 + len(stamps) / a.rate
+    while time.time() < end + a.drain and not (time.time() > end and stamps[-1] in
+                                               listener.poses):
+        failed = {n: c for n, c in group.dead().items() if c != 0}
+        if failed:
+            raise RuntimeError(f"process failed during the run: {failed}\n{group.logs()}")
+        time.sleep(0.05)
+    wall = time.time() - t0
+    cpu1 = {p.name: p.cpu_seconds() for p in procs}
+    time.sleep(1.2)  # one more /diagnostics period
+    with listener.lock:
+        poses = dict(listener.poses)
+        diags = dict(listener.diagnostics)
+    return Observed(stamps=stamps, messages=messages, t0=t0, wall=wall, cpu0=cpu0, cpu1=cpu1,
+                     poses=poses, diags=diags, hog_at=hog_at)
 
 
-def _stage_medians(diagnostics: dict[str, str], stat: str = "median") -> dict[str, float]:
-    """stage -> ms from a node's /diagnostics (``time_ms/<stage>/<stat>``, median or p99)."""
-    return {k.split("/")[1]: float(v) for k, v in diagnostics.items()
-            if k.startswith("time_ms/") and k.endswith(f"/{stat}")}
-
-
-def _fewer_views(poses: dict[int, Any], stamps: Sequence[int]) -> list[int]:
-    """Frame indices whose poses have at most (the run's most views - 1) views: a camera was
-    missing from that frame set (or lost every person there)."""
-    best = {f: int(poses[s][1].views.max(initial=0)) for f, s in enumerate(stamps) if s in poses}
-    top = max(best.values(), default=0)
-    return [f for f, v in best.items() if v < top]
+def _stop_graph(graph: _Graph) -> tuple[dict[str, int | None], Any]:
+    """Let the publishers end by themselves, stop the nodes, close the listener, kill the hog;
+    returns the exit codes and the processes whose shutdown watchdog forced their exit."""
+    group = graph.group
+    publishers = [n for n in group.procs if n.startswith("publisher_")]
+    stop_by = time.monotonic() + 10.0  # they exit by themselves after the last frame
+    while time.monotonic() < stop_by and len(group.dead(publishers)) < len(publishers):
+        time.sleep(0.05)
+    codes = group.stop(timeout_s=15.0)
+    forced = group.forced_exits()
+    if failed_names := [n for n, c in codes.items() if c != 0]:
+        # the work folder and its logs go when the run ends: say here why they failed
+        print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed_names)}",
+              file=sys.stderr)
+    if graph.listener is not None:
+        graph.listener.close()
+    if graph.hog is not None and graph.hog.poll() is None:
+        graph.hog.kill()
+    return codes, forced
 
 
 def add_live_arguments(p: argparse.ArgumentParser) -> None:

@@ -92,7 +92,8 @@ from maem_ros.tools.demo.demo_report import (
     stage_timing,
     write_pictures,
 )
-from maem_ros.tools.eval.evaluate import _jsonable, load_params, to_sportcenter13
+from maem_ros.tools.eval.evaluate import load_params, to_sportcenter13
+from maem_ros.tools.eval.results import jsonable
 from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
 
 #: default playback rate of the recorded detections: real time
@@ -652,7 +653,7 @@ def run_demo(a: argparse.Namespace, t_start: float) -> int:
               "cameras": demo.cameras,
               "mode": "offline" if a.no_graph else "graph", "rate": a.rate, **entries,
               "pictures": [str(p) for p in pictures], "wall_s": time.monotonic() - t_start}
-    (a.out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))
+    (a.out / "report.json").write_text(json.dumps(jsonable(report), indent=2))
     print(f"\nwrote {', '.join(str(p) for p in pictures) or 'no pictures (no frame with poses)'}, "
           f"{a.out / 'report.json'}")
     log(f"done in {report['wall_s']:.1f} s")

@@ -1,2 +1,3 @@
-"""maem-eval (``evaluate``: MAEM offline on a scene folder, scored against its ground truth),
-where association loses people (``explain``) and its PNG plots (``plots``)."""
+"""maem-eval (``evaluate``: MAEM offline on a scene folder, scored against its ground truth;
+``results``: each configuration's metrics, tables and predictions file), where association loses
+people (``explain``) and its PNG plots (``plots``)."""
