@@ -23,7 +23,7 @@ from maem_ros.tools.eval.results import format_table
 
 @dataclass
 class GraphRun:
-    """Outcome of one graph replay (tools/demo/demo.run_graph)."""
+    """Outcome of one graph replay (tools/demo/demo_graph.run_graph)."""
 
     exit_codes: dict[str, int | None]
     crashed: dict[str, str]  # process -> what happened (+ log tail)
