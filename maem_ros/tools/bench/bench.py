@@ -33,8 +33,9 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
+
+from maem_ros.tools.cli import fail
 
 #: thread pools pinned to one thread; must be set before numpy/OpenCV/numba load
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
@@ -369,8 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             result = run(args)
     except ValueError as e:
-        print(f"maem-bench: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-bench", e)
     if args.live:
         import yaml
         print(json.dumps(_finite_or_null(result)) if args.json

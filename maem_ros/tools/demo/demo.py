@@ -59,6 +59,7 @@ from maem_ros.core.sync import capture_stamp_ns, match_capture_times
 from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params
 from maem_ros.ros.wire import msg_to_detections
+from maem_ros.tools.cli import fail
 from maem_ros.tools.demo.demo_bag import (
     BAG_VERTICES,
     DEMO_SCENE,
@@ -230,26 +231,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             make_demo_bag(a.make_bag, frames=a.bag_frames)
         except (ValueError, RuntimeError) as e:
-            print(f"maem-demo: {e}", file=sys.stderr)
-            return 2
+            return fail("maem-demo", e)
         return 0
     if a.rate is None:
         a.rate = FRONTENDS_RATE if a.frontends else DEFAULT_RATE
     if not a.rate > 0:
-        print(f"maem-demo: --rate must be > 0, got {a.rate}", file=sys.stderr)
-        return 2
+        return fail("maem-demo", f"--rate must be > 0, got {a.rate}")
     if (a.frames is not None and a.frames < 1) or (a.duration is not None and a.duration <= 0):
-        print("maem-demo: --frames / --duration must be positive", file=sys.stderr)
-        return 2
+        return fail("maem-demo", "--frames / --duration must be positive")
     t_start = time.monotonic()
     try:
         return run_demo(a, t_start)
     except InputError as e:  # the bag (missing, damaged, not a demo bag), the params file
-        print(f"maem-demo: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-demo", e)
     except (ValueError, DemoError) as e:
-        print(f"maem-demo: {e}", file=sys.stderr)
-        return 1
+        return fail("maem-demo", e, 1)
 
 
 def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]

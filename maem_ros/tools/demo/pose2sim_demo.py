@@ -28,6 +28,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from maem_ros.tools.cli import fail
+
 POSE2SIM_VERSION = "0.10.49"
 DEMO_PREFIX = "Pose2Sim/Demo_MultiPerson/"
 BOARD_DEMO_PREFIX = "Pose2Sim/Demo_SinglePerson/calibration/"
@@ -241,17 +243,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         root = fetch_demo(a.cache)
     except RuntimeError as e:
-        print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-pose2sim-demo", e)
     if a.bench is not None:
         if a.bench < 2:
-            print("maem-pose2sim-demo: --bench needs N >= 2 frames", file=sys.stderr)
-            return 2
+            return fail("maem-pose2sim-demo", "--bench needs N >= 2 frames")
         try:
             result = bench_frontend(root, a.bench)
         except ImportError as e:
-            print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
-            return 2
+            return fail("maem-pose2sim-demo", e)
         print("mediapipe frontend, in-process, one image at a time (frame 0 excluded): "
               + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
                           for k, v in result.items()))
@@ -262,8 +261,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             report = run_offline(root, a.frames)
         except ImportError as e:
-            print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
-            return 2
+            return fail("maem-pose2sim-demo", e)
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "report_offline.json").write_text(json.dumps(report, indent=2))
         people = report["people_per_frame"]

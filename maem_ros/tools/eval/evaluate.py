@@ -25,6 +25,7 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
 from maem_ros.params import load_node_params
+from maem_ros.tools.cli import fail
 from maem_ros.tools.eval.results import (
     METRIC_KEYS,
     Run,
@@ -482,13 +483,11 @@ def _write_outputs(args: argparse.Namespace, report: dict[str, Any], runs: list[
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.frames is not None and args.frames < 1:
-        print("maem-eval: --frames must be >= 1", file=sys.stderr)
-        return 2
+        return fail("maem-eval", "--frames must be >= 1")
     try:
         evaluate_scene(args)
     except ValueError as e:  # bad params file, scene folder, rig or GT: nothing to evaluate
-        print(f"maem-eval: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-eval", e)
     return 0
 
 
