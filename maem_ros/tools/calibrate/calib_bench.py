@@ -36,7 +36,7 @@ from maem_ros.core.geometry.procrustes import procrustes_align
 from maem_ros.sim.rigs import look_at
 from maem_ros.sim.scene import Scene, SceneConfig
 
-COURT_FILE = Path(__file__).resolve().parents[2] / "config" / "court_points_fiba.yaml"
+COURT_FILE = Path(__file__).resolve().parents[3] / "config" / "court_points_fiba.yaml"
 
 
 def ring_rig(n: int, radius: float, height: float, seed: int) -> Rig:
