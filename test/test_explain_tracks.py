@@ -7,8 +7,6 @@ import pytest
 
 from maem_ros.tools.explain import TRACK_CAUSES, explain_poses, member_persons
 
-K_MIN = 3
-
 
 def _frame():
     """Two GT people 3 m apart (13 joints each) and a third column absent this frame."""
@@ -22,7 +20,7 @@ def _frame():
 
 def _one(pub, raw, persons, tracked, gt, mask):
     return explain_poses(np.asarray(pub), np.asarray(raw), persons, np.asarray(tracked), gt,
-                         mask, K_MIN)
+                         mask)
 
 
 def test_good_poses_have_no_cause():

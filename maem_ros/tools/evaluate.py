@@ -90,7 +90,7 @@ Input handling (never a crash mid-sequence; every case is counted and reported a
                  stale_or_duplicate (right for its members' person, whom another pose holds),
                  prediction (its own triangulation is close, the joint filter's output is not),
                  wrong_track (a track's cluster holds another person's detection),
-                 weak_two_view (a pure cluster of < k_min views), wrong_new_cluster (the
+                 weak_two_view (a pure cluster of two views), wrong_new_cluster (the
                  cross-view association mixed people), triangulation, not_in_gt (bystanders).
 --pred writes pose (F,K,13,3) world metres in sportcenter_13 (NaN = joint not triangulated),
 valid (F,K) bool, score (F,K), id (F,K) int64 track id (-1 = none: tentative track or no
@@ -261,7 +261,7 @@ def explain_tracks_run(run: Run, rig, det_ids: Mapping[str, np.ndarray], gt: np.
     from .explain import explain_poses, member_persons
     members, tracked, raw = run.last_clusters
     persons = [member_persons(m, rig.names, det_ids) for m in members]
-    causes = explain_poses(run.preds[-1], raw, persons, tracked, gt, gt_mask, run.assoc.k_min)
+    causes = explain_poses(run.preds[-1], raw, persons, tracked, gt, gt_mask)
     run.published += len(causes)
     run.far_causes.update(c for c in causes if c is not None)
 

@@ -134,9 +134,10 @@ def oracle_clusters(rig_names: list[str], frames: Mapping, det_ids: Mapping[str,
 #:                       (filtered) pose is not: the joint filter leaned on the track's prediction
 #:   wrong_track         a track's cluster (FLAG_TRACKED) holds detections of another person or a
 #:                       false positive: a detection explained by the wrong track
-#:   weak_two_view       a pure cluster of fewer than k_min views whose triangulation is far
+#:   weak_two_view       a pure cluster of two views whose triangulation is far (the
+#:                       weakest geometry; k_min is 2 on the humanm3 rigs)
 #:   wrong_new_cluster   a cluster from the cross-view association mixing people
-#:   triangulation       a pure cluster of >= k_min views, triangulated far off
+#:   triangulation       a pure cluster of three views or more, triangulated far off
 #:   not_in_gt           every member is a bystander (not in gt.npz): not an error of the pipeline
 TRACK_CAUSES = ("stale_or_duplicate", "prediction", "wrong_track", "weak_two_view",
                 "wrong_new_cluster", "triangulation", "not_in_gt")
@@ -157,7 +158,7 @@ def member_persons(members: np.ndarray, rig_names: list[str],
 
 
 def explain_poses(published: np.ndarray, raw: np.ndarray, persons: list[np.ndarray],
-                  tracked: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray, k_min: int,
+                  tracked: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray,
                   far_m: float = FAR_M) -> list[str | None]:
     """First cause (TRACK_CAUSES) of every published pose of one frame, None for a good one.
 
@@ -196,7 +197,7 @@ def explain_poses(published: np.ndarray, raw: np.ndarray, persons: list[np.ndarr
             cause = "prediction"
         elif mixed and tracked[k]:
             cause = "wrong_track"
-        elif not mixed and pers.size < k_min:
+        elif not mixed and pers.size <= 2:
             cause = "weak_two_view"
         elif mixed:
             cause = "wrong_new_cluster"
