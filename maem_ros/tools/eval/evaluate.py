@@ -1,7 +1,8 @@
 """maem-eval: run MAEM association + triangulation offline on a scene folder and score it.
 
     maem-eval SCENE_DIR --params config/sportcenter.yaml [--json OUT.json] [--plots DIR]
-              [--ablation] [--oracle] [--explain] [--pred OUT.npz] [--frames N]
+              [--ablation] [--oracle] [--explain] [--explain-tracks] [--pred OUT.npz]
+              [--frames N]
               [--temporal on|off]
 """
 from __future__ import annotations
@@ -90,6 +91,13 @@ Input handling (never a crash mid-sequence; every case is counted and reported a
                  (its detections stay in several clusters), conflict (conflict removal), k_min,
                  triangulation (a pure cluster exists, no pose matched). Counts sum to the
                  lost person-frames.
+--explain-tracks  per configuration, the first cause of every published pose more than 150 mm
+                 from its matched GT person or matched to none (needs det_ids.npz), in order:
+                 stale_or_duplicate (right for its members' person, whom another pose holds),
+                 prediction (its own triangulation is close, the joint filter's output is not),
+                 wrong_track (a track's cluster holds another person's detection),
+                 weak_two_view (a pure cluster of two views), wrong_new_cluster (the
+                 cross-view association mixed people), triangulation, not_in_gt (bystanders).
 --pred writes pose (F,K,13,3) world metres in sportcenter_13 (NaN = joint not triangulated),
 valid (F,K) bool, score (F,K), id (F,K) int64 track id (-1 = none: tentative track or no
 prediction); F = scene frames considered, K = most people in one frame.
@@ -189,11 +197,11 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
 
     Returns the AssociationResult (None for the oracle or when the pipeline raised)."""
     from maem_ros.core.association.pipeline import associate
-    from maem_ros.core.tracking.temporal import TemporalAssociator
+    from maem_ros.core.tracking.temporal import FLAG_TRACKED, TemporalAssociator
     from maem_ros.core.triangulation.ransac import triangulate
 
     from .explain import oracle_clusters
-    result = ids = None
+    result = ids = step = None
     stamp = min(fd.stamp_ns for fd in frames.values())
     try:
         t0 = time.perf_counter()
@@ -208,8 +216,14 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
             clusters = result.clusters
         run.assoc_ms.append(1e3 * (time.perf_counter() - t0))
         poses = triangulate(rig, frames, clusters, tri_params)
+        raw = to_sportcenter13(np.asarray(poses.joints, dtype=np.float64)) if len(poses) else \
+            np.zeros((0, SPORTCENTER_13.num_joints, 3))
         joints, std, scores, ids = _published(run, poses, stamp, ids, tri_params)
         valid = np.isfinite(joints).all(-1).any(-1)
+        tracked = (np.asarray(step.flags) & FLAG_TRACKED > 0 if step is not None
+                   else np.zeros(len(clusters), bool))
+        run.last_clusters = ([c.members for c, v in zip(clusters, valid) if v], tracked[valid],
+                             raw[valid])
         run.preds.append(joints[valid])
         run.scores.append(scores[valid])
         run.stds.append(std[valid])
@@ -220,7 +234,32 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
         run.scores.append(np.zeros(0))
         run.stds.append(np.zeros((0, SPORTCENTER_13.num_joints)))
         run.ids.append(np.zeros(0, np.int64))
+        run.last_clusters = ([], np.zeros(0, bool), run.preds[-1])
     return result
+
+
+def explain_tracks_run(run: Run, rig, det_ids: Mapping[str, np.ndarray], gt: np.ndarray,
+                       gt_mask: np.ndarray) -> None:
+    """Add the first causes of this frame's published poses far from their person to
+    run.far_causes (--explain-tracks); gt (P,13,3) / gt_mask (P,13): every column of gt.npz."""
+    from .explain import explain_poses, member_persons
+    members, tracked, raw = run.last_clusters
+    persons = [member_persons(m, rig.names, det_ids) for m in members]
+    causes = explain_poses(run.preds[-1], raw, persons, tracked, gt, gt_mask)
+    run.published += len(causes)
+    run.far_causes.update(c for c in causes if c is not None)
+
+
+def format_far_causes(runs: Sequence[Run]) -> str:
+    """Plain-text breakdown of far published poses: one row per configuration."""
+    from .explain import TRACK_CAUSES
+    head = ["config", "poses", "far"] + list(TRACK_CAUSES)
+    body = [[r.name, str(r.published), str(sum(r.far_causes.values()))]
+            + [str(r.far_causes.get(c, 0)) for c in TRACK_CAUSES] for r in runs]
+    widths = [max(len(row[i]) for row in [head] + body) for i in range(len(head))]
+    return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w)
+                               for i, (c, w) in enumerate(zip(row, widths)))
+                     for row in [head] + body)
 
 
 def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np.ndarray,
@@ -285,6 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also run the association from the ground truth (det_ids.npz): the ceiling")
     p.add_argument("--explain", action="store_true",
                    help="print the first cause of every lost GT person-frame (needs det_ids.npz)")
+    p.add_argument("--explain-tracks", action="store_true",
+                   help="print the first cause of every published pose more than 150 mm from its "
+                        "GT person or matched to none (needs det_ids.npz)")
     p.add_argument("--pred", type=Path, help="write predictions (full configuration) to this npz")
     p.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
     p.add_argument("--temporal", choices=("on", "off"), default=None,
@@ -393,9 +435,10 @@ def _make_runs(args: argparse.Namespace, folder: SceneFolder, assoc
     runs = [Run(name, a, tracker=make_tracker(rig, a, args.params, temporal),
                 joint_filter=make_joint_filter(args.params)) for name, a in configs]
     det_ids = None
-    if args.oracle or args.explain:
+    if args.oracle or args.explain or args.explain_tracks:
         if not folder.has_det_ids:
-            raise ValueError(f"scene folder {str(args.scene)!r}: --oracle/--explain need det_ids.npz "
+            raise ValueError(f"scene folder {str(args.scene)!r}: --oracle/--explain/--explain-tracks "
+                             "need det_ids.npz "
                              "(the GT person of every detection, as maem-sim writes it)")
         det_ids = folder.det_ids()
     if args.oracle:
@@ -437,6 +480,10 @@ def _run_frames(args: argparse.Namespace, folder: SceneFolder, views: list[str],
                 if not run.oracle:
                     explain_run(run, result, rig, ids, truth.gts[-1], truth.gt_masks[-1],
                                 np.flatnonzero(present))
+        if args.explain_tracks:
+            assert ids is not None  # --explain-tracks loaded det_ids (checked above)
+            for run in runs:
+                explain_tracks_run(run, rig, ids, gt[0][f], gt[1][f])
     return truth
 
 
@@ -461,6 +508,10 @@ def _score_runs(args: argparse.Namespace, runs: list[Run], truth: _Truth, log) -
         report["explain"] = {r.name: dict(r.causes) for r in explained}
         log("lost GT person-frames by first cause:")
         log(format_causes(explained))
+    if args.explain_tracks:
+        report["explain_tracks"] = {r.name: {"poses": r.published, **r.far_causes} for r in runs}
+        log("published poses > 150 mm from their GT person (or matched to none) by first cause:")
+        log(format_far_causes(runs))
     return report
 
 

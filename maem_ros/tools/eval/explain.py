@@ -123,3 +123,87 @@ def oracle_clusters(rig_names: list[str], frames: Mapping, det_ids: Mapping[str,
             members = np.array(sorted((c, d) for c, (_, d) in views.items()), dtype=np.int64)
             out.append(Cluster(members=members, costs=np.full(len(members), np.nan)))
     return out
+
+
+# ---- published poses far from their person (--explain-tracks) --------------------------------
+#: first cause of a published pose more than ``far_m`` from its matched GT person (or matched to
+#: none), in this order (doc/tracking.md):
+#:   stale_or_duplicate  the pose is within far_m of the person its members show, but another
+#:                       pose of the frame holds that person (a second track of one person)
+#:   prediction          a pure cluster whose own triangulation is within far_m, the published
+#:                       (filtered) pose is not: the joint filter leaned on the track's prediction
+#:   wrong_track         a track's cluster (FLAG_TRACKED) holds detections of another person or a
+#:                       false positive: a detection explained by the wrong track
+#:   weak_two_view       a pure cluster of two views whose triangulation is far (the
+#:                       weakest geometry; k_min is 2 on the humanm3 rigs)
+#:   wrong_new_cluster   a cluster from the cross-view association mixing people
+#:   triangulation       a pure cluster of three views or more, triangulated far off
+#:   not_in_gt           every member is a bystander (not in gt.npz): not an error of the pipeline
+TRACK_CAUSES = ("stale_or_duplicate", "prediction", "wrong_track", "weak_two_view",
+                "wrong_new_cluster", "triangulation", "not_in_gt")
+#: a published pose further than this from its matched person is explained (m)
+FAR_M = 0.15
+
+
+def member_persons(members: np.ndarray, rig_names: list[str],
+                   det_ids: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(M,) GT person of each cluster member (camera index, detection index); -1 = false
+    positive or unknown."""
+    out = np.full(len(members), -1, np.int64)
+    for m, (c, d) in enumerate(np.asarray(members, np.int64).reshape(-1, 2).tolist()):
+        ids = det_ids.get(rig_names[c])
+        if ids is not None and d < len(ids):
+            out[m] = int(ids[d])
+    return out
+
+
+def explain_poses(published: np.ndarray, raw: np.ndarray, persons: list[np.ndarray],
+                  tracked: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray,
+                  far_m: float = FAR_M) -> list[str | None]:
+    """First cause (TRACK_CAUSES) of every published pose of one frame, None for a good one.
+
+    published (K,13,3) world m as published (filtered); raw (K,13,3) this frame's own
+    triangulation of the same clusters; persons[k] (M_k,) GT person of each member of pose k
+    (member_persons: index into gt's columns, -1 = false positive, >= P = bystander);
+    tracked (K,) bool, the cluster was explained by a track (FLAG_TRACKED); gt (P,13,3) and
+    gt_mask (P,13) every GT person of the frame (mask all False = absent).
+    """
+    from maem_ros.core.metrics.poses import match_frame, mpjpe
+    P = len(gt)
+    present = np.flatnonzero(gt_mask.any(-1))
+    rows, cols, cost = match_frame(published, gt[present], gt_mask[present])
+    err = np.full(len(published), np.inf)
+    err[rows] = cost
+    holder = {int(present[c]): int(r) for r, c in zip(rows.tolist(), cols.tolist())}
+    out: list[str | None] = []
+    for k in range(len(published)):
+        if err[k] <= far_m:
+            out.append(None)
+            continue
+        pers = np.asarray(persons[k], np.int64)
+        players = pers[(pers >= 0) & (pers < P)]
+        if pers.size and (pers >= P).all():
+            out.append("not_in_gt")
+            continue
+        dom = int(np.bincount(players).argmax()) if players.size else -1
+        mixed = np.unique(pers).size > 1 or bool((pers < 0).any())
+        pub = raw_e = np.inf
+        if dom >= 0 and gt_mask[dom].any():
+            pub = float(mpjpe(published[k], gt[dom], gt_mask[dom]))
+            raw_e = float(mpjpe(raw[k], gt[dom], gt_mask[dom]))
+        if pub <= far_m and holder.get(dom, k) != k:
+            cause = "stale_or_duplicate"
+        elif not mixed and raw_e <= far_m < pub:
+            cause = "prediction"
+        elif mixed and tracked[k]:
+            cause = "wrong_track"
+        elif not mixed and pers.size <= 2:
+            cause = "weak_two_view"
+        elif mixed:
+            cause = "wrong_new_cluster"
+        elif holder.get(dom, k) != k:
+            cause = "stale_or_duplicate"
+        else:
+            cause = "triangulation"
+        out.append(cause)
+    return out

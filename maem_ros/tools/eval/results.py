@@ -35,6 +35,11 @@ class Run:
     #: core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
     tracker: Any = None
     joint_filter: Any = None  # core.tracking.joint_filter.JointFilter (None: off)
+    #: --explain-tracks: published poses far from their person by first cause, poses published
+    far_causes: Counter = field(default_factory=Counter)
+    published: int = 0
+    #: the last frame's clusters behind its valid poses: members, FLAG_TRACKED, raw joints
+    last_clusters: Any = None
 
 
 def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
