@@ -27,11 +27,14 @@ from .world import Similarity, floor_frame, skeleton_scale, stature
 
 @dataclass
 class PeopleOptions:
-    """hypothesis_frames: frames the pair search uses; first_pass_frames: frames the first
-    bundle adjustment (from the rough start) uses; gates_px: epipolar gates (px) of the
+    """hypothesis_frames: frames the pair search uses at least; hypothesis_pairs: more frames
+    are used while a camera pair's detection pairs stay under this (few people give few
+    agreeing pairs per frame: two people need ~100 frames where twenty need 15);
+    first_pass_frames: frames the first bundle adjustment (from the rough start) uses; gates_px: epipolar gates (px) of the
     first and second matching; max_offset_s: largest time offset searched (s)."""
 
     hypothesis_frames: int = 15
+    hypothesis_pairs: int = 2000
     first_pass_frames: int = 20
     gates_px: tuple[float, float] = (40.0, 12.0)
     refine_intrinsics: bool = False
@@ -81,7 +84,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
     timings: dict[str, float] = {}
     clock = time.perf_counter()
     C = data.num_cameras
-    frames = hypothesis_frames(data, opts.hypothesis_frames)
+    frames = hypothesis_frames(data, _pair_search_frames(data, opts))
     pairs = [p for a in range(C) for b in range(a + 1, C)
              if (p := estimate_pair(data, a, b, frames, rng)) is not None]
     start = initial_rig(C, pairs)
@@ -132,6 +135,15 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
     return PeopleCalibration(rig=rig, cameras=cams, warnings=warnings, points=sim.apply(X),
                              pairs=pairs, scale_source=scale_source, timings=timings,
                              tracks=tracks)
+
+
+def _pair_search_frames(data: PeopleData, opts: PeopleOptions) -> int:
+    """Frames for the pair search: opts.hypothesis_frames, or more while a camera pair's
+    detection pairs (frames x people seen by one camera x by the other) stay under
+    opts.hypothesis_pairs (its cost grows with them, its evidence too)."""
+    per_frame = np.array([c.scores.size for c in data.cameras], float) / max(data.num_frames, 1)
+    pairs_per_frame = max(float(np.median(per_frame)) ** 2, 1.0)
+    return max(opts.hypothesis_frames, int(opts.hypothesis_pairs / pairs_per_frame))
 
 
 def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray, warm: bool,
