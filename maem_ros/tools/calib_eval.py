@@ -14,6 +14,8 @@ with the calibrated one (``--rig``). Prints one row per scene and the worst diff
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import sys
 import tempfile
@@ -22,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 #: scene name -> (shipped rig name or ring (cameras, radius m, height m), maem-eval params)
-SCENES = {"sportcenter6": ("sportcenter6", "sportcenter.yaml"),
-          "humanm3_4": ("humanm3_4", "humanm3.yaml"),
-          "ring5_h5": ((5, 12.0, 5.0), "sportcenter.yaml")}
+SCENES: dict[str, tuple[str | tuple[int, float, float], str]] = {
+    "sportcenter6": ("sportcenter6", "sportcenter.yaml"),
+    "humanm3_4": ("humanm3_4", "humanm3.yaml"),
+    "ring5_h5": ((5, 12.0, 5.0), "sportcenter.yaml")}
 TARGET_RECALL_POINTS = 1.0
 TARGET_MPJPE_MM = 3.0
 
@@ -40,7 +43,8 @@ def run_scene(name: str, seed: int, frames: int, vertices: int, tmp: Path) -> di
     rig_arg, params = SCENES[name]
     if not isinstance(rig_arg, str):
         path = tmp / f"{name}_{seed}.yaml"
-        ring_rig(*rig_arg, seed=seed).to_yaml(path)
+        n, radius, height = rig_arg
+        ring_rig(n, radius, height, seed=seed).to_yaml(path)
         rig_arg = str(path)
     players = (10, 20)[seed % 2]
     scene = tmp / f"{name}_s{seed}"
@@ -48,8 +52,10 @@ def run_scene(name: str, seed: int, frames: int, vertices: int, tmp: Path) -> di
                       bystanders=2, num_vertices=vertices, seed=seed)
     write_scene(scene, cfg, progress=False)
     calib = tmp / f"{name}_s{seed}_calib.yaml"
-    code = calibrate.main(["people", str(scene), "--intrinsics", str(scene / "cameras"),
-                           "--out", str(calib)])
+    quiet = contextlib.redirect_stdout(io.StringIO())  # the tools' own tables: not this one's
+    with quiet:
+        code = calibrate.main(["people", str(scene), "--intrinsics", str(scene / "cameras"),
+                               "--out", str(calib)])
     if code != 0:
         raise RuntimeError(f"{name} seed {seed}: maem-calibrate exit {code}")
     truth = Rig.load(scene / "gt_rig.yaml")
@@ -58,8 +64,9 @@ def run_scene(name: str, seed: int, frames: int, vertices: int, tmp: Path) -> di
     out = {}
     for which, extra in (("true", []), ("calibrated", ["--rig", str(aligned)])):
         js = tmp / f"{name}_s{seed}_{which}.json"
-        code = evaluate.main([str(scene), "--params", params, "--json", str(js), "--quiet",
-                              *extra])
+        with contextlib.redirect_stdout(io.StringIO()):
+            code = evaluate.main([str(scene), "--params", params, "--json", str(js), "--quiet",
+                                  *extra])
         if code != 0:
             raise RuntimeError(f"{name} seed {seed}: maem-eval ({which} rig) exit {code}")
         out[which] = json.loads(js.read_text())
