@@ -3,7 +3,8 @@
 SOURCE is a MAEM scene folder (``dets/<cam>/*.npz``), a bag with ``/<cam>/detections``, or a
 folder of per-camera image folders / videos (``<cam>/*.jpg`` or ``<cam>.mp4``) run through a
 frontend backend (reading them: tools/calibrate_sources.py). ``--intrinsics`` gives K,
-distortion and image size (any rig format the project reads; extrinsics there are ignored). Writes the rig (YAML, or Pose2Sim TOML with
+distortion and image size (any rig format the project reads; extrinsics there are ignored).
+Writes the rig (YAML, or Pose2Sim TOML with
 ``--format toml``), prints a per-camera summary, with ``--report DIR`` draws pictures, and
 with ``--reference RIG`` prints the errors against a reference rig.
 How-to: doc/calibration.md.
