@@ -325,13 +325,15 @@ def index_frame_files(folder: str | Path) -> dict[int, Path]:
 class SceneFolder:
     """A scene folder on disk (layout in the module docstring); views = camera JSON stems."""
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, rig: Rig | None = None):
+        """``rig``: use this rig instead of cameras/ (e.g. a calibrated one; same camera
+        names, and the intrinsics the detections were made with)."""
         self.root = Path(root)
         if not self.root.is_dir():
             raise ValueError(f"scene folder {str(self.root)!r}: no such folder")
-        if not (self.root / "cameras").is_dir():
+        if rig is None and not (self.root / "cameras").is_dir():
             raise ValueError(f"scene folder {str(self.root)!r}: no cameras/ folder")
-        self._rig: Rig | None = None
+        self._rig: Rig | None = rig
         self._index: dict[str, dict[int, Path]] = {}
         info_path = self.root / "scene.json"
         self.info: dict = {}

@@ -114,14 +114,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=None, help="playback rate (maem-demo default)")
     p.add_argument("--bench", type=int, default=None, metavar="N",
                    help="only time the mediapipe frontend on N frames per camera")
+    p.add_argument("--rig", type=Path, default=None,
+                   help="run with this rig (e.g. one from maem-calibrate people) instead of the "
+                   "demo's Qualisys Calib.qca.txt; same camera names and intrinsics")
     p.add_argument("--offline", action="store_true",
                    help="no graph: every frame through frontend, association, triangulation "
                    "and tracking in this process (OUT/report_offline.json)")
     return p
 
 
-def run_offline(root: Path, frames: int | None) -> dict:
-    """Every frame (or the first ``frames``) of the four videos through the core pipeline."""
+def run_offline(root: Path, frames: int | None, rig_path: Path | None = None,
+                detections: dict | None = None) -> dict:
+    """Every frame (or the first ``frames``) of the four videos through the core pipeline.
+
+    ``rig_path``: the rig to associate and triangulate with (default the demo's Calib.qca.txt;
+    a self-calibrated rig has the same intrinsics, so the frontend's output is the same);
+    ``detections``: {camera: [FrameDetections | None per frame]} already made by the frontend
+    (then the videos are not read again)."""
     import cv2
     import numpy as np
 
@@ -137,7 +146,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     from maem_ros.params import load_node_params
     from maem_ros.ros.wire import UNTRACKED_ID, PoseFrame
     from maem_ros.tools.demo import demo_metrics as dm
-    rig = Rig.load(root / "calibration" / "Calib.qca.txt")
+    rig = Rig.load(rig_path or root / "calibration" / "Calib.qca.txt")
     node = {n: load_node_params("mediapipe.yaml", n) for n in ("frontend", "association",
                                                               "triangulation")}
     assoc = AssociationParams.from_mapping(node["association"])
@@ -149,19 +158,27 @@ def run_offline(root: Path, frames: int | None) -> dict:
     tolerance = float(node["triangulation"].get("bone_tolerance", 0.0))
     bone_filter = BoneLengthFilter(out_conv.names, tolerance) if tolerance > 0 else None
     # MediapipeEstimator each (make_estimator's type is the base class): its .stats counters
-    ests: dict[str, Any] = {c.name: make_estimator("mediapipe", node["frontend"], rig) for c in rig}
+    ests: dict[str, Any] = {} if detections is not None else {
+        c.name: make_estimator("mediapipe", node["frontend"], rig) for c in rig}
     rects = {c.name: Rectifier(c) for c in rig}
-    caps = {c.name: cv2.VideoCapture(str(root / "videos" / f"{c.name}.mp4")) for c in rig}
-    fps = caps[rig.names[0]].get(cv2.CAP_PROP_FPS) or 60.0
+    caps = {} if detections is not None else {
+        c.name: cv2.VideoCapture(str(root / "videos" / f"{c.name}.mp4")) for c in rig}
+    fps = caps[rig.names[0]].get(cv2.CAP_PROP_FPS) if caps else 60.0
+    fps = fps or 60.0
     P_rig = np.stack([c.P for c in rig])
     poses_by_stamp, errs, stamps, k = {}, dm.MemberErrors(), [], 0
     while frames is None or k < frames:
-        images = {name: cap.read() for name, cap in caps.items()}
-        if not all(ok for ok, _ in images.values()):
-            break
         stamp = int(round(k * 1e9 / fps))
-        dets = {c.name: ests[c.name].estimate(c, stamp, rects[c.name].rectify(images[c.name][1]))
-                for c in rig}
+        if detections is not None:
+            if k >= min(len(v) for v in detections.values()):
+                break
+            dets = {c.name: _given(detections[c.name][k], c, stamp) for c in rig}
+        else:
+            images = {name: cap.read() for name, cap in caps.items()}
+            if not all(ok for ok, _ in images.values()):
+                break
+            dets = {c.name: ests[c.name].estimate(c, stamp, rects[c.name].rectify(images[c.name][1]))
+                    for c in rig}
         clusters = associate(rig, dets, assoc).clusters
         rows = [(i, int(c), int(d)) for i, cl in enumerate(clusters) for c, d in cl.members]
         if rows:
@@ -188,8 +205,20 @@ def run_offline(root: Path, frames: int | None) -> dict:
             **dm.reprojection_summary(errs, tri.tau_kps),
             **dm.bone_length_cv(poses_by_stamp, out_conv),
             **dm.joints_found(poses_by_stamp, out_conv),
+            "rig": str(rig_path or root / "calibration" / "Calib.qca.txt"),
             "frontend_stats": {n: e.stats for n, e in ests.items()},
             "reprojection_definition": dm.REPROJECTION_DEFINITION}
+
+
+def _given(d, camera, stamp: int):
+    """A frame's given detections restamped to ``stamp`` (None: an empty frame)."""
+    import dataclasses
+
+    from maem_ros.core.detections import FrameDetections
+    from maem_ros.core.skeleton import BLAZEPOSE_33
+    if d is None:
+        return FrameDetections.empty(camera.name, stamp, BLAZEPOSE_33.num_joints, 0)
+    return dataclasses.replace(d, stamp_ns=stamp)
 
 
 def bench_frontend(root: Path, frames: int) -> dict:
@@ -259,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if a.offline:
         import json
         try:
-            report = run_offline(root, a.frames)
+            report = run_offline(root, a.frames, a.rig)
         except ImportError as e:
             return fail("maem-pose2sim-demo", e)
         a.out.mkdir(parents=True, exist_ok=True)
@@ -280,7 +309,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not (bag / "metadata.yaml").is_file():
         a.out.mkdir(parents=True, exist_ok=True)
         code = make_bag.main([str(bag), "--videos", str(root / "videos"), "--rig",
-                              str(root / "calibration" / "Calib.qca.txt"), "--quiet"])
+                              str(a.rig or root / "calibration" / "Calib.qca.txt"), "--quiet"])
         if code != 0:
             return code
     args = ["--bag", str(bag), "--backend", "mediapipe", "--out", str(a.out)]

@@ -329,6 +329,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "GT person or matched to none (needs det_ids.npz)")
     p.add_argument("--pred", type=Path, help="write predictions (full configuration) to this npz")
     p.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
+    p.add_argument("--rig", type=Path, default=None,
+                   help="evaluate with this rig instead of the scene's cameras/ (e.g. a "
+                   "calibrated one moved into the scene's frame)")
     p.add_argument("--temporal", choices=("on", "off"), default=None,
                    help="track-assisted association on/off (default: the params file's 'temporal', "
                         "on when absent; off with --explain); off = per-frame association + the "
@@ -367,10 +370,20 @@ def make_joint_filter(params_path: str):
     return JointFilterParams.from_mapping(load_node_params(params_path, "triangulation")).make()
 
 
+def _rig_option(path):
+    """--rig: a rig file in any format the project reads, or None (the scene's cameras/)."""
+    if path is None:
+        return None
+    from maem_ros.core.geometry.camera import Rig
+    if not Path(path).exists():
+        raise ValueError(f"--rig {str(path)!r}: no such file or folder")
+    return Rig.load(path)
+
+
 def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     """Run the evaluation described by parsed CLI args; returns the JSON report dict."""
     assoc, tri = load_params(args.params)
-    folder = SceneFolder(args.scene)
+    folder = SceneFolder(args.scene, rig=_rig_option(getattr(args, "rig", None)))
     skips = SkipLog()
     gt = load_gt(folder)
     views = _usable_views(folder, skips)
