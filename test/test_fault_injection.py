@@ -22,7 +22,7 @@ import pytest
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.qos import DATA_QOS
 
 from helpers_ros import Graph, bad_messages, fresh_detections, start_pipeline, wait_for
 
@@ -442,7 +442,7 @@ def test_clock_jump_back_resets_the_synchroniser_once(graph):
 
 
 def test_sequence_gaps_count_only_losses_of_a_single_publisher():
-    from maem_ros.ros.common import SequenceGaps
+    from maem_ros.ros.intake import SequenceGaps
 
     g = SequenceGaps()
     one = lambda: 1  # noqa: E731

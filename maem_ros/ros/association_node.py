@@ -47,24 +47,13 @@ from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_DEPTH,
-    DATA_QOS,
-    ConfigError,
-    Diagnostics,
-    NodeParams,
-    RejectErrors,
-    Stopwatch,
-    arrival_ns,
-    data_qos,
-    declare_params,
-    load_rig_param,
-    publish_rig_tf,
-    run_node,
-    subscribe_counted,
-    take_pending,
-)
+from maem_ros.ros.diagnostics import Diagnostics, RejectErrors, Stopwatch
+from maem_ros.ros.intake import arrival_ns, subscribe_counted, take_pending
 from maem_ros.ros.overload import NodeBacklog
+from maem_ros.ros.params import ConfigError, NodeParams, declare_params, load_rig_param
+from maem_ros.ros.process import run_node
+from maem_ros.ros.qos import DATA_DEPTH, DATA_QOS, data_qos
+from maem_ros.ros.rig_tf import publish_rig_tf
 
 NODE_NAME = "association"
 

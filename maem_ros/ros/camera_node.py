@@ -30,16 +30,10 @@ from maem_ros.capture import Capture, Poll, make_source, to_bgr
 from maem_ros.core.geometry.camera import Camera
 from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    IMAGE_QOS,
-    ConfigError,
-    Diagnostics,
-    Stopwatch,
-    declare_params,
-    default_camera_name,
-    load_rig_param,
-    run_node,
-)
+from maem_ros.ros.diagnostics import Diagnostics, Stopwatch
+from maem_ros.ros.params import ConfigError, declare_params, default_camera_name, load_rig_param
+from maem_ros.ros.process import run_node
+from maem_ros.ros.qos import IMAGE_QOS
 
 EXIT_SOURCE_FAILED = 2
 

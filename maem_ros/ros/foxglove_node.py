@@ -28,18 +28,10 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_QOS,
-    IMAGE_QOS,
-    ConfigError,
-    Diagnostics,
-    NodeParams,
-    RejectErrors,
-    Stopwatch,
-    declare_params,
-    load_rig_param,
-    run_node,
-)
+from maem_ros.ros.diagnostics import Diagnostics, RejectErrors, Stopwatch
+from maem_ros.ros.params import ConfigError, NodeParams, declare_params, load_rig_param
+from maem_ros.ros.process import run_node
+from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS
 from maem_ros.viz.scene import camera_info_fields
 
 NODE_NAME = "foxglove"

@@ -26,21 +26,17 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_QOS,
-    IMAGE_QOS,
-    RELIABLE_IMAGE_QOS,
+from maem_ros.ros.diagnostics import Diagnostics, RejectErrors, Stopwatch
+from maem_ros.ros.intake import subscribe_counted
+from maem_ros.ros.params import (
     ConfigError,
-    Diagnostics,
     NodeParams,
-    RejectErrors,
-    Stopwatch,
     declare_params,
     default_camera_name,
     load_rig_param,
-    run_node,
-    subscribe_counted,
 )
+from maem_ros.ros.process import run_node
+from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS
 
 NODE_NAME = "frontend"
 

@@ -44,22 +44,12 @@ from maem_ros.core.tracking.bone_filter import BoneLengthFilter
 from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_QOS,
-    MARKER_QOS,
-    ConfigError,
-    Diagnostics,
-    NodeParams,
-    RejectErrors,
-    Stopwatch,
-    arrival_ns,
-    declare_params,
-    load_rig_param,
-    run_node,
-    subscribe_counted,
-    take_pending,
-)
+from maem_ros.ros.diagnostics import Diagnostics, RejectErrors, Stopwatch
+from maem_ros.ros.intake import arrival_ns, subscribe_counted, take_pending
 from maem_ros.ros.overload import NodeBacklog
+from maem_ros.ros.params import ConfigError, NodeParams, declare_params, load_rig_param
+from maem_ros.ros.process import run_node
+from maem_ros.ros.qos import DATA_QOS, MARKER_QOS
 
 NODE_NAME = "triangulation"
 
