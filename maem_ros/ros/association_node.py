@@ -24,7 +24,7 @@ runs core.tracking.temporal.TemporalAssociator (``temporal: on``, default: detec
 tracks' predictions first, core.association.pipeline.associate on the rest; clusters carry track ids) or
 core.association.pipeline.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
 thresholds and publishes ``/maem/clusters`` (PointCloud2, one point per (cluster, member view), see
-wire.py; an empty cloud for a frame set without clusters, so downstream still sees every frame).
+maem_ros/wire; an empty cloud for a frame set without clusters, so downstream still sees every frame).
 A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all tracks.
 """
 from __future__ import annotations

@@ -4,7 +4,7 @@
     maem-triangulation --ros-args --params-file config/demo.yaml
 
 Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2, one point per
-person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and ``/maem/skeletons``
+person: id, joints (3J world m, NaN = missing), views, score; see maem_ros/wire) and ``/maem/skeletons``
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
 the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they come
