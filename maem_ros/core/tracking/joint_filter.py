@@ -13,6 +13,8 @@ measurement. Everything is batched over a frame's tracks and joints.
 """
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -106,12 +108,15 @@ class JointFilter:
         return x, P, fresh
 
 
+@functools.lru_cache(maxsize=64)
 def _transition(dt: float, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
-    """Constant-velocity transition F (6,6) and white-acceleration process noise Q (6,6)."""
+    """Constant-velocity transition F (6,6) and white-acceleration process noise Q (6,6).
+    Cached (read-only arrays): every track of a steady stream has the same dt."""
     I3 = np.eye(3)
     F = np.block([[I3, dt * I3], [np.zeros((3, 3)), I3]])
     q = accel_std ** 2
     Q = q * np.block([[dt ** 4 / 4 * I3, dt ** 3 / 2 * I3], [dt ** 3 / 2 * I3, dt ** 2 * I3]])
+    F.flags.writeable = Q.flags.writeable = False
     return F, Q
 
 

@@ -43,7 +43,8 @@ def joint_covariance(P: np.ndarray, X: np.ndarray, uv: np.ndarray, usable: np.nd
     """
     C, M, J = usable.shape
     Xh = np.concatenate([X, np.ones((C, J, 1))], axis=-1)  # (C,J,4)
-    x = np.einsum("cmik,cjk->cmji", P, Xh)  # (C,M,J,3) homogeneous image points
+    # matmul, not einsum: numpy's einsum runs these small batched contractions unoptimised
+    x = np.matmul(P[:, :, None], Xh[:, None, :, :, None])[..., 0]  # (C,M,J,3) homogeneous
     z = x[..., 2]
     with np.errstate(all="ignore"):
         proj = x[..., :2] / z[..., None]
@@ -52,7 +53,8 @@ def joint_covariance(P: np.ndarray, X: np.ndarray, uv: np.ndarray, usable: np.nd
         # d(u, v)/dX = (P[:2, :3] - (u, v)^T P[2, :3]) / z
         jac = (P[:, :, None, :2, :3] - proj[..., :, None] * P[:, :, None, 2:3, :3]) / z[..., None, None]
         jac = np.where(support[..., None, None], jac, 0.0)
-        H = np.einsum("cmjai,cmjak->cjik", jac, jac)  # (C,J,3,3) px^2/m^2
+        rows = jac.transpose(0, 2, 1, 3, 4).reshape(C, J, 2 * M, 3)  # (C,J,2M,3)
+        H = rows.swapaxes(-1, -2) @ rows  # (C,J,3,3) px^2/m^2: sum over views of J_m^T J_m
         n = support.sum(1)  # (C,J)
         dof = np.maximum(2 * n - 3, 0)
         s2 = (prior_dof * prior_px ** 2 + np.where(support, r2, 0.0).sum(1)) / (prior_dof + dof)
