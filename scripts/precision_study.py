@@ -19,7 +19,7 @@ import numpy as np
 
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.core.metrics.poses import match_frame
-from maem_ros.tools.evaluate import load_gt
+from maem_ros.tools.eval.evaluate import load_gt
 
 PARAMS = {"humanm3_3": "humanm3.yaml", "humanm3_4": "humanm3.yaml", "sportcenter6": "sportcenter.yaml"}
 

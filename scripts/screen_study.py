@@ -25,7 +25,7 @@ from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire
 from maem_ros.sim.scene import Scene, SceneConfig
-from maem_ros.tools.bench_load import body_template, load_bench_rig, make_frame
+from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_frame
 
 STRIDES = (64, 32, 16, 8, 4, 2)
 NEAR_TAU = 3.0  # px

@@ -60,7 +60,7 @@ def scene():
 def pose2sim_demo():
     """Pose2Sim's Demo_MultiPerson folder (real calibration + videos) from the pose2sim wheel,
     downloaded into the maem_ros cache once; the test skips when the wheel cannot be had."""
-    from maem_ros.tools.pose2sim_demo import POSE2SIM_VERSION, fetch_demo
+    from maem_ros.tools.demo.pose2sim_demo import POSE2SIM_VERSION, fetch_demo
     try:
         return fetch_demo(timeout_s=300.0)
     except RuntimeError as e:

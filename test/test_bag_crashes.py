@@ -15,7 +15,7 @@ import pytest
 from rosbags.rosbag2 import Reader
 
 from maem_ros import bagio
-from maem_ros.tools import record_faults
+from maem_ros.tools.bags import record_faults
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_BAG = REPO / "bags" / "demo"
@@ -223,7 +223,7 @@ def test_export_and_demo_read_a_cut_bag_without_metadata(tmp_path):
 
 @needs_demo
 def test_demo_reads_a_cut_bag(tmp_path, capsys):
-    from maem_ros.tools import demo_bag
+    from maem_ros.tools.demo import demo_bag
     bag = _cut_demo(tmp_path, 0.6)
     d = demo_bag.load_bag(bag)
     assert 0 < len(d.stamps) < 30 and set(d.gt) <= set(d.stamps)

@@ -11,7 +11,7 @@ import pytest
 
 from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
 from maem_ros.sim.rigs import load_rig
-from maem_ros.tools.bench_load import (body_template, make_frame, pa_mpjpe_one,
+from maem_ros.tools.bench.bench_load import (body_template, make_frame, pa_mpjpe_one,
                                        straightforward_associate)
 
 KEYS = ("cameras", "detections_per_camera", "vertices", "association_ms_median",
@@ -22,7 +22,7 @@ KEYS = ("cameras", "detections_per_camera", "vertices", "association_ms_median",
 
 def _bench(*args: str, timeout: float = 120.0, env: dict | None = None
            ) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", *args],
+    return subprocess.run([sys.executable, "-m", "maem_ros.tools.bench.bench", *args],
                           capture_output=True, text=True, timeout=timeout, env=env)
 
 
@@ -159,12 +159,12 @@ def test_live_publisher_stops_cleanly_on_sigint(tmp_path):
     import signal
     import time
 
-    from maem_ros.tools.latency import write_params
+    from maem_ros.tools.bench.latency import write_params
 
     params = write_params("demo.yaml", tmp_path / "params.yaml",
                           frontend={"frames": 2, "num_vertices": 200})
     log = open(tmp_path / "publisher.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "maem_ros.tools.live", "--publish", "camera_0",
+    proc = subprocess.Popen([sys.executable, "-m", "maem_ros.tools.bench.live", "--publish", "camera_0",
                              "--params", str(params), "--work", str(tmp_path), "--frames", "2",
                              "--rate", "10"], stdout=log, stderr=subprocess.STDOUT)
     try:

@@ -235,7 +235,7 @@ def test_cli_calibrates_intrinsics_and_extrinsics_in_one_run(tmp_path):
 def test_pose2sim_demo_checkerboard_photos(tmp_path):
     """Real photos: Demo_SinglePerson's checkerboard (4x7 inner corners, 60 mm), one camera at a
     time: focal lengths within 2 % of that demo's Qualisys calibration, RMS <= 1 px."""
-    from maem_ros.tools.pose2sim_demo import POSE2SIM_VERSION, fetch_board_demo
+    from maem_ros.tools.demo.pose2sim_demo import POSE2SIM_VERSION, fetch_board_demo
     try:
         calib = fetch_board_demo(timeout_s=300.0)
     except RuntimeError as e:

@@ -55,7 +55,7 @@ CAM01_NUMBERS = {
 
 
 def test_qualisys_real_numbers(tmp_path):
-    cams = read_qualisys(_qca(tmp_path, _CAM03.replace("cam03", "cam03"), _CAM01.format(rot=0)))
+    cams = Rig.load(_qca(tmp_path, _CAM03.replace("cam03", "cam03"), _CAM01.format(rot=0))).cameras
     assert [c.name for c in cams] == ["cam01", "cam03"]  # natural order of serials
     c = cams[0]
     assert (c.width, c.height) == (1088, 1920)  # portrait, fov_video right/bottom + 1
@@ -77,7 +77,7 @@ def test_qualisys_real_numbers(tmp_path):
 
 def test_qualisys_cameras_see_one_volume(tmp_path):
     """The two real cameras' optical axes pass within 0.5 m of each other ~3-4 m away."""
-    c1, c3 = read_qualisys(_qca(tmp_path, _CAM01.format(rot=0), _CAM03))
+    c1, c3 = Rig.load(_qca(tmp_path, _CAM01.format(rot=0), _CAM03))
     o1, d1, o3, d3 = c1.center, c1.R[2], c3.center, c3.R[2]
     # closest points of the two axes
     A = np.stack([d1, -d3], axis=1)
@@ -91,8 +91,8 @@ def test_qualisys_cameras_see_one_volume(tmp_path):
 def test_viewrotation_rotates_the_image(tmp_path, degrees):
     """A viewrotation of d degrees: every pixel of the unrotated camera, rotated clockwise by d
     in its image, is where the rotated camera projects the point (distortion included)."""
-    c0 = read_qualisys(_qca(tmp_path, _CAM01.format(rot=0), name="a.qca.txt"))[0]
-    cr = read_qualisys(_qca(tmp_path, _CAM01.format(rot=degrees), name="b.qca.txt"))[0]
+    c0 = Rig.load(_qca(tmp_path, _CAM01.format(rot=0), name="a.qca.txt"))[0]
+    cr = Rig.load(_qca(tmp_path, _CAM01.format(rot=degrees), name="b.qca.txt"))[0]
     X = np.random.default_rng(1).uniform([-1, -1, 0], [1, 1, 2], size=(40, 3))
     uv = c0.project(X)
     w, h = c0.width, c0.height
@@ -135,7 +135,7 @@ def _pose2sim_toml(cams: list[Camera]) -> str:
 
 
 def test_pose2sim_toml_matches_the_qualisys_conversion(tmp_path):
-    cams = read_qualisys(_qca(tmp_path, _CAM01.format(rot=0), _CAM03))
+    cams = Rig.load(_qca(tmp_path, _CAM01.format(rot=0), _CAM03)).cameras
     path = tmp_path / "Calib_qualisys.toml"
     path.write_text(_pose2sim_toml(cams))
     rig = Rig.load(path)  # rig loading dispatches on the file name
@@ -197,7 +197,7 @@ def test_pose2sim_toml_writer_round_trips(tmp_path):
                        "rational_polynomial", [-0.1, 0.01, 0.001, 0.0, 0.002, 0.05, 0.0, 0.01]))
     path = tmp_path / "Calib.toml"
     write_pose2sim_toml(path, cams, error_px=0.31)
-    back = read_pose2sim_toml(path)
+    back = Rig.load(path).cameras
     assert [c.name for c in back] == [c.name for c in cams]
     for a, b in zip(cams, back):
         assert (b.width, b.height, b.distortion_model) == (a.width, a.height, a.distortion_model)

@@ -19,7 +19,7 @@ from maem_ros.core.association.gates import rig_geometry
 from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, DetectionTable,
                                       FrameDetections, PairSet)
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.tools.bench_load import body_template, load_bench_rig, make_frame
+from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_frame
 
 pytestmark = pytest.mark.skipif(not clustering_kernel.have_numba(), reason="numba not installed")
 J = 13

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from maem_ros import bagio
-from maem_ros.tools import demo
+from maem_ros.tools.demo import demo, demo_graph
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_BAG = REPO / "bags" / "demo"
@@ -29,7 +29,7 @@ def run_cli(args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
     """maem-demo as a subprocess (killed by subprocess.run on timeout). The timeouts are
     generous: a graph of up to 12 processes starts in 10-20 s on a quiet 2-core machine but took
     over 100 s at load 17."""
-    return subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", *args], cwd=REPO,
+    return subprocess.run([sys.executable, "-m", "maem_ros.tools.demo.demo", *args], cwd=REPO,
                           capture_output=True, text=True, timeout=timeout_s,
                           env=dict(os.environ, PYTHONUNBUFFERED="1"))
 
@@ -70,7 +70,7 @@ def test_make_demo_bag_small(tmp_path):
 
 @pytest.mark.slow
 def test_ensure_bag_generates_only_the_default_and_rejects_non_bags(tmp_path, monkeypatch):
-    import maem_ros.tools.demo_bag as demo_bag
+    import maem_ros.tools.demo.demo_bag as demo_bag
     with pytest.raises(bagio.BagError, match="no such file"):  # --bag /typo: nothing created
         demo.ensure_bag(tmp_path / "typo", frames=2)
     assert not (tmp_path / "typo").exists()
@@ -104,7 +104,7 @@ def test_trim_bag_keeps_first_frames_and_metadata(tmp_path, bag):
 # ---- helpers ------------------------------------------------------------------------------------
 def test_params_put_frontend_under_wildcard_namespace(tmp_path):
     scene = dict(demo.DEMO_SCENE)
-    path = demo.write_params("demo.yaml", tmp_path / "p.yaml", tmp_path / "rig.yaml", scene, 0.7)
+    path = demo_graph.write_params("demo.yaml", tmp_path / "p.yaml", tmp_path / "rig.yaml", scene, 0.7)
     data = yaml.safe_load(path.read_text())
     assert "frontend" not in data and "association" not in data
     fe = data["/**/frontend"]["ros__parameters"]
@@ -114,13 +114,13 @@ def test_params_put_frontend_under_wildcard_namespace(tmp_path):
     assert data["/**/association"]["ros__parameters"]["max_wait"] == 0.7
     assert data["/**/association"]["ros__parameters"]["tau_mesh"] == 8.0
     with pytest.raises(ValueError, match="no scene description"):
-        demo.write_params("demo.yaml", tmp_path / "q.yaml", tmp_path / "rig.yaml", None)
+        demo_graph.write_params("demo.yaml", tmp_path / "q.yaml", tmp_path / "rig.yaml", None)
 
 
 def test_node_section_merges_key_forms():
     data = {"association": {"ros__parameters": {"a": 1, "b": 1}},
             "/**/association": {"ros__parameters": {"b": 2}}}
-    assert demo.node_section(data, "association") == {"a": 1, "b": 2}
+    assert demo_graph.node_section(data, "association") == {"a": 1, "b": 2}
     assert list(data) == ["/**/association"]
 
 
@@ -213,7 +213,7 @@ def test_graph_demo_reduced(tmp_path, bag):
 def test_graph_demo_reports_node_failure(tmp_path, bag):
     """A node that cannot start (bad parameter) is named with its log, exit code 1, no hang."""
     params = yaml.safe_load((REPO / "config" / "demo.yaml").read_text())
-    demo.node_section(params, "association")["tau_mesh"] = -1.0
+    demo_graph.node_section(params, "association")["tau_mesh"] = -1.0
     bad = tmp_path / "bad.yaml"
     bad.write_text(yaml.safe_dump(params))
     r = run_cli(["--bag", str(bag), "--out", str(tmp_path / "out"), "--frames", "2",

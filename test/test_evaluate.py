@@ -9,7 +9,7 @@ import pytest
 
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.core.skeleton import SPORTCENTER_13
-from maem_ros.tools import evaluate
+from maem_ros.tools.eval import evaluate
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
 
@@ -180,7 +180,7 @@ def test_oracle_and_explain_on_simulated_scenes(tmp_path):
         lost = round(gt_persons * (1 - row["recall"]))
         causes = rep["explain"][row["name"]]
         assert sum(causes.values()) == lost, (row["name"], causes)
-        assert set(causes) <= set(__import__("maem_ros.tools.explain", fromlist=["CAUSES"]).CAUSES)
+        assert set(causes) <= set(__import__("maem_ros.tools.eval.explain", fromlist=["CAUSES"]).CAUSES)
     assert rep["oracle"]["recall"] >= max(r["recall"] for r in rep["ablation"]) - 1e-9
 
 

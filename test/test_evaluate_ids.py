@@ -6,7 +6,7 @@ import pytest
 from test_evaluate import exact_scene, run_eval
 
 from maem_ros.core.interchange import SceneFolder
-from maem_ros.tools import evaluate
+from maem_ros.tools.eval import evaluate
 
 
 @pytest.mark.parametrize("temporal", ["on", "off"])

@@ -15,7 +15,7 @@ import pytest
 from helpers_bags import FPS, STEP_NS, T0_NS, known_frames, read_poses, write_poses_bag
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.tools.export import main as export_main
+from maem_ros.tools.export.export import main as export_main
 
 REPO = Path(__file__).resolve().parent.parent
 NAMES = SPORTCENTER_13.names

@@ -364,7 +364,7 @@ def test_player_and_demo_refuse_damaged_bags_in_one_line(tmp_path):
                                "--delay", "0"], capture_output=True, text=True, timeout=60,
                               env=ENV)
         assert str(bag) in one_line(play), kind
-        demo = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", "--bag", str(bag),
+        demo = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo.demo", "--bag", str(bag),
                                "--out", str(tmp_path / "out")], capture_output=True, text=True,
                               timeout=120, env=ENV)
         assert str(bag) in one_line(demo), kind
@@ -409,7 +409,7 @@ def test_demo_refuses_a_bad_params_file_in_one_line(tmp_path, params):
     garbage = tmp_path / "garbage.yaml"
     garbage.write_text(": [not yaml\n\t{")
     params = str(garbage) if params == "GARBAGE" else params
-    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", "--params", params,
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo.demo", "--params", params,
                            "--no-graph", "--out", str(tmp_path / "out")], capture_output=True,
                           text=True, timeout=120, env=ENV)
     assert params in one_line(proc)

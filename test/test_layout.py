@@ -48,3 +48,17 @@ def test_layer_does_not_import(sub: str, forbidden: tuple[str, ...]) -> None:
     bad = {f"{p.relative_to(PKG)}: {m}" for p in _files(sub) for m in imported_modules(p)
            if any(m == f or m.startswith(f + ".") for f in forbidden)}
     assert not bad, sorted(bad)
+
+
+def test_tools_find_the_checkout_files() -> None:
+    """Tools that read files of the source checkout (the demo bag, the court points) find them
+    from their own location, at the depth of their tools/ subpackage."""
+    from maem_ros.tools.bags import record_faults
+    from maem_ros.tools.calibrate import calib_bench
+    from maem_ros.tools.demo import demo_bag
+
+    repo = PKG.parent
+    assert demo_bag.REPO_ROOT == repo
+    assert demo_bag.default_bag() == record_faults._default_bag() == repo / "bags" / "demo"
+    assert calib_bench.COURT_FILE == repo / "config" / "court_points_fiba.yaml"
+    assert calib_bench.COURT_FILE.is_file()

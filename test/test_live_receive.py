@@ -192,7 +192,7 @@ def test_q4_decode_equals_the_straightforward_formula(dtype, shape) -> None:
 def test_bench_live_rejects_a_negative_vertex_count() -> None:
     import subprocess
     import sys
-    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", "--live",
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench.bench", "--live",
                            "--vertex-count", "-1"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "--vertex-count" in proc.stderr, proc.stderr
 

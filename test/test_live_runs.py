@@ -1,4 +1,4 @@
-"""maem-bench --live --runs / --stress (tools/live_runs.py): the figures on known latencies,
+"""maem-bench --live --runs / --stress (tools/bench/live_runs.py): the figures on known latencies,
 the CPU hog, the worst of several runs and the command line."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from maem_ros.tools.live_runs import (RECOVERED_MS, accounting, aggregate, hog_window,
+from maem_ros.tools.bench.live_runs import (RECOVERED_MS, accounting, aggregate, hog_window,
                                       start_hog, stress_figures)
 
 RATE = 10.0  # frames per second of the synthetic latency series
@@ -103,7 +103,7 @@ def test_the_hog_keeps_one_cpu_busy_for_its_time() -> None:
                                         (["--stress", "5", "--frames", "60", "--rate", "30"],
                                          "--stress 5")])
 def test_bad_runs_and_stress_arguments_exit_2_with_one_line(args, flag) -> None:
-    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", "--live", *args],
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench.bench", "--live", *args],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and flag in proc.stderr, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
@@ -116,7 +116,7 @@ def test_bench_live_runs_twice_with_a_hog(scene, tmp_path) -> None:
     """maem-bench --live --runs 2 --stress 1 at 10 fps (the tool and its report, not this
     machine's speed): each run's figures, the median, the worst, the hog's figures, and every
     frame without poses counted by a node."""
-    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench", "--live", "--frames",
+    proc = subprocess.run([sys.executable, "-m", "maem_ros.tools.bench.bench", "--live", "--frames",
                            "50", "--vertices", "500", "--wire", "q4", "--rate", "10", "--runs",
                            "2", "--stress", "1", "--json"], capture_output=True, text=True,
                           timeout=580, env=dict(os.environ, TMPDIR=str(tmp_path)))

@@ -16,7 +16,7 @@ from maem_ros.core.interchange import (SceneFolder, outputs_to_detections, read_
                                        write_gt, write_maem_npz)
 from maem_ros.ros.wire import TF_STATIC_TOPIC, msg_to_detections, msg_to_poses, msg_to_transforms
 from maem_ros import bagio
-from maem_ros.tools.make_bag import main, stamp_ns
+from maem_ros.tools.bags.make_bag import main, stamp_ns
 
 FPS = 10.0
 START = 1_700_000_000_000_000_000

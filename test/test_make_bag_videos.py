@@ -11,7 +11,7 @@ import pytest
 
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros import bagio
-from maem_ros.tools.make_bag import DEFAULT_START_NS, main, stamp_ns
+from maem_ros.tools.bags.make_bag import DEFAULT_START_NS, main, stamp_ns
 
 W, H, NFRAMES, FPS = 64, 48, 6, 25.0
 
@@ -92,7 +92,7 @@ def test_video_bag_cli_with_fps_and_qualisys_rig(tmp_path):
     (tmp_path / "videos").mkdir()
     write_video(tmp_path / "videos" / "cam01.avi", 0, frames=3)
     out = tmp_path / "bag"
-    done = subprocess.run([sys.executable, "-m", "maem_ros.tools.make_bag", str(out), "--videos",
+    done = subprocess.run([sys.executable, "-m", "maem_ros.tools.bags.make_bag", str(out), "--videos",
                            str(tmp_path / "videos"), "--rig", str(qca), "--fps", "60",
                            "--start-stamp", "0", "--quiet"], capture_output=True, text=True,
                           timeout=120)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from maem_ros import bagio
-from maem_ros.tools.make_bag import main as make_bag_main
+from maem_ros.tools.bags.make_bag import main as make_bag_main
 
 # the mediapipe graph on the pose2sim footage (network: the fixture)
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
@@ -34,7 +34,7 @@ def test_mediapipe_graph_on_real_frames(tmp_path, pose2sim_demo, mediapipe_insta
     out = tmp_path / "out"
     # the default replay: lockstep on /maem/clusters, images reliable, so however slow the four
     # CPU frontends are on this machine, each of them gets every image of the 3 frames
-    done = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo", "--bag", str(bag),
+    done = subprocess.run([sys.executable, "-m", "maem_ros.tools.demo.demo", "--bag", str(bag),
                            "--backend", "mediapipe", "--out", str(out), "--frames", "3"],
                           cwd=REPO, capture_output=True, text=True,
                           timeout=280, env=dict(os.environ, PYTHONUNBUFFERED="1"))

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from maem_ros import bagio
-from maem_ros.tools import record_faults
+from maem_ros.tools.bags import record_faults
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO_BAG = REPO / "bags" / "demo"

@@ -25,7 +25,13 @@ FRAMES = 8
 
 
 def test_processes_produce_correct_poses_and_stop_on_sigint(tmp_path):
-    from maem_ros.tools.latency import GraphProcesses, ReplayClient, make_scene, match_mpjpe, write_params
+    from maem_ros.tools.bench.latency import (
+        GraphProcesses,
+        ReplayClient,
+        make_scene,
+        match_mpjpe,
+        write_params,
+    )
 
     params = write_params(
         "demo.yaml", tmp_path / "params.yaml",

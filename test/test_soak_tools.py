@@ -1,8 +1,8 @@
 """The fault schedule, the synchroniser model and the soak's message balance (tools)."""
 from __future__ import annotations
 
-from maem_ros.tools.latency import Faults, sync_model
-from maem_ros.tools.soak import balance
+from maem_ros.tools.bench.latency import Faults, sync_model
+from maem_ros.tools.bench.soak import balance
 
 CAMS = [f"camera_{i}" for i in range(6)]
 

@@ -15,7 +15,7 @@ from test_temporal import PARAMS, Walker, frame
 
 from maem_ros.core.association.pipeline import AssociationParams
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
-from maem_ros.tools.bench_load import body_template, load_bench_rig, make_sequence
+from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_sequence
 
 
 def assert_same_step(a, b, f: int) -> None:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from maem_ros.core.geometry.rig_formats import read_qualisys, write_pose2sim_toml
+from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.interchange import MissingDataError, SceneFolder
 from maem_ros.core.sync import ApproximateTimeSync, capture_stamp_ns, match_capture_times
@@ -56,7 +56,7 @@ def test_rig_without_the_key_reads_as_zero(tmp_path):
 
 def test_qualisys_cameras_have_no_offset(tmp_path):
     from test_calibration import _CAM01, _CAM03, _qca  # the module's real-number fixtures
-    assert [c.time_offset for c in read_qualisys(_qca(tmp_path, _CAM01.format(rot=0), _CAM03))] \
+    assert [c.time_offset for c in Rig.load(_qca(tmp_path, _CAM01.format(rot=0), _CAM03))] \
         == [0.0, 0.0]
 
 
@@ -204,7 +204,7 @@ def test_maem_eval_applies_the_rig_offsets(tmp_path):
     """A scene whose camera_1 captures 2 frames late: maem-eval with the rig's time_offset
     pairs its frames by capture time (as good as a synchronised scene); the same scene with the
     offset erased from the rig pairs wrong frames and loses accuracy."""
-    from maem_ros.tools.evaluate import build_parser, evaluate_scene
+    from maem_ros.tools.eval.evaluate import build_parser, evaluate_scene
     from maem_ros.tools.simulate import write_scene
     from maem_ros.sim.scene import SceneConfig
     base = dict(rig="humanm3_3", frames=14, difficulty="easy", players=4, bystanders=0,

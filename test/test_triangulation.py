@@ -1,7 +1,6 @@
 """MAEM stage 3 (core/triangulation/ransac.py) against exact geometric answers."""
 from __future__ import annotations
 
-import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -246,18 +245,22 @@ def test_real_cluster_type_if_available() -> None:
     np.testing.assert_allclose(triangulate(rig, frames, [cl]).joints[0], X[0], atol=1e-6)
 
 
-def test_speed_ten_people_six_views() -> None:
-    """Loose regression bound (the target, <= 2 ms on one thread, is measured by maem-bench)."""
+def test_ten_people_six_views_all_joints_from_every_view() -> None:
+    """maem-bench's per-frame triangulation load (10 people x 70 joints, 6 views, 2 px noise):
+    every joint triangulated from all 6 views, within a few cm of the truth, and a second call on
+    the same input gives the same poses (no state carried between frames). Its speed is
+    measured by maem-bench, not here."""
     rig = ring_rig(6)
-    frames = project_frames(rig, people(10, 70), noise_px=2.0, rng=np.random.default_rng(0))
+    X = people(10, 70)
+    frames = project_frames(rig, X, noise_px=2.0, rng=np.random.default_rng(0))
     clusters = [cluster(*[(c, p) for c in range(6)]) for p in range(10)]
-    triangulate(rig, frames, clusters)
-    times = []
-    for _ in range(10):
-        t0 = time.perf_counter()
-        triangulate(rig, frames, clusters)
-        times.append(time.perf_counter() - t0)
-    assert np.median(times) < 0.05
+    out = triangulate(rig, frames, clusters)
+    assert out.joints.shape == (10, 70, 3)
+    assert (out.views == 6).all()
+    err = np.linalg.norm(out.joints - X, axis=-1)  # m
+    assert err.max() < 0.1 and err.mean() < 0.03
+    again = triangulate(rig, frames, clusters)
+    np.testing.assert_array_equal(again.joints, out.joints)
 
 
 def test_simulated_scene_exact_without_noise() -> None:

@@ -15,7 +15,7 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire
 from maem_ros.sim.rigs import load_rig
-from maem_ros.tools.bench_load import body_template, make_frame
+from maem_ros.tools.bench.bench_load import body_template, make_frame
 
 TOPIC = "/camera_0/detections"
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -7,7 +7,7 @@ daemon thread, closed cleanly by :meth:`BackgroundNode.close`. On top of it:
 * :class:`ArrivalListener` (maem-demo): first arrival time of each header stamp on the input
   topics (images, or detections) and on /maem/poses, read from the raw CDR bytes (no
   deserialisation), and the nodes' last /diagnostics;
-* :class:`ReplayClient` (tools/latency.py): publishes tiny images with given stamps and records
+* :class:`ReplayClient` (tools/bench/latency.py): publishes tiny images with given stamps and records
   /maem/poses and /diagnostics.
 
 :class:`DiagnosticsTable` is the one collector of the nodes' last /diagnostics values (a

@@ -1,4 +1,4 @@
-"""Child processes of the graph tools (maem-demo, tools/latency.py): start with a log file each,
+"""Child processes of the graph tools (maem-demo, tools/bench/latency.py): start with a log file each,
 watch, stop with SIGINT and collect exit codes."""
 from __future__ import annotations
 

@@ -16,6 +16,7 @@ from tqdm import tqdm
 
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.core.skeleton import SPORTCENTER_13
+from maem_ros.tools.cli import fail
 
 EPILOG = """\
 Output layout:
@@ -136,11 +137,9 @@ def write_scene(out: Path, config, images: bool = False, progress: bool = True,
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.frames < 1:
-        print("maem-sim: --frames must be >= 1", file=sys.stderr)
-        return 2
+        return fail("maem-sim", "--frames must be >= 1")
     if args.vertices is not None and args.vertices < 1:
-        print("maem-sim: --vertices must be >= 1", file=sys.stderr)
-        return 2
+        return fail("maem-sim", "--vertices must be >= 1")
     if args.board:
         return write_board(args)
     try:
@@ -148,8 +147,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         write_scene(args.out, config, images=args.images, progress=not args.quiet,
                     gt_people=args.gt_people, intrinsics_only=args.intrinsics_only)
     except ValueError as e:
-        print(f"maem-sim: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-sim", e)
     views = len(list((args.out / "cameras").glob("*.json")))
     print(f"maem-sim: wrote {config.frames} frames x {views} views to {str(args.out)!r}")
     return 0
@@ -167,8 +165,7 @@ def write_board(args: argparse.Namespace) -> int:
         write_board_sequence(args.out, rig, spec, poses, args.seed,
                              intrinsics_only=not args.with_extrinsics)
     except ValueError as e:
-        print(f"maem-sim: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-sim", e)
     print(f"maem-sim: wrote {len(poses.R)} board poses of {spec} x {len(rig)} views to "
           f"{str(args.out)!r}")
     return 0

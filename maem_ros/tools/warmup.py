@@ -68,7 +68,7 @@ def node_paths() -> int:
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
     from maem_ros.params import load_node_params
     from maem_ros.ros import wire
-    from maem_ros.tools.bench_load import body_template, load_bench_rig, make_sequence
+    from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_sequence
 
     rig = load_bench_rig(SCENE_RIG)
     template = body_template(SCENE_VERTICES, SCENE_KEYPOINTS, 0)

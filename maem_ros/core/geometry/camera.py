@@ -19,6 +19,8 @@ import cv2
 import numpy as np
 import yaml
 
+from maem_ros.core.geometry.rig_formats import is_calibration_file, read_calibration
+
 #: distortion model name -> number of coefficients, in CameraInfo order
 DISTORTION_MODELS: dict[str, int] = {
     "plumb_bob": 5,  # k1 k2 p1 p2 k3
@@ -394,8 +396,6 @@ class Rig:
     def load(cls, path: str | Path) -> Rig:
         """Load from a rig YAML, a folder of MAEM camera JSONs, a scene folder with cameras/, a
         Qualisys ``.qca.txt`` or a Pose2Sim ``Calib*.toml`` (core/geometry/rig_formats.py)."""
-        from maem_ros.core.geometry.rig_formats import is_calibration_file, read_calibration
-
         p = Path(path)
         if p.is_dir():
             return cls.from_json_folder(p / "cameras" if (p / "cameras").is_dir() else p)
@@ -404,7 +404,7 @@ class Rig:
         if p.suffix.lower() in (".yaml", ".yml"):
             return cls.from_yaml(p)
         if is_calibration_file(p):
-            return cls(read_calibration(p))
+            return cls([Camera(**params) for params in read_calibration(p)])
         raise ValueError(f"rig {str(p)!r}: expected a .yaml file, a folder of camera JSONs, a "
                          f"Qualisys .qca.txt or a Pose2Sim .toml")
 

@@ -1,7 +1,11 @@
-"""Calibration files of other systems -> Camera lists: Qualisys ``.qca.txt`` and Pose2Sim ``Calib*.toml``.
+"""Other systems' calibration files <-> camera parameters: Qualisys ``.qca.txt``, Pose2Sim ``Calib*.toml``.
 
-Both readers return cameras in our convention (core/geometry/camera.py): OpenCV pinhole K in px,
-plumb_bob distortion, world -> camera R, t in metres, image size in px.
+Both readers return plain camera parameters in our convention, one dict per camera holding the
+keyword arguments of :class:`core.geometry.camera.Camera` (``name``, ``K`` OpenCV pinhole px,
+``R``, ``t`` world -> camera in metres, ``width``, ``height`` px, ``distortion_model``, ``D``,
+``time_offset`` s): :class:`Camera` validates them and :meth:`Rig.load` builds the cameras. This
+module does not import camera.py (camera.py's Rig.load imports it), and the writer takes any
+object with a camera's attributes (:class:`CameraLike`).
 
 Qualisys (QTM export, XML), read the way Pose2Sim's converter (``Pose2Sim.calibration.read_qca``
 + ``calib_qca_fun``) reads it:
@@ -34,13 +38,12 @@ import math
 import re
 import sys
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
-
-from maem_ros.core.geometry.camera import Camera
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -51,6 +54,26 @@ else:  # pragma: no cover - Python 3.10
 QUALISYS_SUBPIXELS = 64.0
 #: pi about the camera x axis: QTM camera axes -> OpenCV camera axes
 _QTM_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
+
+
+#: one camera's parameters: the keyword arguments of core.geometry.camera.Camera
+CameraParams = dict[str, Any]
+
+
+class CameraLike(Protocol):
+    """What :func:`pose2sim_toml_text` reads of a camera (core.geometry.camera.Camera has it)."""
+
+    name: str
+    K: np.ndarray  # (3,3) px
+    R: np.ndarray  # (3,3) world -> camera
+    t: np.ndarray  # (3,) world -> camera, metres
+    D: np.ndarray  # distortion coefficients
+    width: int  # px
+    height: int  # px
+    time_offset: float  # s
+
+    @property
+    def is_fisheye(self) -> bool: ...
 
 
 def _natural_key(s: str) -> list:
@@ -100,8 +123,8 @@ def rotate_view(K: np.ndarray, D: np.ndarray, R: np.ndarray, t: np.ndarray, size
     return K, D, R, t, (w, h)
 
 
-def read_qualisys(path: str | Path, binning: int = 1) -> list[Camera]:
-    """Cameras of a Qualisys ``.qca.txt`` calibration (see the module doc for the conversion).
+def read_qualisys(path: str | Path, binning: int = 1) -> list[CameraParams]:
+    """Camera parameters of a Qualisys ``.qca.txt`` calibration (see the module doc for the conversion).
 
     ``binning``: sensor pixels per video pixel (2 when filming binned 540p on a 1080p sensor).
     """
@@ -117,13 +140,13 @@ def read_qualisys(path: str | Path, binning: int = 1) -> list[Camera]:
     if not cams:
         raise ValueError(f"{where}: no <cameras><camera> elements")
     out = [_qualisys_camera(cam, f"{where} camera {i}", binning) for i, cam in enumerate(cams)]
-    names = [c.name for c in out]
+    names = [c["name"] for c in out]
     if len(set(names)) != len(names):
         raise ValueError(f"{where}: duplicate camera serials {names}")
-    return sorted(out, key=lambda c: _natural_key(c.name))
+    return sorted(out, key=lambda c: _natural_key(c["name"]))
 
 
-def _qualisys_camera(cam: ET.Element, where: str, binning: int) -> Camera:
+def _qualisys_camera(cam: ET.Element, where: str, binning: int) -> CameraParams:
     name = cam.get("serial") or ""
     if not name:
         raise ValueError(f"{where}: camera without a serial")
@@ -153,12 +176,12 @@ def _qualisys_camera(cam: ET.Element, where: str, binning: int) -> Camera:
     except ValueError:
         raise ValueError(f"{where}: viewrotation {rotation!r} is not a number") from None
     K, D, R, t, size = rotate_view(K, D, R, t, size, degrees)
-    return Camera(name=name, K=K, R=R, t=t, width=size[0], height=size[1],
-                  distortion_model="plumb_bob", D=D)
+    return dict(name=name, K=K, R=R, t=t, width=size[0], height=size[1],
+                distortion_model="plumb_bob", D=D, time_offset=0.0)
 
 
-def read_pose2sim_toml(path: str | Path) -> list[Camera]:
-    """Cameras of a Pose2Sim calibration TOML (``Calib*.toml``), in file order."""
+def read_pose2sim_toml(path: str | Path) -> list[CameraParams]:
+    """Camera parameters of a Pose2Sim calibration TOML (``Calib*.toml``), in file order."""
     path = Path(path)
     where = f"pose2sim calibration {str(path)!r}"
     try:
@@ -175,7 +198,7 @@ def read_pose2sim_toml(path: str | Path) -> list[Camera]:
     return cams
 
 
-def _pose2sim_camera(key: str, table: Mapping, where: str) -> Camera:
+def _pose2sim_camera(key: str, table: Mapping, where: str) -> CameraParams:
     name = str(table.get("name") or key)
     where = f"{where} camera {name!r}"
     missing = [k for k in ("size", "matrix", "distortions", "rotation", "translation") if k not in table]
@@ -192,9 +215,9 @@ def _pose2sim_camera(key: str, table: Mapping, where: str) -> Camera:
     fisheye = bool(table.get("fisheye", False))
     model = "equidistant" if fisheye else "rational_polynomial" if D.size > 5 else "plumb_bob"
     R = cv2.Rodrigues(rvec)[0]
-    return Camera(name=name, K=table["matrix"], R=R, t=table["translation"],
-                  width=int(round(size[0])), height=int(round(size[1])),
-                  distortion_model=model, D=D, time_offset=table.get("time_offset", 0.0))
+    return dict(name=name, K=table["matrix"], R=R, t=table["translation"],
+                width=int(round(size[0])), height=int(round(size[1])),
+                distortion_model=model, D=D, time_offset=table.get("time_offset", 0.0))
 
 
 def _toml_value(value) -> str:
@@ -213,7 +236,7 @@ def _toml_key(name: str) -> str:
     return name if re.fullmatch(r"[A-Za-z0-9_-]+", name) else json.dumps(name)
 
 
-def pose2sim_toml_text(cameras: list[Camera], error_px: float | None = None) -> str:
+def pose2sim_toml_text(cameras: Sequence[CameraLike], error_px: float | None = None) -> str:
     """A Pose2Sim/anipose ``Calib.toml`` for ``cameras`` (layout in the module doc).
 
     Per camera: name, size [w, h], matrix (K), distortions (k1 k2 p1 p2, then k3.. only when
@@ -241,7 +264,8 @@ def pose2sim_toml_text(cameras: list[Camera], error_px: float | None = None) -> 
     return "\n\n".join(tables) + "\n"
 
 
-def write_pose2sim_toml(path: str | Path, cameras: list[Camera], error_px: float | None = None) -> None:
+def write_pose2sim_toml(path: str | Path, cameras: Sequence[CameraLike],
+                        error_px: float | None = None) -> None:
     """Write ``cameras`` as a Pose2Sim/anipose ``Calib.toml`` (see :func:`pose2sim_toml_text`)."""
     if any(c.name == "metadata" for c in cameras):
         raise ValueError("pose2sim toml: a camera named 'metadata' clashes with the metadata table")
@@ -257,8 +281,8 @@ def is_calibration_file(path: Path) -> bool:
     return name.endswith(".qca.txt") or name.endswith(".toml")
 
 
-def read_calibration(path: str | Path) -> list[Camera]:
-    """Cameras of a ``.qca.txt`` or Pose2Sim ``.toml`` file (by name)."""
+def read_calibration(path: str | Path) -> list[CameraParams]:
+    """Camera parameters of a ``.qca.txt`` or Pose2Sim ``.toml`` file (by name)."""
     p = Path(path)
     if p.name.lower().endswith(".qca.txt"):
         return read_qualisys(p)

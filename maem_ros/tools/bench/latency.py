@@ -1,6 +1,6 @@
 """Replay a synthetic scene through the multi-process node graph; report latency, drops, CPU.
 
-    python -m maem_ros.tools.latency --params config/demo.yaml --frames 150 --rate 30
+    python -m maem_ros.tools.bench.latency --params config/demo.yaml --frames 150 --rate 30
 
 Starts one frontend per rig camera, the association and the triangulation node as separate
 processes (``python -m maem_ros.ros.<node> --ros-args --params-file P``), publishes a tiny
@@ -14,7 +14,6 @@ the scene's players (Hungarian, < 500 mm).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -35,7 +34,10 @@ from maem_ros.ros.common import load_rig_param
 from maem_ros.ros.frontend_node import PARAMS, backend_options
 from maem_ros.ros.probe import ReplayClient
 from maem_ros.sim.scene import Scene, SceneConfig
+from maem_ros.tools.cli import add_json_argument, add_params_argument, check_params_file, fail, print_report
 from maem_ros.tools.processes import Proc, ProcessGroup, node_command
+
+PROG = "maem-latency"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -154,6 +156,20 @@ class Faults:
         return sorted(events, key=lambda e: e[0])
 
 
+def add_fault_arguments(p: argparse.ArgumentParser) -> None:
+    """The injected faults' options (--lag-camera, --lag-ms, --stale-every) of the graph replays
+    (this module's main, maem-soak)."""
+    p.add_argument("--lag-camera", default=None, help="fault: this camera's images come late")
+    p.add_argument("--lag-ms", type=float, default=300.0, help="fault: its lag, ms")
+    p.add_argument("--stale-every", type=float, default=0.0,
+                   help="fault: every this many s one camera gets a stale stamp (0 = off)")
+
+
+def faults_from(a: argparse.Namespace) -> Faults:
+    """The :class:`Faults` of parsed :func:`add_fault_arguments` options."""
+    return Faults(a.lag_camera, a.lag_ms / 1e3, a.stale_every)
+
+
 # ---------------------------------------------------------------------------------------------
 # replay
 # ---------------------------------------------------------------------------------------------
@@ -269,8 +285,8 @@ def sync_model(cameras: Sequence[str], frames: int, rate_hz: float, faults: Faul
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="maem-latency", description=__doc__.splitlines()[0])
-    ap.add_argument("--params", default="demo.yaml", help="params file (default config/demo.yaml)")
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0])
+    add_params_argument(ap, "demo.yaml")
     ap.add_argument("--frames", type=int, default=150, help="scene frames to replay")
     ap.add_argument("--rate", type=float, default=30.0, help="publish rate, Hz")
     ap.add_argument("--difficulty", default=None, choices=("none", "easy", "medium", "hard"))
@@ -278,24 +294,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--max-rate", type=float, default=None,
                     help="frontend max_rate, Hz (stamp-aligned decimation)")
     ap.add_argument("--max-wait", type=float, default=None, help="association max_wait, s")
-    ap.add_argument("--lag-camera", default=None, help="fault: this camera's images come late")
-    ap.add_argument("--lag-ms", type=float, default=300.0, help="fault: its lag, ms")
-    ap.add_argument("--stale-every", type=float, default=0.0,
-                    help="fault: every this many s one camera gets a stale stamp (0 = off)")
+    add_fault_arguments(ap)
     ap.add_argument("--max-lag", type=float, default=None, help="association max_lag, s")
     ap.add_argument("--sync-model", action="store_true",
                     help="no processes: the synchroniser alone on the fault schedule, with a "
                     "delivery model (see sync_model); isolates its decisions from CPU load")
     ap.add_argument("--log-dir", type=Path, default=None, help="node logs (default: a temp dir)")
-    ap.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_json_argument(ap)
     a = ap.parse_args(argv)
+    try:
+        check_params_file(a.params)
+    except ValueError as e:
+        return fail(PROG, e)
     if a.sync_model:
         cams = load_rig_param(load_node_params(resolve_config_path(a.params), "association")
                               .get("rig", "")).names
-        report = sync_model(cams, a.frames, a.rate, Faults(a.lag_camera, a.lag_ms / 1e3,
-                                                           a.stale_every),
+        report = sync_model(cams, a.frames, a.rate, faults_from(a),
                             max_wait_s=a.max_wait or 0.15, max_lag_s=a.max_lag or 0.0)
-        print(json.dumps(report, indent=2) if a.json else yaml.safe_dump(report, sort_keys=False))
+        print_report(report, a.json)
         return 0
     tmp = Path(tempfile.mkdtemp(prefix="maem_latency_"))
     fe: dict[str, Any] = {"frames": max(a.frames, 1)}
@@ -307,9 +323,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         fe["max_rate"] = a.max_rate
     assoc = {k: v for k, v in (("max_wait", a.max_wait), ("max_lag", a.max_lag)) if v}
     params = write_params(a.params, tmp / "params.yaml", frontend=fe, association=assoc or None)
-    faults = Faults(a.lag_camera, a.lag_ms / 1e3, a.stale_every)
-    report = run(params, a.frames, a.rate, a.log_dir or tmp / "logs", faults=faults)
-    print(json.dumps(report, indent=2) if a.json else yaml.safe_dump(report, sort_keys=False))
+    report = run(params, a.frames, a.rate, a.log_dir or tmp / "logs", faults=faults_from(a))
+    print_report(report, a.json)
     return 0
 
 

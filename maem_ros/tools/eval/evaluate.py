@@ -24,12 +24,18 @@ from maem_ros.core.association import PAPER_PIPELINE
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
-
-from ..params import load_node_params
-
-METRIC_KEYS = ("recall", "mpjpe_mean", "mpjpe_median", "pa_mpjpe_mean", "pa_mpjpe_median",
-               "ap75", "ap100", "ap125", "ap150", "association_ms_median", "frames",
-               "idf1", "idf1_all_hyp", "idp", "idr", "id_switches")
+from maem_ros.params import load_node_params
+from maem_ros.tools.cli import fail
+from maem_ros.tools.eval.results import (
+    METRIC_KEYS,
+    Run,
+    format_causes,
+    format_id_lines,
+    format_table,
+    jsonable,
+    score_run,
+    write_pred,
+)
 
 #: the paper's ablation rows (gates, with the configured clustering), the paper's pipeline and
 #: its PA-MPJPE matching baseline: association-parameter overrides on top of the params file;
@@ -133,24 +139,7 @@ class SkipLog:
         return out
 
 
-# ---- per-configuration results ----------------------------------------------------------------
-@dataclass
-class Run:
-    """Predictions of one association configuration over the evaluated frames."""
-
-    name: str
-    assoc: Any
-    oracle: bool = False  # association from det_ids.npz instead of associate()
-    preds: list[np.ndarray] = field(default_factory=list)   # per evaluated frame (K,13,3)
-    scores: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,)
-    stds: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,13) joint std m
-    assoc_ms: list[float] = field(default_factory=list)
-    metrics: dict[str, Any] = field(default_factory=dict)
-    causes: Counter = field(default_factory=Counter)  # --explain: lost person-frames by cause
-    ids: list[np.ndarray] = field(default_factory=list)  # per evaluated frame (K,) track ids
-    #: core.tracking.temporal.TemporalAssociator, or core.tracking.tracks.Tracker (post-hoc)
-    tracker: Any = None
-    joint_filter: Any = None  # core.tracking.joint_filter.JointFilter (None: off)
+# ---- loading and running frames (one configuration's results: tools/eval/results.Run) -------
 
 
 def to_sportcenter13(joints: np.ndarray, convention: str | None = None) -> np.ndarray:
@@ -254,78 +243,7 @@ def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np
     run.causes.update(explain_frame(result, persons, gt_index[lost], run.assoc.k_min))
 
 
-def format_causes(runs: Sequence[Run]) -> str:
-    """Plain-text loss breakdown: one row per configuration, one column per cause."""
-    from .explain import CAUSES
-    cols = list(CAUSES) + sorted({c for r in runs for c in r.causes} - set(CAUSES))
-    head = ["config", "lost"] + cols
-    body = [[r.name, str(sum(r.causes.values()))] + [str(r.causes.get(c, 0)) for c in cols]
-            for r in runs]
-    widths = [max(len(row[i]) for row in [head] + body) for i in range(len(head))]
-    fmt_row = lambda row: "  ".join(c.ljust(w) if i == 0 else c.rjust(w)  # noqa: E731
-                                    for i, (c, w) in enumerate(zip(row, widths)))
-    return "\n".join([fmt_row(head), "  ".join("-" * w for w in widths)] + [fmt_row(r) for r in body])
-
-
-def score_run(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
-              gt_ids: list[np.ndarray] | None = None) -> dict[str, Any]:
-    from maem_ros.core.metrics.poses import evaluate_sequence
-    m = dict(evaluate_sequence(run.preds, run.scores, gts, gt_masks))
-    if gt_ids is not None:
-        m.update(score_ids(run, gts, gt_masks, gt_ids))
-    m["association_ms_median"] = float(np.median(run.assoc_ms)) if run.assoc_ms else float("nan")
-    m["frames"] = len(run.preds)
-    return m
-
-
-# ---- output -----------------------------------------------------------------------------------
-def _fmt(x: Any, scale: float = 1.0, digits: int = 1) -> str:
-    try:
-        v = float(x) * scale
-    except (TypeError, ValueError):
-        return "-"
-    return "nan" if not np.isfinite(v) else f"{v:.{digits}f}"
-
-
-def format_table(rows: Sequence[tuple[str, Mapping[str, Any]]]) -> str:
-    """Plain-text table: one row per configuration (Recall / AP in %, errors in mm)."""
-    head = ["config", "frames", "Recall%", "MPJPE mean", "MPJPE med", "PA mean", "PA med",
-            "AP75", "AP100", "AP125", "AP150", "assoc ms"]
-    body = [[name, str(m.get("frames", "-")), _fmt(m.get("recall"), 100),
-             _fmt(m.get("mpjpe_mean")), _fmt(m.get("mpjpe_median")),
-             _fmt(m.get("pa_mpjpe_mean")), _fmt(m.get("pa_mpjpe_median")),
-             _fmt(m.get("ap75"), 100), _fmt(m.get("ap100"), 100), _fmt(m.get("ap125"), 100),
-             _fmt(m.get("ap150"), 100), _fmt(m.get("association_ms_median"), 1, 2)] for name, m in rows]
-    widths = [max(len(r[i]) for r in [head] + body) for i in range(len(head))]
-    fmt_row = lambda r: "  ".join(c.ljust(w) if i == 0 else c.rjust(w)  # noqa: E731
-                                  for i, (c, w) in enumerate(zip(r, widths)))
-    return "\n".join([fmt_row(head), "  ".join("-" * w for w in widths)] + [fmt_row(r) for r in body])
-
-
-def score_ids(run: Run, gts: list[np.ndarray], gt_masks: list[np.ndarray],
-              gt_ids: list[np.ndarray]) -> dict[str, Any]:
-    """IDF1 / IDP / IDR / ID switches of the run's track ids (players only, and all hypotheses)."""
-    from maem_ros.core.metrics.identity import identity_metrics
-    m = identity_metrics(gt_ids, gts, gt_masks, run.ids, run.preds, players_only=True)
-    everything = identity_metrics(gt_ids, gts, gt_masks, run.ids, run.preds, players_only=False)
-    m["idf1_all_hyp"] = everything["idf1"]
-    return m
-
-
-def format_id_lines(runs: Sequence[Run]) -> list[str]:
-    """One line per configuration: identity source, IDF1 (players only / all), IDP, IDR, switches."""
-    from maem_ros.core.tracking.temporal import TemporalAssociator
-    out = []
-    for r in runs:
-        m = r.metrics
-        if "idf1" not in m:
-            continue
-        source = ("track-assisted association" if isinstance(r.tracker, TemporalAssociator)
-                  else "post-hoc 3D tracker")
-        out.append(f"  {r.name} ({source}): IDF1 {_fmt(m.get('idf1'), 100)}%  "
-                   f"(all hyp. {_fmt(m.get('idf1_all_hyp'), 100)}%)  IDP {_fmt(m.get('idp'), 100)}%"
-                   f"  IDR {_fmt(m.get('idr'), 100)}%  ID switches {m.get('id_switches', '-')}")
-    return out
+# ---- what the triangulation node would publish ---------------------------------------------
 
 
 def _published(run: Run, poses, stamp: int, ids, tri_params
@@ -347,43 +265,6 @@ def _published(run: Run, poses, stamp: int, ids, tri_params
                                            np.asarray(poses.detection_scores), run.joint_filter,
                                            tri_params.pose_score, tri_params.score_ref_m)
     return joints, std, scores, ids
-
-
-def write_pred(path: Path, run: Run, frame_ids: Sequence[int], num_frames: int) -> None:
-    """pose (F,K,13,3) world m (NaN = missing), valid (F,K), score (F,K), id (F,K) int64 track id
-    (-1 = none), joint_std (F,K,13) m (per-joint standard deviation); F = frames considered."""
-    k = max([len(p) for p in run.preds], default=0)
-    pose = np.full((num_frames, k, SPORTCENTER_13.num_joints, 3), np.nan)
-    valid = np.zeros((num_frames, k), bool)
-    score = np.zeros((num_frames, k))
-    ids = np.full((num_frames, k), -1, np.int64)
-    std = np.full((num_frames, k, SPORTCENTER_13.num_joints), np.nan)
-    for f, p, s, i, sd in zip(frame_ids, run.preds, run.scores, run.ids, run.stds):
-        pose[f, :len(p)] = p
-        valid[f, :len(p)] = True
-        score[f, :len(p)] = s
-        ids[f, :len(p)] = i
-        std[f, :len(p)] = sd
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as fh:
-        np.savez_compressed(fh, pose=pose, valid=valid, score=score, id=ids, joint_std=std,
-                            convention=np.array(SPORTCENTER_13.name))
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.bool_):
-        return bool(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        return float(x) if np.isfinite(x) else None
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    return x
 
 
 # ---- CLI --------------------------------------------------------------------------------------
@@ -448,9 +329,46 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     """Run the evaluation described by parsed CLI args; returns the JSON report dict."""
     assoc, tri = load_params(args.params)
     folder = SceneFolder(args.scene)
-    rig = folder.rig
     skips = SkipLog()
     gt = load_gt(folder)
+    views = _usable_views(folder, skips)
+    total = max(folder.num_frames, gt[0].shape[0] if gt is not None else 0)
+    n = total if args.frames is None else min(args.frames, total)
+    runs, det_ids = _make_runs(args, folder, assoc)
+    truth = _run_frames(args, folder, views, runs, tri, gt, det_ids, n, skips)
+    report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
+                              "association_params": assoc.as_mapping(),
+                              "triangulation_params": dataclasses.asdict(tri),
+                              "evaluated_frames": truth.frame_ids, "frames_considered": n}
+    if gt is None:
+        log("maem-eval: scene has no gt.npz: predictions only, no metrics")
+        report["frames"] = len(truth.frame_ids)
+    else:
+        log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
+            f"{len(truth.frame_ids)}/{n} frames evaluated, params {args.params}")
+        report.update(_score_runs(args, runs, truth, log))
+    report["skips"] = dict(skips.counts)
+    report["skip_examples"] = skips.examples
+    log("skipped / excluded inputs:" if skips.counts else "skipped / excluded inputs: none")
+    for line in skips.lines():
+        log(line)
+    _write_outputs(args, report, runs, truth, folder.rig, n, gt is not None, log)
+    return report
+
+
+@dataclass
+class _Truth:
+    """The evaluated frames and, per frame, the ground truth of the people present in it."""
+
+    frame_ids: list[int] = field(default_factory=list)
+    gts: list[np.ndarray] = field(default_factory=list)  # (P,J,3) world m
+    gt_masks: list[np.ndarray] = field(default_factory=list)  # (P,J) bool, joint annotated
+    gt_ids: list[np.ndarray] = field(default_factory=list)  # (P,) gt.npz column = identity
+
+
+def _usable_views(folder: SceneFolder, skips: SkipLog) -> list[str]:
+    """The rig's views that have detection files (the others, and detection folders of no
+    camera, are counted as skips)."""
     views = []
     for view in folder.views:
         if folder.frame_files(view):
@@ -459,8 +377,14 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
             skips.add("view_without_dets", f"view {view!r}: no npz in dets/{view}/")
     for stray in folder.unknown_det_views():
         skips.add("dets_view_without_camera", f"dets/{stray}/ has no cameras/{stray}.json")
-    total = max(folder.num_frames, gt[0].shape[0] if gt is not None else 0)
-    n = total if args.frames is None else min(args.frames, total)
+    return views
+
+
+def _make_runs(args: argparse.Namespace, folder: SceneFolder, assoc
+               ) -> tuple[list[Run], dict[str, np.ndarray] | None]:
+    """The configurations to run (the full one, the ablation rows, the oracle first) and the
+    GT person of every detection when --oracle / --explain need it."""
+    rig = folder.rig
     configs = ([(name, assoc.replaced(o)) for name, o in ABLATION] if args.ablation
                else [("full", assoc)])
     if args.explain and args.temporal == "on":
@@ -478,7 +402,15 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         runs.insert(0, Run("oracle (GT association)", assoc, oracle=True,
                            tracker=make_tracker(rig, assoc, args.params, "off"),
                            joint_filter=make_joint_filter(args.params)))
-    frame_ids, gts, gt_masks, gt_ids = [], [], [], []
+    return runs, det_ids
+
+
+def _run_frames(args: argparse.Namespace, folder: SceneFolder, views: list[str], runs: list[Run],
+                tri, gt, det_ids, n: int, skips: SkipLog) -> _Truth:
+    """Every run on the first ``n`` frames (their predictions go into the runs), with --explain
+    the cause of each lost person; returns the evaluated frames' ground truth."""
+    rig = folder.rig
+    truth = _Truth()
     for f in tqdm(range(n), desc="maem-eval", unit="frame", disable=args.quiet, file=sys.stderr):
         if gt is not None and f >= gt[0].shape[0]:
             skips.add("frame_without_gt", f"frame {f} >= {gt[0].shape[0]} GT frames")
@@ -489,78 +421,73 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
         ids = ({v: det_ids[key] for v in frames if (key := det_ids_key(v, f)) in det_ids}
                if det_ids is not None else None)
         results = [run_frame(run, rig, frames, tri, skips, f, ids) for run in runs]
-        frame_ids.append(f)
-        if gt is not None:
-            present = gt[1][f].any(-1)
-            gts.append(gt[0][f, present])
-            gt_masks.append(gt[1][f, present])
-            gt_ids.append(np.flatnonzero(present))  # gt.npz column = identity
-            masked = int((~gt[1][f, present]).sum())
-            if masked:
-                skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
-            if args.explain:
-                assert ids is not None  # --explain loaded det_ids (checked above)
-                for run, result in zip(runs, results):
-                    if not run.oracle:
-                        explain_run(run, result, rig, ids, gts[-1], gt_masks[-1],
-                                    np.flatnonzero(present))
-    report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
-                              "association_params": assoc.as_mapping(),
-                              "triangulation_params": dataclasses.asdict(tri),
-                              "evaluated_frames": frame_ids, "frames_considered": n}
-    if gt is None:
-        log("maem-eval: scene has no gt.npz: predictions only, no metrics")
-        report["frames"] = len(frame_ids)
-    else:
-        for run in runs:
-            run.metrics = score_run(run, gts, gt_masks, gt_ids)
-        main_run = runs[-1]
-        report.update({k: main_run.metrics.get(k) for k in METRIC_KEYS})
-        report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
-        if args.ablation:
-            report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}}
-                                  for r in runs if not r.oracle]
-        log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
-            f"{len(frame_ids)}/{n} frames evaluated, params {args.params}")
-        log(format_table([(r.name, r.metrics) for r in runs]))
-        log("identities:")
-        for line in format_id_lines(runs):
-            log(line)
-        if args.oracle:
-            report["oracle"] = {k: runs[0].metrics.get(k) for k in METRIC_KEYS}
+        truth.frame_ids.append(f)
+        if gt is None:
+            continue
+        present = gt[1][f].any(-1)
+        truth.gts.append(gt[0][f, present])
+        truth.gt_masks.append(gt[1][f, present])
+        truth.gt_ids.append(np.flatnonzero(present))  # gt.npz column = identity
+        masked = int((~gt[1][f, present]).sum())
+        if masked:
+            skips.add("gt_masked_joints", f"frame {f}: {masked} joints", masked)
         if args.explain:
-            explained = [r for r in runs if not r.oracle]
-            report["explain"] = {r.name: dict(r.causes) for r in explained}
-            log("lost GT person-frames by first cause:")
-            log(format_causes(explained))
-    report["skips"] = dict(skips.counts)
-    report["skip_examples"] = skips.examples
-    log("skipped / excluded inputs:" if skips.counts else "skipped / excluded inputs: none")
-    for line in skips.lines():
+            assert ids is not None  # --explain loaded det_ids (checked above)
+            for run, result in zip(runs, results):
+                if not run.oracle:
+                    explain_run(run, result, rig, ids, truth.gts[-1], truth.gt_masks[-1],
+                                np.flatnonzero(present))
+    return truth
+
+
+def _score_runs(args: argparse.Namespace, runs: list[Run], truth: _Truth, log) -> dict[str, Any]:
+    """Metrics of every run against the ground truth, logged as tables; the report's entries."""
+    for run in runs:
+        run.metrics = score_run(run, truth.gts, truth.gt_masks, truth.gt_ids)
+    main_run = runs[-1]
+    report: dict[str, Any] = {k: main_run.metrics.get(k) for k in METRIC_KEYS}
+    report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
+    if args.ablation:
+        report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}}
+                              for r in runs if not r.oracle]
+    log(format_table([(r.name, r.metrics) for r in runs]))
+    log("identities:")
+    for line in format_id_lines(runs):
         log(line)
+    if args.oracle:
+        report["oracle"] = {k: runs[0].metrics.get(k) for k in METRIC_KEYS}
+    if args.explain:
+        explained = [r for r in runs if not r.oracle]
+        report["explain"] = {r.name: dict(r.causes) for r in explained}
+        log("lost GT person-frames by first cause:")
+        log(format_causes(explained))
+    return report
+
+
+def _write_outputs(args: argparse.Namespace, report: dict[str, Any], runs: list[Run],
+                   truth: _Truth, rig, n: int, has_gt: bool, log) -> None:
+    """--pred, --plots (scenes with ground truth) and --json."""
     if args.pred:
-        write_pred(args.pred, runs[-1], frame_ids, n)
+        write_pred(args.pred, runs[-1], truth.frame_ids, n)
         log(f"predictions -> {str(args.pred)!r}")
-    if args.plots and gt is not None:
+    if args.plots and has_gt:
         from .plots import write_plots
-        written = write_plots(args.plots, runs, frame_ids, gts, gt_masks, rig, args.plot_frame)
+        written = write_plots(args.plots, runs, truth.frame_ids, truth.gts, truth.gt_masks, rig,
+                              args.plot_frame)
         log(f"plots -> {', '.join(str(p) for p in written)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_jsonable(report), indent=2))
-    return report
+        args.json.write_text(json.dumps(jsonable(report), indent=2))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.frames is not None and args.frames < 1:
-        print("maem-eval: --frames must be >= 1", file=sys.stderr)
-        return 2
+        return fail("maem-eval", "--frames must be >= 1")
     try:
         evaluate_scene(args)
     except ValueError as e:  # bad params file, scene folder, rig or GT: nothing to evaluate
-        print(f"maem-eval: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-eval", e)
     return 0
 
 

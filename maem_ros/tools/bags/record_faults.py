@@ -50,7 +50,7 @@ def command(script: str, module: str) -> list[str]:
 
 PLAY = command("maem-play", "maem_ros.ros.player_node")
 RECORD = command("maem-record", "maem_ros.ros.recorder_node")
-BAG = command("maem-bag", "maem_ros.tools.bag")
+BAG = command("maem-bag", "maem_ros.tools.bags.bag")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -421,7 +421,7 @@ def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: flo
 def _default_bag() -> Path:
     """bags/demo of the source checkout (demo_bag.default_bag without importing the
     simulator)."""
-    return Path(__file__).resolve().parents[2] / "bags" / "demo"
+    return Path(__file__).resolve().parents[3] / "bags" / "demo"
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,13 +1,14 @@
 """``maem-calibrate``: calibrate a rig. Subcommands: ``people`` (from the players,
-tools/calibrate_people.py) and ``board`` (from a ChArUco or checkerboard,
-tools/calibrate_board.py). How-to: doc/calibration.md."""
+tools/calibrate/calibrate_people.py) and ``board`` (from a ChArUco or checkerboard,
+tools/calibrate/calibrate_board.py). How-to: doc/calibration.md."""
 from __future__ import annotations
 
 import argparse
 import importlib
 import importlib.util
 
-SUBCOMMANDS = {"people": "maem_ros.tools.calibrate_people", "board": "maem_ros.tools.calibrate_board"}
+SUBCOMMANDS = {"people": "maem_ros.tools.calibrate.calibrate_people",
+               "board": "maem_ros.tools.calibrate.calibrate_board"}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -37,6 +37,7 @@ from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.core.interchange import SceneFolder, outputs_to_detections, read_gt, read_maem_npz
 from maem_ros.ros import wire
+from maem_ros.tools.cli import fail
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000
 IMAGE_FORMATS = {".jpg": "jpeg", ".jpeg": "jpeg", ".png": "png"}
@@ -441,29 +442,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     a = p.parse_args(argv)
     report = Report()
     if a.out.exists():
-        print(f"maem-make-bag: output {str(a.out)!r} exists already; not overwriting", file=sys.stderr)
-        return 2
+        return fail("maem-make-bag", f"output {str(a.out)!r} exists already; not overwriting")
     for opt in ("dets", "gt"):
         path = getattr(a, opt)
         if path is not None and not path.exists():
-            print(f"maem-make-bag: --{opt} {str(path)!r}: no such file or folder", file=sys.stderr)
-            return 2
+            return fail("maem-make-bag", f"--{opt} {str(path)!r}: no such file or folder")
     if a.start_stamp is not None and a.start_stamp < 0:
         p.error(f"--start-stamp: must be >= 0, got {a.start_stamp}")
     try:
         src = resolve_sources(a, p, report)
         w = make_bag(a.out, src, a, report)
     except ValueError as e:
-        print(f"maem-make-bag: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-make-bag", e)
     for line in report.lines():
         print(f"maem-make-bag: {line}", file=sys.stderr)
     data_msgs = sum(n for t, n in w.counts.items() if t.endswith(("/compressed", "/detections")))
     print(f"maem-make-bag: wrote {w.message_count} messages ({len(src.frames)} frames, "
           f"{len([t for t in w.counts if t.endswith('/camera_info')])} cameras) to {str(a.out)!r}")
     if data_msgs == 0:
-        print("maem-make-bag: no image or detection could be written", file=sys.stderr)
-        return 1
+        return fail("maem-make-bag", "no image or detection could be written", 1)
     return 0
 
 

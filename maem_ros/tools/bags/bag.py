@@ -17,8 +17,7 @@ from collections.abc import Sequence
 
 from maem_ros.bagio import BagError, bag_info
 from maem_ros.bagio.recover import format_report, recover
-
-EXIT_BAD_INPUT = 2
+from maem_ros.tools.cli import fail
 
 
 def _duration(info) -> float:
@@ -73,11 +72,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             print("\n".join(format_report(recover(args.bag, args.out))), flush=True)
     except BagError as e:
-        print(f"maem-bag: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail("maem-bag", e)
     except OSError as e:
-        print(f"maem-bag: {args.bag}: {e.strerror or e}", file=sys.stderr)
-        return 1
+        return fail("maem-bag", f"{args.bag}: {e.strerror or e}", 1)
     return 0
 
 

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.detections import FrameDetections
-from ..core.geometry.camera import Rig
-from ..core.interchange import DEFAULT_FPS, index_frame_files, outputs_to_detections, read_maem_npz
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.interchange import DEFAULT_FPS, index_frame_files, outputs_to_detections, read_maem_npz
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -49,8 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..core.calibrate.people import calibrate_people
-    from ..core.calibrate.people_data import people_data
+    from maem_ros.core.calibrate.people import calibrate_people
+    from maem_ros.core.calibrate.people_data import people_data
+
     from .calibrate_report import print_summary, write_report
     try:
         opts = _options(args)
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     fmt = args.format or ("toml" if args.out.suffix.lower() == ".toml" else "yaml")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "toml":
-        from ..core.geometry.rig_formats import write_pose2sim_toml
+        from maem_ros.core.geometry.rig_formats import write_pose2sim_toml
         write_pose2sim_toml(args.out, result.rig.cameras)
     else:
         result.rig.to_yaml(args.out)
@@ -84,8 +85,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _options(args):
-    from ..core.calibrate.court import read_court_points
-    from ..core.calibrate.people import PeopleOptions
+    from maem_ros.core.calibrate.court import read_court_points
+    from maem_ros.core.calibrate.people import PeopleOptions
     if args.person_height is not None and not (0.5 < args.person_height < 2.6):
         raise BadInput(f"--person-height: {args.person_height} m is not a person's stature")
     if args.frames is not None and args.frames < 2:
@@ -142,8 +143,8 @@ def _scene_folder(src: Path, intr: Rig, max_frames: int | None):
 
 
 def _bag(src: Path, intr: Rig, max_frames: int | None):
-    from .. import bagio
-    from ..ros.wire import msg_to_detections  # the wire decoder (needs rclpy's message types)
+    from maem_ros import bagio
+    from maem_ros.ros.wire import msg_to_detections  # the wire decoder (needs rclpy's message types)
     info = bagio.bag_info(src)
     topics = sorted(t for t in info.topics if t.endswith("/detections"))
     if not topics:
@@ -177,7 +178,7 @@ def _media(src: Path, intr: Rig, args):
     """Per-camera image folders or videos through a frontend backend."""
     import cv2
 
-    from ..frontend.base import make_estimator
+    from maem_ros.frontend.base import make_estimator
     entries = {}
     for p in sorted(src.iterdir()):
         if p.is_dir() and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()):

@@ -30,9 +30,8 @@ from pathlib import Path
 from maem_ros import bagio
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import CONVENTIONS
+from maem_ros.tools.cli import fail
 from maem_ros.viz.scene import camera_info_fields
-
-EXIT_BAD_INPUT = 2
 
 
 class InputError(ValueError):
@@ -238,8 +237,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return run_bag(args, log=lambda *a, **k: print(*a, **{"flush": True, **k}))
     except InputError as e:
-        print(f"maem-foxglove: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail("maem-foxglove", e)
 
 
 if __name__ == "__main__":

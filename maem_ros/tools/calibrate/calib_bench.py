@@ -28,15 +28,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ..core.calibrate.court import CourtPoints
-from ..core.calibrate.people import PeopleOptions, calibrate_people
-from ..core.calibrate.people_data import people_data
-from ..core.geometry.camera import Camera, Rig
-from ..core.geometry.procrustes import procrustes_align
-from ..sim.rigs import look_at
-from ..sim.scene import Scene, SceneConfig
+from maem_ros.core.calibrate.court import CourtPoints
+from maem_ros.core.calibrate.people import PeopleOptions, calibrate_people
+from maem_ros.core.calibrate.people_data import people_data
+from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.core.geometry.procrustes import procrustes_align
+from maem_ros.sim.rigs import look_at
+from maem_ros.sim.scene import Scene, SceneConfig
 
-COURT_FILE = Path(__file__).resolve().parents[2] / "config" / "court_points_fiba.yaml"
+COURT_FILE = Path(__file__).resolve().parents[3] / "config" / "court_points_fiba.yaml"
 
 
 def ring_rig(n: int, radius: float, height: float, seed: int) -> Rig:

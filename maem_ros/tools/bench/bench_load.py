@@ -31,7 +31,7 @@ COURT_HALF = (13.0, 6.5)
 def ring_rig(num_cameras: int = 16) -> Rig:
     """``num_cameras`` elevated cameras on an ellipse around the court, all looking at its centre
     (1920x1080, f 1000 px, mild plumb_bob distortion): every player is seen by every camera."""
-    from ..sim.rigs import look_at
+    from maem_ros.sim.rigs import look_at
 
     cams = []
     for k in range(num_cameras):
@@ -49,7 +49,7 @@ def load_bench_rig(name: str) -> Rig:
     """``ring16`` (the large load's rig), or a shipped rig name / rig file."""
     if name.startswith("ring") and name[4:].isdigit():
         return ring_rig(int(name[4:]))
-    from ..sim.rigs import load_rig
+    from maem_ros.sim.rigs import load_rig
     return load_rig(name)
 
 

@@ -1,8 +1,8 @@
 """maem-soak: run the multi-process graph for minutes; report RSS per node and every drop.
 
-    maem-soak --minutes 10 --rate 10            (python -m maem_ros.tools.soak)
+    maem-soak --minutes 10 --rate 10            (python -m maem_ros.tools.bench.soak)
 
-Starts the graph of tools/latency.py (one synthetic frontend per camera, association,
+Starts the graph of tools/bench/latency.py (one synthetic frontend per camera, association,
 triangulation as separate processes), publishes one tiny image per camera per scene frame at
 ``--rate`` Hz for ``--minutes`` (a scene that long, so stamps never go back) with optional
 faults (``--lag-camera``, ``--stale-every``), samples each node's resident memory (VmRSS) every
@@ -18,7 +18,6 @@ frame that did not produce poses is accounted for). A soak is a tool, not a test
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -26,12 +25,18 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from maem_ros.params import load_node_params
 from maem_ros.ros.common import load_rig_param
 from maem_ros.ros.probe import ReplayClient
-from maem_ros.tools.latency import Faults, GraphProcesses, make_scene, write_params
+from maem_ros.tools.bench.latency import (
+    Faults,
+    GraphProcesses,
+    add_fault_arguments,
+    faults_from,
+    make_scene,
+    write_params,
+)
+from maem_ros.tools.cli import add_json_argument, add_params_argument, check_params_file, fail, print_report
 
 
 def rss_mb(pid: int) -> float:
@@ -141,7 +146,7 @@ def run(params_file: Path, minutes: float, rate_hz: float, log_dir: Path, sample
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="maem-soak", description=__doc__.splitlines()[0])
-    ap.add_argument("--params", default="demo.yaml", help="params file (default config/demo.yaml)")
+    add_params_argument(ap, "demo.yaml")
     ap.add_argument("--minutes", type=float, default=10.0, help="soak duration (default 10)")
     ap.add_argument("--rate", type=float, default=10.0, help="frames per second (default 10)")
     ap.add_argument("--num-vertices", type=int, default=300,
@@ -149,25 +154,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--sample", type=float, default=10.0, help="RSS sample period, s")
     ap.add_argument("--warmup", type=float, default=30.0,
                     help="RSS baseline taken this many s in (imports, kernels, first frames)")
-    ap.add_argument("--lag-camera", default=None, help="fault: this camera's images come late")
-    ap.add_argument("--lag-ms", type=float, default=300.0, help="fault: its lag, ms")
-    ap.add_argument("--stale-every", type=float, default=0.0,
-                    help="fault: every this many s one camera gets a stale stamp (0 = off)")
+    add_fault_arguments(ap)
     ap.add_argument("--log-dir", type=Path, default=None, help="node logs (default: a temp dir)")
-    ap.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_json_argument(ap)
     a = ap.parse_args(argv)
     if not (a.minutes > 0 and a.rate > 0 and a.sample > 0):
-        print("maem-soak: --minutes, --rate and --sample must be > 0", file=sys.stderr)
-        return 2
+        return fail("maem-soak", "--minutes, --rate and --sample must be > 0")
+    try:
+        check_params_file(a.params)
+    except ValueError as e:
+        return fail("maem-soak", e)
     tmp = Path(tempfile.mkdtemp(prefix="maem_soak_"))
     frames = int(round(a.minutes * 60 * a.rate)) + 1
     params = write_params(a.params, tmp / "params.yaml",
                           frontend={"frames": frames, "num_vertices": a.num_vertices,
                                     "fps": a.rate})
-    faults = Faults(a.lag_camera, a.lag_ms / 1e3, a.stale_every)
     report = run(params, a.minutes, a.rate, a.log_dir or tmp / "logs", a.sample,
-                 min(a.warmup, a.minutes * 30), faults)
-    print(json.dumps(report, indent=2) if a.json else yaml.safe_dump(report, sort_keys=False))
+                 min(a.warmup, a.minutes * 30), faults_from(a))
+    print_report(report, a.json)
     return 0
 
 

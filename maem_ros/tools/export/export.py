@@ -36,11 +36,11 @@ import numpy as np
 from maem_ros import bagio
 from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
 from maem_ros.ros import wire
+from maem_ros.tools.cli import fail
 
 #: poses id of a person without a confirmed track
 UNTRACKED = wire.UNTRACKED_ID
 FORMATS = ("trc", "c3d", "csv")
-EXIT_BAD_INPUT = 2
 
 
 class InputError(ValueError):
@@ -339,8 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         export(args)
     except InputError as e:
-        print(f"maem-export: {e}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return fail("maem-export", e)
     return 0
 
 

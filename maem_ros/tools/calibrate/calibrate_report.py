@@ -9,8 +9,8 @@ from typing import TextIO
 
 import numpy as np
 
-from ..core.calibrate.people import PeopleCalibration
-from ..core.calibrate.people_data import PeopleData
+from maem_ros.core.calibrate.people import PeopleCalibration
+from maem_ros.core.calibrate.people_data import PeopleData
 
 
 def print_summary(result: PeopleCalibration, data: PeopleData, out: TextIO) -> None:

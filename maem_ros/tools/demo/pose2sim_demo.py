@@ -28,6 +28,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from maem_ros.tools.cli import fail
+
 POSE2SIM_VERSION = "0.10.49"
 DEMO_PREFIX = "Pose2Sim/Demo_MultiPerson/"
 BOARD_DEMO_PREFIX = "Pose2Sim/Demo_SinglePerson/calibration/"
@@ -134,7 +136,7 @@ def run_offline(root: Path, frames: int | None) -> dict:
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.params import load_node_params
     from maem_ros.ros.wire import UNTRACKED_ID, PoseFrame
-    from maem_ros.tools import demo_metrics as dm
+    from maem_ros.tools.demo import demo_metrics as dm
     rig = Rig.load(root / "calibration" / "Calib.qca.txt")
     node = {n: load_node_params("mediapipe.yaml", n) for n in ("frontend", "association",
                                                               "triangulation")}
@@ -236,21 +238,19 @@ def bench_frontend(root: Path, frames: int) -> dict:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    from maem_ros.tools import demo, make_bag
+    from maem_ros.tools.bags import make_bag
+    from maem_ros.tools.demo import demo
     try:
         root = fetch_demo(a.cache)
     except RuntimeError as e:
-        print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-pose2sim-demo", e)
     if a.bench is not None:
         if a.bench < 2:
-            print("maem-pose2sim-demo: --bench needs N >= 2 frames", file=sys.stderr)
-            return 2
+            return fail("maem-pose2sim-demo", "--bench needs N >= 2 frames")
         try:
             result = bench_frontend(root, a.bench)
         except ImportError as e:
-            print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
-            return 2
+            return fail("maem-pose2sim-demo", e)
         print("mediapipe frontend, in-process, one image at a time (frame 0 excluded): "
               + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
                           for k, v in result.items()))
@@ -261,8 +261,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             report = run_offline(root, a.frames)
         except ImportError as e:
-            print(f"maem-pose2sim-demo: {e}", file=sys.stderr)
-            return 2
+            return fail("maem-pose2sim-demo", e)
         a.out.mkdir(parents=True, exist_ok=True)
         (a.out / "report_offline.json").write_text(json.dumps(report, indent=2))
         people = report["people_per_frame"]

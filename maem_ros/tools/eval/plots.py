@@ -104,7 +104,7 @@ def plot_court(path: Path, frame: int, gt: np.ndarray, pred: np.ndarray, rig: Ri
     Left: the whole court with every person's position (circle = GT, cross = estimate, grey line
     = matched pair). Right: each GT person zoomed to +-1 m with its MPJPE.
     """
-    from ..sim.rigs import court_corners
+    from maem_ros.sim.rigs import court_corners
     plt = _pyplot()
     n_zoom = min(len(gt), max_zoom)
     cols = 3 if n_zoom > 4 else 2

@@ -16,14 +16,14 @@ from maem_ros.core.colors import id_bgr8
 from maem_ros.core.metrics.poses import evaluate_sequence
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros.wire import UNTRACKED_ID, msg_to_poses
-from maem_ros.tools.demo_bag import DemoBag, image_topic
-from maem_ros.tools.evaluate import format_table
-from maem_ros.tools.plots import plot_court
+from maem_ros.tools.demo.demo_bag import DemoBag, image_topic
+from maem_ros.tools.eval.plots import plot_court
+from maem_ros.tools.eval.results import format_table
 
 
 @dataclass
 class GraphRun:
-    """Outcome of one graph replay (tools/demo.run_graph)."""
+    """Outcome of one graph replay (tools/demo/demo_graph.run_graph)."""
 
     exit_codes: dict[str, int | None]
     crashed: dict[str, str]  # process -> what happened (+ log tail)

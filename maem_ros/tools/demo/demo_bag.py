@@ -15,11 +15,11 @@ from maem_ros.core.interchange import SceneFolder
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros.wire import msg_to_poses
 from maem_ros.sim.scene import Scene, SceneConfig
-from maem_ros.tools import make_bag
-from maem_ros.tools.evaluate import to_sportcenter13
+from maem_ros.tools.bags import make_bag
+from maem_ros.tools.eval.evaluate import to_sportcenter13
 from maem_ros.tools.simulate import gt_arrays
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+REPO_ROOT = Path(__file__).resolve().parents[3]
 #: the committed demo bag's scene (maem-demo --make-bag)
 DEMO_SCENE: dict[str, Any] = {"rig": "sportcenter6", "frames": 30, "fps": 30.0, "seed": 0,
                               "difficulty": "medium", "num_vertices": 18439, "players": 10,

@@ -41,10 +41,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import random
 import shutil
-import signal
 import sys
 import time
 from collections.abc import Sequence
@@ -53,35 +50,31 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from maem_ros import bagio
-from maem_ros.core.association import pipeline as association
 from maem_ros.core.association.pipeline import associate
 from maem_ros.core.errors import InputError
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.sync import capture_stamp_ns, match_capture_times
-from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
 from maem_ros.core.triangulation.ransac import triangulate
-from maem_ros.params import load_node_params, resolve_config_path
-from maem_ros.ros.probe import ArrivalListener, fusion_links, unmatched_links
+from maem_ros.params import load_node_params
 from maem_ros.ros.wire import msg_to_detections
-from maem_ros.tools.demo_bag import (
+from maem_ros.tools.cli import fail
+from maem_ros.tools.demo.demo_bag import (
     BAG_VERTICES,
     DEMO_SCENE,
     JPEG_QUALITY,
     DemoBag,
     check_scene,
     ensure_bag,
-    image_topic,
     load_bag,
     log,
     make_demo_bag,
     trim_bag,
 )
-from maem_ros.tools.demo_report import (
+from maem_ros.tools.demo.demo_graph import LOCKSTEP_BACKENDS, DemoError, run_graph, write_params
+from maem_ros.tools.demo.demo_report import (
     LATENCY_DEFINITION,
-    GraphRun,
     format_timing,
     latencies_ms,
     print_accuracy,
@@ -92,8 +85,8 @@ from maem_ros.tools.demo_report import (
     stage_timing,
     write_pictures,
 )
-from maem_ros.tools.evaluate import _jsonable, load_params, to_sportcenter13
-from maem_ros.tools.processes import Proc, ProcessGroup, module_command, node_command
+from maem_ros.tools.eval.evaluate import load_params, to_sportcenter13
+from maem_ros.tools.eval.results import jsonable
 
 #: default playback rate of the recorded detections: real time
 DEFAULT_RATE = 1.0
@@ -107,264 +100,6 @@ FRONTENDS_RATE = 0.05
 #: image on a small machine, share its cores, so the replay goes in lockstep and the
 #: association waits up to 3 s for a frame's last camera
 BACKENDS = {"synthetic": ("demo.yaml", None, 1.0), "mediapipe": ("mediapipe.yaml", 1.0, 3.0)}
-#: backends whose replay goes in lockstep with the graph (the player publishes the next frame
-#: when /maem/clusters has the last one, images reliable): CPU frontends slower than the
-#: recording would otherwise lose images (best-effort queues) or miss their frame set
-LOCKSTEP_BACKENDS = ("mediapipe",)
-LOCKSTEP_TOPIC = "/maem/clusters"
-#: longest lockstep wait per frame (s): four frontends at up to a few s per image each
-LOCKSTEP_TIMEOUT_S = 60.0
-RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/maem/clusters", "/diagnostics")
-
-
-# ---------------------------------------------------------------------------------------------
-# params
-# ---------------------------------------------------------------------------------------------
-#: frontend scene keys that would override scene_dict: set to their "unset" sentinels
-_SCENE_SENTINELS = {"seed": -1, "difficulty": "", "frames": 0, "num_vertices": 0, "fps": 0.0,
-                    "start_stamp_ns": -1}
-
-
-def node_section(data: dict, node: str) -> dict:
-    """The ros__parameters of ``node`` in a params dict, merged from its "node", "/node" and
-    "/**/node" sections into one "/**/node" section (which also matches the namespaced
-    frontends, /camera_0/frontend; a plain "frontend" key matches only /frontend)."""
-    merged: dict = {}
-    for key in (node, f"/{node}", f"/**/{node}"):
-        merged.update(((data.pop(key, None) or {}).get("ros__parameters")) or {})
-    data[f"/**/{node}"] = {"ros__parameters": merged}
-    return merged
-
-
-def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None,
-                 max_wait_s: float | None = 1.0, frontends: bool = True,
-                 backend: str | None = None) -> Path:
-    """``base`` params file with the bag's rig for every node; with ``frontends``, for them
-    compressed images and the bag's scene description (the synthetic backend regenerates from
-    it); for the association ``max_wait_s`` (s, None = the params file's; the six frontends
-    share the CPU, so one frame's detections arrive spread over a few hundred ms); ``backend``
-    replaces the frontends' backend."""
-    data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
-    nodes = {name: node_section(data, name)
-             for name in ("frontend", "association", "triangulation")}
-    data.setdefault("/**", {}).setdefault("ros__parameters", {})["rig"] = str(rig_path)
-    for section in nodes.values():
-        if "rig" in section:
-            section["rig"] = str(rig_path)
-    fe = nodes["frontend"]
-    fe["image_transport"] = "compressed"
-    if backend is not None:
-        fe["backend"] = backend
-    if backend in LOCKSTEP_BACKENDS:  # the player publishes them reliable: lose none
-        fe["image_reliability"] = "reliable"
-    if frontends and fe.get("backend", "synthetic") == "synthetic":
-        if scene_config is None:
-            raise ValueError("the bag has no scene description (/maem/scene): the synthetic "
-                             "frontend cannot regenerate its detections")
-        fe.update(_SCENE_SENTINELS)
-        fe["scene_dict"] = json.dumps(scene_config, sort_keys=True)
-        fe["scene_rig"] = str(scene_config.get("rig", ""))
-    if max_wait_s is not None:
-        nodes["association"]["max_wait"] = float(max_wait_s)
-    for name in ("association", "triangulation"):  # the demo scores every frame of the bag
-        nodes[name]["keep_every_set"] = True
-    out.write_text(yaml.safe_dump(data, sort_keys=False))
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# the graph: processes, wiring, replay
-# ---------------------------------------------------------------------------------------------
-def child_env() -> dict[str, str]:
-    """Environment of the children: a private random ROS_DOMAIN_ID unless the user set one, and
-    localhost-only discovery, so two demos (or a demo and a test run) never hear each other."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    env.setdefault("ROS_DOMAIN_ID", str(random.SystemRandom().randint(1, 100)))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env.setdefault("OMP_NUM_THREADS", "1")
-    return env
-
-
-def missing_links(listener: ArrivalListener, cameras: Sequence[str],
-                  frontends: bool = True) -> list[str]:
-    """What is not wired yet (empty = frontends, association, triangulation, recorder ready).
-
-    The ROS graph must list every subscriber, and the links between the nodes must be matched
-    at both ends (the nodes' /diagnostics): a message sent before its link matched is lost,
-    though the graph already lists both nodes (CI saw the first 5 frames' clusters lost).
-    /maem/poses: the recorder's and this listener's readers."""
-    need = [(image_topic(c), 2, "frontend") for c in cameras] if frontends else []
-    # without frontends the player publishes the detections: association + this listener
-    need += [(f"/{c}/detections", 1 if frontends else 2, "association") for c in cameras]
-    need += [("/maem/clusters", 1, "triangulation"), ("/maem/poses", 2, "recorder"),
-             ("/maem/skeletons", 1, "recorder"), ("/diagnostics", 1, "recorder")]
-    listed = [f"{topic} has no {who} subscriber" for topic, k, who in need
-              if listener.count_subscribers(topic) < k]
-    links = fusion_links(cameras, "image_raw/compressed" if frontends else None, sources=False)
-    return listed + [f"{link} not matched" for link in unmatched_links(
-        listener.diagnostics_snapshot(), links, at_least={"matched_subscribers/maem/poses": 2})]
-
-
-class DemoError(RuntimeError):
-    """The graph could not run (start-up failure, crash without --keep-going)."""
-
-
-def _crash_text(proc: Proc, code: int | None) -> str:
-    if code is None:
-        what = "did not exit within the SIGINT timeout; killed"
-    elif code < 0:
-        what = f"killed by signal {signal.Signals(-code).name}"
-    else:
-        what = f"exit code {code}"
-    return f"{proc.name}: {what}\n    " + "\n    ".join(proc.tail().rstrip().splitlines()[-12:])
-
-
-def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out: Path,
-              rate: float, keep_going: bool, startup_timeout_s: float = 60.0,
-              drain_s: float = 5.0, frontends: bool = False, lockstep: bool = False) -> GraphRun:
-    """Start recorder + nodes, wait until wired, play ``bag`` (whose frames are ``stamps``:
-    its recorded detections, or with ``frontends`` its images; ``lockstep``: one frame at a
-    time, each when the last one's clusters came, images reliable), wait until every frame has
-    poses (or none came for ``drain_s``), SIGINT everything."""
-    warm_numba_cache()
-    group = ProcessGroup(out / "logs", child_env())
-    record = out / "record"
-    nodes = ([f"frontend_{c}" for c in demo.cameras] if frontends else []) + \
-        ["association", "triangulation"]
-    listener = None
-    crashed: dict[str, str] = {}
-    try:
-        group.start("recorder", module_command("maem_ros.ros.recorder_node", str(record),
-                                               "--topics", *RECORD_TOPICS))
-        for c in (demo.cameras if frontends else []):
-            group.start(f"frontend_{c}", node_command("frontend", params, f"/{c}"))
-        for kind in ("association", "triangulation"):
-            group.start(kind, node_command(kind, params))
-        # the listener (this process) joins the children's domain and discovery range
-        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE",
-                              group.env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
-        if frontends:
-            listener = ArrivalListener([image_topic(c) for c in demo.cameras],
-                                       int(group.env["ROS_DOMAIN_ID"]))
-        else:
-            from sensor_msgs.msg import PointCloud2
-            listener = ArrivalListener([f"/{c}/detections" for c in demo.cameras],
-                                       int(group.env["ROS_DOMAIN_ID"]), input_type=PointCloud2)
-        _wait_wired(group, listener, demo.cameras, startup_timeout_s, frontends)
-        t0 = time.monotonic()
-        played, dropped = (("/*/image_raw/compressed", "/*/detections") if frontends
-                           else ("/*/detections", "/*/image_raw/compressed"))
-        group.start("player", module_command(
-            "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
-            "--wait-subscribers", f"{startup_timeout_s:g}", "--wait-topics", played,
-            "--min-subscribers", "2",  # the frontend / association and this process's listener
-            "--exclude", dropped, bagio.GT_TOPIC,
-            *(("--lockstep", LOCKSTEP_TOPIC, "--lockstep-timeout", f"{LOCKSTEP_TIMEOUT_S:g}",
-               "--reliable-images") if lockstep else ())))
-        crashed.update(_watch_play(group, nodes + ["recorder"], keep_going,
-                                   _progress(listener, len(stamps))))
-        _drain(group, listener, stamps, drain_s, nodes, crashed, keep_going)
-        wall = time.monotonic() - t0
-        time.sleep(1.3)  # one more /diagnostics period reaches the recorder
-        codes = group.stop(nodes)
-        codes["player"] = group.procs["player"].popen.returncode
-        codes.update(group.stop(["recorder"], timeout_s=15.0))
-    finally:
-        group.shutdown()
-        if listener is not None:
-            image_t, poses_t = listener.snapshot()
-            listener.close()
-    for name, code in codes.items():
-        if code != 0 and name not in crashed:
-            crashed[name] = _crash_text(group.procs[name], code)
-    return GraphRun(codes, crashed, image_t, poses_t, wall, record)
-
-
-def warm_numba_cache() -> None:
-    """Compile the gates' and RANSAC kernels here (numba's on-disk cache) so the nodes load
-    them at start instead of compiling them for seconds while frames queue up."""
-    t0 = time.monotonic()
-    association.warmup()
-    triangulation_kernel.warmup()
-    dt = time.monotonic() - t0
-    if dt > 1.0:
-        log(f"compiled the numba kernels in {dt:.1f} s (cached for the nodes)")
-
-
-def _progress(listener: ArrivalListener, total: int, period_s: float = 1.0):
-    """A callable printing one progress line (frames in, frames with poses) every period_s;
-    rewritten in place on a terminal."""
-    state = {"next": time.monotonic() + period_s}
-    tty = sys.stdout.isatty()
-
-    def show(final: bool = False) -> None:
-        now = time.monotonic()
-        if not final and now < state["next"]:
-            return
-        state["next"] = now + period_s
-        inputs, poses = listener.snapshot()
-        text = f"maem-demo: played {len(inputs)}/{total} frames, poses for {len(poses)}"
-        print(("\r" + text + ("\n" if final else "")) if tty else text, end="" if tty else "\n",
-              flush=True)
-    return show
-
-
-def _wait_wired(group: ProcessGroup, listener: ArrivalListener, cameras: Sequence[str],
-                timeout_s: float, frontends: bool = True) -> None:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        dead = group.dead()
-        if dead:
-            raise DemoError("process exited during start-up:\n  " + "\n  ".join(
-                _crash_text(group.procs[n], c) for n, c in dead.items()))
-        missing = missing_links(listener, cameras, frontends)
-        if not missing:
-            return
-        if time.monotonic() > deadline:
-            raise DemoError(f"graph not wired after {timeout_s:.0f} s: {'; '.join(missing)}")
-        time.sleep(0.2)
-
-
-def _watch_play(group: ProcessGroup, watched: list[str], keep_going: bool,
-                progress=None) -> dict[str, str]:
-    """Wait for the player to finish; a crashed node aborts unless ``keep_going``."""
-    crashed: dict[str, str] = {}
-    player = group.procs["player"].popen
-    while player.poll() is None:
-        _check_crashes(group, watched, crashed, keep_going)
-        if progress is not None:
-            progress()
-        time.sleep(0.1)
-    _check_crashes(group, watched, crashed, keep_going)
-    if progress is not None:
-        progress(final=True)
-    return crashed
-
-
-def _check_crashes(group: ProcessGroup, watched: list[str], crashed: dict[str, str],
-                   keep_going: bool) -> None:
-    for name, code in group.dead(watched).items():
-        if name not in crashed:
-            crashed[name] = _crash_text(group.procs[name], code)
-            if keep_going:
-                log(f"NODE CRASHED (--keep-going: replay continues): {crashed[name]}")
-            else:
-                raise DemoError(f"{name} crashed during the replay (use --keep-going to finish "
-                                f"the replay anyway):\n  {crashed[name]}")
-
-
-def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: Sequence[int], idle_s: float,
-           nodes: list[str], crashed: dict[str, str], keep_going: bool) -> None:
-    """Wait until every frame has its poses, or no new poses arrived for ``idle_s``."""
-    last_n, last_change = -1, time.monotonic()
-    while time.monotonic() - last_change < idle_s:
-        _check_crashes(group, nodes + ["recorder"], crashed, keep_going)
-        _, poses = listener.snapshot()
-        if all(s in poses for s in stamps):
-            return
-        if len(poses) != last_n:
-            last_n, last_change = len(poses), time.monotonic()
-        time.sleep(0.1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -496,26 +231,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             make_demo_bag(a.make_bag, frames=a.bag_frames)
         except (ValueError, RuntimeError) as e:
-            print(f"maem-demo: {e}", file=sys.stderr)
-            return 2
+            return fail("maem-demo", e)
         return 0
     if a.rate is None:
         a.rate = FRONTENDS_RATE if a.frontends else DEFAULT_RATE
     if not a.rate > 0:
-        print(f"maem-demo: --rate must be > 0, got {a.rate}", file=sys.stderr)
-        return 2
+        return fail("maem-demo", f"--rate must be > 0, got {a.rate}")
     if (a.frames is not None and a.frames < 1) or (a.duration is not None and a.duration <= 0):
-        print("maem-demo: --frames / --duration must be positive", file=sys.stderr)
-        return 2
+        return fail("maem-demo", "--frames / --duration must be positive")
     t_start = time.monotonic()
     try:
         return run_demo(a, t_start)
     except InputError as e:  # the bag (missing, damaged, not a demo bag), the params file
-        print(f"maem-demo: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-demo", e)
     except (ValueError, DemoError) as e:
-        print(f"maem-demo: {e}", file=sys.stderr)
-        return 1
+        return fail("maem-demo", e, 1)
 
 
 def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
@@ -601,7 +331,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
     """people_per_frame, reprojection and bone-length stability of the recorded run (printed)."""
     from maem_ros.core.skeleton import get_convention
     from maem_ros.params import load_node_params
-    from maem_ros.tools import demo_metrics as dm
+    from maem_ros.tools.demo import demo_metrics as dm
     _, tri = load_params(str(params))
     conv = get_convention(load_node_params(params, "triangulation")
                           .get("output_convention", "sportcenter_13"))
@@ -652,7 +382,7 @@ def run_demo(a: argparse.Namespace, t_start: float) -> int:
               "cameras": demo.cameras,
               "mode": "offline" if a.no_graph else "graph", "rate": a.rate, **entries,
               "pictures": [str(p) for p in pictures], "wall_s": time.monotonic() - t_start}
-    (a.out / "report.json").write_text(json.dumps(_jsonable(report), indent=2))
+    (a.out / "report.json").write_text(json.dumps(jsonable(report), indent=2))
     print(f"\nwrote {', '.join(str(p) for p in pictures) or 'no pictures (no frame with poses)'}, "
           f"{a.out / 'report.json'}")
     log(f"done in {report['wall_s']:.1f} s")

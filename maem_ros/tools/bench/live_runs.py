@@ -4,10 +4,10 @@ CPU hog.
     maem-bench --live --rate 60 --frames 600 --runs 10            # median and worst run
     maem-bench --live --rate 60 --frames 600 --stress 5           # a 5 s hog on CPU 0 mid-run
 
-One live run (tools/live.py) can be lucky or unlucky on a shared machine; ``--runs N`` repeats
+One live run (tools/bench/live.py) can be lucky or unlucky on a shared machine; ``--runs N`` repeats
 it and reports each run's figures (:func:`summary`), their median and their worst (the highest
 latency, most frames without poses, lowest live recall, ... each over the runs) beside the
-issue's targets. ``--stress S`` starts a CPU hog (``python -m maem_ros.tools.live_runs --hog``:
+issue's targets. ``--stress S`` starts a CPU hog (``python -m maem_ros.tools.bench.live_runs --hog``:
 a busy loop pinned to one CPU, at normal priority, as a neighbour's job would be) for S seconds
 in the middle of each run and reports the latency during it and how long after it stops the
 latency takes to come back (:func:`stress_figures`), and whether every frame without poses is
@@ -59,7 +59,7 @@ def hog_main(a: argparse.Namespace) -> int:
 
 def start_hog(start_at: float, seconds: float, cpu: int = 0) -> subprocess.Popen:
     """The hog process, waiting for ``start_at`` (epoch s)."""
-    return subprocess.Popen([sys.executable, "-m", "maem_ros.tools.live_runs", "--hog",
+    return subprocess.Popen([sys.executable, "-m", "maem_ros.tools.bench.live_runs", "--hog",
                              "--start-at", repr(start_at), "--seconds", repr(seconds),
                              "--cpu", str(cpu)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -190,7 +190,7 @@ def aggregate(summaries: list[dict[str, Any]], rate: float) -> dict[str, Any]:
 
 def run_repeated(a: argparse.Namespace,
                  run_live: Callable[[argparse.Namespace], dict[str, Any]]) -> dict[str, Any]:
-    """``a.runs`` live runs (``run_live``: tools/live.run_live) one after the other: each run's
+    """``a.runs`` live runs (``run_live``: tools/bench/live.run_live) one after the other: each run's
     summary, the median, the worst (with a single run: that run's full report, with its
     summary)."""
     reports = []
@@ -234,7 +234,7 @@ def check_arguments(a: argparse.Namespace) -> None:
 
 
 def _hog_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m maem_ros.tools.live_runs")
+    p = argparse.ArgumentParser(prog="python -m maem_ros.tools.bench.live_runs")
     p.add_argument("--hog", action="store_true", required=True)
     p.add_argument("--start-at", type=float, required=True, help="epoch s")
     p.add_argument("--seconds", type=float, required=True)

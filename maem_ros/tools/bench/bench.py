@@ -1,6 +1,6 @@
 """maem-bench: time MAEM association and triangulation on the standard load, one CPU thread.
 
-Standard load (tools/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob distortion),
+Standard load (tools/bench/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob distortion),
 12 detections per camera (10 players seen by every camera + 2 extra people per camera), 70
 keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px pixel noise, fixed
 seed. ``--load large``: 16 cameras on a ring around the court (``ring16``), 25 detections per camera
@@ -14,9 +14,9 @@ undistortion of the raw vertex pixels, per-pair distances), and checks both give
     maem-bench --json          # one JSON object
     maem-bench --vertices 500 --frames 1 --repeats 1 --json   # quick smoke run
     maem-bench --live [--wire q4] [--bag BAG]   # camera-rate run through the node graph
-                                                # (tools/live.py)
+                                                # (tools/bench/live.py)
 
-Temporal on/off (same run): the load in motion (tools/bench_load.make_sequence: the same people
+Temporal on/off (same run): the load in motion (tools/bench/bench_load.make_sequence: the same people
 walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.tracking.temporal's
 track-assisted association and through the per-frame association; per-frame times after the
 first frame (steady state: tracks explain the known people, cross-view association runs on the
@@ -33,8 +33,9 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
+
+from maem_ros.tools.cli import fail
 
 #: thread pools pinned to one thread; must be set before numpy/OpenCV/numba load
 _THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
@@ -120,8 +121,8 @@ def run(args: argparse.Namespace) -> dict:
 
     from maem_ros.core.association import AssociationParams
     from maem_ros.core.triangulation.ransac import TriangulationParams
+    from maem_ros.params import load_node_params
 
-    from ..params import load_node_params
     from .bench_load import body_template, load_bench_rig, make_frame
 
     for name in ("vertices", "keypoints", "players", "frames", "repeats"):
@@ -160,8 +161,7 @@ def _time_node_path(args: argparse.Namespace, rig, load, aparams, tparams) -> di
     also counts the time other processes held the core), stage times, the last results."""
     from maem_ros.core.association import PairGates, associate
     from maem_ros.core.triangulation.ransac import triangulate
-
-    from ..ros import wire
+    from maem_ros.ros import wire
 
     t0 = time.perf_counter()
     gates = PairGates(rig, aparams)
@@ -216,7 +216,7 @@ def _summary(args: argparse.Namespace, rig, load, aparams, timed: dict, paper: d
     """The result dict of the timed runs."""
     import numpy as np
 
-    from ..ros import wire
+    from maem_ros.ros import wire
 
     results, straight_ms = timed["results"], paper["straight"]
     recovered = sum(len(set(fr.truth) & set(_as_sets([c.members for c in res.clusters])))
@@ -272,8 +272,8 @@ def _temporal(args: argparse.Namespace, rig, aparams, template, dump: dict) -> d
 
     from maem_ros.core.association import associate
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+    from maem_ros.ros import wire
 
-    from ..ros import wire
     from .bench_load import make_sequence
 
     seq = make_sequence(rig, template, np.random.default_rng(args.seed + 1), args.players,
@@ -370,8 +370,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             result = run(args)
     except ValueError as e:
-        print(f"maem-bench: {e}", file=sys.stderr)
-        return 2
+        return fail("maem-bench", e)
     if args.live:
         import yaml
         print(json.dumps(_finite_or_null(result)) if args.json
