@@ -1,6 +1,7 @@
 """The offline decode path works without rclpy: a Python in which rclpy and the ROS message
 packages cannot be imported reads the committed demo bag (bags/demo) with bagio and decodes its
-detections, ground-truth poses and /tf_static with maem_ros.wire alone."""
+detections, ground-truth poses and /tf_static with maem_ros.wire alone; the offline tools import
+without them."""
 from __future__ import annotations
 
 import json
@@ -87,3 +88,23 @@ def test_demo_bag_decodes_without_rclpy(tmp_path):
         np.testing.assert_allclose(translation, want[child].translation, atol=1e-9)
         q, w = np.asarray(quaternion), want[child].quaternion
         assert min(np.abs(q - w).max(), np.abs(q + w).max()) < 1e-9
+
+
+#: offline tools: they read, write or decode bags and need no ROS wheels (tools/demo is not
+#: among them: it runs the node graph)
+OFFLINE_TOOLS = (
+    "maem_ros.tools.bags.bag", "maem_ros.tools.bags.make_bag", "maem_ros.tools.eval.evaluate",
+    "maem_ros.tools.eval.explain", "maem_ros.tools.export.export",
+    "maem_ros.tools.export.foxglove_view", "maem_ros.tools.demo.demo_bag",
+    "maem_ros.tools.demo.demo_metrics", "maem_ros.tools.demo.demo_report",
+    "maem_ros.tools.demo.pose2sim_demo", "maem_ros.tools.calibrate.calibrate_board",
+    "maem_ros.tools.calibrate.calibrate_people",
+)
+
+
+def test_offline_tools_import_without_rclpy():
+    script = (f"import sys\nfor n in {BLOCKED!r}:\n    sys.modules[n] = None\n"
+              f"import importlib\nfor m in {OFFLINE_TOOLS!r}:\n    importlib.import_module(m)\n")
+    res = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]

@@ -144,7 +144,7 @@ def _scene_folder(src: Path, intr: Rig, max_frames: int | None):
 
 def _bag(src: Path, intr: Rig, max_frames: int | None):
     from maem_ros import bagio
-    from maem_ros.ros.wire import msg_to_detections  # the wire decoder (needs rclpy's message types)
+    from maem_ros.wire import msg_to_detections  # the wire decoder (no rclpy)
     info = bagio.bag_info(src)
     topics = sorted(t for t in info.topics if t.endswith("/detections"))
     if not topics:
