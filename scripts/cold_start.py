@@ -26,7 +26,7 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.qos import DATA_QOS
 from maem_ros.sim.scene import Scene, SceneConfig
 
 SCENE = dict(rig="sportcenter6", frames=20, seed=3, difficulty="easy", num_vertices=18439)

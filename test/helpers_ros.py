@@ -25,9 +25,9 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 from maem_ros.ros.cli import shutdown_ros
-from maem_ros.ros.common import DATA_QOS
 from maem_ros.ros.fastdds import detach_discovery_listener
 from maem_ros.ros.probe import DiagnosticsTable, fusion_links, unmatched_links
+from maem_ros.ros.qos import DATA_QOS
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -355,9 +355,9 @@ def offline(scene, frames: range, temporal: bool = False):
     """The core pipeline run directly on the wire-roundtripped detections (what the nodes see):
     track-assisted association with its track ids, or per-frame + the post-hoc tracker."""
     from maem_ros.core.association.pipeline import AssociationParams
+    from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.tracking.tracks import Tracker
-    from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 
     ap = AssociationParams.from_mapping(ASSOC)

@@ -15,8 +15,8 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from maem_ros.capture import Capture, ImageFolderSource, VideoSource, make_source
 from maem_ros.core.geometry.camera import Camera, Rig
+from maem_ros.ros.qos import IMAGE_QOS
 from maem_ros.ros.wire import camera_info_msg
-from maem_ros.ros.common import IMAGE_QOS
 
 from helpers_ros import ros_node
 

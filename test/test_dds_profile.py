@@ -4,7 +4,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from maem_ros.ros.common import DDS_PROFILE_VARS, use_shipped_dds_profile
+from maem_ros.ros.process import DDS_PROFILE_VARS, use_shipped_dds_profile
 
 NS = {"d": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
 PROFILE = Path(__file__).resolve().parents[1] / "config" / "fastdds.xml"

@@ -22,7 +22,7 @@ import pytest
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.qos import DATA_QOS
 
 from helpers_ros import Graph, bad_messages, fresh_detections, start_pipeline, wait_for
 
@@ -228,11 +228,11 @@ def clusters_msg(cf: wire.ClusterFrame, stamp_ns: int) -> PointCloud2:
     """A decoded ClusterFrame re-encoded with another stamp."""
     fields = [("cluster", wire.U32, 1), ("camera", wire.U16, 1), ("detection", wire.U16, 1),
               ("score", wire.F32, 1), ("cost", wire.F32, 1), ("kpts2d", wire.F32, 2 * cf.num_joints)]
-    msg, rec = wire._new_cloud(stamp_ns, "world", fields, len(cf.cluster))
+    cloud, rec = wire.new_cloud(stamp_ns, "world", fields, len(cf.cluster))
     rec["cluster"], rec["camera"], rec["detection"] = cf.cluster, cf.camera, cf.detection
     rec["score"], rec["cost"] = cf.score, cf.cost
     rec["kpts2d"] = cf.kpts2d.reshape(len(cf.cluster), -1)
-    return wire._set_data(msg, rec)
+    return wire.cloud_to_msg(cloud)
 
 
 def test_burst_after_a_stall_loses_nothing(graph, scene):
@@ -442,7 +442,7 @@ def test_clock_jump_back_resets_the_synchroniser_once(graph):
 
 
 def test_sequence_gaps_count_only_losses_of_a_single_publisher():
-    from maem_ros.ros.common import SequenceGaps
+    from maem_ros.ros.intake import SequenceGaps
 
     g = SequenceGaps()
     one = lambda: 1  # noqa: E731

@@ -21,12 +21,13 @@ import pytest
 import websockets
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
-from helpers_bags import T0_NS, known_frames, two_camera_rig, write_poses_bag
-from helpers_ros import killed_on_exit
 from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
 from maem_ros.viz import scene
+
+from helpers_bags import T0_NS, known_frames, two_camera_rig, write_poses_bag
+from helpers_ros import killed_on_exit
 
 BIN = Path(sys.executable).parent
 SUBPROTOCOL = "foxglove.sdk.v1"
@@ -388,8 +389,9 @@ def test_live_node_serves_graph_topics(tmp_path, transport):
     from diagnostic_msgs.msg import DiagnosticArray
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
+    from maem_ros.ros.qos import IMAGE_QOS
+
     from helpers_ros import RELIABLE, ros_node, wait_for
-    from maem_ros.ros.common import IMAGE_QOS
 
     rig = two_camera_rig()
     rig_path = tmp_path / "rig.yaml"

@@ -1,5 +1,5 @@
 """Architecture rules (doc/design.md §2): core/ never imports rclpy or message packages, ros/
-imports neither tools/ nor sim/, bags and capture are ROS-free packages of their own."""
+imports neither tools/ nor sim/, bags, capture and the wire codec are ROS-free packages of their own."""
 from __future__ import annotations
 
 import ast
@@ -41,6 +41,8 @@ def _files(sub: str) -> list[Path]:
     # bagio serialises rclpy messages it is given with rclpy.serialization, nothing else of ROS
     ("bagio", ("maem_ros.tools", "maem_ros.sim") + ROS_MODULES[1:]),
     ("capture", ROS_MODULES + ("maem_ros.ros", "maem_ros.tools")),
+    # the wire codec: offline tools decode bags with it on machines without the ROS wheels
+    ("wire", ROS_MODULES + ("maem_ros.ros", "maem_ros.tools", "maem_ros.sim")),
 ])
 def test_layer_does_not_import(sub: str, forbidden: tuple[str, ...]) -> None:
     bad = {f"{p.relative_to(PKG)}: {m}" for p in _files(sub) for m in imported_modules(p)

@@ -11,11 +11,12 @@ from rclpy.duration import Duration
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
-from helpers_ros import stall, start_pipeline, wait_for
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
 from maem_ros.ros import wire
-from maem_ros.ros.common import arrival_ns
+from maem_ros.ros.intake import arrival_ns
+
+from helpers_ros import stall, start_pipeline, wait_for
 
 
 def test_busy_node_takes_every_pending_message_before_a_set_goes_partial(graph, scene):
@@ -219,7 +220,8 @@ def test_executor_choice_and_a_bad_one(monkeypatch) -> None:
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
 
-    from maem_ros.ros.common import EXECUTOR_VAR, ConfigError, make_executor
+    from maem_ros.ros.params import ConfigError
+    from maem_ros.ros.process import EXECUTOR_VAR, make_executor
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:
@@ -260,7 +262,7 @@ def test_freed_memory_is_kept_for_reuse() -> None:
     """On glibc the nodes set the mmap / trim thresholds (mallopt accepts both values)."""
     import platform
 
-    from maem_ros.ros.common import keep_freed_memory
+    from maem_ros.ros.process import keep_freed_memory
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc")
     assert keep_freed_memory()
@@ -269,7 +271,7 @@ def test_freed_memory_is_kept_for_reuse() -> None:
 _FAULTS_OF_A_NEW_BUFFER = """
 import resource, sys
 import numpy as np
-from maem_ros.ros.common import keep_freed_memory
+from maem_ros.ros.process import keep_freed_memory
 assert keep_freed_memory(int(sys.argv[1]))
 before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 buf = np.empty(1_800_000, np.uint8)  # what a node does per message: a fresh ~1.8 MB buffer

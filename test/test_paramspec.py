@@ -125,7 +125,7 @@ def test_a_new_core_field_is_a_validated_read_only_ros_parameter() -> None:
     import rclpy
     from rclpy.parameter import Parameter
 
-    from maem_ros.ros.common import ConfigError, declare_params
+    from maem_ros.ros.params import ConfigError, declare_params
 
     def declare(overrides: list[Parameter]):
         ctx = rclpy.Context()

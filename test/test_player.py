@@ -15,9 +15,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from std_msgs.msg import String
 
-from maem_ros.ros.player_node import (BagPlayer, PlayOptions, loop_gap_ns, parse_args,
-                                      select_topics)
 from maem_ros import bagio
+from maem_ros.ros.player_node import BagPlayer, PlayOptions, loop_gap_ns, parse_args, select_topics
 
 from helpers_ros import LATCHED, RELIABLE, killed_on_exit, ros_node, wait_for
 
@@ -187,6 +186,7 @@ def test_bad_bag_and_topics_exit_with_message(tmp_path: Path, bag: Path):
 def _image_bag(path: Path, frames: int, cameras=("c0", "c1")) -> Path:
     """Tiny CompressedImage frames 10 ms apart (bag time), every camera at the same log time."""
     from sensor_msgs.msg import CompressedImage
+
     from maem_ros.ros.wire import make_header
     with bagio.BagWriter(path) as w:
         for k in range(frames):
@@ -204,7 +204,8 @@ def test_lockstep_waits_for_the_consumer_and_images_are_reliable(tmp_path: Path,
     one's ack, so every image arrives (reliable subscription) and none waits in a queue."""
     from sensor_msgs.msg import CompressedImage
     from std_msgs.msg import Header
-    from maem_ros.ros.common import RELIABLE_IMAGE_QOS
+
+    from maem_ros.ros.qos import RELIABLE_IMAGE_QOS
     from maem_ros.ros.wire import ns_to_stamp
     node, ex = ros
     frames = 4

@@ -10,13 +10,20 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers_ros import (DiagnosticsReader, OutputWatcher, killed_on_exit, ros_node,
-                         wait_for, wait_links_matched)
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS
 from maem_ros.ros.probe import fusion_links
+from maem_ros.ros.qos import DATA_QOS
+
+from helpers_ros import (
+    DiagnosticsReader,
+    OutputWatcher,
+    killed_on_exit,
+    ros_node,
+    wait_for,
+    wait_links_matched,
+)
 
 # node command lines (--help too), namespaces, parameters, diagnostics
 pytestmark = pytest.mark.ros
@@ -155,7 +162,7 @@ def test_diagnostics_keep_coming_with_use_sim_time_and_no_clock() -> None:
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.parameter import Parameter
 
-    from maem_ros.ros.common import DIAGNOSTICS_QOS
+    from maem_ros.ros.qos import DIAGNOSTICS_QOS
     from maem_ros.ros.triangulation_node import TriangulationNode
 
     with ros_node("diag_listener") as (client, ex):

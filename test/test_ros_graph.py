@@ -12,10 +12,9 @@ from visualization_msgs.msg import Marker
 
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS
+from maem_ros.ros.qos import DATA_QOS
 
-from helpers_ros import (Recorder, match_players, offline, pipeline_params, play, start_pipeline,
-                         wait_for)
+from helpers_ros import Recorder, match_players, offline, pipeline_params, play, start_pipeline, wait_for
 
 # in-process node graphs
 pytestmark = [pytest.mark.timeout(150), pytest.mark.ros]
@@ -104,11 +103,11 @@ def test_poses_match_ground_truth_with_stable_ids(graph, scene, temporal):
 
 def test_frontend_npz_backend_replays_a_scene_folder(graph, tmp_path):
     """maem-sim folder (MAEM npz, raw px) -> frontend npz backend -> rectified detections."""
-    import maem_ros.sim.scene as sim
     from sensor_msgs.msg import Image
 
-    from maem_ros.ros.common import IMAGE_QOS
+    import maem_ros.sim.scene as sim
     from maem_ros.ros.frontend_node import FrontendNode
+    from maem_ros.ros.qos import IMAGE_QOS
     from maem_ros.tools.simulate import write_scene
 
     cfg = sim.SceneConfig(rig="sportcenter6", frames=3, seed=2, difficulty="easy", num_vertices=300)
@@ -148,12 +147,12 @@ def test_marker_lifetime_follows_the_frame_period(graph):
 def test_frontend_sends_q4_and_an_announced_vertex_subset(graph):
     """wire_vertices q4 + vertex_stride/vertex_count: the frontend publishes verts2d_q4 and
     verts2d_subset; the decoder gives the announced subset of the scene's vertices (1/32 px)."""
-    import maem_ros.sim.scene as sim
     from sensor_msgs.msg import Image
 
+    import maem_ros.sim.scene as sim
     from maem_ros.core.association.gates import epipolar
-    from maem_ros.ros.common import IMAGE_QOS
     from maem_ros.ros.frontend_node import FrontendNode
+    from maem_ros.ros.qos import IMAGE_QOS
 
     cfg = dict(rig="sportcenter6", frames=3, seed=4, difficulty="easy", num_vertices=600)
     scene = sim.Scene(sim.SceneConfig(**cfg))

@@ -16,7 +16,8 @@ from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from maem_ros.core.detections import FrameDetections
 from maem_ros.ros import wire
-from maem_ros.ros.common import DATA_QOS, IMAGE_QOS
+from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS
+
 from helpers_ros import DiagnosticsReader, Recorder, bad_messages, play, start_pipeline, wait_for
 
 # node graphs fed bad input

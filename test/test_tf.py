@@ -9,11 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 
 from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.params import resolve_rig_path
 from maem_ros.ros import wire
+
+from helpers_ros import OutputWatcher, killed_on_exit, ros_node, wait_for
 
 BIN = Path(sys.executable).parent
 
@@ -57,7 +58,7 @@ def _association(tmp_path: Path, env: dict | None = None) -> subprocess.Popen:
 def test_tf_static_reaches_a_late_subscriber_in_another_process(tmp_path: Path) -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
     from maem_ros.core.geometry.camera import Rig
-    from maem_ros.ros.common import TF_STATIC_QOS
+    from maem_ros.ros.qos import TF_STATIC_QOS
     rig = Rig.load(resolve_rig_path("sportcenter6"))
     proc = _association(tmp_path)
     with killed_on_exit(proc):
@@ -99,7 +100,7 @@ def test_player_replays_tf_static_of_a_bag(tmp_path: Path) -> None:
     tf2 = pytest.importorskip("tf2_msgs.msg", reason="tf2_msgs not built (make builds it)")
     from maem_ros import bagio
     from maem_ros.core.geometry.camera import Rig
-    from maem_ros.ros.common import TF_STATIC_QOS
+    from maem_ros.ros.qos import TF_STATIC_QOS
     rig = Rig.load(resolve_rig_path("humanm3_3"))
     t0 = 1_700_000_000_000_000_000
     bag = tmp_path / "bag"

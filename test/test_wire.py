@@ -1,4 +1,5 @@
-"""wire.py: PointCloud2 / MarkerArray / Image layouts, round trips, validation, garbage input."""
+"""The wire (maem_ros/wire, its ROS adapters ros/wire): PointCloud2 / MarkerArray / Image layouts,
+round trips, validation, garbage input."""
 from __future__ import annotations
 
 import array

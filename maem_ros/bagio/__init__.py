@@ -1,10 +1,11 @@
 """rosbag2 (MCAP) bags: message types and QoS, a crash-tolerant writer and reader, recovery.
 
 Shared by the tools (make_bag, evaluate, demo, maem-bag) and the nodes (player, recorder), so all
-use one format; no rclpy needed. Message layouts live in ros/wire.py: a writer takes either a
-``rosbags`` message (serialised with the ROS 2 Jazzy typestore) or an rclpy message built by
-wire.py (serialised by rclpy, which needs no init). Reading returns CDR bytes and ``rosbags``
-messages, which wire.py's decoders accept as they are. Stamps are integer nanoseconds everywhere.
+use one format; no rclpy needed. Message layouts live in maem_ros/wire: a writer takes either a
+``rosbags`` message (serialised with the ROS 2 Jazzy typestore; maem_ros.wire builds them) or
+an rclpy message built by ros/wire (serialised by rclpy, which needs no init). Reading returns
+CDR bytes and ``rosbags`` messages, which the wire's decoders accept as they are. Stamps are
+integer nanoseconds everywhere.
 
 Modules: messages (typestore, QoS, CDR), metadata (metadata.yaml), mcapfile (one MCAP file,
 whole or cut short), writer (BagWriter: bounded chunks, splitting, full disk), reader (opening a

@@ -74,14 +74,14 @@ def msgtype_of(msg) -> str:
 
 
 def serialize(msg) -> bytes:
-    """CDR bytes of a rosbags message or an rclpy message (e.g. from ros/wire.py)."""
+    """CDR bytes of a rosbags message or an rclpy message (e.g. from ros/wire)."""
     if hasattr(msg, "__msgtype__"):
         return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
     from rclpy.serialization import serialize_message
     return bytes(serialize_message(msg))
 
 
-def deserialize(data: bytes, msgtype: str):
+def deserialize(data: bytes | memoryview, msgtype: str):
     return TYPESTORE.deserialize_cdr(data, msgtype)
 
 

@@ -11,7 +11,7 @@ A parameter dataclass (core: AssociationParams, TriangulationParams; node-only: 
 That one line is all a new parameter needs: construction validates it (ValueError starting with
 the field name), ``from_mapping`` reads it from a params-file section (offline tools), and the
 ROS nodes declare it as a read-only ROS parameter with its description and constraints and list
-it in ``--help`` (ros/common.py). The type of the default is the parameter type (bool, int,
+it in ``--help`` (ros/cli.py). The type of the default is the parameter type (bool, int,
 float, str; a list default is a string array). Pure Python: no rclpy here.
 """
 from __future__ import annotations

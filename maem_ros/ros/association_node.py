@@ -24,7 +24,7 @@ runs core.tracking.temporal.TemporalAssociator (``temporal: on``, default: detec
 tracks' predictions first, core.association.pipeline.associate on the rest; clusters carry track ids) or
 core.association.pipeline.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
 thresholds and publishes ``/maem/clusters`` (PointCloud2, one point per (cluster, member view), see
-wire.py; an empty cloud for a frame set without clusters, so downstream still sees every frame).
+maem_ros/wire; an empty cloud for a frame set without clusters, so downstream still sees every frame).
 A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all tracks.
 """
 from __future__ import annotations
@@ -36,7 +36,6 @@ from typing import Any
 
 from rclpy.clock import ClockChange, JumpThreshold
 from rclpy.duration import Duration
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core.association import AssociationParams, ExecutionParams
@@ -47,24 +46,13 @@ from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_DEPTH,
-    DATA_QOS,
-    ConfigError,
-    Diagnostics,
-    NodeParams,
-    RejectErrors,
-    Stopwatch,
-    arrival_ns,
-    data_qos,
-    declare_params,
-    load_rig_param,
-    publish_rig_tf,
-    run_node,
-    subscribe_counted,
-    take_pending,
-)
+from maem_ros.ros.diagnostics import RejectErrors, Stopwatch
+from maem_ros.ros.intake import arrival_ns, subscribe_counted, take_pending
+from maem_ros.ros.node import MaemNode
 from maem_ros.ros.overload import NodeBacklog
+from maem_ros.ros.params import ConfigError, NodeParams
+from maem_ros.ros.qos import DATA_DEPTH, DATA_QOS, data_qos
+from maem_ros.ros.rig_tf import publish_rig_tf
 
 NODE_NAME = "association"
 
@@ -119,13 +107,20 @@ TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_
                 "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
 
 
-class AssociationNode(Node):
+#: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,
+#: ~1.8 MB each) and one association step's arrays; measured: no page fault per message with it
+HEAP_PREFAULT_MB = 192
+
+
+class AssociationNode(MaemNode):
     """detections of N cameras -> ApproximateTimeSync -> associate -> /maem/clusters."""
 
+    NAME, PARAMS, HEAP_PREFAULT_MB = NODE_NAME, PARAMS, HEAP_PREFAULT_MB
+
     def __init__(self, **kwargs: Any):
-        super().__init__(NODE_NAME, **kwargs)
-        p = declare_params(self, PARAMS)
-        self.rig = load_rig_param(p["rig"])
+        super().__init__(**kwargs)
+        p = self.p
+        self.rig = self.load_rig()
         cams = p["cameras"] or self.rig.names
         unknown = [c for c in cams if c not in self.rig]
         if unknown:
@@ -134,12 +129,10 @@ class AssociationNode(Node):
         if p["min_cameras"] > len(cams):
             raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
         from maem_ros.core.tracking.temporal import TemporalAssociator
-        try:
+        with self.config_errors():
             self.params = AssociationParams.from_mapping(p)
             self.temporal = TemporalAssociator(self.rig, self.params,
                                                TemporalParams.from_mapping(p))
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
         # compile/load the numba kernels now, not on the first frame
         warmup_association(self.params.execution.backend, self.params.epipolar_gate)
         # each camera frame is prepared for the pair gates as its message is decoded (off the
@@ -148,7 +141,7 @@ class AssociationNode(Node):
         wire.warm_cdr_decoder()
         self.cameras = list(cams)
         self.frame_id = p["frame_id"]
-        try:
+        with self.config_errors():
             self.sync = ApproximateTimeSync(
                 self.cameras, int(round(p["slop"] * 1e9)), int(round(p["max_wait"] * 1e9)),
                 p["min_cameras"], queue_size=p["queue_size"],
@@ -157,10 +150,8 @@ class AssociationNode(Node):
                 time_offsets={c: self.rig[c].time_offset for c in self.cameras})
             self.limits = InputLimits(max_detections=p["max_detections"],
                                       pixel_margin=p["pixel_margin"])
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
         self._sync_seen = SyncStats()
-        self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.start_diagnostics()
         self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p), "frame set(s)")
         self._skip_stale = not p["keep_every_set"]
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
@@ -353,14 +344,8 @@ class AssociationNode(Node):
         self.diag.set("last_cameras", len(fs.items))
 
 
-#: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,
-#: ~1.8 MB each) and one association step's arrays; measured: no page fault per message with it
-HEAP_PREFAULT_MB = 192
-
-
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: AssociationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__,
-                    heap_prefault_mb=HEAP_PREFAULT_MB)
+    return AssociationNode.main(args)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -30,16 +29,10 @@ from maem_ros.capture import Capture, Poll, make_source, to_bgr
 from maem_ros.core.geometry.camera import Camera
 from maem_ros.core.paramspec import Params, ParamSpec, param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    IMAGE_QOS,
-    ConfigError,
-    Diagnostics,
-    Stopwatch,
-    declare_params,
-    default_camera_name,
-    load_rig_param,
-    run_node,
-)
+from maem_ros.ros.diagnostics import Stopwatch
+from maem_ros.ros.node import MaemNode
+from maem_ros.ros.params import ConfigError, default_camera_name, load_rig_param
+from maem_ros.ros.qos import IMAGE_QOS
 
 EXIT_SOURCE_FAILED = 2
 
@@ -84,12 +77,15 @@ SOURCE = ParamSpec("source", "", "device index (0), video file, stream URL, or i
 # ---------------------------------------------------------------------------------------------
 # node
 # ---------------------------------------------------------------------------------------------
-class CameraNode(Node):
+class CameraNode(MaemNode):
     """Timer-driven capture -> image (+ camera_info) publisher for one camera."""
 
+    # ``source`` is declared by the node itself (string or integer device index)
+    NAME, PARAMS, HELP_PARAMS = "camera", PARAMS, (SOURCE,) + PARAMS
+
     def __init__(self, **kwargs):
-        super().__init__("camera", **kwargs)
-        p = declare_params(self, PARAMS)
+        super().__init__(**kwargs)
+        p = self.p
         p["source"] = self._declare_source()
         self.camera_name = p["camera"] or default_camera_name(self)
         if not self.camera_name:
@@ -120,7 +116,7 @@ class CameraNode(Node):
                                                    qos)
         self.pub_info = (self.create_publisher(CameraInfo, f"{base}camera_info", qos)
                          if self.camera is not None else None)
-        self.diag = Diagnostics(self, hardware_id=self.camera_name)
+        self.start_diagnostics(hardware_id=self.camera_name)
         self.diag.set("source", source.description)
         self.done: Future = Future()
         self._size_warned = False
@@ -211,8 +207,7 @@ class CameraNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    return run_node(CameraNode, args, "camera", until=lambda node: node.done,  # type: ignore[attr-defined]
-                    specs=(SOURCE,) + PARAMS, doc=__doc__)
+    return CameraNode.main(args, until=lambda node: node.done)  # type: ignore[attr-defined]
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""Command-line plumbing shared by the bag nodes (maem-play, maem-record), which parse their own
-arguments and handle SIGINT/SIGTERM themselves. No rclpy import here (``--help`` stays fast)."""
+"""Command-line plumbing: ``--help`` of the nodes, signals and rclpy init/shutdown, shared by
+run_node and the bag nodes (maem-play, maem-record), which parse their own arguments. No rclpy
+import here (``--help`` stays fast)."""
 from __future__ import annotations
 
 import faulthandler
@@ -15,6 +16,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from rclpy.context import Context
     from rclpy.node import Node
+
+    from maem_ros.core.paramspec import ParamSpec
 
 #: exit code of a command whose input (arguments, params file, bag) is invalid
 EXIT_BAD_INPUT = 2
@@ -153,3 +156,22 @@ def shutdown_ros(node: Node | None, context: Context | None = None) -> None:
         detach_discovery_listener(node)
         node.destroy_node()
     rclpy.try_shutdown(context=context)
+
+
+def print_help(name: str, doc: str | None, specs: Sequence[ParamSpec]) -> None:
+    """``--help`` of a node: usage, the module docstring's first paragraph, every parameter
+    with type, default, constraints and description."""
+    summary = (doc or "").strip().split("\n\n", 1)[0].strip()
+    lines = [f"usage: ros2 run maem_ros {name} [--ros-args [--params-file FILE] "
+             f"[-p {name}:NAME:=VALUE] [-r __ns:=/NS] ...]", "", summary, "",
+             "parameters (read-only, set at start):"]
+    lines += [f"  {spec.help_line()}" for spec in specs]
+    print("\n".join(lines), flush=True)
+
+
+def wants_help(args: Sequence[str] | None) -> bool:
+    """``-h``/``--help`` before any ``--ros-args``."""
+    argv = list(sys.argv if args is None else args)[1:]
+    if "--ros-args" in argv:
+        argv = argv[:argv.index("--ros-args")]
+    return "-h" in argv or "--help" in argv

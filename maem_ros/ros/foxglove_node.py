@@ -22,24 +22,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2
 
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.skeleton import CONVENTIONS
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_QOS,
-    IMAGE_QOS,
-    ConfigError,
-    Diagnostics,
-    NodeParams,
-    RejectErrors,
-    Stopwatch,
-    declare_params,
-    load_rig_param,
-    run_node,
-)
+from maem_ros.ros.diagnostics import RejectErrors, Stopwatch
+from maem_ros.ros.node import MaemNode
+from maem_ros.ros.params import ConfigError, NodeParams
+from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS
 from maem_ros.viz.scene import camera_info_fields
 
 NODE_NAME = "foxglove"
@@ -73,13 +64,15 @@ class FoxgloveNodeParams(NodeParams):
 PARAMS = param_specs(FoxgloveNodeParams)
 
 
-class FoxgloveNode(Node):
+class FoxgloveNode(MaemNode):
     """poses + images + camera_info -> FoxgloveBridge."""
 
+    NAME, PARAMS = NODE_NAME, PARAMS
+
     def __init__(self, **kwargs: Any):
-        super().__init__(NODE_NAME, **kwargs)
-        p = declare_params(self, PARAMS)
-        rig = load_rig_param(p["rig"])
+        super().__init__(**kwargs)
+        p = self.p
+        rig = self.load_rig()
         if p["cameras"]:
             unknown = [c for c in p["cameras"] if c not in rig]
             if unknown:
@@ -96,7 +89,7 @@ class FoxgloveNode(Node):
                 world_frame=p["frame_id"])
         except OSError as e:
             raise ConfigError(f"parameter 'port': {e}") from None
-        self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.start_diagnostics()
         self.poses_topic = self.resolve_topic_name(p["poses_topic"])
         self.subs = [self.create_subscription(PointCloud2, self.poses_topic, self.on_poses,
                                               DATA_QOS)]
@@ -152,7 +145,7 @@ class FoxgloveNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: FoxgloveNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__)
+    return FoxgloveNode.main(args)
 
 
 if __name__ == "__main__":

@@ -21,26 +21,19 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.core.paramspec import param
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_QOS,
-    IMAGE_QOS,
-    RELIABLE_IMAGE_QOS,
+from maem_ros.ros.diagnostics import RejectErrors, Stopwatch
+from maem_ros.ros.intake import subscribe_counted
+from maem_ros.ros.node import MaemNode
+from maem_ros.ros.params import (
     ConfigError,
-    Diagnostics,
     NodeParams,
-    RejectErrors,
-    Stopwatch,
-    declare_params,
     default_camera_name,
-    load_rig_param,
-    run_node,
-    subscribe_counted,
 )
+from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS
 
 NODE_NAME = "frontend"
 
@@ -153,17 +146,24 @@ def backend_options(p: dict[str, Any]) -> dict[str, Any]:
     return opts
 
 
-class FrontendNode(Node):
+#: heap touched at start (MiB): the detections message being encoded and published (~1.8 MB
+#: per copy with the full mesh)
+HEAP_PREFAULT_MB = 64
+
+
+class FrontendNode(MaemNode):
     """image -> estimator backend -> detections, for one camera."""
 
+    NAME, PARAMS, HEAP_PREFAULT_MB = NODE_NAME, PARAMS, HEAP_PREFAULT_MB
+
     def __init__(self, **kwargs: Any):
-        super().__init__(NODE_NAME, **kwargs)
-        p = declare_params(self, PARAMS)
+        super().__init__(**kwargs)
+        p = self.p
         self.camera_name = p["camera"] or default_camera_name(self)
         if not self.camera_name:
             raise ConfigError("parameter 'camera': empty and the node runs in the root namespace; "
                               "set camera:=<name> or -r __ns:=/<camera>")
-        rig = load_rig_param(p["rig"])
+        rig = self.load_rig()
         if self.camera_name not in rig:
             raise ConfigError(f"parameter 'camera': {self.camera_name!r} is not in rig "
                               f"{p['rig']!r} ({rig.names})")
@@ -183,7 +183,7 @@ class FrontendNode(Node):
             from maem_ros.frontend.rectify import Rectifier
             self._rectifier = Rectifier(self.camera)
         prefix = "" if default_camera_name(self) == self.camera_name else f"{self.camera_name}/"
-        self.diag = Diagnostics(self, p["diagnostics_period"], hardware_id=self.camera_name)
+        self.start_diagnostics(hardware_id=self.camera_name)
         self.diag.set("backend", p["backend"])
         self.pub = self.create_publisher(PointCloud2, f"{prefix}detections", DATA_QOS)
         self.overlay_pub = (self.create_publisher(Image, f"{prefix}detections/overlay",
@@ -251,14 +251,8 @@ class FrontendNode(Node):
                                                        self.camera_name))
 
 
-#: heap touched at start (MiB): the detections message being encoded and published (~1.8 MB
-#: per copy with the full mesh)
-HEAP_PREFAULT_MB = 64
-
-
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: FrontendNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__,
-                    heap_prefault_mb=HEAP_PREFAULT_MB)
+    return FrontendNode.main(args)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from rclpy.node import Node
 
 from maem_ros.core.backlog import BACKLOG_PERIODS, MIN_BACKLOG_S, Backlog, BacklogParams
-from maem_ros.ros.common import Diagnostics
+from maem_ros.ros.diagnostics import Diagnostics
 
 #: the /diagnostics reason of a frame skipped by the overload policy
 BEHIND = "behind"

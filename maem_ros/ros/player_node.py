@@ -144,7 +144,7 @@ def topic_qos(topic: str, msgtype: str, recorded: Sequence = (), reliable_images
     when recorded so; everything else as the nodes publish it (common.DATA_QOS)."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-    from maem_ros.ros.common import DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS
+    from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS
     latched = topic == bagio.SCENE_TOPIC or any(
         q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in recorded)
     if latched:

@@ -28,7 +28,8 @@ from sensor_msgs.msg import CompressedImage, Image, PointCloud2
 
 from maem_ros.ros import wire
 from maem_ros.ros.cli import shutdown_ros
-from maem_ros.ros.common import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS, use_shipped_dds_profile
+from maem_ros.ros.process import use_shipped_dds_profile
+from maem_ros.ros.qos import DATA_QOS, DIAGNOSTICS_QOS, IMAGE_QOS
 
 
 class BackgroundNode:

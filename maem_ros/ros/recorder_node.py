@@ -191,7 +191,7 @@ def _bag_qos(node, topic: str):
 def write_options(node, opts: RecordOptions) -> WriteOptions:
     """The node's WriteOptions parameters, overridden by the flags given (ConfigError, one
     line, on a bad parameter)."""
-    from maem_ros.ros.common import declare_params
+    from maem_ros.ros.params import declare_params
     values = declare_params(node, WriteOptions.specs())
     values.update(opts.write_flags)
     return WriteOptions(**values)

@@ -4,7 +4,7 @@
     maem-triangulation --ros-args --params-file config/demo.yaml
 
 Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2, one point per
-person: id, joints (3J world m, NaN = missing), views, score; see wire.py) and ``/maem/skeletons``
+person: id, joints (3J world m, NaN = missing), views, score; see maem_ros/wire) and ``/maem/skeletons``
 (MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
 the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they come
@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -44,22 +43,12 @@ from maem_ros.core.tracking.bone_filter import BoneLengthFilter
 from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_score
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
-from maem_ros.ros.common import (
-    DATA_QOS,
-    MARKER_QOS,
-    ConfigError,
-    Diagnostics,
-    NodeParams,
-    RejectErrors,
-    Stopwatch,
-    arrival_ns,
-    declare_params,
-    load_rig_param,
-    run_node,
-    subscribe_counted,
-    take_pending,
-)
+from maem_ros.ros.diagnostics import RejectErrors, Stopwatch
+from maem_ros.ros.intake import arrival_ns, subscribe_counted, take_pending
+from maem_ros.ros.node import MaemNode
 from maem_ros.ros.overload import NodeBacklog
+from maem_ros.ros.params import NodeParams
+from maem_ros.ros.qos import DATA_QOS, MARKER_QOS
 
 NODE_NAME = "triangulation"
 
@@ -104,18 +93,24 @@ PARAMS = param_specs(TriangulationNodeParams, BacklogParams, TriangulationParams
                      JointFilterParams)
 
 
-class TriangulationNode(Node):
+#: heap touched at start (MiB): clusters messages and the RANSAC arrays of a frame set
+HEAP_PREFAULT_MB = 64
+
+
+class TriangulationNode(MaemNode):
     """clusters -> triangulate -> convert -> track -> poses + skeleton markers."""
 
+    NAME, PARAMS, HEAP_PREFAULT_MB = NODE_NAME, PARAMS, HEAP_PREFAULT_MB
+
     def __init__(self, **kwargs: Any):
-        super().__init__(NODE_NAME, **kwargs)
-        p = declare_params(self, PARAMS)
-        self.rig = load_rig_param(p["rig"])
+        super().__init__(**kwargs)
+        p = self.p
+        self.rig = self.load_rig()
         from maem_ros.core.tracking.tracks import Tracker
         from maem_ros.core.triangulation import ransac_kernel as triangulation_kernel
         from maem_ros.core.triangulation.ransac import triangulate_members
         from maem_ros.core.triangulation.ransac_kernel import use_numba
-        try:
+        with self.config_errors():
             self.params = TriangulationParams.from_mapping(p)
             self.tracker = Tracker(gate_m=p["track_gate"], min_hits=p["track_min_hits"],
                                    timeout_s=p["track_timeout"])
@@ -128,8 +123,6 @@ class TriangulationNode(Node):
                                 if p["bone_tolerance"] > 0 else None)
             if use_numba(self.params.ransac_backend):
                 triangulation_kernel.warmup()  # load/compile the kernel now, not on frame 1
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
         self._triangulate = triangulate_members
         self._P = np.stack([c.P for c in self.rig.cameras])
         self.output = get_convention(p["output_convention"])
@@ -138,7 +131,7 @@ class TriangulationNode(Node):
         self.marker_lifetime = p["marker_lifetime"]
         self.marker_lifetime_periods = p["marker_lifetime_periods"]
         self._arrivals: deque[float] = deque(maxlen=16)
-        self.diag = Diagnostics(self, p["diagnostics_period"])
+        self.start_diagnostics()
         self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p),
                                    "clusters message(s)")
         self._arrived: list[tuple[PointCloud2, int]] = []  # taken, not decided on yet
@@ -270,13 +263,8 @@ class TriangulationNode(Node):
         self.diag.set("last_stamp_ns", stamp_ns)
 
 
-#: heap touched at start (MiB): clusters messages and the RANSAC arrays of a frame set
-HEAP_PREFAULT_MB = 64
-
-
 def main(args: list[str] | None = None) -> int:
-    return run_node(lambda: TriangulationNode(), args, NODE_NAME, specs=PARAMS, doc=__doc__,
-                    heap_prefault_mb=HEAP_PREFAULT_MB)
+    return TriangulationNode.main(args)
 
 
 if __name__ == "__main__":

@@ -42,7 +42,7 @@ from maem_ros.core.geometry.camera import Camera, Rig
 
 WORLD = "world"
 #: poses ``id`` of a person without a confirmed track, drawn grey without an id label (the value
-#: of ros/wire.py UNTRACKED_ID, which this ROS-free module cannot import; a test keeps them equal)
+#: of maem_ros.wire UNTRACKED_ID, kept apart so viz stays free of the wire; a test keeps them equal)
 UNTRACKED_ID = 0xFFFFFFFF
 #: Foxglove's names for the rig's distortion models
 FOXGLOVE_DISTORTION = {"plumb_bob": "plumb_bob", "rational_polynomial": "rational_polynomial",

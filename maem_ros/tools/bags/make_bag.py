@@ -32,11 +32,10 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from maem_ros import bagio
+from maem_ros import bagio, wire
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.geometry.frames import rig_transforms
 from maem_ros.core.interchange import SceneFolder, outputs_to_detections, read_gt, read_maem_npz
-from maem_ros.ros import wire
 from maem_ros.tools.cli import fail
 
 DEFAULT_START_NS = 1_700_000_000_000_000_000

@@ -30,8 +30,8 @@ from scipy.optimize import linear_sum_assignment
 from maem_ros.core.skeleton import get_convention
 from maem_ros.frontend.synthetic import scene_config_dict
 from maem_ros.params import load_node_params, resolve_config_path
-from maem_ros.ros.common import load_rig_param
 from maem_ros.ros.frontend_node import PARAMS, backend_options
+from maem_ros.ros.params import load_rig_param
 from maem_ros.ros.probe import ReplayClient
 from maem_ros.sim.scene import Scene, SceneConfig
 from maem_ros.tools.cli import add_json_argument, add_params_argument, check_params_file, fail, print_report

@@ -94,8 +94,9 @@ def publish_main(a: argparse.Namespace) -> int:
     from sensor_msgs.msg import PointCloud2
 
     from maem_ros.ros.cli import shutdown_ros, stop_on_signals
-    from maem_ros.ros.common import DATA_QOS, keep_freed_memory, use_shipped_dds_profile
     from maem_ros.ros.frontend_node import HEAP_PREFAULT_MB
+    from maem_ros.ros.process import keep_freed_memory, use_shipped_dds_profile
+    from maem_ros.ros.qos import DATA_QOS
 
     stop = stop_on_signals(f"live_publisher_{a.publish}")
     keep_freed_memory(HEAP_PREFAULT_MB)  # as a frontend process does (run_node)
@@ -143,8 +144,8 @@ def _listener():
     from sensor_msgs.msg import PointCloud2
 
     from maem_ros.ros import wire
-    from maem_ros.ros.common import DATA_QOS
     from maem_ros.ros.probe import BackgroundNode
+    from maem_ros.ros.qos import DATA_QOS
 
     bg = BackgroundNode("maem_live_listener")
     bg.poses = {}
@@ -199,7 +200,7 @@ def _write_live_params(a: argparse.Namespace, work: Path) -> tuple[Path, Any]:
     """WORK/params.yaml (--params with the frontend's scene size and the nodes' overload
     policy; the bag's rig when --bag has one) and the rig it names."""
     from maem_ros.params import load_node_params
-    from maem_ros.ros.common import load_rig_param
+    from maem_ros.ros.params import load_rig_param
     from maem_ros.tools.bench.latency import write_params
 
     policy = {**({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
@@ -222,7 +223,7 @@ def _write_live_params(a: argparse.Namespace, work: Path) -> tuple[Path, Any]:
 def _live_env(a: argparse.Namespace) -> tuple[dict[str, str], str | None]:
     """The child processes' environment, and the shipped DDS profile it names (None: the
     user's, or Fast DDS defaults with --no-profile)."""
-    from maem_ros.ros.common import DDS_PROFILE_VARS, use_shipped_dds_profile
+    from maem_ros.ros.process import DDS_PROFILE_VARS, use_shipped_dds_profile
 
     profile = None if a.no_profile else use_shipped_dds_profile()
     env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")

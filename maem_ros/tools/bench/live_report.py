@@ -105,7 +105,7 @@ def live_report(a: argparse.Namespace, params: Path, rig, profile: str | None,
                  run: Observed) -> dict[str, Any]:
     """The run's figures (the JSON maem-bench --live prints)."""
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
-    from maem_ros.ros.common import DDS_PROFILE_VARS
+    from maem_ros.ros.process import DDS_PROFILE_VARS
     from maem_ros.tools.bench.live_runs import stress_figures
 
     stamps, poses, messages = run.stamps, run.poses, run.messages

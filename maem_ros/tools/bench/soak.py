@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from maem_ros.params import load_node_params
-from maem_ros.ros.common import load_rig_param
+from maem_ros.ros.params import load_rig_param
 from maem_ros.ros.probe import ReplayClient
 from maem_ros.tools.bench.latency import (
     Faults,

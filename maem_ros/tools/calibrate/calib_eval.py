@@ -38,9 +38,9 @@ def run_scene(name: str, seed: int, frames: int, vertices: int, tmp: Path,
     from maem_ros.core.geometry.camera import Rig
     from maem_ros.sim.scene import SceneConfig
     from maem_ros.tools.calibrate import calibrate
-    from maem_ros.tools.eval import evaluate
     from maem_ros.tools.calibrate.calib_bench import ring_rig
     from maem_ros.tools.calibrate.rig_compare import aligned_rig, compare_rigs
+    from maem_ros.tools.eval import evaluate
     from maem_ros.tools.simulate import write_scene
     rig_arg, params = SCENES[name]
     if not isinstance(rig_arg, str):

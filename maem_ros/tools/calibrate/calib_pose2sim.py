@@ -93,8 +93,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="more maem-calibrate people options (after --), e.g. --no-time")
     a = ap.parse_args(argv)
     from maem_ros.core.geometry.camera import Rig
-    from maem_ros.tools.demo.pose2sim_demo import fetch_demo
     from maem_ros.tools.calibrate.rig_compare import compare_rigs
+    from maem_ros.tools.demo.pose2sim_demo import fetch_demo
     try:
         root = fetch_demo(a.cache)
     except RuntimeError as e:

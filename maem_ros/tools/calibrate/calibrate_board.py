@@ -134,8 +134,7 @@ def _video_frames(path: Path) -> Iterator[tuple[int, np.ndarray]]:
 def _bag_images(source: Path) -> dict[str, Iterator[tuple[int, np.ndarray]]]:
     """camera -> (frame key, grayscale image) of a bag's image topics; frame keys group stamps
     within BAG_SAME_INSTANT_NS of each other."""
-    from maem_ros import bagio
-    from maem_ros.ros import wire
+    from maem_ros import bagio, wire
 
     info = bagio.bag_info(source)
     topics = {t: m for t, m in info.topics.items() if bagio.is_image_type(m)

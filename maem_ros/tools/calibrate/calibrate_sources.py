@@ -107,7 +107,7 @@ def _camera_of(topic: str) -> str:
 
 def _bag_detections(src: Path, topics: list[str], intr: Rig) -> dict[str, list[FrameDetections]]:
     from maem_ros import bagio
-    from maem_ros.ros.wire import msg_to_detections  # the wire decoder (needs rclpy's message types)
+    from maem_ros.wire import msg_to_detections  # the wire decoder (no rclpy)
     cams = [_camera_of(t) for t in topics]
     _check_cameras(cams, intr, f"bag {str(src)!r}")
     per_cam: dict[str, list[FrameDetections]] = {c: [] for c in cams}
@@ -124,7 +124,7 @@ def _bag_images(src: Path, topics: list[str], intr: Rig, args: argparse.Namespac
     """Every image message of the bag through the backend (rectified first)."""
     from maem_ros import bagio
     from maem_ros.frontend.rectify import Rectifier
-    from maem_ros.ros.wire import compressed_to_bgr, image_to_bgr
+    from maem_ros.wire import compressed_to_bgr, image_to_bgr
     by_cam: dict[str, str] = {}
     for t in topics:  # one image topic per camera; the compressed one if both were recorded
         if t.endswith("/compressed") or _camera_of(t) not in by_cam:
@@ -287,8 +287,7 @@ def save_detections(out: Path, frames: dict[str, list[FrameDetections | None]], 
                     start_ns: int = 0) -> None:
     """Write ``frames`` as a bag of ``/<cam>/detections`` (frame k stamped start + k / fps s),
     a SOURCE this tool reads back without running the backend again."""
-    from maem_ros import bagio
-    from maem_ros.ros import wire
+    from maem_ros import bagio, wire
     if out.exists():
         raise BadInput(f"--save-detections {str(out)!r}: already exists")
     w = bagio.BagWriter(out)

@@ -58,7 +58,6 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.sync import capture_stamp_ns, match_capture_times
 from maem_ros.core.triangulation.ransac import triangulate
 from maem_ros.params import load_node_params
-from maem_ros.ros.wire import msg_to_detections
 from maem_ros.tools.cli import fail
 from maem_ros.tools.demo.demo_bag import (
     BAG_VERTICES,
@@ -87,6 +86,7 @@ from maem_ros.tools.demo.demo_report import (
 )
 from maem_ros.tools.eval.evaluate import load_params, to_sportcenter13
 from maem_ros.tools.eval.results import jsonable
+from maem_ros.wire import msg_to_detections
 
 #: default playback rate of the recorded detections: real time
 DEFAULT_RATE = 1.0

@@ -13,11 +13,11 @@ import numpy as np
 from maem_ros import bagio
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.core.skeleton import SPORTCENTER_13
-from maem_ros.ros.wire import msg_to_poses
 from maem_ros.sim.scene import Scene, SceneConfig
 from maem_ros.tools.bags import make_bag
 from maem_ros.tools.eval.evaluate import to_sportcenter13
 from maem_ros.tools.simulate import gt_arrays
+from maem_ros.wire import msg_to_poses
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 #: the committed demo bag's scene (maem-demo --make-bag)

@@ -18,7 +18,7 @@ from maem_ros import bagio
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import KeypointConvention
 from maem_ros.core.triangulation.ransac import TriangulationParams, mirror_permutation, triangulate_members
-from maem_ros.ros.wire import UNTRACKED_ID, msg_to_clusters
+from maem_ros.wire import UNTRACKED_ID, msg_to_clusters
 
 CLUSTERS_TOPIC = "/maem/clusters"
 REPROJECTION_DEFINITION = (

@@ -15,10 +15,10 @@ from maem_ros import bagio
 from maem_ros.core.colors import id_bgr8
 from maem_ros.core.metrics.poses import evaluate_sequence
 from maem_ros.core.skeleton import SPORTCENTER_13
-from maem_ros.ros.wire import UNTRACKED_ID, msg_to_poses
 from maem_ros.tools.demo.demo_bag import DemoBag, image_topic
 from maem_ros.tools.eval.plots import plot_court
 from maem_ros.tools.eval.results import format_table
+from maem_ros.wire import UNTRACKED_ID, msg_to_poses
 
 
 @dataclass

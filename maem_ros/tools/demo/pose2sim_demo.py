@@ -144,8 +144,8 @@ def run_offline(root: Path, frames: int | None, rig_path: Path | None = None,
     from maem_ros.frontend.base import make_estimator
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.params import load_node_params
-    from maem_ros.ros.wire import UNTRACKED_ID, PoseFrame
     from maem_ros.tools.demo import demo_metrics as dm
+    from maem_ros.wire import UNTRACKED_ID, PoseFrame
     rig = Rig.load(rig_path or root / "calibration" / "Calib.qca.txt")
     node = {n: load_node_params("mediapipe.yaml", n) for n in ("frontend", "association",
                                                               "triangulation")}

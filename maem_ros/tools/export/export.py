@@ -33,9 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from maem_ros import bagio
+from maem_ros import bagio, wire
 from maem_ros.core.skeleton import CONVENTIONS, KeypointConvention, convention_for, get_convention
-from maem_ros.ros import wire
 from maem_ros.tools.cli import fail
 
 #: poses id of a person without a confirmed track

@@ -128,7 +128,7 @@ class Player:
     """Replays a BagSource into a FoxgloveBridge with recorded timing."""
 
     def __init__(self, source: BagSource, bridge, rate: float, stop: threading.Event, log=print):
-        from maem_ros.ros import wire  # message decoders only; no ROS graph
+        from maem_ros import wire  # message decoders only; no ROS graph
 
         self.source, self.bridge, self.rate, self.stop, self.log = source, bridge, rate, stop, log
         self.wire = wire

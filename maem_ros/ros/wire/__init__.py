@@ -1,0 +1,80 @@
+"""The wire for the nodes: the codec (maem_ros.wire, no rclpy) plus the thin adapters that turn
+its clouds and plans into rclpy messages (clouds, markers, images). ``from maem_ros.ros import
+wire`` gives one namespace: the codec's decoders and layout constants, and builders that return
+rclpy messages (where maem_ros.wire's same-named ``*_msg`` builders return rosbags messages for
+bag writers)."""
+from maem_ros.ros.wire.clouds import (
+    cloud_to_msg,
+    clusters_to_msg,
+    detections_to_msg,
+    make_header,
+    ns_to_stamp,
+    poses_to_msg,
+    warm_cdr_decoder,
+)
+from maem_ros.ros.wire.images import (
+    bgr_to_compressed,
+    bgr_to_image,
+    camera_info_msg,
+    compressed_image_msg,
+    tf_message,
+)
+from maem_ros.ros.wire.markers import id_color, skeleton_markers
+from maem_ros.wire import (
+    CLUSTER_TRACK_TYPES,
+    CLUSTER_TYPES,
+    DETECTION_TYPES,
+    F32,
+    JPEG_FORMAT,
+    MAX_STAMP_NS,
+    NS_BONES,
+    NS_DELETE_ALL,
+    NS_JOINTS,
+    NS_LABELS,
+    ORIGIN_FIELD,
+    POSE_OPTIONAL,
+    POSE_TYPES,
+    Q4_FIELDS,
+    Q4_MISSING,
+    Q4_SCALE,
+    SUBSET_FIELD,
+    TF_MESSAGE,
+    TF_STATIC_TOPIC,
+    U8,
+    U16,
+    U32,
+    UNTRACKED_ID,
+    WIRE_VERTICES,
+    Cloud,
+    ClusterFrame,
+    PoseFrame,
+    WireError,
+    cdr_header_stamp_ns,
+    cdr_to_cloud,
+    checked_stamp_ns,
+    compressed_to_bgr,
+    decode_q4,
+    encode_q4,
+    image_to_bgr,
+    msg_to_clusters,
+    msg_to_detections,
+    msg_to_poses,
+    msg_to_transforms,
+    new_cloud,
+    q4_origin,
+    stamp_to_ns,
+)
+
+__all__ = [
+    "CLUSTER_TRACK_TYPES", "CLUSTER_TYPES", "DETECTION_TYPES", "F32", "JPEG_FORMAT",
+    "MAX_STAMP_NS", "NS_BONES", "NS_DELETE_ALL", "NS_JOINTS", "NS_LABELS", "ORIGIN_FIELD",
+    "POSE_OPTIONAL", "POSE_TYPES", "Q4_FIELDS", "Q4_MISSING", "Q4_SCALE", "SUBSET_FIELD",
+    "TF_MESSAGE", "TF_STATIC_TOPIC", "U8", "U16", "U32", "UNTRACKED_ID", "WIRE_VERTICES",
+    "Cloud", "ClusterFrame", "PoseFrame", "WireError", "bgr_to_compressed", "bgr_to_image",
+    "camera_info_msg", "cdr_header_stamp_ns", "cdr_to_cloud", "checked_stamp_ns", "cloud_to_msg",
+    "clusters_to_msg", "compressed_image_msg", "compressed_to_bgr", "decode_q4",
+    "detections_to_msg", "encode_q4", "id_color", "image_to_bgr", "make_header",
+    "msg_to_clusters", "msg_to_detections", "msg_to_poses", "msg_to_transforms", "new_cloud",
+    "ns_to_stamp", "poses_to_msg", "q4_origin", "skeleton_markers", "stamp_to_ns", "tf_message",
+    "warm_cdr_decoder",
+]
