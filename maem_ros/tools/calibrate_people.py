@@ -178,7 +178,7 @@ def _media(src: Path, intr: Rig, args):
     import cv2
 
     from ..frontend.base import make_estimator
-    entries = {}
+    entries: dict[str, list[Path] | Path] = {}
     for p in sorted(src.iterdir()):
         if p.is_dir() and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()):
             entries[p.name] = sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES)

@@ -92,17 +92,19 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
                          f"(each pair needs {MIN_SUPPORT} agreeing detection pairs)")
     R, t = start.R, start.t
     K = np.stack([c.K_rect for c in data.rig])
-    result, tracks, prob = None, None, None
+    result: BundleResult | None = None
     for gate in opts.gates_px:
         clock = time.perf_counter()
         tracks = link_tracks(data, match_frames(data, R, t, gate), projection_matrices(K, R, t))
         warm = result is not None
         # the rough start's long robust schedule on a subset of the frames (the rig is fixed
         # by far fewer points than a game holds); the warm pass on all of them
-        frames = None if warm else hypothesis_frames(data, opts.first_pass_frames)
-        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm, frames)
+        subset = None if warm else hypothesis_frames(data, opts.first_pass_frames)
+        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm, subset)
         R, t = result.R, result.t
         timings[f"match+bundle {gate:g}px"] = time.perf_counter() - clock
+    if result is None:
+        raise ValueError("people calibration: PeopleOptions.gates_px is empty (no matching pass)")
     delta = np.zeros(C)
     if opts.estimate_time and data.num_frames >= 3:
         clock = time.perf_counter()
@@ -111,10 +113,12 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         # a rig adjusted on unsynchronised observations absorbs part of an offset (a camera
         # turned along the people's main motion): estimate, adjust on the moved observations,
         # estimate again from that rig, until the offsets settle
-        for _ in range(opts.time_rounds):
+        for rnd in range(opts.time_rounds):
             P = projection_matrices(K, R, t)
             before = delta.copy()
-            delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps)
+            # later rounds only refine: the rig moved a little, the offsets a fraction of a frame
+            delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps,
+                                         start=delta[ok] if rnd else None)
             if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
                 break
             tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]),
