@@ -3,7 +3,7 @@
 Camera c's frame k shows the scene at time (k + delta_c) / fps. For each camera, its 2D tracks
 are compared with the 3D tracks triangulated from the other cameras (each moved to the
 reference times by its own current offset), smoothed and evaluated at k + delta by a narrow
-Gaussian kernel in continuous time (kernel_track): the delta with the smallest robust
+Gaussian kernel in continuous time (kernel_tracks): the delta with the smallest robust
 reprojection error wins (a scan, then a parabola through the best three values, then a fine
 scan), for every camera in turn, until the offsets settle. Offsets are relative; the median
 camera's is taken as 0, so that cameras in sync with most of the rig come out at 0.
@@ -16,7 +16,7 @@ from .tracks import shift_in_time, triangulate
 
 #: px: a joint's reprojection error counts at most this much (an outlier costs the same anywhere)
 TRUNCATE_PX = 6.0
-#: frames: sd of the Gaussian the 3D tracks are smoothed with in continuous time (kernel_track)
+#: frames: sd of the Gaussian the 3D tracks are smoothed with in continuous time (kernel_tracks)
 SMOOTH_SIGMA = 0.7
 #: the kernel is cut at this many sd (the weight there is 1e-3 of the centre's)
 KERNEL_REACH = 3.0
@@ -28,47 +28,52 @@ def _project(P: np.ndarray, X: np.ndarray) -> np.ndarray:
         return np.where(h[..., 2:] > 0, h[..., :2] / h[..., 2:], np.nan)
 
 
-def kernel_track(X: np.ndarray, delta: float, sigma: float = SMOOTH_SIGMA) -> np.ndarray:
-    """(T,F,J,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
-    evaluated at the continuous frame position k + delta (NaN-aware; NaN where the track lacks
-    either frame around k + delta).
+def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarray,
+                  sigma: float = SMOOTH_SIGMA) -> np.ndarray:
+    """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
+    evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
+    arrays: track, frame k, joint), for each of the D ``deltas`` (NaN-aware; NaN where the
+    track lacks either frame around k + delta).
 
     Why a kernel in continuous time: linear interpolation of noisy samples has half the noise
     variance half-way between two frames than at a frame, and smoothing at the frames first
     (then interpolating) keeps part of that modulation, which pulls every offset towards half
     a frame; a Gaussian wider than about half a frame has the same noise at any sub-frame
     position. A narrow one: wider kernels flatten fast limb motion, and that bias (with
-    occluded, broken tracks) is larger than the noise they remove."""
+    occluded, broken tracks) is larger than the noise they remove. The kernel is linear in X:
+    the samples around every entry are gathered once and all deltas weigh them in one product
+    (only the observed entries are evaluated)."""
     F = X.shape[1]
-    ok = np.all(np.isfinite(X), axis=-1)
-    Xz = np.where(ok[..., None], X, 0.0)
-    acc = np.zeros_like(X)
-    wsum = np.zeros(X.shape[:3] + (1,))
-    base = int(np.floor(delta))
+    t, k, j = where
     half = int(np.ceil(KERNEL_REACH * sigma))
-    for m in range(base - half, base + half + 2):
-        w = float(np.exp(-0.5 * ((m - delta) / sigma) ** 2))
-        lo, hi = max(0, -m), min(F, F - m)
-        if lo >= hi:
-            continue
-        acc[:, lo:hi] += w * Xz[:, lo + m:hi + m]
-        wsum[:, lo:hi] += w * ok[:, lo + m:hi + m, :, None]
+    base = np.floor(deltas).astype(np.int64)
+    lo, hi = int(base.min()) - half, int(base.max()) + half + 1
+    ms = np.arange(lo, hi + 1)
+    frame = k[:, None] + ms[None]  # (N,M) the samples every delta may weigh
+    inside = (frame >= 0) & (frame < F)
+    G = X[t[:, None], np.clip(frame, 0, F - 1), j[:, None]]
+    ok = inside & np.all(np.isfinite(G), axis=-1)
+    G = np.where(ok[..., None], G, 0.0)
+    W = np.exp(-0.5 * ((ms[None] - deltas[:, None]) / sigma) ** 2)  # (D,M)
+    W[(ms[None] < base[:, None] - half) | (ms[None] > base[:, None] + half + 1)] = 0.0
+    num = W @ G.transpose(1, 0, 2).reshape(len(ms), -1)  # (D,N*3)
+    den = W @ ok.T.astype(float)  # (D,N)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = acc / wsum
-    k0 = np.arange(F) + base
-    inside = (k0 >= 0) & (k0 + 1 <= F - 1)
-    both = np.zeros(ok.shape, bool)
-    both[:, inside] = ok[:, k0[inside]] & ok[:, k0[inside] + 1]
+        out = num.reshape(len(deltas), -1, 3) / den[..., None]
+    col = base - lo  # column of frame floor(k + delta)
+    both = ok[:, col].T & ok[:, col + 1].T  # (D,N)
     out[~both] = np.nan
     return out
 
 
 def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray) -> np.ndarray:
     """Mean truncated squared error (px^2) of camera c's keypoints U_c (T,F,J,2) against the
-    3D tracks X (T,F,J,3) interpolated at frame k + delta, for every delta, over the terms
-    defined at all of them (so that the costs compare the same observations)."""
-    e2 = np.stack([np.sum((_project(P_c, kernel_track(X, d)) - U_c) ** 2, axis=-1)
-                   for d in deltas])
+    3D tracks X (T,F,J,3) smoothed and evaluated at frame k + delta (kernel_tracks), for every
+    delta, over the terms defined at all of them (so that the costs compare the same
+    observations)."""
+    seen = np.all(np.isfinite(U_c), axis=-1)
+    where = np.nonzero(seen)
+    e2 = np.sum((_project(P_c, kernel_tracks(X, where, deltas)) - U_c[seen]) ** 2, axis=-1)
     common = np.all(np.isfinite(e2), axis=0)
     if not common.any():
         return np.full(len(deltas), np.inf)
