@@ -130,7 +130,7 @@ def render_board(cam: Camera, spec: BoardSpec, R_wb: np.ndarray, t_wb: np.ndarra
                        borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float32) / 255
     face = sampled.astype(np.float32) if float(n @ o) > 0 else np.full(x.shape, _BACK_GREY, np.float32)
     background = _BACKGROUND + 25 * np.sin(np.linspace(0, 3, x.shape[1]))[None, :].astype(np.float32)
-    img = inside * face + (1 - inside) * background
+    img: np.ndarray = inside * face + (1 - inside) * background
     img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), 0.5)
     img += rng.normal(0.0, noise, img.shape).astype(np.float32)
@@ -244,7 +244,7 @@ def board_poses(rig: Rig, spec: BoardSpec, frames: int, seed: int = 0, per_camer
 def _faces(cam: Camera, R_wb: np.ndarray, t_wb: np.ndarray, min_cos: float = 0.4) -> bool:
     """The pattern faces the camera at more than acos(min_cos) from edge-on."""
     view = cam.center - (t_wb + R_wb @ np.array([0.1, 0.1, 0.0]))
-    return float(-R_wb[:, 2] @ view) / np.linalg.norm(view) > min_cos
+    return bool(float(-R_wb[:, 2] @ view) / np.linalg.norm(view) > min_cos)
 
 
 def write_board_sequence(out: str | Path, rig: Rig, spec: BoardSpec, poses: BoardPoses,

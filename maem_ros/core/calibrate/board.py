@@ -91,8 +91,9 @@ class BoardSpec:
             raise ValueError(f"board {text!r}: expected {BOARD_SYNTAX}")
         g = m.groups()
         try:
-            extra = {"marker": float(g[3]), "dictionary": g[4]} if kind == "charuco" else {}
-            return cls(kind, int(g[0]), int(g[1]), float(g[2]), **extra)
+            if kind == "charuco":
+                return cls(kind, int(g[0]), int(g[1]), float(g[2]), float(g[3]), g[4])
+            return cls(kind, int(g[0]), int(g[1]), float(g[2]))
         except ValueError as e:
             raise ValueError(f"board {text!r}: {str(e).removeprefix('board: ')}") from None
 
@@ -307,12 +308,12 @@ def _pair_poses(spec: BoardSpec, views: list[_View], C: int):
                     cands.setdefault((va.camera, vb.camera), []).append((frame, R, tb - R @ va.t))
     out = {}
     for pair, cs in cands.items():
-        best = []
+        best: list[tuple] = []
         for _, Ri, ti in cs:
             agree = [(f, R, t) for f, R, t in cs if _agree(R, t, Ri, ti)]
             if len({f for f, _, _ in agree}) > len({f for f, _, _ in best}):
                 best = agree
-        frames = {}
+        frames: dict = {}
         for f, R, t in best:  # one pose per frame
             frames.setdefault(f, (R, t))
         if len(frames) >= MIN_SHARED_FRAMES:
@@ -328,7 +329,7 @@ def _spanning_tree(pairs: dict, C: int, root: int):
     R: list = [None] * C
     t: list = [None] * C
     R[root], t[root] = np.eye(3), np.zeros(3)
-    edges = []
+    edges: list[tuple] = []
     while True:
         best = None
         for (a, b), (Rba, tba, n) in pairs.items():
@@ -363,12 +364,13 @@ def _frame_boards(spec: BoardSpec, views: list[_View], R: list, t: list):
         kept = []
         for v in vs:
             Rp, tp = R[v.camera] @ Rw, R[v.camera] @ tw + t[v.camera]  # predicted board pose
-            errs = []
+            errs: list[tuple[float, np.ndarray]] = []
             for perm in spec.orientations():
                 Rv, tv = _turned(spec, v, perm)
                 ang = np.linalg.norm(Rotation.from_matrix(Rv @ Rp.T).as_rotvec())
-                errs.append((ang + np.linalg.norm(tv - tp) / max(np.linalg.norm(tp), 1e-9), perm))
-            err, perm = min(errs, key=lambda e: e[0])
+                rel = np.linalg.norm(tv - tp) / max(float(np.linalg.norm(tp)), 1e-9)
+                errs.append((float(ang + rel), perm))
+            err, perm = min(errs, key=lambda e: float(e[0]))
             if err < np.radians(10.0) + 0.1:  # a view far from its rig prediction is left out
                 kept.append((v, perm[v.ids]))
         if len(kept) >= 2:

@@ -77,14 +77,14 @@ class BundleProblem:
     obs_camera: np.ndarray
     obs_point: np.ndarray
     obs_uv: np.ndarray
-    obs_weight: np.ndarray | None = None
+    obs_weight: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
     obs_group: np.ndarray | None = None
-    point_object: np.ndarray | None = None
-    model: np.ndarray | None = None
-    object_R: np.ndarray | None = None
-    object_t: np.ndarray | None = None
-    focal_scale: np.ndarray | None = None
-    k1: np.ndarray | None = None
+    point_object: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
+    model: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
+    object_R: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
+    object_t: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
+    focal_scale: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
+    k1: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, np.float64).reshape(-1, 3, 3)

@@ -278,9 +278,9 @@ def reduced_system(ne: NormalEquations, mu: float, free_cam: np.ndarray):
             Wd = np.zeros((C, dc, s1 - s0, ds))
             Yd[g.cam[r0:r1], :, g.struct[r0:r1] - s0, :] = Y
             Wd[g.cam[r0:r1], :, g.struct[r0:r1] - s0, :] = W
-            Yd = Yd.reshape(C * dc, -1)
-            S -= Yd @ Wd.reshape(C * dc, -1).T
-            rhs += Yd @ g.gs[s0:s1].ravel()
+            Yf = Yd.reshape(C * dc, -1)
+            S -= Yf @ Wd.reshape(C * dc, -1).T
+            rhs += Yf @ g.gs[s0:s1].ravel()
     fixed = np.repeat(~free_cam, dc)
     S[fixed] = 0.0
     S[:, fixed] = 0.0

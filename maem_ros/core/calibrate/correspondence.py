@@ -54,8 +54,8 @@ def _hypotheses(data: PeopleData, a: int, b: int, frames: np.ndarray):
         ia = np.arange(ca.frame(f).start, ca.frame(f).stop)
         ib = np.arange(cb.frame(f).start, cb.frame(f).stop)
         if ia.size and ib.size:
-            I, Jb = np.meshgrid(ia, ib, indexing="ij")
-            rows.append(np.column_stack([np.full(I.size, f), I.ravel(), Jb.ravel()]))
+            Ia, Jb = np.meshgrid(ia, ib, indexing="ij")
+            rows.append(np.column_stack([np.full(Ia.size, f), Ia.ravel(), Jb.ravel()]))
     if not rows:
         return np.zeros((0, 4), np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3))
     pairs = np.concatenate(rows)

@@ -116,15 +116,15 @@ def court_similarity(points: CourtPoints, rig: Rig) -> Similarity:
                 uv.append(rig[name].undistort_points(px[None])[0])
     if len(idx) < 4:
         return sim
-    cams, idx, uv = np.array(cams), np.array(idx), np.array(uv)
+    cam_arr, idx_arr, uv_arr = np.array(cams), np.array(idx), np.array(uv)
     P = projection_matrices(np.stack([c.K_rect for c in rig]), np.stack([c.R for c in rig]),
                             np.stack([c.t for c in rig]))
 
     def residuals(x: np.ndarray) -> np.ndarray:
         Q = Rotation.from_rotvec(x[:3]).as_matrix()
-        X = (points.court[idx] - x[4:]) @ Q / np.exp(x[3])  # court -> rig frame
-        h = np.einsum("nij,nj->ni", P[cams][:, :, :3], X) + P[cams][:, :, 3]
-        return (h[:, :2] / h[:, 2:] - uv).ravel()
+        X = (points.court[idx_arr] - x[4:]) @ Q / np.exp(x[3])  # court -> rig frame
+        h = np.einsum("nij,nj->ni", P[cam_arr][:, :, :3], X) + P[cam_arr][:, :, 3]
+        return (h[:, :2] / h[:, 2:] - uv_arr).ravel()
 
     x0 = np.concatenate([Rotation.from_matrix(sim.Q).as_rotvec(), [np.log(sim.s)], sim.d])
     sol = least_squares(residuals, x0, method="lm")
@@ -144,8 +144,8 @@ def _fit(X: np.ndarray, points: CourtPoints) -> Similarity:
     # two landmarks (or collinear ones): keep the floor's z, fit heading, scale and origin
     a2, b2 = A[:, :2] - A[:, :2].mean(0), B[:, :2] - B[:, :2].mean(0)
     k = int(np.argmax(np.linalg.norm(b2, axis=1)))
-    s = np.linalg.norm(b2[k]) / np.linalg.norm(a2[k])
+    scale = float(np.linalg.norm(b2[k]) / np.linalg.norm(a2[k]))
     ang = np.arctan2(b2[k, 1], b2[k, 0]) - np.arctan2(a2[k, 1], a2[k, 0])
     Q = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
-    d = B.mean(0) - s * Q @ A.mean(0)
-    return Similarity(float(s), Q, d)
+    d = B.mean(0) - scale * Q @ A.mean(0)
+    return Similarity(scale, Q, d)

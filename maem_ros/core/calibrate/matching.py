@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.multiview import dlt
 from .people_data import PeopleData
 
 
@@ -65,7 +66,7 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
                   else np.full((3, 4), np.nan) for c in range(C)])
     Fs = {(a, b): fundamental(data.rig[a].K_rect, R[a], t[a], data.rig[b].K_rect, R[b], t[b])
           for a in range(C) for b in range(a + 1, C) if ok[a] and ok[b]}
-    out = [[] for _ in range(5)]
+    out: list[list] = [[] for _ in range(5)]
     next_id = 0
     for f in range(data.num_frames):
         edges = []
@@ -79,7 +80,7 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
             for s_, i_, j_ in zip(sw, i, j):
                 edges.append((float(cost[s_, i_, j_]), a, sa.start + i_, b, sb.start + j_, int(s_)))
         members = _greedy_clusters(edges, _Consistency(data, P, gate_px))
-        for root, rows in members.items():
+        for rows in members.values():
             if len(rows) < 2:
                 continue
             swaps = np.array([r[2] for r in rows], bool)
@@ -108,8 +109,7 @@ class _Consistency:
         cams = np.array([m[0] for m in members])
         uv = np.stack([self.data.cameras[c].kpts2d[r][self.data.flip] if s
                        else self.data.cameras[c].kpts2d[r] for c, r, s in members])
-        from .tracks import triangulate  # local: tracks imports this module
-        X = triangulate(self.P[cams], uv)
+        X = dlt(self.P[cams], np.swapaxes(uv, 0, 1))
         h = np.einsum("cij,jk->cik", self.P[cams][:, :, :3], X.T) + self.P[cams][:, :, 3:]
         with np.errstate(all="ignore"):
             err = np.linalg.norm(h[:, :2].transpose(0, 2, 1) / h[:, 2:].transpose(0, 2, 1) - uv, axis=2)
@@ -133,7 +133,7 @@ def _greedy_clusters(edges: list, consistent) -> dict:
             root = parent[root]
         return root, path_swap
 
-    for cost, a, i, b, j, s in sorted(edges):
+    for _cost, a, i, b, j, s in sorted(edges):
         for node, cam in (((a, i), a), ((b, j), b)):
             if node not in parent:
                 parent[node], swap[node], cams[node] = node, 0, {cam}

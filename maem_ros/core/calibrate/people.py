@@ -99,7 +99,8 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
                          f"(each pair needs {MIN_SUPPORT} agreeing detection pairs)")
     R, t = start.R, start.t
     K = np.stack([c.K_rect for c in data.rig])
-    result, tracks, prob = None, None, None
+    result: BundleResult | None = None
+    tracks, prob = None, None
     # the last gate is repeated while the rig still moves: in a crowd the first matches under
     # a rough rig hold wrong pairs that pull it, and each rematch removes some (humanm3_4,
     # 20 players: 2.9 deg off after one 12 px pass, 0.07 deg after three)
@@ -114,11 +115,13 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         warm = result is not None
         # the rough start's long robust schedule on a subset of the frames (the rig is fixed
         # by far fewer points than a game holds); the warm pass on all of them
-        frames = None if warm else hypothesis_frames(data, opts.first_pass_frames)
-        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm, frames)
+        subset = None if warm else hypothesis_frames(data, opts.first_pass_frames)
+        result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm, subset)
         R, t = result.R, result.t
         timings[f"match+bundle {gate:g}px"] = timings.get(f"match+bundle {gate:g}px", 0.0) + \
             time.perf_counter() - clock
+    if result is None or tracks is None or prob is None:
+        raise ValueError("people calibration: PeopleOptions.gates_px is empty (no matching pass)")
     delta = np.zeros(C)
     if opts.estimate_time and data.num_frames >= 3:
         clock = time.perf_counter()
@@ -127,10 +130,12 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         # a rig adjusted on unsynchronised observations absorbs part of an offset (a camera
         # turned along the people's main motion): estimate, adjust on the moved observations,
         # estimate again from that rig, until the offsets settle
-        for _ in range(opts.time_rounds):
+        for rnd in range(opts.time_rounds):
             P = projection_matrices(K, R, t)
             before = delta.copy()
-            delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps)
+            # later rounds only refine: the rig moved a little, the offsets a fraction of a frame
+            delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps,
+                                         start=delta[ok] if rnd else None)
             if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
                 break
             tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]),

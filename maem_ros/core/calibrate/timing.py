@@ -2,9 +2,10 @@
 
 Camera c's frame k shows the scene at time (k + delta_c) / fps. For each camera, its 2D tracks
 are compared with the 3D tracks triangulated from the other cameras (each moved to the
-reference times by its own current offset), interpolated at k + delta: the delta with the
-smallest robust reprojection error wins (a scan, then a parabola through the best three
-values, then a fine scan), for every camera in turn, twice. Offsets are relative; the median
+reference times by its own current offset), smoothed and evaluated at k + delta by a narrow
+Gaussian kernel in continuous time (kernel_tracks): the delta with the smallest robust
+reprojection error wins (a scan, then a parabola through the best three values, then a fine
+scan), for every camera in turn, until the offsets settle. Offsets are relative; the median
 camera's is taken as 0, so that cameras in sync with most of the rig come out at 0.
 """
 from __future__ import annotations
@@ -15,6 +16,10 @@ from .tracks import shift_in_time, triangulate
 
 #: px: a joint's reprojection error counts at most this much (an outlier costs the same anywhere)
 TRUNCATE_PX = 6.0
+#: frames: sd of the Gaussian the 3D tracks are smoothed with in continuous time (kernel_tracks)
+SMOOTH_SIGMA = 0.7
+#: the kernel is cut at this many sd (the weight there is 1e-3 of the centre's)
+KERNEL_REACH = 3.0
 
 
 def _project(P: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -23,46 +28,52 @@ def _project(P: np.ndarray, X: np.ndarray) -> np.ndarray:
         return np.where(h[..., 2:] > 0, h[..., :2] / h[..., 2:], np.nan)
 
 
-def smooth_tracks(X: np.ndarray, weights=(1.0, 2.0, 3.0, 2.0, 1.0)) -> np.ndarray:
-    """(T,F,J,3) tracks averaged over neighbouring frames of the same track (triangular
-    window, NaN-aware; NaN where the centre frame is NaN). Linear interpolation between two
-    noisy samples has less noise half-way than at a sample, which would pull every offset
-    towards half a frame; on smoothed tracks that modulation is small."""
-    half = len(weights) // 2
+def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarray,
+                  sigma: float = SMOOTH_SIGMA) -> np.ndarray:
+    """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
+    evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
+    arrays: track, frame k, joint), for each of the D ``deltas`` (NaN-aware; NaN where the
+    track lacks either frame around k + delta).
+
+    Why a kernel in continuous time: linear interpolation of noisy samples has half the noise
+    variance half-way between two frames than at a frame, and smoothing at the frames first
+    (then interpolating) keeps part of that modulation, which pulls every offset towards half
+    a frame; a Gaussian wider than about half a frame has the same noise at any sub-frame
+    position. A narrow one: wider kernels flatten fast limb motion, and that bias (with
+    occluded, broken tracks) is larger than the noise they remove. The kernel is linear in X:
+    the samples around every entry are gathered once and all deltas weigh them in one product
+    (only the observed entries are evaluated)."""
     F = X.shape[1]
-    acc = np.zeros_like(X)
-    wsum = np.zeros(X.shape[:3] + (1,))
-    for k, w in zip(range(-half, half + 1), weights):
-        lo, hi = max(0, -k), min(F, F - k)
-        part = X[:, lo + k:hi + k]
-        ok = np.all(np.isfinite(part), axis=-1, keepdims=True)
-        acc[:, lo:hi] += w * np.where(ok, part, 0.0)
-        wsum[:, lo:hi] += w * ok
+    t, k, j = where
+    half = int(np.ceil(KERNEL_REACH * sigma))
+    base = np.floor(deltas).astype(np.int64)
+    lo, hi = int(base.min()) - half, int(base.max()) + half + 1
+    ms = np.arange(lo, hi + 1)
+    frame = k[:, None] + ms[None]  # (N,M) the samples every delta may weigh
+    inside = (frame >= 0) & (frame < F)
+    G = X[t[:, None], np.clip(frame, 0, F - 1), j[:, None]]
+    ok = inside & np.all(np.isfinite(G), axis=-1)
+    G = np.where(ok[..., None], G, 0.0)
+    W = np.exp(-0.5 * ((ms[None] - deltas[:, None]) / sigma) ** 2)  # (D,M)
+    W[(ms[None] < base[:, None] - half) | (ms[None] > base[:, None] + half + 1)] = 0.0
+    num = W @ G.transpose(1, 0, 2).reshape(len(ms), -1)  # (D,N*3)
+    den = W @ ok.T.astype(float)  # (D,N)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = acc / wsum
-    out[~np.all(np.isfinite(X), axis=-1)] = np.nan
+        out = num.reshape(len(deltas), -1, 3) / den[..., None]
+    col = base - lo  # column of frame floor(k + delta)
+    both = ok[:, col].T & ok[:, col + 1].T  # (D,N)
+    out[~both] = np.nan
     return out
-
-
-def _interpolated(X: np.ndarray, delta: float) -> np.ndarray:
-    """(T,F,J,3) tracks X interpolated at frame k + delta (NaN outside a track)."""
-    F = X.shape[1]
-    pos = np.arange(F) + delta
-    f0 = np.floor(pos).astype(np.int64)
-    a = (pos - f0)[None, :, None, None]
-    ok = (f0 >= 0) & (f0 + 1 <= F - 1)
-    f0c, f1c = np.clip(f0, 0, F - 1), np.clip(f0 + 1, 0, F - 1)
-    Xi = (1 - a) * X[:, f0c] + a * X[:, f1c]
-    Xi[:, ~ok] = np.nan
-    return Xi
 
 
 def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray) -> np.ndarray:
     """Mean truncated squared error (px^2) of camera c's keypoints U_c (T,F,J,2) against the
-    3D tracks X (T,F,J,3) interpolated at frame k + delta, for every delta, over the terms
-    defined at all of them (so that the costs compare the same observations)."""
-    e2 = np.stack([np.sum((_project(P_c, _interpolated(X, d)) - U_c) ** 2, axis=-1)
-                   for d in deltas])
+    3D tracks X (T,F,J,3) smoothed and evaluated at frame k + delta (kernel_tracks), for every
+    delta, over the terms defined at all of them (so that the costs compare the same
+    observations)."""
+    seen = np.all(np.isfinite(U_c), axis=-1)
+    where = np.nonzero(seen)
+    e2 = np.sum((_project(P_c, kernel_tracks(X, where, deltas)) - U_c[seen]) ** 2, axis=-1)
     common = np.all(np.isfinite(e2), axis=0)
     if not common.any():
         return np.full(len(deltas), np.inf)
@@ -89,24 +100,27 @@ def _best_delta(P_c, X, U_c, centre: float, reach: float) -> float:
 
 
 def estimate_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: int = 8,
-                     tol: float = 0.01) -> np.ndarray:
+                     tol: float = 0.01, start: np.ndarray | None = None) -> np.ndarray:
     """(C,) offsets in frames of the cameras with projection matrices P (C,3,4) and 2D tracks
     U (C,T,F,J,2), relative to the median camera. Gauss-Seidel: each camera's offset is
     re-estimated against the others moved by their current offsets, until no offset changes
     by more than ``tol`` frames (the first round scans +-max_frames, later ones +-0.5 frame
-    around the current value)."""
+    around the current value). ``start`` (C,) frames: offsets already close (from a previous
+    rig), searched +-0.5 frame from the first round on: no full scan."""
     C = P.shape[0]
     if C == 2:
         return _two_camera_offset(P, U, max_frames)
-    delta = np.zeros(C)
-    shifted = U.copy()
+    warm = start is not None
+    delta = np.zeros(C) if start is None else np.asarray(start, float).copy()
+    shifted = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)]) if warm else U.copy()
     for r in range(rounds):
         before = delta.copy()
         for c in range(C):
             others = [d for d in range(C) if d != c]
-            X = smooth_tracks(triangulate(P[others], shifted[others]))
-            delta[c] = _best_delta(P[c], X, U[c], delta[c] if r else 0.0,
-                                   0.5 if r else max_frames)
+            X = triangulate(P[others], shifted[others])
+            near = bool(r or warm)
+            delta[c] = _best_delta(P[c], X, U[c], delta[c] if near else 0.0,
+                                   0.5 if near else max_frames)
             shifted[c] = shift_in_time(U[c], delta[c])
         delta -= np.median(delta)  # offsets are relative: keep the common part at 0
         shifted = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)])

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from ..geometry.multiview import dlt
 from .matching import Clusters
 from .people_data import PeopleData
 
@@ -35,30 +36,13 @@ def projection_matrices(K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarr
 
 
 def triangulate(P: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Linear (DLT) triangulation: P (C,3,4), uv (C,...,2) px with NaN = unseen -> (...,3),
-    NaN where fewer than two cameras see the point."""
-    C = P.shape[0]
-    shape = uv.shape[1:-1]
-    u = uv.reshape(C, -1, 2)
-    seen = np.all(np.isfinite(u), axis=2)
-    A = np.zeros((u.shape[1], 4, 4))
-    for c in range(C):  # a handful of cameras: the points are vectorised
-        if not np.all(np.isfinite(P[c])):
-            seen[c] = False
-            continue
-        uz = np.where(seen[c, :, None], u[c], 0.0)
-        r1 = uz[:, 0, None] * P[c, 2] - P[c, 0]
-        r2 = uz[:, 1, None] * P[c, 2] - P[c, 1]
-        w = seen[c].astype(float)[:, None, None]
-        A += w * (r1[:, :, None] * r1[:, None, :] + r2[:, :, None] * r2[:, None, :])
-    n = seen.sum(0)
-    X = np.full((u.shape[1], 3), np.nan)
-    ok = (n >= 2) & np.all(np.isfinite(A), axis=(1, 2))
-    if ok.any():
-        vec = np.linalg.eigh(A[ok])[1][:, :, 0]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            X[ok] = vec[:, :3] / vec[:, 3:]
-    return X.reshape(shape + (3,))
+    """Linear triangulation (geometry.multiview.dlt) in the tracks' layout: P (C,3,4),
+    uv (C,...,2) px with NaN = unseen -> (...,3), NaN where fewer than two cameras (with
+    finite projection matrices) see the point."""
+    good = np.all(np.isfinite(P), axis=(1, 2))
+    uv = np.where(good.reshape((-1,) + (1,) * (uv.ndim - 1)), uv, np.nan)
+    P = np.where(good[:, None, None], P, 0.0)
+    return dlt(P, np.moveaxis(uv, 0, -2))
 
 
 def link_tracks(data: PeopleData, clusters: Clusters, P: np.ndarray) -> Tracks:

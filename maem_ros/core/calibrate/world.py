@@ -63,7 +63,7 @@ def skeleton_scale(X: np.ndarray, rows: np.ndarray, kpts3d: list[np.ndarray],
     detection's metric bone length (its camera-frame 3D keypoints) over the triangulated one.
     X (T,F,J,3) rig units; rows (C,T,F) the detection row of each camera (-1 = none); NaN
     without a common bone."""
-    ratios = []
+    ratios: list[np.ndarray] = []
     tri = _bone_lengths(X, names)  # per bone: (T*F,)
     for c, kp in enumerate(kpts3d):
         have = rows[c].ravel() >= 0
@@ -74,8 +74,8 @@ def skeleton_scale(X: np.ndarray, rows: np.ndarray, kpts3d: list[np.ndarray],
             with np.errstate(invalid="ignore", divide="ignore"):
                 r = metric[bone] / length[have]
             ratios.append(r[np.isfinite(r) & (r > 0)])
-    ratios = np.concatenate(ratios) if ratios else np.zeros(0)
-    return float(np.median(ratios)) if ratios.size else np.nan
+    every = np.concatenate(ratios) if ratios else np.zeros(0)
+    return float(np.median(every)) if every.size else np.nan
 
 
 def stature(X: np.ndarray, names: tuple[str, ...]) -> float:

@@ -23,6 +23,7 @@ import argparse
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -89,9 +90,11 @@ def metrics(est: Rig, true: Rig, truth_offsets: dict) -> dict:
             "cameras": len(true)}
 
 
-def scenarios(quick: bool, large: bool, seeds: int):
-    rigs = [("sportcenter6", None), ("humanm3_4", None), ("ring8_h3", (8, 14.0, 3.0)),
-            ("ring8_h8", (8, 14.0, 8.0)), ("ring5_h5", (5, 12.0, 5.0))]
+def scenarios(quick: bool, large: bool, seeds: int
+              ) -> Iterator[tuple[str, tuple[int, float, float] | None, int, str, int, bool]]:
+    rigs: list[tuple[str, tuple[int, float, float] | None]] = [
+        ("sportcenter6", None), ("humanm3_4", None), ("ring8_h3", (8, 14.0, 3.0)),
+        ("ring8_h8", (8, 14.0, 8.0)), ("ring5_h5", (5, 12.0, 5.0))]
     if quick:
         rigs = rigs[:1] + rigs[3:4]
     for seed in range(seeds):
@@ -103,12 +106,13 @@ def scenarios(quick: bool, large: bool, seeds: int):
         yield "ring8_h6_large", (8, 14.0, 6.0), 20, "medium", 0, False
 
 
-def run_one(name, ring, players, difficulty, seed, offsets_on, frames, tmp: Path) -> dict:
+def run_one(name: str, ring: tuple[int, float, float] | None, players: int, difficulty: str,
+            seed: int, offsets_on: bool, frames: int, tmp: Path) -> dict:
     rng = np.random.default_rng(100 + seed)
     rig_arg = name
     if ring is not None:
         path = tmp / f"{name}_{seed}.yaml"
-        ring_rig(*ring, seed=seed).to_yaml(path)
+        ring_rig(ring[0], ring[1], ring[2], seed=seed).to_yaml(path)
         rig_arg = str(path)
     cfg = SceneConfig(rig=rig_arg, frames=frames, difficulty=difficulty, players=players,
                       bystanders=2, num_vertices=19, seed=seed)
@@ -119,7 +123,7 @@ def run_one(name, ring, players, difficulty, seed, offsets_on, frames, tmp: Path
     scene = Scene(cfg)
     dets = {c.name: [scene.detections(c.name, f) for f in range(frames)] for c in scene.rig}
     intr = Rig([c for c in scene.rig])
-    row = {"scene": f"{name} s{seed} {players}p {difficulty}" + (" offs" if offsets else "")}
+    row: dict = {"scene": f"{name} s{seed} {players}p {difficulty}" + (" offs" if offsets else "")}
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate_people(people_data(intr, dets, cfg.fps), PeopleOptions(seed=seed))
     row["time_s"] = time.perf_counter() - t0

@@ -167,7 +167,8 @@ def detect_source(source: Path, spec: BoardSpec, step: int = 1) -> Frames:
                           f"a rosbag2 folder)")
     streams = _bag_images(source) if (source / "metadata.yaml").is_file() else _images(source)
     detector = CornerDetector(spec)
-    sizes, detections = {}, {}
+    sizes: dict = {}
+    detections: dict = {}
     for cam, frames in streams.items():
         detections[cam] = {}
         for n, (key, gray) in enumerate(frames):

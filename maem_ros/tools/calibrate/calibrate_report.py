@@ -36,7 +36,7 @@ def write_report(result: PeopleCalibration, data: PeopleData, folder: Path,
     import matplotlib.pyplot as plt
     folder.mkdir(parents=True, exist_ok=True)
     written = [_top_down(result, data, folder / "rig.png", plt)]
-    for c, cam in enumerate(result.rig):
+    for cam in result.rig:
         frame = _overlay_frame(images, cam.name, result)
         if frame is not None:
             written.append(_overlay(result, data, cam, frame, images[(cam.name, frame)],
