@@ -134,13 +134,12 @@ def run_offline(root: Path, frames: int | None, rig_path: Path | None = None,
     import cv2
     import numpy as np
 
-    from maem_ros.core.association import AssociationParams, associate
+    from maem_ros.core.association import AssociationParams
     from maem_ros.core.geometry.camera import Rig
-    from maem_ros.core.skeleton import convert as convert_joints
     from maem_ros.core.skeleton import get_convention
     from maem_ros.core.tracking.bone_filter import BoneLengthFilter
     from maem_ros.core.tracking.tracks import Tracker
-    from maem_ros.core.triangulation.ransac import TriangulationParams, pad_members
+    from maem_ros.core.triangulation.ransac import TriangulationParams
     from maem_ros.frontend.base import make_estimator
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.params import load_node_params
@@ -179,17 +178,7 @@ def run_offline(root: Path, frames: int | None, rig_path: Path | None = None,
                 break
             dets = {c.name: ests[c.name].estimate(c, stamp, rects[c.name].rectify(images[c.name][1]))
                     for c in rig}
-        clusters = associate(rig, dets, assoc).clusters
-        rows = [(i, int(c), int(d)) for i, cl in enumerate(clusters) for c, d in cl.members]
-        if rows:
-            which, cam, det = (np.array(x) for x in zip(*rows))
-            kp = np.stack([dets[rig.names[c]].kpts2d[d] for c, d in zip(cam, det)])
-            sc = np.array([dets[rig.names[c]].scores[d] for c, d in zip(cam, det)])
-            poses, e = dm.member_reprojection_errors(P_rig, *pad_members(which, cam, kp, sc), tri)
-            joints = convert_joints(np.asarray(poses.joints), out_conv)
-            errs.add(e)
-        else:
-            joints = np.zeros((0, out_conv.num_joints, 3))
+        joints = _frame_joints(rig, P_rig, dets, assoc, tri, out_conv, errs)
         ids = np.asarray(tracker.update(stamp, joints), np.int64)
         if bone_filter is not None:
             bone_filter.apply(ids, joints)  # the triangulation node's bone_tolerance
@@ -208,6 +197,27 @@ def run_offline(root: Path, frames: int | None, rig_path: Path | None = None,
             "rig": str(rig_path or root / "calibration" / "Calib.qca.txt"),
             "frontend_stats": {n: e.stats for n, e in ests.items()},
             "reprojection_definition": dm.REPROJECTION_DEFINITION}
+
+
+def _frame_joints(rig, P_rig, dets: dict, assoc, tri, out_conv, errs) -> Any:
+    """(P,J_out,3) world m joints of one frame's associated and triangulated people (in
+    ``out_conv``); each member's reprojection errors added to ``errs`` (demo_metrics)."""
+    import numpy as np
+
+    from maem_ros.core.association import associate
+    from maem_ros.core.skeleton import convert as convert_joints
+    from maem_ros.core.triangulation.ransac import pad_members
+    from maem_ros.tools.demo import demo_metrics as dm
+    clusters = associate(rig, dets, assoc).clusters
+    rows = [(i, int(c), int(d)) for i, cl in enumerate(clusters) for c, d in cl.members]
+    if not rows:
+        return np.zeros((0, out_conv.num_joints, 3))
+    which, cam, det = (np.array(x) for x in zip(*rows))
+    kp = np.stack([dets[rig.names[c]].kpts2d[d] for c, d in zip(cam, det)])
+    sc = np.array([dets[rig.names[c]].scores[d] for c, d in zip(cam, det)])
+    poses, e = dm.member_reprojection_errors(P_rig, *pad_members(which, cam, kp, sc), tri)
+    errs.add(e)
+    return convert_joints(np.asarray(poses.joints), out_conv)
 
 
 def _given(d, camera, stamp: int):
