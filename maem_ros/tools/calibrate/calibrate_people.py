@@ -99,20 +99,18 @@ def _options(args):
 
 
 def _reference(path: Path | None) -> Rig | None:
-    if path is None:
-        return None
-    if not path.exists():
-        raise BadInput(f"--reference {str(path)!r}: no such file or folder")
-    try:
-        return Rig.load(path)
-    except (ValueError, OSError, KeyError) as e:
-        raise BadInput(f"--reference {str(path)!r}: {' '.join(str(e).split())}") from None
+    return None if path is None else _read_rig(path, "--reference", Rig.load)
 
 
 def _intrinsics(path: Path) -> Rig:
+    return _read_rig(path, "--intrinsics", Rig.load_intrinsics)
+
+
+def _read_rig(path: Path, option: str, read) -> Rig:
+    """``read(path)``, any failure as one BadInput line naming ``option`` and the file."""
     if not path.exists():
-        raise BadInput(f"--intrinsics {str(path)!r}: no such file or folder")
+        raise BadInput(f"{option} {str(path)!r}: no such file or folder")
     try:
-        return Rig.load_intrinsics(path)
+        return read(path)
     except (ValueError, OSError, KeyError) as e:
-        raise BadInput(f"--intrinsics {str(path)!r}: {' '.join(str(e).split())}") from None
+        raise BadInput(f"{option} {str(path)!r}: {' '.join(str(e).split())}") from None
