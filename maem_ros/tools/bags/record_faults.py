@@ -70,7 +70,7 @@ class Source:
         seqs: dict[str, list[bytes]] = defaultdict(list)
         for m in bagio.read_messages(bag):
             seqs[m.topic].append(m.data)
-        where = {t: defaultdict(list) for t in seqs}
+        where: dict[str, dict[bytes, list[int]]] = {t: defaultdict(list) for t in seqs}
         for t, seq in seqs.items():
             for i, data in enumerate(seq):
                 where[t][data].append(i)
@@ -228,6 +228,9 @@ def chunk_contents(path: Path) -> list[tuple[int, list[tuple[str, int, bytes]]]]
     out = []
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
+        if summary is None:
+            raise ValueError(f"MCAP file {str(path)!r}: no summary (not a complete file), "
+                             "its chunks cannot be listed")
         topics = {cid: c.topic for cid, c in summary.channels.items()}
         for ci in summary.chunk_indexes:
             f.seek(ci.chunk_start_offset + 1 + 8)
@@ -451,8 +454,8 @@ def cut_bag(bag: Path, work: Path) -> Path:
         for k, v in info.custom.items():
             w.set_custom(k, v)
         for m in bagio.read_messages(bag, info=info):
-            w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, (info.qos.get(m.topic) or
-                                                                    [None])[0])
+            qos = info.qos.get(m.topic)
+            w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, qos[0] if qos else None)
     return out
 
 
@@ -469,45 +472,46 @@ def run_all(a: argparse.Namespace, log=print) -> list[tuple[str, str, str]]:
     if a.cuts:
         src = cut_bag(bag, a.work)
         size = bagio.bag_info(src).files[-1].size
-        res = [cut_run(src, a.work / "cut", rng.randrange(8, size), drop_metadata=i % 2 == 1)
-               for i in range(a.cuts)]
-        ok = sum(r.ok for r in res)
+        cuts = [cut_run(src, a.work / "cut", rng.randrange(8, size), drop_metadata=i % 2 == 1)
+                for i in range(a.cuts)]
+        ok = sum(c.ok for c in cuts)
         rows.append((f"cut at {a.cuts} random offsets", f"{ok}/{a.cuts} exact",
-                     f"{sum(r.got for r in res):,} messages read back, "
-                     f"{sum(r.garbled for r in res)} garbled, {sum(r.missing for r in res)} "
-                     f"missing, {sum(r.extra for r in res)} from cut chunks; "
-                     f"{sum(bool(r.refused) for r in res)} cuts left nothing complete (refused "
+                     f"{sum(c.got for c in cuts):,} messages read back, "
+                     f"{sum(c.garbled for c in cuts)} garbled, {sum(c.missing for c in cuts)} "
+                     f"missing, {sum(c.extra for c in cuts)} from cut chunks; "
+                     f"{sum(bool(c.refused) for c in cuts)} cuts left nothing complete (refused "
                      f"in one line)"))
         log(rows[-1])
     if a.kills or a.disk or a.long:
         with Feed(bag, a.work / "play.log") as feed:
             if a.kills:
-                res = [kill_run(a.work / f"kill_{i}", source, rng, low_traffic=i % 2 == 1)
-                       for i in range(a.kills)]
-                for r in res:
+                kills = [kill_run(a.work / f"kill_{i}", source, rng, low_traffic=i % 2 == 1)
+                         for i in range(a.kills)]
+                for r in kills:
                     log(f"kill after {r.delay_s:.2f} s ({r.topics}): window {r.window_s:.3f} s, "
                         f"{r.recovered} recovered, garbled {r.garbled}, holes {r.holes}, "
                         f"rc {r.recover_rc}")
-                w = sorted(r.window_s for r in res)
-                rows.append((f"SIGKILL at {a.kills} random moments", f"{sum(r.ok for r in res)}"
+                w = sorted(r.window_s for r in kills)
+                rows.append((f"SIGKILL at {a.kills} random moments", f"{sum(r.ok for r in kills)}"
                              f"/{a.kills} ok", f"newest recovered message {w[0]:.2f}-{w[-1]:.2f} "
                              f"s before the kill (median {w[len(w) // 2]:.2f}); "
-                             f"{sum(r.recovered for r in res):,} messages, "
-                             f"{sum(r.garbled for r in res)} garbled, "
-                             f"{sum(r.holes for r in res)} holes in what DDS delivered; "
-                             f"{sum(r.restarts for r in res)} recorders restarted (no message "
+                             f"{sum(r.recovered for r in kills):,} messages, "
+                             f"{sum(r.garbled for r in kills)} garbled, "
+                             f"{sum(r.holes for r in kills)} holes in what DDS delivered; "
+                             f"{sum(r.restarts for r in kills)} recorders restarted (no message "
                              f"in 30 s)"))
             if a.disk:
                 rows += _disk_rows(a.work, source, log)
             if a.long:
-                r = long_run(a.work / "long", source, feed, a.long, a.split)
+                lr = long_run(a.work / "long", source, feed, a.long, a.split)
                 rows.append((f"{a.long:g} min split every {a.split:g} s",
-                             f"{'ok' if r.ok else 'FAILED'}: {r.complete}/{r.files} complete files",
-                             f"{r.written:,} written of {r.received:,} received, "
-                             f"garbled {r.garbled}; {r.holes} holes in what DDS delivered; "
+                             f"{'ok' if lr.ok else 'FAILED'}: {lr.complete}/{lr.files} complete "
+                             f"files",
+                             f"{lr.written:,} written of {lr.received:,} received, "
+                             f"garbled {lr.garbled}; {lr.holes} holes in what DDS delivered; "
                              f"file spans "
-                             f"{min(r.durations_s):.1f}-{max(r.durations_s):.1f} s; player: "
-                             f"{r.published.split('] ')[-1]}"))
+                             f"{min(lr.durations_s):.1f}-{max(lr.durations_s):.1f} s; player: "
+                             f"{lr.published.split('] ')[-1]}"))
     return rows
 
 
