@@ -331,10 +331,8 @@ class AssociationNode(MaemNode):
             with Stopwatch(self.diag, "encode"):
                 out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, items,
                                            result.clusters,
-                                           # wire's hints say Sequence[int]; it takes the (K,)
-                                           # int arrays (wire is being rewritten)
-                                           result.track_ids if tracked else None,  # type: ignore[arg-type]
-                                           result.flags if tracked else None)  # type: ignore[arg-type]
+                                           result.track_ids if tracked else None,
+                                           result.flags if tracked else None)
         if step.failed:
             return
         self.pub.publish(out)

@@ -74,6 +74,7 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
             callback(msg)
 
     # rclpy: a callback that wants the info
+    # (mypy: functions have no __signature__ attribute; inspect reads it)
     on_message.__signature__ = _MSG_INFO_SIGNATURE  # type: ignore[attr-defined]
     sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
     return sub
