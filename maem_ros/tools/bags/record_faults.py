@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import functools
 import random
+import re
 import resource
 import shutil
 import signal
@@ -382,6 +383,7 @@ class LongResult:
     complete: int
     written: int  # messages in the bag
     received: int  # messages the recorder says it received
+    lost: int  # messages the recorder counted lost before it took them (sequence gaps)
     published: str  # the player's own count line
     holes: int
     garbled: int
@@ -395,6 +397,12 @@ class LongResult:
             self.garbled == 0
 
 
+def _said_count(line: str, label: str) -> int:
+    """The number after ``label`` in the recorder's last line (-1 when it is not there)."""
+    m = re.search(re.escape(label) + r"([\d,]+)", line)
+    return int(m.group(1).replace(",", "")) if m else -1
+
+
 def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: float) -> LongResult:
     """Record everything for ``minutes`` split every ``split_s``, stop with SIGINT."""
     log = out.with_suffix(".log")
@@ -405,12 +413,13 @@ def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: flo
     published = [ln for ln in feed.stop().splitlines() if "published" in ln]
     text = log.read_text()
     line = [ln for ln in text.splitlines() if "wrote" in ln and "received" in ln]
-    received = int(line[-1].split("received ", 1)[1].split(" ", 1)[0].replace(",", "")) \
-        if line else -1
+    received, lost = (_said_count(line[-1], "received "),
+                      _said_count(line[-1], "took them: ")) if line else (-1, -1)
     info = bagio.bag_info(out)
     c = source.check(bagio.read_messages(out, info=info))
     return LongResult(minutes, split_s, len(info.files), sum(fs.complete for fs in info.files),
-                      info.message_count, received, published[-1] if published else "", c.holes,
+                      info.message_count, received, lost, published[-1] if published else "",
+                      c.holes,
                       c.garbled, [((fs.end_ns or 0) - (fs.start_ns or 0)) / 1e9
                                 for fs in info.files])
 
@@ -504,7 +513,8 @@ def run_all(a: argparse.Namespace, log=print) -> list[tuple[str, str, str]]:
                 rows.append((f"{a.long:g} min split every {a.split:g} s",
                              f"{'ok' if r.ok else 'FAILED'}: {r.complete}/{r.files} complete files",
                              f"{r.written:,} written of {r.received:,} received, "
-                             f"garbled {r.garbled}; {r.holes} holes in what DDS delivered; "
+                             f"garbled {r.garbled}; {r.holes} holes in what DDS delivered "
+                             f"({r.lost:,} counted lost by the recorder); "
                              f"file spans "
                              f"{min(r.durations_s):.1f}-{max(r.durations_s):.1f} s; player: "
                              f"{r.published.split('] ')[-1]}"))
