@@ -83,14 +83,18 @@ class Source:
     def check(self, msgs: Iterable[bagio.BagMessage], last: dict | None = None) -> Checked:
         """Stream ``msgs`` once: how many, how many are not byte-identical to one of the bag's
         on their topic (garbled), how many per-topic successions skip messages of the player's
-        loop (holes), the newest log time. ``last`` carries the per-topic state across calls
-        (files of one bag read one by one)."""
+        loop (holes), how many are on a topic the bag does not have (others: the recorder's
+        own /diagnostics with --all), the newest log time. ``last`` carries the per-topic
+        state across calls (files of one bag read one by one)."""
         last = {} if last is None else last
         out = Checked()
         for m in msgs:
             out.count += 1
             out.newest_ns = max(out.newest_ns, m.log_time_ns)
-            pos = self.where.get(m.topic, {}).get(m.data)
+            if m.topic not in self.where:
+                out.others += 1
+                continue
+            pos = self.where[m.topic].get(m.data)
             if pos is None:
                 out.garbled += 1
                 continue
@@ -107,6 +111,7 @@ class Checked:
     count: int = 0
     garbled: int = 0
     holes: int = 0
+    others: int = 0
     newest_ns: int = 0
 
 
