@@ -5,10 +5,13 @@ answer is known by construction -- and FrameDetections of random numbers for the
 validation tests. One factory per concept, options as keywords.
 
 World frame: z up, metres, court centre at the origin. Image coordinates: rectified px.
+Also the authors' real SportCenter camera (distorted), from the shared calibration files.
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -17,6 +20,32 @@ import numpy as np
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.sim import rigs as sim_rigs
+
+
+#: the shared calibration files (the authors' real cameras); the copy next to the checkout
+#: where /work/shared is not there
+CALIB = Path("/work/shared/data/calibration")
+if not CALIB.is_dir():
+    CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"
+#: the real SportCenter camera's JSON, rounded: used where the calibration files are absent
+SPORTCENTER_JSON = {
+    "extrinsic_r": [[-0.99888, 0.00848, 0.04650], [-0.03786, 0.44538, -0.89454],
+                    [-0.02830, -0.89530, -0.44456]],
+    "extrinsic_t": [0.1923, 0.5309, 15.4859], "height": 992, "width": 1376,
+    "intrinsic": [[828.52, 0.0, 676.65], [0.0, 842.40, 418.05], [0.0, 0.0, 1.0]],
+    "k1": -0.34600, "k2": 0.12372, "p1": -0.00680, "p2": -0.00061, "k3": -0.01250, "name": "ace_0",
+}
+
+
+def sportcenter_camera(name: str = "ace_0") -> Camera:
+    """The authors' real SportCenter camera (plumb_bob, strong barrel distortion, 1376 x 992)
+    from CALIB, or SPORTCENTER_JSON where the file is absent; its R made orthonormal (the file's
+    is only to 5 digits)."""
+    path = CALIB / "sportcenter_fisheye_param_00.json"
+    data = json.loads(path.read_text()) if path.is_file() else dict(SPORTCENTER_JSON)
+    u, _, vt = np.linalg.svd(np.asarray(data["extrinsic_r"], float))
+    data["extrinsic_r"] = (u @ vt).tolist()
+    return Camera.from_maem_json(data, name=name)
 
 
 def look_at(name: str, eye, target=(0.0, 0.0, 1.0), f: float = 1000.0,

@@ -11,15 +11,11 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
-from helpers_scene import random_detections
+from helpers_scene import CALIB, random_detections
 
 from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 from maem_ros.params import load_node_params
-
-CALIB = Path("/work/shared/data/calibration")
-if not CALIB.is_dir():  # the copy next to the checkout, wherever the tests run from
-    CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"
 
 #: distortion coefficients per model (plumb_bob: the real SportCenter camera's)
 DISTORTIONS = {
