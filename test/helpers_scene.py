@@ -228,6 +228,26 @@ def pose_frames(rig: Rig, rows: dict[str, list[tuple]], *, scores: dict[str, Seq
     return frames, ids
 
 
+#: stamp of frame 0 of a walking-people sequence (walk_frame), ns
+T0_NS = 1_700_000_000_000_000_000
+
+
+def walk_frame(rig: Rig, people: Sequence[Person], f: int, *, seen=None, kpts3d_of=None,
+               stamp_ns: int | None = None) -> tuple[dict[str, FrameDetections], dict[str, list[Any]]]:
+    """Exact detections of walking ``people`` at frame ``f`` (:func:`pose_frames`), stamped
+    T0_NS + f / fps (``stamp_ns`` instead if given); ``seen(cam, k)`` -> bool: whether camera
+    cam detects person k (default all); ``kpts3d_of(cam, k)`` -> the person whose 3D pose that
+    detection carries (default k). Returns (frames, person index of each row per camera)."""
+    fps = people[0].fps if people else 30.0
+    stamp = T0_NS + int(round(f * 1e9 / fps)) if stamp_ns is None else stamp_ns
+    poses = [p.at(f) for p in people]
+    rows = {cam.name: [(poses[k], poses[kpts3d_of(cam.name, k)].joints if kpts3d_of else None, k)
+                       for k in range(len(people)) if seen is None or seen(cam.name, k)]
+            for cam in rig}
+    shape = (len(people[0].joints), len(people[0].verts)) if people else (0, 0)
+    return pose_frames(rig, rows, stamp_ns=stamp, empty_shape=shape)
+
+
 def random_detections(n: int = 3, j: int = 4, v: int = 50, seed: int = 0, *,
                       camera: str = "cam0", stamp_ns: int = 1,
                       xy: tuple[float, float] = (0.0, 1000.0),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers_scene import Person, look_at, pose_frames, ring_rig
+from helpers_scene import T0_NS, Person, look_at, ring_rig, walk_frame
 
 from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.core.geometry.camera import Rig
@@ -15,20 +15,6 @@ from maem_ros.core.tracking.temporal import (FLAG_FEW_VIEWS, FLAG_TRACKED, Tempo
 
 V, J = 300, 24
 FPS = 30.0
-T0 = 1_700_000_000_000_000_000
-
-
-def frame(rig: Rig, people: list[Person], f: int, seen=None, kpts3d_of=None, stamp=None
-          ) -> tuple[dict[str, FrameDetections], dict[str, list[int]]]:
-    """Exact detections of frame f (helpers_scene.pose_frames), stamped at f / FPS from T0;
-    seen(cam, k) -> bool; kpts3d_of(cam, k) -> person whose 3D pose that detection carries.
-    Returns (frames, person index of each row per camera)."""
-    stamp = T0 + int(round(f * 1e9 / FPS)) if stamp is None else stamp
-    poses = [p.at(f) for p in people]
-    rows = {cam.name: [(poses[k], poses[kpts3d_of(cam.name, k)].joints if kpts3d_of else None, k)
-                       for k in range(len(people)) if seen is None or seen(cam.name, k)]
-            for cam in rig}
-    return pose_frames(rig, rows, stamp_ns=stamp, empty_shape=(J, V))
 
 
 def identities(result, rig: Rig, who) -> list[tuple[int, set[int]]]:
@@ -54,7 +40,7 @@ def run(rig, people, frames_range, assoc=PARAMS, temporal=None):
     ta = TemporalAssociator(rig, assoc, temporal or TemporalParams())
     out = []
     for f in frames_range:
-        fr, who = frame(rig, people, f)
+        fr, who = walk_frame(rig, people, f)
         out.append((ta.step(fr, fr[rig.names[0]].stamp_ns), who))
     return ta, out
 
@@ -86,7 +72,7 @@ def test_person_missed_by_every_camera_for_a_few_frames_keeps_the_id():
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=8))
     before = after = None
     for f in range(25):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: not (k == 0 and f in gone))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: not (k == 0 and f in gone))
         res = ta.step(fr, next(iter(fr.values())).stamp_ns)
         ids = person_ids(res, rig, who)
         if f == 7:
@@ -104,7 +90,7 @@ def test_track_ends_after_max_misses_and_the_person_gets_a_new_id():
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=2))
     ids = []
     for f in range(16):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: f not in range(6, 10))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: f not in range(6, 10))
         res = ta.step(fr, next(iter(fr.values())).stamp_ns)
         ids.append(res.track_ids.tolist())
     assert ids[5] == [0] and ids[6:10] == [[]] * 4
@@ -145,7 +131,7 @@ def test_a_wrong_per_frame_match_is_avoided_with_tracks():
     assert 0.02 < pa_mpjpe(a.joints, b.joints) < 0.5 * params.tau_cost
     swap = 6
     kpts = lambda f: (lambda cam, k: 1 - k if (cam == "cam1" and f == swap) else k)  # noqa: E731
-    fr, who = frame(rig, people, swap, kpts3d_of=kpts(swap))
+    fr, who = walk_frame(rig, people, swap, kpts3d_of=kpts(swap))
     per_frame = associate(rig, fr, params)
     mixed = [{who[rig.names[c]][d] for c, d in cl.members.tolist()} for cl in per_frame.clusters]
     assert mixed == [{0, 1}, {0, 1}], "precondition: per-frame association is fooled"
@@ -153,7 +139,7 @@ def test_a_wrong_per_frame_match_is_avoided_with_tracks():
     ta = TemporalAssociator(rig, params, TemporalParams())
     ids = []
     for f in range(10):
-        fr, who = frame(rig, people, f, kpts3d_of=kpts(f))
+        fr, who = walk_frame(rig, people, f, kpts3d_of=kpts(f))
         ids.append(person_ids(ta.step(fr, fr["cam0"].stamp_ns), rig, who))
     assert ids[swap] == ids[swap - 1] == ids[-1] and sorted(ids[swap].values()) == [0, 1]
 
@@ -163,7 +149,7 @@ def test_a_new_person_entering_gets_a_new_track():
     people = [Person((-3, -1), 9, v=(1.0, 0.0)), Person((3, 2), 10, v=(-1.0, 0.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(12):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: k == 0 or f >= 6)
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: k == 0 or f >= 6)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         ids = person_ids(res, rig, who)
         if f == 5:
@@ -180,11 +166,11 @@ def test_a_stamp_jump_ends_all_tracks(jump):
     people = [Person((-3, -1), 11, v=(1.0, 0.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_gap_s=0.5))
     for f in range(5):
-        fr, _ = frame(rig, people, f)
+        fr, _ = walk_frame(rig, people, f)
         res = ta.step(fr, fr["cam0"].stamp_ns)
     assert res.track_ids.tolist() == [0] and res.stats["track_resets"] == 0
-    stamp = T0 - 10**9 if jump == "backwards" else fr["cam0"].stamp_ns + 2 * 10**9
-    fr, _ = frame(rig, people, 5, stamp=stamp)
+    stamp = T0_NS - 10**9 if jump == "backwards" else fr["cam0"].stamp_ns + 2 * 10**9
+    fr, _ = walk_frame(rig, people, 5, stamp_ns=stamp)
     res = ta.step(fr, stamp)
     assert res.stats["track_resets"] == 1 and ta.resets == 1
     assert res.track_ids.tolist() == [-1] and len(ta.tracker.tracks) == 1  # a fresh track
@@ -192,7 +178,7 @@ def test_a_stamp_jump_ends_all_tracks(jump):
     assert [c.members.tolist() for c in res.clusters] == \
         [c.members.tolist() for c in associate(rig, fr, PARAMS).clusters]
     for k in range(1, 3):
-        fr, _ = frame(rig, people, 5 + k, stamp=stamp + int(k * 1e9 / FPS))
+        fr, _ = walk_frame(rig, people, 5 + k, stamp_ns=stamp + int(k * 1e9 / FPS))
         res = ta.step(fr, stamp + int(k * 1e9 / FPS))
     assert res.track_ids.tolist() == [1]  # ids are never reused
 
@@ -204,7 +190,7 @@ def test_confirmed_tracks_are_updated_from_fewer_than_k_min_views_flagged():
     ta = TemporalAssociator(rig, params, TemporalParams())
     for f in range(8):
         two = f >= 5  # from frame 5 on only cam0 and cam1 see the person
-        fr, who = frame(rig, people, f, seen=lambda cam, k, two=two: not two or cam in ("cam0", "cam1"))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, two=two: not two or cam in ("cam0", "cam1"))
         res = ta.step(fr, fr["cam0"].stamp_ns)
         if two:
             assert associate(rig, fr, params).clusters == []  # below k_min per frame
@@ -220,7 +206,7 @@ def test_one_view_keeps_a_confirmed_track_alive_without_emitting_a_cluster():
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=1))
     for f in range(12):
         one = 4 <= f < 9
-        fr, who = frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
         res = ta.step(fr, fr["cam0"].stamp_ns)
         if one:
             assert res.clusters == [] and res.stats["tracks_one_view"] == 1
@@ -231,7 +217,7 @@ def test_one_view_keeps_a_confirmed_track_alive_without_emitting_a_cluster():
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=1, one_view=False))
     for f in range(12):
         one = 4 <= f < 9
-        fr, who = frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
         res = ta.step(fr, fr["cam0"].stamp_ns)
     assert res.track_ids.tolist() == [1]
 
@@ -241,7 +227,7 @@ def test_temporal_off_is_exactly_the_per_frame_pipeline():
     people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(temporal=False))
     for f in range(4):
-        fr, _ = frame(rig, people, f)
+        fr, _ = walk_frame(rig, people, f)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         ref = associate(rig, fr, PARAMS)
         assert [c.members.tolist() for c in res.clusters] == \
@@ -256,7 +242,7 @@ def test_detection_indices_map_back_when_tracks_explain_some_rows():
               Person((0, -3), 16, v=(0.0, 1.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(8):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: k != 2 or f >= 4)
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: k != 2 or f >= 4)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         ids = person_ids(res, rig, who)  # pure clusters, rows as given
         assert set(ids) == ({0, 1, 2} if f >= 4 else {0, 1})
@@ -286,7 +272,7 @@ def test_a_member_failing_the_pair_gates_is_verified_out():
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(8):
         bad = (lambda cam, k: 1 if (cam == "cam3" and k == 0) else k) if f == 6 else None
-        fr, who = frame(rig, people, f, kpts3d_of=bad)
+        fr, who = walk_frame(rig, people, f, kpts3d_of=bad)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         members = {who[rig.names[c]][d] for cl in res.clusters[:1] for c, d in cl.members.tolist()}
         rows = [cl.members[:, 0].tolist() for cl, tid in zip(res.clusters, res.track_ids)
@@ -302,7 +288,7 @@ def test_frame_sets_without_some_cameras_and_empty_frames_keep_the_tracks():
     people = [Person((-2, -1), 19, v=(1.0, 0.5)), Person((2, 1), 20, v=(-0.5, 0.5))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(12):
-        fr, who = frame(rig, people, f)
+        fr, who = walk_frame(rig, people, f)
         if f in (5, 6):
             del fr["cam3"]  # a partial frame set (camera missing)
         if f == 8:

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from temporal_reference import ReferenceTemporalAssociator
-from helpers_scene import Person, ring_rig
-from test_temporal import PARAMS, frame
+from helpers_scene import Person, ring_rig, walk_frame
+from test_temporal import PARAMS
 
 from maem_ros.core.association.pipeline import AssociationParams
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
@@ -82,7 +82,7 @@ def test_batched_stage_equals_the_reference_on_crossing_and_occlusion(temporal):
             return False
         return not (f >= 20 and cam in cams[:2 + (f >= 26)])
 
-    seq = [frame(rig, people, f, seen=lambda cam, k, f=f: seen(cam, k, f))[0]
+    seq = [walk_frame(rig, people, f, seen=lambda cam, k, f=f: seen(cam, k, f))[0]
            for f in range(34)]
     assert run_both(rig, seq, PARAMS, temporal) >= 30
 
@@ -92,5 +92,5 @@ def test_batched_stage_equals_the_reference_when_the_pair_gates_reject_members()
     rig = ring_rig(5)
     people = [Person((-2, 0), 1, v=(1.0, 0.0)), Person((2, 0.5), 2, v=(-1.0, 0.0))]
     wrong = lambda cam, k: 1 - k if (cam == rig.names[3] and k == 0) else k
-    seq = [frame(rig, people, f, kpts3d_of=wrong)[0] for f in range(12)]
+    seq = [walk_frame(rig, people, f, kpts3d_of=wrong)[0] for f in range(12)]
     run_both(rig, seq, dataclasses.replace(PARAMS, tau_cost=0.05), TemporalParams())
