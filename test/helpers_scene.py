@@ -4,8 +4,10 @@ walking, FrameDetections made by projecting them through the cameras -- so every
 answer is known by construction -- and FrameDetections of random numbers for the wire and
 validation tests. One factory per concept, options as keywords.
 
+Also the authors' real SportCenter camera (distorted, from the shared calibration files) and
+a zero-noise scene folder for maem-eval.
+
 World frame: z up, metres, court centre at the origin. Image coordinates: rectified px.
-Also the authors' real SportCenter camera (distorted), from the shared calibration files.
 """
 from __future__ import annotations
 
