@@ -1,10 +1,11 @@
 """Every use of rclpy in the project: the nodes and what they share.
 
-Nodes (console scripts in setup.cfg; thin: parameters -> wire -> core -> publish, all but the
-player and recorder on the ``MaemNode`` base): ``frontend_node`` (image -> detections, MAEM stage 1), ``association_node``
-(detections of every camera -> clusters, stage 2), ``triangulation_node`` (clusters -> poses
-and skeleton markers, stage 3), ``camera_node`` (video/image folder -> images),
-``player_node`` / ``recorder_node`` (MCAP bags), ``foxglove_node`` (live Foxglove view).
+Nodes (console scripts in setup.cfg; thin: parameters -> wire -> core -> publish; all but the
+player and recorder on the ``MaemNode`` base):
+``frontend_node`` (image -> detections, MAEM stage 1), ``association_node`` (detections of
+every camera -> clusters, stage 2), ``triangulation_node`` (clusters -> poses and skeleton
+markers, stage 3), ``camera_node`` (video/image folder -> images), ``player_node`` /
+``recorder_node`` (MCAP bags), ``foxglove_node`` (live Foxglove view).
 
 Shared: ``node`` (the MaemNode base: parameters, diagnostics, errors, shutdown), ``params``
 (parameter declaration from core.paramspec, rig loading), ``qos``, ``diagnostics``,

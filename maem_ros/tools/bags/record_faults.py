@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import functools
 import random
+import re
 import resource
 import shutil
 import signal
@@ -82,14 +83,18 @@ class Source:
     def check(self, msgs: Iterable[bagio.BagMessage], last: dict | None = None) -> Checked:
         """Stream ``msgs`` once: how many, how many are not byte-identical to one of the bag's
         on their topic (garbled), how many per-topic successions skip messages of the player's
-        loop (holes), the newest log time. ``last`` carries the per-topic state across calls
-        (files of one bag read one by one)."""
+        loop (holes), how many are on a topic the bag does not have (others: the recorder's
+        own /diagnostics with --all), the newest log time. ``last`` carries the per-topic
+        state across calls (files of one bag read one by one)."""
         last = {} if last is None else last
         out = Checked()
         for m in msgs:
             out.count += 1
             out.newest_ns = max(out.newest_ns, m.log_time_ns)
-            pos = self.where.get(m.topic, {}).get(m.data)
+            if m.topic not in self.where:
+                out.others += 1
+                continue
+            pos = self.where[m.topic].get(m.data)
             if pos is None:
                 out.garbled += 1
                 continue
@@ -106,6 +111,7 @@ class Checked:
     count: int = 0
     garbled: int = 0
     holes: int = 0
+    others: int = 0
     newest_ns: int = 0
 
 
@@ -385,6 +391,7 @@ class LongResult:
     complete: int
     written: int  # messages in the bag
     received: int  # messages the recorder says it received
+    lost: int  # messages the recorder counted lost before it took them (sequence gaps)
     published: str  # the player's own count line
     holes: int
     garbled: int
@@ -398,6 +405,12 @@ class LongResult:
             self.garbled == 0
 
 
+def _said_count(line: str, label: str) -> int:
+    """The number after ``label`` in the recorder's last line (-1 when it is not there)."""
+    m = re.search(re.escape(label) + r"([\d,]+)", line)
+    return int(m.group(1).replace(",", "")) if m else -1
+
+
 def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: float) -> LongResult:
     """Record everything for ``minutes`` split every ``split_s``, stop with SIGINT."""
     log = out.with_suffix(".log")
@@ -408,12 +421,13 @@ def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: flo
     published = [ln for ln in feed.stop().splitlines() if "published" in ln]
     text = log.read_text()
     line = [ln for ln in text.splitlines() if "wrote" in ln and "received" in ln]
-    received = int(line[-1].split("received ", 1)[1].split(" ", 1)[0].replace(",", "")) \
-        if line else -1
+    received, lost = (_said_count(line[-1], "received "),
+                      _said_count(line[-1], "took them: ")) if line else (-1, -1)
     info = bagio.bag_info(out)
     c = source.check(bagio.read_messages(out, info=info))
     return LongResult(minutes, split_s, len(info.files), sum(fs.complete for fs in info.files),
-                      info.message_count, received, published[-1] if published else "", c.holes,
+                      info.message_count, received, lost, published[-1] if published else "",
+                      c.holes,
                       c.garbled, [((fs.end_ns or 0) - (fs.start_ns or 0)) / 1e9
                                 for fs in info.files])
 
@@ -508,7 +522,8 @@ def run_all(a: argparse.Namespace, log=print) -> list[tuple[str, str, str]]:
                              f"{'ok' if lr.ok else 'FAILED'}: {lr.complete}/{lr.files} complete "
                              f"files",
                              f"{lr.written:,} written of {lr.received:,} received, "
-                             f"garbled {lr.garbled}; {lr.holes} holes in what DDS delivered; "
+                             f"garbled {lr.garbled}; {lr.holes} holes in what DDS delivered "
+                             f"({lr.lost:,} counted lost by the recorder); "
                              f"file spans "
                              f"{min(lr.durations_s):.1f}-{max(lr.durations_s):.1f} s; player: "
                              f"{lr.published.split('] ')[-1]}"))
