@@ -23,7 +23,7 @@ import json, sys
 from maem_ros.core import kernel_cache as kc
 from maem_ros.tools import warmup
 before = kc.kernel_counts()
-kc.warm_kernels(kc.core_modules(sys.argv[2:]))
+kc.warm_kernels(kc.kernel_modules(sys.argv[2:]))
 if sys.argv[1] == "nodes":
     warmup.node_paths()
 stats = kc.kernel_stats(before)
@@ -116,4 +116,4 @@ def test_warmup_rejects_an_unknown_module() -> None:
     done = run_warmup("--only", "maem_ros.core.nowhere")
     assert done.returncode == 2
     assert done.stderr.strip() == ("maem-warmup: --only 'maem_ros.core.nowhere': no module of "
-                                   "maem_ros.core starts with it")
+                                   "maem_ros.core or maem_ros.wire starts with it")

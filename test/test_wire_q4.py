@@ -58,6 +58,31 @@ def test_q4_round_trip_is_exact_to_a_32nd_of_a_pixel(n, j, v, seed):
     assert len(msg.data) == len(f32.data) - n * 4 * (v + j) + n * 8
 
 
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(0, 5), pairs=st.integers(0, 40), seed=st.integers(0, 2**16),
+       read_only=st.booleans())
+def test_q4_kernel_decodes_exactly_as_numpy(n, pairs, seed, read_only):
+    """The numba decoder (float32, rows contiguous as in a received message) gives the same
+    bits as the numpy path (float64, cast: every q4 value is exact in float32)."""
+    from maem_ros.core.jit import have_numba
+    from maem_ros.wire.q4_kernel import decode_pairs
+    rng = np.random.default_rng(seed)
+    record = np.zeros(n, np.dtype([("bbox", np.float32, 4), ("code", np.uint16, 2 * pairs)]))
+    record["code"] = rng.integers(0, wire.Q4_MISSING + 1, (n, 2 * pairs))
+    record["code"][rng.random((n, 2 * pairs)) < 0.1] = wire.Q4_MISSING
+    if read_only:  # the fields of a received message are views of its bytes
+        record = np.frombuffer(record.tobytes(), record.dtype)
+    code = record["code"]
+    origin = np.floor(rng.uniform(-2000, 2000, (n, 2))).astype(np.float32)
+    fast = wire.decode_q4(code, origin=origin)
+    reference = wire.decode_q4(code, np.float64, origin=origin).astype(np.float32)
+    assert fast.dtype == np.float32 and fast.shape == code.shape
+    np.testing.assert_array_equal(fast, reference)  # NaN where missing, in both
+    assert np.isnan(fast).sum() == (code == wire.Q4_MISSING).sum()
+    if have_numba():
+        assert decode_pairs(code, origin) is not None  # the kernel ran, not the fallback
+
+
 def test_q4_codes_and_missing_values():
     # 65534 / 16 = 4095.875 px is the largest value; 65535 marks a missing one
     px = np.array([0.0, 1 / 32 - 1e-6, 100.03125, 4095.875, 4095.9375, -0.02, -5.0, np.nan, 1e9])

@@ -1,6 +1,7 @@
-"""numba's on-disk cache of core's kernels, warmed at install (maem-warmup, doc/cold_start.md).
+"""numba's on-disk cache of the kernels (core's, and the wire's q4 decoder), warmed at install
+(maem-warmup, doc/cold_start.md).
 
-The kernels are found through each core module's own ``warmup()`` (walking the package, so a
+The kernels are found through each module's own ``warmup()`` (walking the package, so a
 kernel that moves between modules stays covered) and counted with numba's own per-dispatcher
 counters (signatures loaded from the cache vs compiled). :func:`stale_kernel_files` catches what
 numba's cache check misses: numba keys a cached kernel on its own file only, so a kernel that
@@ -25,8 +26,8 @@ from typing import Any
 
 from maem_ros.core.jit import have_numba
 
-#: the package whose modules are searched for ``warmup()`` functions and numba dispatchers
-CORE = "maem_ros.core"
+#: the packages whose modules are searched for ``warmup()`` functions and numba dispatchers
+KERNEL_PACKAGES = ("maem_ros.core", "maem_ros.wire")
 #: file (in each cache directory) naming the sources each module's cached kernels were built from
 MANIFEST = "maem_kernels.sources.json"
 
@@ -42,12 +43,13 @@ class KernelStats:
     compiled: int = 0
 
 
-def core_modules(prefixes: Sequence[str] = ()) -> list[ModuleType]:
-    """Every module of maem_ros.core, imported (in name order); with ``prefixes``, only those
-    whose dotted name starts with one of them. An import error propagates: a broken kernel
-    module must fail the warm-up, not skip it."""
-    import maem_ros.core as core
-    names = sorted(m.name for m in pkgutil.walk_packages(core.__path__, CORE + "."))
+def kernel_modules(prefixes: Sequence[str] = ()) -> list[ModuleType]:
+    """Every module of the KERNEL_PACKAGES, imported (in name order); with ``prefixes``, only
+    those whose dotted name starts with one of them. An import error propagates: a broken
+    kernel module must fail the warm-up, not skip it."""
+    names = sorted(m.name for package in KERNEL_PACKAGES
+                   for m in pkgutil.walk_packages(importlib.import_module(package).__path__,
+                                                  package + "."))
     names = [n for n in names if not prefixes or any(n.startswith(p) for p in prefixes)]
     return [importlib.import_module(n) for n in names]
 
@@ -65,13 +67,14 @@ def warmup_functions(modules: Sequence[ModuleType]) -> list[Callable[[], None]]:
 
 def dispatchers(modules: Sequence[ModuleType] | None = None) -> dict[str, Any]:
     """{"module.function": numba dispatcher} of every numba function defined by (or compiled
-    from a function of) the imported maem_ros.core modules (``modules``: only these). Empty
+    from a function of) the imported modules of the KERNEL_PACKAGES (``modules``: only these). Empty
     without numba."""
     if not have_numba():
         return {}
     from numba.core.dispatcher import Dispatcher
     pool = modules if modules is not None else [
-        m for n, m in list(sys.modules.items()) if n.startswith(CORE + ".") and m is not None]
+        m for n, m in list(sys.modules.items())
+        if n.startswith(tuple(p + "." for p in KERNEL_PACKAGES)) and m is not None]
     found: dict[str, Any] = {}
     for m in pool:
         for value in vars(m).values():

@@ -9,8 +9,9 @@ tree for an editable install, ``install/maem_ros/lib/pythonX/site-packages/...``
 install), or in ``NUMBA_CACHE_DIR`` when set (then set it the same way for the nodes). Two
 passes:
 
-1. every ``warmup()`` defined by a module of ``maem_ros.core`` (found by walking the package,
-   so kernels moved between modules stay covered): the kernels with their own signatures;
+1. every ``warmup()`` defined by a module of ``maem_ros.core`` or ``maem_ros.wire`` (found by
+   walking the packages, so kernels moved between modules stay covered): the kernels with
+   their own signatures;
 2. the nodes' path on a small simulated frame set, decoded from both detection wires (f32,
    q4) as the association node decodes them, for every shipped params file: association
    (track-assisted, as the node runs it), triangulation. This catches signatures that depend on
@@ -100,7 +101,7 @@ def warm(only: Sequence[str] = (), clean: bool = False,
     """Passes 1 and 2 (pass 2 without ``only``); returns a summary (kernels loaded, compiled,
     deleted as stale, cache directories, seconds)."""
     t0 = time.monotonic()
-    modules = kc.core_modules(only)
+    modules = kc.kernel_modules(only)
     found = kc.dispatchers()  # nothing is loaded yet: imports do not call kernels
     stale = list(kc.kernel_files(found)) if clean else kc.stale_kernel_files(found)
     deleted = kc.purge_cache(stale, found) if stale else 0
@@ -136,9 +137,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("maem-warmup: numba is not installed: nothing to compile (the numpy paths run)")
         return 0
     say: Callable[[str], None] = _silent if a.quiet else print
-    unknown = [p for p in a.only if not kc.core_modules([p])]
+    unknown = [p for p in a.only if not kc.kernel_modules([p])]
     if unknown:
-        print(f"maem-warmup: --only {unknown[0]!r}: no module of {kc.CORE} starts with it",
+        print(f"maem-warmup: --only {unknown[0]!r}: no module of "
+              f"{' or '.join(kc.KERNEL_PACKAGES)} starts with it",
               file=sys.stderr)
         return 2
     out = warm(a.only, a.clean, say)
