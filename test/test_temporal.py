@@ -366,7 +366,6 @@ def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_ass
     return); the two views go through the cross-view association, as with tracks off, and are
     published as a new untracked cluster (scored from its own weak geometry, not filtered with
     the track's history)."""
-    from helpers_scene import look_at
     rig = Rig([look_at("cam0", (-0.8, -10, 2)), look_at("cam1", (0.8, -10, 2)),
                look_at("cam2", (10, 1, 5)), look_at("cam3", (-10, 2, 5))])
     people = [Walker((0, 0), (0.6, 0.3), 21)]
@@ -374,7 +373,7 @@ def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_ass
     ta = TemporalAssociator(rig, params, TemporalParams())
     for f in range(10):
         narrow = f == 6
-        fr, who = frame(rig, people, f, seen=lambda cam, k: not narrow or cam in ("cam0", "cam1"))
+        fr, who = frame(rig, people, f, seen=lambda cam, k, n=narrow: not n or cam in ("cam0", "cam1"))
         if narrow:
             shifted = fr["cam1"].kpts2d.copy()
             shifted[..., 0] += 20.0  # the pair's epipolar lines are near horizontal
