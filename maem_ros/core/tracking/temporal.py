@@ -51,7 +51,7 @@ from scipy.optimize import linear_sum_assignment
 
 from maem_ros.core.association.gates import FrameSet, PairGates
 from maem_ros.core.association.params import AssociationParams
-from maem_ros.core.association.pipeline import associate
+from maem_ros.core.association.pipeline import associate, pair_cost
 from maem_ros.core.detections import PASSED, Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
@@ -428,13 +428,14 @@ class TemporalAssociator:
                     db: np.ndarray) -> np.ndarray:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
         association's pair gates (core.association.gates: bbox-centre reprojection, epipolar
-        on keypoints or mesh vertices, ``verify_epipolar``) and the PA-MPJPE cost of the lower
-        camera's 3D pose aligned onto the other's under tau_cost, on the few pairs inside the
-        tracks' clusters only. The cost here is the pose alone (no epipolar term: the
-        verification's epipolar test is on keypoints by default)."""
+        on mesh vertices or keypoints, ``verify_epipolar``) and the association's pair cost
+        (the PA-MPJPE of the lower camera's 3D pose aligned onto the other's plus the epipolar
+        term, core.association.pipeline.pair_cost) under tau_cost, on the few pairs inside the
+        tracks' clusters only."""
         by_cam = view.by_cam
         p = self.params
-        ok = view.gates.decide(ca, da, cb, db).stage == PASSED
+        decided = view.gates.decide(ca, da, cb, db)
+        ok = decided.stage == PASSED
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)
@@ -444,8 +445,9 @@ class TemporalAssociator:
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            # NaN (too few joints) fails
-            ok[s] = pa_mpjpe_finite(X, Y, p.execution.backend) < p.tau_cost
+            pose = pa_mpjpe_finite(X, Y, p.execution.backend)
+            # the association's cost (NaN, too few joints, fails)
+            ok[s] = pair_cost(pose, decided.epi[s], p, self.tp.verify_epipolar) < p.tau_cost
         return ok
 
     @staticmethod
