@@ -22,13 +22,16 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
 4. Geometric verification, batched over tracks, as the consistent clustering verifies a merge:
    every member must pass the association's pair gates (bbox-centre reprojection, epipolar
    distance of the mesh vertices, or of the 2D keypoints with ``verify_epipolar: sparse``,
-   under ``tau_mesh``, PA-MPJPE under ``tau_cost``) with at least ``min_support`` of the others,
-   and reproject under the association's ``tau_verify`` px (median over the body joints DLT
-   triangulated from all members); the worst member is dropped until all pass. A confirmed
-   track is updated from ``min_track_views`` (2) views or more, fewer than ``k_min`` flagged
-   ``FLAG_FEW_VIEWS``; with one view left it is kept alive by that view plus its prediction
-   (``one_view``: the state moves to the points of the view's rays nearest the prediction; no
-   cluster is emitted since one view triangulates nothing). A tentative track needs k_min views.
+   under ``tau_mesh``, the association's pair cost under ``tau_cost``) with at least
+   ``min_support`` of the others, and reproject under the association's ``tau_verify`` px
+   (median over the body joints DLT triangulated from all members); the worst member is
+   dropped until all pass. Two members whose joints lie on average more than ``reid_m`` from
+   the track's prediction (a narrow pair of rays, or a neighbour's detection) do not update the
+   track: they are left to step 5, as with tracks off. A confirmed track is updated from
+   ``min_track_views`` (2) views or more, fewer than ``k_min`` flagged ``FLAG_FEW_VIEWS``;
+   with one view left it is kept alive by that view plus its prediction (``one_view``: the
+   state moves to the points of the view's rays nearest the prediction; no cluster is emitted
+   since one view triangulates nothing). A tentative track needs k_min views.
 5. Detections not explained by any track go through ``associate`` (the full MAEM cross-view
    association, as a black box) on per-camera subsets; member indices are mapped back. Each new
    cluster is triangulated (body joints) and either merged into a track already supported this
