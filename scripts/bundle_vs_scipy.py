@@ -21,14 +21,15 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
-from helpers_calibrate import ring_rig, rotation_angle_deg  # noqa: E402
+from helpers_calibrate import rotation_angle_deg  # noqa: E402
+from helpers_scene import CALIBRATION_RING, ring_rig  # noqa: E402
 
 from maem_ros.core.calibrate.bundle import BundleOptions, BundleProblem, bundle_adjust  # noqa: E402
 
 
 def _problem(points: int, cameras: int, noise: float, seed: int):
     rng = np.random.default_rng(seed)
-    rig = ring_rig(cameras, seed=seed)
+    rig = ring_rig(cameras, height=4.0, jitter_seed=seed, **CALIBRATION_RING)
     X = np.column_stack([rng.uniform(-6, 6, points), rng.uniform(-4, 4, points), rng.uniform(0, 2, points)])
     cams, pts, uvs = [], [], []
     for c, cam in enumerate(rig):

@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from helpers_scene import look_at, ring_rig
+from helpers_scene import Person, look_at, pose_frames, ring_rig, two_facing_cameras
 
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
-from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
+from maem_ros.core.geometry.camera import Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.multiview import reprojection_errors
 from maem_ros.core.geometry.procrustes import pa_mpjpe, pa_mpjpe_finite
@@ -29,46 +29,6 @@ VARIANTS = [("numpy", "float64", 1e-9, 0.0)] + (
 # ---------------------------------------------------------------------------------------
 # scene construction
 # ---------------------------------------------------------------------------------------
-class Body:
-    """A person: V surface-ish vertices and J joints (world m), centre = bbox anchor."""
-
-    def __init__(self, position, seed: int):
-        rng = np.random.default_rng(seed)
-        self.centre = np.array([position[0], position[1], 0.9])
-        self.verts = self.centre + rng.uniform(-1, 1, (V, 3)) * [0.25, 0.15, 0.9]
-        self.joints = self.centre + rng.uniform(-1, 1, (J, 3)) * [0.2, 0.12, 0.85]
-
-
-def detection(cam: Camera, body: Body, kpts3d_world: np.ndarray | None = None):
-    """Exact rectified detection: bbox centred on the projected body centre."""
-    uv = cam.project_rectified(body.verts)
-    c = cam.project_rectified(body.centre)
-    half = 0.5 * (uv.max(0) - uv.min(0))
-    kp3d = cam.world_to_camera(body.joints if kpts3d_world is None else kpts3d_world)
-    return np.concatenate([c - half, c + half]), cam.project_rectified(body.joints), kp3d, uv
-
-
-def frames_for(rig: Rig, bodies_per_cam: dict[str, list], scores=None, shuffle_seed=None):
-    """FrameDetections per camera from (body, kpts3d_world|None) lists; returns (frames, ids)
-    with ids[cam] = body index of each detection row."""
-    frames, ids = {}, {}
-    rng = np.random.default_rng(shuffle_seed)
-    for name, items in bodies_per_cam.items():
-        order = rng.permutation(len(items)) if shuffle_seed is not None else np.arange(len(items))
-        dets = [detection(rig[name], *items[o][:2]) for o in order]
-        sc = np.full(len(dets), 0.95) if scores is None or name not in scores else \
-            np.asarray(scores[name], float)[order]
-        if dets:
-            frames[name] = FrameDetections(name, 0, np.array([d[0] for d in dets]), sc,
-                                           np.array([d[1] for d in dets]),
-                                           np.array([d[2] for d in dets]),
-                                           np.array([d[3] for d in dets], np.float32))
-        else:
-            frames[name] = FrameDetections.empty(name, 0, J, V)
-        ids[name] = [items[o][2] if len(items[o]) > 2 else None for o in order]
-    return frames, ids
-
-
 def as_sets(clusters) -> set:
     return {frozenset(map(tuple, c.members.tolist())) for c in clusters}
 
@@ -81,9 +41,9 @@ def scene(n_people: int = 5, n_cams: int = 4, seed: int = 0):
         p = rng.uniform(-4, 4, 2)
         if all(np.linalg.norm(p - q) > 1.2 for q in pos):
             pos.append(p)
-    bodies = [Body(p, seed * 100 + k) for k, p in enumerate(pos)]
+    bodies = [Person(p, seed * 100 + k, V).at() for k, p in enumerate(pos)]
     per_cam = {c.name: [(b, None, k) for k, b in enumerate(bodies)] for c in rig}
-    frames, ids = frames_for(rig, per_cam, shuffle_seed=seed + 1)
+    frames, ids = pose_frames(rig, per_cam, shuffle_seed=seed + 1)
     truth = {frozenset((ci, ids[c.name].index(k)) for ci, c in enumerate(rig))
              for k in range(n_people)}
     return rig, frames, truth
@@ -127,10 +87,6 @@ def test_many_people_many_cameras_with_numpy_and_numba_agree():
 # ---------------------------------------------------------------------------------------
 # the gates
 # ---------------------------------------------------------------------------------------
-def two_facing_cameras() -> Rig:
-    return Rig([look_at("a", (-10.0, 0.0, 3.0)), look_at("b", (10.0, 0.0, 3.0))])
-
-
 def test_same_epipolar_line_is_separated_by_the_reprojection_gate():
     """P2's centre lies exactly on the epipolar line of P1's centre, but the two rays meet
     behind camera b (a low camera looking slightly up): epipolar geometry cannot see this,
@@ -142,7 +98,7 @@ def test_same_epipolar_line_is_separated_by_the_reprojection_gate():
     assert rig["b"].world_to_camera(ghost)[2] < 0
     c2 = B - 0.5 * (ghost - B)  # 2 m in front of b, same pixel in b as the ghost
     assert rig["b"].world_to_camera(c2)[2] > 0 and rig["a"].world_to_camera(c2)[2] > 0
-    p1, p2 = Body(c1[:2], 1), Body(c2[:2], 2)
+    p1, p2 = Person(c1[:2], 1, V).at(), Person(c2[:2], 2, V).at()
     for p, c in ((p1, c1), (p2, c2)):
         p.verts += c - p.centre
         p.joints += c - p.centre
@@ -155,7 +111,7 @@ def test_same_epipolar_line_is_separated_by_the_reprojection_gate():
     true_err = reprojection_errors(Ps, np.stack([x1a, rig["b"].project_rectified(c1)])[None])
     assert true_err[0] < 1e-6
 
-    frames, _ = frames_for(rig, {"a": [(p1, None), (p2, None)], "b": [(p1, None), (p2, None)]})
+    frames, _ = pose_frames(rig, {"a": [(p1, None), (p2, None)], "b": [(p1, None), (p2, None)]})
     res = associate(rig, frames, AssociationParams(k_min=2, epipolar_gate="none"))
     assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0)}), frozenset({(0, 1), (1, 1)})}
     assert res.stats["rejected_reproj"] == 2  # both cross pairs
@@ -170,16 +126,16 @@ def test_people_close_in_3d_are_separated_by_the_dense_mesh_gate():
     epipolar-consistent and triangulate in front of both cameras (reprojection gate passes),
     but vertex k of P2 is a different body spot than vertex k of P1."""
     rig = two_facing_cameras()
-    p1 = Body((0.0, 1.0), 11)
+    p1 = Person((0.0, 1.0), 11, V).at()
     plane_n = np.cross(rig["a"].center - p1.centre, rig["b"].center - p1.centre)
     step = np.cross(plane_n, [0.0, 0.0, 1.0])
-    p2 = Body((0.0, 0.0), 12)
+    p2 = Person((0.0, 0.0), 12, V).at()
     c2 = p1.centre + 0.5 * step / np.linalg.norm(step)
     p2.verts += c2 - p2.centre
     p2.joints += c2 - p2.centre
     p2.centre = c2
     assert np.linalg.norm(p2.centre - p1.centre) == pytest.approx(0.5)
-    frames, _ = frames_for(rig, {"a": [(p1, None), (p2, None)], "b": [(p1, None), (p2, None)]})
+    frames, _ = pose_frames(rig, {"a": [(p1, None), (p2, None)], "b": [(p1, None), (p2, None)]})
     cross = reprojection_errors(np.stack([rig["a"].P, rig["b"].P])[None],
                                 np.stack([frames["a"].centers[0], frames["b"].centers[1]])[None])
     assert cross[0] < 1e-6  # the reprojection gate cannot tell them apart
@@ -202,9 +158,9 @@ def test_same_camera_conflict_drops_the_member_with_highest_mean_cost():
     Mean PA-MPJPE to the rest: d0 -> (delta + delta + 0 + 0)/4, d1 -> (delta + 0 + delta +
     delta)/4, so d1 is dropped."""
     rig = ring_rig(4)
-    p = Body((0.5, -0.5), 21)
+    p = Person((0.5, -0.5), 21, V).at()
     deformed = p.joints + np.random.default_rng(5).normal(0, 0.06, p.joints.shape)
-    frames, _ = frames_for(rig, {"cam0": [(p, None), (p, deformed)], "cam1": [(p, deformed)],
+    frames, _ = pose_frames(rig, {"cam0": [(p, None), (p, deformed)], "cam1": [(p, deformed)],
                                  "cam2": [(p, None)], "cam3": [(p, None)]})
     res = associate(rig, frames, AssociationParams.from_mapping({"k_min": 4, **PAPER}))
     assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)})}
@@ -218,10 +174,10 @@ def test_same_camera_conflict_drops_the_member_with_highest_mean_cost():
 
 def test_clusters_below_k_min_are_dropped():
     rig = ring_rig(4)
-    p, q = Body((-2, 0), 31), Body((2, 1), 32)
+    p, q = Person((-2, 0), 31, V).at(), Person((2, 1), 32, V).at()
     per_cam = {"cam0": [(p, None), (q, None)], "cam1": [(p, None), (q, None)],
                "cam2": [(p, None)], "cam3": [(p, None)]}
-    frames, _ = frames_for(rig, per_cam)
+    frames, _ = pose_frames(rig, per_cam)
     res = associate(rig, frames, AssociationParams(k_min=3))
     assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (2, 0), (3, 0)})}
     assert res.stats["clusters_below_k_min"] == 1
@@ -233,9 +189,9 @@ def test_clusters_below_k_min_are_dropped():
 
 def test_detections_below_tau_det_are_ignored():
     rig = ring_rig(4)
-    p, q = Body((-2, 0), 41), Body((2, 1), 42)
+    p, q = Person((-2, 0), 41, V).at(), Person((2, 1), 42, V).at()
     per_cam = {c.name: [(p, None), (q, None)] for c in rig}
-    frames, _ = frames_for(rig, per_cam, scores={"cam2": [0.5, 0.95]})
+    frames, _ = pose_frames(rig, per_cam, scores={"cam2": [0.5, 0.95]})
     res = associate(rig, frames, AssociationParams(tau_det=0.9, k_min=3))
     assert as_sets(res.clusters) == {frozenset({(0, 0), (1, 0), (3, 0)}),
                                      frozenset({(0, 1), (1, 1), (2, 1), (3, 1)})}
@@ -439,11 +395,11 @@ def _chain_case_missing_partner():
     with no bound on the cost, matches them and union-find chains the two people."""
     rig = Rig([look_at("cam0", (-22.0, 0.0, 1.5)), look_at("cam1", (0.0, -22.0, 1.5)),
                look_at("cam2", (0.0, 22.0, 1.5)), look_at("cam3", (16.0, 16.0, 1.5))])
-    p = Body((0.0, 0.0), 61)
+    p = Person((0.0, 0.0), 61, V).at()
     ray = p.centre - rig["cam0"].center
-    q = Body(tuple((p.centre + 1.0 * ray / np.linalg.norm(ray))[:2]), 61)  # same mesh shape
+    q = Person(tuple((p.centre + 1.0 * ray / np.linalg.norm(ray))[:2]), 61, V).at()  # same mesh shape
     q.joints = q.centre + (p.joints - p.centre) * [1.0, 1.0, -1.0]  # another pose (upside down)
-    frames, _ = frames_for(rig, {"cam0": [(p, None)], "cam1": [(p, None), (q, None)],
+    frames, _ = pose_frames(rig, {"cam0": [(p, None)], "cam1": [(p, None), (q, None)],
                                  "cam2": [(p, None), (q, None)], "cam3": [(q, None)]})
     truth = {frozenset({(0, 0), (1, 0), (2, 0)}), frozenset({(1, 1), (2, 1), (3, 0)})}
     return rig, frames, truth
@@ -458,11 +414,11 @@ def _chain_case_side_by_side():
                look_at("cam1", (15.0, -10.0, 0.9), (0, 0, 0.9)),
                look_at("cam2", (2.0, 16.0, 1.6), (0, 0, 0.9)),
                look_at("cam3", (-14.0, 9.0, 1.8), (0, 0, 0.9))])
-    p, q = Body((-1.5, 0.0), 71), Body((1.5, 0.0), 71)
+    p, q = Person((-1.5, 0.0), 71, V).at(), Person((1.5, 0.0), 71, V).at()
     q.joints = q.joints + np.random.default_rng(3).normal(0, 0.02, q.joints.shape)
     per_cam = {c.name: [(p, None), (q, None)] for c in rig}
     per_cam["cam0"] = [(p, q.joints - q.centre + p.centre), (q, p.joints - p.centre + q.centre)]
-    frames, _ = frames_for(rig, per_cam)
+    frames, _ = pose_frames(rig, per_cam)
     truth = {frozenset((c, 0) for c in range(4)), frozenset((c, 1) for c in range(4))}
     return rig, frames, truth
 
@@ -487,10 +443,10 @@ def test_cost_cap_and_cost_joints_change_decisions():
     every joint the pair costs more than the cap and never matches; on joints 3.. it is
     exact and matches; with the cap off (0, the paper) it matches on any joints."""
     rig = ring_rig(2)
-    p = Body((0.3, 0.2), 81)
+    p = Person((0.3, 0.2), 81, V).at()
     bent = p.joints.copy()
     bent[:3] += [0.6, -0.4, 0.3]
-    frames, _ = frames_for(rig, {"cam0": [(p, None)], "cam1": [(p, bent)]})
+    frames, _ = pose_frames(rig, {"cam0": [(p, None)], "cam1": [(p, bent)]})
     both = {frozenset({(0, 0), (1, 0)})}
     base = dict(k_min=2, tau_cost=0.05)
     res = associate(rig, frames, AssociationParams.from_mapping({"cost_joints": "all", **base}))

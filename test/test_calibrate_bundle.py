@@ -7,7 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from maem_ros.core.calibrate.bundle import (BundleOptions, BundleProblem, bundle_adjust,
                                             robust_rho)
-from helpers_calibrate import ring_rig, rotation_angle_deg
+from helpers_calibrate import rotation_angle_deg
+from helpers_scene import CALIBRATION_RING, ring_rig
 
 
 def _observe(rig, X, rng, noise_px=0.0):
@@ -38,7 +39,7 @@ def _points(rng, n):
 
 def test_free_points_recovered_from_a_rough_start():
     rng = np.random.default_rng(1)
-    rig = ring_rig(4)
+    rig = ring_rig(4, height=4.0, jitter_seed=0, **CALIBRATION_RING)
     X = _points(rng, 400)
     cam, pt, uv = _observe(rig, X, rng)
     R0, t0 = _perturbed(rig, rng, 5.0, 0.3)
@@ -59,7 +60,7 @@ def test_free_points_recovered_from_a_rough_start():
 
 def test_outliers_rejected_and_rig_recovered():
     rng = np.random.default_rng(2)
-    rig = ring_rig(5)
+    rig = ring_rig(5, height=4.0, jitter_seed=0, **CALIBRATION_RING)
     X = _points(rng, 500)
     cam, pt, uv = _observe(rig, X, rng, noise_px=0.5)
     bad = rng.random(cam.size) < 0.05
@@ -82,7 +83,7 @@ def test_outliers_rejected_and_rig_recovered():
 def test_rigid_objects_fix_scale_and_refine_focal():
     """Board mode: a planar grid at several poses (rigid objects), one camera's focal off."""
     rng = np.random.default_rng(3)
-    rig = ring_rig(3, radius=3.0, height=1.5, aim_jitter=0.2)
+    rig = ring_rig(3, radius=3.0, height=1.5, jitter_seed=0, aim_jitter=0.2, **CALIBRATION_RING)
     gx, gy = np.meshgrid(np.arange(9) * 0.1, np.arange(6) * 0.1)
     board = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)])
     L = board.shape[0]
@@ -111,7 +112,7 @@ def test_rigid_objects_fix_scale_and_refine_focal():
 
 def test_groups_rejected_whole():
     rng = np.random.default_rng(4)
-    rig = ring_rig(3)
+    rig = ring_rig(3, height=4.0, jitter_seed=0, **CALIBRATION_RING)
     X = _points(rng, 300)
     cam, pt, uv = _observe(rig, X, rng, noise_px=0.3)
     group = cam * 1000 + pt // 10  # "detections" of 10 points each

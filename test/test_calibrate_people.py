@@ -6,7 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from helpers_calibrate import aligned_errors, ring_rig, rotation_angle_deg, sim_frames
+from helpers_calibrate import aligned_errors, rotation_angle_deg, sim_frames
+from helpers_scene import CALIBRATION_RING, ring_rig
 from maem_ros.core.calibrate.court import CourtPoints
 from maem_ros.core.calibrate.people import PeopleOptions, calibrate_people
 from maem_ros.core.calibrate.people_data import people_data
@@ -14,7 +15,8 @@ from maem_ros.core.detections import FrameDetections
 
 
 def _scene(tmp_path, cameras, frames=10, players=6, difficulty="none", bystanders=0, seed=1, **kw):
-    rig = ring_rig(cameras, radius=12.0, height=5.0, seed=seed, aim_jitter=1.0)
+    rig = ring_rig(cameras, radius=12.0, height=5.0, jitter_seed=seed, aim_jitter=1.0,
+                   **CALIBRATION_RING)
     path = tmp_path / "rig.yaml"
     rig.to_yaml(path)
     dets, scene = sim_frames(path, frames, players, difficulty, bystanders, seed, **kw)

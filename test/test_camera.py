@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +11,11 @@ import pytest
 from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
+from helpers_scene import CALIB, random_detections
+
 from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.detections import FrameDetections
 from maem_ros.params import load_node_params
-
-CALIB = Path("/work/shared/data/calibration")
-if not CALIB.is_dir():  # the copy next to the checkout, wherever the tests run from
-    CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"
 
 #: distortion coefficients per model (plumb_bob: the real SportCenter camera's)
 DISTORTIONS = {
@@ -266,13 +265,10 @@ def test_bad_maem_json_and_rig_files(tmp_path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------- detections
-def detections(n: int = 2, J: int = 4, V: int = 3, camera: str = "cam0", **over) -> FrameDetections:
-    rng = np.random.default_rng(0)
-    kw = dict(camera=camera, stamp_ns=5, bboxes=np.tile([10.0, 20.0, 110.0, 220.0], (n, 1)),
-              scores=np.full(n, 0.9), kpts2d=rng.uniform(0, 100, (n, J, 2)),
-              kpts3d=rng.normal(size=(n, J, 3)), verts2d=rng.uniform(0, 100, (n, V, 2)))
-    kw.update(over)
-    return FrameDetections(**kw)
+#: two random detections (4 keypoints, 3 vertices) in fixed boxes; FrameDetections fields
+#: given per call replace the drawn ones (the bad-input cases)
+detections = partial(random_detections, 2, 4, 3, stamp_ns=5, score=0.9, kpts=(0.0, 100.0),
+                     verts=(0.0, 100.0), bboxes=np.tile([10.0, 20.0, 110.0, 220.0], (2, 1)))
 
 
 def test_valid_detections_and_helpers() -> None:

@@ -1,18 +1,16 @@
 """FrameDetections: the validated mark follows the very arrays that were checked."""
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 
-from maem_ros.core.detections import FrameDetections
+from helpers_scene import random_detections
 
-
-def _frame(n: int = 3, j: int = 4, v: int = 50) -> FrameDetections:
-    rng = np.random.default_rng(0)
-    xy = rng.uniform(0, 500, (n, 2))
-    return FrameDetections("cam0", 1, np.concatenate([xy, xy + 50], 1), np.full(n, 0.9),
-                           rng.uniform(0, 500, (n, j, 2)), rng.normal(0, 1, (n, j, 3)),
-                           rng.uniform(0, 500, (n, v, 2)))
+#: random detections in a 500 px square (``n``, ``j``, ``v`` per call)
+_frame = partial(random_detections, xy=(0.0, 500.0), score=0.9, kpts=(0.0, 500.0),
+                 verts=(0.0, 500.0))
 
 
 def test_a_replaced_array_is_checked_again_even_where_its_address_is_reused():

@@ -11,8 +11,8 @@ from hypothesis import strategies as st
 
 from maem_ros.core.association.gates import epipolar, screening
 from maem_ros.core.geometry.camera import fundamental_matrix
-from helpers_scene import ring_rig
-from test_association import VARIANTS, two_facing_cameras
+from helpers_scene import ring_rig, two_facing_cameras
+from test_association import VARIANTS
 
 BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 

@@ -7,36 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers_scene import exact_scene
+
 from maem_ros.core.interchange import SceneFolder
-from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.tools.eval import evaluate
 
 CONFIG = Path(__file__).resolve().parents[1] / "config"
-
-
-def exact_scene(root: Path, frames: int = 4, people: int = 3, vertices: int = 300) -> SceneFolder:
-    """A hand-built zero-noise scene on the humanm3_4 rig: distinct random bodies walking slowly."""
-    from maem_ros.sim.rigs import build_rig
-    rig = build_rig("humanm3_4")
-    rng = np.random.default_rng(0)
-    box = np.array([0.5, 0.35, 1.8])
-    bodies = [rng.uniform(-0.5, 0.5, (70 + vertices, 3)) * box + [0, 0, 0.9] for _ in range(people)]
-    starts = np.array([[-6.0, 1.0, 0.0], [2.0, 4.0, 0.0], [5.0, -4.0, 0.0], [-2.0, -5.0, 0.0]])[:people]
-    folder = SceneFolder.create(root, rig, {"fps": 30.0, "start_stamp_ns": 0, "num_frames": frames})
-    gt = np.zeros((frames, people, 13, 3))
-    for f in range(frames):
-        world = [b + s + [0.05 * f, 0.02 * f, 0] for b, s in zip(bodies, starts)]
-        gt[f] = SPORTCENTER_13.select(np.stack([w[:70] for w in world]))
-        for cam in rig:
-            outputs = []
-            for w in world:
-                raw = cam.project(w)
-                outputs.append({"bbox": np.concatenate([raw[70:].min(0), raw[70:].max(0)]), "bbox_score": 0.95,
-                                "pred_keypoints_3d": cam.world_to_camera(w[:70]),
-                                "pred_keypoints_2d": raw[:70], "pred_keypoints_2d_verts": raw[70:]})
-            folder.write_outputs(cam.name, f, outputs)
-    folder.write_gt(gt, np.ones(gt.shape[:3], bool))
-    return folder
 
 
 def run_eval(scene: Path, tmp_path: Path, params: str, *extra: str) -> dict:

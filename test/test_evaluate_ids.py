@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_evaluate import exact_scene, run_eval
+from helpers_scene import exact_scene
+from test_evaluate import run_eval
 
 from maem_ros.core.interchange import SceneFolder
 from maem_ros.tools.eval import evaluate

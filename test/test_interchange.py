@@ -1,13 +1,12 @@
 """MAEM interchange: npz / GT / camera JSON round trips, raw-vs-rectified px, corrupt input."""
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+
+from helpers_scene import sportcenter_camera
 
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.detections import FrameDetections
@@ -15,33 +14,13 @@ from maem_ros.core.interchange import (MissingDataError, SceneFolder, detections
                                        outputs_to_detections, read_gt, read_maem_npz, validate_output,
                                        write_gt, write_maem_npz)
 
-CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"
-SPORTCENTER_JSON = {
-    "extrinsic_r": [[-0.99888, 0.00848, 0.04650], [-0.03786, 0.44538, -0.89454], [-0.02830, -0.89530, -0.44456]],
-    "extrinsic_t": [0.1923, 0.5309, 15.4859], "height": 992, "width": 1376,
-    "intrinsic": [[828.52, 0.0, 676.65], [0.0, 842.40, 418.05], [0.0, 0.0, 1.0]],
-    "k1": -0.34600, "k2": 0.12372, "p1": -0.00680, "p2": -0.00061, "k3": -0.01250, "name": "ace_0",
-}
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(R)
-    return u @ vt
-
-
-def plumb_bob_camera(name: str = "ace_0") -> Camera:
-    path = CALIB / "sportcenter_fisheye_param_00.json"
-    data = json.loads(path.read_text()) if path.is_file() else dict(SPORTCENTER_JSON)
-    data["extrinsic_r"] = _orthonormal(np.asarray(data["extrinsic_r"])).tolist()
-    return Camera.from_maem_json(data, name=name)
-
 
 def fisheye_camera(name: str = "fish") -> Camera:
-    pb = plumb_bob_camera()
+    pb = sportcenter_camera()
     return Camera(name, pb.K, pb.R, pb.t, pb.width, pb.height, "equidistant", [-0.03, 0.01, -0.004, 0.0006])
 
 
-CAMERAS = {"plumb_bob": plumb_bob_camera, "equidistant": fisheye_camera}
+CAMERAS = {"plumb_bob": sportcenter_camera, "equidistant": fisheye_camera}
 
 
 def make_outputs(n: int = 2, j: int = 70, v: int = 40, seed: int = 0) -> list[dict]:
@@ -214,7 +193,7 @@ def test_detections_outputs_round_trip_through_file(tmp_path, model):
 
 
 def test_outputs_to_detections_empty_and_inconsistent():
-    cam = plumb_bob_camera()
+    cam = sportcenter_camera()
     empty = outputs_to_detections([], cam, 7)
     assert empty.n == 0 and empty.num_joints == 70 and empty.stamp_ns == 7
     outputs = make_outputs(2, v=40)
@@ -263,7 +242,7 @@ def test_gt_xrmocap_keypoints_key_and_errors(tmp_path):
 
 # ---- scene folders -------------------------------------------------------------------------------
 def test_scene_folder_round_trip(tmp_path):
-    rig = Rig([plumb_bob_camera("cam_a"), fisheye_camera("cam_b"), fisheye_camera("cam_c")])
+    rig = Rig([sportcenter_camera("cam_a"), fisheye_camera("cam_b"), fisheye_camera("cam_c")])
     folder = SceneFolder.create(tmp_path / "s", rig, {"fps": 25.0, "start_stamp_ns": 1000})
     back = SceneFolder(tmp_path / "s")
     assert back.views == ["cam_a", "cam_b", "cam_c"]

@@ -9,8 +9,7 @@ import pytest
 from maem_ros.core.tracking.joint_filter import JointFilter, JointFilterParams, filter_and_score
 from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 
-from helpers_scene import COURT_RING, project_frames, ring_rig
-from test_triangulation import cluster
+from helpers_scene import COURT_RING, cluster, project_frames, ring_rig
 
 FPS = 30
 DT_NS = int(1e9 / FPS)

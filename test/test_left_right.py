@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers_scene import look_at, project_detections
+from helpers_scene import project_detections, ring_rig
 
 from maem_ros.core.association.pipeline import Cluster
 from maem_ros.core.geometry.camera import Rig
@@ -27,9 +27,8 @@ def body(rng) -> np.ndarray:
 @pytest.fixture
 def scene():
     rng = np.random.default_rng(3)
-    angles = np.radians([0, 70, 160, 250])
-    rig = Rig([look_at(f"c{k}", [4 * np.cos(a), 4 * np.sin(a), 2.0], size=(1280, 720))
-               for k, a in enumerate(angles)])
+    rig = ring_rig(4, radius=4.0, height=2.0, angles=np.radians([0, 70, 160, 250]),
+                   size=(1280, 720), prefix="c")
     return rig, body(rng)
 
 

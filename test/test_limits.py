@@ -6,8 +6,7 @@ import pytest
 
 from maem_ros.core.errors import InputError
 from maem_ros.core.interchange import MissingDataError
-from maem_ros.core.limits import (InputLimits, LimitError, check_clusters, check_detections,
-                                  mask_far_joints)
+from maem_ros.core.limits import InputLimits, LimitError, check_clusters, check_detections, mask_far_joints
 from maem_ros.ros.wire import WireError
 from maem_ros.sim.rigs import build_rig
 
@@ -71,3 +70,47 @@ def test_bad_limits():
         InputLimits(max_people=0)
     with pytest.raises(ValueError, match="world_extent"):
         InputLimits(world_extent_m=0.0)
+
+
+@pytest.mark.parametrize("layout", ["f32", "q4"])
+def test_a_message_is_checked_before_its_vertices_are_decoded(rig, layout):
+    """read_detections + check_detection_arrays on the undecoded vertices' extremes accepts and
+    rejects exactly what check_detections on the decoded FrameDetections does; the extremes
+    are those of the decoded vertices and the cheap bounds contain them."""
+    from maem_ros.core.limits import check_detection_arrays
+    from maem_ros.ros.wire import detections_to_msg, read_detections
+    from maem_ros.sim.scene import Scene, SceneConfig
+    dets = Scene(SceneConfig(rig="sportcenter6", frames=1, seed=2,
+                             num_vertices=300)).detections("camera_1", 0)
+    cam = rig["camera_1"]
+    # a small margin: the far vertices stay within what q4 carries (4096 px from the origin)
+    limits = InputLimits(max_detections=dets.n, pixel_margin=0.2)
+    cases = {"ok": (None, None), "far_u": ((1, 5, 0), 1.5 * cam.width),
+             "far_v": ((0, 7, 1), -0.5 * cam.height), "missing": ((2, 3, 0), np.nan)}
+    for name, (where, value) in cases.items():
+        d = dets.select(np.arange(dets.n))
+        if where is not None:
+            d.verts2d[where] = value
+        if name == "missing":  # one detection with no vertex at all
+            d.verts2d[1] = np.nan
+        msg = read_detections(detections_to_msg(d, layout), "t", rig.names)
+        decoded = msg.decode()
+        verts = decoded.verts2d.reshape(-1, 2)
+        expected = np.array([np.nanmin(verts, axis=0), np.nanmax(verts, axis=0)])
+        np.testing.assert_allclose(msg.vertex_extremes(), expected, rtol=0, atol=1e-3)
+        cheap = msg.vertex_extremes(exact=False)
+        assert (cheap[0] <= expected[0] + 1e-3).all() and (cheap[1] >= expected[1] - 1e-3).all()
+        errors = [_limit_error(check_detections, decoded, rig, limits, "t"),
+                  _limit_error(check_detection_arrays, msg.camera, msg.bboxes, msg.kpts2d,
+                               msg.vertex_extremes, rig, limits, "t")]
+        expected_error = None if name in ("ok", "missing") else ("out_of_range", True)
+        assert errors[0] == errors[1] == expected_error, (name, errors)
+
+
+def _limit_error(check, *args) -> tuple[str, bool] | None:
+    """(reason, whether it names verts2d) of the LimitError ``check(*args)`` raises, or None."""
+    try:
+        check(*args)
+    except LimitError as e:
+        return e.reason, "verts2d" in str(e)
+    return None

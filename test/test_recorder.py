@@ -77,6 +77,7 @@ def test_everything_received_is_in_the_bag(tmp_path: Path, ros, sig):
     (ci,) = [m.decode() for m in bagio.read_messages(out, ["/rec_info"])]
     assert (ci.width, ci.height, ci.header.frame_id) == (640, 480, "cam")
     assert f"wrote {N + 2} messages" in text
+    assert text.rstrip().endswith("lost before the recorder took them: 0")
 
 
 def test_existing_output_is_refused(tmp_path: Path):
@@ -85,3 +86,55 @@ def test_existing_output_is_refused(tmp_path: Path):
                            "--topics", "/x"], capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2
     assert "exists already" in proc.stderr
+
+
+def test_messages_lost_in_an_overflowing_queue_are_counted(tmp_path: Path, ros):
+    """A recorder that falls behind (its executor stalled, as by a slow disk or a CPU stall)
+    while a burst arrives keeps the newest RECORD_DEPTH messages of the burst; the rest are
+    overwritten in the DDS keep-last history. Each is counted from the publisher's sequence
+    numbers: lost = published - recorded, per topic in /diagnostics and in the last line."""
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from maem_ros.ros.recorder_node import RECORD_DEPTH, Recorder
+
+    node, ex = ros
+    burst = RECORD_DEPTH + 150
+    out = tmp_path / "rec"
+    rec_node = rclpy.create_node("maem_recorder", context=node.context)
+    ex.add_node(rec_node)
+    try:
+        writer = bagio.BagWriter(out)
+        rec = Recorder(rec_node, parse_args([str(out), "--topics", "/flood"]), writer)
+        # the publisher keeps the whole burst until acknowledged: nothing is lost on its side
+        pub = node.create_publisher(String, "/flood", QoSProfile(
+            depth=2 * burst, reliability=ReliabilityPolicy.RELIABLE))
+
+        def discovered() -> bool:
+            rec.poll_graph()
+            return "/flood" in rec.subs
+
+        assert wait_for(discovered, 20.0, ex), "the recorder never saw /flood"
+        assert wait_for(lambda: pub.get_subscription_count() > 0, 20.0, ex), "not matched"
+        pub.publish(String(data="msg 0"))  # taken: the sequence numbers' start
+        assert wait_for(lambda: rec.received == 1, 10.0, ex), "first message not received"
+        for i in range(1, burst + 1):  # the recorder's executor is not spun meanwhile
+            pub.publish(String(data=f"msg {i}"))
+        assert pub.wait_for_all_acked(Duration(seconds=10)), "burst not delivered"
+        assert wait_for(lambda: rec.received == 1 + RECORD_DEPTH, 10.0, ex), rec.received
+        wait_for(lambda: False, 0.3, ex)  # nothing more comes
+        writer.close()
+        got = [m.decode().data for m in bagio.read_messages(out, ["/flood"])]
+        published = burst + 1
+        # the newest RECORD_DEPTH of the burst were kept, the older ones lost
+        assert got == ["msg 0"] + [f"msg {i}" for i in range(burst - RECORD_DEPTH + 1, burst + 1)]
+        assert rec.lost() == {"/flood": published - len(got)}
+        assert published - len(got) == burst - RECORD_DEPTH > 0
+        diag = rec.diag.snapshot()  # what the next /diagnostics message holds
+        assert diag["dropped/dds_lost/flood"] == str(burst - RECORD_DEPTH)
+        assert diag["received/flood"] == str(len(got)) == diag["frames_processed"]
+        assert f"lost before the recorder took them: {burst - RECORD_DEPTH} " \
+            f"(/flood: {burst - RECORD_DEPTH})" in rec.summary()
+    finally:
+        ex.remove_node(rec_node)
+        rec_node.destroy_node()

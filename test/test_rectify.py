@@ -1,25 +1,13 @@
 """Rectifier: a dot drawn in the raw image lands where the camera model puts it."""
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 
+from helpers_scene import sportcenter_camera
+
 from maem_ros.core.geometry.camera import Camera
 from maem_ros.frontend.rectify import Rectifier
-
-CALIB = Path(__file__).resolve().parents[2] / "shared" / "data" / "calibration"
-
-
-def _plumb_bob_camera() -> Camera:
-    path = CALIB / "sportcenter_fisheye_param_00.json"
-    if path.exists():  # the authors' real SportCenter camera (strong barrel distortion)
-        return Camera.from_maem_json(json.loads(path.read_text()), name="ace_0")
-    K = [[828.5, 0, 676.6], [0, 842.4, 418.0], [0, 0, 1]]
-    return Camera("ace_0", K, np.eye(3), [0, 0, 10], 1376, 992, "plumb_bob",
-                  [-0.346, 0.1237, -0.0068, -0.0006, -0.0125])
 
 
 def _fisheye_camera() -> Camera:
@@ -61,7 +49,7 @@ def _centroid(img: np.ndarray, u: float, v: float, r: int = 10) -> np.ndarray:
     return np.array([(patch * xx).sum(), (patch * yy).sum()]) / patch.sum()
 
 
-@pytest.mark.parametrize("make_camera", [_plumb_bob_camera, _fisheye_camera,
+@pytest.mark.parametrize("make_camera", [sportcenter_camera, _fisheye_camera,
                                          _rational_camera_with_k_rect])
 def test_dot_lands_at_rectified_position(make_camera):
     cam = make_camera()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers_scene import look_at, ring_rig
+from helpers_scene import T0_NS, Person, look_at, ring_rig, walk_frame
 
 from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.core.geometry.camera import Rig
@@ -15,52 +15,6 @@ from maem_ros.core.tracking.temporal import (FLAG_FEW_VIEWS, FLAG_TRACKED, Tempo
 
 V, J = 300, 24
 FPS = 30.0
-T0 = 1_700_000_000_000_000_000
-
-
-class Walker:
-    """A rigid body (V vertices, J joints around a centre at 0.9 m height) at p0 + v t."""
-
-    def __init__(self, p0, v, seed: int, joints_seed: int | None = None):
-        rng = np.random.default_rng(seed)
-        self.p0, self.v = np.array([*p0, 0.9]), np.array([*v, 0.0])
-        self.verts = rng.uniform(-1, 1, (V, 3)) * [0.25, 0.15, 0.9]
-        self.joints = rng.uniform(-1, 1, (J, 3)) * [0.2, 0.12, 0.85]
-        if joints_seed is not None:
-            self.joints = np.random.default_rng(joints_seed).uniform(-1, 1, (J, 3)) * \
-                [0.2, 0.12, 0.85]
-
-    def at(self, f: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        c = self.p0 + self.v * f / FPS
-        return c, self.verts + c, self.joints + c
-
-
-def frame(rig: Rig, people: list[Walker], f: int, seen=None, kpts3d_of=None, stamp=None
-          ) -> tuple[dict[str, FrameDetections], dict[str, list[int]]]:
-    """Exact detections of frame f; seen(cam, k) -> bool; kpts3d_of(cam, k) -> person whose 3D
-    pose that detection carries. Returns (frames, person index of each row per camera)."""
-    stamp = T0 + int(round(f * 1e9 / FPS)) if stamp is None else stamp
-    frames, who = {}, {}
-    for cam in rig:
-        rows = [k for k in range(len(people)) if seen is None or seen(cam.name, k)]
-        who[cam.name] = rows
-        if not rows:
-            frames[cam.name] = FrameDetections.empty(cam.name, stamp, J, V)
-            continue
-        boxes, k2, k3, vv = [], [], [], []
-        for k in rows:
-            c, verts, joints = people[k].at(f)
-            src = people[kpts3d_of(cam.name, k) if kpts3d_of else k].at(f)[2]
-            uv = cam.project_rectified(verts)
-            half = 0.5 * (uv.max(0) - uv.min(0))
-            cc = cam.project_rectified(c)
-            boxes.append(np.concatenate([cc - half, cc + half]))
-            k2.append(cam.project_rectified(joints))
-            k3.append(cam.world_to_camera(src))
-            vv.append(uv)
-        frames[cam.name] = FrameDetections(cam.name, stamp, np.array(boxes), np.full(len(rows), 0.95),
-                                           np.array(k2), np.array(k3), np.array(vv, np.float32))
-    return frames, who
 
 
 def identities(result, rig: Rig, who) -> list[tuple[int, set[int]]]:
@@ -86,7 +40,7 @@ def run(rig, people, frames_range, assoc=PARAMS, temporal=None):
     ta = TemporalAssociator(rig, assoc, temporal or TemporalParams())
     out = []
     for f in frames_range:
-        fr, who = frame(rig, people, f)
+        fr, who = walk_frame(rig, people, f)
         out.append((ta.step(fr, fr[rig.names[0]].stamp_ns), who))
     return ta, out
 
@@ -94,8 +48,8 @@ def run(rig, people, frames_range, assoc=PARAMS, temporal=None):
 # ---------------------------------------------------------------------------------------
 def test_tracks_are_confirmed_after_n_hits_and_keep_their_ids():
     rig = ring_rig(4)
-    people = [Walker((-3, 0), (1.0, 0.2), 1), Walker((2, 2), (-0.5, -1.0), 2),
-              Walker((1, -3), (0.3, 0.8), 3)]
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0)),
+              Person((1, -3), 3, v=(0.3, 0.8))]
     ta, out = run(rig, people, range(20))
     for f, (res, who) in enumerate(out):
         ids = person_ids(res, rig, who)
@@ -113,12 +67,12 @@ def test_tracks_are_confirmed_after_n_hits_and_keep_their_ids():
 
 def test_person_missed_by_every_camera_for_a_few_frames_keeps_the_id():
     rig = ring_rig(4)
-    people = [Walker((-3, -1), (1.5, 0.0), 4), Walker((2, 2), (0.0, -0.8), 5)]
+    people = [Person((-3, -1), 4, v=(1.5, 0.0)), Person((2, 2), 5, v=(0.0, -0.8))]
     gone = range(8, 13)  # person 0 invisible in frames 8..12
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=8))
     before = after = None
     for f in range(25):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: not (k == 0 and f in gone))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: not (k == 0 and f in gone))
         res = ta.step(fr, next(iter(fr.values())).stamp_ns)
         ids = person_ids(res, rig, who)
         if f == 7:
@@ -132,11 +86,11 @@ def test_person_missed_by_every_camera_for_a_few_frames_keeps_the_id():
 
 def test_track_ends_after_max_misses_and_the_person_gets_a_new_id():
     rig = ring_rig(4)
-    people = [Walker((-3, -1), (1.0, 0.0), 4)]
+    people = [Person((-3, -1), 4, v=(1.0, 0.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=2))
     ids = []
     for f in range(16):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: f not in range(6, 10))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: f not in range(6, 10))
         res = ta.step(fr, next(iter(fr.values())).stamp_ns)
         ids.append(res.track_ids.tolist())
     assert ids[5] == [0] and ids[6:10] == [[]] * 4
@@ -146,7 +100,7 @@ def test_track_ends_after_max_misses_and_the_person_gets_a_new_id():
 def test_two_people_crossing_keep_their_ids():
     """Two people walk straight through each other's path (0.5 m apart at the crossing)."""
     rig = ring_rig(4)
-    people = [Walker((-3, 0.25), (3.0, 0.0), 6), Walker((3, -0.25), (-3.0, 0.0), 7)]
+    people = [Person((-3, 0.25), 6, v=(3.0, 0.0)), Person((3, -0.25), 7, v=(-3.0, 0.0))]
     ta, out = run(rig, people, range(60))
     first = person_ids(out[2][0], rig, out[2][1])
     assert sorted(first.values()) == [0, 1]
@@ -169,15 +123,15 @@ def test_a_wrong_per_frame_match_is_avoided_with_tracks():
     association picks the wrong pairs while the tracks' 2D evidence keeps the true ones."""
     from maem_ros.core.geometry.procrustes import pa_mpjpe
     rig = facing_pair_rig()
-    a = Walker((-1.0, 0.0), (0.0, 0.3), 8)
-    b = Walker((1.0, 0.0), (0.0, 0.3), 8)
+    a = Person((-1.0, 0.0), 8, v=(0.0, 0.3))
+    b = Person((1.0, 0.0), 8, v=(0.0, 0.3))
     b.joints = a.joints + np.random.default_rng(80).normal(0.0, 0.04, a.joints.shape)
     people = [a, b]
     params = AssociationParams(k_min=2)
     assert 0.02 < pa_mpjpe(a.joints, b.joints) < 0.5 * params.tau_cost
     swap = 6
     kpts = lambda f: (lambda cam, k: 1 - k if (cam == "cam1" and f == swap) else k)  # noqa: E731
-    fr, who = frame(rig, people, swap, kpts3d_of=kpts(swap))
+    fr, who = walk_frame(rig, people, swap, kpts3d_of=kpts(swap))
     per_frame = associate(rig, fr, params)
     mixed = [{who[rig.names[c]][d] for c, d in cl.members.tolist()} for cl in per_frame.clusters]
     assert mixed == [{0, 1}, {0, 1}], "precondition: per-frame association is fooled"
@@ -185,17 +139,17 @@ def test_a_wrong_per_frame_match_is_avoided_with_tracks():
     ta = TemporalAssociator(rig, params, TemporalParams())
     ids = []
     for f in range(10):
-        fr, who = frame(rig, people, f, kpts3d_of=kpts(f))
+        fr, who = walk_frame(rig, people, f, kpts3d_of=kpts(f))
         ids.append(person_ids(ta.step(fr, fr["cam0"].stamp_ns), rig, who))
     assert ids[swap] == ids[swap - 1] == ids[-1] and sorted(ids[swap].values()) == [0, 1]
 
 
 def test_a_new_person_entering_gets_a_new_track():
     rig = ring_rig(4)
-    people = [Walker((-3, -1), (1.0, 0.0), 9), Walker((3, 2), (-1.0, 0.0), 10)]
+    people = [Person((-3, -1), 9, v=(1.0, 0.0)), Person((3, 2), 10, v=(-1.0, 0.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(12):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: k == 0 or f >= 6)
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: k == 0 or f >= 6)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         ids = person_ids(res, rig, who)
         if f == 5:
@@ -209,14 +163,14 @@ def test_a_new_person_entering_gets_a_new_track():
 @pytest.mark.parametrize("jump", ["backwards", "forward_gap"])
 def test_a_stamp_jump_ends_all_tracks(jump):
     rig = ring_rig(4)
-    people = [Walker((-3, -1), (1.0, 0.0), 11)]
+    people = [Person((-3, -1), 11, v=(1.0, 0.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_gap_s=0.5))
     for f in range(5):
-        fr, _ = frame(rig, people, f)
+        fr, _ = walk_frame(rig, people, f)
         res = ta.step(fr, fr["cam0"].stamp_ns)
     assert res.track_ids.tolist() == [0] and res.stats["track_resets"] == 0
-    stamp = T0 - 10**9 if jump == "backwards" else fr["cam0"].stamp_ns + 2 * 10**9
-    fr, _ = frame(rig, people, 5, stamp=stamp)
+    stamp = T0_NS - 10**9 if jump == "backwards" else fr["cam0"].stamp_ns + 2 * 10**9
+    fr, _ = walk_frame(rig, people, 5, stamp_ns=stamp)
     res = ta.step(fr, stamp)
     assert res.stats["track_resets"] == 1 and ta.resets == 1
     assert res.track_ids.tolist() == [-1] and len(ta.tracker.tracks) == 1  # a fresh track
@@ -224,19 +178,19 @@ def test_a_stamp_jump_ends_all_tracks(jump):
     assert [c.members.tolist() for c in res.clusters] == \
         [c.members.tolist() for c in associate(rig, fr, PARAMS).clusters]
     for k in range(1, 3):
-        fr, _ = frame(rig, people, 5 + k, stamp=stamp + int(k * 1e9 / FPS))
+        fr, _ = walk_frame(rig, people, 5 + k, stamp_ns=stamp + int(k * 1e9 / FPS))
         res = ta.step(fr, stamp + int(k * 1e9 / FPS))
     assert res.track_ids.tolist() == [1]  # ids are never reused
 
 
 def test_confirmed_tracks_are_updated_from_fewer_than_k_min_views_flagged():
     rig = ring_rig(4)
-    people = [Walker((-2, -1), (1.0, 0.5), 12)]
+    people = [Person((-2, -1), 12, v=(1.0, 0.5))]
     params = AssociationParams(k_min=4)
     ta = TemporalAssociator(rig, params, TemporalParams())
     for f in range(8):
         two = f >= 5  # from frame 5 on only cam0 and cam1 see the person
-        fr, who = frame(rig, people, f, seen=lambda cam, k, two=two: not two or cam in ("cam0", "cam1"))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, two=two: not two or cam in ("cam0", "cam1"))
         res = ta.step(fr, fr["cam0"].stamp_ns)
         if two:
             assert associate(rig, fr, params).clusters == []  # below k_min per frame
@@ -248,11 +202,11 @@ def test_confirmed_tracks_are_updated_from_fewer_than_k_min_views_flagged():
 
 def test_one_view_keeps_a_confirmed_track_alive_without_emitting_a_cluster():
     rig = ring_rig(4)
-    people = [Walker((-2, -1), (1.0, 0.5), 13)]
+    people = [Person((-2, -1), 13, v=(1.0, 0.5))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=1))
     for f in range(12):
         one = 4 <= f < 9
-        fr, who = frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
         res = ta.step(fr, fr["cam0"].stamp_ns)
         if one:
             assert res.clusters == [] and res.stats["tracks_one_view"] == 1
@@ -263,17 +217,17 @@ def test_one_view_keeps_a_confirmed_track_alive_without_emitting_a_cluster():
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(max_misses=1, one_view=False))
     for f in range(12):
         one = 4 <= f < 9
-        fr, who = frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, one=one: not one or cam == "cam2")
         res = ta.step(fr, fr["cam0"].stamp_ns)
     assert res.track_ids.tolist() == [1]
 
 
 def test_temporal_off_is_exactly_the_per_frame_pipeline():
     rig = ring_rig(4)
-    people = [Walker((-3, 0), (1.0, 0.2), 1), Walker((2, 2), (-0.5, -1.0), 2)]
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams(temporal=False))
     for f in range(4):
-        fr, _ = frame(rig, people, f)
+        fr, _ = walk_frame(rig, people, f)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         ref = associate(rig, fr, PARAMS)
         assert [c.members.tolist() for c in res.clusters] == \
@@ -284,11 +238,11 @@ def test_temporal_off_is_exactly_the_per_frame_pipeline():
 def test_detection_indices_map_back_when_tracks_explain_some_rows():
     """New clusters found among the unexplained rows index the frames as given."""
     rig = ring_rig(4)
-    people = [Walker((-3, -1), (1.0, 0.0), 14), Walker((3, 2), (-1.0, 0.0), 15),
-              Walker((0, -3), (0.0, 1.0), 16)]
+    people = [Person((-3, -1), 14, v=(1.0, 0.0)), Person((3, 2), 15, v=(-1.0, 0.0)),
+              Person((0, -3), 16, v=(0.0, 1.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(8):
-        fr, who = frame(rig, people, f, seen=lambda cam, k, f=f: k != 2 or f >= 4)
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: k != 2 or f >= 4)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         ids = person_ids(res, rig, who)  # pure clusters, rows as given
         assert set(ids) == ({0, 1, 2} if f >= 4 else {0, 1})
@@ -314,11 +268,11 @@ def test_a_member_failing_the_pair_gates_is_verified_out():
     """In frame 6 cam3's detection of person 0 carries person 1's 3D pose: it still fits the
     track's projection, but its pose cost to the other members is over tau_cost."""
     rig = ring_rig(4)
-    people = [Walker((-3, -1), (1.0, 0.0), 17), Walker((3, 2), (-1.0, 0.0), 18)]
+    people = [Person((-3, -1), 17, v=(1.0, 0.0)), Person((3, 2), 18, v=(-1.0, 0.0))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(8):
         bad = (lambda cam, k: 1 if (cam == "cam3" and k == 0) else k) if f == 6 else None
-        fr, who = frame(rig, people, f, kpts3d_of=bad)
+        fr, who = walk_frame(rig, people, f, kpts3d_of=bad)
         res = ta.step(fr, fr["cam0"].stamp_ns)
         members = {who[rig.names[c]][d] for cl in res.clusters[:1] for c, d in cl.members.tolist()}
         rows = [cl.members[:, 0].tolist() for cl, tid in zip(res.clusters, res.track_ids)
@@ -331,10 +285,10 @@ def test_a_member_failing_the_pair_gates_is_verified_out():
 
 def test_frame_sets_without_some_cameras_and_empty_frames_keep_the_tracks():
     rig = ring_rig(4)
-    people = [Walker((-2, -1), (1.0, 0.5), 19), Walker((2, 1), (-0.5, 0.5), 20)]
+    people = [Person((-2, -1), 19, v=(1.0, 0.5)), Person((2, 1), 20, v=(-0.5, 0.5))]
     ta = TemporalAssociator(rig, PARAMS, TemporalParams())
     for f in range(12):
-        fr, who = frame(rig, people, f)
+        fr, who = walk_frame(rig, people, f)
         if f in (5, 6):
             del fr["cam3"]  # a partial frame set (camera missing)
         if f == 8:
@@ -350,7 +304,7 @@ def test_frame_sets_without_some_cameras_and_empty_frames_keep_the_tracks():
 @pytest.mark.parametrize("verify", ["sparse", "none"])
 def test_verification_with_the_keypoints_or_no_epipolar_test(verify):
     rig = ring_rig(4)
-    people = [Walker((-3, 0), (1.0, 0.2), 1), Walker((2, 2), (-0.5, -1.0), 2)]
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0))]
     ta, out = run(rig, people, range(6), temporal=TemporalParams(verify_epipolar=verify))
     for res, who in out[2:]:
         assert person_ids(res, rig, who) == {0: 0, 1: 1}

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from temporal_reference import ReferenceTemporalAssociator
-from helpers_scene import ring_rig
-from test_temporal import PARAMS, Walker, frame
+from helpers_scene import Person, ring_rig, walk_frame
+from test_temporal import PARAMS
 
 from maem_ros.core.association.pipeline import AssociationParams
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
@@ -71,8 +71,8 @@ def test_batched_stage_equals_the_reference_on_crossing_and_occlusion(temporal):
     """Two people walking through each other, a third hidden from every camera for frames
     8..12 and from two cameras later (few views, one view)."""
     rig = ring_rig(4)
-    people = [Walker((-3, 0.25), (3.0, 0.0), 6), Walker((3, -0.25), (-3.0, 0.0), 7),
-              Walker((0, -3), (0.2, 1.5), 8)]
+    people = [Person((-3, 0.25), 6, v=(3.0, 0.0)), Person((3, -0.25), 7, v=(-3.0, 0.0)),
+              Person((0, -3), 8, v=(0.2, 1.5))]
     cams = rig.names
 
     def seen(cam, k, f):
@@ -82,7 +82,7 @@ def test_batched_stage_equals_the_reference_on_crossing_and_occlusion(temporal):
             return False
         return not (f >= 20 and cam in cams[:2 + (f >= 26)])
 
-    seq = [frame(rig, people, f, seen=lambda cam, k, f=f: seen(cam, k, f))[0]
+    seq = [walk_frame(rig, people, f, seen=lambda cam, k, f=f: seen(cam, k, f))[0]
            for f in range(34)]
     assert run_both(rig, seq, PARAMS, temporal) >= 30
 
@@ -90,7 +90,7 @@ def test_batched_stage_equals_the_reference_on_crossing_and_occlusion(temporal):
 def test_batched_stage_equals_the_reference_when_the_pair_gates_reject_members():
     """A detection carrying another person's 3D pose fails the PA-MPJPE gate in verification."""
     rig = ring_rig(5)
-    people = [Walker((-2, 0), (1.0, 0.0), 1), Walker((2, 0.5), (-1.0, 0.0), 2)]
+    people = [Person((-2, 0), 1, v=(1.0, 0.0)), Person((2, 0.5), 2, v=(-1.0, 0.0))]
     wrong = lambda cam, k: 1 - k if (cam == rig.names[3] and k == 0) else k
-    seq = [frame(rig, people, f, kpts3d_of=wrong)[0] for f in range(12)]
+    seq = [walk_frame(rig, people, f, kpts3d_of=wrong)[0] for f in range(12)]
     run_both(rig, seq, dataclasses.replace(PARAMS, tau_cost=0.05), TemporalParams())

@@ -1,24 +1,13 @@
 """MAEM stage 3 (core/triangulation/ransac.py) against exact geometric answers."""
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
-from helpers_scene import project_frames, ring_rig
+from helpers_scene import cluster, people, project_frames, ring_rig
 from hypothesis import given, settings, strategies as st
 
 from maem_ros.core.geometry.multiview import dlt
 from maem_ros.core.triangulation.ransac import Poses, TriangulationParams, triangulate
-
-
-def cluster(*members: tuple[int, int]) -> SimpleNamespace:
-    return SimpleNamespace(members=np.array(members, dtype=np.int64).reshape(-1, 2))
-
-
-def people(n: int, joints: int, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return rng.uniform([-4, -3, 0.2], [4, 3, 1.8], (n, 1, 3)) + rng.normal(scale=0.3, size=(n, joints, 3))
 
 
 # ---------------------------------------------------------------------------------------- dlt

@@ -8,8 +8,7 @@ import numpy as np
 from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
 from maem_ros.core.triangulation.uncertainty import joint_covariance, joint_std, pose_confidence
 
-from helpers_scene import COURT_RING, project_frames, ring_rig
-from test_triangulation import cluster, people
+from helpers_scene import COURT_RING, cluster, people, project_frames, ring_rig
 
 
 def test_noise_free_joints_have_the_prior_noise_only():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import array
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import pytest
@@ -14,7 +15,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CompressedImage, Image, PointCloud2, PointField
 from visualization_msgs.msg import Marker
 
-from maem_ros.core.geometry.camera import Camera, Rig
+from helpers_scene import WIRE_RING, random_detections, ring_rig
+
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.skeleton import SPORTCENTER_13
 from maem_ros.ros import wire
@@ -24,14 +26,10 @@ TOPIC = "/camera_0/detections"
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-def make_dets(n: int, j: int, v: int, seed: int = 0, camera: str = "camera_0",
-              stamp_ns: int = 1_700_000_000_123_456_789) -> FrameDetections:
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(0, 1000, (n, 2))
-    wh = rng.uniform(0, 300, (n, 2))
-    return FrameDetections(camera, stamp_ns, np.concatenate([xy, xy + wh], 1), rng.uniform(0, 1, n),
-                           rng.uniform(-50, 1500, (n, j, 2)), rng.normal(0, 1, (n, j, 3)),
-                           rng.uniform(-50, 1500, (n, v, 2)))
+#: the wire tests' random detections: full-HD-ish numbers, keypoints and vertices a little
+#: outside the image, a realistic stamp
+make_dets = partial(random_detections, camera="camera_0", stamp_ns=1_700_000_000_123_456_789,
+                    box=(0.0, 300.0), kpts=(-50.0, 1500.0), verts=(-50.0, 1500.0))
 
 
 def assert_dets_equal(a: FrameDetections, b: FrameDetections) -> None:
@@ -87,25 +85,11 @@ class FakeCluster:
     costs: np.ndarray
 
 
-def small_rig(n: int = 3) -> Rig:
-    cams = []
-    for i in range(n):
-        a = 2 * np.pi * i / n
-        eye = np.array([10 * np.cos(a), 10 * np.sin(a), 3.0])
-        z = -eye / np.linalg.norm(eye)
-        x = np.cross(z, [0, 0, 1.0])
-        x /= np.linalg.norm(x)
-        R = np.stack([x, np.cross(z, x), z])
-        cams.append(Camera(f"camera_{i}", [[800, 0, 640], [0, 800, 360], [0, 0, 1]], R, -R @ eye,
-                           1280, 720))
-    return Rig(cams)
-
-
 @FAST
 @given(sizes=st.lists(st.integers(1, 3), min_size=0, max_size=4), j=st.integers(1, 15),
        seed=st.integers(0, 1000))
 def test_clusters_roundtrip(sizes, j, seed):
-    rig = small_rig(3)
+    rig = ring_rig(3, **WIRE_RING)
     rng = np.random.default_rng(seed)
     frames = {c: make_dets(4, j, 5, seed + i, camera=c) for i, c in enumerate(rig.names)}
     clusters, used = [], set()
@@ -130,7 +114,7 @@ def test_clusters_roundtrip(sizes, j, seed):
 
 
 def test_clusters_dense_members_equal_the_sent_rows():
-    rig = small_rig(3)
+    rig = ring_rig(3, **WIRE_RING)
     frames = {c: make_dets(3, 4, 2, i, camera=c) for i, c in enumerate(rig.names)}
     clusters = [FakeCluster(np.array([[0, 2], [2, 1]]), np.array([0.1, 0.2])),
                 FakeCluster(np.array([[1, 0], [2, 0], [0, 0]]), np.array([0.1, 0.2, np.nan]))]
@@ -289,7 +273,7 @@ def test_big_endian_cloud_decodes():
 
 
 def test_cluster_and_pose_decoders_reject():
-    rig = small_rig(3)
+    rig = ring_rig(3, **WIRE_RING)
     frames = {c: make_dets(2, 4, 1, i, camera=c) for i, c in enumerate(rig.names)}
     msg = wire.clusters_to_msg(1, "world", rig, frames,
                                [FakeCluster(np.array([[0, 0], [2, 1]]), np.zeros(2))])

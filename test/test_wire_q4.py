@@ -2,12 +2,16 @@
 to the association: same clusters as float32, subsets honoured, validation done once."""
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import PointField
+
+from helpers_scene import random_detections
 
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.association.pipeline import AssociationParams, associate
@@ -25,18 +29,15 @@ def roundtrip(msg):
     return deserialize_message(serialize_message(msg), type(msg))
 
 
-def make_dets(n, j, v, seed=0, lo=0.0, hi=4000.0):
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(0, 1000, (n, 2))
-    return FrameDetections("camera_0", 5, np.concatenate([xy, xy + 50], 1), rng.uniform(0, 1, n),
-                           rng.uniform(0, 4000, (n, j, 2)), rng.normal(0, 1, (n, j, 3)),
-                           rng.uniform(lo, hi, (n, v, 2)))
+#: random detections across a 4000 px image (the q4 range), camera_0
+make_dets = partial(random_detections, camera="camera_0", stamp_ns=5, kpts=(0.0, 4000.0),
+                    verts=(0.0, 4000.0))
 
 
 @FAST
 @given(n=st.integers(0, 5), j=st.integers(1, 12), v=st.integers(0, 50), seed=st.integers(0, 2**16))
 def test_q4_round_trip_is_exact_to_a_32nd_of_a_pixel(n, j, v, seed):
-    dets = make_dets(n, j, v, seed, lo=-30.0, hi=4200.0)  # some vertices outside the q4 range
+    dets = make_dets(n, j, v, seed, verts=(-30.0, 4200.0))  # some vertices outside the q4 range
     msg = roundtrip(wire.detections_to_msg(dets, vertices="q4", keypoints="q4"))
     names = {f.name: (f.datatype, f.count) for f in msg.fields}
     assert names["verts2d_q4"] == (PointField.UINT16, 2 * v) and "verts2d" not in names
@@ -70,7 +71,7 @@ def test_q4_codes_and_missing_values():
 def test_q4_carries_people_at_negative_rectified_coordinates():
     """Wide distorted cameras put whole people at u < 0 in the rectified image: the origin keeps
     them (a fixed 0 origin would mark every vertex missing)."""
-    dets = make_dets(2, 3, 50, lo=-900.0, hi=-20.0)
+    dets = make_dets(2, 3, 50, verts=(-900.0, -20.0))
     back = wire.msg_to_detections(wire.detections_to_msg(dets, vertices="q4"), TOPIC)
     assert np.all(np.abs(back.verts2d - dets.verts2d) <= 1 / 32 + 1e-4)
     assert np.all(wire.encode_q4(dets.verts2d) == wire.Q4_MISSING)  # what origin 0 would send
@@ -82,7 +83,7 @@ def test_q4_carries_people_at_negative_rectified_coordinates():
 
 
 def _q4_message(n=2, j=3, v=4):
-    return wire.detections_to_msg(make_dets(n, j, v, hi=1000.0), vertices="q4", keypoints="q4")
+    return wire.detections_to_msg(make_dets(n, j, v, verts=(0.0, 1000.0)), vertices="q4", keypoints="q4")
 
 
 def test_q4_out_of_range_keypoints_go_f32_and_unseen_ones_are_nan():
@@ -124,7 +125,7 @@ def test_q4_layout_errors():
 
 
 def test_announced_subset_round_trip_and_errors():
-    full = make_dets(3, 2, 100, hi=1000.0)
+    full = make_dets(3, 2, 100, verts=(0.0, 1000.0))
     sub = full.with_vertex_subset(3, 10)
     assert sub.mesh_subset == (100, 3, 10) and sub.num_vertices == 10 and sub.mesh_vertices == 100
     np.testing.assert_array_equal(sub.verts2d, full.verts2d[:, epipolar.vertex_subset(100, 3, 10)])
@@ -171,7 +172,7 @@ def isfinite_calls(monkeypatch) -> list:
 
 
 def test_f32_verts_view_the_message_and_are_validated_once(isfinite_calls):
-    dets = make_dets(3, 4, 600, hi=1000.0)
+    dets = make_dets(3, 4, 600, verts=(0.0, 1000.0))
     msg = roundtrip(wire.detections_to_msg(dets))
     back = wire.msg_to_detections(msg, TOPIC)
     rows = epipolar.point_rows(back.verts2d)

@@ -1,23 +1,23 @@
 """/maem/clusters with track ids: optional ``track`` / ``track_flags`` fields (temporal association)."""
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import PointCloud2
-from test_wire import small_rig
 
-from maem_ros.core.detections import Cluster, FrameDetections
+from helpers_scene import WIRE_RING, random_detections, ring_rig
+
+from maem_ros.core.detections import Cluster
 from maem_ros.core.tracking.temporal import FLAG_FEW_VIEWS, FLAG_TRACKED
 from maem_ros.ros import wire
 
 
-def dets(camera: str, n: int = 3, j: int = 5, seed: int = 0) -> FrameDetections:
-    rng = np.random.default_rng(seed)
-    xy = rng.uniform(100, 600, (n, 2))
-    return FrameDetections(camera, 7, np.concatenate([xy, xy + 50], 1), np.full(n, 0.9),
-                           rng.uniform(0, 700, (n, j, 2)), rng.normal(0, 1, (n, j, 3)),
-                           np.zeros((n, 0, 2), np.float32))
+#: three random detections of 5 keypoints, no mesh (``camera``, ``seed`` per call)
+dets = partial(random_detections, 3, 5, 0, stamp_ns=7, xy=(100.0, 600.0), score=0.9,
+               kpts=(0.0, 700.0))
 
 
 def roundtrip(msg: PointCloud2) -> PointCloud2:
@@ -29,8 +29,8 @@ CLUSTERS = [Cluster(np.array([[0, 2], [1, 0], [2, 1]]), np.full(3, np.nan)),
 
 
 def test_track_ids_and_flags_roundtrip_per_cluster():
-    rig = small_rig(3)
-    frames = {c: dets(c, seed=i) for i, c in enumerate(rig.names)}
+    rig = ring_rig(3, **WIRE_RING)
+    frames = {c: dets(camera=c, seed=i) for i, c in enumerate(rig.names)}
     msg = wire.clusters_to_msg(9, "world", rig, frames, CLUSTERS, np.array([4, -1]),
                                np.array([FLAG_TRACKED | FLAG_FEW_VIEWS, 0]))
     cf = wire.msg_to_clusters(roundtrip(msg), "/maem/clusters", 3)
@@ -44,8 +44,8 @@ def test_track_ids_and_flags_roundtrip_per_cluster():
 
 
 def test_clusters_without_tracks_keep_the_paper_layout():
-    rig = small_rig(3)
-    frames = {c: dets(c, seed=i) for i, c in enumerate(rig.names)}
+    rig = ring_rig(3, **WIRE_RING)
+    frames = {c: dets(camera=c, seed=i) for i, c in enumerate(rig.names)}
     msg = wire.clusters_to_msg(9, "world", rig, frames, CLUSTERS)
     assert [f.name for f in msg.fields] == ["cluster", "camera", "detection", "score", "cost",
                                             "kpts2d"]
@@ -57,8 +57,8 @@ def test_clusters_without_tracks_keep_the_paper_layout():
 
 
 def test_bad_track_fields_are_wire_errors():
-    rig = small_rig(3)
-    frames = {c: dets(c, seed=i) for i, c in enumerate(rig.names)}
+    rig = ring_rig(3, **WIRE_RING)
+    frames = {c: dets(camera=c, seed=i) for i, c in enumerate(rig.names)}
     msg = wire.clusters_to_msg(9, "world", rig, frames, CLUSTERS, np.array([4, 5]))
     rec = np.frombuffer(bytearray(bytes(msg.data)), np.uint8).copy()
     off = next(f.offset for f in msg.fields if f.name == "track")

@@ -15,7 +15,6 @@ import struct
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
 
 from mcap.exceptions import EndOfFile, McapError
 from mcap.reader import make_reader
@@ -73,18 +72,6 @@ class FileScan:
         self.counts[topic] = self.counts.get(topic, 0) + 1
         self.start_ns = log_time if self.start_ns is None else min(self.start_ns, log_time)
         self.end_ns = log_time if self.end_ns is None else max(self.end_ns, log_time)
-
-
-class _Counting:
-    """A read-only stream that counts the bytes read (the offset where a record ends)."""
-
-    def __init__(self, f: IO[bytes]):
-        self.f, self.pos = f, 0
-
-    def read(self, n: int = -1) -> bytes:
-        data = self.f.read(n)
-        self.pos += len(data)
-        return data
 
 
 def _qos_of(channel: Channel) -> tuple[Qos, ...]:
@@ -154,18 +141,19 @@ def _scan_stream(path: Path, size: int) -> FileScan:
     out = FileScan(path, size, False)
     schemas: dict[int, Schema] = {}
     with open(path, "rb") as f:
-        counting = _Counting(f)
+        # StreamReader reads this (buffered) file itself, exactly a record's bytes at a time:
+        # f.tell() is the offset where the last record read ends
         try:
-            for record in StreamReader(counting, emit_chunks=True, validate_crcs=True).records:
+            for record in StreamReader(f, emit_chunks=True, validate_crcs=True).records:
                 if isinstance(record, Chunk):
                     _take_chunk(out, schemas, record)
                 else:
                     _take_record(out, schemas, record)
-                out.good_bytes = counting.pos
+                out.good_bytes = f.tell()
                 if isinstance(record, Footer):
                     out.complete, out.good_bytes = True, size
         except READ_ERRORS as e:
-            clean = counting.pos == out.good_bytes
+            clean = f.tell() == out.good_bytes
             out.problem = ("ends without its summary" if clean else "ends inside a record") \
                 if isinstance(e, EndOfFile) else \
                 f"damaged record after byte {out.good_bytes:,}: {type(e).__name__} {str(e)[:80]}"
@@ -235,9 +223,8 @@ def _streamed_messages(fs: FileScan, wanted: set[str] | None, start_ns: int | No
     schemas: dict[int, Schema] = {}
     topics: dict[int, Topic] = {}
     with open(fs.path, "rb") as f:
-        counting = _Counting(f)
-        reader = StreamReader(counting, emit_chunks=True, validate_crcs=True).records
-        while counting.pos < fs.good_bytes:  # as far as the scan found whole records
+        reader = StreamReader(f, emit_chunks=True, validate_crcs=True).records
+        while f.tell() < fs.good_bytes:  # as far as the scan found whole records
             try:
                 record = next(reader)
                 records = breakup_chunk(record, validate_crc=True) \

@@ -59,13 +59,13 @@ def _copy_messages(src: FileScan, dst: Path) -> int:
     n = 0
     compression = CompressionType.ZSTD if src.compression == "zstd" else CompressionType.NONE
     with open(src.path, "rb") as f, open(dst, "xb") as out:
-        counting = mcapfile._Counting(f)
         writer = McapWriter(out, compression=compression)
         writer.start(profile="ros2", library="maem_ros recover")
         schema_ids: dict[int, int] = {}
         channel_ids: dict[int, int] = {}
-        records = StreamReader(counting, emit_chunks=True, validate_crcs=True).records
-        while counting.pos < src.good_bytes:
+        # StreamReader reads f itself, a record at a time: f.tell() is where the last one ends
+        records = StreamReader(f, emit_chunks=True, validate_crcs=True).records
+        while f.tell() < src.good_bytes:
             try:
                 record = next(records)
                 items = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) \
@@ -148,10 +148,10 @@ def format_report(r: RecoverReport) -> list[str]:
         lines.append(f"{topic:<{width}}  {n:>9,}  {lost:>4,}" if topic in r.listed
                      else f"{topic:<{width}}  {n:>9,}     ?")
     total_lost = sum(r.lost(t) for t in r.recovered)
-    lost = f"{total_lost:,} known lost (listed in the old metadata.yaml)" if r.listed else \
+    lost_note = f"{total_lost:,} known lost (listed in the old metadata.yaml)" if r.listed else \
         "losses per topic unknown (no metadata.yaml to compare with)"
     cut = sum(f.dropped_bytes for f in r.files)
     tail = f"; {cut:,} bytes of cut chunks dropped (their messages cannot be counted)" \
         if cut else ""
-    lines.append(f"recovered {r.message_count:,} messages into {r.bag}; {lost}{tail}")
+    lines.append(f"recovered {r.message_count:,} messages into {r.bag}; {lost_note}{tail}")
     return lines

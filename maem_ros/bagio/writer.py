@@ -26,7 +26,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
 import mcap
 from mcap.writer import CompressionType
@@ -163,7 +163,10 @@ class _File:
     def __init__(self, path: Path, compress: bool):
         self.path = path
         self.stream = _Unbuffered(path)
-        self.mcap = McapWriter(self.stream, chunk_size=2 ** 62,  # chunks are cut by BagWriter
+        # the mcap Writer only calls write() and tell() on its stream (and close() when it
+        # opened it itself); its annotation asks for a whole IO
+        self.mcap = McapWriter(cast(IO[bytes], self.stream),
+                               chunk_size=2 ** 62,  # chunks are cut by BagWriter
                                compression=CompressionType.ZSTD if compress
                                else CompressionType.NONE)
         self.mcap.start(profile="ros2", library=f"maem_ros; mcap {mcap.__version__}")
@@ -279,6 +282,12 @@ class BagWriter:
         split = self.options.max_bag_duration > 0 or self.options.max_bag_size > 0
         return f"{self.path.name}_{index}.mcap" if split else f"{self.path.name}.mcap"
 
+    def _current(self) -> _File:
+        """The open file (writing steps run only while one is open)."""
+        if self._file is None:
+            raise ValueError(f"bag {str(self.path)!r}: no file open (the writer is closed)")
+        return self._file
+
     def _open_file(self) -> None:
         path = self.path / self._file_name(len(self._done))
         try:
@@ -299,7 +308,7 @@ class BagWriter:
             {"offered_qos_profiles": dump_qos_v8([topic.qos])})
 
     def _finish_file(self) -> None:
-        f = self._file
+        f = self._current()
         self._flush_chunk()
         f.mcap.add_metadata(metadata.MCAP_METADATA_NAME, {
             metadata.MCAP_METADATA_KEY: metadata.dump(self._metadata(include_open=True))})
@@ -312,7 +321,7 @@ class BagWriter:
         self._file = None
 
     def _split_due(self, stamp_ns: int) -> bool:
-        f, o = self._file, self.options
+        f, o = self._current(), self.options
         if not f.times and not f.pending_times:
             return False
         first = min(f.times[:1] + f.pending_times[:1])
@@ -326,7 +335,7 @@ class BagWriter:
         if self._split_due(stamp_ns):
             self._finish_file()
             self._open_file()
-        f = self._file
+        f = self._current()
         f.mcap.add_message(topic.channel_id, stamp_ns, data, stamp_ns)
         f.pending[topic.name] = f.pending.get(topic.name, 0) + 1
         f.pending_bytes += len(data) + 31  # + the Message record's header
@@ -342,7 +351,7 @@ class BagWriter:
             self._write_metadata()
 
     def _tick(self) -> None:
-        f, now = self._file, time.monotonic()
+        f, now = self._current(), time.monotonic()
         if f.pending_since is not None and now - f.pending_since >= self.options.chunk_duration:
             self._flush_chunk()
         if now - self._last_meta >= self.options.metadata_period:
@@ -350,7 +359,7 @@ class BagWriter:
 
     def _flush_chunk(self) -> None:
         """Write the open chunk and its message indexes; account it as on disk."""
-        f = self._file
+        f = self._current()
         if not f.pending:
             return
         f.mcap.flush()

@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import cast
 
 import numpy as np
 
@@ -29,6 +30,13 @@ def vertex_subset(num_vertices: int, stride: int = 1, count: int = 0) -> np.ndar
         idx = idx[np.unique(np.linspace(0, idx.size - 1, count).round().astype(np.int64))]
     idx.setflags(write=False)
     return idx
+
+
+def _subset_vertex_ids(mesh_subset: tuple[int, int, int]) -> np.ndarray:
+    """Full-mesh index of each verts2d column (sorted) under ``mesh_subset`` = (mesh vertices,
+    stride, count) (FrameDetections.mesh_subset)."""
+    ids = vertex_subset(*mesh_subset)
+    return np.arange(mesh_subset[0]) if ids is None else ids
 
 
 @dataclass
@@ -65,7 +73,8 @@ class FrameDetections:
         self.verts2d = np.asarray(self.verts2d, dtype=np.float32)
         self.stamp_ns = int(self.stamp_ns)
         if self.mesh_subset is not None:
-            self.mesh_subset = tuple(int(v) for v in self.mesh_subset)
+            # a subset of the wrong length is kept as given: validate() names it
+            self.mesh_subset = cast(tuple[int, int, int], tuple(int(v) for v in self.mesh_subset))
 
     @property
     def n(self) -> int:
@@ -87,10 +96,7 @@ class FrameDetections:
     @property
     def vertex_ids(self) -> np.ndarray | None:
         """Full-mesh index of each verts2d column (sorted), None when verts2d is the whole mesh."""
-        if self.mesh_subset is None:
-            return None
-        ids = vertex_subset(*self.mesh_subset)
-        return np.arange(self.mesh_subset[0]) if ids is None else ids
+        return None if self.mesh_subset is None else _subset_vertex_ids(self.mesh_subset)
 
     @property
     def centers(self) -> np.ndarray:
@@ -180,7 +186,7 @@ class FrameDetections:
         if self.verts2d.ndim != 3 or self.verts2d.shape[0] != n or self.verts2d.shape[2] != 2:
             raise ValueError(f"{where}: verts2d: expected shape ({n},V,2), got {self.verts2d.shape}")
         if self.mesh_subset is not None:
-            ids = self.vertex_ids
+            ids = _subset_vertex_ids(self.mesh_subset)
             if len(self.mesh_subset) != 3 or ids.size != self.verts2d.shape[1]:
                 raise ValueError(f"{where}: mesh_subset: {self.mesh_subset} selects {ids.size} "
                                  f"vertices, verts2d has {self.verts2d.shape[1]}")

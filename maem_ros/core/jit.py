@@ -2,10 +2,21 @@
 triangulation kernels; the epipolar kernel keeps its own fast-math variants)."""
 from __future__ import annotations
 
+from typing import Literal, TypedDict
+
 try:  # numba is optional: every kernel has a numpy path with the same results
     import numba as _numba
 except ImportError:  # pragma: no cover - exercised only without numba
     _numba = None  # type: ignore[assignment]  # None = numba missing
+
+
+class NjitOptions(TypedDict):
+    """The numba.njit options every kernel shares (typed, so ``njit(**options)`` type-checks)."""
+
+    cache: bool
+    error_model: Literal["python", "numpy"]
+    boundscheck: bool
+    nogil: bool
 
 
 def have_numba() -> bool:

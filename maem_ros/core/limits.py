@@ -8,6 +8,7 @@ with a :class:`LimitError` (reason ``too_many_detections`` / ``too_many_people``
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,15 +78,31 @@ def _first_outside(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float 
 def check_detections(dets: FrameDetections, rig: Rig, limits: InputLimits, where: str) -> None:
     """LimitError when ``dets`` has more than ``max_detections`` or a bbox, keypoint or vertex
     outside the camera's image by more than ``pixel_margin`` image sizes."""
-    if dets.n > limits.max_detections:
-        raise LimitError(f"{where}: {dets.n} detections > max_detections "
+    check_detection_arrays(dets.camera, dets.bboxes, dets.kpts2d, dets.verts2d, rig, limits,
+                           where)
+
+
+def check_detection_arrays(camera: str, bboxes: np.ndarray, kpts2d: np.ndarray,
+                           vertices: np.ndarray | Callable[[bool], np.ndarray], rig: Rig,
+                           limits: InputLimits, where: str) -> None:
+    """check_detections on one camera's arrays: bboxes (N, 4) px, kpts2d (N, J, 2) px and
+    vertices (..., 2) px, or for a message whose vertices are not decoded yet a function of
+    ``exact`` giving their extremes (2, 2) (rows min and max; exact=False: cheaper bounds that
+    may be wider, wire.DetectionsMessage.vertex_extremes): the exact extremes are read only
+    when the cheap bounds are not within the limits."""
+    n = len(bboxes)
+    if n > limits.max_detections:
+        raise LimitError(f"{where}: {n} detections > max_detections "
                          f"{limits.max_detections}", "too_many_detections")
-    if dets.n == 0:
+    if n == 0:
         return
-    cam = rig[dets.camera]
+    cam = rig[camera]
     lo, hi = _pixel_bounds(np.array(cam.width), np.array(cam.height), limits.pixel_margin)
-    for name, pts in (("bbox", dets.bboxes.reshape(dets.n, -1, 2)), ("kpts2d", dets.kpts2d),
-                      ("verts2d", dets.verts2d)):
+    if callable(vertices):
+        extremes = vertices(False)
+        vertices = extremes if _first_outside(extremes, lo, hi) is None else vertices(True)
+    for name, pts in (("bbox", bboxes.reshape(n, -1, 2)), ("kpts2d", kpts2d),
+                      ("verts2d", vertices)):
         value = _first_outside(pts, lo, hi)
         if value is not None:
             raise LimitError(f"{where}: {name}: {value:g} px outside image {cam.width}x"

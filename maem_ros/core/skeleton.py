@@ -7,6 +7,7 @@ Pose: its own 33 landmarks, not an MHR70 subset). Conversion between any two goe
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 
@@ -183,8 +184,17 @@ def convert(joints: np.ndarray, target: KeypointConvention, source: str | None =
     return np.take(joints, target.indices_in(src), axis=-2)
 
 
+@overload
+def joint_subset(spec: object, num_joints: int) -> np.ndarray: ...
+
+
+@overload
+def joint_subset(spec: object, num_joints: None) -> np.ndarray | None: ...
+
+
 def joint_subset(spec: object, num_joints: int | None) -> np.ndarray | None:
-    """Keypoint indices named by ``spec`` for ``num_joints`` keypoints (None: only check ``spec``).
+    """Keypoint indices named by ``spec`` for ``num_joints`` keypoints (None: only check ``spec``;
+    then None for "body" and "all", whose indices depend on the keypoint count).
 
     "body": the sportcenter_13 body joints of the convention with that many joints (all when
     none is known); "all"; or comma-separated indices. ValueError naming cost_joints.

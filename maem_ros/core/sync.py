@@ -45,7 +45,7 @@ from collections import Counter, deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 
@@ -53,8 +53,17 @@ import numpy as np
 LAG_SAMPLES = 2
 
 
+@overload
+def capture_stamp_ns(stamp_ns: int, time_offset_s: float) -> int: ...
+
+
+@overload
+def capture_stamp_ns(stamp_ns: np.ndarray, time_offset_s: float) -> np.ndarray: ...
+
+
 def capture_stamp_ns(stamp_ns: int | np.ndarray, time_offset_s: float) -> int | np.ndarray:
-    """A camera's true capture time (ns): its message stamp (ns) + its rig time_offset (s)."""
+    """A camera's true capture time (ns): its message stamp (ns) + its rig time_offset (s); an
+    int for an int stamp, an int64 array for an array of stamps."""
     offset_ns = int(round(float(time_offset_s) * 1e9))
     if isinstance(stamp_ns, np.ndarray):
         return stamp_ns.astype(np.int64) + offset_ns

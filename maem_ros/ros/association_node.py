@@ -41,7 +41,8 @@ from sensor_msgs.msg import PointCloud2
 from maem_ros.core.association import AssociationParams, ExecutionParams
 from maem_ros.core.association import warmup as warmup_association
 from maem_ros.core.backlog import BacklogParams
-from maem_ros.core.limits import InputLimits, check_detections
+from maem_ros.core.detections import FrameDetections
+from maem_ros.core.limits import InputLimits, check_detection_arrays
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.core.tracking.temporal import TemporalParams
@@ -135,8 +136,7 @@ class AssociationNode(MaemNode):
                                                TemporalParams.from_mapping(p))
         # compile/load the numba kernels now, not on the first frame
         warmup_association(self.params.execution.backend, self.params.epipolar_gate)
-        # each camera frame is prepared for the pair gates as its message is decoded (off the
-        # frame set's critical path: the other cameras' messages are still on their way)
+        # each camera frame is prepared for the pair gates as its frame set is processed
         self.gates = self.temporal.gates
         wire.warm_cdr_decoder()
         self.cameras = list(cams)
@@ -179,26 +179,36 @@ class AssociationNode(MaemNode):
         return self.get_clock().now().nanoseconds
 
     def on_detections(self, cam: str, topic: str, data: bytes, info) -> None:
-        """One serialized detections message: decode and queue it; then (unless called from
+        """One serialized detections message: check and queue it; then (unless called from
         _decide) take every other pending message and let the synchroniser decide."""
         self._receive(cam, topic, data, info)
         if not self._taking:
             self._decide()
 
     def _receive(self, cam: str, topic: str, data: bytes, info) -> None:
+        """Check one serialized message and queue it by its stamp: every field and limit is
+        checked here (a bad message never takes a place in a frame set; counted with its
+        reason), its mesh vertices are decoded only when its frame set is processed
+        (_decoded): a node that fell behind skips stale sets without paying their decoding,
+        which would otherwise keep it behind."""
         with RejectErrors(self.diag, topic, "bad_detections") as step:
-            with Stopwatch(self.diag, "decode"):
-                dets = wire.msg_to_detections(wire.cdr_to_cloud(data, topic), topic,
-                                              self.rig.names, expected_camera=cam)
-                check_detections(dets, self.rig, self.limits, topic)
-                self.gates.prepare(dets)
+            with Stopwatch(self.diag, "check"):
+                msg = wire.read_detections(wire.cdr_to_cloud(data, topic), topic,
+                                           self.rig.names, expected_camera=cam)
+                check_detection_arrays(cam, msg.bboxes, msg.kpts2d, msg.vertex_extremes,
+                                       self.rig, self.limits, topic)
         if step.failed:
             return
         now = self._now_ns()
-        self._ready += self.sync.add(cam, dets.stamp_ns, dets, now, arrival_ns(now, info),
+        self._ready += self.sync.add(cam, msg.stamp_ns, msg, now, arrival_ns(now, info),
                                      poll=False)
         if self.timer.is_canceled() and self.sync.pending():
             self.timer.reset()  # a set is waiting: poll it (max_wait) until it goes out
+
+    def _decoded(self, fs) -> dict[str, FrameDetections]:
+        """The frame set's checked messages decoded and prepared for the pair gates."""
+        with Stopwatch(self.diag, "decode"):
+            return {cam: self.gates.prepare(msg.decode()) for cam, msg in fs.items.items()}
 
     def _decide(self) -> None:
         """Take every message already waiting in the DDS queues (the executor runs the poll
@@ -260,7 +270,7 @@ class AssociationNode(MaemNode):
             self._taking = taking
 
     def _take_round(self) -> int:
-        """Receive (decode and queue) at most one waiting message per camera; how many."""
+        """Receive (check and queue) at most one waiting message per camera; how many."""
         return sum(take_pending(sub, limit=1) for sub in self.subs)
 
     def on_timer(self) -> None:
@@ -314,16 +324,15 @@ class AssociationNode(MaemNode):
         else:
             self.diag.set("missing_cameras_last", "")
         with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
+            items = self._decoded(fs)
             with Stopwatch(self.diag, "associate"):
-                result = self.temporal.step(fs.items, fs.stamp_ns)
+                result = self.temporal.step(items, fs.stamp_ns)
             tracked = self.temporal.tp.temporal
             with Stopwatch(self.diag, "encode"):
-                out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, fs.items,
+                out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, items,
                                            result.clusters,
-                                           # wire's hints say Sequence[int]; it takes the (K,)
-                                           # int arrays (wire is being rewritten)
-                                           result.track_ids if tracked else None,  # type: ignore[arg-type]
-                                           result.flags if tracked else None)  # type: ignore[arg-type]
+                                           result.track_ids if tracked else None,
+                                           result.flags if tracked else None)
         if step.failed:
             return
         self.pub.publish(out)
@@ -341,7 +350,7 @@ class AssociationNode(MaemNode):
             if key in result.stats:
                 self.diag.time(stage, float(result.stats[key]))
         self.diag.set("last_clusters", len(result.clusters))
-        self.diag.set("last_cameras", len(fs.items))
+        self.diag.set("last_cameras", len(items))
 
 
 def main(args: list[str] | None = None) -> int:

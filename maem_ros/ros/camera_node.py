@@ -207,7 +207,7 @@ class CameraNode(MaemNode):
 
 def main(args: list[str] | None = None) -> int:
     """Spin the node until its source ends (0) or fails (2), a bad parameter (2), or SIGINT (0)."""
-    return CameraNode.main(args, until=lambda node: node.done)  # type: ignore[attr-defined]
+    return CameraNode.main(args, until=lambda node: node.done)  # type: ignore[attr-defined]  # a CameraNode
 
 
 if __name__ == "__main__":

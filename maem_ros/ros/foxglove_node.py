@@ -99,9 +99,10 @@ class FoxgloveNode(MaemNode):
             info = self.resolve_topic_name(f"{cam}/camera_info")
             self.subs.append(self.create_subscription(
                 Image if raw else CompressedImage, image,
-                lambda m, c=cam, t=image: self.on_image(c, t, m), IMAGE_QOS))  # type: ignore[misc]
+                lambda m, c=cam, t=image: self.on_image(c, t, m),  # type: ignore[misc]  # c, t bound
+                IMAGE_QOS))
             self.subs.append(self.create_subscription(
-                CameraInfo, info, lambda m, c=cam, t=info: self.on_info(c, t, m),  # type: ignore[misc]
+                CameraInfo, info, lambda m, c=cam, t=info: self.on_info(c, t, m),  # type: ignore[misc]  # as above
                 IMAGE_QOS))
         # steady clock: with use_sim_time and no /clock yet a ROS-time timer would never fire
         self.timer = self.create_timer(p["static_period"], self.bridge.tick,

@@ -49,9 +49,10 @@ class SequenceGaps:
 
 def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
                       callback: Callable[..., None], qos: QoSProfile, raw: bool = False,
-                      with_info: bool = False):
+                      with_info: bool = False, lost_reason: str = "dds_lost"):
     """create_subscription whose callback first records the input in ``diag`` and counts
-    messages lost before the node took them (``dropped/dds_lost``, see SequenceGaps).
+    messages lost before the node took them (``dropped/<lost_reason>``, default
+    ``dropped/dds_lost``; see SequenceGaps).
 
     ``raw``: the callback gets the serialized message (bytes), for decoders that read it in
     place (wire.cdr_to_cloud); ``with_info``: it gets ``(msg, info)``, the rmw message info
@@ -66,7 +67,7 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         diag.input(topic)
         lost = gaps.lost(info, sub.get_publisher_count)  # type: ignore[attr-defined]  # set below
         if lost:
-            diag.reject("dds_lost", f"{topic}: {lost} message(s) overwritten in the DDS history "
+            diag.reject(lost_reason, f"{topic}: {lost} message(s) overwritten in the DDS history "
                         f"before this node took them (node too slow for the input rate)", n=lost)
         if with_info:
             callback(msg, info)
@@ -74,6 +75,7 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
             callback(msg)
 
     # rclpy: a callback that wants the info
+    # (mypy: functions have no __signature__ attribute; inspect reads it)
     on_message.__signature__ = _MSG_INFO_SIGNATURE  # type: ignore[attr-defined]
     sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
     return sub

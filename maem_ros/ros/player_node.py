@@ -172,8 +172,8 @@ class Pacer:
     def __init__(self, rate: float, stop: threading.Event, tick=None, tick_s: float = 0.025):
         self.rate, self.stop, self.tick, self.tick_s = rate, stop, tick, tick_s
         # both set by anchor() before the first wait
-        self.wall0: int = None  # type: ignore[assignment]
-        self.bag0: int = None  # type: ignore[assignment]
+        self.wall0: int = None  # type: ignore[assignment]  # anchor() sets it before any use
+        self.bag0: int = None  # type: ignore[assignment]  # as wall0
 
     def anchor(self, bag_ns: int, wall_ns: int | None = None) -> None:
         self.bag0, self.wall0 = bag_ns, time.monotonic_ns() if wall_ns is None else wall_ns

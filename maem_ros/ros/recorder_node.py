@@ -8,9 +8,13 @@ rosbag2; the same settings are ROS parameters (``-p max_bag_duration:=60``; a fl
 full disk stops the recorder with one line saying what the bag holds (exit code 1).
 
 Subscriptions take the serialized CDR bytes (raw=True) and write them unchanged; log time is the
-receive time on the node clock (as rosbag2 does). Topic types come from the ROS graph, polled
-until every requested topic is found (late publishers are picked up). The subscription QoS
-follows the publishers: best effort if any publisher is, transient local if all are.
+receive time on the node clock (as rosbag2 does). A message lost before the recorder took it
+(its subscription queue, keep last RECORD_DEPTH, overflowed while it was behind, or lost in
+transport) shows as a gap in the publisher's sequence numbers: counted per topic in
+/diagnostics (``dropped/dds_lost/<topic>``, ros/intake.py) and in the last line. Topic types
+come from the ROS graph, polled until every requested topic is found (late publishers are
+picked up). The subscription QoS follows the publishers: best effort if any publisher is,
+transient local if all are.
 """
 from __future__ import annotations
 
@@ -27,6 +31,8 @@ from maem_ros.ros.cli import EXIT_BAD_INPUT, init_ros, shutdown_ros, split_ros_a
 
 if TYPE_CHECKING:  # rclpy is imported when the recorder runs (the CLI parses without it)
     from rclpy.qos import QoSProfile
+
+    from maem_ros.ros.diagnostics import Diagnostics
 
 _HIDDEN = ("/rosout", "/parameter_events")
 
@@ -94,8 +100,10 @@ def wanted(topic: str, opts: RecordOptions) -> bool:
 #: the recorder never skips a message for being late: a recording wants every message and
 #: nothing downstream waits for it, so a recorder that falls behind (a slow disk, a CPU stall)
 #: writes the backlog late instead; this depth bounds that backlog's memory: ~3 s of a 30 fps
-#: stream, 1.7 s at 60 fps, after which the oldest are overwritten
+#: stream, 1.7 s at 60 fps, after which the oldest are overwritten (counted: Recorder.lost)
 RECORD_DEPTH = 100
+#: /diagnostics period of the recorder, s
+DIAGNOSTICS_PERIOD_S = 1.0
 
 
 def subscription_qos(publishers) -> QoSProfile:  # noqa: F821 - rclpy imported lazily
@@ -114,10 +122,14 @@ def subscription_qos(publishers) -> QoSProfile:  # noqa: F821 - rclpy imported l
 
 
 class Recorder:
-    """Graph polling + raw subscriptions writing into a BagWriter (single-threaded executor)."""
+    """Graph polling + raw subscriptions writing into a BagWriter (single-threaded executor);
+    /diagnostics: per topic ``received/<topic>`` and ``dropped/dds_lost/<topic>`` (messages
+    the publisher sent that never reached the bag), ``frames_processed`` = messages written."""
 
     def __init__(self, node, opts: RecordOptions, writer: bagio.BagWriter):
+        from maem_ros.ros.diagnostics import Diagnostics
         self.node, self.opts, self.writer = node, opts, writer
+        self.diag: Diagnostics = Diagnostics(node, DIAGNOSTICS_PERIOD_S, "maem_record")
         self.subs: dict[str, object] = {}
         self.rejected: dict[str, str] = {}
         self.received = 0
@@ -127,6 +139,7 @@ class Recorder:
 
     def poll_graph(self) -> None:
         """Subscribe to newly visible wanted topics (first advertised type)."""
+        from maem_ros.ros.intake import subscribe_counted
         from maem_ros.ros.player_node import message_class
         for topic, types in self.node.get_topic_names_and_types():
             if topic in self.subs or topic in self.rejected or not wanted(topic, self.opts):
@@ -142,8 +155,9 @@ class Recorder:
                 self.node.get_logger().error(f"topic {topic!r} not recorded: {e}")
                 continue
             qos = subscription_qos(self.node.get_publishers_info_by_topic(topic))
-            self.subs[topic] = self.node.create_subscription(
-                cls, topic, self._callback(topic, msgtype), qos, raw=True)
+            self.subs[topic] = subscribe_counted(
+                self.node, self.diag, cls, topic, self._callback(topic, msgtype), qos, raw=True,
+                lost_reason=_lost_reason(topic))
             self.node.get_logger().info(f"recording {topic} [{msgtype}]")
         self._warn_missing()
 
@@ -166,7 +180,24 @@ class Recorder:
                                       self.node.get_clock().now().nanoseconds)
             except bagio.BagWriteError as e:
                 self.error = e
+                return
+            self.diag.ok()
         return on_message
+
+    def lost(self) -> dict[str, int]:
+        """Messages lost per recorded topic (sequence gaps, see the module docstring)."""
+        return {t: self.diag.dropped.get(_lost_reason(t), 0) for t in self.subs}
+
+    def summary(self) -> str:
+        """The last line: what was written, received and lost."""
+        w = self.writer
+        per_topic = ", ".join(f"{t}: {n}" for t, n in w.counts.items()) or "no topics"
+        lost = {t: n for t, n in self.lost().items() if n}
+        lost_text = f" ({', '.join(f'{t}: {n}' for t, n in lost.items())})" if lost else ""
+        return (f"maem-record: wrote {w.message_count} messages to {self.opts.out} in "
+                f"{len(w.files)} file(s) ({per_topic}); received {self.received}; lost before "
+                f"the recorder took them: {sum(lost.values())}{lost_text}"
+                f"{f'; not recorded: {sorted(self.rejected)}' if self.rejected else ''}")
 
     def tick(self) -> None:
         """Timer: write the open chunk / metadata.yaml when due."""
@@ -175,6 +206,11 @@ class Recorder:
                 self.writer.tick()
             except bagio.BagWriteError as e:
                 self.error = e
+
+
+def _lost_reason(topic: str) -> str:
+    """The /diagnostics drop reason of ``topic``'s lost messages (dropped/dds_lost/<topic>)."""
+    return f"dds_lost/{topic.lstrip('/')}"
 
 
 def _bag_qos(node, topic: str):
@@ -249,10 +285,7 @@ def main(args: Sequence[str] | None = None) -> int:
     if rec.error is not None:
         print(f"maem-record: {rec.error.strerror}", file=sys.stderr, flush=True)
         return 1
-    per_topic = ", ".join(f"{t}: {n}" for t, n in writer.counts.items()) or "no topics"
-    print(f"maem-record: wrote {writer.message_count} messages to {opts.out} in "
-          f"{len(writer.files)} file(s) ({per_topic}); received {rec.received}"
-          f"{f'; not recorded: {sorted(rec.rejected)}' if rec.rejected else ''}", flush=True)
+    print(rec.summary(), flush=True)
     return 0
 
 

@@ -254,8 +254,7 @@ class TriangulationNode(MaemNode):
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
         with Stopwatch(self.diag, "markers"):
-            # wire's hint says Sequence[int]; it takes the (K,) int array (wire is being rewritten)
-            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,  # type: ignore[arg-type]
+            markers = wire.skeleton_markers(stamp_ns, self.frame_id, ids, joints,
                                             self.output.bones, self.lifetime_s())
         self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))

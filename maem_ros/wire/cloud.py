@@ -128,7 +128,7 @@ def new_cloud(stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, int, int
     """An n-point Cloud and a writable structured (n,) view of its zeroed data buffer: fill
     the view, and the cloud carries the values (no copy)."""
     dtype = packed_dtype(fields)
-    offsets = {name: dtype.fields[name][1] for name in dtype.names or ()}  # type: ignore[index]
+    offsets = {name: dtype.fields[name][1] for name in dtype.names or ()}  # type: ignore[index]  # fields set: a record dtype
     sec, nsec = split_stamp(stamp_ns)
     buf = array.array("B", bytes(n * dtype.itemsize))
     cloud = Cloud(header=Header(Time(sec, nsec), frame_id),

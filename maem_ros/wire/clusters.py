@@ -74,8 +74,8 @@ class ClusterFrame:
 
 def clusters_to_cloud(stamp_ns: int, frame_id: str, rig: Rig,
                     frames: Mapping[str, FrameDetections], clusters: Sequence,
-                    track_ids: Sequence[int] | None = None,
-                    track_flags: Sequence[int] | None = None) -> Cloud:
+                    track_ids: Sequence[int] | np.ndarray | None = None,
+                    track_flags: Sequence[int] | np.ndarray | None = None) -> Cloud:
     """core Clusters (members = (camera index, detection index)) -> PointCloud2.
 
     ``frames`` are the FrameDetections the clusters index into, keyed by camera name; J is
@@ -167,8 +167,8 @@ def msg_to_clusters(msg: Any, topic: str, num_cameras: int) -> ClusterFrame:
 
 def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
                     frames: Mapping[str, FrameDetections], clusters: Sequence,
-                    track_ids: Sequence[int] | None = None,
-                    track_flags: Sequence[int] | None = None) -> Any:
+                    track_ids: Sequence[int] | np.ndarray | None = None,
+                    track_flags: Sequence[int] | np.ndarray | None = None) -> Any:
     """clusters_to_cloud as a rosbags sensor_msgs/PointCloud2 (for a bag writer)."""
     return to_rosbags(clusters_to_cloud(stamp_ns, frame_id, rig, frames, clusters, track_ids,
                                         track_flags))

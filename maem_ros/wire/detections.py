@@ -3,6 +3,7 @@ package docstring), encoded from and decoded to core FrameDetections. No rclpy."
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -161,28 +162,120 @@ def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
     return mesh, stride, count
 
 
-def msg_to_detections(msg: Any, topic: str,
-                      known_cameras: Sequence[str] | None = None,
-                      expected_camera: str | None = None) -> FrameDetections:
-    """PointCloud2 -> FrameDetections, validated once (the result is marked validated, so the
-    association does not check the arrays again); f32 verts2d is a view of msg.data, q4 codes
-    are decoded once into one float32 array (NaN = missing).
+@dataclass(frozen=True)
+class DetectionsMessage:
+    """A detections message checked field by field (layout, counts, finiteness, boxes, scores,
+    vertex subset), its small arrays decoded and its vertices still in the message: f32 a view
+    of msg.data, q4 the uint16 codes (``origin`` (N, 2) px added on decoding). A receiver can
+    queue it, or drop it with its reason, at the cost of the checks, and pay the decoding of
+    the mesh vertices (:meth:`decode`) only for the messages it uses.
 
-    ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
-    (the camera whose topic this came from).
-    """
-    cam = msg.header.frame_id
-    if known_cameras is not None and cam not in known_cameras:
-        raise WireError(topic, "header.frame_id", f"unknown camera {cam!r} (rig has "
-                        f"{list(known_cameras)})", "unknown_camera")
-    if expected_camera is not None and cam != expected_camera:
-        raise WireError(topic, "header.frame_id", f"camera {cam!r} on the topic of camera "
-                        f"{expected_camera!r}", "camera_mismatch")
-    layout = _detection_layout(msg, topic)
-    rec = view_cloud(msg, topic, layout)
-    counts = {name: count_of(msg, name) for name in layout}
-    kname = "kpts2d_q4" if "kpts2d_q4" in layout else "kpts2d"
-    vname = "verts2d_q4" if "verts2d_q4" in layout else "verts2d"
+    bboxes (N, 4) px, scores (N,), kpts2d (N, J, 2) px (NaN = not seen), kpts3d (N, J, 3) m,
+    vertices (N, 2V): float32 px or uint16 q4 codes."""
+
+    camera: str
+    stamp_ns: int
+    bboxes: np.ndarray
+    scores: np.ndarray
+    kpts2d: np.ndarray
+    kpts3d: np.ndarray
+    vertices: np.ndarray
+    origin: np.ndarray | None
+    mesh_subset: tuple[int, int, int] | None
+
+    @property
+    def n(self) -> int:
+        return len(self.bboxes)
+
+    @property
+    def num_vertices(self) -> int:
+        return self.vertices.shape[1] // 2 if self.vertices.ndim == 2 else 0
+
+    def vertex_extremes(self, exact: bool = True) -> np.ndarray:
+        """(2, 2) px: rows min and max, columns u and v, over the vertices present (NaN where
+        none is): enough to bound-check every vertex without decoding them. ``exact=False``:
+        bounds that may be wider (each detection's u and v taken together), from reductions
+        over contiguous memory only, which are several times faster than per-axis ones."""
+        pairs = self.vertices.reshape(self.n, -1, 2)
+        if self.vertices.dtype == np.uint16:
+            return _q4_extremes(pairs, self.origin) if exact \
+                else _q4_bounds(self.vertices, self.origin)
+        out = np.full((2, 2), np.nan)
+        if self.vertices.size:
+            for k in range(2):
+                part = pairs[..., k] if exact else self.vertices
+                out[0, k] = np.fmin.reduce(part, axis=None)
+                out[1, k] = np.fmax.reduce(part, axis=None)
+        return out
+
+    def decode(self) -> FrameDetections:
+        """The FrameDetections (marked validated: everything was checked on reading); q4
+        vertex codes are decoded into one float32 array (NaN = missing), f32 ones stay a view."""
+        n, v = self.n, self.num_vertices
+        verts = decode_q4(self.vertices, origin=self.origin) \
+            if self.vertices.dtype == np.uint16 else self.vertices
+        return FrameDetections(
+            camera=self.camera, stamp_ns=self.stamp_ns, bboxes=self.bboxes, scores=self.scores,
+            kpts2d=self.kpts2d, kpts3d=self.kpts3d, verts2d=verts.reshape(n, v, 2),
+            mesh_subset=self.mesh_subset).mark_validated()
+
+
+def _q4_range_px(low: np.ndarray, high: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """(2, 2) px min/max (u, v) from per-detection (N, 2) or (N, 1) smallest and largest
+    present codes (NaN: none present), ``origin`` (N, 2) px added."""
+    shift = origin.astype(np.float64) if origin is not None else 0.0
+    low, high = low / Q4_SCALE + shift, high / Q4_SCALE + shift
+    out = np.full((2, 2), np.nan)
+    with np.errstate(invalid="ignore"):
+        out[0], out[1] = np.fmin.reduce(low, axis=0), np.fmax.reduce(high, axis=0)
+    return out
+
+
+def _largest_present(codes: np.ndarray, largest: np.ndarray) -> np.ndarray:
+    """``largest`` (per row of ``codes``, float) with the missing marker replaced by the
+    largest code present in that row (NaN: none): the marker is the largest code, so only
+    rows that miss a vertex need a second pass."""
+    for row in np.flatnonzero(largest == Q4_MISSING):
+        present = codes[row] != Q4_MISSING
+        largest[row] = codes[row].max(where=present, initial=0) if present.any() else np.nan
+    return largest
+
+
+def _q4_bounds(codes: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """(2, 2) px bounds (min, max rows; u, v columns) containing every present vertex of the
+    q4 ``codes`` (N, 2V): per detection, u and v codes reduced together (contiguous rows)."""
+    if codes.size == 0:
+        return np.full((2, 2), np.nan)
+    low = codes.min(axis=1).astype(np.float64)
+    low[low == Q4_MISSING] = np.nan
+    high = _largest_present(codes, codes.max(axis=1).astype(np.float64))
+    return _q4_range_px(low[:, None], high[:, None], origin)
+
+
+def _q4_extremes(codes: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
+    """(2, 2) px min/max (u, v) of the q4 vertices ``codes`` (N, V, 2) present."""
+    if codes.size == 0:
+        return np.full((2, 2), np.nan)
+    axes = [codes[..., k] for k in range(2)]
+    low = np.stack([a.min(axis=1) for a in axes], axis=1).astype(np.float64)
+    low[low == Q4_MISSING] = np.nan
+    high = np.stack([_largest_present(a, a.max(axis=1).astype(np.float64)) for a in axes],
+                    axis=1)
+    return _q4_range_px(low, high, origin)
+
+
+def _check_f32_vertices(topic: str, verts: np.ndarray) -> None:
+    """WireError (nonfinite) naming the detection with an inf among float32 vertices (N, 2V)
+    (NaN = missing): two reductions without temporaries, the elementwise check only when an
+    extreme is infinite."""
+    if verts.size and (np.isinf(np.fmin.reduce(verts, axis=None))
+                       or np.isinf(np.fmax.reduce(verts, axis=None))):
+        check_finite(topic, "verts2d", verts, allow_nan=True)
+
+
+def _check_counts(topic: str, counts: dict[str, int], kname: str, vname: str) -> int:
+    """J (keypoints per detection) from the fields' counts; WireError (bad_count) when they
+    disagree with the layout."""
     if counts["bbox"] != 4:
         raise WireError(topic, "bbox", f"count {counts['bbox']}, expected 4", "bad_count")
     if counts["score"] != 1:
@@ -196,13 +289,43 @@ def msg_to_detections(msg: Any, topic: str,
                         f"(J={j} from {kname})", "bad_count")
     if counts[vname] % 2:
         raise WireError(topic, vname, f"count {counts[vname]}, expected 2V", "bad_count")
-    if ORIGIN_FIELD in layout and counts[ORIGIN_FIELD] != 2:
+    if ORIGIN_FIELD in counts and counts[ORIGIN_FIELD] != 2:
         raise WireError(topic, ORIGIN_FIELD, f"count {counts[ORIGIN_FIELD]}, expected 2 (u v px)",
                         "bad_count")
-    if SUBSET_FIELD in layout and counts[SUBSET_FIELD] != 3:
+    if SUBSET_FIELD in counts and counts[SUBSET_FIELD] != 3:
         raise WireError(topic, SUBSET_FIELD, f"count {counts[SUBSET_FIELD]}, expected 3 (mesh "
                         f"vertices, stride, count)", "bad_count")
-    n, v = len(rec), counts[vname] // 2
+    return j
+
+
+def _check_camera(msg: Any, topic: str, known_cameras: Sequence[str] | None,
+                  expected_camera: str | None) -> str:
+    """header.frame_id, checked against the rig's cameras and the topic's camera."""
+    cam: str = msg.header.frame_id
+    if known_cameras is not None and cam not in known_cameras:
+        raise WireError(topic, "header.frame_id", f"unknown camera {cam!r} (rig has "
+                        f"{list(known_cameras)})", "unknown_camera")
+    if expected_camera is not None and cam != expected_camera:
+        raise WireError(topic, "header.frame_id", f"camera {cam!r} on the topic of camera "
+                        f"{expected_camera!r}", "camera_mismatch")
+    return cam
+
+
+def read_detections(msg: Any, topic: str, known_cameras: Sequence[str] | None = None,
+                    expected_camera: str | None = None) -> DetectionsMessage:
+    """PointCloud2 -> DetectionsMessage, every field checked (WireError with the reason), the
+    mesh vertices left undecoded.
+
+    ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
+    (the camera whose topic this came from).
+    """
+    cam = _check_camera(msg, topic, known_cameras, expected_camera)
+    layout = _detection_layout(msg, topic)
+    rec = view_cloud(msg, topic, layout)
+    kname = "kpts2d_q4" if "kpts2d_q4" in layout else "kpts2d"
+    vname = "verts2d_q4" if "verts2d_q4" in layout else "verts2d"
+    j = _check_counts(topic, {name: count_of(msg, name) for name in layout}, kname, vname)
+    n = len(rec)
     fields = {name: field_of(rec, name) for name in layout}
     for name in ("bbox", "score", "kpts3d"):
         check_finite(topic, name, fields[name])
@@ -211,27 +334,34 @@ def msg_to_detections(msg: Any, topic: str,
     else:
         check_finite(topic, "kpts2d", fields["kpts2d"], allow_nan=True)  # NaN = not seen
         kpts2d = fields["kpts2d"]
-    if vname == "verts2d_q4":  # 65535 = vertex missing (NaN); a code is never inf
-        origin = fields.get(ORIGIN_FIELD)
-        if origin is not None:
-            check_finite(topic, ORIGIN_FIELD, origin)
-        verts2d = decode_q4(fields[vname], origin=origin)
-    else:
-        verts2d = fields["verts2d"]
-        check_finite(topic, "verts2d", verts2d, allow_nan=True)  # NaN = missing vertex
+    origin = fields.get(ORIGIN_FIELD)
+    if origin is not None:
+        check_finite(topic, ORIGIN_FIELD, origin)
+    if vname == "verts2d":  # a q4 code is never inf; NaN = missing f32 vertex
+        _check_f32_vertices(topic, fields[vname])
     bbox = fields["bbox"]
     inverted = (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1])
     if inverted.any():
         raise WireError(topic, "bbox", f"inverted box (x2<x1 or y2<y1) in detection "
                         f"{int(np.argmax(inverted))}", "inverted_bbox")
     check_score(topic, fields["score"][:, 0], "detection")
-    subset = _mesh_subset(topic, fields[SUBSET_FIELD], v) if SUBSET_FIELD in layout and n \
-        else None
-    return FrameDetections(
+    subset = _mesh_subset(topic, fields[SUBSET_FIELD], fields[vname].shape[1] // 2) \
+        if SUBSET_FIELD in layout and n else None
+    return DetectionsMessage(
         camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
         scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
-        kpts3d=fields["kpts3d"].reshape(n, j, 3), verts2d=verts2d.reshape(n, v, 2),
-        mesh_subset=subset).mark_validated()
+        kpts3d=fields["kpts3d"].reshape(n, j, 3), vertices=fields[vname], origin=origin,
+        mesh_subset=subset)
+
+
+def msg_to_detections(msg: Any, topic: str,
+                      known_cameras: Sequence[str] | None = None,
+                      expected_camera: str | None = None) -> FrameDetections:
+    """PointCloud2 -> FrameDetections, validated once (read_detections, then decoded; the
+    result is marked validated, so the association does not check the arrays again); f32
+    verts2d is a view of msg.data, q4 codes are decoded once into one float32 array (NaN =
+    missing)."""
+    return read_detections(msg, topic, known_cameras, expected_camera).decode()
 
 
 def detections_to_msg(dets: FrameDetections, vertices: str = "f32", keypoints: str = "f32") -> Any:

@@ -29,7 +29,7 @@ class SkeletonPlan:
     labels: np.ndarray
 
 
-def skeleton_plan(ids: Sequence[int], joints: np.ndarray,
+def skeleton_plan(ids: Sequence[int] | np.ndarray, joints: np.ndarray,
                   bones: Sequence[tuple[int, int]]) -> SkeletonPlan:
     """Persons with id >= 0 and at least one finite joint, from ``joints`` (P, J, 3) world m and
     the convention's ``bones`` (joint index pairs)."""

@@ -157,7 +157,7 @@ class _Verifier:
         hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[..., None], -1)[..., 0]
         med = np.where(n > 0, 0.5 * (lo + hi), np.inf)
         bad = present & ~(med < self.tau)
-        return ~bad.any(axis=1)
+        return np.asarray(~bad.any(axis=1))  # (K,) bool (any's stubs allow a scalar)
 
 
 def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float, kernels=None
@@ -208,7 +208,7 @@ def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
     size = np.bincount(label, minlength=label.size)
     start = np.concatenate([[0], np.cumsum(size)[:-1]])
     sizes = [np.where(p >= 0, size[np.maximum(p, 0)], 0) for p in parts]
-    M = int(sum(sizes).max(initial=0))
+    M = int(np.sum(sizes, axis=0).max(initial=0))
     slot = np.arange(M)[None, :]
     out = np.full((parts[0].size, M), -1, np.int64)
     base = np.zeros(parts[0].size, np.int64)

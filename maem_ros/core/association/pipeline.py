@@ -227,18 +227,20 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections], params: Associati
     stats["rejected_score"] = stats["pairs_considered"] - float(
         (n_kept.sum() ** 2 - (n_kept ** 2).sum()) / 2)
     joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
-    pair_cost = PoseCosts(table, joints, params.execution.backend) if len(table) else None
+    pair_cost = PoseCosts(table, joints, params.execution.backend) if joints is not None else None
     gates = PairGates(rig, params) if gates is None else gates
     pairs = gate_pairs(rig, table, params, stats, pair_cost, gates)
 
     t = time.perf_counter()
-    found = clustering.cluster(table, pairs, gates.geometry.P, joints, params, stats, pair_cost)
+    # no joints nor pair cost only for an empty table, which has nothing to cluster
+    found = (clustering.cluster(table, pairs, gates.geometry.P, joints, params, stats, pair_cost)
+             if joints is not None and pair_cost is not None else clustering.Found([]))
     stats["t_cluster_ms"], _ = _lap(t)
 
     kept_groups = _views_at_least(table, found, params.k_min)
     stats["clusters_below_k_min"] += float(len(found.groups) - len(kept_groups))
-    clusters = [Cluster(members=table.members(g), costs=c)
-                for g, c in zip(kept_groups, mean_costs(kept_groups, pair_cost))]
+    costs = mean_costs(kept_groups, pair_cost) if pair_cost is not None else []
+    clusters = [Cluster(members=table.members(g), costs=c) for g, c in zip(kept_groups, costs)]
     clusters.sort(key=lambda c: tuple(c.members[0].tolist()))
     stats["clusters"] = float(len(clusters))
     stats["t_total_ms"] = (time.perf_counter() - t_start) * 1e3
@@ -253,14 +255,14 @@ def mean_costs(groups: list[np.ndarray], pair_cost: PoseCosts) -> list[np.ndarra
     out: list[np.ndarray] = [np.zeros(0)] * len(groups)
     sizes = np.array([g.size for g in groups], np.int64)
     batches = [(m, np.flatnonzero(sizes == m)) for m in np.unique(sizes).tolist()]
-    r, c, a, b = {}, {}, [], []
+    r, c, a_parts, b_parts = {}, {}, [], []
     for m, which in batches:
         r[m], c[m] = np.triu_indices(m, 1)
         rows = np.stack([groups[k] for k in which.tolist()])  # (G,m)
-        a.append(rows[:, r[m]].ravel())
-        b.append(rows[:, c[m]].ravel())
-    a = np.concatenate(a + [np.zeros(0, np.int64)])
-    b = np.concatenate(b + [np.zeros(0, np.int64)])
+        a_parts.append(rows[:, r[m]].ravel())
+        b_parts.append(rows[:, c[m]].ravel())
+    a = np.concatenate(a_parts + [np.zeros(0, np.int64)])
+    b = np.concatenate(b_parts + [np.zeros(0, np.int64)])
     flat = pair_cost(a, b) if a.size else np.zeros(0)
     k = 0
     for m, which in batches:

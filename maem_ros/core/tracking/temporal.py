@@ -173,8 +173,8 @@ class _FrameView:
         C = len(self.stage.rig)
         keys = ((ca * C + cb) * self.n + da) * self.n + db
         pos = np.minimum(np.searchsorted(self._known_keys, keys), max(self._known_keys.size - 1, 0))
-        hit = self._known_keys.size > 0
-        hit = hit & (self._known_keys[pos] == keys) if hit else np.zeros(keys.size, bool)
+        known = self._known_keys.size > 0
+        hit = known & (self._known_keys[pos] == keys) if known else np.zeros(keys.size, bool)
         ok = np.zeros(keys.size, bool)
         ok[hit] = self._known_ok[pos[hit]]
         new_keys, first = np.unique(keys[~hit], return_index=True)

@@ -48,8 +48,8 @@ def detections_to_msg(dets: FrameDetections, vertices: str = "f32",
 
 def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
                     frames: Mapping[str, FrameDetections], clusters: Sequence,
-                    track_ids: Sequence[int] | None = None,
-                    track_flags: Sequence[int] | None = None) -> PointCloud2:
+                    track_ids: Sequence[int] | np.ndarray | None = None,
+                    track_flags: Sequence[int] | np.ndarray | None = None) -> PointCloud2:
     """core Clusters -> PointCloud2 (see maem_ros.wire.clusters.clusters_to_cloud)."""
     return cloud_to_msg(codec.clusters_to_cloud(stamp_ns, frame_id, rig, frames, clusters,
                                                 track_ids, track_flags))

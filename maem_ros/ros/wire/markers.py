@@ -20,7 +20,8 @@ def id_color(track_id: int, alpha: float = 1.0) -> ColorRGBA:
     return ColorRGBA(r=r, g=g, b=b, a=float(alpha))
 
 
-def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int], joints: np.ndarray,
+def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int] | np.ndarray,
+                     joints: np.ndarray,
                      bones: Sequence[tuple[int, int]], lifetime_s: float = 0.5,
                      joint_diameter: float = 0.06, bone_width: float = 0.03) -> MarkerArray:
     """Per person: SPHERE_LIST joints (ns skeleton/joints), LINE_LIST bones (ns skeleton/bones,

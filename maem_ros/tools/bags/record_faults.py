@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import functools
 import random
+import re
 import resource
 import shutil
 import signal
@@ -70,7 +71,7 @@ class Source:
         seqs: dict[str, list[bytes]] = defaultdict(list)
         for m in bagio.read_messages(bag):
             seqs[m.topic].append(m.data)
-        where = {t: defaultdict(list) for t in seqs}
+        where: dict[str, dict[bytes, list[int]]] = {t: defaultdict(list) for t in seqs}
         for t, seq in seqs.items():
             for i, data in enumerate(seq):
                 where[t][data].append(i)
@@ -82,14 +83,18 @@ class Source:
     def check(self, msgs: Iterable[bagio.BagMessage], last: dict | None = None) -> Checked:
         """Stream ``msgs`` once: how many, how many are not byte-identical to one of the bag's
         on their topic (garbled), how many per-topic successions skip messages of the player's
-        loop (holes), the newest log time. ``last`` carries the per-topic state across calls
-        (files of one bag read one by one)."""
+        loop (holes), how many are on a topic the bag does not have (others: the recorder's
+        own /diagnostics with --all), the newest log time. ``last`` carries the per-topic
+        state across calls (files of one bag read one by one)."""
         last = {} if last is None else last
         out = Checked()
         for m in msgs:
             out.count += 1
             out.newest_ns = max(out.newest_ns, m.log_time_ns)
-            pos = self.where.get(m.topic, {}).get(m.data)
+            if m.topic not in self.where:
+                out.others += 1
+                continue
+            pos = self.where[m.topic].get(m.data)
             if pos is None:
                 out.garbled += 1
                 continue
@@ -106,6 +111,7 @@ class Checked:
     count: int = 0
     garbled: int = 0
     holes: int = 0
+    others: int = 0
     newest_ns: int = 0
 
 
@@ -228,6 +234,9 @@ def chunk_contents(path: Path) -> list[tuple[int, list[tuple[str, int, bytes]]]]
     out = []
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
+        if summary is None:
+            raise ValueError(f"MCAP file {str(path)!r}: no summary (not a complete file), "
+                             "its chunks cannot be listed")
         topics = {cid: c.topic for cid, c in summary.channels.items()}
         for ci in summary.chunk_indexes:
             f.seek(ci.chunk_start_offset + 1 + 8)
@@ -382,6 +391,7 @@ class LongResult:
     complete: int
     written: int  # messages in the bag
     received: int  # messages the recorder says it received
+    lost: int  # messages the recorder counted lost before it took them (sequence gaps)
     published: str  # the player's own count line
     holes: int
     garbled: int
@@ -395,6 +405,12 @@ class LongResult:
             self.garbled == 0
 
 
+def _said_count(line: str, label: str) -> int:
+    """The number after ``label`` in the recorder's last line (-1 when it is not there)."""
+    m = re.search(re.escape(label) + r"([\d,]+)", line)
+    return int(m.group(1).replace(",", "")) if m else -1
+
+
 def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: float) -> LongResult:
     """Record everything for ``minutes`` split every ``split_s``, stop with SIGINT."""
     log = out.with_suffix(".log")
@@ -405,12 +421,13 @@ def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: flo
     published = [ln for ln in feed.stop().splitlines() if "published" in ln]
     text = log.read_text()
     line = [ln for ln in text.splitlines() if "wrote" in ln and "received" in ln]
-    received = int(line[-1].split("received ", 1)[1].split(" ", 1)[0].replace(",", "")) \
-        if line else -1
+    received, lost = (_said_count(line[-1], "received "),
+                      _said_count(line[-1], "took them: ")) if line else (-1, -1)
     info = bagio.bag_info(out)
     c = source.check(bagio.read_messages(out, info=info))
     return LongResult(minutes, split_s, len(info.files), sum(fs.complete for fs in info.files),
-                      info.message_count, received, published[-1] if published else "", c.holes,
+                      info.message_count, received, lost, published[-1] if published else "",
+                      c.holes,
                       c.garbled, [((fs.end_ns or 0) - (fs.start_ns or 0)) / 1e9
                                 for fs in info.files])
 
@@ -451,8 +468,8 @@ def cut_bag(bag: Path, work: Path) -> Path:
         for k, v in info.custom.items():
             w.set_custom(k, v)
         for m in bagio.read_messages(bag, info=info):
-            w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, (info.qos.get(m.topic) or
-                                                                    [None])[0])
+            qos = info.qos.get(m.topic)
+            w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, qos[0] if qos else None)
     return out
 
 
@@ -469,45 +486,47 @@ def run_all(a: argparse.Namespace, log=print) -> list[tuple[str, str, str]]:
     if a.cuts:
         src = cut_bag(bag, a.work)
         size = bagio.bag_info(src).files[-1].size
-        res = [cut_run(src, a.work / "cut", rng.randrange(8, size), drop_metadata=i % 2 == 1)
-               for i in range(a.cuts)]
-        ok = sum(r.ok for r in res)
+        cuts = [cut_run(src, a.work / "cut", rng.randrange(8, size), drop_metadata=i % 2 == 1)
+                for i in range(a.cuts)]
+        ok = sum(c.ok for c in cuts)
         rows.append((f"cut at {a.cuts} random offsets", f"{ok}/{a.cuts} exact",
-                     f"{sum(r.got for r in res):,} messages read back, "
-                     f"{sum(r.garbled for r in res)} garbled, {sum(r.missing for r in res)} "
-                     f"missing, {sum(r.extra for r in res)} from cut chunks; "
-                     f"{sum(bool(r.refused) for r in res)} cuts left nothing complete (refused "
+                     f"{sum(c.got for c in cuts):,} messages read back, "
+                     f"{sum(c.garbled for c in cuts)} garbled, {sum(c.missing for c in cuts)} "
+                     f"missing, {sum(c.extra for c in cuts)} from cut chunks; "
+                     f"{sum(bool(c.refused) for c in cuts)} cuts left nothing complete (refused "
                      f"in one line)"))
         log(rows[-1])
     if a.kills or a.disk or a.long:
         with Feed(bag, a.work / "play.log") as feed:
             if a.kills:
-                res = [kill_run(a.work / f"kill_{i}", source, rng, low_traffic=i % 2 == 1)
-                       for i in range(a.kills)]
-                for r in res:
+                kills = [kill_run(a.work / f"kill_{i}", source, rng, low_traffic=i % 2 == 1)
+                         for i in range(a.kills)]
+                for r in kills:
                     log(f"kill after {r.delay_s:.2f} s ({r.topics}): window {r.window_s:.3f} s, "
                         f"{r.recovered} recovered, garbled {r.garbled}, holes {r.holes}, "
                         f"rc {r.recover_rc}")
-                w = sorted(r.window_s for r in res)
-                rows.append((f"SIGKILL at {a.kills} random moments", f"{sum(r.ok for r in res)}"
+                w = sorted(r.window_s for r in kills)
+                rows.append((f"SIGKILL at {a.kills} random moments", f"{sum(r.ok for r in kills)}"
                              f"/{a.kills} ok", f"newest recovered message {w[0]:.2f}-{w[-1]:.2f} "
                              f"s before the kill (median {w[len(w) // 2]:.2f}); "
-                             f"{sum(r.recovered for r in res):,} messages, "
-                             f"{sum(r.garbled for r in res)} garbled, "
-                             f"{sum(r.holes for r in res)} holes in what DDS delivered; "
-                             f"{sum(r.restarts for r in res)} recorders restarted (no message "
+                             f"{sum(r.recovered for r in kills):,} messages, "
+                             f"{sum(r.garbled for r in kills)} garbled, "
+                             f"{sum(r.holes for r in kills)} holes in what DDS delivered; "
+                             f"{sum(r.restarts for r in kills)} recorders restarted (no message "
                              f"in 30 s)"))
             if a.disk:
                 rows += _disk_rows(a.work, source, log)
             if a.long:
-                r = long_run(a.work / "long", source, feed, a.long, a.split)
+                lr = long_run(a.work / "long", source, feed, a.long, a.split)
                 rows.append((f"{a.long:g} min split every {a.split:g} s",
-                             f"{'ok' if r.ok else 'FAILED'}: {r.complete}/{r.files} complete files",
-                             f"{r.written:,} written of {r.received:,} received, "
-                             f"garbled {r.garbled}; {r.holes} holes in what DDS delivered; "
+                             f"{'ok' if lr.ok else 'FAILED'}: {lr.complete}/{lr.files} complete "
+                             f"files",
+                             f"{lr.written:,} written of {lr.received:,} received, "
+                             f"garbled {lr.garbled}; {lr.holes} holes in what DDS delivered "
+                             f"({lr.lost:,} counted lost by the recorder); "
                              f"file spans "
-                             f"{min(r.durations_s):.1f}-{max(r.durations_s):.1f} s; player: "
-                             f"{r.published.split('] ')[-1]}"))
+                             f"{min(lr.durations_s):.1f}-{max(lr.durations_s):.1f} s; player: "
+                             f"{lr.published.split('] ')[-1]}"))
     return rows
 
 

@@ -28,6 +28,8 @@ report's figures: tools/bench/live_report.py.
 from __future__ import annotations
 
 import argparse
+import atexit
+import hashlib
 import os
 import pickle
 import shutil
@@ -76,12 +78,48 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
             for f in range(min(frames, scene.num_frames))]
 
 
+#: where the publishers keep their messages (KEY/CAM.pkl) for every run of this process: the
+#: runs of ``--runs N`` play the same messages, and building them is most of a run's start-up
+_MESSAGES_DIR: list[Path] = []
+
+
+def messages_dir(a: argparse.Namespace) -> Path:
+    """The folder of the messages ``a`` makes (its options that shape them as the key), in a
+    folder of this process made on first use and removed at exit."""
+    if not _MESSAGES_DIR:
+        _MESSAGES_DIR.append(Path(tempfile.mkdtemp(prefix="maem_live_messages_")))
+        atexit.register(shutil.rmtree, _MESSAGES_DIR[0], ignore_errors=True)
+    params = Path(a.params) if a.params else None
+    key = repr((params.read_text() if params and params.is_file() else str(params), a.frames,
+                a.vertices, a.wire, a.vertex_stride, a.vertex_count, str(a.bag)))
+    out = _MESSAGES_DIR[0] / hashlib.sha1(key.encode()).hexdigest()[:16]
+    out.mkdir(exist_ok=True)
+    return out
+
+
+def _load_or_build(a: argparse.Namespace) -> list[tuple[int, bytes]]:
+    """The camera's messages from MESSAGES/CAM.pkl, or built (camera_messages) and written
+    there (renamed into place once complete: a run stopped while writing leaves nothing)."""
+    path = Path(a.messages) / f"{a.publish}.pkl"
+    if path.exists():
+        loaded: list[tuple[int, bytes]] = pickle.loads(path.read_bytes())
+        return loaded
+    msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride,
+                           a.vertex_count)
+    part = path.with_suffix(".part")
+    with open(part, "wb") as fh:
+        pickle.dump(msgs, fh)
+    part.rename(path)
+    return msgs
+
+
 # ---------------------------------------------------------------------------------------------
 # one camera's publisher process
 # ---------------------------------------------------------------------------------------------
 def publish_main(a: argparse.Namespace) -> int:
-    """Build the messages, wait until the association subscribes, write them to ``CAM.pkl``
-    (for the offline comparison), signal READY, then publish on the shared start time.
+    """Build the messages (or load them from ``--messages``/CAM.pkl, where the first of
+    several runs wrote them for the offline comparison), wait until the association subscribes,
+    signal READY, then publish on the shared start time.
 
     Signals as in a node (ros/cli.stop_on_signals): SIGINT/SIGTERM stop it between frames,
     SIGUSR1 dumps its stacks, and a teardown that stalls (DDS) ends the process
@@ -100,11 +138,8 @@ def publish_main(a: argparse.Namespace) -> int:
 
     stop = stop_on_signals(f"live_publisher_{a.publish}")
     keep_freed_memory(HEAP_PREFAULT_MB)  # as a frontend process does (run_node)
-    msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride,
-                           a.vertex_count)
+    msgs = _load_or_build(a)
     work = Path(a.work)
-    with open(work / f"{a.publish}.pkl", "wb") as fh:
-        pickle.dump(msgs, fh)
     if not a.no_profile:
         use_shipped_dds_profile()
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -180,8 +215,9 @@ def _ros_env(env: dict[str, str]) -> list[str]:
 
 
 def run_live(a: argparse.Namespace) -> dict[str, Any]:
-    """Run the live benchmark in a fresh work folder, removed afterwards: it holds every
-    camera's messages (3 GB for 300 full-mesh frames); a failure's error carries the logs."""
+    """Run the live benchmark in a fresh work folder, removed afterwards (the messages, 3 GB
+    for 300 full-mesh frames, stay in messages_dir() for the next run); a failure's error
+    carries the logs."""
     work = Path(tempfile.mkdtemp(prefix="maem_live_"))
     try:
         return _run_live(a, work)
@@ -268,7 +304,8 @@ def _start_graph(a: argparse.Namespace, group, work: Path, params: Path, rig,
         group.start(kind, node_command(kind, params))
     for cam in rig.names:
         cmd = module_command("maem_ros.tools.bench.live", "--publish", cam, "--params", str(params),
-                             "--work", str(work), "--frames", str(a.frames), "--rate",
+                             "--work", str(work), "--messages", str(messages_dir(a)),
+                             "--frames", str(a.frames), "--rate",
                              f"{a.rate}", "--wire", a.wire, "--vertex-stride",
                              str(a.vertex_stride), "--vertex-count", str(a.vertex_count))
         cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
@@ -304,7 +341,7 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
     from maem_ros.tools.bench.live_runs import hog_window, start_hog
 
     group, listener = graph.group, graph.listener
-    messages = {c: pickle.loads((work / f"{c}.pkl").read_bytes()) for c in rig.names}
+    messages = {c: pickle.loads((messages_dir(a) / f"{c}.pkl").read_bytes()) for c in rig.names}
     stamps = [s for s, _ in messages[rig.names[0]]]
     procs = list(group.procs.values())
     cpu0 = {p.name: p.cpu_seconds() for p in procs}
@@ -406,6 +443,7 @@ def _publisher_parser() -> argparse.ArgumentParser:
     p.add_argument("--publish", required=True, help="camera name")
     p.add_argument("--params", required=True)
     p.add_argument("--work", required=True)
+    p.add_argument("--messages", required=True, help="folder of the messages (CAM.pkl)")
     p.add_argument("--frames", type=int, required=True)
     p.add_argument("--rate", type=float, required=True)
     p.add_argument("--wire", default="f32", choices=("f32", "q4"))

@@ -246,7 +246,7 @@ def _media(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
             if isinstance(what, list):  # image files can be overlaid in the report
                 images[(cam, k)] = what[k]
         frames[cam] = seq
-    return frames, fps, images  # type: ignore[return-value]
+    return frames, fps, images  # type: ignore[return-value]  # fps set by the first camera
 
 
 def _video_fps(entries: dict[str, list[Path] | Path]) -> float | None:

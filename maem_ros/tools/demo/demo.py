@@ -347,7 +347,7 @@ def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence
               f"{reproj['reprojection_px_mean']:.1f} px, median "
               f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
               f"{reproj['reprojection_px_mean_inliers']:.1f} px "
-              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "  # type: ignore[operator]
+              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "  # type: ignore[operator]  # a float here
               f"{reproj['reprojection_pairs']} joint-views); all members "
               f"{reproj['reprojection_px_mean_all_members']:.1f} px "
               f"({reproj['reprojection_members_rejected']} of {reproj['reprojection_members']} "

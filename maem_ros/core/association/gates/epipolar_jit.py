@@ -7,11 +7,13 @@ from __future__ import annotations
 import numba as nb
 from numba.core import cgutils
 
+from maem_ros.core.jit import NjitOptions
+
 # no nnan/ninf fast-math flags: NaN (missing point) and inf (point at the epipole) must
 # survive; error_model numpy removes the ZeroDivisionError branch that blocks SIMD;
 # reassoc lets the sums vectorise
 _FLAGS = {"reassoc", "contract", "arcp", "nsz"}
-_OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
+_OPTS: NjitOptions = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
 jit = nb.njit(fastmath=_FLAGS, **_OPTS)
 # afn: float32 1/sqrt as the hardware estimate (_ESTIMATE; bounded by RSQRT_ERR)
 jit32 = nb.njit(fastmath=_FLAGS | {"afn"}, **_OPTS)

@@ -215,7 +215,7 @@ class PairGates:
         subsets: list[PointRows | None] = []
         for stride, _ in self.execution.screen_levels():
             copy = made.copies.get(stride) if made else None
-            subsets.append(screen_rows(full, stride) if copy is None
+            subsets.append(screen_rows(full, stride) if copy is None or made is None
                            else point_rows(copy, made.ranges.get(stride)))
         return full, subsets
 
@@ -297,8 +297,9 @@ class FrameSet:
         levels = []  # the screening levels every camera taking part has a subset for
         for k, (_, margin) in enumerate(e.screen_levels()):
             subsets = {c: r[1][k] if k < len(r[1]) else None for c, r in rows.items()}
-            if all(v is not None for v in subsets.values()):
-                levels.append((subsets, margin))
+            present = {c: v for c, v in subsets.items() if v is not None}
+            if len(present) == len(subsets):
+                levels.append((present, margin))
         # one kernel call for every camera pair of the frame (per level): a detection's block
         # is read once from memory for all its candidate pairs
         keep, mean, evaluated = frame_screened_means(

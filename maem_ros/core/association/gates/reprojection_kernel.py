@@ -21,8 +21,9 @@ import numba as nb
 import numpy as np
 
 from maem_ros.core.geometry.multiview_kernel import SINGULAR, adjugate, cofactors, view_entries
+from maem_ros.core.jit import NjitOptions
 
-_OPTS = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
+_OPTS: NjitOptions = dict(cache=True, error_model="numpy", boundscheck=False, nogil=True)
 
 
 @nb.njit(**_OPTS)

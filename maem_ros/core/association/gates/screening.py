@@ -74,8 +74,8 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     (epipolar._known_ranges)."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
-    levels = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
-    levels = [(s, rows) for s, rows in levels if rows is not None]  # finest first
+    screens = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
+    levels = [(s, rows) for s, rows in screens if rows is not None]  # finest first
     if not have_numba() or full.count == 0 or not levels:
         bad = np.flatnonzero(np.isinf(x).any(axis=(1, 2)))
         copies = {s: rows._gather(rows.rows) for s, rows in levels}
@@ -147,10 +147,10 @@ def _gathered_screens(plan: FramePairs, screens: Sequence[ScreenLevel], backend:
     run, period, n, dtype = rows[0].run, rows[0].period, rows[0].n, rows[0].flat.dtype
     out = gather_buffer(dets.size * 2 * n, dtype, 1).reshape(dets.size, 2 * n)
     n_coarse = levels[0][plan.cams[0]].n if every else 0
-    coarse = gather_buffer(dets.size * 2 * n_coarse, dtype, 2).reshape(dets.size, 2 * n_coarse)
-    numba_kernels().gather_runs(flats[0], det_addr, run, period, out, every, coarse)
+    inner = gather_buffer(dets.size * 2 * n_coarse, dtype, 2).reshape(dets.size, 2 * n_coarse)
+    numba_kernels().gather_runs(flats[0], det_addr, run, period, out, every, inner)
     gathered = []
-    for (_level, margin), buffer, size in zip(screens, [coarse, out][-len(screens):],
+    for (_level, margin), buffer, size in zip(screens, [inner, out][-len(screens):],
                                              [n_coarse, n][-len(screens):]):
         flat = buffer.reshape(-1).view()
         flat.setflags(write=False)
@@ -241,5 +241,8 @@ def warmup() -> None:
     one = np.zeros(1, dtype=np.int64)
     for dtype in (np.float32, np.float64):
         screen = screen_rows(np.ones((1, BLOCK, 2), dtype=dtype), 2)
+        if screen is None:
+            raise RuntimeError(f"screening warmup: a BLOCK ({BLOCK}) of points makes no "
+                               "screen at stride 2 (SCREEN_MIN_POINTS too high)")
         epipolar_sums(screen, screen, F, one, one, 1.0, True, True, "numba", "mixed")
     screen_copies(np.ones((1, BLOCK, 2), dtype=np.float32), (2, 4))
