@@ -322,12 +322,12 @@ def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_ass
     the track's history)."""
     rig = Rig([look_at("cam0", (-0.8, -10, 2)), look_at("cam1", (0.8, -10, 2)),
                look_at("cam2", (10, 1, 5)), look_at("cam3", (-10, 2, 5))])
-    people = [Walker((0, 0), (0.6, 0.3), 21)]
+    people = [Person((0, 0), 21, v=(0.6, 0.3))]
     params = AssociationParams(k_min=2)
     ta = TemporalAssociator(rig, params, TemporalParams())
     for f in range(10):
         narrow = f == 6
-        fr, who = frame(rig, people, f, seen=lambda cam, k, n=narrow: not n or cam in ("cam0", "cam1"))
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, n=narrow: not n or cam in ("cam0", "cam1"))
         if narrow:
             shifted = fr["cam1"].kpts2d.copy()
             shifted[..., 0] += 20.0  # the pair's epipolar lines are near horizontal
@@ -339,7 +339,7 @@ def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_ass
             continue
         confirmed = [t for t in ta.tracker.tracks if t.id == 0]
         assert len(confirmed) == 1, f"frame {f}"
-        truth = people[0].at(f)[0]
+        truth = people[0].at(f).centre
         assert np.linalg.norm(confirmed[0].x[:3] - truth) < 0.15, f"frame {f}"
         if narrow:
             assert res.stats["tracks_two_view_jumps"] == 1
