@@ -92,8 +92,9 @@ class ReferenceTemporalAssociator(TemporalAssociator):
     def _pair_gates(self, by_cam: dict[int, FrameDetections], cam: np.ndarray, det: np.ndarray,
                     present: np.ndarray) -> np.ndarray:
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
-        gates (bbox-centre reprojection, epipolar on mesh vertices or keypoints, PA-MPJPE cost
-        of the lower camera's 3D pose aligned onto the other's under tau_cost), the same tests
+        gates (bbox-centre reprojection, epipolar on mesh vertices or keypoints, the cost: PA-MPJPE
+        of the lower camera's 3D pose aligned onto the other's plus cost_epipolar_weight per
+        tau_mesh of the pair's mean epipolar distance, under tau_cost), the same tests
         (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view association applies, on
         the few pairs inside the tracks' clusters only."""
         T, M = present.shape
@@ -103,6 +104,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
         ma, mb = a_idx[q], b_idx[q]
         ca, cb, da, db = cam[t, ma], cam[t, mb], det[t, ma], det[t, mb]
         ok = np.ones(t.size, bool)
+        epi = np.zeros(t.size)  # px, mean epipolar distance of the pairs that passed
         p = self.params
         if p.reproj_gate and t.size:
             uv = np.empty((t.size, 2, 2))
@@ -122,6 +124,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
                     da[s], db[s], p.tau_mesh, symmetric=p.epipolar_distance == "symmetric",
                     early_exit=p.execution.early_exit, backend=p.execution.backend)
                 ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
+                epi[s] = sums / np.maximum(used, 1)
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)
@@ -131,7 +134,9 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            ok[s] = pa_mpjpe_finite(X, Y) < p.tau_cost  # NaN (too few joints) fails
+            weight = p.cost_epipolar_weight / p.tau_mesh if self.tp.verify_epipolar != "none" else 0
+            # NaN (too few joints) fails
+            ok[s] = pa_mpjpe_finite(X, Y) + weight * epi[s] < p.tau_cost
         passes = np.zeros((T, M, M), bool)
         passes[t, ma, mb] = passes[t, mb, ma] = ok
         return passes

@@ -301,11 +301,49 @@ def test_frame_sets_without_some_cameras_and_empty_frames_keep_the_tracks():
             assert all(len(c) == (3 if f in (5, 6) else 4) for c in res.clusters)
 
 
-@pytest.mark.parametrize("verify", ["mesh", "none"])
-def test_verification_with_the_mesh_or_no_epipolar_test(verify):
+@pytest.mark.parametrize("verify", ["sparse", "none"])
+def test_verification_with_the_keypoints_or_no_epipolar_test(verify):
     rig = ring_rig(4)
     people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0))]
     ta, out = run(rig, people, range(6), temporal=TemporalParams(verify_epipolar=verify))
     for res, who in out[2:]:
         assert person_ids(res, rig, who) == {0: 0, 1: 1}
         assert res.stats["detections_left"] == 0 and res.stats["verify_dropped"] == 0
+
+
+def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_association():
+    """Two cameras 1.6 m apart, 10 m from the person (rays 9 degrees apart), and two far ones.
+    The person is tracked from the four views, then seen by the narrow pair only, one of whose
+    keypoints are 20 px off along the epipolar line (inside the track's 2D gate, every pair
+    gate passes): the two views triangulate metres off along the rays. The track is not
+    updated from them (its state stays on the person, its id continues when the far views
+    return); the two views go through the cross-view association, as with tracks off, and are
+    published as a new untracked cluster (scored from its own weak geometry, not filtered with
+    the track's history)."""
+    rig = Rig([look_at("cam0", (-0.8, -10, 2)), look_at("cam1", (0.8, -10, 2)),
+               look_at("cam2", (10, 1, 5)), look_at("cam3", (-10, 2, 5))])
+    people = [Person((0, 0), 21, v=(0.6, 0.3))]
+    params = AssociationParams(k_min=2)
+    ta = TemporalAssociator(rig, params, TemporalParams())
+    for f in range(10):
+        narrow = f == 6
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, n=narrow: not n or cam in ("cam0", "cam1"))
+        if narrow:
+            shifted = fr["cam1"].kpts2d.copy()
+            shifted[..., 0] += 20.0  # the pair's epipolar lines are near horizontal
+            fr["cam1"] = FrameDetections(fr["cam1"].camera, fr["cam1"].stamp_ns, fr["cam1"].bboxes,
+                                         fr["cam1"].scores, shifted, fr["cam1"].kpts3d,
+                                         fr["cam1"].verts2d)
+        res = ta.step(fr, fr["cam0"].stamp_ns)
+        if f < 2:  # confirm_hits = 3
+            continue
+        confirmed = [t for t in ta.tracker.tracks if t.id == 0]
+        assert len(confirmed) == 1, f"frame {f}"
+        truth = people[0].at(f).centre
+        assert np.linalg.norm(confirmed[0].x[:3] - truth) < 0.15, f"frame {f}"
+        if narrow:
+            assert res.stats["tracks_two_view_jumps"] == 1
+            assert res.track_ids.tolist() == [-1] and res.flags.tolist() == [0]
+            assert res.clusters[0].members.tolist() == [[0, 0], [1, 0]]
+        else:
+            assert res.track_ids.tolist() == [0] and res.stats["tracks_two_view_jumps"] == 0

@@ -149,6 +149,16 @@ class PoseCosts:
         return out
 
 
+def pair_cost(pose: np.ndarray, epi: np.ndarray, params: AssociationParams,
+              epipolar_gate: str) -> np.ndarray:
+    """(S,) m: the cost of pairs that passed the gates, their pose cost pose (S,) m plus
+    ``cost_epipolar_weight`` per ``tau_mesh`` of their mean epipolar distance epi (S,) px
+    (NaN = not measured: 0) under ``epipolar_gate`` (relative to the gate threshold, so one
+    default fits dense-mesh px and keypoint px; no term without an epipolar gate)."""
+    weight = params.cost_epipolar_weight / params.tau_mesh if epipolar_gate != "none" else 0.0
+    return pose + weight * np.nan_to_num(epi, nan=0.0)
+
+
 def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
                stats: dict[str, float], costs: PoseCosts | None = None,
                gates: PairGates | None = None) -> PairSet:
@@ -174,11 +184,8 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
             costs = PoseCosts(table, joint_subset(params.cost_joints, table.num_joints),
                               params.execution.backend)
         pose[alive] = costs(i[alive], j[alive])
-    # relative to the gate threshold, so one default fits dense-mesh px and keypoint px
-    weight = (params.cost_epipolar_weight / params.tau_mesh if params.epipolar_gate != "none"
-              else 0.0)
     cost = np.full(S, np.nan)  # NaN where a gate rejected the pair, as its pose cost
-    cost[alive] = pose[alive] + weight * np.nan_to_num(epi[alive], nan=0.0)
+    cost[alive] = pair_cost(pose[alive], epi[alive], params, params.epipolar_gate)
     capped = ~np.isfinite(cost[alive])
     if params.tau_cost > 0:
         capped |= cost[alive] > params.tau_cost

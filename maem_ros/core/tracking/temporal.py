@@ -21,14 +21,17 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
    the projections of that cluster's own triangulation under ``refine_px``.
 4. Geometric verification, batched over tracks, as the consistent clustering verifies a merge:
    every member must pass the association's pair gates (bbox-centre reprojection, epipolar
-   distance of the 2D keypoints, or of the mesh with ``verify_epipolar: mesh``, under
-   ``tau_mesh``, PA-MPJPE under ``tau_cost``) with at least ``min_support`` of the others,
-   and reproject under the association's ``tau_verify`` px (median over the body joints DLT
-   triangulated from all members); the worst member is dropped until all pass. A confirmed
-   track is updated from ``min_track_views`` (2) views or more, fewer than ``k_min`` flagged
-   ``FLAG_FEW_VIEWS``; with one view left it is kept alive by that view plus its prediction
-   (``one_view``: the state moves to the points of the view's rays nearest the prediction; no
-   cluster is emitted since one view triangulates nothing). A tentative track needs k_min views.
+   distance of the mesh vertices, or of the 2D keypoints with ``verify_epipolar: sparse``,
+   under ``tau_mesh``, the association's pair cost under ``tau_cost``) with at least
+   ``min_support`` of the others, and reproject under the association's ``tau_verify`` px
+   (median over the body joints DLT triangulated from all members); the worst member is
+   dropped until all pass. Two members whose joints lie on average more than ``reid_m`` from
+   the track's prediction (a narrow pair of rays, or a neighbour's detection) do not update the
+   track: they are left to step 5, as with tracks off. A confirmed track is updated from
+   ``min_track_views`` (2) views or more, fewer than ``k_min`` flagged ``FLAG_FEW_VIEWS``;
+   with one view left it is kept alive by that view plus its prediction (``one_view``: the
+   state moves to the points of the view's rays nearest the prediction; no cluster is emitted
+   since one view triangulates nothing). A tentative track needs k_min views.
 5. Detections not explained by any track go through ``associate`` (the full MAEM cross-view
    association, as a black box) on per-camera subsets; member indices are mapped back. Each new
    cluster is triangulated (body joints) and either merged into a track already supported this
@@ -51,7 +54,7 @@ from scipy.optimize import linear_sum_assignment
 
 from maem_ros.core.association.gates import FrameSet, PairGates
 from maem_ros.core.association.params import AssociationParams
-from maem_ros.core.association.pipeline import associate
+from maem_ros.core.association.pipeline import associate, pair_cost
 from maem_ros.core.detections import PASSED, Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
@@ -72,9 +75,9 @@ FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view
 FLAG_FEW_VIEWS = 2  # updated from fewer than k_min views (allowed for confirmed tracks only)
 FLAG_ONE_VIEW = 4  # kept by one view + its prediction (internal: such clusters are not emitted)
 _GATED = 1e9
-#: epipolar test inside a track's cluster: 2D keypoints (default: on the simulator as accurate as
-#: the mesh for clusters the prediction already proposes, at a fraction of the cost), the mesh
-#: vertices (as the cross-view association), or none
+#: epipolar test inside a track's cluster: the mesh vertices (default: the test the cross-view
+#: association applies, so the track stage keeps every view the association would; doc/tracking.md),
+#: the 2D keypoints (cheaper, but noisy keypoints fail it: views dropped from tracked people), or none
 VERIFY_EPIPOLAR = ("sparse", "mesh", "none")
 
 
@@ -105,8 +108,8 @@ class TemporalParams(Params):
     one_view: bool = param(True, "keep a confirmed track alive on one view + its prediction")
     one_view_std: float = param(0.3, "m, root measurement std of a one-view update",
                                 minimum=0.0, exclusive_minimum=True)
-    verify_epipolar: str = param("sparse", "epipolar test inside a track's cluster: 2D keypoints "
-                                           "(sparse), mesh vertices or none",
+    verify_epipolar: str = param("mesh", "epipolar test inside a track's cluster: mesh vertices "
+                                         "(as the association), 2D keypoints (sparse) or none",
                                  choices=VERIFY_EPIPOLAR)
     reid_m: float = param(0.5, "m, a new cluster this close to a track re-acquires / merges it",
                           minimum=0.0, exclusive_minimum=True)
@@ -190,9 +193,10 @@ class _FrameView:
 # the stage
 # ---------------------------------------------------------------------------------------
 TEMPORAL_STAT_KEYS = ("tracks", "tracks_confirmed", "detections_explained", "detections_left",
-                      "tracks_supported", "tracks_few_views", "tracks_one_view", "tracks_started",
-                      "tracks_reacquired", "tracks_merged", "tracks_ended", "track_resets",
-                      "verify_dropped", "t_track_ms", "t_associate_ms")
+                      "tracks_supported", "tracks_few_views", "tracks_one_view",
+                      "tracks_two_view_jumps", "tracks_started", "tracks_reacquired",
+                      "tracks_merged", "tracks_ended", "track_resets", "verify_dropped", "t_track_ms",
+                      "t_associate_ms")
 
 
 class TemporalAssociator:
@@ -308,8 +312,12 @@ class TemporalAssociator:
         -> [members, costs, flags]."""
         tracks = self.tracker.tracks
         stats["verify_dropped"] = float((present & ~keep).sum())
+        jumped = self._two_view_jumps(keep, X)
+        stats["tracks_two_view_jumps"] = float(jumped.sum())
         out: dict[int, list] = {}
         for i, t in enumerate(tracks):  # one iteration per person
+            if jumped[i]:  # left to the cross-view association, as with tracks off
+                continue
             n = int(keep[i].sum())
             need = self.tp.min_track_views if t.id >= 0 else self.params.k_min
             if n >= max(need, 2):
@@ -333,6 +341,21 @@ class TemporalAssociator:
                 used[c][d] = True
         stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
         return out
+
+    def _two_view_jumps(self, keep: np.ndarray, X: np.ndarray) -> np.ndarray:
+        """(T,) bool: tracks whose verified cluster has two views (keep (T,M)) and whose joints
+        X (T,J,3) lie on average more than ``reid_m`` from the track's prediction. Two views at
+        a narrow angle triangulate metres off along the rays, and a detection the prediction
+        proposed may be a neighbour's; either way such an update is not trusted: its detections
+        go through the cross-view association like any unexplained detection."""
+        two = keep.sum(1) == 2
+        if not two.any():
+            return two
+        pred = np.stack([t.joints for t in self.tracker.tracks])  # (T,J,3)
+        both = np.isfinite(pred).all(-1) & np.isfinite(X).all(-1)
+        with np.errstate(invalid="ignore"):
+            d = np.where(both, np.linalg.norm(pred - X, axis=-1), 0.0).sum(1)
+        return two & (both.sum(1) > 0) & (d > self.tp.reid_m * np.maximum(both.sum(1), 1))
 
     def _assign(self, view: _FrameView, joints: np.ndarray, gate: np.ndarray) -> np.ndarray:
         """Per camera, Hungarian assignment of detections to the tracks' skeletons joints (T,J,3)
@@ -408,13 +431,14 @@ class TemporalAssociator:
                     db: np.ndarray) -> np.ndarray:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
         association's pair gates (core.association.gates: bbox-centre reprojection, epipolar
-        on keypoints or mesh vertices, ``verify_epipolar``) and the PA-MPJPE cost of the lower
-        camera's 3D pose aligned onto the other's under tau_cost, on the few pairs inside the
-        tracks' clusters only. The cost here is the pose alone (no epipolar term: the
-        verification's epipolar test is on keypoints by default)."""
+        on mesh vertices or keypoints, ``verify_epipolar``) and the association's pair cost
+        (the PA-MPJPE of the lower camera's 3D pose aligned onto the other's plus the epipolar
+        term, core.association.pipeline.pair_cost) under tau_cost, on the few pairs inside the
+        tracks' clusters only."""
         by_cam = view.by_cam
         p = self.params
-        ok = view.gates.decide(ca, da, cb, db).stage == PASSED
+        decided = view.gates.decide(ca, da, cb, db)
+        ok = decided.stage == PASSED
         if p.tau_cost > 0 and ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)
@@ -424,8 +448,9 @@ class TemporalAssociator:
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            # NaN (too few joints) fails
-            ok[s] = pa_mpjpe_finite(X, Y, p.execution.backend) < p.tau_cost
+            pose = pa_mpjpe_finite(X, Y, p.execution.backend)
+            # the association's cost (NaN, too few joints, fails)
+            ok[s] = pair_cost(pose, decided.epi[s], p, self.tp.verify_epipolar) < p.tau_cost
         return ok
 
     @staticmethod
