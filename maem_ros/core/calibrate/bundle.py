@@ -33,10 +33,10 @@ narrow pass. Why not ``scipy.optimize.least_squares(method='trf', jac_sparsity=.
 aniposelib's ``CameraGroup.bundle_adjust_iter`` uses): it finite-differences the Jacobian and
 solves each step with LSMR over all (3 x points + 6 x cameras) unknowns; the reduced camera
 system here is only (6..8 C)^2. scripts/bundle_vs_scipy.py measures both on one problem
-(11,874 observations, 6 cameras, 1 px noise, 3 deg / 0.2 m start, shared 2-core machine):
-same accuracy, scipy 4.2 x the run time (8.4 s against 2.0 s); the issue's experiment on real
-keypoints found scipy also unreliable from a rough start (soft_l1 out of evaluations, Huber not
-moving) where an LM with a Schur complement converged.
+(11,874 observations, 6 cameras, 1 px noise, 3 deg / 0.2 m start, 2-core machine, 2026-12-05):
+same accuracy (0.023 deg, 0.7 cm), scipy 16 x the run time (0.97 s against 0.06 s); the
+issue's experiment on real keypoints found scipy also unreliable from a rough start (soft_l1 out
+of evaluations, Huber not moving) where an LM with a Schur complement converged.
 """
 from __future__ import annotations
 
