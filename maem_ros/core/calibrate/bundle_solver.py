@@ -5,9 +5,16 @@ Layout of the normal equations: camera blocks (C, dc, dc) with dc = 6 (rotation 
 translation) + optional focal scale + optional k1; structure blocks of two groups, free points
 (3x3) and rigid objects (6x6, rotation perturbation and translation of the object pose). The
 structure is eliminated (it is block-diagonal); the reduced camera system (C dc)^2 is solved
-densely. Observations are processed in chunks, and each group's Schur product is formed as
-dense (C dc, chunk) x (chunk, C dc) matrix products: small temporaries that are reused, BLAS
-for the bulk of the arithmetic, no Python loop over observations or points.
+densely.
+
+Why this layout (the hot path of every calibration): observations are processed per camera
+(blocks of one camera's observations, free points first, each free point at most once), so a
+block's projection uses one R, t, K (no per-observation gathers), its camera block is one
+(2k, dc)^T (2k, dc) product, and its structure terms are scattered by unique keys (plain
+fancy-index adds, no bincount or np.add.at). Each structure keeps its camera coupling dense,
+W^T (ds, C dc), zero for cameras that do not see it: the Schur complement of a group is then
+one BLAS product (ds n, C dc)^T (V^-1 W^T) over all its structures, with no scatter into
+per-chunk matrices, and the back-substitution another.
 """
 from __future__ import annotations
 
@@ -15,8 +22,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 MIN_DEPTH = 1e-3  # m: points nearer than this to (or behind) a camera project as if at it
-_CHUNK = 16384  # observations per vectorised pass
-_STRUCT_CHUNK = 2048  # structure blocks per dense Schur product
+_CHUNK = 16384  # observations per vectorised pass (bounds the temporaries)
+_STRUCT_CHUNK = 4096  # structures per Schur product
 
 
 def robust_rho(loss: str, s: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -72,132 +79,150 @@ class State:
                      self.refine_focal, self.refine_k1)
 
 
+class Block:
+    """One camera's observations ``sl`` (a slice of the solver's order): the first ``n_free``
+    are free points (keys ``free_key`` into Observations.points, unique), the rest rigid ones
+    sorted by object (runs starting at ``run_start``, relative to the rigid part, with keys
+    ``run_key`` into Observations.objects)."""
+
+    def __init__(self, cam: int, sl: slice, n_free: int, free_key: np.ndarray,
+                 run_start: np.ndarray, run_key: np.ndarray):
+        self.cam, self.sl, self.n_free = cam, sl, n_free
+        self.free_key, self.run_start, self.run_key = free_key, run_start, run_key
+
+
 class Observations:
-    """Active observations ordered for the solver: free-point ones sorted by (point, camera),
-    then rigid ones sorted by (object, camera). ``idx`` maps back to the problem's order."""
+    """Active observations ordered for the solver: by camera, then free points (by point), then
+    rigid ones (by object), cut into :class:`Block` s. ``idx`` maps back to the problem's order;
+    ``points`` / ``objects`` are the free points / objects the active set estimates."""
 
     def __init__(self, prob, active: np.ndarray):
         idx = np.flatnonzero(active)
-        obj = prob.point_object[prob.obs_point[idx]]
-        C = prob.num_cameras
-        key = np.where(obj < 0, prob.obs_point[idx], prob.points.shape[0] + obj) * C \
-            + prob.obs_camera[idx]
-        self.idx = idx[np.argsort(key, kind="stable")]
+        pt = prob.obs_point[idx]
+        obj = prob.point_object[pt]
+        struct = np.where(obj < 0, pt, prob.points.shape[0] + obj)
+        order = np.lexsort((struct, prob.obs_camera[idx]))
+        self.idx = idx[order]
         self.cam = prob.obs_camera[self.idx]
-        self.pt = prob.obs_point[self.idx]
+        self.pt = pt[order]
+        self.obj = obj[order]
         self.uv = prob.obs_uv[self.idx]
         self.w = prob.obs_weight[self.idx]
-        self.obj = prob.point_object[self.pt]
         self.model = prob.model[self.pt]
         self.K2 = prob.K[:, :2, :2]
         self.c0 = prob.K[:, :2, 2]
-        self.n_free = int(np.count_nonzero(self.obj < 0))
-        self.points, self.point_key = np.unique(self.pt[:self.n_free], return_inverse=True)
-        self.objects, self.object_key = np.unique(self.obj[self.n_free:], return_inverse=True)
-        self.point_key, self.object_key = self.point_key.ravel(), self.object_key.ravel()
+        free = self.obj < 0
+        self.points, point_key = np.unique(self.pt[free], return_inverse=True)
+        self.objects, object_key = np.unique(self.obj[~free], return_inverse=True)
+        key = np.empty(self.idx.size, np.int64)
+        key[free], key[~free] = point_key.ravel(), object_key.ravel()
+        self.blocks: list[Block] = []
+        bounds = np.searchsorted(self.cam, np.arange(prob.num_cameras + 1))
+        for c in range(prob.num_cameras):
+            for a in range(int(bounds[c]), int(bounds[c + 1]), _CHUNK):
+                b = min(a + _CHUNK, int(bounds[c + 1]))
+                nf = int(np.count_nonzero(free[a:b]))
+                rk = key[a + nf:b]
+                runs = np.flatnonzero(np.r_[True, rk[1:] != rk[:-1]]) if rk.size else rk
+                self.blocks.append(Block(c, slice(a, b), nf, key[a:a + nf], runs, rk[runs]))
 
     def __len__(self) -> int:
         return int(self.idx.size)
 
-    def chunks(self):
-        for a in range(0, len(self), _CHUNK):
-            yield slice(a, min(a + _CHUNK, len(self)))
+
+def _cross(a: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(3,k), (2,3,k) -> (2,3,k): a x B[r] for each row r, coordinate-first (np.cross on
+    (k,3) rows is slow)."""
+    out = np.empty(B.shape)
+    out[:, 0] = a[1] * B[:, 2] - a[2] * B[:, 1]
+    out[:, 1] = a[2] * B[:, 0] - a[0] * B[:, 2]
+    out[:, 2] = a[0] * B[:, 1] - a[1] * B[:, 0]
+    return out
 
 
-def project(st: State, ob: Observations, sl: slice, jac: bool):
-    """Residuals (k,2) px (projection - observation) of the observations ``sl``; with ``jac``
-    also the Jacobians w.r.t. the camera block (k,2,dc) and the structure block (k,2,3) for
-    free points / (k,2,6) for rigid objects (the slice's first and second part)."""
-    cam, pt, obj = ob.cam[sl], ob.pt[sl], ob.obj[sl]
-    rigid = obj >= 0
-    X = st.X[pt]
+def project(st: State, ob: Observations, blk: Block, jac: bool):
+    """Residuals (k,2) px (projection - observation) of the block's observations; with ``jac``
+    also the Jacobians, coordinate-first: w.r.t. the camera block (2,dc,k) and the structure
+    block (2,3,k_free) for free points / (2,6,k_rigid) for rigid objects (the block's first
+    and second part). Coordinate-first so that every product below runs over contiguous
+    length-k rows (the (k,2,n) layout makes numpy loop over tiny 2x3 matrices)."""
+    c, sl, nf = blk.cam, blk.sl, blk.n_free
+    X = np.empty((sl.stop - sl.start, 3))
+    X[:nf] = st.X[ob.pt[sl.start:sl.start + nf]]
     RoM = None
-    if rigid.any():
-        RoM = np.einsum("nij,nj->ni", st.oR[obj[rigid]], ob.model[sl][rigid])
-        X[rigid] = RoM + st.ot[obj[rigid]]
-    Rc = st.R[cam]
-    RX = np.einsum("nij,nj->ni", Rc, X)
-    Xc = RX + st.t[cam]
-    z = np.maximum(Xc[:, 2], MIN_DEPTH)
-    xn = Xc[:, :2] / z[:, None]
-    r2 = np.einsum("ni,ni->n", xn, xn)
-    k1, s = st.k1[cam], st.s[cam]
+    if nf < X.shape[0]:
+        o = ob.obj[sl.start + nf:sl.stop]
+        RoM = np.einsum("nij,nj->in", st.oR[o], ob.model[sl.start + nf:sl.stop])
+        X[nf:] = RoM.T + st.ot[o]
+    Rc = st.R[c]
+    RX = Rc @ X.T  # (3,k)
+    Xc = RX + st.t[c][:, None]
+    z = np.maximum(Xc[2], MIN_DEPTH)
+    x, y = Xc[0] / z, Xc[1] / z
+    r2 = x * x + y * y
+    k1 = st.k1[c]
     d = 1.0 + k1 * r2
-    A2 = ob.K2[cam] * s[:, None, None]
-    res = np.einsum("nij,nj->ni", A2, xn * d[:, None]) + ob.c0[cam] - ob.uv[sl]
+    A = ob.K2[c] * st.s[c]
+    xd, yd = x * d, y * d
+    res = np.empty((x.size, 2))
+    res[:, 0] = A[0, 0] * xd + A[0, 1] * yd + ob.c0[c, 0] - ob.uv[sl, 0]
+    res[:, 1] = A[1, 0] * xd + A[1, 1] * yd + ob.c0[c, 1] - ob.uv[sl, 1]
     if not jac:
         return res
-    m = res.shape[0]
-    # d u / d Xc = A2 (d I + 2 k1 xn xn^T) d xn / d Xc, written out per entry (2x2 and 2x3
-    # products of many tiny matrices are far slower as batched matmuls)
-    a_, b_ = xn[:, 0], xn[:, 1]
-    M00, M01, M11 = d + 2 * k1 * a_ * a_, 2 * k1 * a_ * b_, d + 2 * k1 * b_ * b_
-    A00, A01, A11 = A2[:, 0, 0], A2[:, 0, 1], A2[:, 1, 1]
-    P = np.empty((m, 2, 2))
-    P[:, 0, 0], P[:, 0, 1] = A00 * M00 + A01 * M01, A00 * M01 + A01 * M11
-    P[:, 1, 0], P[:, 1, 1] = A11 * M01, A11 * M11
-    inv_z = np.where(Xc[:, 2] < MIN_DEPTH, 0.0, 1.0 / z)
-    D = np.empty((m, 2, 3))
-    D[:, :, :2] = P * inv_z[:, None, None]
-    D[:, :, 2] = -(P[:, :, 0] * a_[:, None] + P[:, :, 1] * b_[:, None]) * inv_z[:, None]
-    Jc = np.empty((m, 2, st.dc))
-    Jc[:, :, :3] = np.cross(RX[:, None, :], D)  # -D [RX]x, row-wise RX x D_i
-    Jc[:, :, 3:6] = D
+    # d u / d Xc = A (d I + 2 k1 xn xn^T) d xn / d Xc, entry by entry
+    M00, M01, M11 = d + 2 * k1 * x * x, 2 * k1 * x * y, d + 2 * k1 * y * y
+    inv_z = np.where(Xc[2] < MIN_DEPTH, 0.0, 1.0 / z)
+    Jc = np.empty((2, st.dc, x.size))
+    D = Jc[:, 3:6]
+    for r in range(2):
+        D[r, 0] = (A[r, 0] * M00 + A[r, 1] * M01) * inv_z
+        D[r, 1] = (A[r, 0] * M01 + A[r, 1] * M11) * inv_z
+        D[r, 2] = -(D[r, 0] * x + D[r, 1] * y)
+    Jc[:, :3] = _cross(RX, D)  # -D [RX]x, row-wise RX x D_r
     col = 6
     if st.refine_focal:
-        Jc[:, :, col] = np.einsum("nij,nj->ni", ob.K2[cam], xn * d[:, None])
+        K2 = ob.K2[c]
+        Jc[:, col] = K2[:, :1] * xd + K2[:, 1:] * yd
         col += 1
     if st.refine_k1:
-        Jc[:, :, col] = np.einsum("nij,nj->ni", A2, xn * r2[:, None])
-    dudX = D[:, :, 0, None] * Rc[:, None, 0, :] + D[:, :, 1, None] * Rc[:, None, 1, :] \
-        + D[:, :, 2, None] * Rc[:, None, 2, :]
-    Jp = dudX[~rigid]
-    Jo = np.zeros((int(rigid.sum()), 2, 6))
+        Jc[:, col] = A[:, :1] * (x * r2) + A[:, 1:] * (y * r2)
+    dudX = Rc.T @ D  # (2,3,k): row r of d u / d X is D_r Rc
+    Jo = np.zeros((2, 6, x.size - nf))
     if RoM is not None:
-        Jo[:, :, :3] = np.cross(RoM[:, None, :], dudX[rigid])
-        Jo[:, :, 3:] = dudX[rigid]
-    return res, Jc, Jp, Jo
-
-
-def outer_sum(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """(k,r,a), (k,r,b) -> (k,a,b) = sum_r A[:, r, :, None] B[:, r, None, :] (A^T B per row)."""
-    out = A[:, 0, :, None] * B[:, 0, None, :]
-    for r in range(1, A.shape[1]):
-        out += A[:, r, :, None] * B[:, r, None, :]
-    return out
-
-
-def batched_matvec_blocks(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """(k,a,c), (k,c,b) -> (k,a,b) = A B per row, summed over the small inner dimension."""
-    out = A[:, :, 0, None] * B[:, None, 0, :]
-    for r in range(1, A.shape[2]):
-        out += A[:, :, r, None] * B[:, None, r, :]
-    return out
-
-
-def block_sum(keys: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """Sum (m,a,b) or (m,a) blocks into (n,a,b) / (n,a) by key (one bincount per entry)."""
-    shape = values.shape[1:]
-    flat = values.reshape(values.shape[0], -1)
-    out = np.empty((n, flat.shape[1]))
-    for k in range(flat.shape[1]):
-        out[:, k] = np.bincount(keys, weights=flat[:, k], minlength=n)
-    return out.reshape((n,) + shape)
+        Jo[:, :3] = _cross(RoM, dudX[:, :, nf:])
+        Jo[:, 3:] = dudX[:, :, nf:]
+    return res, Jc, dudX[:, :, :nf], Jo
 
 
 class Group:
     """One structure group's normal-equation pieces: V (n,ds,ds), gradient gs (n,ds), and the
-    camera coupling W (rows,dc,ds) of each (structure, camera) row, rows sorted by structure."""
+    transposed camera coupling Wt (n,ds,C,dc), zero for cameras that do not see a structure."""
 
-    def __init__(self, n: int, ds: int, dc: int, rows_cam: np.ndarray, rows_struct: np.ndarray):
+    def __init__(self, n: int, ds: int, C: int, dc: int):
         self.V = np.zeros((n, ds, ds))
         self.gs = np.zeros((n, ds))
-        self.W = np.zeros((rows_cam.size, dc, ds))
-        self.cam, self.struct = rows_cam, rows_struct
-        bounds = np.searchsorted(rows_struct, np.arange(0, n + _STRUCT_CHUNK, _STRUCT_CHUNK))
-        self.chunks = [(int(bounds[i]), int(bounds[i + 1]), i * _STRUCT_CHUNK,
-                        min(n, (i + 1) * _STRUCT_CHUNK)) for i in range(len(bounds) - 1)
-                       if bounds[i + 1] > bounds[i]]
+        self.Wt = np.zeros((n, ds, C, dc))
+
+    def add(self, cam: int, keys: np.ndarray, runs: np.ndarray | None, Jc_w: np.ndarray,
+            Js: np.ndarray, w: np.ndarray, res: np.ndarray) -> None:
+        """Add one camera's observations (Jacobians coordinate-first, as :func:`project`
+        gives them) of the structures ``keys`` (unique; with ``runs``, consecutive
+        observations of one structure are summed first)."""
+        n, ds, C, dc = self.Wt.shape
+        Js_w = Js * w
+        V = Js_w[0][:, None] * Js[0][None] + Js_w[1][:, None] * Js[1][None]  # (ds,ds,k)
+        gs = Js_w[0] * res[:, 0] + Js_w[1] * res[:, 1]  # (ds,k)
+        W = Js[0][:, None] * Jc_w[0][None] + Js[1][:, None] * Jc_w[1][None]  # (ds,dc,k)
+        if runs is not None:
+            V, gs, W = (np.add.reduceat(a, runs, axis=-1) for a in (V, gs, W))
+        self.V.reshape(n, ds * ds)[keys] += V.reshape(ds * ds, -1).T
+        self.gs[keys] += gs.T
+        rows = (keys[:, None] * ds + np.arange(ds)).ravel()
+        W = W.transpose(2, 0, 1).reshape(-1, dc)
+        if runs is None:  # free points: each (point, camera) once (BundleProblem checks)
+            self.Wt.reshape(n * ds, C, dc)[rows, cam] = W
+        else:  # an object's observations by one camera may span two blocks
+            self.Wt.reshape(n * ds, C, dc)[rows, cam] += W
 
 
 class NormalEquations:
@@ -207,42 +232,23 @@ class NormalEquations:
         dc = st.dc
         self.U = np.zeros((C, dc, dc))
         self.gc = np.zeros((C, dc))
-        nf = ob.n_free
-        self.free = Group(ob.points.size, 3, dc, ob.cam[:nf], ob.point_key)
-        obj_pairs, self._pair_of_obs = np.unique(ob.object_key * C + ob.cam[nf:], return_inverse=True)
-        self._pair_of_obs = self._pair_of_obs.ravel()
-        self.rigid = Group(ob.objects.size, 6, dc, obj_pairs % C, obj_pairs // C)
-        for sl in ob.chunks():
-            self._add(st, ob, sl, loss, scale, C)
+        self.free = Group(ob.points.size, 3, C, dc)
+        self.rigid = Group(ob.objects.size, 6, C, dc)
+        for blk in ob.blocks:
+            self._add(st, ob, blk, loss, scale)
 
-    def _add(self, st: State, ob: Observations, sl: slice, loss: str, scale: float, C: int) -> None:
-        res, Jc, Jp, Jo = project(st, ob, sl, True)
-        w = robust_rho(loss, np.einsum("ni,ni->n", res, res), scale)[1] * ob.w[sl]
-        cam = ob.cam[sl]
-        Jc_w = Jc * w[:, None, None]
-        dc = st.dc
-        for c in np.unique(cam):
-            on = cam == c
-            self.U[c] += Jc_w[on].reshape(-1, dc).T @ Jc[on].reshape(-1, dc)
-        self.gc += block_sum(cam, np.einsum("nki,nk->ni", Jc_w, res), C)
-        nf = ob.n_free
-        fr = slice(sl.start, min(sl.stop, nf))
-        k = max(0, fr.stop - fr.start)
-        if k:
-            self._add_group(self.free, ob.point_key[fr], Jc_w[:k], Jp, w[:k], res[:k])
-            self.free.W[fr] = outer_sum(Jc_w[:k], Jp)
-        if k < res.shape[0]:
-            rows = self._pair_of_obs[max(sl.start, nf) - nf:sl.stop - nf]
-            self._add_group(self.rigid, self.rigid.struct[rows], Jc_w[k:], Jo, w[k:], res[k:])
-            self.rigid.W += block_sum(rows, outer_sum(Jc_w[k:], Jo),
-                                      self.rigid.W.shape[0])
-
-    @staticmethod
-    def _add_group(g: Group, keys, Jc_w, Js, w, res) -> None:
-        Js_w = Js * w[:, None, None]
-        n = g.V.shape[0]
-        g.V += block_sum(keys, outer_sum(Js_w, Js), n)
-        g.gs += block_sum(keys, np.einsum("nki,nk->ni", Js_w, res), n)
+    def _add(self, st: State, ob: Observations, blk: Block, loss: str, scale: float) -> None:
+        res, Jc, Jp, Jo = project(st, ob, blk, True)
+        w = robust_rho(loss, np.einsum("ni,ni->n", res, res), scale)[1] * ob.w[blk.sl]
+        Jc_w = Jc * w
+        c, nf = blk.cam, blk.n_free
+        self.U[c] += Jc_w[0] @ Jc[0].T + Jc_w[1] @ Jc[1].T
+        self.gc[c] += Jc_w[0] @ res[:, 0] + Jc_w[1] @ res[:, 1]
+        if nf:
+            self.free.add(c, blk.free_key, None, Jc_w[:, :, :nf], Jp, w[:nf], res[:nf])
+        if nf < res.shape[0]:
+            self.rigid.add(c, blk.run_key, blk.run_start, Jc_w[:, :, nf:], Jo, w[nf:],
+                           res[nf:])
 
 
 def damp(A: np.ndarray, mu: float) -> np.ndarray:
@@ -262,7 +268,8 @@ def reduced_system(ne: NormalEquations, mu: float, free_cam: np.ndarray):
     rhs = -ne.gc.ravel().copy()
     inverses = []
     for g in (ne.free, ne.rigid):
-        if g.V.shape[0] == 0:
+        n, ds = g.V.shape[:2]
+        if n == 0:
             inverses.append(g.V)
             continue
         try:
@@ -270,17 +277,12 @@ def reduced_system(ne: NormalEquations, mu: float, free_cam: np.ndarray):
         except np.linalg.LinAlgError:
             return None
         inverses.append(Vinv)
-        ds = g.V.shape[1]
-        for r0, r1, s0, s1 in g.chunks:
-            W = g.W[r0:r1]
-            Y = batched_matvec_blocks(W, Vinv[g.struct[r0:r1]])
-            Yd = np.zeros((C, dc, s1 - s0, ds))
-            Wd = np.zeros((C, dc, s1 - s0, ds))
-            Yd[g.cam[r0:r1], :, g.struct[r0:r1] - s0, :] = Y
-            Wd[g.cam[r0:r1], :, g.struct[r0:r1] - s0, :] = W
-            Yf = Yd.reshape(C * dc, -1)
-            S -= Yf @ Wd.reshape(C * dc, -1).T
-            rhs += Yf @ g.gs[s0:s1].ravel()
+        for a in range(0, n, _STRUCT_CHUNK):
+            b = min(n, a + _STRUCT_CHUNK)
+            Wt = g.Wt[a:b].reshape(b - a, ds, C * dc)
+            Z = (Vinv[a:b] @ Wt).reshape(-1, C * dc)  # (W V^-1)^T of each structure, stacked
+            S -= Wt.reshape(-1, C * dc).T @ Z
+            rhs += Z.T @ g.gs[a:b].ravel()
     fixed = np.repeat(~free_cam, dc)
     S[fixed] = 0.0
     S[:, fixed] = 0.0
@@ -304,10 +306,10 @@ def solve_step(ne: NormalEquations, mu: float, free_cam: np.ndarray):
         return None
     steps = []
     for g, Vinv in zip((ne.free, ne.rigid), inverses):
-        n = g.V.shape[0]
+        n, ds = g.V.shape[:2]
         if n == 0:
-            steps.append(np.zeros((0, g.V.shape[1])))
+            steps.append(np.zeros((0, ds)))
             continue
-        WT_dc = block_sum(g.struct, np.einsum("rji,rj->ri", g.W, dcam[g.cam]), n)
-        steps.append(-np.einsum("nij,nj->ni", Vinv, g.gs + WT_dc))
+        WT_dc = (g.Wt.reshape(n * ds, C * dc) @ dcam.ravel()).reshape(n, ds)
+        steps.append(-(Vinv @ (g.gs + WT_dc)[..., None])[..., 0])
     return dcam, steps[0], steps[1]

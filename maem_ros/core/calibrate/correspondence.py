@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..geometry.procrustes import procrustes_align
+from ..tracking.track_geometry import nanmedian
 from .people_data import PeopleData, normalised
 
 #: consensus thresholds: rotation (deg) of the first vote and of the refined one
@@ -109,16 +110,16 @@ def _translation_consensus(rows: np.ndarray, t3d: np.ndarray, tol: float):
     cand *= np.sign(np.einsum("ni,ni->n", cand, t3d))[:, None]
     if len(cand) > _MAX_CANDIDATES:
         cand = cand[np.linspace(0, len(cand) - 1, _MAX_CANDIDATES).astype(int)]
-    err = np.nanmedian(np.abs(np.einsum("hji,ci->chj", rows, cand)), axis=2)  # (cand,H)
+    err = nanmedian(np.abs(np.einsum("hji,ci->chj", rows, cand)))  # (cand,H)
     best = cand[np.argmax((err < tol).sum(1))]
     for _ in range(3):
-        inl = np.nanmedian(np.abs(rows @ best), axis=1) < tol
+        inl = nanmedian(np.abs(rows @ best)) < tol
         stack = filled[inl].reshape(-1, 3)
         if len(stack) < 3:
             break
         v = np.linalg.svd(stack, full_matrices=False)[2][2]
         best = v * np.sign(v @ np.median(t3d[inl], axis=0))
-    inl = np.nanmedian(np.abs(rows @ best), axis=1) < tol
+    inl = nanmedian(np.abs(rows @ best)) < tol
     return best, inl
 
 
@@ -136,7 +137,7 @@ def estimate_pair(data: PeopleData, a: int, b: int, frames: np.ndarray,
     rows = _epipolar_rows(data, a, b, pairs, R_ab)
     f = 0.5 * (data.rig[a].K_rect[0, 0] + data.rig[b].K_rect[0, 0])
     t_dir, t_in = _translation_consensus(rows, t3d, EPIPOLAR_INLIER_PX / f)
-    matches = _one_to_one(pairs[t_in], np.nanmedian(np.abs(rows[t_in] @ t_dir), axis=1))
+    matches = _one_to_one(pairs[t_in], nanmedian(np.abs(rows[t_in] @ t_dir)))
     keep = np.isin(np.arange(len(pairs)), np.flatnonzero(t_in)[matches])
     length = float(np.median(t3d[keep] @ t_dir)) if keep.any() else np.nan
     return PairEstimate(a, b, R_ab, t_dir * length, int(keep.sum()), pairs[keep])

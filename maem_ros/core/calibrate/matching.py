@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry.multiview import dlt
+from ..tracking.track_geometry import nanmedian
 from .people_data import PeopleData
 
 
@@ -53,8 +54,7 @@ def _epipolar_cost(F: np.ndarray, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
     db = num / np.linalg.norm(lb[:, None, :, :2], axis=3)
     d = 0.5 * (da + db)
     enough = np.sum(np.isfinite(d), axis=2) >= 3
-    with np.errstate(all="ignore"):
-        med = np.nanmedian(np.where(np.isfinite(d), d, np.nan), axis=2) if d.size else d[..., 0]
+    med = nanmedian(np.where(np.isfinite(d), d, np.nan)) if d.size else d[..., 0]
     return np.where(enough, med, np.inf)
 
 
@@ -113,7 +113,8 @@ class _Consistency:
         h = np.einsum("cij,jk->cik", self.P[cams][:, :, :3], X.T) + self.P[cams][:, :, 3:]
         with np.errstate(all="ignore"):
             err = np.linalg.norm(h[:, :2].transpose(0, 2, 1) / h[:, 2:].transpose(0, 2, 1) - uv, axis=2)
-            med = np.nanmedian(err)
+        # a point at zero depth (inf error) counts as a large error, not as missing
+        med = nanmedian(np.where(np.isinf(err), 1e300, err).ravel())
         return bool(np.isfinite(med) and med < self.gate)
 
 
@@ -124,6 +125,8 @@ def _greedy_clusters(edges: list, consistent) -> dict:
     parent: dict = {}
     swap: dict = {}  # swap of a node relative to its parent
     cams: dict = {}
+    seen: dict = {}  # node -> order of first appearance
+    members: dict = {}  # root -> its cluster's nodes in order of first appearance
 
     def find(x):
         path_swap = 0
@@ -137,17 +140,19 @@ def _greedy_clusters(edges: list, consistent) -> dict:
         for node, cam in (((a, i), a), ((b, j), b)):
             if node not in parent:
                 parent[node], swap[node], cams[node] = node, 0, {cam}
+                seen[node], members[node] = len(seen), [node]
         (ra, sa), (rb, sb) = find((a, i)), find((b, j))
         if ra == rb or cams[ra] & cams[rb]:
             continue
         srb = sa ^ sb ^ s
-        union = [(n[0], n[1], find(n)[1]) for n in parent if find(n)[0] == ra] + \
-                [(n[0], n[1], find(n)[1] ^ srb) for n in parent if find(n)[0] == rb]
+        union = [(n[0], n[1], find(n)[1]) for n in members[ra]] + \
+                [(n[0], n[1], find(n)[1] ^ srb) for n in members[rb]]
         if not consistent(union):
             continue
         parent[rb] = ra
         swap[rb] = srb
         cams[ra] |= cams.pop(rb)
+        members[ra] = sorted(members[ra] + members.pop(rb), key=seen.__getitem__)
     groups: dict = {}
     for node in parent:
         root, s = find(node)
