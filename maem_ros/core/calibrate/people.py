@@ -53,8 +53,9 @@ class PeopleOptions:
 @dataclass
 class CameraReport:
     """One camera's result: observations used, reprojection error median / p90 (px), 1-sigma
-    rotation (deg) and centre (m) uncertainty, time offset (s); calibrated False when the
-    camera could not be connected to the rest."""
+    rotation (deg) and centre (m) uncertainty, time offset (s) and its standard error (s; NaN
+    when not estimated or with two cameras); calibrated False when the camera could not be
+    connected to the rest."""
 
     name: str
     calibrated: bool
@@ -64,6 +65,7 @@ class CameraReport:
     rotation_sd_deg: float = np.nan
     centre_sd_m: float = np.nan
     time_offset_s: float = 0.0
+    time_offset_sd_s: float = np.nan
 
 
 @dataclass
@@ -122,7 +124,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
             time.perf_counter() - clock
     if result is None or tracks is None or prob is None:
         raise ValueError("people calibration: PeopleOptions.gates_px is empty (no matching pass)")
-    delta = np.zeros(C)
+    delta, delta_sd = np.zeros(C), np.full(C, np.nan)
     if opts.estimate_time and data.num_frames >= 3:
         clock = time.perf_counter()
         ok = np.flatnonzero(start.connected)
@@ -134,8 +136,9 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
             P = projection_matrices(K, R, t)
             before = delta.copy()
             # later rounds only refine: the rig moved a little, the offsets a fraction of a frame
-            delta[ok] = estimate_offsets(P[ok], observed.U[ok], opts.max_offset_s * data.fps,
-                                         start=delta[ok] if rnd else None)
+            delta[ok], delta_sd[ok] = estimate_offsets(P[ok], observed.U[ok],
+                                                       opts.max_offset_s * data.fps,
+                                                       start=delta[ok] if rnd else None)
             if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
                 break
             tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]),
@@ -148,7 +151,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
     sim, scale_source = _world(data, X, tracks.D, R, t, start.connected, opts, warnings)
     timings["world frame"] = time.perf_counter() - clock
     rig = _output_rig(data, R, t, sim, result, delta, start.connected)
-    cams = _camera_reports(data, prob, result, sim, delta, start.connected)
+    cams = _camera_reports(data, prob, result, sim, delta, delta_sd, start.connected)
     warnings += _camera_warnings(cams)
     return PeopleCalibration(rig=rig, cameras=cams, warnings=warnings, points=sim.apply(X),
                              pairs=pairs, scale_source=scale_source, timings=timings,
@@ -244,7 +247,7 @@ def _output_rig(data: PeopleData, R, t, sim: Similarity, result: BundleResult, d
 
 
 def _camera_reports(data: PeopleData, prob: BundleProblem, result: BundleResult, sim: Similarity,
-                    delta, connected) -> list[CameraReport]:
+                    delta, delta_sd, connected) -> list[CameraReport]:
     err = result.errors()
     out = []
     for c, cam in enumerate(data.rig):
@@ -259,7 +262,7 @@ def _camera_reports(data: PeopleData, prob: BundleProblem, result: BundleResult,
             float(np.percentile(e, 90)) if e.size else np.nan,
             float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))),
             float(sim.s * np.sqrt(max(np.trace(cov[3:, 3:]), 0.0))),
-            float(delta[c] / data.fps)))
+            float(delta[c] / data.fps), float(delta_sd[c] / data.fps)))
     return out
 
 

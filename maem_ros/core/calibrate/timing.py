@@ -7,6 +7,15 @@ Gaussian kernel in continuous time (kernel_tracks): the delta with the smallest 
 reprojection error wins (a scan, then a parabola through the best three values, then a fine
 scan), for every camera in turn, until the offsets settle. Offsets are relative; the median
 camera's is taken as 0, so that cameras in sync with most of the rig come out at 0.
+
+The errors are capped (TRUNCATE_PX, raised with the keypoints' own noise). Each offset comes
+with a standard error (offset_sd: Gauss-Newton curvature, sandwich over tracks); two tests
+keep a synchronised rig at 0: an offset within SIGNIFICANCE standard errors of 0 is dropped,
+and all of them are when together they do not improve the cross-view fit over a synchronised
+rig by SIGNIFICANCE standard errors of that gain (_fit_gain_z). The second catches what the
+first cannot: on humanm3_4 (4 person-height cameras, 10-20 people, synchronised) Gauss-Seidel
+settles at +-5-10 ms, each offset 10-20 of its own standard errors from 0, while the fit with
+them is worse than with none (z = -5).
 """
 from __future__ import annotations
 
@@ -15,7 +24,14 @@ import numpy as np
 from .tracks import shift_in_time, triangulate
 
 #: px: a joint's reprojection error counts at most this much (an outlier costs the same anywhere)
+#: on clean keypoints; noisier ones raise the cap to TRUNCATE_REL x their median error
 TRUNCATE_PX = 6.0
+#: the cap relative to the median error at the current offset: real detectors (MediaPipe at
+#: 4-6 px, against 3D triangulated from 2-3 other noisy views: 11-17 px median) would
+#: otherwise leave most observations capped, and the cost a count of the few under the cap
+TRUNCATE_REL = 1.8
+#: an offset is kept only when it is this many standard errors from the rig's common time
+SIGNIFICANCE = 3.0
 #: frames: sd of the Gaussian the 3D tracks are smoothed with in continuous time (kernel_tracks)
 SMOOTH_SIGMA = 0.7
 #: the kernel is cut at this many sd (the weight there is 1e-3 of the centre's)
@@ -66,27 +82,64 @@ def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarr
     return out
 
 
-def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray) -> np.ndarray:
-    """Mean truncated squared error (px^2) of camera c's keypoints U_c (T,F,J,2) against the
-    3D tracks X (T,F,J,3) smoothed and evaluated at frame k + delta (kernel_tracks), for every
-    delta, over the terms defined at all of them (so that the costs compare the same
-    observations)."""
+def _residuals(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray
+               ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+    """(D,N,2) px: the N keypoints of camera c seen in U_c (T,F,J,2) minus the projections of
+    the 3D tracks X (T,F,J,3) smoothed and evaluated at frame k + delta (kernel_tracks), for
+    each of the D deltas; and where the N keypoints are (track, frame, joint)."""
     seen = np.all(np.isfinite(U_c), axis=-1)
     where = np.nonzero(seen)
-    e2 = np.sum((_project(P_c, kernel_tracks(X, where, deltas)) - U_c[seen]) ** 2, axis=-1)
+    return _project(P_c, kernel_tracks(X, where, deltas)) - U_c[seen], where
+
+
+def truncation_px(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, delta: float) -> float:
+    """px: the cap of camera c's squared errors: TRUNCATE_PX, or TRUNCATE_REL x the median
+    error at ``delta`` frames when the keypoints are noisier."""
+    e = np.linalg.norm(_residuals(P_c, X, U_c, np.array([delta]))[0][0], axis=-1)
+    e = e[np.isfinite(e)]
+    return max(TRUNCATE_PX, TRUNCATE_REL * float(np.median(e))) if e.size else TRUNCATE_PX
+
+
+def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray,
+          cap_px: float = TRUNCATE_PX) -> np.ndarray:
+    """Mean truncated squared error (px^2, capped at cap_px^2) of camera c's keypoints U_c
+    (T,F,J,2) against the 3D tracks X (T,F,J,3) at frame k + delta (_residuals), for every
+    delta, over the terms defined at all of them (so that the costs compare the same
+    observations)."""
+    e2 = np.sum(_residuals(P_c, X, U_c, deltas)[0] ** 2, axis=-1)
     common = np.all(np.isfinite(e2), axis=0)
     if not common.any():
         return np.full(len(deltas), np.inf)
-    return np.mean(np.minimum(e2[:, common], TRUNCATE_PX ** 2), axis=1)
+    return np.mean(np.minimum(e2[:, common], cap_px ** 2), axis=1)
 
 
-def _best_delta(P_c, X, U_c, centre: float, reach: float) -> float:
+def offset_sd(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, delta: float,
+              cap_px: float, step: float = 0.05) -> float:
+    """Standard error (frames) of camera c's offset ``delta`` (frames): the Gauss-Newton
+    curvature of the capped cost (the keypoints' image speed px/frame, from a central
+    difference of +-step frames) with a sandwich over tracks, whose errors are correlated (a
+    track's detections share its pose errors and its wrong matches), not over keypoints."""
+    r3, where = _residuals(P_c, X, U_c, np.array([delta - step, delta, delta + step]))
+    ok = np.all(np.isfinite(r3), axis=(0, 2))
+    r, J = r3[1][ok], (r3[2] - r3[0])[ok] / (2 * step)
+    keep = np.sum(r * r, axis=1) < cap_px ** 2
+    H = float(np.sum(J[keep] ** 2))
+    if H <= 0:
+        return np.inf
+    _, track = np.unique(where[0][ok][keep], return_inverse=True)
+    g = np.bincount(track, np.sum(J[keep] * r[keep], axis=1))
+    n = g.size
+    return float(np.sqrt(np.sum(g ** 2) * n / max(n - 1, 1)) / H)
+
+
+def _best_delta(P_c, X, U_c, centre: float, reach: float) -> tuple[float, float]:
     """Scan 0.2 frame steps over centre +- reach, a parabola through the best three, then a
-    0.02 frame scan around it."""
+    0.02 frame scan around it; the offset (frames) and its standard error (offset_sd)."""
+    cap = truncation_px(P_c, X, U_c, centre)
     grid = centre + np.arange(-reach, reach + 1e-9, 0.2)
-    costs = _scan(P_c, X, U_c, grid)
+    costs = _scan(P_c, X, U_c, grid, cap)
     if not np.isfinite(costs).any():
-        return centre
+        return centre, np.inf
     k = int(np.argmin(costs))
     best = grid[k]
     if 0 < k < len(grid) - 1:
@@ -95,23 +148,30 @@ def _best_delta(P_c, X, U_c, centre: float, reach: float) -> float:
         if den > 0:
             best = grid[k] + 0.1 * (c0 - c2) / den
     fine = best + np.arange(-0.1, 0.1001, 0.02)
-    fine_costs = _scan(P_c, X, U_c, fine)
-    return float(fine[int(np.argmin(fine_costs))]) if np.isfinite(fine_costs).any() else float(best)
+    fine_costs = _scan(P_c, X, U_c, fine, cap)
+    if np.isfinite(fine_costs).any():
+        best = fine[int(np.argmin(fine_costs))]
+    return float(best), offset_sd(P_c, X, U_c, float(best), cap)
 
 
 def estimate_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: int = 8,
-                     tol: float = 0.01, start: np.ndarray | None = None) -> np.ndarray:
+                     tol: float = 0.01, start: np.ndarray | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """(C,) offsets in frames of the cameras with projection matrices P (C,3,4) and 2D tracks
-    U (C,T,F,J,2), relative to the median camera. Gauss-Seidel: each camera's offset is
-    re-estimated against the others moved by their current offsets, until no offset changes
-    by more than ``tol`` frames (the first round scans +-max_frames, later ones +-0.5 frame
-    around the current value). ``start`` (C,) frames: offsets already close (from a previous
-    rig), searched +-0.5 frame from the first round on: no full scan."""
+    U (C,T,F,J,2), relative to the median camera, and their (C,) standard errors (frames; NaN
+    for a two-camera rig). Gauss-Seidel: each camera's offset is re-estimated against the
+    others moved by their current offsets, until no offset changes by more than ``tol`` frames
+    (the first round scans +-max_frames, later ones +-0.5 frame around the current value).
+    ``start`` (C,) frames: offsets already close (from a previous rig), searched +-0.5 frame
+    from the first round on: no full scan. Then the significance test: an offset within
+    SIGNIFICANCE standard errors of 0 is set to 0 (a synchronised rig seen moving too little
+    to measure an offset stays synchronised)."""
     C = P.shape[0]
     if C == 2:
-        return _two_camera_offset(P, U, max_frames)
+        return _two_camera_offset(P, U, max_frames), np.full(2, np.nan)
     warm = start is not None
     delta = np.zeros(C) if start is None else np.asarray(start, float).copy()
+    sd = np.full(C, np.inf)
     shifted = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)]) if warm else U.copy()
     for r in range(rounds):
         before = delta.copy()
@@ -119,14 +179,49 @@ def estimate_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: in
             others = [d for d in range(C) if d != c]
             X = triangulate(P[others], shifted[others])
             near = bool(r or warm)
-            delta[c] = _best_delta(P[c], X, U[c], delta[c] if near else 0.0,
-                                   0.5 if near else max_frames)
+            delta[c], sd[c] = _best_delta(P[c], X, U[c], delta[c] if near else 0.0,
+                                          0.5 if near else max_frames)
             shifted[c] = shift_in_time(U[c], delta[c])
         delta -= np.median(delta)  # offsets are relative: keep the common part at 0
         shifted = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)])
         if np.max(np.abs(delta - before)) < tol:
             break
-    return delta
+    delta[np.abs(delta) < SIGNIFICANCE * sd] = 0.0
+    if np.any(delta) and _fit_gain_z(P, U, delta) < SIGNIFICANCE:
+        delta[:] = 0.0
+    return delta, sd
+
+
+def _fit_gain_z(P: np.ndarray, U: np.ndarray, delta: np.ndarray) -> float:
+    """How many standard errors the offsets ``delta`` (C,) frames improve the cross-view fit
+    over a synchronised rig: each camera's capped squared errors against the others'
+    triangulation, with every camera at its offset and with all at 0, on the keypoints
+    defined in both; the gain summed per (camera, track), its standard error from the spread
+    of those sums (a track's errors are correlated). Why a joint test besides each offset's
+    own: an offset's standard error holds the other cameras fixed, and a rig can have a
+    combination of offsets (opposite cameras shifted against each other) that the cross-view
+    fit barely sees, along which Gauss-Seidel amplifies small biases."""
+    C = P.shape[0]
+    moved = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)])
+    gains, groups = [], []
+    for c in range(C):
+        others = [d for d in range(C) if d != c]
+        caps, e2 = [], []
+        for shifted, d in ((U, 0.0), (moved, delta[c])):
+            X = triangulate(P[others], shifted[others])
+            r, where = _residuals(P[c], X, U[c], np.array([d]))
+            e2.append(np.sum(r[0] ** 2, axis=-1))
+            caps.append(truncation_px(P[c], X, U[c], d))
+        cap2 = max(caps) ** 2
+        ok = np.isfinite(e2[0]) & np.isfinite(e2[1])
+        gains.append(np.minimum(e2[0][ok], cap2) - np.minimum(e2[1][ok], cap2))
+        groups.append(c * (U.shape[1] + 1) + where[0][ok])
+    _, g = np.unique(np.concatenate(groups), return_inverse=True)
+    per = np.bincount(g, np.concatenate(gains))
+    if per.size < 2:
+        return 0.0
+    sd = np.sqrt(per.size) * np.std(per, ddof=1)
+    return float(per.sum() / sd) if sd > 0 else np.inf
 
 
 def _two_camera_offset(P: np.ndarray, U: np.ndarray, max_frames: float) -> np.ndarray:

@@ -15,14 +15,14 @@ from maem_ros.core.calibrate.people_data import PeopleData
 
 def print_summary(result: PeopleCalibration, data: PeopleData, out: TextIO) -> None:
     print(f"{'camera':<14}{'obs':>7}{'median px':>11}{'p90 px':>9}{'rot sd deg':>12}"
-          f"{'centre sd cm':>14}{'offset ms':>11}", file=out)
+          f"{'centre sd cm':>14}{'offset ms':>11}{'sd ms':>7}", file=out)
     for c in result.cameras:
         if not c.calibrated:
             print(f"{c.name:<14}  NOT CALIBRATED", file=out)
             continue
         print(f"{c.name:<14}{c.observations:>7d}{c.median_px:>11.2f}{c.p90_px:>9.2f}"
-              f"{c.rotation_sd_deg:>12.3f}{100 * c.centre_sd_m:>14.2f}{1000 * c.time_offset_s:>11.1f}",
-              file=out)
+              f"{c.rotation_sd_deg:>12.3f}{100 * c.centre_sd_m:>14.2f}{1000 * c.time_offset_s:>11.1f}"
+              f"{1000 * c.time_offset_sd_s:>7.1f}", file=out)
     print(f"scale from: {result.scale_source}", file=out)
     for w in result.warnings:
         print(f"warning: {w}", file=out)
