@@ -165,7 +165,8 @@ def test_live_publisher_stops_cleanly_on_sigint(tmp_path):
                           frontend={"frames": 2, "num_vertices": 200})
     log = open(tmp_path / "publisher.log", "w")
     proc = subprocess.Popen([sys.executable, "-m", "maem_ros.tools.bench.live", "--publish", "camera_0",
-                             "--params", str(params), "--work", str(tmp_path), "--frames", "2",
+                             "--params", str(params), "--work", str(tmp_path),
+                             "--messages", str(tmp_path), "--frames", "2",
                              "--rate", "10"], stdout=log, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 90
