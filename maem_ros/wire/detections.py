@@ -188,6 +188,9 @@ class DetectionsMessage:
     vertices: np.ndarray
     origin: np.ndarray | None
     mesh_subset: tuple[int, int, int] | None
+    #: f32 vertices: (smallest, largest) coordinate, u and v together (NaN: none present), as
+    #: the finiteness check on reading found them; None for q4 (read from the codes)
+    f32_range: tuple[float, float] | None = None
 
     @property
     def n(self) -> int:
@@ -207,11 +210,12 @@ class DetectionsMessage:
             return _q4_extremes(pairs, self.origin) if exact \
                 else _q4_bounds(self.vertices, self.origin)
         out = np.full((2, 2), np.nan)
-        if self.vertices.size:
+        if not exact and self.f32_range is not None:
+            out[0], out[1] = self.f32_range
+        elif self.vertices.size:
             for k in range(2):
-                part = pairs[..., k] if exact else self.vertices
-                out[0, k] = np.fmin.reduce(part, axis=None)
-                out[1, k] = np.fmax.reduce(part, axis=None)
+                out[0, k] = np.fmin.reduce(pairs[..., k], axis=None)
+                out[1, k] = np.fmax.reduce(pairs[..., k], axis=None)
         return out
 
     def decode(self) -> FrameDetections:
@@ -270,13 +274,17 @@ def _q4_extremes(codes: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
     return _q4_range_px(low, high, origin)
 
 
-def _check_f32_vertices(topic: str, verts: np.ndarray) -> None:
-    """WireError (nonfinite) naming the detection with an inf among float32 vertices (N, 2V)
-    (NaN = missing): two reductions without temporaries, the elementwise check only when an
-    extreme is infinite."""
-    if verts.size and (np.isinf(np.fmin.reduce(verts, axis=None))
-                       or np.isinf(np.fmax.reduce(verts, axis=None))):
+def _check_f32_vertices(topic: str, verts: np.ndarray) -> tuple[float, float]:
+    """The smallest and largest coordinate of float32 vertices (N, 2V) (NaN = missing,
+    ignored; NaN when none is present); WireError (nonfinite) naming the detection with an
+    inf: two reductions without temporaries, the elementwise check only when an extreme is
+    infinite."""
+    if not verts.size:
+        return np.nan, np.nan
+    low, high = float(np.fmin.reduce(verts, axis=None)), float(np.fmax.reduce(verts, axis=None))
+    if np.isinf(low) or np.isinf(high):
         check_finite(topic, "verts2d", verts, allow_nan=True)
+    return low, high
 
 
 def _check_counts(topic: str, counts: dict[str, int], kname: str, vname: str) -> int:
@@ -343,8 +351,8 @@ def read_detections(msg: Any, topic: str, known_cameras: Sequence[str] | None = 
     origin = fields.get(ORIGIN_FIELD)
     if origin is not None:
         check_finite(topic, ORIGIN_FIELD, origin)
-    if vname == "verts2d":  # a q4 code is never inf; NaN = missing f32 vertex
-        _check_f32_vertices(topic, fields[vname])
+    # a q4 code is never inf; NaN = missing f32 vertex
+    f32_range = _check_f32_vertices(topic, fields[vname]) if vname == "verts2d" else None
     bbox = fields["bbox"]
     inverted = (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1])
     if inverted.any():
@@ -357,7 +365,7 @@ def read_detections(msg: Any, topic: str, known_cameras: Sequence[str] | None = 
         camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
         scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
         kpts3d=fields["kpts3d"].reshape(n, j, 3), vertices=fields[vname], origin=origin,
-        mesh_subset=subset)
+        mesh_subset=subset, f32_range=f32_range)
 
 
 def msg_to_detections(msg: Any, topic: str,
