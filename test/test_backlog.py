@@ -40,16 +40,28 @@ def test_the_frame_period_ignores_repeats_and_restarts_after_a_loop() -> None:
     assert b.period_ns() == 20 * MS
 
 
-def test_frames_that_waited_beyond_the_bound_are_skipped_but_never_the_newest() -> None:
+def test_a_node_behind_catches_up_to_the_newest_frame() -> None:
     b = fed(60)  # bound ~66.7 ms
     now = T0 + 10**9
     frames = ["a", "b", "c", "d", "e"]
     waited_ms = [300, 200, 100, 40, 5]
     kept, skipped = b.select(frames, [now - w * MS for w in waited_ms], now)
-    assert kept == ["d", "e"] and skipped == ["a", "b", "c"]
+    assert kept == ["e"] and skipped == ["a", "b", "c", "d"]
     kept, skipped = b.select(["x", "y"], [now - 900 * MS, now - 800 * MS], now)
     assert kept == ["y"] and skipped == ["x"]  # everything stale: the newest still goes
-    assert b.skipped == 4
+    assert b.skipped == 5
+    kept, skipped = b.select(["p", "q", "r"], [now - 60 * MS, now - 30 * MS, now], now)
+    assert kept == ["p", "q", "r"] and skipped == []  # within the bound: worked through
+
+
+def test_catch_up_stale_skips_only_the_frames_beyond_the_bound() -> None:
+    b = fed(60, catch_up="stale")
+    now = T0 + 10**9
+    frames = ["a", "b", "c", "d", "e"]
+    waited_ms = [300, 200, 100, 40, 5]
+    kept, skipped = b.select(frames, [now - w * MS for w in waited_ms], now)
+    assert kept == ["d", "e"] and skipped == ["a", "b", "c"]
+    assert b.skipped == 3
     kept, skipped = fed(60, keep_every_set=True).select(frames, [now - w * MS for w in
                                                                  waited_ms], now)
     assert kept == frames and skipped == []
@@ -102,16 +114,21 @@ def test_an_episode_ends_when_the_input_stops() -> None:
 
 @settings(max_examples=200, deadline=None)
 @given(waited=st.lists(st.integers(0, 2000), min_size=1, max_size=40),
-       bound_ms=st.integers(1, 500))
-def test_selection_keeps_order_the_newest_and_exactly_the_fresh_ones(waited, bound_ms) -> None:
-    b = Backlog(BacklogParams(max_backlog=bound_ms / 1e3))
+       bound_ms=st.integers(1, 500), catch_up=st.sampled_from(["newest", "stale"]))
+def test_selection_keeps_order_the_newest_and_exactly_the_fresh_ones(waited, bound_ms,
+                                                                       catch_up) -> None:
+    b = Backlog(BacklogParams(max_backlog=bound_ms / 1e3, catch_up=catch_up))
     now = T0 + 10**10
     frames = list(range(len(waited)))
     kept, skipped = b.select(frames, [now - w * MS for w in waited], now)
     assert sorted(kept + skipped) == frames and kept == sorted(kept)
     assert kept[-1] == frames[-1]
     assert all(waited[k] <= bound_ms for k in kept[:-1])
-    assert all(waited[k] > bound_ms for k in skipped)
+    behind = any(w > bound_ms for w in waited[:-1])
+    if catch_up == "stale" or not behind:
+        assert all(waited[k] > bound_ms for k in skipped)
+    else:
+        assert kept == frames[-1:]
     assert b.skipped == len(skipped)
 
 

@@ -184,6 +184,13 @@ def _listener():
 
     bg = BackgroundNode("maem_live_listener")
     bg.poses = {}
+    bg.clusters = {}  # stamp -> arrival (s): the association's hop, apart from triangulation's
+
+    def on_clusters(msg):
+        t = time.time()
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        with bg.lock:
+            bg.clusters.setdefault(stamp, t)
 
     def on_poses(msg):
         t = time.time()
@@ -191,7 +198,8 @@ def _listener():
         with bg.lock:
             bg.poses.setdefault(pf.stamp_ns, (t, pf))
 
-    bg.subs = [bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS)]
+    bg.subs = [bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS),
+               bg.node.create_subscription(PointCloud2, "/maem/clusters", on_clusters, DATA_QOS)]
     bg.watch_diagnostics()
     return bg.start()
 
@@ -240,7 +248,8 @@ def _write_live_params(a: argparse.Namespace, work: Path) -> tuple[Path, Any]:
     from maem_ros.tools.bench.latency import write_params
 
     policy = {**({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
-              **({"keep_every_set": True} if a.keep_every_set else {})}
+              **({"keep_every_set": True} if a.keep_every_set else {}),
+              **({"catch_up": a.catch_up} if a.catch_up else {})}
     assoc_over = {**({"max_wait": a.max_wait} if a.max_wait else {}), **policy} or None
     params = write_params(a.params, work / "params.yaml",
                           frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
@@ -364,9 +373,10 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
     time.sleep(1.2)  # one more /diagnostics period
     with listener.lock:
         poses = dict(listener.poses)
+        clusters = dict(listener.clusters)
         diags = dict(listener.diagnostics)
     return Observed(stamps=stamps, messages=messages, t0=t0, wall=wall, cpu0=cpu0, cpu1=cpu1,
-                     poses=poses, diags=diags, hog_at=hog_at)
+                     poses=poses, diags=diags, hog_at=hog_at, clusters=clusters)
 
 
 def _stop_graph(graph: _Graph) -> tuple[dict[str, int | None], Any]:
@@ -407,6 +417,9 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--max-backlog", type=float, default=None,
                    help="--live: the nodes' max_backlog, s (skip frames that waited that long "
                         "for the node; default: their automatic bound, 4 frame periods)")
+    g.add_argument("--catch-up", choices=("newest", "stale"), default=None,
+                   help="--live: the nodes' catch_up (what a node that fell behind skips; "
+                        "default: theirs, newest)")
     g.add_argument("--keep-every-set", action="store_true",
                    help="--live: the nodes process every frame however far behind (what a "
                         "replay wanting every frame sets; the live default skips stale ones)")

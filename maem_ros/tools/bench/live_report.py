@@ -99,6 +99,7 @@ class Observed:
     hog_at: tuple[float, float] | None
     codes: dict[str, int | None] = field(default_factory=dict)
     forced: Any = None
+    clusters: dict[int, float] = field(default_factory=dict)  # stamp -> /maem/clusters arrival
 
 
 #: the reference recall of the messages of a run, by what makes them: every run of one
@@ -140,6 +141,7 @@ def live_report(a: argparse.Namespace, params: Path, rig, profile: str | None,
         "wire": a.wire, "vertex_stride": a.vertex_stride, "vertex_count": a.vertex_count,
         "max_backlog_s": a.max_backlog or 0.0,  # 0: the nodes' automatic bound
         "keep_every_set": bool(a.keep_every_set),
+        "catch_up": a.catch_up or "newest",
         "publisher_netns": a.publisher_netns,
         "message_mb": round(float(size) / 1e6, 3),
         "link_mbit_s": round(float(size) * len(rig) * a.rate * 8 / 1e6, 1),
@@ -190,7 +192,17 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
         "latency_ms_by_frame": [round(lat_by_frame[f], 1) if f in lat_by_frame else None
                                 for f in range(len(stamps))],
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
+        # where the latency is: publish -> /maem/clusters (the association's hop) and
+        # /maem/clusters -> /maem/poses (triangulation's), medians over frames with poses
+        "association_hop_ms_median": _median_ms([run.clusters[s] - sent[s] for s in stamps
+                                                 if s in run.clusters]),
+        "triangulation_hop_ms_median": _median_ms([poses[s][0] - run.clusters[s] for s in stamps
+                                                   if s in poses and s in run.clusters]),
     }
+
+
+def _median_ms(seconds: list[float]) -> float | None:
+    return round(float(np.median(seconds)) * 1e3, 1) if seconds else None
 
 
 def node_figures(assoc: dict[str, str], tri: dict[str, str], run: Observed,

@@ -148,7 +148,8 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
     n = report["frames_published"]
     out = {k: report[k] for k in ("latency_ms_median", "latency_ms_p99", "latency_ms_max",
                                   "frames_without_poses", "partial_sets", "recall_live",
-                                  "recall_offline", "load_average_1min")}
+                                  "recall_offline", "association_hop_ms_median",
+                                  "triangulation_hop_ms_median", "load_average_1min")}
     out["frames_without_poses_pct"] = round(100.0 * report["frames_without_poses"] / max(n, 1), 2)
     out["recall_shortfall"] = round(report["recall_offline"] - report["recall_live"], 4)
     out["dropped_behind"] = report["accounting"]["skipped_association"] + \
@@ -206,6 +207,7 @@ def run_repeated(a: argparse.Namespace,
     out = {"settings": {k: reports[0][k] for k in ("cameras", "frames_published", "rate_hz",
                                                     "wire", "vertex_stride", "vertex_count",
                                                     "max_backlog_s", "keep_every_set",
+                                                    "catch_up",
                                                     "message_mb", "dds_profile")},
            "stress_s": a.stress or 0.0,
            **aggregate([r["summary"] for r in reports], a.rate),
