@@ -137,3 +137,64 @@ def test_bad_parameters_name_the_parameter() -> None:
         BacklogParams(max_backlog=-0.1)
     with pytest.raises(ValueError, match="keep_every_set"):
         BacklogParams(keep_every_set="yes")
+
+
+class _Clock:
+    """A node's clock and logger, as NodeBacklog reads them (injected time, ns)."""
+
+    def __init__(self, now_ns: int):
+        self.now_ns = now_ns
+
+    def get_clock(self):
+        return self
+
+    def now(self):
+        return self
+
+    @property
+    def nanoseconds(self) -> int:
+        return self.now_ns
+
+    def get_logger(self):
+        return self
+
+    def info(self, text: str) -> None:
+        pass
+
+
+class _Diagnostics:
+    """Counts what NodeBacklog rejects (dropped/<reason>)."""
+
+    def __init__(self) -> None:
+        self.rejected: dict[str, int] = {}
+
+    def add_source(self, source) -> None:
+        pass
+
+    def reject(self, reason: str, text: str, log_period_s: float = 1.0, n: int = 1) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + n
+
+
+@pytest.mark.parametrize("catch_up, processed", [("newest", ["a", "d"]),
+                                                 ("stale", ["a", "c", "d"])])
+def test_frames_going_stale_while_a_batch_is_processed(catch_up, processed) -> None:
+    """A batch kept at once (none stale yet) whose frames go stale while the node works: with
+    catch_up newest, once one is found stale the rest up to the newest are skipped too."""
+    from maem_ros.ros.overload import NodeBacklog
+
+    clock, diag = _Clock(T0 + 10**9), _Diagnostics()
+    nb = NodeBacklog(clock, diag, BacklogParams(max_backlog=0.1, catch_up=catch_up), "sets")
+    waited = {"a": 90, "b": 60, "c": 30, "d": 0}  # ms at the decision; bound 100 ms
+    start = clock.now_ns
+    frames = list(waited)
+    ready = {f: start - w * MS for f, w in waited.items()}
+    kept = nb.select(frames, [ready[f] for f in frames], list(range(4)))
+    assert kept == frames  # none waited beyond the bound yet
+    done = []
+    for k, f in enumerate(kept):
+        if nb.still_fresh(ready[f], k, k < len(kept) - 1):
+            done.append(f)
+            clock.now_ns += 50 * MS  # each frame takes the node 50 ms
+    # b has waited 110 ms when its turn comes: skipped; c 80 ms: worked through only with stale
+    assert done == processed
+    assert diag.rejected["behind"] == 4 - len(processed)

@@ -28,6 +28,7 @@ class NodeBacklog:
     def __init__(self, node: Node, diag: Diagnostics, params: BacklogParams, what: str):
         self.policy: Backlog = Backlog(params)
         self._node, self._diag, self._what = node, diag, what
+        self._catching_up = False  # a stale frame of this batch was skipped (still_fresh)
         diag.add_source(self.diagnostics)
         kind = ("keeps every frame (keep_every_set: true)" if params.keep_every_set else
                 f"skips {what} that waited longer than "
@@ -60,9 +61,14 @@ class NodeBacklog:
 
     def still_fresh(self, ready_ns: int, stamp_ns: int, newer_waiting: bool) -> bool:
         """Before processing a kept frame: False (counted skipped) when it has gone stale while
-        the frames ahead of it were processed and a newer one waits."""
+        the frames ahead of it were processed and a newer one waits; with ``catch_up: newest``
+        the frames after it are skipped too, up to the newest."""
+        if not newer_waiting:
+            self._catching_up = False
+            return True
         now = self.now_ns()
-        if newer_waiting and self.policy.is_stale(ready_ns, now):
+        if self._catching_up or self.policy.is_stale(ready_ns, now):
+            self._catching_up = self.policy.params.catch_up == "newest"
             self.policy.skip(now)
             self.count_skipped(1, stamp_ns)
             return False
