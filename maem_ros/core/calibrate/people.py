@@ -34,8 +34,9 @@ class PeopleOptions:
     gates_px: epipolar gates (px) of the first and second matching; extra_match_rounds: up to
     this many more matchings at the last gate while a camera's rotation still changes by more
     than settled_deg (deg) per round; max_offset_s: largest time offset searched (s);
-    time_method: "joint" (Gauss-Seidel scan, then all offsets refined together) or
-    "gauss_seidel" (the scan alone, to convergence; see doc/calibration.md)."""
+    time_method: "gauss_seidel" (one camera at a time, to convergence) or "joint" (two
+    Gauss-Seidel rounds, then all offsets refined together; less accurate on the bench's
+    humanm3_4 scene so far, see doc/calibration.md)."""
 
     hypothesis_frames: int = 15
     hypothesis_pairs: int = 2000
@@ -46,7 +47,7 @@ class PeopleOptions:
     refine_intrinsics: bool = False
     estimate_time: bool = True
     max_offset_s: float = 0.15
-    time_method: str = "joint"
+    time_method: str = "gauss_seidel"
     time_rounds: int = 4
     person_height: float | None = None
     court: CourtPoints | None = None

@@ -109,7 +109,7 @@ def scenarios(quick: bool, large: bool, seeds: int
 
 
 def run_one(name: str, ring: tuple[int, float, float] | None, players: int, difficulty: str,
-            seed: int, offsets_on: bool, frames: int, tmp: Path, time_method: str = "joint"
+            seed: int, offsets_on: bool, frames: int, tmp: Path, time_method: str = "gauss_seidel"
             ) -> dict:
     rng = np.random.default_rng(100 + seed)
     rig_arg = name

@@ -34,9 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refine-intrinsics", action="store_true", help="also refine focal length and k1")
     p.add_argument("--no-time", action="store_true", help="do not estimate time offsets")
     p.add_argument("--max-offset", type=float, default=0.15, help="largest time offset searched, s")
-    p.add_argument("--time-method", choices=("joint", "gauss_seidel"), default="joint",
-                   help="time offset estimator: joint (all offsets refined together, default) or "
-                   "gauss_seidel (one camera at a time; doc/calibration.md)")
+    p.add_argument("--time-method", choices=("gauss_seidel", "joint"), default="gauss_seidel",
+                   help="time offset estimator: gauss_seidel (one camera at a time, default) or "
+                   "joint (then all offsets refined together; less accurate on the bench so far, "
+                   "doc/calibration.md)")
     p.add_argument("--backend", default=None,
                    help="frontend backend for image/video sources (mediapipe (default), synthetic, "
                    "sam3d_body); given with a bag, its images are used, not its detections")
