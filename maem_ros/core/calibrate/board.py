@@ -46,6 +46,13 @@ AGREE_DEG, AGREE_REL, AGREE_M = 6.0, 0.1, 0.05
 VIEW_OUTLIER_FACTOR = 3.0
 #: bundle adjustment schedule for board corners (sub-pixel accurate): narrow losses, px
 BOARD_SCHEDULE = (("cauchy", 4.0, 40), ("soft_l1", 1.0, 80))
+#: intrinsics the one-run calibration refines in the joint bundle (k3 only when the per-camera
+#: calibration freed it too): everything cv2.calibrateCamera estimates. Not OpenCV's own
+#: cv2.calibrateMultiview (in the installed OpenCV 5.1.0): it starts from the same per-camera
+#: calibrateCamera and keeps those intrinsics in its joint stage; on lab4's projected corners
+#: (16 shared boards, 0.2 px noise, seeds 1 and 2) it left the principal points 2.5-8.4 px off,
+#: exactly the per-camera values, and the relative rotations 1.1-1.2 deg off
+JOINT_INTRINSICS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2")
 
 _SPEC_RE = {
     "charuco": re.compile(r"charuco:(\d+)x(\d+):([0-9.eE+-]+):([0-9.eE+-]+):(\w+)$"),
@@ -174,7 +181,8 @@ def detect_corners(gray: np.ndarray, spec: BoardSpec) -> Detection | None:
 @dataclass
 class Intrinsics:
     """One camera's calibrated intrinsics: K (3,3) px, D (5,) plumb_bob, image size px, RMS
-    reprojection error px over the ``views`` used (``dropped`` views left out as outliers)."""
+    reprojection error px over the ``views`` used (``dropped`` views left out as outliers) of
+    cv2.calibrateCamera; ``joint``: K and D were then refined in the joint bundle."""
 
     K: np.ndarray
     D: np.ndarray
@@ -183,6 +191,7 @@ class Intrinsics:
     rms: float
     views: int
     dropped: int = 0
+    joint: bool = False
 
 
 def calibrate_intrinsics(detections: list[Detection], spec: BoardSpec, size: tuple[int, int],
@@ -225,6 +234,7 @@ class _View:
     camera: int
     frame: int
     ids: np.ndarray
+    uv: np.ndarray  # (n,2) raw px
     uv_rect: np.ndarray  # (n,2) px, undistorted to the camera's K
     R: np.ndarray
     t: np.ndarray
@@ -232,12 +242,16 @@ class _View:
 
 @dataclass
 class Extrinsics:
-    """World -> camera R (C,3,3), t (C,3) m; per camera the reprojection errors of its inlier
-    corners (px, in the undistorted image) and how many frames it shared; the board poses
-    (board -> world) of the frames used; the camera pairs that joined the rig (a, b, frames)."""
+    """World -> camera R (C,3,3), t (C,3) m and intrinsics K (C,3,3) px, D (C,5) plumb_bob (the
+    given ones, or refined jointly); per camera the reprojection errors of its inlier corners
+    (px; in the undistorted image, or the raw one when the intrinsics were refined) and how many
+    frames it shared; the board poses (board -> world) of the frames used; the camera pairs that
+    joined the rig (a, b, frames)."""
 
     R: np.ndarray
     t: np.ndarray
+    K: np.ndarray
+    D: np.ndarray
     errors: list[np.ndarray]
     frames_per_camera: np.ndarray
     board_R: np.ndarray
@@ -271,7 +285,7 @@ def _views(spec: BoardSpec, detections: dict[tuple[int, int], Detection],
         uv = cv2.undistortPoints(det.uv.reshape(-1, 1, 2), K, D, P=K).reshape(-1, 2)
         pose = _board_pose(spec, det.ids, uv, K)
         if pose is not None:
-            out.append(_View(c, f, det.ids, uv, *pose))
+            out.append(_View(c, f, det.ids, det.uv, uv, *pose))
     return out
 
 
@@ -379,27 +393,33 @@ def _frame_boards(spec: BoardSpec, views: list[_View], R: list, t: list):
     return boards, used
 
 
-def _bundle(spec: BoardSpec, Ks: list[np.ndarray], R: list, t: list, boards, used, root: int):
-    """The shared bundle adjustment with each frame's board as a rigid object."""
+def _bundle(spec: BoardSpec, cameras: list[tuple[np.ndarray, np.ndarray]], R: list, t: list,
+            boards, used, root: int, intrinsics: tuple[str, ...]):
+    """The shared bundle adjustment with each frame's board as a rigid object: on the
+    undistorted corners with the intrinsics fixed, or on the raw corners refining
+    ``intrinsics`` (names of bundle_solver.INTRINSIC_NAMES) of every camera."""
     model = spec.corners()
     point_index: dict[tuple[int, int], int] = {}
     obs_cam, obs_pt, obs_uv = [], [], []
     for o, kept in enumerate(used):
         for v, ids in kept:
-            for k, uv in zip(ids, v.uv_rect):
+            for k, uv in zip(ids, v.uv if intrinsics else v.uv_rect):
                 p = point_index.setdefault((o, int(k)), len(point_index))
                 obs_cam.append(v.camera)
                 obs_pt.append(p)
                 obs_uv.append(uv)
+    raw = bool(intrinsics)  # else: undistorted corners, an ideal pinhole
     keys = np.array(list(point_index), dtype=np.int64).reshape(-1, 2)
     oR = np.stack([b[1] for b in boards])
     ot = np.stack([b[2] for b in boards])
-    prob = BundleProblem(K=np.stack(Ks), R=np.stack(R), t=np.stack(t),
+    prob = BundleProblem(K=np.stack([K for K, _ in cameras]), R=np.stack(R), t=np.stack(t),
                          points=np.einsum("pij,pj->pi", oR[keys[:, 0]], model[keys[:, 1]]) + ot[keys[:, 0]],
                          obs_camera=np.array(obs_cam), obs_point=np.array(obs_pt),
                          obs_uv=np.array(obs_uv), point_object=keys[:, 0], model=model[keys[:, 1]],
-                         object_R=oR, object_t=ot)
-    opts = BundleOptions(schedule=BOARD_SCHEDULE, fixed_cameras=(root,), outlier_px=2.0)
+                         object_R=oR, object_t=ot,
+                         dist=np.stack([D for _, D in cameras]) if raw else np.zeros((len(cameras), 5)))
+    opts = BundleOptions(schedule=BOARD_SCHEDULE, fixed_cameras=(root,), outlier_px=2.0,
+                         intrinsics=intrinsics)
     return prob, bundle_adjust(prob, opts)
 
 
@@ -415,9 +435,11 @@ def _to_board_world(R: np.ndarray, t: np.ndarray, bR: np.ndarray, bt: np.ndarray
 
 def calibrate_extrinsics(spec: BoardSpec, detections: dict[tuple[int, int], Detection],
                          cameras: list[tuple[np.ndarray, np.ndarray]],
-                         names: list[str]) -> Extrinsics:
+                         names: list[str], intrinsics: tuple[str, ...] = ()) -> Extrinsics:
     """Extrinsics of cameras ``names`` (intrinsics ``cameras[c]`` = (K, D)) from
-    ``detections[(camera index, frame)]`` (frames with the same index are simultaneous).
+    ``detections[(camera index, frame)]`` (frames with the same index are simultaneous);
+    with ``intrinsics`` (e.g. JOINT_INTRINSICS) those of every camera are refined too, from
+    the start ``cameras`` (see the module docstring).
 
     Raises NotSimultaneous (message names the cameras) when some camera shares fewer than
     MIN_SHARED_FRAMES consistent frames with the others."""
@@ -443,12 +465,14 @@ def calibrate_extrinsics(spec: BoardSpec, detections: dict[tuple[int, int], Dete
         raise NotSimultaneous(f"camera(s) {', '.join(names[c] for c in range(C) if c not in placed)} "
                               f"have no board view that agrees with the initial rig: extrinsics "
                               f"cannot be computed for the whole rig")
-    prob, res = _bundle(spec, [K for K, _ in cameras], R, t, boards, used, root)
+    prob, res = _bundle(spec, cameras, R, t, boards, used, root, tuple(intrinsics))
     err = res.errors()
     ok = res.inliers & np.isfinite(err)
     errors = [err[ok & (prob.obs_camera == c)] for c in range(C)]
     frames = np.array([sum(1 for kept in used if any(v.camera == c for v, _ in kept))
                        for c in range(C)])
     Rn, tn, bR, bt = _to_board_world(res.R, res.t, res.object_R, res.object_t)
-    return Extrinsics(Rn, tn, errors, frames, bR, bt, [b[0] for b in boards],
+    K = res.K if intrinsics else np.stack([K for K, _ in cameras])
+    D = res.dist if intrinsics else np.stack([D for _, D in cameras])
+    return Extrinsics(Rn, tn, K, D, errors, frames, bR, bt, [b[0] for b in boards],
                       [(a, b, n) for a, b, n in edges])

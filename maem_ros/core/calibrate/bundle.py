@@ -16,14 +16,18 @@ Interface (everything in SI units, world frame arbitrary, cameras OpenCV-style):
     observation belongs to: a group whose median residual is an outlier is rejected whole).
 
 * :func:`bundle_adjust` (problem, :class:`BundleOptions`) -> :class:`BundleResult` with the
-  refined R, t, focal scales, k1, points, object poses, the inlier mask and per-observation
+  refined R, t, focal scales, k1, K, dist, points, object poses, the inlier mask and per-observation
   residuals (px), and the per-camera 6x6 covariance of (rotation rad, centre m) if asked.
 
 Gauge: the cameras listed in ``fixed_cameras`` keep their pose (default: camera 0). With free
 points only, the overall scale is not observable; the damping keeps it where it starts (the
 caller sets it, e.g. from metric skeletons). Refined intrinsics: a focal scale ``s`` (fx, fy,
 skew times s) and a radial term ``k1`` on the normalised coordinates of the given image
-(residual distortion of an already rectified image; 0 at the start).
+(residual distortion of an already rectified image; 0 at the start); or, with
+``BundleOptions.intrinsics``, any of fx fy cx cy (px) and the plumb_bob k1 k2 p1 p2 k3 of
+``dist`` (C,5) on the observations' raw image (the board mode's one-run calibration: every
+camera's lens refined from the shared frames, the board layout the known object). These are a
+few more columns of each camera block, so the Schur structure is unchanged.
 
 Solver: Levenberg-Marquardt on the normal equations with the structure (free points: 3x3
 blocks; rigid objects: 6x6 blocks) eliminated by a Schur complement, an analytic Jacobian and
@@ -46,6 +50,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .bundle_solver import (
+    INTRINSIC_NAMES,
     NormalEquations,
     Observations,
     State,
@@ -85,6 +90,7 @@ class BundleProblem:
     object_t: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
     focal_scale: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
     k1: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
+    dist: np.ndarray = None  # type: ignore[assignment]  # None: the default, set in __post_init__
 
     def __post_init__(self) -> None:
         self.K = np.asarray(self.K, np.float64).reshape(-1, 3, 3)
@@ -112,7 +118,10 @@ class BundleProblem:
                          else np.asarray(self.object_t, np.float64).reshape(-1, 3))
         self.focal_scale = (np.ones(C) if self.focal_scale is None
                             else np.asarray(self.focal_scale, np.float64).reshape(C))
-        self.k1 = np.zeros(C) if self.k1 is None else np.asarray(self.k1, np.float64).reshape(C)
+        self.dist = (np.zeros((C, 5)) if self.dist is None
+                     else np.asarray(self.dist, np.float64).reshape(C, 5))
+        self.k1 = (self.dist[:, 0].copy() if self.k1 is None
+                   else np.asarray(self.k1, np.float64).reshape(C))
         if self.object_R.shape[0] < nobj or self.object_t.shape[0] < nobj:
             raise ValueError(f"bundle problem: point_object refers to {nobj} objects, "
                              f"object_R/object_t hold {self.object_R.shape[0]}/{self.object_t.shape[0]}")
@@ -152,6 +161,10 @@ class BundleOptions:
     schedule: tuple[tuple[str, float, int], ...] = DEFAULT_SCHEDULE
     refine_focal: bool = False
     refine_k1: bool = False
+    #: intrinsics refined per camera on the observations' (raw) image, any of
+    #: bundle_solver.INTRINSIC_NAMES (fx fy cx cy k1 k2 p1 p2 k3); not with refine_focal /
+    #: refine_k1 (the same unknowns on a rectified image)
+    intrinsics: tuple[str, ...] = ()
     fixed_cameras: tuple[int, ...] = (0,)
     #: an observation is an outlier when its residual exceeds max(outlier_px, outlier_mads x
     #: the robust spread of all residuals); a group when its median residual does
@@ -167,6 +180,15 @@ class BundleOptions:
     xtol: float = 1e-5
     covariance: bool = False
 
+    def __post_init__(self) -> None:
+        unknown = set(self.intrinsics) - set(INTRINSIC_NAMES)
+        if unknown:
+            raise ValueError(f"bundle options: unknown intrinsics {sorted(unknown)} (expected "
+                             f"some of {' '.join(INTRINSIC_NAMES)})")
+        if self.intrinsics and (self.refine_focal or self.refine_k1):
+            raise ValueError("bundle options: intrinsics refine fx fy ... themselves; not with "
+                             "refine_focal / refine_k1")
+
 
 @dataclass
 class BundleResult:
@@ -180,6 +202,8 @@ class BundleResult:
     t: np.ndarray
     focal_scale: np.ndarray
     k1: np.ndarray
+    K: np.ndarray
+    dist: np.ndarray
     points: np.ndarray
     object_R: np.ndarray
     object_t: np.ndarray
@@ -210,10 +234,16 @@ def bundle_adjust(prob: BundleProblem, opts: BundleOptions | None = None) -> Bun
 
 def _bundle_adjust(prob: BundleProblem, opts: BundleOptions) -> BundleResult:
     C = prob.num_cameras
-    free_cam = np.ones(C, bool)
-    free_cam[list(opts.fixed_cameras)] = False
-    st = State(prob.R, prob.t, prob.focal_scale, prob.k1, prob.points, prob.object_R,
-               prob.object_t, opts.refine_focal, opts.refine_k1)
+    pose_free = np.ones(C, bool)
+    pose_free[list(opts.fixed_cameras)] = False
+    D = prob.dist.copy()
+    D[:, 0] = prob.k1
+    st = State(prob.R, prob.t, prob.focal_scale, prob.K, D, prob.points, prob.object_R,
+               prob.object_t, opts.refine_focal, opts.refine_k1, opts.intrinsics)
+    # (C, dc) unknowns solved for: a fixed camera keeps its pose (the gauge), focal scale and
+    # k1, not its lens: the board mode's intrinsics are refined for every camera
+    free_cam = np.repeat(pose_free[:, None], st.dc, axis=1)
+    free_cam[:, st.dc - len(st.intrinsics):] = True
     active = _constrained(prob, np.ones(prob.obs_camera.size, bool))
     iterations = []
     for loss, scale, max_it in opts.schedule:
@@ -235,7 +265,8 @@ def _bundle_adjust(prob: BundleProblem, opts: BundleOptions) -> BundleResult:
     solved = np.zeros(prob.points.shape[0], bool)
     solved[prob.obs_point[active]] = True
     points[~solved] = np.nan  # left out (fewer than two inlier cameras): not estimated
-    result = BundleResult(R=st.R, t=st.t, focal_scale=st.s, k1=st.k1, points=points,
+    result = BundleResult(R=st.R, t=st.t, focal_scale=st.s, k1=st.k1.copy(),
+                          K=st.K, dist=st.D, points=points,
                           object_R=st.oR, object_t=st.ot, inliers=active, residuals=residuals,
                           iterations=iterations)
     if opts.covariance:
@@ -307,7 +338,7 @@ def _levenberg_marquardt(st: State, prob: BundleProblem, active: np.ndarray, los
     if len(ob) == 0:
         return st, 0
     C = prob.num_cameras
-    free_here = free_cam & (np.bincount(ob.cam, minlength=C) > 0)
+    free_here = free_cam & (np.bincount(ob.cam, minlength=C) > 0)[:, None]
 
     def cost(state: State) -> float:
         r = _residuals(state, ob)
@@ -316,6 +347,9 @@ def _levenberg_marquardt(st: State, prob: BundleProblem, active: np.ndarray, los
     current, mu, accepted = cost(st), 1e-3, 0
     step_scale = np.ones(st.dc)
     step_scale[3:6] = _distance_scale(st, prob, ob)
+    for i, name in enumerate(st.intrinsics):  # focal lengths and principal points: px
+        if name[0] in "fc":
+            step_scale[st.dc - len(st.intrinsics) + i] = float(np.median(st.K[:, 0, 0]))
     for _ in range(max_it):
         ne = NormalEquations(st, ob, loss, scale, C)
         new = None
@@ -335,7 +369,7 @@ def _levenberg_marquardt(st: State, prob: BundleProblem, active: np.ndarray, los
         rel = (current - cand_cost) / max(current, 1e-300)
         st, current, accepted = new, cand_cost, accepted + 1
         mu = max(mu / 3.0, 1e-12)
-        if rel < opts.ftol or np.all(np.abs(dcam[free_here]) <= opts.xtol * step_scale):
+        if rel < opts.ftol or np.all(np.abs(dcam) <= opts.xtol * step_scale):
             break
     return st, accepted
 
@@ -371,11 +405,11 @@ def _camera_covariance(st: State, prob: BundleProblem, active: np.ndarray,
     if red is None:
         return np.full((C, 6, 6), np.nan)
     r = _residuals(st, ob)
-    dof = max(1, 2 * len(ob) - int(free_cam.sum()) * st.dc - 3 * ob.points.size - 6 * ob.objects.size)
+    dof = max(1, 2 * len(ob) - int(free_cam.sum()) - 3 * ob.points.size - 6 * ob.objects.size)
     sigma2 = float(np.sum(ob.w * np.einsum("ni,ni->n", r, r))) / dof
     full = np.linalg.pinv(red[0], rcond=1e-10, hermitian=True) * sigma2
     dc = st.dc
-    for c in np.flatnonzero(free_cam):
+    for c in np.flatnonzero(free_cam[:, 0]):
         blk = full[c * dc:c * dc + 6, c * dc:c * dc + 6]
         Rt = st.R[c].T
         T = np.zeros((6, 6))

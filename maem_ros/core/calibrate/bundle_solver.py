@@ -52,31 +52,57 @@ def skew(v: np.ndarray) -> np.ndarray:
                      np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
-class State:
-    """The unknowns: cameras R (C,3,3), t (C,3), focal scale s (C,), k1 (C,); free points X
-    (P,3); object poses oR (O,3,3), ot (O,3). Camera block = [rotation 3, t 3, (s), (k1)]."""
+#: intrinsic unknowns :class:`State` can refine, in camera-block order (K entries px, plumb_bob
+#: distortion coefficients of the observations' image)
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+#: where each lives: ("K", row, col) or ("D", index)
+_INTRINSIC_AT = {"fx": ("K", 0, 0), "fy": ("K", 1, 1), "cx": ("K", 0, 2), "cy": ("K", 1, 2),
+                 "k1": ("D", 0), "k2": ("D", 1), "p1": ("D", 2), "p2": ("D", 3), "k3": ("D", 4)}
 
-    def __init__(self, R, t, s, k1, X, oR, ot, refine_focal: bool, refine_k1: bool):
-        self.R, self.t, self.s, self.k1 = R.copy(), t.copy(), s.copy(), k1.copy()
+
+class State:
+    """The unknowns: cameras R (C,3,3), t (C,3), focal scale s (C,), intrinsics K (C,3,3) px
+    and plumb_bob distortion D (C,5) (k1 k2 p1 p2 k3); free points X (P,3); object poses oR
+    (O,3,3), ot (O,3). Camera block = [rotation 3, t 3, (s), (k1), (the ``intrinsics`` named,
+    in INTRINSIC_NAMES order)]."""
+
+    def __init__(self, R, t, s, K, D, X, oR, ot, refine_focal: bool, refine_k1: bool,
+                 intrinsics: tuple[str, ...] = ()):
+        self.R, self.t, self.s, self.K, self.D = R.copy(), t.copy(), s.copy(), K.copy(), D.copy()
         self.X, self.oR, self.ot = X.copy(), oR.copy(), ot.copy()
         self.refine_focal, self.refine_k1 = refine_focal, refine_k1
-        self.dc = 6 + int(refine_focal) + int(refine_k1)
+        self.intrinsics = tuple(n for n in INTRINSIC_NAMES if n in intrinsics)
+        self.dc = 6 + int(refine_focal) + int(refine_k1) + len(self.intrinsics)
+        # tangential / higher radial terms cost a few passes per block: skipped where all zero
+        self.full_lens = bool(np.any(self.D[:, 1:]) or {"k2", "p1", "p2", "k3"} & set(self.intrinsics))
+
+    @property
+    def k1(self) -> np.ndarray:
+        return self.D[:, 0]
 
     def updated(self, dcam: np.ndarray, dpt: np.ndarray, dobj: np.ndarray) -> State:
         """State after a step: cameras (C,dc), free points (P,3), objects (O,6); rotations are
         perturbed on the left, R <- exp([d]x) R."""
         R = Rotation.from_rotvec(dcam[:, :3]).as_matrix() @ self.R
-        s, k1, col = self.s, self.k1, 6
+        s, K, D, col = self.s, self.K.copy(), self.D.copy(), 6
         if self.refine_focal:
             s, col = self.s + dcam[:, col], col + 1
         if self.refine_k1:
-            k1 = self.k1 + dcam[:, col]
+            D[:, 0] += dcam[:, col]
+            col += 1
+        for name in self.intrinsics:
+            at = _INTRINSIC_AT[name]
+            if at[0] == "K":
+                K[:, at[1], at[2]] += dcam[:, col]
+            else:
+                D[:, at[1]] += dcam[:, col]
+            col += 1
         oR, ot = self.oR, self.ot
         if len(oR):
             oR = Rotation.from_rotvec(dobj[:, :3]).as_matrix() @ self.oR
             ot = self.ot + dobj[:, 3:]
-        return State(R, self.t + dcam[:, 3:6], s, k1, self.X + dpt, oR, ot,
-                     self.refine_focal, self.refine_k1)
+        return State(R, self.t + dcam[:, 3:6], s, K, D, self.X + dpt, oR, ot,
+                     self.refine_focal, self.refine_k1, self.intrinsics)
 
 
 class Block:
@@ -109,8 +135,6 @@ class Observations:
         self.uv = prob.obs_uv[self.idx]
         self.w = prob.obs_weight[self.idx]
         self.model = prob.model[self.pt]
-        self.K2 = prob.K[:, :2, :2]
-        self.c0 = prob.K[:, :2, 2]
         free = self.obj < 0
         self.points, point_key = np.unique(self.pt[free], return_inverse=True)
         self.objects, object_key = np.unique(self.obj[~free], return_inverse=True)
@@ -140,6 +164,47 @@ def _cross(a: np.ndarray, B: np.ndarray) -> np.ndarray:
     return out
 
 
+def _distort(st: State, c: int, x: np.ndarray, y: np.ndarray):
+    """Camera ``c``'s plumb_bob lens on normalised coordinates: (xd, yd, r2, (M00, M01, M11))
+    with M = d (xd, yd) / d (x, y) (symmetric)."""
+    k1, k2, p1, p2, k3 = st.D[c]
+    r2 = x * x + y * y
+    if not st.full_lens:  # k1 alone: the rectified images of the people mode
+        d = 1.0 + k1 * r2
+        return x * d, y * d, r2, (d + 2 * k1 * x * x, 2 * k1 * x * y, d + 2 * k1 * y * y)
+    d = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    g = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d d / d r2
+    xy = x * y
+    xd = x * d + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
+    yd = y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
+    M = (d + 2 * x * x * g + 2 * p1 * y + 6 * p2 * x, 2 * xy * g + 2 * p1 * x + 2 * p2 * y,
+         d + 2 * y * y * g + 6 * p1 * y + 2 * p2 * x)
+    return xd, yd, r2, M
+
+
+def _intrinsic_columns(st: State, c: int, x, y, xd, yd, r2, Jc: np.ndarray, col: int) -> None:
+    """Fill Jc[:, col:] (2,n,k) with d u / d (each refined intrinsic) of camera ``c``."""
+    A = st.K[c, :2, :2] * st.s[c]
+    for name in st.intrinsics:
+        if name in ("fx", "fy"):
+            r = 0 if name == "fx" else 1
+            Jc[r, col] = st.s[c] * (xd if r == 0 else yd)
+            Jc[1 - r, col] = 0.0
+        elif name in ("cx", "cy"):
+            Jc[:, col] = 0.0
+            Jc[0 if name == "cx" else 1, col] = 1.0
+        else:  # d (xd, yd) of the coefficient, through A
+            if name in ("k1", "k2", "k3"):
+                rn = r2 ** (1 + "k1k2k3".index(name) // 2)
+                ex, ey = x * rn, y * rn
+            elif name == "p1":
+                ex, ey = 2 * x * y, r2 + 2 * y * y
+            else:
+                ex, ey = r2 + 2 * x * x, 2 * x * y
+            Jc[:, col] = A[:, :1] * ex + A[:, 1:] * ey
+        col += 1
+
+
 def project(st: State, ob: Observations, blk: Block, jac: bool):
     """Residuals (k,2) px (projection - observation) of the block's observations; with ``jac``
     also the Jacobians, coordinate-first: w.r.t. the camera block (2,dc,k) and the structure
@@ -159,18 +224,15 @@ def project(st: State, ob: Observations, blk: Block, jac: bool):
     Xc = RX + st.t[c][:, None]
     z = np.maximum(Xc[2], MIN_DEPTH)
     x, y = Xc[0] / z, Xc[1] / z
-    r2 = x * x + y * y
-    k1 = st.k1[c]
-    d = 1.0 + k1 * r2
-    A = ob.K2[c] * st.s[c]
-    xd, yd = x * d, y * d
+    xd, yd, r2, (M00, M01, M11) = _distort(st, c, x, y)
+    A = st.K[c, :2, :2] * st.s[c]
+    c0 = st.K[c, :2, 2]
     res = np.empty((x.size, 2))
-    res[:, 0] = A[0, 0] * xd + A[0, 1] * yd + ob.c0[c, 0] - ob.uv[sl, 0]
-    res[:, 1] = A[1, 0] * xd + A[1, 1] * yd + ob.c0[c, 1] - ob.uv[sl, 1]
+    res[:, 0] = A[0, 0] * xd + A[0, 1] * yd + c0[0] - ob.uv[sl, 0]
+    res[:, 1] = A[1, 0] * xd + A[1, 1] * yd + c0[1] - ob.uv[sl, 1]
     if not jac:
         return res
-    # d u / d Xc = A (d I + 2 k1 xn xn^T) d xn / d Xc, entry by entry
-    M00, M01, M11 = d + 2 * k1 * x * x, 2 * k1 * x * y, d + 2 * k1 * y * y
+    # d u / d Xc = A M d xn / d Xc, entry by entry
     inv_z = np.where(Xc[2] < MIN_DEPTH, 0.0, 1.0 / z)
     Jc = np.empty((2, st.dc, x.size))
     D = Jc[:, 3:6]
@@ -181,11 +243,14 @@ def project(st: State, ob: Observations, blk: Block, jac: bool):
     Jc[:, :3] = _cross(RX, D)  # -D [RX]x, row-wise RX x D_r
     col = 6
     if st.refine_focal:
-        K2 = ob.K2[c]
+        K2 = st.K[c, :2, :2]
         Jc[:, col] = K2[:, :1] * xd + K2[:, 1:] * yd
         col += 1
     if st.refine_k1:
         Jc[:, col] = A[:, :1] * (x * r2) + A[:, 1:] * (y * r2)
+        col += 1
+    if st.intrinsics:
+        _intrinsic_columns(st, c, x, y, xd, yd, r2, Jc, col)
     dudX = Rc.T @ D  # (2,3,k): row r of d u / d X is D_r Rc
     Jo = np.zeros((2, 6, x.size - nf))
     if RoM is not None:
@@ -259,7 +324,8 @@ def damp(A: np.ndarray, mu: float) -> np.ndarray:
 
 def reduced_system(ne: NormalEquations, mu: float, free_cam: np.ndarray):
     """(S (C dc, C dc), rhs (C dc,), V^-1 per group) of the damped system after eliminating
-    the structure; fixed cameras get identity rows. None if a structure block is singular."""
+    the structure; unknowns not in ``free_cam`` (C,dc) get identity rows. None if a structure
+    block is singular."""
     C, dc, _ = ne.U.shape
     Ud = damp(ne.U, mu)
     S = np.zeros((C * dc, C * dc))
@@ -283,7 +349,7 @@ def reduced_system(ne: NormalEquations, mu: float, free_cam: np.ndarray):
             Z = (Vinv[a:b] @ Wt).reshape(-1, C * dc)  # (W V^-1)^T of each structure, stacked
             S -= Wt.reshape(-1, C * dc).T @ Z
             rhs += Z.T @ g.gs[a:b].ravel()
-    fixed = np.repeat(~free_cam, dc)
+    fixed = ~free_cam.ravel()
     S[fixed] = 0.0
     S[:, fixed] = 0.0
     S[fixed, fixed] = 1.0

@@ -45,7 +45,7 @@ def _project(P: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 
 def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarray,
-                  sigma: float = SMOOTH_SIGMA) -> np.ndarray:
+                  sigma: float = SMOOTH_SIGMA, quadratic: bool = False) -> np.ndarray:
     """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
     evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
     arrays: track, frame k, joint), for each of the D ``deltas`` (NaN-aware; NaN where the
@@ -58,7 +58,12 @@ def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarr
     position. A narrow one: wider kernels flatten fast limb motion, and that bias (with
     occluded, broken tracks) is larger than the noise they remove. The kernel is linear in X:
     the samples around every entry are gathered once and all deltas weigh them in one product
-    (only the observed entries are evaluated)."""
+    (only the observed entries are evaluated).
+
+    ``quadratic``: a local quadratic fit with the same Gaussian weights instead of their mean
+    (exact for constant acceleration: the mean flattens a displacement over a fraction of a
+    frame by 1 - exp(-(sigma w)^2 / 2) for motion of w rad/frame, which biases an offset
+    measured from displacements, timing_joint); the mean where the fit is singular."""
     F = X.shape[1]
     t, k, j = where
     half = int(np.ceil(KERNEL_REACH * sigma))
@@ -76,10 +81,28 @@ def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarr
     den = W @ ok.T.astype(float)  # (D,N)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num.reshape(len(deltas), -1, 3) / den[..., None]
+        if quadratic:
+            out = _local_quadratic(W, ms[None] - deltas[:, None], G, ok, out)
     col = base - lo  # column of frame floor(k + delta)
     both = ok[:, col].T & ok[:, col + 1].T  # (D,N)
     out[~both] = np.nan
     return out
+
+
+def _local_quadratic(W: np.ndarray, u: np.ndarray, G: np.ndarray, ok: np.ndarray,
+                     mean: np.ndarray) -> np.ndarray:
+    """(D,N,3): the constant term of the weighted quadratic fit in u (D,M frames from the
+    evaluation point) of the samples G (N,M,3) valid where ok (N,M), weights W (D,M); Cramer's
+    rule on the 3x3 normal equations of every (delta, entry); ``mean`` where singular."""
+    Gf = G.transpose(1, 0, 2).reshape(G.shape[1], -1)
+    S = [(W * u ** p) @ ok.T.astype(float) for p in range(5)]  # (D,N) moments
+    T = [((W * u ** p) @ Gf).reshape(W.shape[0], -1, 3) for p in range(3)]
+    det = (S[0] * (S[2] * S[4] - S[3] ** 2) - S[1] * (S[1] * S[4] - S[2] * S[3])
+           + S[2] * (S[1] * S[3] - S[2] ** 2))
+    c0, c1, c2 = (S[2] * S[4] - S[3] ** 2), (S[2] * S[3] - S[1] * S[4]), (S[1] * S[3] - S[2] ** 2)
+    fit = (c0[..., None] * T[0] + c1[..., None] * T[1] + c2[..., None] * T[2]) / det[..., None]
+    good = np.abs(det) > 1e-9 * np.maximum(S[0], 1e-300) ** 3
+    return np.where(good[..., None], fit, mean)
 
 
 def _residuals(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray
@@ -154,21 +177,18 @@ def _best_delta(P_c, X, U_c, centre: float, reach: float) -> tuple[float, float]
     return float(best), offset_sd(P_c, X, U_c, float(best), cap)
 
 
-def estimate_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: int = 8,
-                     tol: float = 0.01, start: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(C,) offsets in frames of the cameras with projection matrices P (C,3,4) and 2D tracks
-    U (C,T,F,J,2), relative to the median camera, and their (C,) standard errors (frames; NaN
-    for a two-camera rig). Gauss-Seidel: each camera's offset is re-estimated against the
-    others moved by their current offsets, until no offset changes by more than ``tol`` frames
-    (the first round scans +-max_frames, later ones +-0.5 frame around the current value).
-    ``start`` (C,) frames: offsets already close (from a previous rig), searched +-0.5 frame
-    from the first round on: no full scan. Then the significance test: an offset within
-    SIGNIFICANCE standard errors of 0 is set to 0 (a synchronised rig seen moving too little
-    to measure an offset stays synchronised)."""
+def gauss_seidel_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: int = 8,
+                         tol: float = 0.01, start: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """(C,) offsets in frames of the C > 2 cameras with projection matrices P (C,3,4) and 2D
+    tracks U (C,T,F,J,2), relative to the median camera, and their (C,) standard errors
+    (frames, each with the others fixed). Gauss-Seidel: each camera's offset is re-estimated
+    against the others moved by their current offsets, until no offset changes by more than
+    ``tol`` frames (the first round scans +-max_frames, later ones +-0.5 frame around the
+    current value). ``start`` (C,) frames: offsets already close (from a previous rig),
+    searched +-0.5 frame from the first round on: no full scan. No significance test here
+    (timing_joint.estimate_offsets applies them)."""
     C = P.shape[0]
-    if C == 2:
-        return _two_camera_offset(P, U, max_frames), np.full(2, np.nan)
     warm = start is not None
     delta = np.zeros(C) if start is None else np.asarray(start, float).copy()
     sd = np.full(C, np.inf)
@@ -186,9 +206,6 @@ def estimate_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: in
         shifted = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)])
         if np.max(np.abs(delta - before)) < tol:
             break
-    delta[np.abs(delta) < SIGNIFICANCE * sd] = 0.0
-    if np.any(delta) and _fit_gain_z(P, U, delta) < SIGNIFICANCE:
-        delta[:] = 0.0
     return delta, sd
 
 

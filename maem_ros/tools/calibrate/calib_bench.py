@@ -13,7 +13,8 @@ cameras, 1 px noise), and prints one row per run and a summary against issue 35'
 * time offsets (ms): max error after removing the common part;
 * run time (s) of the calibration (not of the simulation).
 
-    maem-calib-bench [--frames 60] [--seeds 2] [--quick] [--large]
+    maem-calib-bench [--frames 60] [--seeds 2] [--quick] [--large] [--only NAME]
+                     [--time-method joint|gauss_seidel]
 
 Timings depend on the machine's load; the brief's machine is shared.
 """
@@ -32,6 +33,7 @@ import yaml
 from maem_ros.core.calibrate.court import CourtPoints
 from maem_ros.core.calibrate.people import PeopleOptions, calibrate_people
 from maem_ros.core.calibrate.people_data import people_data
+from maem_ros.core.calibrate.timing_joint import TIME_METHODS
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.geometry.procrustes import procrustes_align
 from maem_ros.sim.rigs import look_at
@@ -107,7 +109,8 @@ def scenarios(quick: bool, large: bool, seeds: int
 
 
 def run_one(name: str, ring: tuple[int, float, float] | None, players: int, difficulty: str,
-            seed: int, offsets_on: bool, frames: int, tmp: Path) -> dict:
+            seed: int, offsets_on: bool, frames: int, tmp: Path, time_method: str = "gauss_seidel"
+            ) -> dict:
     rng = np.random.default_rng(100 + seed)
     rig_arg = name
     if ring is not None:
@@ -125,7 +128,8 @@ def run_one(name: str, ring: tuple[int, float, float] | None, players: int, diff
     intr = Rig([c for c in scene.rig])
     row: dict = {"scene": f"{name} s{seed} {players}p {difficulty}" + (" offs" if offsets else "")}
     t0, c0 = time.perf_counter(), time.process_time()
-    res = calibrate_people(people_data(intr, dets, cfg.fps), PeopleOptions(seed=seed))
+    res = calibrate_people(people_data(intr, dets, cfg.fps),
+                           PeopleOptions(seed=seed, time_method=time_method))
     row["time_s"] = time.perf_counter() - t0
     row["cpu_s"] = time.process_time() - c0  # this process's CPU time: load-independent
     row.update(metrics(res.rig, scene.rig, offsets))
@@ -153,6 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=None, help="only the scenes whose rig name contains this")
     ap.add_argument("--large", action="store_true",
                     help="also the timing target's scene: 8 cameras x 20 people x --frames")
+    ap.add_argument("--time-method", choices=TIME_METHODS, default=PeopleOptions.time_method,
+                    help="time-offset estimator (PeopleOptions.time_method)")
     args = ap.parse_args(argv)
     rows = []
     print(HEADER)
@@ -161,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.only and args.only not in sc[0]:
                 continue
             try:
-                row = run_one(*sc, frames=args.frames, tmp=Path(tmp))
+                row = run_one(*sc, frames=args.frames, tmp=Path(tmp), time_method=args.time_method)
             except ValueError as e:
                 print(f"{sc[0]} seed {sc[4]}: FAILED: {e}")
                 continue

@@ -20,13 +20,14 @@ import argparse
 import re
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from maem_ros.core.calibrate.board import (
+    JOINT_INTRINSICS,
     BoardSpec,
     CornerDetector,
     Detection,
@@ -68,6 +69,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
     p.add_argument("--k3", action="store_true", help="also estimate the k3 distortion term "
                    "(wide-angle lenses; by default k3 = 0)")
+    p.add_argument("--per-camera-intrinsics", action="store_true",
+                   help="without --intrinsics: keep each camera's own cv2.calibrateCamera "
+                   "intrinsics (default: refine them all in the joint bundle, from the shared "
+                   "frames; more accurate, doc/calibration_board.md)")
     p.add_argument("--quiet", action="store_true", help="no per-camera summary")
 
 
@@ -237,6 +242,7 @@ def _summary(intr: dict[str, Intrinsics], ext, names: list[str]) -> list[str]:
                 f"cy {i.K[1, 2]:.2f} px, k1 {i.D[0]:+.4f} k2 {i.D[1]:+.4f}")
         line += (f", RMS {i.rms:.3f} px over {i.views} views ({i.dropped} dropped)"
                  if i.views else " (given)")
+        line += " (refined in the joint bundle)" if i.joint else ""
         if ext is not None:
             e = ext.errors[c]
             line += (f"; extrinsics from {ext.frames_per_camera[c]} frames, reprojection median "
@@ -269,8 +275,14 @@ def run(args: argparse.Namespace) -> int:
                 try:
                     dets = {(c, k): d for c, n in enumerate(names)
                             for k, d in frames.detections[n].items() if d is not None}
+                    # intrinsics calibrated here (not given) start the joint refinement
+                    joint = () if known is not None or args.per_camera_intrinsics else \
+                        JOINT_INTRINSICS + (("k3",) if args.k3 else ())
                     ext = calibrate_extrinsics(spec, dets, [(intr[n].K, intr[n].D) for n in names],
-                                               names)
+                                               names, joint)
+                    if joint:
+                        for c, n in enumerate(names):
+                            intr[n] = replace(intr[n], K=ext.K[c], D=ext.D[c], joint=True)
                 except NotSimultaneous as e:
                     print(f"{PROG}: {e}; writing intrinsics only")
         cameras = _cameras(intr, ext)

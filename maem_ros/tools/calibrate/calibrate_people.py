@@ -34,6 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refine-intrinsics", action="store_true", help="also refine focal length and k1")
     p.add_argument("--no-time", action="store_true", help="do not estimate time offsets")
     p.add_argument("--max-offset", type=float, default=0.15, help="largest time offset searched, s")
+    p.add_argument("--time-method", choices=("gauss_seidel", "joint"), default="gauss_seidel",
+                   help="time offset estimator: gauss_seidel (one camera at a time, default) or "
+                   "joint (then all offsets refined together; less accurate on the bench so far, "
+                   "doc/calibration.md)")
     p.add_argument("--backend", default=None,
                    help="frontend backend for image/video sources (mediapipe (default), synthetic, "
                    "sam3d_body); given with a bag, its images are used, not its detections")
@@ -95,7 +99,8 @@ def _options(args):
         raise BadInput(f"--frames: {args.frames}: need at least 2")
     court = read_court_points(args.court_points) if args.court_points is not None else None
     return PeopleOptions(refine_intrinsics=args.refine_intrinsics, estimate_time=not args.no_time,
-                         max_offset_s=args.max_offset, person_height=args.person_height, court=court)
+                         max_offset_s=args.max_offset, time_method=args.time_method,
+                         person_height=args.person_height, court=court)
 
 
 def _reference(path: Path | None) -> Rig | None:
