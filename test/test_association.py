@@ -21,8 +21,11 @@ BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 #: float32 distances with the hardware 1/sqrt estimate (decisions still exact: its error bound
 #: settles them or the pair is redone in float64); its means are within the estimate's
 #: relative error bound (on one point up to ~2e-4, averaging down on full meshes)
+#: (backend, precision, rtol, atol px) of the full sums against the float64 mean: mixed
+#: precision evaluates the line equation in float32, whose terms (coordinates of hundreds to
+#: thousands of px) cancel to a small distance: an absolute error of a few 1e-3 px remains
 VARIANTS = [("numpy", "float64", 1e-9, 0.0)] + (
-    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", epipolar.RSQRT_ERR, 1e-4)]
+    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", epipolar.RSQRT_ERR, 5e-3)]
     if epipolar.have_numba() else [])
 
 
