@@ -14,7 +14,7 @@ from sensor_msgs.msg import PointCloud2
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
 from maem_ros.ros import wire
-from maem_ros.ros.intake import arrival_ns
+from maem_ros.ros.intake import QueuedArrival, arrival_ns
 
 from helpers_ros import stall, start_pipeline, wait_for
 
@@ -127,6 +127,30 @@ def test_arrival_is_now_minus_the_time_in_the_queue() -> None:
     assert now - waited - 0.5e9 < got <= now - waited  # within the time this line took
     assert arrival_ns(now, {"received_timestamp": time.time_ns() + 10**9}) == now
     assert arrival_ns(now, {}) == now and arrival_ns(now, None) == now
+
+
+def test_queued_arrival_sees_time_queued_before_the_reader_history(monkeypatch) -> None:
+    """A message that took 80 ms more than the topic's fastest recent delivery (queued on the
+    way: a shared-memory port, a starved receive thread) counts as arrived 80 ms ago, though
+    the rmw stamped it received just now; a constant transit (network, clock offset) does
+    not; the baseline is per topic and forgets after WINDOW_NS."""
+    wall = [10**18]
+    monkeypatch.setattr(time, "time_ns", lambda: wall[0])
+    q, now, ms = QueuedArrival(), 5 * 10**12, 10**6
+
+    def arrive(topic: str, transit_ms: float, waited_ms: float = 0.0) -> int:
+        info = {"source_timestamp": wall[0] - int(transit_ms * ms),
+                "received_timestamp": wall[0] - int(waited_ms * ms)}
+        return q.arrival_ns(topic, now, info)
+
+    assert arrive("/a", 500) == now  # the first message sets the baseline (500 ms offset)
+    assert arrive("/a", 503) == now - 3 * ms
+    assert arrive("/a", 580, waited_ms=20) == now - 80 * ms
+    assert arrive("/a", 580, waited_ms=95) == now - 95 * ms  # the reader history's wait
+    assert arrive("/b", 580) == now  # another topic: its own baseline
+    wall[0] += QueuedArrival.WINDOW_NS + ms  # the old baseline is forgotten
+    assert arrive("/a", 580) == now
+    assert q.arrival_ns("/a", now, {"received_timestamp": wall[0]}) == now  # no source stamp
 
 
 @pytest.mark.parametrize("margin", [0.0, 0.3, 1.0])

@@ -7,7 +7,8 @@ policy skips the stale ones instead, counted by the caller (``dropped/behind``):
 
 - Each frame (an association frame set, a clusters message) has a *ready* time: when the node
   could first have processed it (the frame set's last message arrived, or its ``max_wait`` ran
-  out; a message's receive time), on the caller's clock (ns).
+  out; a message's receive time, or earlier when it queued on the way: ros/intake.py), on the
+  caller's clock (ns).
 - Its *backlog* is how long it has waited for the node since: ``now - ready``.
 - When a frame waiting exceeds the *bound*, the node is behind and catches up at once: every
   frame but the newest is skipped (``catch_up: newest``, default; the freshest frame the node

@@ -48,7 +48,7 @@ from maem_ros.core.sync import ApproximateTimeSync, SyncStats
 from maem_ros.core.tracking.temporal import TemporalParams
 from maem_ros.ros import wire
 from maem_ros.ros.diagnostics import RejectErrors, Stopwatch
-from maem_ros.ros.intake import arrival_ns, subscribe_counted, take_pending
+from maem_ros.ros.intake import QueuedArrival, subscribe_counted, take_pending
 from maem_ros.ros.node import MaemNode
 from maem_ros.ros.overload import NodeBacklog
 from maem_ros.ros.params import ConfigError, NodeParams
@@ -151,6 +151,7 @@ class AssociationNode(MaemNode):
             self.limits = InputLimits(max_detections=p["max_detections"],
                                       pixel_margin=p["pixel_margin"])
         self._sync_seen = SyncStats()
+        self._arrival = QueuedArrival()  # arrival times that see every queue on the way
         self.start_diagnostics()
         self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p), "frame set(s)")
         self._skip_stale = not p["keep_every_set"]
@@ -200,8 +201,8 @@ class AssociationNode(MaemNode):
         if step.failed:
             return
         now = self._now_ns()
-        self._ready += self.sync.add(cam, msg.stamp_ns, msg, now, arrival_ns(now, info),
-                                     poll=False)
+        arrived = self._arrival.arrival_ns(topic, now, info)
+        self._ready += self.sync.add(cam, msg.stamp_ns, msg, now, arrived, poll=False)
         if self.timer.is_canceled() and self.sync.pending():
             self.timer.reset()  # a set is waiting: poll it (max_wait) until it goes out
 
@@ -323,6 +324,8 @@ class AssociationNode(MaemNode):
             self.diag.set("missing_cameras_last", ",".join(fs.missing))
         else:
             self.diag.set("missing_cameras_last", "")
+        # how long the set waited for this node after it was complete (time_ms/waited)
+        self.diag.time("waited", (self._now_ns() - fs.ready_ns) / 1e6)
         with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
             items = self._decoded(fs)
             with Stopwatch(self.diag, "associate"):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -115,3 +116,42 @@ def arrival_ns(now_ns: int, info: Mapping[str, Any] | None) -> int:
     if not isinstance(received, int) or received <= 0:
         return int(now_ns)
     return int(now_ns) - max(0, time.time_ns() - received)
+
+
+class QueuedArrival:
+    """When a message would have reached this process had nothing queued it on its way: the
+    earlier of :func:`arrival_ns` and now minus its *excess transit*, per topic.
+
+    Transit is the time from the writer's ``source_timestamp`` to now (system clock, ns). Its
+    minimum over the last WINDOW_NS is the topic's baseline: the network's or the transport's
+    latency and any offset between the machines' clocks, which are not the node falling
+    behind. What a message took beyond that waited in a queue: the DDS reader history (what
+    :func:`arrival_ns` alone sees), but also the shared-memory port or the receive thread of a
+    process short of CPU, where full-mesh messages at 60 fps queue before the rmw stamps them
+    received. A node's backlog bound (core.backlog) counts from this time, so it sees every
+    queue on the way and not only the last one."""
+
+    #: baseline window (ns): long enough that a backlog of several seconds does not become
+    #: the baseline, short enough to follow a changed route or clock
+    WINDOW_NS = 10 * 10**9
+
+    def __init__(self) -> None:
+        # per topic: (wall ns, transit ns) with increasing transit, oldest first (sliding min)
+        self._mins: dict[str, deque[tuple[int, int]]] = {}
+
+    def arrival_ns(self, topic: str, now_ns: int, info: Mapping[str, Any] | None) -> int:
+        """The message's effective arrival on the caller's clock (``now_ns``)."""
+        received = arrival_ns(now_ns, info)
+        source = (info or {}).get("source_timestamp")
+        if not isinstance(source, int) or source <= 0:
+            return received
+        wall = time.time_ns()
+        transit = wall - source
+        mins = self._mins.setdefault(topic, deque())
+        while mins and mins[-1][1] >= transit:
+            mins.pop()
+        mins.append((wall, transit))
+        while mins[0][0] < wall - self.WINDOW_NS:
+            mins.popleft()
+        excess = max(0, transit - mins[0][1])
+        return min(received, int(now_ns) - excess)

@@ -44,7 +44,7 @@ from maem_ros.core.tracking.joint_filter import JointFilterParams, filter_and_sc
 from maem_ros.core.triangulation.ransac import TriangulationParams
 from maem_ros.ros import wire
 from maem_ros.ros.diagnostics import RejectErrors, Stopwatch
-from maem_ros.ros.intake import arrival_ns, subscribe_counted, take_pending
+from maem_ros.ros.intake import QueuedArrival, subscribe_counted, take_pending
 from maem_ros.ros.node import MaemNode
 from maem_ros.ros.overload import NodeBacklog
 from maem_ros.ros.params import NodeParams
@@ -139,6 +139,7 @@ class TriangulationNode(MaemNode):
         self.pose_pub = self.create_publisher(PointCloud2, p["poses_topic"], DATA_QOS)
         self.marker_pub = self.create_publisher(MarkerArray, p["skeletons_topic"], MARKER_QOS)
         self.topic = self.resolve_topic_name(p["clusters_topic"])
+        self._arrival = QueuedArrival()  # arrival times that see every queue on the way
         self.sub = subscribe_counted(self, self.diag, PointCloud2, self.topic, self.on_clusters,
                                      DATA_QOS, with_info=True)
         self.get_logger().info(f"{self.topic} -> {self.pose_pub.topic_name}, "
@@ -160,7 +161,8 @@ class TriangulationNode(MaemNode):
         """One clusters message: queue it; then (unless taking already) take every other one
         waiting in the DDS queue and decide on all of them together."""
         self._arrivals.append(time.monotonic())
-        self._arrived.append((msg, arrival_ns(self.get_clock().now().nanoseconds, info)))
+        self._arrived.append((msg, self._arrival.arrival_ns(
+            self.topic, self.get_clock().now().nanoseconds, info)))
         if self._taking:
             return
         self._taking = True

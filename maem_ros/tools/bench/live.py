@@ -155,6 +155,7 @@ def publish_main(a: argparse.Namespace) -> int:
         while not start.exists() and not stop.is_set():
             time.sleep(0.005)
         t0 = float(start.read_text()) if not stop.is_set() else 0.0
+        late = []  # s each publish returned after its frame's scheduled time
         for f, (_, data) in enumerate(msgs):
             target = t0 + f / a.rate
             while (now := time.time()) < target and not stop.is_set():
@@ -162,7 +163,11 @@ def publish_main(a: argparse.Namespace) -> int:
             if stop.is_set():
                 break
             pub.publish(data)
+            late.append(time.time() - target)
         else:
+            # how late this camera was: latency the nodes downstream cannot remove
+            (work / f"{a.publish}.late.tmp").write_text(repr(late))
+            (work / f"{a.publish}.late.tmp").rename(work / f"{a.publish}.late")
             print(f"published {len(msgs)} frames", flush=True)
             stop.wait(1.0)  # let reliable delivery finish before the writer goes away
     finally:
@@ -370,13 +375,23 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
         time.sleep(0.05)
     wall = time.time() - t0
     cpu1 = {p.name: p.cpu_seconds() for p in procs}
-    time.sleep(1.2)  # one more /diagnostics period
+    time.sleep(1.2)  # one more /diagnostics period (the publishers' lateness files too)
+    late = [float(x) for c in rig.names if (work / f"{c}.late").exists()
+            for x in eval_list((work / f"{c}.late").read_text())]
     with listener.lock:
         poses = dict(listener.poses)
         clusters = dict(listener.clusters)
         diags = dict(listener.diagnostics)
     return Observed(stamps=stamps, messages=messages, t0=t0, wall=wall, cpu0=cpu0, cpu1=cpu1,
-                     poses=poses, diags=diags, hog_at=hog_at, clusters=clusters)
+                     poses=poses, diags=diags, hog_at=hog_at, clusters=clusters,
+                     publisher_late_s=late)
+
+
+def eval_list(text: str) -> list[float]:
+    """A publisher's lateness file (a Python list of floats, written by this module)."""
+    import ast
+
+    return [float(x) for x in ast.literal_eval(text)]
 
 
 def _stop_graph(graph: _Graph) -> tuple[dict[str, int | None], Any]:

@@ -100,6 +100,7 @@ class Observed:
     codes: dict[str, int | None] = field(default_factory=dict)
     forced: Any = None
     clusters: dict[int, float] = field(default_factory=dict)  # stamp -> /maem/clusters arrival
+    publisher_late_s: list[float] = field(default_factory=list)  # every publish, all cameras
 
 
 #: the reference recall of the messages of a run, by what makes them: every run of one
@@ -198,6 +199,11 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
                                                  if s in run.clusters]),
         "triangulation_hop_ms_median": _median_ms([poses[s][0] - run.clusters[s] for s in stamps
                                                    if s in poses and s in run.clusters]),
+        # how late the camera publishers sent (their publish returned after the schedule): a
+        # machine too loaded for its publishers delays every frame before any node sees it
+        "publisher_late_ms_median": _median_ms(run.publisher_late_s),
+        "publisher_late_ms_p99": (round(float(np.percentile(run.publisher_late_s, 99)) * 1e3, 1)
+                                  if run.publisher_late_s else None),
     }
 
 

@@ -149,7 +149,8 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
     out = {k: report[k] for k in ("latency_ms_median", "latency_ms_p99", "latency_ms_max",
                                   "frames_without_poses", "partial_sets", "recall_live",
                                   "recall_offline", "association_hop_ms_median",
-                                  "triangulation_hop_ms_median", "load_average_1min")}
+                                  "triangulation_hop_ms_median", "publisher_late_ms_median",
+                                  "publisher_late_ms_p99", "load_average_1min")}
     out["frames_without_poses_pct"] = round(100.0 * report["frames_without_poses"] / max(n, 1), 2)
     out["recall_shortfall"] = round(report["recall_offline"] - report["recall_live"], 4)
     out["dropped_behind"] = report["accounting"]["skipped_association"] + \
