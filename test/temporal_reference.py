@@ -113,7 +113,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
                 uv[cb == c, 1] = fd.centers[db[cb == c]]
             Ps = np.stack([self._P[ca], self._P[cb]], axis=1)
             ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
-        if self.tp.verify_epipolar != "none" and t.size:
+        if self.verify_epipolar != "none" and t.size:
             key = ca * len(self.rig) + cb
             for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
                 s = np.flatnonzero(ok & (key == k))
@@ -134,7 +134,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            weight = p.cost_epipolar_weight / p.tau_mesh if self.tp.verify_epipolar != "none" else 0
+            weight = p.cost_epipolar_weight / p.tau_mesh if self.verify_epipolar != "none" else 0
             # NaN (too few joints) fails
             ok[s] = pa_mpjpe_finite(X, Y) + weight * epi[s] < p.tau_cost
         passes = np.zeros((T, M, M), bool)
@@ -144,7 +144,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
     def _points(self, fd: FrameDetections) -> np.ndarray:
         """The (N,n,2) px the verification's epipolar test compares: 2D keypoints, or the
         mesh vertices of the association's vertex subset."""
-        if self.tp.verify_epipolar == "sparse":
+        if self.verify_epipolar == "sparse":
             return fd.kpts2d
         subset = vertex_subset(fd.num_vertices, self.params.vertex_stride,
                                self.params.vertex_count)

@@ -311,6 +311,38 @@ def test_verification_with_the_keypoints_or_no_epipolar_test(verify):
         assert res.stats["detections_left"] == 0 and res.stats["verify_dropped"] == 0
 
 
+def test_keypoint_only_detections_are_explained_by_the_tracks_with_the_associations_gate():
+    """A frontend without a mesh (V = 0, e.g. mediapipe; the association runs epipolar_gate:
+    sparse): the track stage verifies with the association's own gate by default, so every
+    view of a tracked person is kept by the tracks. A mesh test there fails every pair: the
+    tracks explain nothing but one-view updates, and every person goes through the cross-view
+    association again (the Pose2Sim demo's graph ran so with the former default, mesh)."""
+    import dataclasses
+    rig = ring_rig(4)
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0))]
+    sparse = AssociationParams(k_min=3, epipolar_gate="sparse")
+
+    def steps(temporal):
+        ta = TemporalAssociator(rig, sparse, temporal)
+        out = []
+        for f in range(6):
+            fr, who = walk_frame(rig, people, f)
+            fr = {n: dataclasses.replace(fd, verts2d=np.zeros((fd.n, 0, 2), np.float32))
+                  for n, fd in fr.items()}  # keypoints only (the boxes still from the bodies)
+            out.append((ta.step(fr, fr["cam0"].stamp_ns), who))
+        return ta, out
+
+    ta, out = steps(TemporalParams())
+    assert ta.verify_epipolar == "sparse"
+    for res, who in out[2:]:
+        assert person_ids(res, rig, who) == {0: 0, 1: 1}
+        assert all(len(cl.members) == 4 for cl in res.clusters)
+        assert res.stats["detections_explained"] == 8 and res.stats["verify_dropped"] == 0
+    _, out = steps(TemporalParams(verify_epipolar="mesh"))  # every member verified out
+    assert all(res.stats["verify_dropped"] == 6 for res, _ in out[1:])
+    assert all(res.stats["tracks_one_view"] == 2 for res, _ in out[3:])
+
+
 def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_association():
     """Two cameras 1.6 m apart, 10 m from the person (rays 9 degrees apart), and two far ones.
     The person is tracked from the four views, then seen by the narrow pair only, one of whose

@@ -21,17 +21,18 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
    the projections of that cluster's own triangulation under ``refine_px``.
 4. Geometric verification, batched over tracks, as the consistent clustering verifies a merge:
    every member must pass the association's pair gates (bbox-centre reprojection, epipolar
-   distance of the mesh vertices, or of the 2D keypoints with ``verify_epipolar: sparse``,
-   under ``tau_mesh``, the association's pair cost under ``tau_cost``) with at least
-   ``min_support`` of the others, and reproject under the association's ``tau_verify`` px
-   (median over the body joints DLT triangulated from all members); the worst member is
-   dropped until all pass. Two members whose joints lie on average more than ``reid_m`` from
-   the track's prediction (a narrow pair of rays, or a neighbour's detection) do not update the
-   track: they are left to step 5, as with tracks off. A confirmed track is updated from
-   ``min_track_views`` (2) views or more, fewer than ``k_min`` flagged ``FLAG_FEW_VIEWS``;
-   with one view left it is kept alive by that view plus its prediction (``one_view``: the
-   state moves to the points of the view's rays nearest the prediction; no cluster is emitted
-   since one view triangulates nothing). A tentative track needs k_min views.
+   distance of the association's ``epipolar_gate`` -- mesh vertices or 2D keypoints; another
+   with ``verify_epipolar`` -- under ``tau_mesh``, the association's pair cost under
+   ``tau_cost``) with at least ``min_support`` of the others, and reproject under the
+   association's ``tau_verify`` px (median over the body joints DLT triangulated from all
+   members); the worst member is dropped until all pass. Two members whose joints lie on
+   average more than ``reid_m`` from the track's prediction (a narrow pair of rays, or a
+   neighbour's detection) do not update the track: they are left to step 5, as with tracks
+   off. A confirmed track is updated from ``min_track_views`` (2) views or more, fewer than
+   ``k_min`` flagged ``FLAG_FEW_VIEWS``; with one view left it is kept alive by that view plus
+   its prediction (``one_view``: the state moves to the points of the view's rays nearest the
+   prediction; no cluster is emitted since one view triangulates nothing). A tentative track
+   needs k_min views.
 5. Detections not explained by any track go through ``associate`` (the full MAEM cross-view
    association, as a black box) on per-camera subsets; member indices are mapped back. Each new
    cluster is triangulated (body joints) and either merged into a track already supported this
@@ -75,10 +76,11 @@ FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view
 FLAG_FEW_VIEWS = 2  # updated from fewer than k_min views (allowed for confirmed tracks only)
 FLAG_ONE_VIEW = 4  # kept by one view + its prediction (internal: such clusters are not emitted)
 _GATED = 1e9
-#: epipolar test inside a track's cluster: the mesh vertices (default: the test the cross-view
-#: association applies, so the track stage keeps every view the association would; doc/tracking.md),
-#: the 2D keypoints (cheaper, but noisy keypoints fail it: views dropped from tracked people), or none
-VERIFY_EPIPOLAR = ("sparse", "mesh", "none")
+#: epipolar test inside a track's cluster: the association's own (default: its ``epipolar_gate``,
+#: so the track stage keeps every view the association would, and a keypoint-only frontend (no
+#: mesh: every mesh test fails) keeps its views; doc/tracking.md), the mesh vertices, the 2D
+#: keypoints (cheaper, but noisy keypoints fail it: views dropped from tracked people), or none
+VERIFY_EPIPOLAR = ("association", "sparse", "mesh", "none")
 
 
 @dataclass
@@ -108,8 +110,9 @@ class TemporalParams(Params):
     one_view: bool = param(True, "keep a confirmed track alive on one view + its prediction")
     one_view_std: float = param(0.3, "m, root measurement std of a one-view update",
                                 minimum=0.0, exclusive_minimum=True)
-    verify_epipolar: str = param("mesh", "epipolar test inside a track's cluster: mesh vertices "
-                                         "(as the association), 2D keypoints (sparse) or none",
+    verify_epipolar: str = param("association", "epipolar test inside a track's cluster: the "
+                                                "association's epipolar_gate, mesh vertices, 2D "
+                                                "keypoints (sparse) or none",
                                  choices=VERIFY_EPIPOLAR)
     reid_m: float = param(0.5, "m, a new cluster this close to a track re-acquires / merges it",
                           minimum=0.0, exclusive_minimum=True)
@@ -215,7 +218,9 @@ class TemporalAssociator:
         #: the association's pair gates (frames prepared as they arrive: prepare), and the
         #: same gates with the verification's epipolar test (verify_epipolar)
         self.gates = PairGates(rig, params)
-        self.verify_gates = self.gates.with_epipolar_gate(temporal.verify_epipolar)
+        self.verify_epipolar = (params.epipolar_gate if temporal.verify_epipolar == "association"
+                                else temporal.verify_epipolar)
+        self.verify_gates = self.gates.with_epipolar_gate(self.verify_epipolar)
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
@@ -450,7 +455,7 @@ class TemporalAssociator:
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
             pose = pa_mpjpe_finite(X, Y, p.execution.backend)
             # the association's cost (NaN, too few joints, fails)
-            ok[s] = pair_cost(pose, decided.epi[s], p, self.tp.verify_epipolar) < p.tau_cost
+            ok[s] = pair_cost(pose, decided.epi[s], p, self.verify_epipolar) < p.tau_cost
         return ok
 
     @staticmethod
