@@ -64,6 +64,21 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             rows, cols = linear_sum_assignment(np.where(okc, cost, _GATED))
             real = okc[rows, cols]
             cand[rows[real], c] = ok[cols[real]]
+        return self._verify_cand(by_cam, body, cand)
+
+    def _verify_union(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                      both: np.ndarray) -> np.ndarray:
+        """The verified members (K,2) of a track's cluster merged with a new one (both (M,2))."""
+        cand = np.full((1, len(self.rig)), -1, np.int64)
+        cand[0, both[:, 0]] = both[:, 1]
+        cam, det, _, keep, _ = self._verify_cand(by_cam, body, cand)
+        return np.stack([cam[0, keep[0]], det[0, keep[0]]], axis=1)
+
+    def _verify_cand(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                     cand: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Verification of the candidates cand (T,C) (-1 = none). Returns members padded to
+        (T,M): cam, det, present, kept, and joints X (T,J,3)."""
+        T = len(cand)
         has = cand >= 0  # members padded to (T,M), in camera order
         M = max(int(has.sum(1).max()), 1)
         order = np.argsort(~has, axis=1, kind="stable")[:, :M]

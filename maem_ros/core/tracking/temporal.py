@@ -61,7 +61,7 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.skeleton import body_joints, joint_subset
-from maem_ros.core.tracking.track_filter import Tracker3D
+from maem_ros.core.tracking.track_filter import Track, Tracker3D
 from maem_ros.core.tracking.track_geometry import (
     mean_distance,
     nanmedian,
@@ -468,8 +468,9 @@ class TemporalAssociator:
     def _attach(self, new: list[tuple[np.ndarray, np.ndarray]],
                 by_cam: dict[int, FrameDetections], body: np.ndarray,
                 out: dict[int, list], stats: dict[str, float]) -> None:
-        """Step 5: each new (members, costs) cluster merges into a track supported this frame,
-        re-acquires an unsupported track, or starts a tentative one."""
+        """Step 5: each new (members, costs) cluster merges into a track supported this frame
+        (the union verified as the track's own candidates are), re-acquires an unsupported
+        track, or starts a tentative one."""
         joints = self._triangulate([m for m, _ in new], by_cam, body)  # (K,J,3)
         tracks = self.tracker.tracks
         taken = np.zeros(len(new), bool)
@@ -488,17 +489,10 @@ class TemporalAssociator:
                 taken[k] = True
                 if merge:
                     stats["tracks_merged"] += 1
-                    old = out[t.key]
-                    if np.intersect1d(old[0][:, 0], members[:, 0]).size:
-                        if old[2] & FLAG_ONE_VIEW:  # the cross-view cluster beats one view
-                            self.tracker.update(t, joints[k])
-                            out[t.key] = [members, costs, 0]
-                        continue  # else the same person twice in a camera: the track's wins
-                    both = np.concatenate([old[0], members])
-                    order = np.argsort(both[:, 0], kind="stable")
-                    few = FLAG_FEW_VIEWS if len(both) < self.params.k_min else 0
-                    out[t.key] = [both[order], np.full(len(both), np.nan),
-                                  (old[2] & ~FLAG_FEW_VIEWS & ~FLAG_ONE_VIEW) | few]
+                    merged = self._merge(t, out[t.key], members, costs, joints[k], by_cam, body,
+                                         stats)
+                    if merged is not None:
+                        out[t.key] = merged
                 else:
                     self.tracker.update(t, joints[k])
                     out[t.key] = [members, costs, 0]
@@ -507,6 +501,46 @@ class TemporalAssociator:
             t = self.tracker.start(joints[k])
             out[t.key] = [new[k][0], new[k][1], 0]
             stats["tracks_started"] += 1
+
+    def _merge(self, t: Track, old: list, members: np.ndarray, costs: np.ndarray,
+               joints: np.ndarray, by_cam: dict[int, FrameDetections], body: np.ndarray,
+               stats: dict[str, float]) -> list | None:
+        """The entry [members, costs, flags] of track t (its entry this frame ``old``) merged with
+        a new cross-view cluster (members, costs; body joints (J,3)) lying within reid_m of it,
+        or None to keep ``old``. The union is verified as the track's own candidates are
+        (:meth:`_verify_union`); when it verifies fewer members than one part alone (a
+        verify_epipolar stricter than the association's gate, or two parts that are not one
+        person), the larger part stands alone."""
+        if np.intersect1d(old[0][:, 0], members[:, 0]).size:
+            if old[2] & FLAG_ONE_VIEW:  # the cross-view cluster beats one view
+                self.tracker.update(t, joints)
+                return [members, costs, 0]
+            return None  # else the same person twice in a camera: the track's wins
+        union = np.concatenate([old[0], members])
+        both = self._verify_union(by_cam, body, union)
+        part = max(len(old[0]), len(members))
+        stats["verify_dropped"] += float(len(union) - max(len(both), part))
+        if len(both) < part:
+            if len(members) <= len(old[0]):
+                return None  # the track's cluster stays
+            if old[2] & FLAG_ONE_VIEW:
+                self.tracker.update(t, joints)
+            return [members, costs, 0]
+        few = FLAG_FEW_VIEWS if len(both) < self.params.k_min else 0
+        return [both, np.full(len(both), np.nan), (old[2] & ~FLAG_FEW_VIEWS & ~FLAG_ONE_VIEW) | few]
+
+    def _verify_union(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                      both: np.ndarray) -> np.ndarray:
+        """The verified members (K,2) (camera, detection; camera order) of a track's cluster
+        merged with a new cluster of other cameras (both (M,2)). Each part was verified alone,
+        their union was not: a view consistent with one part (e.g. a body mixed from two
+        overlapping people, 40+ px from the other part's rays) is dropped here as the track's
+        verification or the consistent clustering's merge check would drop it."""
+        cand = np.full((1, len(self.rig)), -1, np.int64)
+        cand[0, both[:, 0]] = both[:, 1]
+        # a view of its own (merges are rare: the pair gates of the track stage's are not kept)
+        cam, det, _, keep, _ = self._verify_candidates(_FrameView(self, by_cam, body), cand)
+        return np.stack([cam[0, keep[0]], det[0, keep[0]]], axis=1)
 
     def _triangulate(self, clusters: list[np.ndarray], by_cam: dict[int, FrameDetections],
                      body: np.ndarray) -> np.ndarray:
