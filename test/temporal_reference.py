@@ -64,6 +64,21 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             rows, cols = linear_sum_assignment(np.where(okc, cost, _GATED))
             real = okc[rows, cols]
             cand[rows[real], c] = ok[cols[real]]
+        return self._verify_cand(by_cam, body, cand)
+
+    def _verify_union(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                      both: np.ndarray) -> np.ndarray:
+        """The verified members (K,2) of a track's cluster merged with a new one (both (M,2))."""
+        cand = np.full((1, len(self.rig)), -1, np.int64)
+        cand[0, both[:, 0]] = both[:, 1]
+        cam, det, _, keep, _ = self._verify_cand(by_cam, body, cand)
+        return np.stack([cam[0, keep[0]], det[0, keep[0]]], axis=1)
+
+    def _verify_cand(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                     cand: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Verification of the candidates cand (T,C) (-1 = none). Returns members padded to
+        (T,M): cam, det, present, kept, and joints X (T,J,3)."""
+        T = len(cand)
         has = cand >= 0  # members padded to (T,M), in camera order
         M = max(int(has.sum(1).max()), 1)
         order = np.argsort(~has, axis=1, kind="stable")[:, :M]
@@ -113,7 +128,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
                 uv[cb == c, 1] = fd.centers[db[cb == c]]
             Ps = np.stack([self._P[ca], self._P[cb]], axis=1)
             ok &= reprojection_errors(Ps, uv, p.reproj_reduce) < p.tau_reproj_bbox
-        if self.tp.verify_epipolar != "none" and t.size:
+        if self.verify_epipolar != "none" and t.size:
             key = ca * len(self.rig) + cb
             for k in np.unique(key[ok]).tolist():  # one kernel call per camera pair
                 s = np.flatnonzero(ok & (key == k))
@@ -134,7 +149,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             for c, fd in by_cam.items():
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            weight = p.cost_epipolar_weight / p.tau_mesh if self.tp.verify_epipolar != "none" else 0
+            weight = p.cost_epipolar_weight / p.tau_mesh if self.verify_epipolar != "none" else 0
             # NaN (too few joints) fails
             ok[s] = pa_mpjpe_finite(X, Y) + weight * epi[s] < p.tau_cost
         passes = np.zeros((T, M, M), bool)
@@ -144,7 +159,7 @@ class ReferenceTemporalAssociator(TemporalAssociator):
     def _points(self, fd: FrameDetections) -> np.ndarray:
         """The (N,n,2) px the verification's epipolar test compares: 2D keypoints, or the
         mesh vertices of the association's vertex subset."""
-        if self.tp.verify_epipolar == "sparse":
+        if self.verify_epipolar == "sparse":
             return fd.kpts2d
         subset = vertex_subset(fd.num_vertices, self.params.vertex_stride,
                                self.params.vertex_count)

@@ -311,6 +311,43 @@ def test_verification_with_the_keypoints_or_no_epipolar_test(verify):
         assert res.stats["detections_left"] == 0 and res.stats["verify_dropped"] == 0
 
 
+def test_keypoint_only_detections_are_explained_by_the_tracks_with_the_associations_gate():
+    """A frontend without a mesh (V = 0, e.g. mediapipe; the association runs epipolar_gate:
+    sparse): the track stage verifies with the association's own gate by default, so every
+    view of a tracked person is kept by the tracks. A mesh test there fails every pair: the
+    tracks explain nothing but one-view updates, and every person goes through the cross-view
+    association again (the Pose2Sim demo's graph ran so with the former default, mesh)."""
+    import dataclasses
+    rig = ring_rig(4)
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0))]
+    sparse = AssociationParams(k_min=3, epipolar_gate="sparse")
+
+    def steps(temporal):
+        ta = TemporalAssociator(rig, sparse, temporal)
+        out = []
+        for f in range(6):
+            fr, who = walk_frame(rig, people, f)
+            fr = {n: dataclasses.replace(fd, verts2d=np.zeros((fd.n, 0, 2), np.float32))
+                  for n, fd in fr.items()}  # keypoints only (the boxes still from the bodies)
+            out.append((ta.step(fr, fr["cam0"].stamp_ns), who))
+        return ta, out
+
+    ta, out = steps(TemporalParams())
+    assert ta.verify_epipolar == "sparse"
+    for res, who in out[2:]:
+        assert person_ids(res, rig, who) == {0: 0, 1: 1}
+        assert all(len(cl.members) == 4 for cl in res.clusters)
+        assert res.stats["detections_explained"] == 8 and res.stats["verify_dropped"] == 0
+    _, out = steps(TemporalParams(verify_epipolar="mesh"))  # every member verified out
+    assert all(res.stats["verify_dropped"] == 6 for res, _ in out[1:3])
+    assert all(res.stats["tracks_one_view"] == 2 for res, _ in out[3:])
+    # the association's 3-view clusters merge into the one-view tracks; their union fails the
+    # mesh test too, so the association's cluster stands alone (each track's view left out)
+    for res, who in out[3:]:
+        assert res.stats["verify_dropped"] == 8 and person_ids(res, rig, who) == {0: 0, 1: 1}
+        assert all(len(cl.members) == 3 for cl in res.clusters)
+
+
 def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_association():
     """Two cameras 1.6 m apart, 10 m from the person (rays 9 degrees apart), and two far ones.
     The person is tracked from the four views, then seen by the narrow pair only, one of whose
@@ -347,3 +384,33 @@ def test_a_two_view_update_far_from_the_prediction_is_left_to_the_cross_view_ass
             assert res.clusters[0].members.tolist() == [[0, 0], [1, 0]]
         else:
             assert res.track_ids.tolist() == [0] and res.stats["tracks_two_view_jumps"] == 0
+
+
+def test_a_new_cluster_merged_into_a_tracked_one_is_verified_with_it():
+    """In frame 6 cam0 and cam1 see the person 0.4 m aside (~30 px; a body mixed from two
+    overlapping people, say): consistent with each other, not with the other three views. The
+    track verifies cam2-4; cam0 + cam1 form a cross-view cluster 0.4 m from the track (within
+    reid_m), which merges into the track's cluster. The union is verified as the track's own
+    candidates are: the two views fail the pair gates with the other three and are dropped, so
+    the published cluster is the three consistent views (the merge used to publish all five:
+    on the Pose2Sim demo such merges raised the graph's reprojection error above the per-frame
+    association's)."""
+    rig = ring_rig(5)
+    person = dict(seed=23, v=(0.8, 0.4))
+    people, aside = [Person((-2, -1), **person)], [Person((-1.6, -1), **person)]
+    ta = TemporalAssociator(rig, AssociationParams(k_min=2), TemporalParams())
+    for f in range(8):
+        fr, _ = walk_frame(rig, people, f)
+        if f == 6:
+            moved, _ = walk_frame(rig, aside, f)
+            fr.update({n: moved[n] for n in ("cam0", "cam1")})
+        res = ta.step(fr, fr["cam0"].stamp_ns)
+        if f < 2:  # confirm_hits = 3
+            continue
+        assert res.track_ids.tolist() == [0], f"frame {f}"
+        cams = res.clusters[0].members[:, 0].tolist()
+        if f == 6:
+            assert res.stats["tracks_merged"] == 1
+            assert cams == [2, 3, 4] and res.stats["verify_dropped"] >= 2
+        else:
+            assert cams == [0, 1, 2, 3, 4] and res.stats["verify_dropped"] == 0

@@ -21,17 +21,18 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
    the projections of that cluster's own triangulation under ``refine_px``.
 4. Geometric verification, batched over tracks, as the consistent clustering verifies a merge:
    every member must pass the association's pair gates (bbox-centre reprojection, epipolar
-   distance of the mesh vertices, or of the 2D keypoints with ``verify_epipolar: sparse``,
-   under ``tau_mesh``, the association's pair cost under ``tau_cost``) with at least
-   ``min_support`` of the others, and reproject under the association's ``tau_verify`` px
-   (median over the body joints DLT triangulated from all members); the worst member is
-   dropped until all pass. Two members whose joints lie on average more than ``reid_m`` from
-   the track's prediction (a narrow pair of rays, or a neighbour's detection) do not update the
-   track: they are left to step 5, as with tracks off. A confirmed track is updated from
-   ``min_track_views`` (2) views or more, fewer than ``k_min`` flagged ``FLAG_FEW_VIEWS``;
-   with one view left it is kept alive by that view plus its prediction (``one_view``: the
-   state moves to the points of the view's rays nearest the prediction; no cluster is emitted
-   since one view triangulates nothing). A tentative track needs k_min views.
+   distance of the association's ``epipolar_gate`` -- mesh vertices or 2D keypoints; another
+   with ``verify_epipolar`` -- under ``tau_mesh``, the association's pair cost under
+   ``tau_cost``) with at least ``min_support`` of the others, and reproject under the
+   association's ``tau_verify`` px (median over the body joints DLT triangulated from all
+   members); the worst member is dropped until all pass. Two members whose joints lie on
+   average more than ``reid_m`` from the track's prediction (a narrow pair of rays, or a
+   neighbour's detection) do not update the track: they are left to step 5, as with tracks
+   off. A confirmed track is updated from ``min_track_views`` (2) views or more, fewer than
+   ``k_min`` flagged ``FLAG_FEW_VIEWS``; with one view left it is kept alive by that view plus
+   its prediction (``one_view``: the state moves to the points of the view's rays nearest the
+   prediction; no cluster is emitted since one view triangulates nothing). A tentative track
+   needs k_min views.
 5. Detections not explained by any track go through ``associate`` (the full MAEM cross-view
    association, as a black box) on per-camera subsets; member indices are mapped back. Each new
    cluster is triangulated (body joints) and either merged into a track already supported this
@@ -60,7 +61,7 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.skeleton import body_joints, joint_subset
-from maem_ros.core.tracking.track_filter import Tracker3D
+from maem_ros.core.tracking.track_filter import Track, Tracker3D
 from maem_ros.core.tracking.track_geometry import (
     mean_distance,
     nanmedian,
@@ -75,10 +76,11 @@ FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view
 FLAG_FEW_VIEWS = 2  # updated from fewer than k_min views (allowed for confirmed tracks only)
 FLAG_ONE_VIEW = 4  # kept by one view + its prediction (internal: such clusters are not emitted)
 _GATED = 1e9
-#: epipolar test inside a track's cluster: the mesh vertices (default: the test the cross-view
-#: association applies, so the track stage keeps every view the association would; doc/tracking.md),
-#: the 2D keypoints (cheaper, but noisy keypoints fail it: views dropped from tracked people), or none
-VERIFY_EPIPOLAR = ("sparse", "mesh", "none")
+#: epipolar test inside a track's cluster: the association's own (default: its ``epipolar_gate``,
+#: so the track stage keeps every view the association would, and a keypoint-only frontend (no
+#: mesh: every mesh test fails) keeps its views; doc/tracking.md), the mesh vertices, the 2D
+#: keypoints (cheaper, but noisy keypoints fail it: views dropped from tracked people), or none
+VERIFY_EPIPOLAR = ("association", "sparse", "mesh", "none")
 
 
 @dataclass
@@ -108,8 +110,9 @@ class TemporalParams(Params):
     one_view: bool = param(True, "keep a confirmed track alive on one view + its prediction")
     one_view_std: float = param(0.3, "m, root measurement std of a one-view update",
                                 minimum=0.0, exclusive_minimum=True)
-    verify_epipolar: str = param("mesh", "epipolar test inside a track's cluster: mesh vertices "
-                                         "(as the association), 2D keypoints (sparse) or none",
+    verify_epipolar: str = param("association", "epipolar test inside a track's cluster: the "
+                                                "association's epipolar_gate, mesh vertices, 2D "
+                                                "keypoints (sparse) or none",
                                  choices=VERIFY_EPIPOLAR)
     reid_m: float = param(0.5, "m, a new cluster this close to a track re-acquires / merges it",
                           minimum=0.0, exclusive_minimum=True)
@@ -215,7 +218,9 @@ class TemporalAssociator:
         #: the association's pair gates (frames prepared as they arrive: prepare), and the
         #: same gates with the verification's epipolar test (verify_epipolar)
         self.gates = PairGates(rig, params)
-        self.verify_gates = self.gates.with_epipolar_gate(temporal.verify_epipolar)
+        self.verify_epipolar = (params.epipolar_gate if temporal.verify_epipolar == "association"
+                                else temporal.verify_epipolar)
+        self.verify_gates = self.gates.with_epipolar_gate(self.verify_epipolar)
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
@@ -450,7 +455,7 @@ class TemporalAssociator:
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
             pose = pa_mpjpe_finite(X, Y, p.execution.backend)
             # the association's cost (NaN, too few joints, fails)
-            ok[s] = pair_cost(pose, decided.epi[s], p, self.tp.verify_epipolar) < p.tau_cost
+            ok[s] = pair_cost(pose, decided.epi[s], p, self.verify_epipolar) < p.tau_cost
         return ok
 
     @staticmethod
@@ -463,8 +468,9 @@ class TemporalAssociator:
     def _attach(self, new: list[tuple[np.ndarray, np.ndarray]],
                 by_cam: dict[int, FrameDetections], body: np.ndarray,
                 out: dict[int, list], stats: dict[str, float]) -> None:
-        """Step 5: each new (members, costs) cluster merges into a track supported this frame,
-        re-acquires an unsupported track, or starts a tentative one."""
+        """Step 5: each new (members, costs) cluster merges into a track supported this frame
+        (the union verified as the track's own candidates are), re-acquires an unsupported
+        track, or starts a tentative one."""
         joints = self._triangulate([m for m, _ in new], by_cam, body)  # (K,J,3)
         tracks = self.tracker.tracks
         taken = np.zeros(len(new), bool)
@@ -483,17 +489,10 @@ class TemporalAssociator:
                 taken[k] = True
                 if merge:
                     stats["tracks_merged"] += 1
-                    old = out[t.key]
-                    if np.intersect1d(old[0][:, 0], members[:, 0]).size:
-                        if old[2] & FLAG_ONE_VIEW:  # the cross-view cluster beats one view
-                            self.tracker.update(t, joints[k])
-                            out[t.key] = [members, costs, 0]
-                        continue  # else the same person twice in a camera: the track's wins
-                    both = np.concatenate([old[0], members])
-                    order = np.argsort(both[:, 0], kind="stable")
-                    few = FLAG_FEW_VIEWS if len(both) < self.params.k_min else 0
-                    out[t.key] = [both[order], np.full(len(both), np.nan),
-                                  (old[2] & ~FLAG_FEW_VIEWS & ~FLAG_ONE_VIEW) | few]
+                    merged = self._merge(t, out[t.key], members, costs, joints[k], by_cam, body,
+                                         stats)
+                    if merged is not None:
+                        out[t.key] = merged
                 else:
                     self.tracker.update(t, joints[k])
                     out[t.key] = [members, costs, 0]
@@ -502,6 +501,46 @@ class TemporalAssociator:
             t = self.tracker.start(joints[k])
             out[t.key] = [new[k][0], new[k][1], 0]
             stats["tracks_started"] += 1
+
+    def _merge(self, t: Track, old: list, members: np.ndarray, costs: np.ndarray,
+               joints: np.ndarray, by_cam: dict[int, FrameDetections], body: np.ndarray,
+               stats: dict[str, float]) -> list | None:
+        """The entry [members, costs, flags] of track t (its entry this frame ``old``) merged with
+        a new cross-view cluster (members, costs; body joints (J,3)) lying within reid_m of it,
+        or None to keep ``old``. The union is verified as the track's own candidates are
+        (:meth:`_verify_union`); when it verifies fewer members than one part alone (a
+        verify_epipolar stricter than the association's gate, or two parts that are not one
+        person), the larger part stands alone."""
+        if np.intersect1d(old[0][:, 0], members[:, 0]).size:
+            if old[2] & FLAG_ONE_VIEW:  # the cross-view cluster beats one view
+                self.tracker.update(t, joints)
+                return [members, costs, 0]
+            return None  # else the same person twice in a camera: the track's wins
+        union = np.concatenate([old[0], members])
+        both = self._verify_union(by_cam, body, union)
+        part = max(len(old[0]), len(members))
+        stats["verify_dropped"] += float(len(union) - max(len(both), part))
+        if len(both) < part:
+            if len(members) <= len(old[0]):
+                return None  # the track's cluster stays
+            if old[2] & FLAG_ONE_VIEW:
+                self.tracker.update(t, joints)
+            return [members, costs, 0]
+        few = FLAG_FEW_VIEWS if len(both) < self.params.k_min else 0
+        return [both, np.full(len(both), np.nan), (old[2] & ~FLAG_FEW_VIEWS & ~FLAG_ONE_VIEW) | few]
+
+    def _verify_union(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
+                      both: np.ndarray) -> np.ndarray:
+        """The verified members (K,2) (camera, detection; camera order) of a track's cluster
+        merged with a new cluster of other cameras (both (M,2)). Each part was verified alone,
+        their union was not: a view consistent with one part (e.g. a body mixed from two
+        overlapping people, 40+ px from the other part's rays) is dropped here as the track's
+        verification or the consistent clustering's merge check would drop it."""
+        cand = np.full((1, len(self.rig)), -1, np.int64)
+        cand[0, both[:, 0]] = both[:, 1]
+        # a view of its own (merges are rare: the pair gates of the track stage's are not kept)
+        cam, det, _, keep, _ = self._verify_candidates(_FrameView(self, by_cam, body), cand)
+        return np.stack([cam[0, keep[0]], det[0, keep[0]]], axis=1)
 
     def _triangulate(self, clusters: list[np.ndarray], by_cam: dict[int, FrameDetections],
                      body: np.ndarray) -> np.ndarray:
