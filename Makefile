@@ -59,6 +59,7 @@ SLOW_KINDS := not ros and not slow and not colcon and not network
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check maem_ros
+	$(VENV)/bin/ruff format --check maem_ros
 	$(VENV)/bin/mypy
 
 test: lint $(TF2_STAMP) $(MP_STAMP) $(KERNELS_STAMP)

@@ -4,6 +4,7 @@ the open / read / reconnect state machine the camera node drives from its timer.
 Times: ``Capture.poll(now)`` takes monotonic seconds; sources stamp frames with the clock
 function they are given (integer ns, taken right after the grab).
 """
+
 from __future__ import annotations
 
 import glob as globmod
@@ -106,9 +107,16 @@ class VideoSource:
             cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # newest frame, not a queued one (V4L2)
         else:
             target = str(Path(self.spec).expanduser()) if self.finite else self.spec
-            cap = cv2.VideoCapture(target, cv2.CAP_ANY,
-                                   [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, self._timeout_ms,
-                                    cv2.CAP_PROP_READ_TIMEOUT_MSEC, self._timeout_ms])
+            cap = cv2.VideoCapture(
+                target,
+                cv2.CAP_ANY,
+                [
+                    cv2.CAP_PROP_OPEN_TIMEOUT_MSEC,
+                    self._timeout_ms,
+                    cv2.CAP_PROP_READ_TIMEOUT_MSEC,
+                    self._timeout_ms,
+                ],
+            )
         if not cap.isOpened():
             cap.release()
             return False
@@ -135,8 +143,7 @@ def make_source(spec: str, clock_ns: Callable[[], int], open_timeout_s: float = 
     """The FrameSource for a ``source`` parameter value (see the module docstring)."""
     spec = spec.strip()
     if not spec:
-        raise ValueError("empty; give a device index, video file, stream URL or image "
-                         "folder/glob")
+        raise ValueError("empty; give a device index, video file, stream URL or image folder/glob")
     if re.fullmatch(r"\d+", spec):
         return VideoSource(int(spec), clock_ns, open_timeout_s)
     p = Path(spec).expanduser()
@@ -248,15 +255,30 @@ class Capture:
         self.counters.open_failures += 1
         self._failed_attempts += 1
         if not self._ever_opened and self._failed_attempts >= self.open_attempts:
-            return self._finish(Poll("failed", message=(
-                f"cannot open {self.source.description} after {self._failed_attempts} attempts; "
-                "check the path/URL/device index and that nothing else holds the device")))
+            return self._finish(
+                Poll(
+                    "failed",
+                    message=(
+                        f"cannot open {self.source.description} after {self._failed_attempts} attempts; "
+                        "check the path/URL/device index and that nothing else holds the device"
+                    ),
+                )
+            )
         if self._ever_opened and 0 < self.max_reconnects <= self._failed_attempts:
-            return self._finish(Poll("failed", message=(
-                f"lost {self.source.description}; {self._failed_attempts} reopen attempts failed")))
+            return self._finish(
+                Poll(
+                    "failed",
+                    message=(
+                        f"lost {self.source.description}; {self._failed_attempts} reopen attempts failed"
+                    ),
+                )
+            )
         self._next_attempt = now + self.delay(self._failed_attempts)
-        return Poll("waiting", message=f"cannot open {self.source.description}, retrying in "
-                                       f"{self.delay(self._failed_attempts):.1f} s")
+        return Poll(
+            "waiting",
+            message=f"cannot open {self.source.description}, retrying in "
+            f"{self.delay(self._failed_attempts):.1f} s",
+        )
 
     def _lost(self, now: float, why: str) -> Poll:
         self.counters.read_failures += 1

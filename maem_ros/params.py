@@ -4,6 +4,7 @@ A params file has the ROS 2 layout ``node_name: {ros__parameters: {...}}`` with 
 optional ``/**`` section shared by every node. Offline tools (maem-eval, maem-bench)
 read the same files the nodes use.
 """
+
 from __future__ import annotations
 
 import sys
@@ -22,6 +23,7 @@ def config_dirs() -> list[Path]:
     dirs = [_REPO_CONFIG, Path(sys.prefix) / "share" / "maem_ros" / "config"]
     try:  # colcon workspace
         from ament_index_python.packages import get_package_share_directory
+
         dirs.append(Path(get_package_share_directory("maem_ros")) / "config")
     except Exception:  # noqa: BLE001 - ament index absent or package not registered
         pass
@@ -40,8 +42,11 @@ def resolve_config_path(value: str | Path, subdir: str = "") -> Path:
         for cand in (d / subdir / p, d / subdir / f"{p}.yaml", d / p):
             if cand.exists():
                 return cand
-    raise InputError(f"config {str(value)!r}: not a file/folder and not a shipped "
-                     f"config{'/' + subdir if subdir else ''} entry", "bad_config")
+    raise InputError(
+        f"config {str(value)!r}: not a file/folder and not a shipped "
+        f"config{'/' + subdir if subdir else ''} entry",
+        "bad_config",
+    )
 
 
 def resolve_rig_path(value: str | Path) -> Path:
@@ -55,19 +60,22 @@ def load_node_params(params_file: str | Path, node_name: str) -> dict[str, Any]:
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as e:
-        raise InputError(f"params file {str(path)!r}: unreadable ({' '.join(str(e).split())})",
-                         "bad_config") from None
+        raise InputError(
+            f"params file {str(path)!r}: unreadable ({' '.join(str(e).split())})", "bad_config"
+        ) from None
     if not isinstance(data, dict):
-        raise InputError(f"params file {str(path)!r}: expected a mapping of node names",
-                         "bad_config")
+        raise InputError(f"params file {str(path)!r}: expected a mapping of node names", "bad_config")
     out: dict[str, Any] = {}
     for key in ("/**", node_name, f"/{node_name}", f"/**/{node_name}"):
         section = data.get(key)
         if section is None:
             continue
         # a section without ros__parameters would silently give the node defaults
-        if not isinstance(section, dict) or "ros__parameters" not in section or not isinstance(
-                section["ros__parameters"] or {}, dict):
+        if (
+            not isinstance(section, dict)
+            or "ros__parameters" not in section
+            or not isinstance(section["ros__parameters"] or {}, dict)
+        ):
             raise ValueError(f"params file {str(path)!r}: section {key!r} needs 'ros__parameters:'")
         out.update(section["ros__parameters"] or {})
     return out

@@ -8,6 +8,7 @@ is kept; reading stops at the first record that is cut or damaged. A cut chunk n
 message (StreamReader raises EndOfFile before returning a record shorter than its declared
 length), so nothing garbled is returned. Scans are cached per (path, size, mtime).
 """
+
 from __future__ import annotations
 
 import heapq
@@ -27,8 +28,17 @@ from maem_ros.bagio.metadata import BagError
 
 MAGIC = b"\x89MCAP0\r\n"
 #: errors of a damaged or cut file the mcap library raises while reading records
-READ_ERRORS = (McapError, EOFError, ValueError, KeyError, IndexError, OSError, MemoryError,
-               UnicodeDecodeError, struct.error)
+READ_ERRORS = (
+    McapError,
+    EOFError,
+    ValueError,
+    KeyError,
+    IndexError,
+    OSError,
+    MemoryError,
+    UnicodeDecodeError,
+    struct.error,
+)
 
 
 @dataclass(frozen=True)
@@ -89,8 +99,9 @@ def check_magic(path: Path) -> None:
     with open(path, "rb") as f:
         head = f.read(len(MAGIC))
     if not MAGIC.startswith(head):
-        raise BagError(f"bag {str(path.parent)!r}: {path.name} is not an MCAP file (it starts "
-                       f"with {head[:8]!r})")
+        raise BagError(
+            f"bag {str(path.parent)!r}: {path.name} is not an MCAP file (it starts with {head[:8]!r})"
+        )
 
 
 _CACHE: dict[tuple[str, int, int], FileScan] = {}
@@ -116,14 +127,18 @@ def _scan_summary(path: Path, size: int) -> FileScan | None:
             summary = reader.get_summary()
             if summary is None or summary.statistics is None:
                 return None
-            meta = next((m.metadata.get(metadata.MCAP_METADATA_KEY)
-                         for m in reader.iter_metadata()
-                         if m.name == metadata.MCAP_METADATA_NAME), None)
+            meta = next(
+                (
+                    m.metadata.get(metadata.MCAP_METADATA_KEY)
+                    for m in reader.iter_metadata()
+                    if m.name == metadata.MCAP_METADATA_NAME
+                ),
+                None,
+            )
     except READ_ERRORS:
         return None
     stats = summary.statistics
-    out = FileScan(path, size, True, good_bytes=size, indexed=True,
-                   rosbag2_metadata=meta)
+    out = FileScan(path, size, True, good_bytes=size, indexed=True, rosbag2_metadata=meta)
     out.topics = {cid: _topic(c, summary.schemas) for cid, c in summary.channels.items()}
     for cid, n in stats.channel_message_counts.items():
         name = out.topics[cid].name
@@ -154,9 +169,11 @@ def _scan_stream(path: Path, size: int) -> FileScan:
                     out.complete, out.good_bytes = True, size
         except READ_ERRORS as e:
             clean = f.tell() == out.good_bytes
-            out.problem = ("ends without its summary" if clean else "ends inside a record") \
-                if isinstance(e, EndOfFile) else \
-                f"damaged record after byte {out.good_bytes:,}: {type(e).__name__} {str(e)[:80]}"
+            out.problem = (
+                ("ends without its summary" if clean else "ends inside a record")
+                if isinstance(e, EndOfFile)
+                else f"damaged record after byte {out.good_bytes:,}: {type(e).__name__} {str(e)[:80]}"
+            )
     if out.good_bytes < len(MAGIC):
         out.good_bytes = 0
     return out
@@ -189,8 +206,9 @@ def _take_chunk(out: FileScan, schemas: dict[int, Schema], chunk: Chunk) -> None
 Item = tuple[int, str, str, bytes]
 
 
-def messages(fs: FileScan, topics: Iterable[str] | None = None, start_ns: int | None = None,
-             stop_ns: int | None = None) -> Iterator[Item]:
+def messages(
+    fs: FileScan, topics: Iterable[str] | None = None, start_ns: int | None = None, stop_ns: int | None = None
+) -> Iterator[Item]:
     """The file's messages in log-time order, only ``topics`` and log times in [start, stop)."""
     wanted = None if topics is None else set(topics)
     if fs.indexed:
@@ -199,23 +217,27 @@ def messages(fs: FileScan, topics: Iterable[str] | None = None, start_ns: int | 
         yield from _streamed_messages(fs, wanted, start_ns, stop_ns)
 
 
-def _indexed_messages(fs: FileScan, wanted: set[str] | None, start_ns: int | None,
-                      stop_ns: int | None) -> Iterator[Item]:
+def _indexed_messages(
+    fs: FileScan, wanted: set[str] | None, start_ns: int | None, stop_ns: int | None
+) -> Iterator[Item]:
     with open(fs.path, "rb") as f:
         reader = make_reader(f, validate_crcs=True)
         for schema, channel, msg in reader.iter_messages(
-                topics=None if wanted is None else sorted(wanted), log_time_order=True,
-                starting_at=start_ns, ending_before=stop_ns):
-            yield (int(msg.log_time), channel.topic, schema.name if schema else "",
-                   bytes(msg.data))
+            topics=None if wanted is None else sorted(wanted),
+            log_time_order=True,
+            starting_at=start_ns,
+            ending_before=stop_ns,
+        ):
+            yield (int(msg.log_time), channel.topic, schema.name if schema else "", bytes(msg.data))
 
 
-def _streamed_messages(fs: FileScan, wanted: set[str] | None, start_ns: int | None,
-                       stop_ns: int | None) -> Iterator[Item]:
+def _streamed_messages(
+    fs: FileScan, wanted: set[str] | None, start_ns: int | None, stop_ns: int | None
+) -> Iterator[Item]:
     """Whole chunks in file order, merged into log-time order: a message is released once no
     later chunk can start before it (suffix minimum of the chunk start times from the scan).
     Messages outside chunks (an unchunked file) are released at the end."""
-    later_min = list(fs.chunk_starts) + [2 ** 64]
+    later_min = list(fs.chunk_starts) + [2**64]
     for i in range(len(later_min) - 2, -1, -1):
         later_min[i] = min(later_min[i], later_min[i + 1])
     heap: list[tuple[int, int, Item]] = []
@@ -227,8 +249,7 @@ def _streamed_messages(fs: FileScan, wanted: set[str] | None, start_ns: int | No
         while f.tell() < fs.good_bytes:  # as far as the scan found whole records
             try:
                 record = next(reader)
-                records = breakup_chunk(record, validate_crc=True) \
-                    if isinstance(record, Chunk) else [record]
+                records = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
             except (StopIteration, *READ_ERRORS):
                 break
             for r in records:
@@ -238,11 +259,14 @@ def _streamed_messages(fs: FileScan, wanted: set[str] | None, start_ns: int | No
                     topics[r.id] = _topic(r, schemas)
                 elif isinstance(r, Message):
                     t = topics[r.channel_id]
-                    if ((wanted is None or t.name in wanted)
-                            and (start_ns is None or r.log_time >= start_ns)
-                            and (stop_ns is None or r.log_time < stop_ns)):
-                        heapq.heappush(heap, (r.log_time, seq, (int(r.log_time), t.name,
-                                                                 t.msgtype, bytes(r.data))))
+                    if (
+                        (wanted is None or t.name in wanted)
+                        and (start_ns is None or r.log_time >= start_ns)
+                        and (stop_ns is None or r.log_time < stop_ns)
+                    ):
+                        heapq.heappush(
+                            heap, (r.log_time, seq, (int(r.log_time), t.name, t.msgtype, bytes(r.data)))
+                        )
                         seq += 1
             if isinstance(record, Chunk) and any(isinstance(r, Message) for r in records):
                 n_chunk = min(n_chunk + 1, len(later_min) - 1)
@@ -258,6 +282,6 @@ def is_mcap_name(name: str) -> bool:
 
 def split_index(path: Path) -> tuple[int, str]:
     """Sort key of a bag's files: rosbag2's ``<name>_<N>.mcap`` by N, others by name."""
-    stem = path.name[:-len(".mcap")]
+    stem = path.name[: -len(".mcap")]
     head, _, tail = stem.rpartition("_")
     return (int(tail), path.name) if head and tail.isdigit() else (-1, path.name)

@@ -1,6 +1,7 @@
 """ROS 2 message types for bags: the Jazzy typestore, recorded QoS profiles, CDR
 (de)serialisation of rosbags and rclpy messages. No rclpy import (rclpy messages are serialised
 by rclpy only when given one)."""
+
 from __future__ import annotations
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
@@ -29,8 +30,9 @@ CLOCK = "rosgraph_msgs/msg/Clock"
 # ---- QoS (as recorded in metadata offered_qos_profiles) -----------------------------------------
 def _qos(reliability: QosReliability, durability: QosDurability, depth: int) -> Qos:
     zero = QosTime(0, 0)
-    return Qos(QosHistory.KEEP_LAST, depth, reliability, durability, zero, zero,
-               QosLiveliness.AUTOMATIC, zero, False)
+    return Qos(
+        QosHistory.KEEP_LAST, depth, reliability, durability, zero, zero, QosLiveliness.AUTOMATIC, zero, False
+    )
 
 
 QOS_SENSOR = _qos(QosReliability.BEST_EFFORT, QosDurability.VOLATILE, 5)
@@ -48,8 +50,7 @@ def time_msg(stamp_ns: int):
     stamp_ns = int(stamp_ns)
     if stamp_ns < 0:
         raise ValueError(f"stamp: {stamp_ns} ns is negative")
-    return _T["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000,
-                                             nanosec=stamp_ns % 1_000_000_000)
+    return _T["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
 
 
 def stamp_to_ns(stamp) -> int:
@@ -78,6 +79,7 @@ def serialize(msg) -> bytes:
     if hasattr(msg, "__msgtype__"):
         return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
     from rclpy.serialization import serialize_message
+
     return bytes(serialize_message(msg))
 
 

@@ -1,6 +1,7 @@
 """rosbag2 ``metadata.yaml`` (format version 9, as rosbag2 Jazzy and rosbags write it): building,
 writing atomically (temporary file + fsync + rename, so a crash leaves the old or the new file,
 never half of one) and parsing. QoS profiles use rosbags' own dump/parse helpers."""
+
 from __future__ import annotations
 
 import copy
@@ -77,15 +78,29 @@ def to_dict(meta: Metadata) -> dict[str, Any]:
         "starting_time": {"nanoseconds_since_epoch": start},
         "message_count": meta.message_count,
         "topics_with_message_count": [
-            {"topic_metadata": {"name": t.name, "type": t.msgtype, "serialization_format": "cdr",
-                                "offered_qos_profiles": dump_qos_v9(list(t.qos)),
-                                "type_description_hash": t.type_hash},
-             "message_count": t.count} for t in meta.topics],
+            {
+                "topic_metadata": {
+                    "name": t.name,
+                    "type": t.msgtype,
+                    "serialization_format": "cdr",
+                    "offered_qos_profiles": dump_qos_v9(list(t.qos)),
+                    "type_description_hash": t.type_hash,
+                },
+                "message_count": t.count,
+            }
+            for t in meta.topics
+        ],
         "compression_format": "",
         "compression_mode": "",
-        "files": [{"path": f.path, "starting_time": {"nanoseconds_since_epoch": f.start_ns},
-                   "duration": {"nanoseconds": f.duration_ns}, "message_count": f.count}
-                  for f in meta.files],
+        "files": [
+            {
+                "path": f.path,
+                "starting_time": {"nanoseconds_since_epoch": f.start_ns},
+                "duration": {"nanoseconds": f.duration_ns},
+                "message_count": f.count,
+            }
+            for f in meta.files
+        ],
         "custom_data": dict(meta.custom) or None,
         "ros_distro": "rosbags",
     }
@@ -142,16 +157,27 @@ def from_dict(info: dict[str, Any]) -> Metadata:
     topics = []
     for item in info.get("topics_with_message_count") or []:
         tm = item["topic_metadata"]
-        topics.append(TopicEntry(tm["name"], tm["type"], _qos(tm.get("offered_qos_profiles")),
-                                 int(item.get("message_count", 0)),
-                                 str(tm.get("type_description_hash") or "")))
+        topics.append(
+            TopicEntry(
+                tm["name"],
+                tm["type"],
+                _qos(tm.get("offered_qos_profiles")),
+                int(item.get("message_count", 0)),
+                str(tm.get("type_description_hash") or ""),
+            )
+        )
     files = []
     listed = {f["path"]: f for f in info.get("files") or []}
     for rel in info.get("relative_file_paths") or list(listed):
         f = listed.get(rel, {})
-        files.append(FileEntry(str(rel), int((f.get("starting_time") or {}).get(
-            "nanoseconds_since_epoch", 0)), int((f.get("duration") or {}).get("nanoseconds", 0)),
-            int(f.get("message_count", 0))))
+        files.append(
+            FileEntry(
+                str(rel),
+                int((f.get("starting_time") or {}).get("nanoseconds_since_epoch", 0)),
+                int((f.get("duration") or {}).get("nanoseconds", 0)),
+                int(f.get("message_count", 0)),
+            )
+        )
     custom = {str(k): str(v) for k, v in (info.get("custom_data") or {}).items()}
     return Metadata(topics, files, custom, str(info.get("compression_format") or ""))
 
@@ -173,16 +199,27 @@ def load(folder: Path) -> Metadata | None:
         return None
     try:
         meta = _parse_file(str(path.resolve()), path.stat().st_mtime_ns, path.stat().st_size)
-    except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError, ValueError,
-            AttributeError) as e:
+    except (
+        OSError,
+        UnicodeDecodeError,
+        yaml.YAMLError,
+        KeyError,
+        TypeError,
+        ValueError,
+        AttributeError,
+    ) as e:
         problem = " ".join(str(e).split()) or type(e).__name__
-        raise BagError(f"bag {str(folder)!r}: unreadable metadata.yaml ({type(e).__name__}: "
-                       f"{problem[:160]}); `maem-bag recover` rebuilds it from the MCAP files "
-                       f"once it is removed") from None
+        raise BagError(
+            f"bag {str(folder)!r}: unreadable metadata.yaml ({type(e).__name__}: "
+            f"{problem[:160]}); `maem-bag recover` rebuilds it from the MCAP files "
+            f"once it is removed"
+        ) from None
     meta = copy.deepcopy(meta)
     if meta.compression:
-        raise BagError(f"bag {str(folder)!r}: file compression {meta.compression!r} is not "
-                       f"supported (MCAP chunk compression is)")
+        raise BagError(
+            f"bag {str(folder)!r}: file compression {meta.compression!r} is not "
+            f"supported (MCAP chunk compression is)"
+        )
     return meta
 
 

@@ -12,6 +12,7 @@ them accept the same damage and refuse the same garbage:
   .mcap files, a file that is not MCAP, a listed file that is missing, an unreadable
   metadata.yaml, a bag without a single complete message.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -67,13 +68,11 @@ def bag_files(path: Path, meta: metadata.Metadata | None) -> tuple[list[Path], l
         raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (no such file or directory)")
     if not path.is_dir():
         raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (a file; give its folder)")
-    present = sorted((p for p in path.iterdir() if mcapfile.is_mcap_name(p.name)),
-                     key=mcapfile.split_index)
+    present = sorted((p for p in path.iterdir() if mcapfile.is_mcap_name(p.name)), key=mcapfile.split_index)
     problems = []
     if meta is None:
         if not present:
-            raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (no metadata.yaml and no "
-                           f".mcap file)")
+            raise BagError(f"bag {str(path)!r}: not a rosbag2 folder (no metadata.yaml and no .mcap file)")
         problems.append("metadata.yaml missing (rebuilt from the MCAP files)")
         return present, problems
     listed = [path / f.path for f in meta.files]
@@ -99,18 +98,27 @@ def _custom(meta: metadata.Metadata | None, scans: list[FileScan]) -> dict[str, 
     return {}
 
 
-def _damage_line(path: Path, scans: list[FileScan], problems: list[str], n: int,
-                 meta: metadata.Metadata | None) -> str:
+def _damage_line(
+    path: Path, scans: list[FileScan], problems: list[str], n: int, meta: metadata.Metadata | None
+) -> str:
     cut = [fs for fs in scans if not fs.complete]
     if not cut and not problems:
         return ""
-    parts = [f"{fs.path.name} is cut short ({fs.problem or 'no summary'}; "
-             f"{fs.message_count:,} whole messages, {fs.size - fs.good_bytes:,} bytes after "
-             f"them unreadable)" for fs in cut] + problems
-    listed = f" of {meta.message_count:,} listed in metadata.yaml" \
-        if meta is not None and meta.message_count > n else ""
-    return (f"bag {str(path)!r}: {'; '.join(parts)}: reading the {n:,} complete messages"
-            f"{listed}; `maem-bag recover {path}` repairs it")
+    parts = [
+        f"{fs.path.name} is cut short ({fs.problem or 'no summary'}; "
+        f"{fs.message_count:,} whole messages, {fs.size - fs.good_bytes:,} bytes after "
+        f"them unreadable)"
+        for fs in cut
+    ] + problems
+    listed = (
+        f" of {meta.message_count:,} listed in metadata.yaml"
+        if meta is not None and meta.message_count > n
+        else ""
+    )
+    return (
+        f"bag {str(path)!r}: {'; '.join(parts)}: reading the {n:,} complete messages"
+        f"{listed}; `maem-bag recover {path}` repairs it"
+    )
 
 
 def open_info(path: str | Path) -> BagInfo:
@@ -133,28 +141,39 @@ def open_info(path: str | Path) -> BagInfo:
             counts[name] = counts.get(name, 0) + c
     n = sum(counts.values())
     if n == 0 and (problems or any(not fs.complete for fs in scans)):
-        why = problems + [f"{fs.path.name} {fs.problem or 'empty'}" for fs in scans
-                          if not fs.complete]
+        why = problems + [f"{fs.path.name} {fs.problem or 'empty'}" for fs in scans if not fs.complete]
         raise BagError(f"bag {str(path)!r}: no complete message ({'; '.join(why)})")
     starts = [fs.start_ns for fs in scans if fs.start_ns is not None]
     ends = [fs.end_ns for fs in scans if fs.end_ns is not None]
     listed = {t.name: t.count for t in meta.topics} if meta is not None else {}
-    return BagInfo(topics, counts, min(starts, default=0), max(ends, default=0), n,
-                   _custom(meta, scans), qos, _damage_line(path, scans, problems, n, meta),
-                   scans, listed)
+    return BagInfo(
+        topics,
+        counts,
+        min(starts, default=0),
+        max(ends, default=0),
+        n,
+        _custom(meta, scans),
+        qos,
+        _damage_line(path, scans, problems, n, meta),
+        scans,
+        listed,
+    )
 
 
-def read_messages(path: str | Path, topics: Iterable[str] | None = None,
-                  start_ns: int | None = None, stop_ns: int | None = None,
-                  info: BagInfo | None = None) -> Iterator[BagMessage]:
+def read_messages(
+    path: str | Path,
+    topics: Iterable[str] | None = None,
+    start_ns: int | None = None,
+    stop_ns: int | None = None,
+    info: BagInfo | None = None,
+) -> Iterator[BagMessage]:
     """Messages in log-time order, optionally only ``topics`` and log times in [start, stop)
     (every complete message of a damaged bag; ``info`` saves opening it again)."""
     info = info if info is not None else open_info(path)
     wanted = None if topics is None else set(topics)
     if wanted is not None and not wanted & set(info.topics):
         return
-    streams = [mcapfile.messages(fs, wanted, start_ns, stop_ns) for fs in info.files
-               if fs.message_count]
+    streams = [mcapfile.messages(fs, wanted, start_ns, stop_ns) for fs in info.files if fs.message_count]
     for log_time, topic, msgtype, data in heapq.merge(*streams, key=lambda m: m[0]):
         yield BagMessage(topic, msgtype or info.topics.get(topic, ""), log_time, data)
 

@@ -7,6 +7,7 @@ metadata records).
 In place (no ``out``), a cut file is replaced only once its rewrite is complete and synced;
 with ``out`` the bag is copied there (whole files as they are).
 """
+
 from __future__ import annotations
 
 import os
@@ -68,8 +69,7 @@ def _copy_messages(src: FileScan, dst: Path) -> int:
         while f.tell() < src.good_bytes:
             try:
                 record = next(records)
-                items = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) \
-                    else [record]
+                items = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
             except (StopIteration, *mcapfile.READ_ERRORS):
                 break
             for r in items:
@@ -77,29 +77,39 @@ def _copy_messages(src: FileScan, dst: Path) -> int:
                     schema_ids[r.id] = writer.register_schema(r.name, r.encoding, r.data)
                 elif isinstance(r, Channel) and r.id not in channel_ids:
                     channel_ids[r.id] = writer.register_channel(
-                        r.topic, r.message_encoding, schema_ids.get(r.schema_id, 0), r.metadata)
+                        r.topic, r.message_encoding, schema_ids.get(r.schema_id, 0), r.metadata
+                    )
                 elif isinstance(r, Message):
-                    writer.add_message(channel_ids[r.channel_id], r.log_time, r.data,
-                                       r.publish_time, r.sequence)
+                    writer.add_message(
+                        channel_ids[r.channel_id], r.log_time, r.data, r.publish_time, r.sequence
+                    )
                     n += 1
         if src.rosbag2_metadata:
-            writer.add_metadata(metadata.MCAP_METADATA_NAME,
-                                {metadata.MCAP_METADATA_KEY: src.rosbag2_metadata})
+            writer.add_metadata(
+                metadata.MCAP_METADATA_NAME, {metadata.MCAP_METADATA_KEY: src.rosbag2_metadata}
+            )
         writer.finish()
         out.flush()
         os.fsync(out.fileno())
     return n
 
 
-def _rebuilt_metadata(info: reader.BagInfo, old: metadata.Metadata | None,
-                      scans: list[FileScan]) -> metadata.Metadata:
+def _rebuilt_metadata(
+    info: reader.BagInfo, old: metadata.Metadata | None, scans: list[FileScan]
+) -> metadata.Metadata:
     hashes = {t.name: t.type_hash for t in old.topics} if old is not None else {}
-    topics = [metadata.TopicEntry(name, msgtype, list(info.qos.get(name, [])),
-                                  info.counts.get(name, 0), hashes.get(name, ""))
-              for name, msgtype in info.topics.items()]
-    files = [metadata.FileEntry(fs.path.name, fs.start_ns or 0,
-                                (fs.end_ns or 0) - (fs.start_ns or 0), fs.message_count)
-             for fs in scans]
+    topics = [
+        metadata.TopicEntry(
+            name, msgtype, list(info.qos.get(name, [])), info.counts.get(name, 0), hashes.get(name, "")
+        )
+        for name, msgtype in info.topics.items()
+    ]
+    files = [
+        metadata.FileEntry(
+            fs.path.name, fs.start_ns or 0, (fs.end_ns or 0) - (fs.start_ns or 0), fs.message_count
+        )
+        for fs in scans
+    ]
     return metadata.Metadata(topics, files, dict(info.custom))
 
 
@@ -137,21 +147,31 @@ def format_report(r: RecoverReport) -> list[str]:
     """Lines for the user: per file, per topic (recovered, lost), a total."""
     lines = []
     for f in r.files:
-        what = (f"rewritten up to its last whole chunk: {f.messages:,} messages kept, "
-                f"{f.dropped_bytes:,} bytes of a cut chunk dropped") if f.rewritten \
+        what = (
+            (
+                f"rewritten up to its last whole chunk: {f.messages:,} messages kept, "
+                f"{f.dropped_bytes:,} bytes of a cut chunk dropped"
+            )
+            if f.rewritten
             else f"complete, kept as it is ({f.messages:,} messages)"
+        )
         lines.append(f"{f.name}: {what}")
     width = max((len(t) for t in r.recovered), default=5)
     lines.append(f"{'topic':<{width}}  recovered  lost")
     for topic, n in r.recovered.items():
         lost = r.lost(topic)
-        lines.append(f"{topic:<{width}}  {n:>9,}  {lost:>4,}" if topic in r.listed
-                     else f"{topic:<{width}}  {n:>9,}     ?")
+        lines.append(
+            f"{topic:<{width}}  {n:>9,}  {lost:>4,}"
+            if topic in r.listed
+            else f"{topic:<{width}}  {n:>9,}     ?"
+        )
     total_lost = sum(r.lost(t) for t in r.recovered)
-    lost_note = f"{total_lost:,} known lost (listed in the old metadata.yaml)" if r.listed else \
-        "losses per topic unknown (no metadata.yaml to compare with)"
+    lost_note = (
+        f"{total_lost:,} known lost (listed in the old metadata.yaml)"
+        if r.listed
+        else "losses per topic unknown (no metadata.yaml to compare with)"
+    )
     cut = sum(f.dropped_bytes for f in r.files)
-    tail = f"; {cut:,} bytes of cut chunks dropped (their messages cannot be counted)" \
-        if cut else ""
+    tail = f"; {cut:,} bytes of cut chunks dropped (their messages cannot be counted)" if cut else ""
     lines.append(f"recovered {r.message_count:,} messages into {r.bag}; {lost_note}{tail}")
     return lines

@@ -17,6 +17,7 @@ package's own (bagio.metadata). What a crash can cost:
 * a write error (ENOSPC, EFBIG from a file size limit, EIO) cuts the file back to its last whole
   chunk, writes metadata.yaml if it can and raises BagWriteError saying what was kept.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -55,18 +56,25 @@ class WriteOptions(Params):
     ``--max-bag-duration`` etc. and its ROS parameters ``max_bag_duration`` etc. come from
     these fields)."""
 
-    max_bag_duration: float = param(0.0, "s, start a new file when the open one spans this "
-                                    "much log time (0 = one file)", minimum=0.0)
-    max_bag_size: float = param(0.0, "MB, start a new file when the open one reaches this size "
-                                "(0 = one file)", minimum=0.0)
-    chunk_duration: float = param(0.5, "s, longest a message waits in memory before its chunk "
-                                  "is written (what a crash can lose)", minimum=0.0,
-                                  exclusive_minimum=True)
-    chunk_size: float = param(1.0, "MB, uncompressed size at which a chunk is written",
-                              minimum=0.0, exclusive_minimum=True)
+    max_bag_duration: float = param(
+        0.0, "s, start a new file when the open one spans this much log time (0 = one file)", minimum=0.0
+    )
+    max_bag_size: float = param(
+        0.0, "MB, start a new file when the open one reaches this size (0 = one file)", minimum=0.0
+    )
+    chunk_duration: float = param(
+        0.5,
+        "s, longest a message waits in memory before its chunk is written (what a crash can lose)",
+        minimum=0.0,
+        exclusive_minimum=True,
+    )
+    chunk_size: float = param(
+        1.0, "MB, uncompressed size at which a chunk is written", minimum=0.0, exclusive_minimum=True
+    )
     compress: bool = param(False, "zstd compression of MCAP chunks")
-    metadata_period: float = param(2.0, "s, longest time between metadata.yaml rewrites",
-                                   minimum=0.0, exclusive_minimum=True)
+    metadata_period: float = param(
+        2.0, "s, longest time between metadata.yaml rewrites", minimum=0.0, exclusive_minimum=True
+    )
 
 
 def _utc(stamp_ns: int) -> str:
@@ -165,10 +173,11 @@ class _File:
         self.stream = _Unbuffered(path)
         # the mcap Writer only calls write() and tell() on its stream (and close() when it
         # opened it itself); its annotation asks for a whole IO
-        self.mcap = McapWriter(cast(IO[bytes], self.stream),
-                               chunk_size=2 ** 62,  # chunks are cut by BagWriter
-                               compression=CompressionType.ZSTD if compress
-                               else CompressionType.NONE)
+        self.mcap = McapWriter(
+            cast(IO[bytes], self.stream),
+            chunk_size=2**62,  # chunks are cut by BagWriter
+            compression=CompressionType.ZSTD if compress else CompressionType.NONE,
+        )
         self.mcap.start(profile="ros2", library=f"maem_ros; mcap {mcap.__version__}")
         self.schemas: dict[str, int] = {}
         self.committed_bytes = self.stream.tell()
@@ -188,16 +197,22 @@ class BagWriter:
     metadata.yaml. Not thread-safe: call write*/tick/close from one thread.
     """
 
-    def __init__(self, path: str | Path, compress: bool = False,
-                 options: WriteOptions | None = None, durable: bool = True):
+    def __init__(
+        self,
+        path: str | Path,
+        compress: bool = False,
+        options: WriteOptions | None = None,
+        durable: bool = True,
+    ):
         self.path = Path(path)
         self.options = options if options is not None else WriteOptions(compress=compress)
         self.durable = durable
         try:
             self.path.mkdir(parents=True)
         except FileExistsError:
-            raise FileExistsError(errno.EEXIST, f"bag {str(self.path)!r}: exists already, not "
-                                  f"overwriting") from None
+            raise FileExistsError(
+                errno.EEXIST, f"bag {str(self.path)!r}: exists already, not overwriting"
+            ) from None
         self._topics: dict[str, _Topic] = {}
         self.counts: dict[str, int] = {}  # messages written (incl. waiting in the open chunk)
         self._custom: dict[str, str] = {}
@@ -214,12 +229,12 @@ class BagWriter:
         """Register a topic (no-op if already registered with the same type)."""
         if topic in self._topics:
             if self._topics[topic].msgtype != msgtype:
-                raise ValueError(f"topic {topic!r}: already registered as "
-                                 f"{self._topics[topic].msgtype}, not {msgtype}")
+                raise ValueError(
+                    f"topic {topic!r}: already registered as {self._topics[topic].msgtype}, not {msgtype}"
+                )
             return
         if not known_type(msgtype):
-            raise ValueError(f"topic {topic!r}: message type {msgtype!r} is not in the ROS 2 "
-                             "Jazzy typestore")
+            raise ValueError(f"topic {topic!r}: message type {msgtype!r} is not in the ROS 2 Jazzy typestore")
         if qos is None:
             qos = QOS_SENSOR if is_image_type(msgtype) else QOS_RELIABLE
         self._topics[topic] = _Topic(topic, msgtype, qos, schema_text(msgtype)[1])
@@ -231,8 +246,7 @@ class BagWriter:
         """Serialise and write a rosbags or rclpy message at log time ``stamp_ns``."""
         self.write_raw(topic, msgtype_of(msg), serialize(msg), stamp_ns, qos)
 
-    def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int,
-                  qos: Qos | None = None) -> None:
+    def write_raw(self, topic: str, msgtype: str, data: bytes, stamp_ns: int, qos: Qos | None = None) -> None:
         """Write already-serialised CDR bytes (BagWriteError once writing failed)."""
         if self.failed is not None:
             raise self.failed
@@ -302,16 +316,19 @@ class BagWriter:
     def _register(self, f: _File, topic: _Topic) -> None:
         if topic.msgtype not in f.schemas:
             f.schemas[topic.msgtype] = f.mcap.register_schema(
-                topic.msgtype, "ros2msg", schema_text(topic.msgtype)[0].encode())
+                topic.msgtype, "ros2msg", schema_text(topic.msgtype)[0].encode()
+            )
         topic.channel_id = f.mcap.register_channel(
-            topic.name, "cdr", f.schemas[topic.msgtype],
-            {"offered_qos_profiles": dump_qos_v8([topic.qos])})
+            topic.name, "cdr", f.schemas[topic.msgtype], {"offered_qos_profiles": dump_qos_v8([topic.qos])}
+        )
 
     def _finish_file(self) -> None:
         f = self._current()
         self._flush_chunk()
-        f.mcap.add_metadata(metadata.MCAP_METADATA_NAME, {
-            metadata.MCAP_METADATA_KEY: metadata.dump(self._metadata(include_open=True))})
+        f.mcap.add_metadata(
+            metadata.MCAP_METADATA_NAME,
+            {metadata.MCAP_METADATA_KEY: metadata.dump(self._metadata(include_open=True))},
+        )
         f.mcap.finish()
         if self._syncer is not None:
             self._syncer.forget()  # no background sync of this descriptor any more
@@ -326,8 +343,7 @@ class BagWriter:
             return False
         first = min(f.times[:1] + f.pending_times[:1])
         too_long = o.max_bag_duration > 0 and stamp_ns - first >= o.max_bag_duration * 1e9
-        too_big = o.max_bag_size > 0 and \
-            f.committed_bytes + f.pending_bytes >= o.max_bag_size * MB
+        too_big = o.max_bag_size > 0 and f.committed_bytes + f.pending_bytes >= o.max_bag_size * MB
         return too_long or too_big
 
     # ---- messages and chunks --------------------------------------------------------------------
@@ -339,13 +355,14 @@ class BagWriter:
         f.mcap.add_message(topic.channel_id, stamp_ns, data, stamp_ns)
         f.pending[topic.name] = f.pending.get(topic.name, 0) + 1
         f.pending_bytes += len(data) + 31  # + the Message record's header
-        f.pending_times = [min(f.pending_times[:1] + [stamp_ns]),
-                           max(f.pending_times[1:] + [stamp_ns])]
+        f.pending_times = [min(f.pending_times[:1] + [stamp_ns]), max(f.pending_times[1:] + [stamp_ns])]
         if f.pending_since is None:
             f.pending_since = time.monotonic()
         self.counts[topic.name] += 1
-        if f.pending_bytes >= self.options.chunk_size * MB or \
-                stamp_ns - f.pending_times[0] >= self.options.chunk_duration * 1e9:
+        if (
+            f.pending_bytes >= self.options.chunk_size * MB
+            or stamp_ns - f.pending_times[0] >= self.options.chunk_duration * 1e9
+        ):
             self._flush_chunk()
         if time.monotonic() - self._last_meta >= self.options.metadata_period:
             self._write_metadata()
@@ -380,10 +397,11 @@ class BagWriter:
     # ---- metadata -------------------------------------------------------------------------------
     def _metadata(self, include_open: bool) -> metadata.Metadata:
         """What is on disk: finished files, the open file's whole chunks."""
-        files = list(self._done) + ([self._file.committed] if self._file and include_open
-                                    else [])
-        topics = [metadata.TopicEntry(t.name, t.msgtype, [t.qos], self._done_counts.get(t.name, 0),
-                                      t.type_hash) for t in self._topics.values()]
+        files = list(self._done) + ([self._file.committed] if self._file and include_open else [])
+        topics = [
+            metadata.TopicEntry(t.name, t.msgtype, [t.qos], self._done_counts.get(t.name, 0), t.type_hash)
+            for t in self._topics.values()
+        ]
         return metadata.Metadata(topics, files, dict(self._custom))
 
     def _write_metadata(self) -> None:
@@ -423,7 +441,9 @@ class BagWriter:
         until = f", up to {_utc(max(ends))}" if ends else ""
         reason = e.strerror or str(e)
         self.failed = BagWriteError(
-            e.errno, f"bag {str(self.path)!r}: writing {name} failed ({reason}): stopped; "
+            e.errno,
+            f"bag {str(self.path)!r}: writing {name} failed ({reason}): stopped; "
             f"{kept:,} messages in {len(self._done)} file(s) are readable{until} "
-            f"({name} cut back to its last whole chunk, {meta_note})")
+            f"({name} cut back to its last whole chunk, {meta_note})",
+        )
         raise self.failed

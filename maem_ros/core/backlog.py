@@ -30,6 +30,7 @@ episode ends at the first decision whose oldest frame waited at most half the bo
 (hysteresis). :meth:`Backlog.status` says whether it is behind now, since when, and how long
 the episodes were (/diagnostics).
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -61,20 +62,30 @@ class BacklogParams(Params):
     """How a live node bounds the frames waiting for it (module docstring); one definition
     for every node that has the policy."""
 
-    max_backlog: float = param(0.0, "s, a frame that waited longer than this for the node (it "
-                                    "fell behind) is skipped unless it is the newest, counted "
-                                    f"dropped/behind; 0 = automatic: {BACKLOG_PERIODS:g} frame "
-                                    f"periods (median stamp interval), at least "
-                                    f"{MIN_BACKLOG_S:g} s", minimum=0.0)
-    catch_up: str = param("newest", "what a node that fell behind (a frame waited beyond the "
-                                    "bound) skips: 'newest' = every waiting frame but the "
-                                    "newest, 'stale' = only the frames beyond the bound "
-                                    "(works through the rest in order)",
-                          choices=("newest", "stale"))
-    keep_every_set: bool = param(False, "process every frame however far behind (bag replays "
-                                        "that want every frame: maem-demo, maem-play faster "
-                                        "than real time); default: a live node skips stale "
-                                        "frames")
+    max_backlog: float = param(
+        0.0,
+        "s, a frame that waited longer than this for the node (it "
+        "fell behind) is skipped unless it is the newest, counted "
+        f"dropped/behind; 0 = automatic: {BACKLOG_PERIODS:g} frame "
+        f"periods (median stamp interval), at least "
+        f"{MIN_BACKLOG_S:g} s",
+        minimum=0.0,
+    )
+    catch_up: str = param(
+        "newest",
+        "what a node that fell behind (a frame waited beyond the "
+        "bound) skips: 'newest' = every waiting frame but the "
+        "newest, 'stale' = only the frames beyond the bound "
+        "(works through the rest in order)",
+        choices=("newest", "stale"),
+    )
+    keep_every_set: bool = param(
+        False,
+        "process every frame however far behind (bag replays "
+        "that want every frame: maem-demo, maem-play faster "
+        "than real time); default: a live node skips stale "
+        "frames",
+    )
 
 
 @dataclass
@@ -134,8 +145,7 @@ class Backlog(Generic[T]):
         return self._auto_bound()
 
     # -- decisions ------------------------------------------------------------------------
-    def select(self, frames: Sequence[T], ready_ns: Sequence[int], now_ns: int
-               ) -> tuple[list[T], list[T]]:
+    def select(self, frames: Sequence[T], ready_ns: Sequence[int], now_ns: int) -> tuple[list[T], list[T]]:
         """(kept, skipped) of ``frames`` waiting together, in the given (stamp) order: when
         one's backlog ``now_ns - ready_ns`` exceeds the bound, every one but the last (newest)
         is skipped (``catch_up: stale``: only those beyond the bound); the newest never.
@@ -208,12 +218,16 @@ class Backlog(Generic[T]):
         self._end_if_idle(int(now_ns))
         current = 0 if self._episode_start is None else max(0, int(now_ns) - self._episode_start)
         bound = self.bound_ns()
-        out = BacklogStatus(bound_s=float("nan") if bound is None else bound / 1e9,
-                            behind=self._episode_start is not None, behind_for_s=current / 1e9,
-                            episodes=self._episodes,
-                            behind_total_s=(self._total_ns + current) / 1e9,
-                            longest_s=max(self._longest_ns, current) / 1e9,
-                            last_backlog_s=self._last_backlog_ns / 1e9,
-                            max_backlog_s=self._max_backlog_ns / 1e9, skipped=self.skipped)
+        out = BacklogStatus(
+            bound_s=float("nan") if bound is None else bound / 1e9,
+            behind=self._episode_start is not None,
+            behind_for_s=current / 1e9,
+            episodes=self._episodes,
+            behind_total_s=(self._total_ns + current) / 1e9,
+            longest_s=max(self._longest_ns, current) / 1e9,
+            last_backlog_s=self._last_backlog_ns / 1e9,
+            max_backlog_s=self._max_backlog_ns / 1e9,
+            skipped=self.skipped,
+        )
         self._max_backlog_ns = 0
         return out

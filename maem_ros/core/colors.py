@@ -1,6 +1,7 @@
 """The one colour scheme for person / track ids: RViz markers (ros/wire), image overlays
 (frontend/overlay.py, tools/demo/demo_report.py), plots and the Foxglove view all use it, so a
 player has the same colour everywhere."""
+
 from __future__ import annotations
 
 import colorsys

@@ -4,6 +4,7 @@ All 2D coordinates are in the RECTIFIED pinhole image of the camera (px);
 3D keypoints are in metres in the detection's own camera-relative frame (the
 association only compares them up to a similarity transform).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -105,15 +106,29 @@ class FrameDetections:
 
     @classmethod
     def empty(cls, camera: str, stamp_ns: int, num_joints: int, num_vertices: int) -> FrameDetections:
-        return cls(camera, stamp_ns, np.zeros((0, 4)), np.zeros(0), np.zeros((0, num_joints, 2)),
-                   np.zeros((0, num_joints, 3)), np.zeros((0, num_vertices, 2), np.float32))
+        return cls(
+            camera,
+            stamp_ns,
+            np.zeros((0, 4)),
+            np.zeros(0),
+            np.zeros((0, num_joints, 2)),
+            np.zeros((0, num_joints, 3)),
+            np.zeros((0, num_vertices, 2), np.float32),
+        )
 
     def select(self, index: np.ndarray) -> FrameDetections:
         """Subset by boolean mask or integer index (copies); validated when self is (every
         check of :meth:`validate` is per detection or on shapes the subset keeps)."""
-        out = FrameDetections(self.camera, self.stamp_ns, self.bboxes[index], self.scores[index],
-                              self.kpts2d[index], self.kpts3d[index], self.verts2d[index],
-                              self.mesh_subset)
+        out = FrameDetections(
+            self.camera,
+            self.stamp_ns,
+            self.bboxes[index],
+            self.scores[index],
+            self.kpts2d[index],
+            self.kpts3d[index],
+            self.verts2d[index],
+            self.mesh_subset,
+        )
         if self._is_validated():
             out.mark_validated()
         return out
@@ -128,31 +143,55 @@ class FrameDetections:
         have = self.vertex_ids
         if want is None:
             if have is not None:
-                raise ValueError(f"detections of camera {self.camera!r}: verts2d: holds the "
-                                 f"subset {self.mesh_subset}, the whole mesh was asked for")
+                raise ValueError(
+                    f"detections of camera {self.camera!r}: verts2d: holds the "
+                    f"subset {self.mesh_subset}, the whole mesh was asked for"
+                )
             return self
         if have is not None and np.array_equal(have, want):
             return self
         cols = want if have is None else np.searchsorted(have, want)
-        if have is not None and (cols.max(initial=0) >= have.size
-                                 or not np.array_equal(have[np.minimum(cols, have.size - 1)], want)):
-            raise ValueError(f"detections of camera {self.camera!r}: verts2d: subset "
-                             f"{self.mesh_subset} does not contain (stride {stride}, count {count})")
-        return FrameDetections(self.camera, self.stamp_ns, self.bboxes, self.scores, self.kpts2d,
-                               self.kpts3d, np.ascontiguousarray(self.verts2d[:, cols]),
-                               (mesh, int(stride), int(count)))
+        if have is not None and (
+            cols.max(initial=0) >= have.size
+            or not np.array_equal(have[np.minimum(cols, have.size - 1)], want)
+        ):
+            raise ValueError(
+                f"detections of camera {self.camera!r}: verts2d: subset "
+                f"{self.mesh_subset} does not contain (stride {stride}, count {count})"
+            )
+        return FrameDetections(
+            self.camera,
+            self.stamp_ns,
+            self.bboxes,
+            self.scores,
+            self.kpts2d,
+            self.kpts3d,
+            np.ascontiguousarray(self.verts2d[:, cols]),
+            (mesh, int(stride), int(count)),
+        )
 
     def _arrays(self) -> tuple:
-        return (self.camera, self.mesh_subset, self.bboxes, self.scores, self.kpts2d,
-                self.kpts3d, self.verts2d)
+        return (
+            self.camera,
+            self.mesh_subset,
+            self.bboxes,
+            self.scores,
+            self.kpts2d,
+            self.kpts3d,
+            self.verts2d,
+        )
 
     def _is_validated(self) -> bool:
         """Whether the fields are the objects :meth:`mark_validated` / :meth:`validate` saw
         (arrays by identity, of the shapes they had)."""
         token, now = self._validated, self._arrays()
-        return (len(token) == len(now) + 1 and token[0] == now[0] and token[1] == now[1]
-                and all(a is b for a, b in zip(token[2:], now[2:]))
-                and token[-1] == tuple(a.shape for a in now[2:]))
+        return (
+            len(token) == len(now) + 1
+            and token[0] == now[0]
+            and token[1] == now[1]
+            and all(a is b for a, b in zip(token[2:], now[2:]))
+            and token[-1] == tuple(a.shape for a in now[2:])
+        )
 
     def mark_validated(self) -> FrameDetections:
         """Record that the caller (the wire decoder) checked everything :meth:`validate` checks,
@@ -174,13 +213,13 @@ class FrameDetections:
         if self._is_validated():
             return self
         if self.bboxes.ndim != 2 or self.bboxes.shape[1] != 4:
-            raise InputError(f"{where}: bbox: expected shape (N,4), got {self.bboxes.shape}",
-                             "bad_count")
+            raise InputError(f"{where}: bbox: expected shape (N,4), got {self.bboxes.shape}", "bad_count")
         n = self.bboxes.shape[0]
         _check_shape(where, "score", self.scores, (n,))
         if self.kpts2d.ndim != 3 or self.kpts2d.shape[0] != n or self.kpts2d.shape[2] != 2:
-            raise InputError(f"{where}: kpts2d: expected shape ({n},J,2), got {self.kpts2d.shape}",
-                             "bad_count")
+            raise InputError(
+                f"{where}: kpts2d: expected shape ({n},J,2), got {self.kpts2d.shape}", "bad_count"
+            )
         j = self.kpts2d.shape[1]
         _check_shape(where, "kpts3d", self.kpts3d, (n, j, 3))
         if self.verts2d.ndim != 3 or self.verts2d.shape[0] != n or self.verts2d.shape[2] != 2:
@@ -188,10 +227,17 @@ class FrameDetections:
         if self.mesh_subset is not None:
             ids = _subset_vertex_ids(self.mesh_subset)
             if len(self.mesh_subset) != 3 or ids.size != self.verts2d.shape[1]:
-                raise ValueError(f"{where}: mesh_subset: {self.mesh_subset} selects {ids.size} "
-                                 f"vertices, verts2d has {self.verts2d.shape[1]}")
-        for name, arr in (("bbox", self.bboxes), ("score", self.scores), ("kpts2d", self.kpts2d),
-                          ("kpts3d", self.kpts3d), ("verts2d", self.verts2d)):
+                raise ValueError(
+                    f"{where}: mesh_subset: {self.mesh_subset} selects {ids.size} "
+                    f"vertices, verts2d has {self.verts2d.shape[1]}"
+                )
+        for name, arr in (
+            ("bbox", self.bboxes),
+            ("score", self.scores),
+            ("kpts2d", self.kpts2d),
+            ("kpts3d", self.kpts3d),
+            ("verts2d", self.verts2d),
+        ):
             # a missing vertex or keypoint (not seen) is NaN; inf is never a coordinate
             missing_ok = name in ("verts2d", "kpts2d")
             bad = np.isinf(arr) if missing_ok else ~np.isfinite(arr)
@@ -201,19 +247,22 @@ class FrameDetections:
                 raise ValueError(f"{where}: {name}: {what} in detection {det}")
         inverted = (self.bboxes[:, 2] < self.bboxes[:, 0]) | (self.bboxes[:, 3] < self.bboxes[:, 1])
         if inverted.any():
-            raise InputError(f"{where}: bbox: inverted box (x2<x1 or y2<y1) in detection "
-                             f"{int(np.argmax(inverted))}", "inverted_bbox")
+            raise InputError(
+                f"{where}: bbox: inverted box (x2<x1 or y2<y1) in detection {int(np.argmax(inverted))}",
+                "inverted_bbox",
+            )
         if np.any((self.scores < 0) | (self.scores > 1)):
-            raise ValueError(f"{where}: score: outside [0, 1] in detection "
-                             f"{int(np.argmax((self.scores < 0) | (self.scores > 1)))}")
+            raise ValueError(
+                f"{where}: score: outside [0, 1] in detection "
+                f"{int(np.argmax((self.scores < 0) | (self.scores > 1)))}"
+            )
         self._validated = self._token()
         return self
 
 
 def _check_shape(where: str, field: str, arr: np.ndarray, shape: tuple[int, ...]) -> None:
     if arr.shape != shape:
-        raise InputError(f"{where}: {field}: expected shape {shape}, got {arr.shape}",
-                         "bad_count")
+        raise InputError(f"{where}: {field}: expected shape {shape}, got {arr.shape}", "bad_count")
 
 
 @dataclass
@@ -256,13 +305,13 @@ class DetectionTable:
     frames: dict[int, FrameDetections]
 
     @classmethod
-    def build(cls, frames: dict[int, FrameDetections], num_cameras: int,
-              keep: dict[int, np.ndarray] | None = None) -> DetectionTable:
+    def build(
+        cls, frames: dict[int, FrameDetections], num_cameras: int, keep: dict[int, np.ndarray] | None = None
+    ) -> DetectionTable:
         """Table of ``frames`` (keyed by camera index); ``keep[c]`` = detection indices to take
         (default: all), in increasing order."""
         cams = sorted(frames)
-        idx = {c: (np.arange(frames[c].n) if keep is None else np.asarray(keep[c], np.int64))
-               for c in cams}
+        idx = {c: (np.arange(frames[c].n) if keep is None else np.asarray(keep[c], np.int64)) for c in cams}
         sizes = np.zeros(num_cameras, np.int64)
         for c in cams:
             sizes[c] = idx[c].size
@@ -272,15 +321,23 @@ class DetectionTable:
         def cat(get, shape):
             # every detection kept (increasing, distinct: all of them): the array itself, not a
             # gathered copy that concatenate would copy again
-            parts = [get(frames[c]) if idx[c].size == frames[c].n else get(frames[c])[idx[c]]
-                     for c in cams if idx[c].size]
+            parts = [
+                get(frames[c]) if idx[c].size == frames[c].n else get(frames[c])[idx[c]]
+                for c in cams
+                if idx[c].size
+            ]
             return np.concatenate(parts) if parts else np.zeros((0,) + shape)
 
-        return cls(cam=np.repeat(np.arange(num_cameras), sizes),
-                   det=np.concatenate([idx[c] for c in cams] or [np.zeros(0, np.int64)]).astype(np.int64),
-                   offsets=offsets, scores=cat(lambda f: f.scores, ()),
-                   centers=cat(lambda f: f.centers, (2,)), kpts2d=cat(lambda f: f.kpts2d, (J, 2)),
-                   kpts3d=cat(lambda f: f.kpts3d, (J, 3)), frames=frames)
+        return cls(
+            cam=np.repeat(np.arange(num_cameras), sizes),
+            det=np.concatenate([idx[c] for c in cams] or [np.zeros(0, np.int64)]).astype(np.int64),
+            offsets=offsets,
+            scores=cat(lambda f: f.scores, ()),
+            centers=cat(lambda f: f.centers, (2,)),
+            kpts2d=cat(lambda f: f.kpts2d, (J, 2)),
+            kpts3d=cat(lambda f: f.kpts3d, (J, 3)),
+            frames=frames,
+        )
 
     def __len__(self) -> int:
         return int(self.cam.size)

@@ -4,6 +4,7 @@ Every decoder, backend and validator raises a subclass (ros.wire.WireError,
 core.interchange.MissingDataError, core.limits.LimitError); a node counts the frame as dropped
 under ``reason`` in /diagnostics without matching exception class names.
 """
+
 from __future__ import annotations
 
 

@@ -15,6 +15,7 @@ A scene folder (what ``maem-sim`` writes and ``maem-eval`` reads)::
 Security note: the authors' npz stores ``outputs`` as a pickled object array, so reading one
 needs ``allow_pickle=True``; only read npz files from sources you trust.
 """
+
 from __future__ import annotations
 
 import json
@@ -65,8 +66,12 @@ def _field(d: Mapping, key: str, shape: tuple[int | None, ...], where: str) -> n
     if shape == () and arr.size == 1:
         arr = arr.reshape(())
     if arr.ndim != len(shape) or any(s is not None and a != s for a, s in zip(arr.shape, shape)):
-        want = ("(" + ",".join("N" if s is None else str(s) for s in shape)
-                + ("," if len(shape) == 1 else "") + ")")
+        want = (
+            "("
+            + ",".join("N" if s is None else str(s) for s in shape)
+            + ("," if len(shape) == 1 else "")
+            + ")"
+        )
         raise ValueError(f"{where}: field {key!r}: expected shape {want}, got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{where}: field {key!r}: contains NaN or inf")
@@ -120,8 +125,9 @@ def read_maem_npz(path: str | Path) -> list[dict]:
     if raw.dtype != object:
         if raw.size == 0:
             return []
-        raise ValueError(f"npz {str(path)!r}: 'outputs' is a {raw.dtype} array, "
-                         "expected an object array of dicts")
+        raise ValueError(
+            f"npz {str(path)!r}: 'outputs' is a {raw.dtype} array, expected an object array of dicts"
+        )
     items = raw.item() if raw.ndim == 0 else list(raw.ravel())
     if isinstance(items, Mapping):
         items = [items]
@@ -132,8 +138,9 @@ def read_maem_npz(path: str | Path) -> list[dict]:
     return [dict(d) for d in items]
 
 
-def write_maem_npz(path: str | Path, outputs: Sequence[Mapping], compress: bool = False,
-                   float32: bool = False) -> None:
+def write_maem_npz(
+    path: str | Path, outputs: Sequence[Mapping], compress: bool = False, float32: bool = False
+) -> None:
     """Write ``outputs`` (list of SAM 3D Body dicts) as the authors do; atomic (tmp file + rename).
 
     ``float32`` stores float arrays as float32, as the model emits them (half the bytes; 1e-4 px
@@ -162,9 +169,14 @@ def _stored(value: Any, float32: bool) -> np.ndarray:
     return arr.astype(np.float32) if float32 and arr.dtype.kind == "f" else arr
 
 
-def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: int,
-                          num_joints: int = 70, where: str = "outputs",
-                          vertex_stride: int = 1) -> FrameDetections:
+def outputs_to_detections(
+    outputs: Sequence[Mapping],
+    camera: Camera,
+    stamp_ns: int,
+    num_joints: int = 70,
+    where: str = "outputs",
+    vertex_stride: int = 1,
+) -> FrameDetections:
     """SAM 3D Body outputs (RAW px) -> FrameDetections in the camera's RECTIFIED px.
 
     Keypoints, vertices and bbox centres of all people are undistorted in one batched call; each
@@ -181,27 +193,34 @@ def outputs_to_detections(outputs: Sequence[Mapping], camera: Camera, stamp_ns: 
     v = fields[0]["pred_keypoints_2d_verts"].shape[0]
     for i, f in enumerate(fields):
         if f["pred_keypoints_2d"].shape[0] != j or f["pred_keypoints_2d_verts"].shape[0] != v:
-            raise ValueError(f"{where}[{i}]: {f['pred_keypoints_2d'].shape[0]} keypoints / "
-                             f"{f['pred_keypoints_2d_verts'].shape[0]} vertices, "
-                             f"but detection 0 has {j} / {v}")
+            raise ValueError(
+                f"{where}[{i}]: {f['pred_keypoints_2d'].shape[0]} keypoints / "
+                f"{f['pred_keypoints_2d_verts'].shape[0]} vertices, "
+                f"but detection 0 has {j} / {v}"
+            )
     bboxes = np.stack([f["bbox"] for f in fields])
     size = bboxes[:, 2:] - bboxes[:, :2]
-    raw = np.concatenate([0.5 * (bboxes[:, None, :2] + bboxes[:, None, 2:]),
-                          np.stack([f["pred_keypoints_2d"] for f in fields]),
-                          np.stack([f["pred_keypoints_2d_verts"][::int(vertex_stride)] for f in fields])],
-                         axis=1)
+    raw = np.concatenate(
+        [
+            0.5 * (bboxes[:, None, :2] + bboxes[:, None, 2:]),
+            np.stack([f["pred_keypoints_2d"] for f in fields]),
+            np.stack([f["pred_keypoints_2d_verts"][:: int(vertex_stride)] for f in fields]),
+        ],
+        axis=1,
+    )
     rect = camera.undistort_points(raw)
     if not np.all(np.isfinite(rect)):
         bad = int(np.argwhere(~np.isfinite(rect))[0][0])
         raise ValueError(f"{where}[{bad}]: undistortion of camera {camera.name!r} gave NaN/inf")
     centre = rect[:, 0]
     return FrameDetections(
-        camera=camera.name, stamp_ns=stamp_ns,
+        camera=camera.name,
+        stamp_ns=stamp_ns,
         bboxes=np.concatenate([centre - 0.5 * size, centre + 0.5 * size], axis=1),
         scores=np.array([float(f["bbox_score"]) for f in fields]),
-        kpts2d=rect[:, 1:1 + j],
+        kpts2d=rect[:, 1 : 1 + j],
         kpts3d=np.stack([f["pred_keypoints_3d"] + f["pred_cam_t"] for f in fields]),
-        verts2d=rect[:, 1 + j:].astype(np.float32),
+        verts2d=rect[:, 1 + j :].astype(np.float32),
         mesh_subset=(v, int(vertex_stride), 0) if int(vertex_stride) > 1 else None,
     )
 
@@ -221,15 +240,18 @@ def detections_to_outputs(dets: FrameDetections, camera: Camera) -> list[dict]:
     centre = raw[:, 0]
     cam_t = dets.kpts3d.mean(axis=1)
     focal = float(0.5 * (camera.K[0, 0] + camera.K[1, 1]))
-    return [{
-        "bbox": np.concatenate([centre[i] - 0.5 * size[i], centre[i] + 0.5 * size[i]]).astype(np.float32),
-        "bbox_score": np.float32(dets.scores[i]),
-        "pred_keypoints_3d": (dets.kpts3d[i] - cam_t[i]).astype(np.float32),
-        "pred_keypoints_2d": raw[i, 1:1 + j].astype(np.float32),
-        "pred_keypoints_2d_verts": raw[i, 1 + j:].astype(np.float32),
-        "pred_cam_t": cam_t[i].astype(np.float32),
-        "focal_length": np.float32(focal),
-    } for i in range(dets.n)]
+    return [
+        {
+            "bbox": np.concatenate([centre[i] - 0.5 * size[i], centre[i] + 0.5 * size[i]]).astype(np.float32),
+            "bbox_score": np.float32(dets.scores[i]),
+            "pred_keypoints_3d": (dets.kpts3d[i] - cam_t[i]).astype(np.float32),
+            "pred_keypoints_2d": raw[i, 1 : 1 + j].astype(np.float32),
+            "pred_keypoints_2d_verts": raw[i, 1 + j :].astype(np.float32),
+            "pred_cam_t": cam_t[i].astype(np.float32),
+            "focal_length": np.float32(focal),
+        }
+        for i in range(dets.n)
+    ]
 
 
 # ---- xrmocap keypoints3d ground truth -------------------------------------------------------
@@ -262,8 +284,9 @@ def read_gt(path: str | Path) -> tuple[np.ndarray, np.ndarray, str]:
     bad = mask & ~np.all(np.isfinite(pose[..., :3]), axis=-1)
     if bad.any():
         f, p, k = np.argwhere(bad)[0]
-        raise ValueError(f"gt {str(path)!r}: field {key!r}: NaN/inf at frame {f} person {p} "
-                         f"joint {k} under mask")
+        raise ValueError(
+            f"gt {str(path)!r}: field {key!r}: NaN/inf at frame {f} person {p} joint {k} under mask"
+        )
     convention = str(data["convention"]) if "convention" in data else "sportcenter_13"
     pose = pose.copy()
     pose[~mask, :3] = np.nan
@@ -345,8 +368,9 @@ class SceneFolder:
 
     # ---- writing --------------------------------------------------------------------------
     @classmethod
-    def create(cls, root: str | Path, rig: Rig, info: Mapping | None = None,
-               extrinsics: bool = True) -> SceneFolder:
+    def create(
+        cls, root: str | Path, rig: Rig, info: Mapping | None = None, extrinsics: bool = True
+    ) -> SceneFolder:
         """Make the folder, write cameras/ (``extrinsics`` False: intrinsics only, for
         calibration; such a scene's :attr:`rig` cannot be read, Rig.load_intrinsics reads it)
         and (when given) scene.json."""
@@ -439,8 +463,9 @@ class SceneFolder:
         """Rectified detections of one view and frame (MissingDataError / ValueError on bad files)."""
         outputs = self.read_outputs(view, frame)
         path = self.frame_files(view)[int(frame)]
-        return outputs_to_detections(outputs, self.rig[view], self.stamp_ns(frame),
-                                     where=f"npz {str(path)!r} outputs")
+        return outputs_to_detections(
+            outputs, self.rig[view], self.stamp_ns(frame), where=f"npz {str(path)!r} outputs"
+        )
 
     def capture_frame(self, view: str, frame: int) -> int | None:
         """The view's frame whose capture time (stamp + its camera's time_offset) is nearest
@@ -450,8 +475,9 @@ class SceneFolder:
         if not offset:
             return int(frame)
         files = sorted(self.frame_files(view))
-        idx = match_capture_times([self.stamp_ns(frame)], [self.stamp_ns(g) for g in files],
-                                  offset, int(0.5e9 / self.fps))[0]
+        idx = match_capture_times(
+            [self.stamp_ns(frame)], [self.stamp_ns(g) for g in files], offset, int(0.5e9 / self.fps)
+        )[0]
         return files[idx] if idx >= 0 else None
 
     def detections_at(self, view: str, frame: int) -> FrameDetections:
@@ -459,9 +485,11 @@ class SceneFolder:
         stamped with their capture time: the offline pipeline's frame set member."""
         captured = self.capture_frame(view, frame)
         if captured is None:
-            raise MissingDataError(f"scene {str(self.root)!r}: view {view!r} has no frame "
-                                   f"captured near frame {frame} (time_offset "
-                                   f"{self.rig[view].time_offset:+.4f} s)")
+            raise MissingDataError(
+                f"scene {str(self.root)!r}: view {view!r} has no frame "
+                f"captured near frame {frame} (time_offset "
+                f"{self.rig[view].time_offset:+.4f} s)"
+            )
         dets = self.detections(view, captured)
         dets.stamp_ns = capture_stamp_ns(dets.stamp_ns, self.rig[view].time_offset)
         return dets

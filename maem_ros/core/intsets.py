@@ -7,6 +7,7 @@ int64 arrays, and ``return_inverse`` adds an argsort; called ~10 times per frame
 a visible share of the large load's association. Same results as np.unique, from a sort or,
 for ids below a small bound, a count.
 """
+
 from __future__ import annotations
 
 import numpy as np

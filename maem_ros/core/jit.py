@@ -1,5 +1,6 @@
 """One home for compiling core's optional numba kernels (clustering, procrustes and
 triangulation kernels; the epipolar kernel keeps its own fast-math variants)."""
+
 from __future__ import annotations
 
 from typing import Literal, TypedDict
@@ -30,9 +31,16 @@ def jit(fn=None, *, inline: bool = False):
     ``@jit``, ``@jit(inline=True)`` or ``jit(fn, inline=True)`` (to compile another module's
     elementwise function). Module-level functions, not closures: numba's cache key hashes a
     closure's cells, and a captured dispatcher hashes differently in every process."""
+
     def compile_(f):
         if _numba is None:
             return f
-        return _numba.njit(cache=True, error_model="numpy", boundscheck=False, nogil=True,
-                           inline="always" if inline else "never")(f)
+        return _numba.njit(
+            cache=True,
+            error_model="numpy",
+            boundscheck=False,
+            nogil=True,
+            inline="always" if inline else "never",
+        )(f)
+
     return compile_ if fn is None else compile_(fn)

@@ -9,6 +9,7 @@ inlines a helper or reads a constant of another module would keep its old code w
 module changes. Kept apart from :mod:`maem_ros.core.jit`, which every kernel imports: a change
 here does not make the kernels stale.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -47,9 +48,11 @@ def kernel_modules(prefixes: Sequence[str] = ()) -> list[ModuleType]:
     """Every module of the KERNEL_PACKAGES, imported (in name order); with ``prefixes``, only
     those whose dotted name starts with one of them. An import error propagates: a broken
     kernel module must fail the warm-up, not skip it."""
-    names = sorted(m.name for package in KERNEL_PACKAGES
-                   for m in pkgutil.walk_packages(importlib.import_module(package).__path__,
-                                                  package + "."))
+    names = sorted(
+        m.name
+        for package in KERNEL_PACKAGES
+        for m in pkgutil.walk_packages(importlib.import_module(package).__path__, package + ".")
+    )
     names = [n for n in names if not prefixes or any(n.startswith(p) for p in prefixes)]
     return [importlib.import_module(n) for n in names]
 
@@ -72,9 +75,16 @@ def dispatchers(modules: Sequence[ModuleType] | None = None) -> dict[str, Any]:
     if not have_numba():
         return {}
     from numba.core.dispatcher import Dispatcher
-    pool = modules if modules is not None else [
-        m for n, m in list(sys.modules.items())
-        if n.startswith(tuple(p + "." for p in KERNEL_PACKAGES)) and m is not None]
+
+    pool = (
+        modules
+        if modules is not None
+        else [
+            m
+            for n, m in list(sys.modules.items())
+            if n.startswith(tuple(p + "." for p in KERNEL_PACKAGES)) and m is not None
+        ]
+    )
     found: dict[str, Any] = {}
     for m in pool:
         for value in vars(m).values():
@@ -87,8 +97,10 @@ def dispatchers(modules: Sequence[ModuleType] | None = None) -> dict[str, Any]:
 def kernel_counts() -> dict[str, tuple[int, int]]:
     """{dispatcher name: (signatures loaded from the cache, signatures compiled)} so far in
     this process (numba's own counters), over :func:`dispatchers`."""
-    return {k: (sum(d.stats.cache_hits.values()), sum(d.stats.cache_misses.values()))
-            for k, d in dispatchers().items()}
+    return {
+        k: (sum(d.stats.cache_hits.values()), sum(d.stats.cache_misses.values()))
+        for k, d in dispatchers().items()
+    }
 
 
 def kernel_stats(before: Mapping[str, tuple[int, int]]) -> list[KernelStats]:
@@ -98,8 +110,11 @@ def kernel_stats(before: Mapping[str, tuple[int, int]]) -> list[KernelStats]:
     for name, d in sorted(dispatchers().items()):
         hits, misses = before.get(name, (0, 0))
         s = d.stats
-        out.append(KernelStats(name, s.cache_path, sum(s.cache_hits.values()) - hits,
-                               sum(s.cache_misses.values()) - misses))
+        out.append(
+            KernelStats(
+                name, s.cache_path, sum(s.cache_hits.values()) - hits, sum(s.cache_misses.values()) - misses
+            )
+        )
     return out
 
 
@@ -118,6 +133,7 @@ def source_closure(path: Path) -> list[Path]:
     modules, ``path`` included (sorted): everything a kernel of that file can inline or
     read a constant from. Found from the import statements (ast), without importing them."""
     import ast
+
     seen: set[Path] = set()
     todo = [Path(path).resolve()]
     while todo:
@@ -140,11 +156,15 @@ def _imported_files(node: Any, package: str) -> list[Path]:
     x``: m, and m.x when x is a submodule)."""
     import ast
     import importlib.util
+
     if isinstance(node, ast.Import):
         names = [a.name for a in node.names]
     elif isinstance(node, ast.ImportFrom):
-        base = (importlib.util.resolve_name("." * node.level + (node.module or ""), package)
-                if node.level else node.module or "")
+        base = (
+            importlib.util.resolve_name("." * node.level + (node.module or ""), package)
+            if node.level
+            else node.module or ""
+        )
         names = [base] + [f"{base}.{a.name}" for a in node.names]
     else:
         return []
@@ -164,8 +184,9 @@ def _imported_files(node: Any, package: str) -> list[Path]:
 def source_digests(path: Path) -> dict[str, str]:
     """{file name relative to the maem_ros package: sha256} of :func:`source_closure`."""
     root = Path(__file__).resolve().parents[1]
-    return {str(f.relative_to(root)): hashlib.sha256(f.read_bytes()).hexdigest()
-            for f in source_closure(path)}
+    return {
+        str(f.relative_to(root)): hashlib.sha256(f.read_bytes()).hexdigest() for f in source_closure(path)
+    }
 
 
 def kernel_files(found: Mapping[str, Any]) -> dict[Path, tuple[str, str]]:
@@ -210,8 +231,7 @@ def purge_cache(files: Iterable[Path], found: Mapping[str, Any]) -> int:
     removed = 0
     for f in files:
         cache_dir, prefix = where[Path(f).resolve()]
-        for p in list(Path(cache_dir).glob(prefix + "*.nbi")) + list(
-                Path(cache_dir).glob(prefix + "*.nbc")):
+        for p in list(Path(cache_dir).glob(prefix + "*.nbi")) + list(Path(cache_dir).glob(prefix + "*.nbc")):
             p.unlink(missing_ok=True)
             removed += 1
     return removed

@@ -6,6 +6,7 @@ coordinates of 1e30 were triangulated and published. The checks here reject such
 with a :class:`LimitError` (reason ``too_many_detections`` / ``too_many_people`` /
 ``out_of_range``) before any per-person work, in O(size of the message) numpy reductions.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -45,8 +46,7 @@ class InputLimits:
             raise ValueError(f"world_extent_m: must be > 0, got {self.world_extent_m}")
 
 
-def _pixel_bounds(width: np.ndarray, height: np.ndarray, margin: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _pixel_bounds(width: np.ndarray, height: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper (x, y) px bounds, shape (..., 2)."""
     size = np.stack([width, height], axis=-1).astype(np.float64)
     return -margin * size, (1.0 + margin) * size
@@ -78,13 +78,18 @@ def _first_outside(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float 
 def check_detections(dets: FrameDetections, rig: Rig, limits: InputLimits, where: str) -> None:
     """LimitError when ``dets`` has more than ``max_detections`` or a bbox, keypoint or vertex
     outside the camera's image by more than ``pixel_margin`` image sizes."""
-    check_detection_arrays(dets.camera, dets.bboxes, dets.kpts2d, dets.verts2d, rig, limits,
-                           where)
+    check_detection_arrays(dets.camera, dets.bboxes, dets.kpts2d, dets.verts2d, rig, limits, where)
 
 
-def check_detection_arrays(camera: str, bboxes: np.ndarray, kpts2d: np.ndarray,
-                           vertices: np.ndarray | Callable[[bool], np.ndarray], rig: Rig,
-                           limits: InputLimits, where: str) -> None:
+def check_detection_arrays(
+    camera: str,
+    bboxes: np.ndarray,
+    kpts2d: np.ndarray,
+    vertices: np.ndarray | Callable[[bool], np.ndarray],
+    rig: Rig,
+    limits: InputLimits,
+    where: str,
+) -> None:
     """check_detections on one camera's arrays: bboxes (N, 4) px, kpts2d (N, J, 2) px and
     vertices (..., 2) px, or for a message whose vertices are not decoded yet a function of
     ``exact`` giving their extremes (2, 2) (rows min and max; exact=False: cheaper bounds that
@@ -92,8 +97,9 @@ def check_detection_arrays(camera: str, bboxes: np.ndarray, kpts2d: np.ndarray,
     when the cheap bounds are not within the limits."""
     n = len(bboxes)
     if n > limits.max_detections:
-        raise LimitError(f"{where}: {n} detections > max_detections "
-                         f"{limits.max_detections}", "too_many_detections")
+        raise LimitError(
+            f"{where}: {n} detections > max_detections {limits.max_detections}", "too_many_detections"
+        )
     if n == 0:
         return
     cam = rig[camera]
@@ -101,22 +107,25 @@ def check_detection_arrays(camera: str, bboxes: np.ndarray, kpts2d: np.ndarray,
     if callable(vertices):
         extremes = vertices(False)
         vertices = extremes if _first_outside(extremes, lo, hi) is None else vertices(True)
-    for name, pts in (("bbox", bboxes.reshape(n, -1, 2)), ("kpts2d", kpts2d),
-                      ("verts2d", vertices)):
+    for name, pts in (("bbox", bboxes.reshape(n, -1, 2)), ("kpts2d", kpts2d), ("verts2d", vertices)):
         value = _first_outside(pts, lo, hi)
         if value is not None:
-            raise LimitError(f"{where}: {name}: {value:g} px outside image {cam.width}x"
-                             f"{cam.height} by more than pixel_margin {limits.pixel_margin:g}")
+            raise LimitError(
+                f"{where}: {name}: {value:g} px outside image {cam.width}x"
+                f"{cam.height} by more than pixel_margin {limits.pixel_margin:g}"
+            )
 
 
-def check_clusters(num_clusters: int, camera: np.ndarray, kpts2d: np.ndarray, rig: Rig,
-                   limits: InputLimits, where: str) -> None:
+def check_clusters(
+    num_clusters: int, camera: np.ndarray, kpts2d: np.ndarray, rig: Rig, limits: InputLimits, where: str
+) -> None:
     """LimitError when a clusters message has more than ``max_people`` clusters or a member
     keypoint (``kpts2d`` (M,J,2) px of member camera index ``camera`` (M,)) outside its
     camera's image by more than ``pixel_margin`` image sizes."""
     if num_clusters > limits.max_people:
-        raise LimitError(f"{where}: {num_clusters} people > max_people {limits.max_people}",
-                         "too_many_people")
+        raise LimitError(
+            f"{where}: {num_clusters} people > max_people {limits.max_people}", "too_many_people"
+        )
     if len(camera) == 0:
         return
     width = np.array([c.width for c in rig.cameras])[camera]
@@ -124,8 +133,10 @@ def check_clusters(num_clusters: int, camera: np.ndarray, kpts2d: np.ndarray, ri
     lo, hi = _pixel_bounds(width, height, limits.pixel_margin)
     value = _first_outside(kpts2d, lo[:, None], hi[:, None])
     if value is not None:
-        raise LimitError(f"{where}: kpts2d: {value:g} px outside the member's image by more "
-                         f"than pixel_margin {limits.pixel_margin:g}")
+        raise LimitError(
+            f"{where}: kpts2d: {value:g} px outside the member's image by more "
+            f"than pixel_margin {limits.pixel_margin:g}"
+        )
 
 
 def mask_far_joints(joints: np.ndarray, limits: InputLimits) -> int:

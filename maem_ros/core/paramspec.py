@@ -14,6 +14,7 @@ ROS nodes declare it as a read-only ROS parameter with its description and const
 it in ``--help`` (ros/cli.py). The type of the default is the parameter type (bool, int,
 float, str; a list default is a string array). Pure Python: no rclpy here.
 """
+
 from __future__ import annotations
 
 import math
@@ -70,8 +71,7 @@ class ParamSpec:
     def help_line(self) -> str:
         """``name (type, default D[, constraints]): description`` for --help."""
         extra = f", {self.constraints()}" if self.constraints() else ""
-        return (f"{self.name} ({self.ptype.__name__}, default {self.default!r}{extra}): "
-                f"{self.description}")
+        return f"{self.name} ({self.ptype.__name__}, default {self.default!r}{extra}): {self.description}"
 
     def check(self, value: Any) -> Any:
         """The validated value in the parameter's type (ints accepted for floats, integral
@@ -94,10 +94,8 @@ class ParamSpec:
         return value
 
     def _number(self, value: Any, t: type) -> int | float:
-        if isinstance(value, (bool, np.bool_, str)) or not isinstance(value, (int, float,
-                                                                              np.number)):
-            raise ParamError(self.name, f"expected {'an integer' if t is int else 'a number'}, "
-                                        f"got {value!r}")
+        if isinstance(value, (bool, np.bool_, str)) or not isinstance(value, (int, float, np.number)):
+            raise ParamError(self.name, f"expected {'an integer' if t is int else 'a number'}, got {value!r}")
         if not math.isfinite(value):
             raise ParamError(self.name, f"must be finite, got {value!r}")
         if t is int:
@@ -106,20 +104,33 @@ class ParamSpec:
             value = int(value)
         else:
             value = float(value)
-        low = self.minimum is not None and (value <= self.minimum if self.exclusive_minimum
-                                            else value < self.minimum)
+        low = self.minimum is not None and (
+            value <= self.minimum if self.exclusive_minimum else value < self.minimum
+        )
         if low or (self.maximum is not None and value > self.maximum):
             raise ParamError(self.name, f"must be {self.constraints()}, got {value!r}")
         return value
 
 
-def param(default: Any, description: str, *, minimum: float | None = None,
-          maximum: float | None = None, exclusive_minimum: bool = False,
-          choices: Sequence[str] | None = None) -> Any:
+def param(
+    default: Any,
+    description: str,
+    *,
+    minimum: float | None = None,
+    maximum: float | None = None,
+    exclusive_minimum: bool = False,
+    choices: Sequence[str] | None = None,
+) -> Any:
     """A dataclass field that is a parameter (see module docstring); list defaults are copied."""
-    meta = {PARAM_METADATA: dict(description=description, minimum=minimum, maximum=maximum,
-                                 exclusive_minimum=exclusive_minimum,
-                                 choices=None if choices is None else tuple(choices))}
+    meta = {
+        PARAM_METADATA: dict(
+            description=description,
+            minimum=minimum,
+            maximum=maximum,
+            exclusive_minimum=exclusive_minimum,
+            choices=None if choices is None else tuple(choices),
+        )
+    }
     if isinstance(default, (list, tuple)):
         items = list(default)
         return field(default_factory=lambda: list(items), metadata=meta)

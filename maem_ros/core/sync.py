@@ -38,6 +38,7 @@ Rules (doc/design.md §5):
   synchroniser (``time_offsets``) queues, compares and emits capture times, and the offline
   pipeline matches frames by them (:func:`match_capture_times`).
 """
+
 from __future__ import annotations
 
 import statistics
@@ -70,8 +71,9 @@ def capture_stamp_ns(stamp_ns: int | np.ndarray, time_offset_s: float) -> int | 
     return int(stamp_ns) + offset_ns
 
 
-def match_capture_times(reference_ns: Sequence[int], stamps_ns: Sequence[int],
-                        time_offset_s: float, tolerance_ns: int) -> np.ndarray:
+def match_capture_times(
+    reference_ns: Sequence[int], stamps_ns: Sequence[int], time_offset_s: float, tolerance_ns: int
+) -> np.ndarray:
     """Offline frame matching: for each reference time (ns), the index into ``stamps_ns`` (one
     camera's message stamps, ns, sorted) whose capture time (stamp + ``time_offset_s``) is
     nearest, or -1 when none lies within ``tolerance_ns``."""
@@ -150,10 +152,18 @@ class ApproximateTimeSync:
     ``time_offsets``: camera -> s added to its stamps (the rig's time_offset; absent = 0).
     """
 
-    def __init__(self, cameras: Sequence[str], slop_ns: int, max_wait_ns: int,
-                 min_cameras: int = 2, queue_size: int = 16, dead_after_sets: int = 3,
-                 max_lag_ns: int = 0, jump_ns: int = 1_000_000_000,
-                 time_offsets: Mapping[str, float] | None = None):
+    def __init__(
+        self,
+        cameras: Sequence[str],
+        slop_ns: int,
+        max_wait_ns: int,
+        min_cameras: int = 2,
+        queue_size: int = 16,
+        dead_after_sets: int = 3,
+        max_lag_ns: int = 0,
+        jump_ns: int = 1_000_000_000,
+        time_offsets: Mapping[str, float] | None = None,
+    ):
         cameras = list(cameras)
         offsets = dict(time_offsets or {})
         unknown = sorted(set(offsets) - set(cameras))
@@ -164,8 +174,7 @@ class ApproximateTimeSync:
         self.time_offsets = {c: float(offsets.get(c, 0.0)) for c in cameras}
         if not cameras or len(set(cameras)) != len(cameras):
             raise ValueError(f"cameras: need a non-empty list of distinct names, got {cameras}")
-        for name, value in (("slop_ns", slop_ns), ("max_wait_ns", max_wait_ns),
-                            ("max_lag_ns", max_lag_ns)):
+        for name, value in (("slop_ns", slop_ns), ("max_wait_ns", max_wait_ns), ("max_lag_ns", max_lag_ns)):
             if int(value) < 0:
                 raise ValueError(f"{name}: must be >= 0, got {value}")
         if not 1 <= int(min_cameras) <= len(cameras):
@@ -227,9 +236,13 @@ class ApproximateTimeSync:
     @property
     def counters(self) -> dict[str, int]:
         """Flat view of :attr:`stats` (``dropped_<reason>`` keys) for reports and tests."""
-        out = {"received": self.stats.received, "sets": self.stats.sets,
-               "partial_sets": self.stats.partial_sets, "timeouts": self.stats.timeouts,
-               "resets": self.stats.resets}
+        out = {
+            "received": self.stats.received,
+            "sets": self.stats.sets,
+            "partial_sets": self.stats.partial_sets,
+            "timeouts": self.stats.timeouts,
+            "resets": self.stats.resets,
+        }
         out.update({f"dropped_{r.value}": self.stats.dropped[r] for r in SyncDrop})
         return out
 
@@ -238,8 +251,15 @@ class ApproximateTimeSync:
             self.stats.dropped[reason] += n
 
     # -- input ----------------------------------------------------------------------------
-    def add(self, camera: str, stamp_ns: int, item: Any, now_ns: int,
-            arrival_ns: int | None = None, poll: bool = True) -> list[FrameSet]:
+    def add(
+        self,
+        camera: str,
+        stamp_ns: int,
+        item: Any,
+        now_ns: int,
+        arrival_ns: int | None = None,
+        poll: bool = True,
+    ) -> list[FrameSet]:
         """Queue one message and return the frame sets that became complete.
 
         ``stamp_ns``: the message's stamp; the camera's time offset is added here.
@@ -304,8 +324,12 @@ class ApproximateTimeSync:
         """The others agree with this stamp but not with the camera's previous one (accepted
         before there was anyone to compare with): re-anchor the camera instead of holding."""
         prev = self._latency.get(camera)
-        return (base is not None and prev is not None and abs(latency - base) <= self.jump_ns
-                and abs(prev - base) > self.jump_ns)
+        return (
+            base is not None
+            and prev is not None
+            and abs(latency - base) <= self.jump_ns
+            and abs(prev - base) > self.jump_ns
+        )
 
     def _drop_queued_from(self, camera: str, stamp_ns: int) -> None:
         """Remove ``camera``'s queued messages at or after ``stamp_ns`` (counted ``future``)."""
@@ -318,19 +342,27 @@ class ApproximateTimeSync:
         """Enter lagging after LAG_SAMPLES lags beyond the window; leave it (hysteresis, so a
         noisy lag around the window does not flap) at a lag under half the window."""
         self._lag.setdefault(camera, deque(maxlen=LAG_SAMPLES)).append(lag)
-        if camera not in self._lagging and self._lag_ns(camera) > self.max_wait_ns \
-                and not self._compensated(camera):
+        if (
+            camera not in self._lagging
+            and self._lag_ns(camera) > self.max_wait_ns
+            and not self._compensated(camera)
+        ):
             self._lagging.add(camera)
-            self._events.append(SyncEvent("lagging", camera, f"camera {camera} lags the others "
-                                          f"by {lag / 1e6:.0f} ms (> window): not waited for"))
-        elif camera in self._lagging and (lag <= self.max_wait_ns // 2
-                                          or self._compensated(camera)):
+            self._events.append(
+                SyncEvent(
+                    "lagging",
+                    camera,
+                    f"camera {camera} lags the others by {lag / 1e6:.0f} ms (> window): not waited for",
+                )
+            )
+        elif camera in self._lagging and (lag <= self.max_wait_ns // 2 or self._compensated(camera)):
             self._rejoin(camera, f"lag {lag / 1e6:.0f} ms")
 
     def _rejoin(self, camera: str, why: str) -> None:
         self._lagging.discard(camera)
-        self._events.append(SyncEvent("rejoined", camera, f"camera {camera} back within the "
-                                      f"window ({why}): waited for again"))
+        self._events.append(
+            SyncEvent("rejoined", camera, f"camera {camera} back within the window ({why}): waited for again")
+        )
 
     def _hold(self, camera: str, reason: SyncDrop, m: _Msg) -> list[FrameSet]:
         """Keep a jumped message aside; reset and replay when most live cameras jumped."""
@@ -342,14 +374,22 @@ class ApproximateTimeSync:
         jumped = [c for c in live if self._held[c]]
         if len(jumped) < max(1, len(live) // 2 + 1):
             return []
-        replay = sorted(((msg.arrival_ns, k, c, msg) for c in self.cameras
-                         for k, (_, msg) in enumerate(self._held[c])), key=lambda e: e[:2])
+        replay = sorted(
+            ((msg.arrival_ns, k, c, msg) for c in self.cameras for k, (_, msg) in enumerate(self._held[c])),
+            key=lambda e: e[:2],
+        )
         for c in self.cameras:
             self._held[c].clear()
         kind = "back" if reason is SyncDrop.STALE else "forward"
         self.reset()
-        self._events.append(SyncEvent("reset", None, f"{len(jumped)} of {len(live)} cameras "
-                                      f"jumped {kind} (bag loop or restart): synchroniser reset"))
+        self._events.append(
+            SyncEvent(
+                "reset",
+                None,
+                f"{len(jumped)} of {len(live)} cameras "
+                f"jumped {kind} (bag loop or restart): synchroniser reset",
+            )
+        )
         out: list[FrameSet] = []
         for _, _, c, msg in replay:
             out += self._accept(c, msg)
@@ -400,10 +440,12 @@ class ApproximateTimeSync:
             ref = heads[ref_cam]
             limit = ref.stamp_ns + self.slop_ns
             present = [c for c in self.cameras if c in heads and heads[c].stamp_ns <= limit]
-            awaited = [c for c in self.cameras if c not in heads and not self._dead(c)
-                       and not self._is_lagging(c)]
-            if awaited and (complete_only or
-                            now_ns - ref.arrival_ns < max(self._wait_ns(c) for c in awaited)):
+            awaited = [
+                c for c in self.cameras if c not in heads and not self._dead(c) and not self._is_lagging(c)
+            ]
+            if awaited and (
+                complete_only or now_ns - ref.arrival_ns < max(self._wait_ns(c) for c in awaited)
+            ):
                 return out
             if len(present) < self.min_cameras:
                 self._queues[ref_cam].popleft()
@@ -497,8 +539,7 @@ class StampGuard:
 
     def _drop_held(self, out: GuardResult) -> None:
         for stamp, _, item in self._held:
-            out.dropped.append(("stale_stamp" if stamp < (self.last or 0) else "future_stamp",
-                                item))
+            out.dropped.append(("stale_stamp" if stamp < (self.last or 0) else "future_stamp", item))
         self._held = []
 
     def reset(self) -> None:

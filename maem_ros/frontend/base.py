@@ -10,6 +10,7 @@ Backends (``make_estimator(backend, options, rig)``):
 Options common to every backend:
   vertex_stride (int, default 1)  keep every n-th mesh vertex of verts2d (bandwidth / CPU).
 """
+
 from __future__ import annotations
 
 import importlib
@@ -120,18 +121,27 @@ def option_float(options: Mapping[str, Any], key: str, default: float, positive:
     except (TypeError, ValueError):
         raise ValueError(f"frontend option {key!r}: expected a number, got {value!r}") from None
     if not np.isfinite(out) or (positive and out <= 0):
-        raise ValueError(f"frontend option {key!r}: expected a finite{' positive' if positive else ''} "
-                         f"number, got {value!r}")
+        raise ValueError(
+            f"frontend option {key!r}: expected a finite{' positive' if positive else ''} "
+            f"number, got {value!r}"
+        )
     return out
 
 
 def check_bgr_image(image: Any, backend: str, camera: str) -> np.ndarray:
     """``image`` when it is a BGR uint8 (H,W,3) array, else ValueError naming backend and camera."""
-    if image is None or not isinstance(image, np.ndarray) or image.ndim != 3 \
-            or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise ValueError(f"{backend} backend: camera {camera!r}: expected a BGR uint8 "
-                         f"(H,W,3) image, got {getattr(image, 'shape', type(image).__name__)} "
-                         f"{getattr(image, 'dtype', '')}")
+    if (
+        image is None
+        or not isinstance(image, np.ndarray)
+        or image.ndim != 3
+        or image.shape[2] != 3
+        or image.dtype != np.uint8
+    ):
+        raise ValueError(
+            f"{backend} backend: camera {camera!r}: expected a BGR uint8 "
+            f"(H,W,3) image, got {getattr(image, 'shape', type(image).__name__)} "
+            f"{getattr(image, 'dtype', '')}"
+        )
     return image
 
 

@@ -46,6 +46,7 @@ Options (frontend parameters; unknown keys are ignored):
   keypoint_convention    blazepose_33 | sportcenter_13 | coco_17 (default blazepose_33)
   pose_factory           callable(options) -> object with ``process(rgb)`` like mp Pose (tests)
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -65,7 +66,8 @@ INSTALL_HELP = (
     "the mediapipe backend needs the mediapipe wheel: pip install '.[mediapipe]' && "
     f"pip install --no-deps mediapipe=={MEDIAPIPE_VERSION} (or make mediapipe); --no-deps "
     "because the wheel pins numpy<2 and opencv-contrib-python, which would replace this "
-    "project's numpy and opencv-python-headless")
+    "project's numpy and opencv-python-headless"
+)
 #: the grey a found person is painted with before the next pass
 _MASK_GREY = 128
 #: body joints whose visibility makes the score (BlazePose indices 11-16, 23-28)
@@ -76,6 +78,7 @@ def import_mediapipe():
     """The mediapipe module, or ImportError with the install command."""
     try:
         import mediapipe as mp
+
         _ = mp.solutions.pose.Pose
     except (ImportError, AttributeError) as e:
         raise ImportError(f"{INSTALL_HELP} ({type(e).__name__}: {e})") from None
@@ -86,8 +89,11 @@ def official_pose(options: Mapping[str, Any]):
     """mp.solutions.pose.Pose in static-image mode with segmentation (the shipped full model)."""
     mp = import_mediapipe()
     return mp.solutions.pose.Pose(
-        static_image_mode=True, model_complexity=1, enable_segmentation=True,
-        min_detection_confidence=option_float(options, "min_detection_confidence", 0.5))
+        static_image_mode=True,
+        model_complexity=1,
+        enable_segmentation=True,
+        min_detection_confidence=option_float(options, "min_detection_confidence", 0.5),
+    )
 
 
 def landmarks_array(landmarks, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,14 +107,14 @@ def world_array(landmarks) -> np.ndarray:
     return np.array([(p.x, p.y, p.z) for p in landmarks.landmark], dtype=np.float64)
 
 
-def place_in_camera(world: np.ndarray, uv: np.ndarray, use: np.ndarray, K: np.ndarray
-                    ) -> np.ndarray | None:
+def place_in_camera(world: np.ndarray, uv: np.ndarray, use: np.ndarray, K: np.ndarray) -> np.ndarray | None:
     """(J,3) model-frame metres -> (J,3) camera-frame metres via the PnP pose that projects the
     ``use`` joints onto ``uv`` (rectified px, intrinsics K); None when PnP fails."""
     if int(use.sum()) < 4:
         return None
-    ok, rvec, tvec = cv2.solvePnP(world[use].astype(np.float64), uv[use].astype(np.float64),
-                                  K, None, flags=cv2.SOLVEPNP_SQPNP)
+    ok, rvec, tvec = cv2.solvePnP(
+        world[use].astype(np.float64), uv[use].astype(np.float64), K, None, flags=cv2.SOLVEPNP_SQPNP
+    )
     if not ok:
         return None
     R = cv2.Rodrigues(rvec)[0]
@@ -133,16 +139,23 @@ class MediapipeEstimator(Estimator):
         self.duplicate_overlap = option_float(options, "duplicate_overlap", 0.6)
         self.pnp_min_visibility = option_float(options, "pnp_min_visibility", 0.5)
         self.min_visibility = option_float(options, "min_visibility", 0.0)
-        for key in ("mask_threshold", "duplicate_overlap", "pnp_min_visibility",
-                    "min_detection_confidence", "min_visibility"):
+        for key in (
+            "mask_threshold",
+            "duplicate_overlap",
+            "pnp_min_visibility",
+            "min_detection_confidence",
+            "min_visibility",
+        ):
             value = option_float(options, key, 0.5)
             if not 0.0 <= value <= 1.0:
                 raise ValueError(f"frontend option {key!r}: must be in [0, 1], got {value}")
         if self.min_bbox_height < 0:
-            raise ValueError(f"frontend option 'min_bbox_height': must be >= 0 px, got "
-                             f"{self.min_bbox_height}")
+            raise ValueError(
+                f"frontend option 'min_bbox_height': must be >= 0 px, got {self.min_bbox_height}"
+            )
         self.convention: KeypointConvention = get_convention(
-            str(options.get("keypoint_convention", BLAZEPOSE_33.name) or BLAZEPOSE_33.name))
+            str(options.get("keypoint_convention", BLAZEPOSE_33.name) or BLAZEPOSE_33.name)
+        )
         # fails here (with the message) rather than at the first image
         convert(np.zeros((BLAZEPOSE_33.num_joints, 2)), self.convention, BLAZEPOSE_33.name)
         factory = options.get("pose_factory")
@@ -153,8 +166,9 @@ class MediapipeEstimator(Estimator):
         self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kernel, kernel))
         #: counters: frames, passes (model calls), detections, dropped_duplicate, dropped_small,
         #: dropped_pnp
-        self.stats: dict[str, int] = dict(frames=0, passes=0, detections=0, dropped_duplicate=0,
-                                          dropped_small=0, dropped_pnp=0)
+        self.stats: dict[str, int] = dict(
+            frames=0, passes=0, detections=0, dropped_duplicate=0, dropped_small=0, dropped_pnp=0
+        )
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None) -> FrameDetections:
         """Rectified BGR uint8 (H,W,3) image -> detections (rectified px, camera metres)."""
@@ -193,8 +207,9 @@ class MediapipeEstimator(Estimator):
         cv2.fillConvexPoly(mask, hull, 1)
         return mask > 0
 
-    def _person(self, camera: Camera, uv: np.ndarray, vis: np.ndarray, result, mask: np.ndarray,
-                taken: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
+    def _person(
+        self, camera: Camera, uv: np.ndarray, vis: np.ndarray, result, mask: np.ndarray, taken: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
         """(bbox, kpts2d, kpts3d, score) of one pass's person, None when dropped (counted)."""
         h, w = mask.shape
         px = np.round(uv).astype(np.int64)
@@ -214,8 +229,11 @@ class MediapipeEstimator(Estimator):
             self.stats["dropped_small"] += 1
             return None
         world = result.pose_world_landmarks
-        X = None if world is None else place_in_camera(
-            world_array(world), uv, vis >= self.pnp_min_visibility, camera.K_rect)
+        X = (
+            None
+            if world is None
+            else place_in_camera(world_array(world), uv, vis >= self.pnp_min_visibility, camera.K_rect)
+        )
         if X is None:
             self.stats["dropped_pnp"] += 1
             return None
@@ -228,7 +246,12 @@ class MediapipeEstimator(Estimator):
             return FrameDetections.empty(camera.name, stamp_ns, conv.num_joints, 0)
         bboxes, kp2d, kp3d = (np.stack([p[i] for p in people]) for i in range(3))
         scores = np.array([p[3] for p in people])
-        return FrameDetections(camera.name, stamp_ns, bboxes, scores,
-                               convert(kp2d, conv, BLAZEPOSE_33.name),
-                               convert(kp3d, conv, BLAZEPOSE_33.name),
-                               np.zeros((len(people), 0, 2), np.float32))
+        return FrameDetections(
+            camera.name,
+            stamp_ns,
+            bboxes,
+            scores,
+            convert(kp2d, conv, BLAZEPOSE_33.name),
+            convert(kp3d, conv, BLAZEPOSE_33.name),
+            np.zeros((len(people), 0, 2), np.float32),
+        )

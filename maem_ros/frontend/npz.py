@@ -9,6 +9,7 @@ Frame f of camera c is ``<dets_dir>/<c>/<f:06d>.npz`` (any file whose stem ends 
 it is picked for the stamp within half a period of start_stamp_ns + f / fps. Raw-image px in the
 files are undistorted here with the rig's camera.
 """
+
 from __future__ import annotations
 
 import json
@@ -64,17 +65,26 @@ class NpzEstimator(Estimator):
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None = None) -> FrameDetections:
         frame = self.frame_at(stamp_ns)
         if frame is None:
-            raise MissingDataError(f"npz backend: stamp {int(stamp_ns)} ns maps to no frame of "
-                                   f"{str(self.dets_dir)!r} (start {self.start_stamp_ns} ns, fps {self.fps})")
+            raise MissingDataError(
+                f"npz backend: stamp {int(stamp_ns)} ns maps to no frame of "
+                f"{str(self.dets_dir)!r} (start {self.start_stamp_ns} ns, fps {self.fps})"
+            )
         path = self._files(camera.name).get(frame)
         if path is None:
             self._index.pop(camera.name, None)  # files may still be arriving; look again next time
             path = self._files(camera.name).get(frame)
         if path is None:
-            raise MissingDataError(f"npz backend: no file for camera {camera.name!r} frame {frame} "
-                                   f"in {str(self.dets_dir / camera.name)!r}")
-        return outputs_to_detections(read_maem_npz(path), camera, int(stamp_ns),
-                                     where=f"npz {str(path)!r} outputs", vertex_stride=self.vertex_stride)
+            raise MissingDataError(
+                f"npz backend: no file for camera {camera.name!r} frame {frame} "
+                f"in {str(self.dets_dir / camera.name)!r}"
+            )
+        return outputs_to_detections(
+            read_maem_npz(path),
+            camera,
+            int(stamp_ns),
+            where=f"npz {str(path)!r} outputs",
+            vertex_stride=self.vertex_stride,
+        )
 
 
 def _scene_info(path: Path) -> dict:

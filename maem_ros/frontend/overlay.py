@@ -3,6 +3,7 @@
 All coordinates in ``FrameDetections`` are rectified px, so the overlay must be
 drawn on the rectified image (``Rectifier.rectify``), not on the raw one.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -17,12 +18,13 @@ from maem_ros.core.skeleton import KeypointConvention, convention_for, get_conve
 _LIMIT = 1 << 15  # cv2 drawing takes int coordinates; clamp far-off points well outside any image
 
 
-def _resolve_convention(conv: KeypointConvention | str | None, num_joints: int
-                        ) -> KeypointConvention | None:
+def _resolve_convention(conv: KeypointConvention | str | None, num_joints: int) -> KeypointConvention | None:
     if isinstance(conv, KeypointConvention):
         if conv.num_joints != num_joints:
-            raise ValueError(f"overlay: convention {conv.name!r} has {conv.num_joints} joints, "
-                             f"detections have {num_joints}")
+            raise ValueError(
+                f"overlay: convention {conv.name!r} has {conv.num_joints} joints, "
+                f"detections have {num_joints}"
+            )
         return conv
     if isinstance(conv, str):
         return _resolve_convention(get_convention(conv), num_joints)
@@ -39,8 +41,10 @@ def _pt(p: np.ndarray) -> tuple[int, int]:
 
 def _as_bgr(image: np.ndarray) -> np.ndarray:
     if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
-        raise ValueError(f"overlay: expected an image array (H,W[,C]), got "
-                         f"{type(image).__name__} {getattr(image, 'shape', '')}")
+        raise ValueError(
+            f"overlay: expected an image array (H,W[,C]), got "
+            f"{type(image).__name__} {getattr(image, 'shape', '')}"
+        )
     if image.dtype != np.uint8:
         image = np.clip(image, 0, 255).astype(np.uint8)
     if image.ndim == 2:
@@ -54,10 +58,14 @@ def _as_bgr(image: np.ndarray) -> np.ndarray:
     return image.copy()
 
 
-def draw_detections(image_rect: np.ndarray, dets: FrameDetections,
-                    ids: Sequence[int] | np.ndarray | None = None,
-                    convention: KeypointConvention | str | None = None,
-                    max_vertices: int = 0, thickness: int = 2) -> np.ndarray:
+def draw_detections(
+    image_rect: np.ndarray,
+    dets: FrameDetections,
+    ids: Sequence[int] | np.ndarray | None = None,
+    convention: KeypointConvention | str | None = None,
+    max_vertices: int = 0,
+    thickness: int = 2,
+) -> np.ndarray:
     """Draw ``dets`` on a copy of the rectified image and return it (BGR uint8, same H,W).
 
     Per detection: bbox, a label ``#<id> <score>`` (id = ``ids[i]`` when given, e.g. the
@@ -80,13 +88,13 @@ def draw_detections(image_rect: np.ndarray, dets: FrameDetections,
         if max_vertices > 0 and dets.num_vertices:
             _draw_vertices(out, dets.verts2d[i], max_vertices, colour)
         _draw_skeleton(out, dets.kpts2d[i], conv, colour, thickness)
-        _draw_box(out, dets.bboxes[i], f"#{key if key >= 0 else '?'} {dets.scores[i]:.2f}",
-                  colour, thickness, scale)
+        _draw_box(
+            out, dets.bboxes[i], f"#{key if key >= 0 else '?'} {dets.scores[i]:.2f}", colour, thickness, scale
+        )
     return out
 
 
-def _draw_box(img: np.ndarray, box: np.ndarray, label: str, colour, thickness: int,
-              scale: float) -> None:
+def _draw_box(img: np.ndarray, box: np.ndarray, label: str, colour, thickness: int, scale: float) -> None:
     if not np.all(np.isfinite(box)):
         return
     p1, p2 = _pt(box[:2]), _pt(box[2:])
@@ -94,12 +102,12 @@ def _draw_box(img: np.ndarray, box: np.ndarray, label: str, colour, thickness: i
     (tw, th), base = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
     y = p1[1] - 4 if p1[1] - th - 4 >= 0 else p1[1] + th + 4
     cv2.rectangle(img, (p1[0], y - th - 2), (p1[0] + tw + 2, y + base - 2), colour, cv2.FILLED)
-    cv2.putText(img, label, (p1[0] + 1, y - 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1,
-                cv2.LINE_AA)
+    cv2.putText(img, label, (p1[0] + 1, y - 1), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
 
 
-def _draw_skeleton(img: np.ndarray, kpts: np.ndarray, conv: KeypointConvention | None, colour,
-                   thickness: int) -> None:
+def _draw_skeleton(
+    img: np.ndarray, kpts: np.ndarray, conv: KeypointConvention | None, colour, thickness: int
+) -> None:
     ok = np.all(np.isfinite(kpts), axis=1)
     if conv is not None:
         for a, b in conv.bones:

@@ -4,6 +4,7 @@ Every 2D coordinate the frontend publishes is in the rectified image with
 intrinsics ``camera.K_rect`` and the calibration's image size, so the image is
 remapped once per frame here and stages 2 and 3 never undistort again.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -48,8 +49,10 @@ class Rectifier:
     def check_image(self, image: np.ndarray) -> None:
         """Raise ValueError unless ``image`` is a non-empty (H,W[,C]) array."""
         if not isinstance(image, np.ndarray) or image.ndim not in (2, 3) or image.size == 0:
-            raise ValueError(f"camera {self.camera.name!r}: expected an image array (H,W[,C]), "
-                             f"got {type(image).__name__} {getattr(image, 'shape', '')}")
+            raise ValueError(
+                f"camera {self.camera.name!r}: expected an image array (H,W[,C]), "
+                f"got {type(image).__name__} {getattr(image, 'shape', '')}"
+            )
 
     def check_size(self, image: np.ndarray) -> None:
         """Raise ValueError unless ``image`` has the calibration's size."""
@@ -59,7 +62,8 @@ class Rectifier:
             raise ValueError(
                 f"camera {self.camera.name!r}: image is {w}x{h} but the rig calibration is "
                 f"{self.size[0]}x{self.size[1]}; set the camera to the calibrated resolution "
-                f"or rescale the rig entry (K, K_rect, width, height)")
+                f"or rescale the rig entry (K, K_rect, width, height)"
+            )
 
     def rectify(self, image: np.ndarray) -> np.ndarray:
         """(H,W[,C]) raw image -> (H,W[,C]) rectified image (same dtype; the input itself when
@@ -80,7 +84,7 @@ def build_maps(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     """Remap tables rectified px -> raw px for ``camera`` (plumb_bob / rational / equidistant)."""
     size = (camera.width, camera.height)
     if camera.is_fisheye:
-        return cv2.fisheye.initUndistortRectifyMap(camera.K, camera.D, np.eye(3), camera.K_rect,
-                                                   size, cv2.CV_16SC2)
-    return cv2.initUndistortRectifyMap(camera.K, camera.D, np.eye(3), camera.K_rect, size,
-                                       cv2.CV_16SC2)
+        return cv2.fisheye.initUndistortRectifyMap(
+            camera.K, camera.D, np.eye(3), camera.K_rect, size, cv2.CV_16SC2
+        )
+    return cv2.initUndistortRectifyMap(camera.K, camera.D, np.eye(3), camera.K_rect, size, cv2.CV_16SC2)

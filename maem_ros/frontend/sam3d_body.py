@@ -42,6 +42,7 @@ Options (frontend parameters; unknown keys are ignored):
   estimator_factory callable(options) -> object with the official process_one_image signature
   detector_factory  callable(options, estimator) -> callable(bgr image) -> (boxes (N,4), scores (N,))
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -75,7 +76,8 @@ INSTALL_HELP = (
     "option repo_path to the clone. Weights (gated, request access on Hugging Face first): "
     "hf download facebook/sam-3d-body-dinov3 --local-dir checkpoints/sam-3d-body-dinov3, then "
     "checkpoint_path=checkpoints/sam-3d-body-dinov3/model.ckpt and "
-    "mhr_path=checkpoints/sam-3d-body-dinov3/assets/mhr_model.pt")
+    "mhr_path=checkpoints/sam-3d-body-dinov3/assets/mhr_model.pt"
+)
 
 Detector = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -122,13 +124,17 @@ class Sam3dBodyEstimator(Estimator):
             raise ValueError(f"frontend option 'bbox_thr': must be in [0, 1], got {self.bbox_thr}")
         self.vertex_check_tol = option_float(options, "vertex_check_tol", 2.0, positive=True)
         self.convention: KeypointConvention = get_convention(
-            str(options.get("keypoint_convention", "mhr70") or "mhr70"))
+            str(options.get("keypoint_convention", "mhr70") or "mhr70")
+        )
         self.rectify = _bool(options, "rectify", False)
         factory = options.get("estimator_factory")
         if factory is not None and not callable(factory):
             raise ValueError("frontend option 'estimator_factory': expected a callable")
-        self.model = factory(options) if factory is not None else build_official_estimator(
-            options, self.device, self.detector_mode)
+        self.model = (
+            factory(options)
+            if factory is not None
+            else build_official_estimator(options, self.device, self.detector_mode)
+        )
         if not callable(getattr(self.model, "process_one_image", None)):
             raise ValueError("sam3d_body backend: the estimator has no process_one_image()")
         self.detect = self._make_detector(options)
@@ -137,8 +143,9 @@ class Sam3dBodyEstimator(Estimator):
         self._warned: set[str] = set()
         #: counters: frames, detections, dropped_invalid, vertex_mismatch (detections),
         #: max_vertex_disagreement_px (worst seen)
-        self.stats: dict[str, float] = dict(frames=0, detections=0, dropped_invalid=0,
-                                            vertex_mismatch=0, max_vertex_disagreement_px=0.0)
+        self.stats: dict[str, float] = dict(
+            frames=0, detections=0, dropped_invalid=0, vertex_mismatch=0, max_vertex_disagreement_px=0.0
+        )
 
     # ---- construction helpers -------------------------------------------------------------
     def _make_detector(self, options: Mapping[str, Any]) -> Detector | None:
@@ -151,9 +158,11 @@ class Sam3dBodyEstimator(Estimator):
             return None
         human_detector = getattr(self.model, "detector", None)
         if human_detector is None or not hasattr(human_detector, "detector"):
-            raise ValueError("sam3d_body backend: detector=vitdet needs the official ViTDet "
-                             "HumanDetector (tools/build_detector.py in the sam-3d-body clone; "
-                             "set repo_path) or another detector option (model | none)")
+            raise ValueError(
+                "sam3d_body backend: detector=vitdet needs the official ViTDet "
+                "HumanDetector (tools/build_detector.py in the sam-3d-body clone; "
+                "set repo_path) or another detector option (model | none)"
+            )
         return vitdet_with_scores(human_detector.detector, self.bbox_thr)
 
     def rectifier(self, camera: Camera) -> Rectifier:
@@ -173,8 +182,7 @@ class Sam3dBodyEstimator(Estimator):
             rect.check_size(image)
         return self.estimate_rectified(camera, stamp_ns, image)
 
-    def estimate_rectified(self, camera: Camera, stamp_ns: int, image_bgr: np.ndarray
-                           ) -> FrameDetections:
+    def estimate_rectified(self, camera: Camera, stamp_ns: int, image_bgr: np.ndarray) -> FrameDetections:
         """Run the model on a rectified BGR image of ``camera`` (size = calibration)."""
         self.stats["frames"] += 1
         boxes, scores = self._boxes(image_bgr)
@@ -183,8 +191,12 @@ class Sam3dBodyEstimator(Estimator):
         rgb = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB)  # numpy input is taken as RGB
         with self._autocast():
             outputs = self.model.process_one_image(
-                rgb, bboxes=boxes, cam_int=self._cam_int(camera), bbox_thr=self.bbox_thr,
-                inference_type=self.inference_type)
+                rgb,
+                bboxes=boxes,
+                cam_int=self._cam_int(camera),
+                bbox_thr=self.bbox_thr,
+                inference_type=self.inference_type,
+            )
         outputs = list(outputs or [])
         if boxes is not None and len(outputs) != len(boxes):
             raise ValueError(f"sam3d_body backend: {len(outputs)} outputs for {len(boxes)} boxes")
@@ -198,8 +210,9 @@ class Sam3dBodyEstimator(Estimator):
             boxes = np.asarray(boxes, dtype=np.float32).reshape(-1, 4)
             scores = np.asarray(scores, dtype=np.float64).ravel()
             if scores.shape[0] != boxes.shape[0]:
-                raise ValueError(f"sam3d_body backend: detector gave {boxes.shape[0]} boxes and "
-                                 f"{scores.shape[0]} scores")
+                raise ValueError(
+                    f"sam3d_body backend: detector gave {boxes.shape[0]} boxes and {scores.shape[0]} scores"
+                )
             return boxes, scores
         if self.detector_mode == "none":
             h, w = image_bgr.shape[:2]
@@ -219,17 +232,21 @@ class Sam3dBodyEstimator(Estimator):
         if self.precision == "fp32":
             return contextlib.nullcontext()
         import torch
+
         dtype = torch.float16 if self.precision == "fp16" else torch.bfloat16
         return torch.autocast(device_type=self.device.split(":")[0], dtype=dtype)
 
     def _empty(self, camera: Camera, stamp_ns: int) -> FrameDetections:
-        return FrameDetections.empty(camera.name, stamp_ns, self.convention.num_joints,
-                                     self._num_vertices)
+        return FrameDetections.empty(camera.name, stamp_ns, self.convention.num_joints, self._num_vertices)
 
     # ---- outputs -> FrameDetections ---------------------------------------------------------
-    def outputs_to_detections(self, outputs: Sequence[Mapping[str, Any]], camera: Camera,
-                              stamp_ns: int, det_scores: np.ndarray | None = None
-                              ) -> FrameDetections:
+    def outputs_to_detections(
+        self,
+        outputs: Sequence[Mapping[str, Any]],
+        camera: Camera,
+        stamp_ns: int,
+        det_scores: np.ndarray | None = None,
+    ) -> FrameDetections:
         """Official per-person dicts (rectified px, K_rect) -> FrameDetections (drops invalid)."""
         where = f"sam3d_body output of camera {camera.name!r}"
         bboxes = np.stack([_arr(o, "bbox", (4,), where) for o in outputs])
@@ -237,46 +254,72 @@ class Sam3dBodyEstimator(Estimator):
         kp2d = np.stack([_arr(o, "pred_keypoints_2d", (MHR_NUM_KEYPOINTS, 2), where) for o in outputs])
         verts = np.stack([_arr(o, "pred_vertices", (None, 3), where) for o in outputs])
         cam_t = np.stack([_arr(o, "pred_cam_t", (3,), where) for o in outputs])
-        scores = np.array([float(np.asarray(o["bbox_score"]).ravel()[0]) if "bbox_score" in o
-                           else (det_scores[i] if det_scores is not None else 1.0)
-                           for i, o in enumerate(outputs)])
+        scores = np.array(
+            [
+                float(np.asarray(o["bbox_score"]).ravel()[0])
+                if "bbox_score" in o
+                else (det_scores[i] if det_scores is not None else 1.0)
+                for i, o in enumerate(outputs)
+            ]
+        )
         if det_scores is None and not any("bbox_score" in o for o in outputs):
-            self._warn_once("score", "sam3d_body: this build returns no bbox_score and no "
-                                     "detector score is available: scores are 1.0, tau_det "
-                                     "cannot filter")
+            self._warn_once(
+                "score",
+                "sam3d_body: this build returns no bbox_score and no "
+                "detector score is available: scores are 1.0, tau_det "
+                "cannot filter",
+            )
         verts2d = project_camera_points(verts + cam_t[:, None, :], camera.K_rect)
         if all("pred_keypoints_2d_verts" in o for o in outputs):
             verts2d = self._check_given_vertices(outputs, verts2d, where)
         self._num_vertices = verts.shape[1]
-        valid = (np.all(np.isfinite(verts2d), axis=(1, 2)) & np.all(np.isfinite(kp2d), axis=(1, 2))
-                 & np.all(np.isfinite(kp3d), axis=(1, 2)) & np.all(np.isfinite(bboxes), axis=1)
-                 & np.isfinite(scores)
-                 & (bboxes[:, 2] >= bboxes[:, 0]) & (bboxes[:, 3] >= bboxes[:, 1]))
+        valid = (
+            np.all(np.isfinite(verts2d), axis=(1, 2))
+            & np.all(np.isfinite(kp2d), axis=(1, 2))
+            & np.all(np.isfinite(kp3d), axis=(1, 2))
+            & np.all(np.isfinite(bboxes), axis=1)
+            & np.isfinite(scores)
+            & (bboxes[:, 2] >= bboxes[:, 0])
+            & (bboxes[:, 3] >= bboxes[:, 1])
+        )
         if not valid.all():
             self.stats["dropped_invalid"] += int((~valid).sum())
-            self._warn_once("invalid", f"{where}: dropped {int((~valid).sum())} detection(s) with "
-                                       "non-finite values or points behind the camera")
+            self._warn_once(
+                "invalid",
+                f"{where}: dropped {int((~valid).sum())} detection(s) with "
+                "non-finite values or points behind the camera",
+            )
         self.stats["detections"] += int(valid.sum())
         conv = self.convention
-        dets = FrameDetections(camera.name, stamp_ns, bboxes, np.clip(scores, 0.0, 1.0),
-                               conv.select(kp2d), conv.select(kp3d), verts2d.astype(np.float32))
+        dets = FrameDetections(
+            camera.name,
+            stamp_ns,
+            bboxes,
+            np.clip(scores, 0.0, 1.0),
+            conv.select(kp2d),
+            conv.select(kp3d),
+            verts2d.astype(np.float32),
+        )
         return dets.select(valid) if not valid.all() else dets
 
     def _check_given_vertices(self, outputs, computed: np.ndarray, where: str) -> np.ndarray:
-        given = np.stack([_arr(o, "pred_keypoints_2d_verts", (computed.shape[1], 2), where)
-                          for o in outputs])
+        given = np.stack([_arr(o, "pred_keypoints_2d_verts", (computed.shape[1], 2), where) for o in outputs])
         with np.errstate(invalid="ignore"):
             err = np.nanmax(np.linalg.norm(given - computed, axis=2), axis=1)
         err = np.where(np.isfinite(err), err, np.inf)
         bad = err > self.vertex_check_tol
-        self.stats["max_vertex_disagreement_px"] = max(self.stats["max_vertex_disagreement_px"],
-                                                       float(np.max(err)))
+        self.stats["max_vertex_disagreement_px"] = max(
+            self.stats["max_vertex_disagreement_px"], float(np.max(err))
+        )
         if bad.any():
             self.stats["vertex_mismatch"] += int(bad.sum())
-            self._warn_once("verts", f"{where}: pred_keypoints_2d_verts differ from the K_rect "
-                                     f"projection of pred_vertices + pred_cam_t by up to "
-                                     f"{float(np.max(err)):.1f} px (> {self.vertex_check_tol} px); "
-                                     "check that cam_int reaches the model")
+            self._warn_once(
+                "verts",
+                f"{where}: pred_keypoints_2d_verts differ from the K_rect "
+                f"projection of pred_vertices + pred_cam_t by up to "
+                f"{float(np.max(err)):.1f} px (> {self.vertex_check_tol} px); "
+                "check that cam_int reaches the model",
+            )
         return given
 
     def _warn_once(self, key: str, message: str) -> None:
@@ -303,13 +346,12 @@ def _choice_device(value: Any) -> str:
     if device == "auto":
         try:
             import torch
+
             return "cuda" if torch.cuda.is_available() else "cpu"
         except ImportError:
             return "cpu"
-    if device != "cpu" and not (device == "cuda" or (device.startswith("cuda:")
-                                                     and device[5:].isdigit())):
-        raise ValueError(f"frontend option 'device': unknown {device!r}, expected auto, cpu, "
-                         "cuda or cuda:N")
+    if device != "cpu" and not (device == "cuda" or (device.startswith("cuda:") and device[5:].isdigit())):
+        raise ValueError(f"frontend option 'device': unknown {device!r}, expected auto, cpu, cuda or cuda:N")
     return device
 
 
@@ -318,15 +360,18 @@ def _import_official(repo_path: str | None):
     if repo_path:
         root = Path(repo_path).expanduser()
         if not (root / "sam_3d_body").is_dir():
-            raise ValueError(f"frontend option 'repo_path': {str(root)!r} has no sam_3d_body/ "
-                             "folder (expected a clone of facebookresearch/sam-3d-body)")
+            raise ValueError(
+                f"frontend option 'repo_path': {str(root)!r} has no sam_3d_body/ "
+                "folder (expected a clone of facebookresearch/sam-3d-body)"
+            )
         if str(root) not in sys.path:
             sys.path.insert(0, str(root))
     try:
         import sam_3d_body
     except ImportError as e:
-        raise ImportError(f"sam3d_body backend: cannot import the official package ({e}); "
-                          f"{INSTALL_HELP}") from None
+        raise ImportError(
+            f"sam3d_body backend: cannot import the official package ({e}); {INSTALL_HELP}"
+        ) from None
     return sam_3d_body
 
 
@@ -340,28 +385,36 @@ def build_official_estimator(options: Mapping[str, Any], device: str, detector_m
         model, model_cfg = sam_3d_body.load_sam_3d_body_hf(hf_repo, device=device)
     else:
         if not ckpt:
-            raise ValueError("frontend option 'checkpoint_path': required for the sam3d_body "
-                             f"backend (or hf_repo_id); {INSTALL_HELP}")
+            raise ValueError(
+                "frontend option 'checkpoint_path': required for the sam3d_body "
+                f"backend (or hf_repo_id); {INSTALL_HELP}"
+            )
         ckpt_path = Path(ckpt).expanduser()
         mhr = Path(str(options.get("mhr_path") or ckpt_path.parent / "assets" / "mhr_model.pt"))
         for what, p in (("checkpoint_path", ckpt_path), ("mhr_path", mhr.expanduser())):
             if not p.is_file():
-                raise ValueError(f"frontend option {what!r}: {str(p)!r} does not exist; "
-                                 f"{INSTALL_HELP}")
-        model, model_cfg = sam_3d_body.load_sam_3d_body(str(ckpt_path), device=device,
-                                                        mhr_path=str(mhr.expanduser()))
+                raise ValueError(f"frontend option {what!r}: {str(p)!r} does not exist; {INSTALL_HELP}")
+        model, model_cfg = sam_3d_body.load_sam_3d_body(
+            str(ckpt_path), device=device, mhr_path=str(mhr.expanduser())
+        )
     human_detector = None
     if detector_mode in ("vitdet", "model"):
         try:
             from tools.build_detector import HumanDetector
         except ImportError as e:
-            raise ImportError(f"sam3d_body backend: cannot import tools.build_detector from the "
-                              f"sam-3d-body clone ({e}); set repo_path to the clone and install "
-                              "detectron2, or use detector=none") from None
+            raise ImportError(
+                f"sam3d_body backend: cannot import tools.build_detector from the "
+                f"sam-3d-body clone ({e}); set repo_path to the clone and install "
+                "detectron2, or use detector=none"
+            ) from None
         human_detector = HumanDetector(name="vitdet", device=device)
-    return sam_3d_body.SAM3DBodyEstimator(sam_3d_body_model=model, model_cfg=model_cfg,
-                                          human_detector=human_detector, human_segmentor=None,
-                                          fov_estimator=None)
+    return sam_3d_body.SAM3DBodyEstimator(
+        sam_3d_body_model=model,
+        model_cfg=model_cfg,
+        human_detector=human_detector,
+        human_segmentor=None,
+        fov_estimator=None,
+    )
 
 
 def vitdet_with_scores(vitdet_model, bbox_thr: float, det_cat_id: int = 0) -> Detector:

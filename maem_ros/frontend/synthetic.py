@@ -7,6 +7,7 @@ Options (scene config, all optional; defaults are SceneConfig's):
 The scene is deterministic per config, so the frontend reproduces exactly the detections of
 ``maem-sim`` / the bag it was recorded with. A stamp that maps to no scene frame is a ValueError.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -22,8 +23,15 @@ from maem_ros.core.geometry.camera import Camera, Rig
 from .base import Estimator
 
 #: frontend option -> SceneConfig field
-_CONFIG_KEYS = {"rig": "rig", "seed": "seed", "difficulty": "difficulty", "frames": "frames",
-                "fps": "fps", "start_stamp_ns": "start_stamp_ns", "num_vertices": "num_vertices"}
+_CONFIG_KEYS = {
+    "rig": "rig",
+    "seed": "seed",
+    "difficulty": "difficulty",
+    "frames": "frames",
+    "fps": "fps",
+    "start_stamp_ns": "start_stamp_ns",
+    "num_vertices": "num_vertices",
+}
 
 
 def scene_config_dict(options: Mapping[str, Any]) -> dict[str, Any]:
@@ -51,20 +59,26 @@ class SyntheticEstimator(Estimator):
 
     def __init__(self, options: Mapping[str, Any], rig: Rig):
         from ..sim.scene import Scene, SceneConfig  # the simulator is heavy; load only when used
+
         self.config = SceneConfig.from_dict(scene_config_dict(options))
         self.scene = Scene(self.config)
         unknown = [n for n in rig.names if n not in self.scene.rig]
         if unknown:
-            raise ValueError(f"synthetic backend: rig cameras {unknown} are not in scene rig "
-                             f"{self.config.rig!r} ({self.scene.rig.names})")
+            raise ValueError(
+                f"synthetic backend: rig cameras {unknown} are not in scene rig "
+                f"{self.config.rig!r} ({self.scene.rig.names})"
+            )
 
     def estimate(self, camera: Camera, stamp_ns: int, image: np.ndarray | None = None) -> FrameDetections:
         frame = self.scene.frame_at(int(stamp_ns))
         if frame is None:
-            raise ValueError(f"synthetic backend: stamp {int(stamp_ns)} ns is not a frame of the scene "
-                             f"({self.scene.num_frames} frames from {self.scene.stamp_ns(0)} ns)")
+            raise ValueError(
+                f"synthetic backend: stamp {int(stamp_ns)} ns is not a frame of the scene "
+                f"({self.scene.num_frames} frames from {self.scene.stamp_ns(0)} ns)"
+            )
         if camera.name not in self.scene.rig:
-            raise ValueError(f"synthetic backend: camera {camera.name!r} is not in the scene rig "
-                             f"{self.scene.rig.names}")
+            raise ValueError(
+                f"synthetic backend: camera {camera.name!r} is not in the scene rig {self.scene.rig.names}"
+            )
         # the capture stamp asked for, not the frame's nominal one (they differ by < half a period)
         return dataclasses.replace(self.scene.detections(camera.name, frame), stamp_ns=int(stamp_ns))

@@ -27,6 +27,7 @@ thresholds and publishes ``/maem/clusters`` (PointCloud2, one point per (cluster
 maem_ros/wire; an empty cloud for a frame set without clusters, so downstream still sees every frame).
 A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all tracks.
 """
+
 from __future__ import annotations
 
 import sys
@@ -58,11 +59,23 @@ from maem_ros.ros.rig_tf import publish_rig_tf
 NODE_NAME = "association"
 
 #: core.association.pipeline.AssociationResult.stats keys reported as cumulative counts in /diagnostics
-GATE_COUNTS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
-               "matched_pairs", "conflicts_removed", "clusters_below_k_min")
+GATE_COUNTS = (
+    "pairs_considered",
+    "rejected_score",
+    "rejected_reproj",
+    "rejected_epipolar",
+    "matched_pairs",
+    "conflicts_removed",
+    "clusters_below_k_min",
+)
 #: ... and as per-stage times (stats key -> /diagnostics stage, ms)
-STAGE_TIMES = {"t_reproj_ms": "reproj", "t_epipolar_ms": "epipolar", "t_cost_ms": "cost",
-               "t_match_ms": "match", "t_cluster_ms": "cluster"}
+STAGE_TIMES = {
+    "t_reproj_ms": "reproj",
+    "t_epipolar_ms": "epipolar",
+    "t_cost_ms": "cost",
+    "t_match_ms": "match",
+    "t_cluster_ms": "cluster",
+}
 
 RIG_DESCRIPTION = "rig YAML, camera-JSON folder or shipped rig name (config/rigs/)"
 
@@ -76,36 +89,53 @@ class AssociationNodeParams(NodeParams):
     cameras: list = param([], "cameras to subscribe (default: every rig camera)")
     frame_id: str = param("world", "header.frame_id of /maem/clusters (the rig's world frame)")
     clusters_topic: str = param("maem/clusters", "output topic (relative: follows __ns)")
-    slop: float = param(0.02, "s, stamps within this of the reference belong to one frame set",
-                        minimum=0.0)
-    max_wait: float = param(0.15, "s, emit a partial frame set after waiting this long",
-                            minimum=0.0, exclusive_minimum=True)
+    slop: float = param(0.02, "s, stamps within this of the reference belong to one frame set", minimum=0.0)
+    max_wait: float = param(
+        0.15, "s, emit a partial frame set after waiting this long", minimum=0.0, exclusive_minimum=True
+    )
     min_cameras: int = param(2, "cameras needed for a partial frame set", minimum=2)
-    queue_size: int = param(DATA_DEPTH, "messages per camera held (DDS reader history and "
-                                         "synchroniser queue): a stall this many frames long "
-                                         "loses nothing", minimum=1)
-    poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0,
-                               exclusive_minimum=True)
-    max_lag: float = param(0.0, "s, wait up to this lag (+ max_wait) for a camera that lags the "
-                                "others (0 = a camera lagging beyond max_wait is not waited for)",
-                           minimum=0.0)
-    jump_tolerance: float = param(1.0, "s, a stamp this far from the other cameras' is a jump "
-                                       "(held; a reset when most cameras jump)", minimum=0.0,
-                                  exclusive_minimum=True)
-    reset_on_clock_jump: bool = param(True, "with use_sim_time: reset the synchroniser when "
-                                            "/clock jumps back")
+    queue_size: int = param(
+        DATA_DEPTH,
+        "messages per camera held (DDS reader history and "
+        "synchroniser queue): a stall this many frames long "
+        "loses nothing",
+        minimum=1,
+    )
+    poll_period: float = param(0.01, "s, synchroniser poll timer", minimum=0.0, exclusive_minimum=True)
+    max_lag: float = param(
+        0.0,
+        "s, wait up to this lag (+ max_wait) for a camera that lags the "
+        "others (0 = a camera lagging beyond max_wait is not waited for)",
+        minimum=0.0,
+    )
+    jump_tolerance: float = param(
+        1.0,
+        "s, a stamp this far from the other cameras' is a jump (held; a reset when most cameras jump)",
+        minimum=0.0,
+        exclusive_minimum=True,
+    )
+    reset_on_clock_jump: bool = param(
+        True, "with use_sim_time: reset the synchroniser when /clock jumps back"
+    )
     max_detections: int = param(100, "detections per camera message; more: dropped", minimum=1)
-    pixel_margin: float = param(1.0, "image sizes a pixel coordinate may lie outside the image",
-                                minimum=0.0)
-    publish_tf: bool = param(True, "publish world -> each rig camera on /tf_static (transient "
-                                   "local) at start")
+    pixel_margin: float = param(1.0, "image sizes a pixel coordinate may lie outside the image", minimum=0.0)
+    publish_tf: bool = param(
+        True, "publish world -> each rig camera on /tf_static (transient local) at start"
+    )
 
 
-PARAMS = param_specs(AssociationNodeParams, BacklogParams, AssociationParams, ExecutionParams,
-                     TemporalParams)
+PARAMS = param_specs(AssociationNodeParams, BacklogParams, AssociationParams, ExecutionParams, TemporalParams)
 #: core.tracking.temporal stats reported as cumulative counts in /diagnostics
-TRACK_COUNTS = ("tracks_started", "tracks_reacquired", "tracks_merged", "tracks_ended",
-                "tracks_few_views", "tracks_one_view", "track_resets", "verify_dropped")
+TRACK_COUNTS = (
+    "tracks_started",
+    "tracks_reacquired",
+    "tracks_merged",
+    "tracks_ended",
+    "tracks_few_views",
+    "tracks_one_view",
+    "track_resets",
+    "verify_dropped",
+)
 
 
 #: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,
@@ -125,15 +155,14 @@ class AssociationNode(MaemNode):
         cams = p["cameras"] or self.rig.names
         unknown = [c for c in cams if c not in self.rig]
         if unknown:
-            raise ConfigError(f"parameter 'cameras': {unknown} not in rig {p['rig']!r} "
-                              f"({self.rig.names})")
+            raise ConfigError(f"parameter 'cameras': {unknown} not in rig {p['rig']!r} ({self.rig.names})")
         if p["min_cameras"] > len(cams):
             raise ConfigError(f"parameter 'min_cameras': {p['min_cameras']} > {len(cams)} cameras")
         from maem_ros.core.tracking.temporal import TemporalAssociator
+
         with self.config_errors():
             self.params = AssociationParams.from_mapping(p)
-            self.temporal = TemporalAssociator(self.rig, self.params,
-                                               TemporalParams.from_mapping(p))
+            self.temporal = TemporalAssociator(self.rig, self.params, TemporalParams.from_mapping(p))
         # compile/load the numba kernels now, not on the first frame
         warmup_association(self.params.execution.backend, self.params.epipolar_gate)
         # each camera frame is prepared for the pair gates as its frame set is processed
@@ -143,13 +172,16 @@ class AssociationNode(MaemNode):
         self.frame_id = p["frame_id"]
         with self.config_errors():
             self.sync = ApproximateTimeSync(
-                self.cameras, int(round(p["slop"] * 1e9)), int(round(p["max_wait"] * 1e9)),
-                p["min_cameras"], queue_size=p["queue_size"],
+                self.cameras,
+                int(round(p["slop"] * 1e9)),
+                int(round(p["max_wait"] * 1e9)),
+                p["min_cameras"],
+                queue_size=p["queue_size"],
                 max_lag_ns=int(round(p["max_lag"] * 1e9)),
                 jump_ns=int(round(p["jump_tolerance"] * 1e9)),
-                time_offsets={c: self.rig[c].time_offset for c in self.cameras})
-            self.limits = InputLimits(max_detections=p["max_detections"],
-                                      pixel_margin=p["pixel_margin"])
+                time_offsets={c: self.rig[c].time_offset for c in self.cameras},
+            )
+            self.limits = InputLimits(max_detections=p["max_detections"], pixel_margin=p["pixel_margin"])
         self._sync_seen = SyncStats()
         self._arrival = QueuedArrival()  # arrival times that see every queue on the way
         self.start_diagnostics()
@@ -164,17 +196,26 @@ class AssociationNode(MaemNode):
         detections_qos = data_qos(p["queue_size"])
         for cam in self.cameras:
             topic = self.resolve_topic_name(f"{cam}/detections")
-            self.subs.append(subscribe_counted(self, self.diag, PointCloud2, topic,
-                                               partial(self.on_detections, cam, topic),
-                                               detections_qos, raw=True, with_info=True))
+            self.subs.append(
+                subscribe_counted(
+                    self,
+                    self.diag,
+                    PointCloud2,
+                    topic,
+                    partial(self.on_detections, cam, topic),
+                    detections_qos,
+                    raw=True,
+                    with_info=True,
+                )
+            )
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
         self.tf_pub = publish_rig_tf(self, self.rig, self.frame_id) if p["publish_tf"] else None
         if p["reset_on_clock_jump"]:
             self._jump_handle = self.get_clock().create_jump_callback(
-                JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1),
-                              on_clock_change=False), post_callback=self.on_clock_jump)
-        self.get_logger().info(f"{len(self.cameras)} cameras {self.cameras} -> "
-                               f"{self.pub.topic_name}")
+                JumpThreshold(min_forward=None, min_backward=Duration(nanoseconds=-1), on_clock_change=False),
+                post_callback=self.on_clock_jump,
+            )
+        self.get_logger().info(f"{len(self.cameras)} cameras {self.cameras} -> {self.pub.topic_name}")
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -194,10 +235,12 @@ class AssociationNode(MaemNode):
         which would otherwise keep it behind."""
         with RejectErrors(self.diag, topic, "bad_detections") as step:
             with Stopwatch(self.diag, "check"):
-                msg = wire.read_detections(wire.cdr_to_cloud(data, topic), topic,
-                                           self.rig.names, expected_camera=cam)
-                check_detection_arrays(cam, msg.bboxes, msg.kpts2d, msg.vertex_extremes,
-                                       self.rig, self.limits, topic)
+                msg = wire.read_detections(
+                    wire.cdr_to_cloud(data, topic), topic, self.rig.names, expected_camera=cam
+                )
+                check_detection_arrays(
+                    cam, msg.bboxes, msg.kpts2d, msg.vertex_extremes, self.rig, self.limits, topic
+                )
         if step.failed:
             return
         now = self._now_ns()
@@ -233,8 +276,7 @@ class AssociationNode(MaemNode):
         """Handle frame sets ready together, the ones that waited beyond the backlog bound
         skipped (the newest never)."""
         if ready:
-            ready = self.backlog.select(ready, [fs.ready_ns for fs in ready],
-                                        [fs.stamp_ns for fs in ready])
+            ready = self.backlog.select(ready, [fs.ready_ns for fs in ready], [fs.stamp_ns for fs in ready])
         self._handle(ready)
 
     def _take_all(self) -> bool:
@@ -281,8 +323,9 @@ class AssociationNode(MaemNode):
         """/clock went back (use_sim_time, bag replayed again): start over, counted once."""
         if jump.clock_change == ClockChange.ROS_TIME_NO_CHANGE and jump.delta.nanoseconds < 0:
             self.sync.reset()
-            self.get_logger().warning(f"clock jumped by {jump.delta.nanoseconds / 1e9:.3f} s: "
-                                      f"synchroniser reset")
+            self.get_logger().warning(
+                f"clock jumped by {jump.delta.nanoseconds / 1e9:.3f} s: synchroniser reset"
+            )
             self._sync_counters()
 
     def _handle(self, sets) -> None:
@@ -300,22 +343,28 @@ class AssociationNode(MaemNode):
         for reason, total in stats.dropped.items():
             new = total - seen.dropped[reason]
             if new > 0:
-                self.diag.reject(f"sync_{reason.value}", f"synchroniser: {reason.value} +{new} "
-                                 f"(total {total})", n=new)
+                self.diag.reject(
+                    f"sync_{reason.value}", f"synchroniser: {reason.value} +{new} (total {total})", n=new
+                )
         for name in ("sets", "partial_sets", "timeouts", "resets"):
             new = getattr(stats, name) - getattr(seen, name)
             if new > 0:
                 self.diag.count(f"sync_{name}", new)
-        self._sync_seen = SyncStats(sets=stats.sets, partial_sets=stats.partial_sets,
-                                    timeouts=stats.timeouts, resets=stats.resets,
-                                    dropped=stats.dropped.copy())
+        self._sync_seen = SyncStats(
+            sets=stats.sets,
+            partial_sets=stats.partial_sets,
+            timeouts=stats.timeouts,
+            resets=stats.resets,
+            dropped=stats.dropped.copy(),
+        )
         for event in self.sync.take_events():  # state changes: one line each, not per frame
             if event.kind == "rejoined":
                 self.get_logger().info(event.text)
             else:
                 self.get_logger().warning(event.text)
-        self.diag.set("lagging_cameras", ",".join(f"{c}:{lag * 1e3:.0f}ms" for c, lag in
-                                                  self.sync.lagging().items()))
+        self.diag.set(
+            "lagging_cameras", ",".join(f"{c}:{lag * 1e3:.0f}ms" for c, lag in self.sync.lagging().items())
+        )
 
     def process(self, fs) -> None:
         """Associate one frame set and publish its clusters."""
@@ -332,10 +381,15 @@ class AssociationNode(MaemNode):
                 result = self.temporal.step(items, fs.stamp_ns)
             tracked = self.temporal.tp.temporal
             with Stopwatch(self.diag, "encode"):
-                out = wire.clusters_to_msg(fs.stamp_ns, self.frame_id, self.rig, items,
-                                           result.clusters,
-                                           result.track_ids if tracked else None,
-                                           result.flags if tracked else None)
+                out = wire.clusters_to_msg(
+                    fs.stamp_ns,
+                    self.frame_id,
+                    self.rig,
+                    items,
+                    result.clusters,
+                    result.track_ids if tracked else None,
+                    result.flags if tracked else None,
+                )
         if step.failed:
             return
         self.pub.publish(out)
@@ -344,8 +398,9 @@ class AssociationNode(MaemNode):
         if tracked:
             self.diag.add_counts(result.stats, TRACK_COUNTS)
             if result.stats.get("track_resets"):
-                self.get_logger().warning(f"frame set {fs.stamp_ns}: stamp went back or jumped "
-                                          f"beyond max_gap_s; all tracks ended")
+                self.get_logger().warning(
+                    f"frame set {fs.stamp_ns}: stamp went back or jumped beyond max_gap_s; all tracks ended"
+                )
             self.diag.set("last_tracks", int(result.stats["tracks"]))
             self.diag.set("last_tracks_confirmed", int(result.stats["tracks_confirmed"]))
         stages = {**STAGE_TIMES, "t_track_ms": "track"} if tracked else STAGE_TIMES

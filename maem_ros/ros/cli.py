@@ -1,6 +1,7 @@
 """Command-line plumbing: ``--help`` of the nodes, signals and rclpy init/shutdown, shared by
 run_node and the bag nodes (maem-play, maem-record), which parse their own arguments. No rclpy
 import here (``--help`` stays fast)."""
+
 from __future__ import annotations
 
 import faulthandler
@@ -60,8 +61,9 @@ def stop_on_signals(name: str = "", grace_s: float | None = SHUTDOWN_GRACE_S) ->
     if hasattr(signal, "SIGUSR1"):
         faulthandler.register(signal.SIGUSR1, all_threads=True)
     if grace_s is not None:
-        threading.Thread(target=_exit_after_grace, args=(stop, name, grace_s), daemon=True,
-                         name="shutdown-watchdog").start()
+        threading.Thread(
+            target=_exit_after_grace, args=(stop, name, grace_s), daemon=True, name="shutdown-watchdog"
+        ).start()
     return stop
 
 
@@ -77,8 +79,12 @@ def _exit_after_grace(stop: threading.Event, name: str, grace_s: float) -> None:
     # faulthandler's own thread then dumps the stacks and exits 1
     faulthandler.dump_traceback_later(grace_s + 1.0, exit=True)
     time.sleep(grace_s)
-    print(f"[{name}] {SHUTDOWN_STALLED} {grace_s:g} s after the stop signal; exiting "
-          f"without it (stacks follow)", file=sys.stderr, flush=True)
+    print(
+        f"[{name}] {SHUTDOWN_STALLED} {grace_s:g} s after the stop signal; exiting "
+        f"without it (stacks follow)",
+        file=sys.stderr,
+        flush=True,
+    )
     faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
     sys.stderr.flush()
     os._exit(0)
@@ -98,7 +104,7 @@ def params_file_problem(args: Sequence[str] | None) -> str | None:
     args = list(args or [])
     if "--ros-args" not in args:
         return None
-    ros = args[args.index("--ros-args") + 1:]
+    ros = args[args.index("--ros-args") + 1 :]
     for flag, path in zip(ros, ros[1:] + [None]):
         if flag != "--params-file":
             continue
@@ -112,11 +118,9 @@ def params_file_problem(args: Sequence[str] | None) -> str | None:
         except yaml.YAMLError as e:
             mark = getattr(e, "problem_mark", None)
             where = f" (line {mark.line + 1})" if mark is not None else ""
-            return f"--params-file {path!r}: not valid YAML{where}: " \
-                f"{getattr(e, 'problem', None) or e}"
+            return f"--params-file {path!r}: not valid YAML{where}: {getattr(e, 'problem', None) or e}"
         if not isinstance(data, dict):
-            return f"--params-file {path!r}: expected a mapping of node names, got " \
-                f"{type(data).__name__}"
+            return f"--params-file {path!r}: expected a mapping of node names, got {type(data).__name__}"
     return None
 
 
@@ -131,13 +135,10 @@ def init_ros(args: Sequence[str] | None, name: str) -> bool:
         print(f"[{name}] invalid configuration: {problem}", file=sys.stderr, flush=True)
         return False
     try:
-        rclpy.init(args=None if args is None else list(args),
-                   signal_handler_options=SignalHandlerOptions.NO)
+        rclpy.init(args=None if args is None else list(args), signal_handler_options=SignalHandlerOptions.NO)
     except Exception as e:  # noqa: BLE001 - RCLError / UnknownROSArgsError from the C layer
-        what = "unknown ROS arguments" if type(e).__name__ == "UnknownROSArgsError" else \
-            "ROS arguments"
-        print(f"[{name}] invalid configuration: {what}: {rcl_error_line(e)}", file=sys.stderr,
-              flush=True)
+        what = "unknown ROS arguments" if type(e).__name__ == "UnknownROSArgsError" else "ROS arguments"
+        print(f"[{name}] invalid configuration: {what}: {rcl_error_line(e)}", file=sys.stderr, flush=True)
         rclpy.try_shutdown()
         return False
     return True
@@ -162,9 +163,14 @@ def print_help(name: str, doc: str | None, specs: Sequence[ParamSpec]) -> None:
     """``--help`` of a node: usage, the module docstring's first paragraph, every parameter
     with type, default, constraints and description."""
     summary = (doc or "").strip().split("\n\n", 1)[0].strip()
-    lines = [f"usage: ros2 run maem_ros {name} [--ros-args [--params-file FILE] "
-             f"[-p {name}:NAME:=VALUE] [-r __ns:=/NS] ...]", "", summary, "",
-             "parameters (read-only, set at start):"]
+    lines = [
+        f"usage: ros2 run maem_ros {name} [--ros-args [--params-file FILE] "
+        f"[-p {name}:NAME:=VALUE] [-r __ns:=/NS] ...]",
+        "",
+        summary,
+        "",
+        "parameters (read-only, set at start):",
+    ]
     lines += [f"  {spec.help_line()}" for spec in specs]
     print("\n".join(lines), flush=True)
 
@@ -173,5 +179,5 @@ def wants_help(args: Sequence[str] | None) -> bool:
     """``-h``/``--help`` before any ``--ros-args``."""
     argv = list(sys.argv if args is None else args)[1:]
     if "--ros-args" in argv:
-        argv = argv[:argv.index("--ros-args")]
+        argv = argv[: argv.index("--ros-args")]
     return "-h" in argv or "--help" in argv

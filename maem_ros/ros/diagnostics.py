@@ -1,5 +1,6 @@
 """/diagnostics of a node: counters, timings and drop reasons (Diagnostics), the per-step
 error wrapper (RejectErrors) and a stage stopwatch."""
+
 from __future__ import annotations
 
 import math
@@ -68,8 +69,7 @@ class Diagnostics:
         self._sources: list[Callable[[], tuple[Mapping[str, str], str | None]]] = []
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", DIAGNOSTICS_QOS)
         # steady clock: with use_sim_time a ROS-time timer stalls whenever /clock does
-        self._timer = node.create_timer(period_s, self.publish,
-                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._timer = node.create_timer(period_s, self.publish, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     # -- recording --------------------------------------------------------------------------
     def input(self, topic: str) -> None:
@@ -179,12 +179,12 @@ class Diagnostics:
         try:
             for sub in self._node.subscriptions:
                 if sub.topic_name not in _INFRA_TOPICS:
-                    kv[f"matched_publishers/{sub.topic_name.lstrip('/')}"] = \
-                        str(sub.get_publisher_count())
+                    kv[f"matched_publishers/{sub.topic_name.lstrip('/')}"] = str(sub.get_publisher_count())
             for pub in self._node.publishers:
                 if pub.topic_name not in _INFRA_TOPICS:
-                    kv[f"matched_subscribers/{pub.topic_name.lstrip('/')}"] = \
-                        str(pub.get_subscription_count())
+                    kv[f"matched_subscribers/{pub.topic_name.lstrip('/')}"] = str(
+                        pub.get_subscription_count()
+                    )
         except InvalidHandle:  # an endpoint destroyed during shutdown
             pass
         return kv
@@ -206,9 +206,13 @@ class Diagnostics:
             if warning:
                 level = DiagnosticStatus.WARN
                 message += f"; {warning}"
-        status = DiagnosticStatus(level=level, name=self._node.get_fully_qualified_name(),
-                                  message=message, hardware_id=self._hardware_id,
-                                  values=[KeyValue(key=k, value=v) for k, v in kv.items()])
+        status = DiagnosticStatus(
+            level=level,
+            name=self._node.get_fully_qualified_name(),
+            message=message,
+            hardware_id=self._hardware_id,
+            values=[KeyValue(key=k, value=v) for k, v in kv.items()],
+        )
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self._node.get_clock().now().to_msg()
         try:

@@ -20,6 +20,7 @@ It is Fast DDS's public C++ API called through ctypes (no Python binding of it i
 where the loaded library does not export these functions (another rmw, another Fast DDS) it
 does nothing.
 """
+
 from __future__ import annotations
 
 import ctypes
@@ -34,8 +35,10 @@ if TYPE_CHECKING:
 _GET_INSTANCE = "_ZN8eprosima7fastdds3dds24DomainParticipantFactory12get_instanceEv"
 _LOOKUP_PARTICIPANTS = "_ZNK8eprosima7fastdds3dds24DomainParticipantFactory19lookup_participantsEj"
 _GUID = "_ZNK8eprosima7fastdds3dds17DomainParticipant4guidEv"
-_SET_LISTENER = ("_ZN8eprosima7fastdds3dds17DomainParticipant12set_listenerEPNS1_25Domain"
-                 "ParticipantListenerENSt6chrono8durationIlSt5ratioILl1ELl1EEEE")
+_SET_LISTENER = (
+    "_ZN8eprosima7fastdds3dds17DomainParticipant12set_listenerEPNS1_25Domain"
+    "ParticipantListenerENSt6chrono8durationIlSt5ratioILl1ELl1EEEE"
+)
 #: bytes of a participant's GUID prefix (of every entity's GUID; rmw's gids are GUIDs)
 GUID_PREFIX_BYTES = 12
 

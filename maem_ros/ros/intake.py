@@ -1,5 +1,6 @@
 """Taking messages: counted subscriptions (inputs and DDS losses in /diagnostics), taking every
 pending sample now, and when a message reached the process."""
+
 from __future__ import annotations
 
 import inspect
@@ -48,9 +49,17 @@ class SequenceGaps:
         return seq - last - 1
 
 
-def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
-                      callback: Callable[..., None], qos: QoSProfile, raw: bool = False,
-                      with_info: bool = False, lost_reason: str = "dds_lost"):
+def subscribe_counted(
+    node: Node,
+    diag: Diagnostics,
+    msg_type: Any,
+    topic: str,
+    callback: Callable[..., None],
+    qos: QoSProfile,
+    raw: bool = False,
+    with_info: bool = False,
+    lost_reason: str = "dds_lost",
+):
     """create_subscription whose callback first records the input in ``diag`` and counts
     messages lost before the node took them (``dropped/<lost_reason>``, default
     ``dropped/dds_lost``; see SequenceGaps).
@@ -68,8 +77,12 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
         diag.input(topic)
         lost = gaps.lost(info, sub.get_publisher_count)  # type: ignore[attr-defined]  # set below
         if lost:
-            diag.reject(lost_reason, f"{topic}: {lost} message(s) overwritten in the DDS history "
-                        f"before this node took them (node too slow for the input rate)", n=lost)
+            diag.reject(
+                lost_reason,
+                f"{topic}: {lost} message(s) overwritten in the DDS history "
+                f"before this node took them (node too slow for the input rate)",
+                n=lost,
+            )
         if with_info:
             callback(msg, info)
         else:
@@ -83,7 +96,8 @@ def subscribe_counted(node: Node, diag: Diagnostics, msg_type: Any, topic: str,
 
 
 _MSG_INFO_SIGNATURE = inspect.Signature(
-    [inspect.Parameter(name, inspect.Parameter.POSITIONAL_ONLY) for name in ("msg", "info")])
+    [inspect.Parameter(name, inspect.Parameter.POSITIONAL_ONLY) for name in ("msg", "info")]
+)
 
 
 def take_pending(sub, limit: int = 1000) -> int:

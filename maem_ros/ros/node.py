@@ -11,6 +11,7 @@ self.config_errors():`` turns a core ValueError into a one-line ConfigError (exi
 Signals and shutdown belong to run_node (ros/process.py): SIGINT/SIGTERM end the spin between
 callbacks and the node is destroyed either way.
 """
+
 from __future__ import annotations
 
 import sys
@@ -66,12 +67,16 @@ class MaemNode(Node):
             raise ConfigError(f"{prefix}{e}") from None
 
     @classmethod
-    def main(cls, args: list[str] | None = None,
-             until: Callable[[Node], Future] | None = None) -> int:
+    def main(cls, args: list[str] | None = None, until: Callable[[Node], Future] | None = None) -> int:
         """Run the node in this process (run_node): --help prints the module docstring's
         summary and the parameters; exit code 0 at SIGINT/SIGTERM, 2 on a bad parameter, or
         with ``until`` the result of the future it returns for the node."""
-        return run_node(cls, args, cls.NAME, until=until,
-                        specs=cls.PARAMS if cls.HELP_PARAMS is None else cls.HELP_PARAMS,
-                        doc=sys.modules[cls.__module__].__doc__,
-                        heap_prefault_mb=cls.HEAP_PREFAULT_MB)
+        return run_node(
+            cls,
+            args,
+            cls.NAME,
+            until=until,
+            specs=cls.PARAMS if cls.HELP_PARAMS is None else cls.HELP_PARAMS,
+            doc=sys.modules[cls.__module__].__doc__,
+            heap_prefault_mb=cls.HEAP_PREFAULT_MB,
+        )

@@ -9,6 +9,7 @@ the bound), ``behind/for_s`` (the current episode so far, 0 when not behind),
 ``behind/episodes`` (ended episodes), ``behind/total_s``, ``behind/longest_s``. While behind
 the status is WARN with "behind for X s". Skipped frames are counted ``dropped/behind``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -30,11 +31,17 @@ class NodeBacklog:
         self._node, self._diag, self._what = node, diag, what
         self._catching_up = False  # a stale frame of this batch was skipped (still_fresh)
         diag.add_source(self.diagnostics)
-        kind = ("keeps every frame (keep_every_set: true)" if params.keep_every_set else
-                f"skips {what} that waited longer than "
-                + (f"{params.max_backlog:g} s" if params.max_backlog > 0 else
-                   f"{BACKLOG_PERIODS:g} frame periods (at least {MIN_BACKLOG_S:g} s)")
-                + " for the node (counted dropped/behind)")
+        kind = (
+            "keeps every frame (keep_every_set: true)"
+            if params.keep_every_set
+            else f"skips {what} that waited longer than "
+            + (
+                f"{params.max_backlog:g} s"
+                if params.max_backlog > 0
+                else f"{BACKLOG_PERIODS:g} frame periods (at least {MIN_BACKLOG_S:g} s)"
+            )
+            + " for the node (counted dropped/behind)"
+        )
         node.get_logger().info(f"overload policy: {kind}")
 
     def now_ns(self) -> int:
@@ -45,9 +52,13 @@ class NodeBacklog:
         if n <= 0:
             return
         bound = self.policy.bound_ns() or 0
-        self._diag.reject(BEHIND, f"{n} {self._what} that waited more than {bound / 1e6:.0f} ms "
-                          f"for this node skipped (it fell behind the input rate); the newest "
-                          f"is stamped {newest_stamp_ns}", n=n)
+        self._diag.reject(
+            BEHIND,
+            f"{n} {self._what} that waited more than {bound / 1e6:.0f} ms "
+            f"for this node skipped (it fell behind the input rate); the newest "
+            f"is stamped {newest_stamp_ns}",
+            n=n,
+        )
 
     def select(self, frames: list, ready_ns: list[int], stamps: list[int]) -> list:
         """The frames to process of those waiting together (in stamp order); the others are
@@ -78,8 +89,7 @@ class NodeBacklog:
         """The /diagnostics values and, while behind, the warning (Diagnostics.add_source)."""
         st = self.policy.status(self.now_ns())
         values = {
-            "backlog/policy": "keep every set" if self.policy.params.keep_every_set
-            else "skip stale",
+            "backlog/policy": "keep every set" if self.policy.params.keep_every_set else "skip stale",
             "backlog/bound_ms": f"{st.bound_s * 1e3:.1f}",
             "backlog/last_ms": f"{st.last_backlog_s * 1e3:.1f}",
             "backlog/max_ms": f"{st.max_backlog_s * 1e3:.1f}",
@@ -89,7 +99,9 @@ class NodeBacklog:
             "behind/total_s": f"{st.behind_total_s:.3f}",
             "behind/longest_s": f"{st.longest_s:.3f}",
         }
-        warning = (f"behind for {st.behind_for_s:.1f} s (backlog up to "
-                   f"{st.max_backlog_s * 1e3:.0f} ms)") if st.behind else None
+        warning = (
+            (f"behind for {st.behind_for_s:.1f} s (backlog up to {st.max_backlog_s * 1e3:.0f} ms)")
+            if st.behind
+            else None
+        )
         return values, warning
-

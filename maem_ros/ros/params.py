@@ -1,5 +1,6 @@
 """ROS parameters of a node, declared from the one definition (core.paramspec ParamSpec):
 read-only, typed descriptors, one-line ConfigError on a bad value."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -25,17 +26,22 @@ class ConfigError(ValueError):
     """A parameter value the node cannot start with (reported as one line, exit code 2)."""
 
 
-_PTYPE = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
-          list: ParameterType.PARAMETER_STRING_ARRAY}
+_PTYPE = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+    list: ParameterType.PARAMETER_STRING_ARRAY,
+}
 
 
 @dataclass
 class NodeParams(Params):
     """Parameters every processing node has (node-only parameter classes subclass this)."""
 
-    diagnostics_period: float = param(1.0, "s, /diagnostics publish period (steady clock)",
-                                      minimum=0.0, exclusive_minimum=True)
+    diagnostics_period: float = param(
+        1.0, "s, /diagnostics publish period (steady clock)", minimum=0.0, exclusive_minimum=True
+    )
 
 
 def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
@@ -47,9 +53,13 @@ def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
     """
     out: dict[str, Any] = {}
     for spec in specs:
-        desc = ParameterDescriptor(name=spec.name, type=_PTYPE[spec.ptype],
-                                   description=spec.description,
-                                   additional_constraints=spec.constraints(), read_only=True)
+        desc = ParameterDescriptor(
+            name=spec.name,
+            type=_PTYPE[spec.ptype],
+            description=spec.description,
+            additional_constraints=spec.constraints(),
+            read_only=True,
+        )
         try:
             if spec.ptype is list:  # rclpy cannot infer a type from [] (string arrays only)
                 value = node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, desc).value
@@ -58,8 +68,9 @@ def declare_params(node: Node, specs: Sequence[ParamSpec]) -> dict[str, Any]:
                 desc.dynamic_typing = True
                 value = node.declare_parameter(spec.name, spec.default, desc).value
         except InvalidParameterTypeException as e:
-            raise ConfigError(f"parameter '{spec.name}': expected {spec.ptype.__name__} "
-                              f"({_short(e)})") from None
+            raise ConfigError(
+                f"parameter '{spec.name}': expected {spec.ptype.__name__} ({_short(e)})"
+            ) from None
         except (InvalidParameterValueException, ParameterException) as e:
             raise ConfigError(f"parameter '{spec.name}': {_short(e)}") from None
         try:
@@ -84,8 +95,7 @@ def load_rig_param(value: str, name: str = "rig"):
     from maem_ros.params import resolve_rig_path
 
     if not value:
-        raise ConfigError(f"parameter '{name}': required (rig YAML, camera-JSON folder or shipped "
-                          f"rig name)")
+        raise ConfigError(f"parameter '{name}': required (rig YAML, camera-JSON folder or shipped rig name)")
     try:
         return Rig.load(resolve_rig_path(value))
     except (ValueError, OSError) as e:

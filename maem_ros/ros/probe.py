@@ -13,6 +13,7 @@ daemon thread, closed cleanly by :meth:`BackgroundNode.close`. On top of it:
 :class:`DiagnosticsTable` is the one collector of the nodes' last /diagnostics values (a
 BackgroundNode's ``watch_diagnostics``, the tests' reader).
 """
+
 from __future__ import annotations
 
 import threading
@@ -89,8 +90,7 @@ class DiagnosticsTable:
     def __init__(self, node: rclpy.node.Node, lock: threading.Lock | None = None):
         self.lock = lock or threading.Lock()
         self.latest: dict[str, dict[str, str]] = {}
-        self.sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag,
-                                            DIAGNOSTICS_QOS)
+        self.sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, DIAGNOSTICS_QOS)
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         with self.lock:
@@ -102,8 +102,9 @@ class DiagnosticsTable:
             return {k: dict(v) for k, v in self.latest.items()}
 
 
-def fusion_links(cameras: Sequence[str], image_topic: str | None = "image_raw",
-                 namespace: str = "", sources: bool = True) -> list[tuple[str, str]]:
+def fusion_links(
+    cameras: Sequence[str], image_topic: str | None = "image_raw", namespace: str = "", sources: bool = True
+) -> list[tuple[str, str]]:
     """The data path's DDS links as ``(node, /diagnostics key)``, each seen from both ends:
     images -> frontends (``image_topic`` under each camera namespace; None: no frontends, the
     detections come from elsewhere) -> association -> triangulation -> /maem/poses, the nodes
@@ -118,41 +119,57 @@ def fusion_links(cameras: Sequence[str], image_topic: str | None = "image_raw",
     for c in cameras:
         if image_topic is not None:
             if sources:
-                links.append((f"{ns}/{c}/frontend",
-                              f"matched_publishers/{topic}{c}/{image_topic}"))
+                links.append((f"{ns}/{c}/frontend", f"matched_publishers/{topic}{c}/{image_topic}"))
             links.append((f"{ns}/{c}/frontend", f"matched_subscribers/{topic}{c}/detections"))
         if sources or image_topic is not None:
             links.append((assoc, f"matched_publishers/{topic}{c}/detections"))
-    return links + [(assoc, f"matched_subscribers/{topic}maem/clusters"),
-                    (tri, f"matched_publishers/{topic}maem/clusters"),
-                    (tri, f"matched_subscribers/{topic}maem/poses")]
+    return links + [
+        (assoc, f"matched_subscribers/{topic}maem/clusters"),
+        (tri, f"matched_publishers/{topic}maem/clusters"),
+        (tri, f"matched_subscribers/{topic}maem/poses"),
+    ]
 
 
-def unmatched_links(diagnostics: Mapping[str, Mapping[str, str]],
-                    links: Iterable[tuple[str, str]],
-                    at_least: Mapping[str, int] | None = None) -> list[str]:
+def unmatched_links(
+    diagnostics: Mapping[str, Mapping[str, str]],
+    links: Iterable[tuple[str, str]],
+    at_least: Mapping[str, int] | None = None,
+) -> list[str]:
     """The links whose node has not reported (in its last /diagnostics) at least one matched
     endpoint (``at_least[key]`` for the keys it names), as ``node:key``: a message sent on such
     a link may be lost even though the ROS graph already lists both nodes."""
     at_least = at_least or {}
-    return [f"{node}:{key}" for node, key in links
-            if int(diagnostics.get(node, {}).get(key, "0")) < at_least.get(key, 1)]
+    return [
+        f"{node}:{key}"
+        for node, key in links
+        if int(diagnostics.get(node, {}).get(key, "0")) < at_least.get(key, 1)
+    ]
 
 
 class ArrivalListener(BackgroundNode):
     """First arrival (``time.monotonic_ns``) of each header stamp on ``image_topics``
     (CompressedImage) and on /maem/poses, subscribed raw: only the CDR header is read."""
 
-    def __init__(self, image_topics: Sequence[str], domain_id: int | None = None,
-                 name: str = "maem_demo_listener", input_type: type = CompressedImage):
+    def __init__(
+        self,
+        image_topics: Sequence[str],
+        domain_id: int | None = None,
+        name: str = "maem_demo_listener",
+        input_type: type = CompressedImage,
+    ):
         super().__init__(name, domain_id)
         self.image_t: dict[int, int] = {}
         self.poses_t: dict[int, int] = {}
         qos = IMAGE_QOS if input_type is CompressedImage else DATA_QOS
-        self.subs = [self.node.create_subscription(input_type, t, self._arrival(self.image_t),
-                                                   qos, raw=True) for t in image_topics]
-        self.subs.append(self.node.create_subscription(
-            PointCloud2, "/maem/poses", self._arrival(self.poses_t), DATA_QOS, raw=True))
+        self.subs = [
+            self.node.create_subscription(input_type, t, self._arrival(self.image_t), qos, raw=True)
+            for t in image_topics
+        ]
+        self.subs.append(
+            self.node.create_subscription(
+                PointCloud2, "/maem/poses", self._arrival(self.poses_t), DATA_QOS, raw=True
+            )
+        )
         self.watch_diagnostics()
         self.start()
 
@@ -161,6 +178,7 @@ class ArrivalListener(BackgroundNode):
             t = time.monotonic_ns()
             with self.lock:
                 table.setdefault(wire.cdr_header_stamp_ns(data), t)
+
         return record
 
     def count_subscribers(self, topic: str) -> int:
@@ -180,12 +198,12 @@ class ReplayClient(BackgroundNode):
     def __init__(self, cameras: Sequence[str], name: str = "maem_replay"):
         super().__init__(name)
         self.cameras = list(cameras)
-        self.image_pubs = {c: self.node.create_publisher(Image, f"/{c}/image_raw", IMAGE_QOS)
-                           for c in self.cameras}
+        self.image_pubs = {
+            c: self.node.create_publisher(Image, f"/{c}/image_raw", IMAGE_QOS) for c in self.cameras
+        }
         self.sent: dict[int, float] = {}
         self.poses: dict[int, tuple[float, Any]] = {}
-        self.poses_sub = self.node.create_subscription(PointCloud2, "/maem/poses", self._on_poses,
-                                                       DATA_QOS)
+        self.poses_sub = self.node.create_subscription(PointCloud2, "/maem/poses", self._on_poses, DATA_QOS)
         self.watch_diagnostics()
         self.start()
 
@@ -199,8 +217,9 @@ class ReplayClient(BackgroundNode):
         """The links of the graph not yet matched at both ends (empty: ready): images ->
         frontends -> association -> triangulation -> us, the nodes' own ends read from their
         /diagnostics."""
-        ours = [f"images -> /{c}/image_raw" for c, p in self.image_pubs.items()
-                if p.get_subscription_count() == 0]
+        ours = [
+            f"images -> /{c}/image_raw" for c, p in self.image_pubs.items() if p.get_subscription_count() == 0
+        ]
         if self.poses_sub.get_publisher_count() == 0:
             ours.append("/maem/poses -> us")
         return ours + unmatched_links(self.diagnostics_snapshot(), fusion_links(self.cameras))

@@ -1,5 +1,6 @@
 """A node process: the DDS profile, the executor, heap tuning (glibc malloc), gc.freeze and
 run_node, the main() of every processing node."""
+
 from __future__ import annotations
 
 import gc
@@ -30,6 +31,7 @@ def use_shipped_dds_profile() -> str | None:
     if os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
         return None
     from maem_ros.params import config_dirs
+
     for d in config_dirs():
         if (d / "fastdds.xml").is_file():
             os.environ[DDS_PROFILE_VARS[0]] = str(d / "fastdds.xml")
@@ -56,16 +58,17 @@ def make_executor(context=None):
 
     choice = os.environ.get(EXECUTOR_VAR, "single") or "single"
     if choice not in EXECUTORS:
-        raise ConfigError(f"environment {EXECUTOR_VAR}={choice!r}: expected one of "
-                          f"{list(EXECUTORS)}")
+        raise ConfigError(f"environment {EXECUTOR_VAR}={choice!r}: expected one of {list(EXECUTORS)}")
     if choice == "events":
         from rclpy.experimental import EventsExecutor
+
         return EventsExecutor(context=context)
     return SingleThreadedExecutor(context=context)
 
 
-def spin_slices(executor, stop: Callable[[], bool], until: Future | None = None,
-                slice_s: float = 0.1) -> None:
+def spin_slices(
+    executor, stop: Callable[[], bool], until: Future | None = None, slice_s: float = 0.1
+) -> None:
     """Spin ``executor`` in slices of ``slice_s`` until ``stop()`` (checked between slices) or
     rclpy shuts down; ``until``: a future that also ends a slice when it completes."""
     pending = until if until is not None else Future()
@@ -107,14 +110,14 @@ def keep_freed_memory(prefault_mb: int = 0) -> bool:
         mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
-    ok = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and \
-        bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
+    ok = bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
+        mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
+    )
     try:
         mb = int(os.environ.get(HEAP_PREFAULT_VAR, prefault_mb))
     except ValueError:
         value = os.environ[HEAP_PREFAULT_VAR]
-        raise ConfigError(f"environment {HEAP_PREFAULT_VAR}={value!r}: expected MiB as an "
-                          f"integer") from None
+        raise ConfigError(f"environment {HEAP_PREFAULT_VAR}={value!r}: expected MiB as an integer") from None
     if ok and mb > 0:
         _prefault_heap(libc, mb * 1024 * 1024)
     return ok
@@ -138,10 +141,15 @@ def _prefault_heap(libc, nbytes: int) -> None:
             free(c)
 
 
-def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
-             until: Callable[[Node], Future] | None = None,
-             specs: Sequence[ParamSpec] = (), doc: str | None = None,
-             heap_prefault_mb: int = 0) -> int:
+def run_node(
+    make_node: Callable[[], Node],
+    args: list[str] | None,
+    name: str,
+    until: Callable[[Node], Future] | None = None,
+    specs: Sequence[ParamSpec] = (),
+    doc: str | None = None,
+    heap_prefault_mb: int = 0,
+) -> int:
     """rclpy.init, build the node, spin until SIGINT/SIGTERM, or with ``until`` until the future
     it returns for the node completes (its result is the exit code). Exit code 0 at
     SIGINT/SIGTERM, EXIT_CONFIG_ERROR (2) on bad params; the node is destroyed either way.
@@ -180,8 +188,7 @@ def run_node(make_node: Callable[[], Node], args: list[str] | None, name: str,
         executor.add_node(node)
         done = until(node) if until is not None else None
         try:
-            spin_slices(executor, lambda: stop.is_set() or (done is not None and done.done()),
-                        done)
+            spin_slices(executor, lambda: stop.is_set() or (done is not None and done.done()), done)
         finally:
             executor.shutdown(timeout_sec=1.0)
         if done is not None and done.done():

@@ -16,6 +16,7 @@ come from the ROS graph, polled until every requested topic is found (late publi
 picked up). The subscription QoS follows the publishers: best effort if any publisher is,
 transient local if all are.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -51,17 +52,33 @@ class RecordOptions:
 
 def parse_args(argv: Sequence[str]) -> RecordOptions:
     p = argparse.ArgumentParser(
-        prog="maem-record", description="Record live topics into an MCAP rosbag2 bag "
-        "(serialized bytes; closed cleanly on SIGINT/SIGTERM).")
+        prog="maem-record",
+        description="Record live topics into an MCAP rosbag2 bag "
+        "(serialized bytes; closed cleanly on SIGINT/SIGTERM).",
+    )
     p.add_argument("out", help="output bag folder (must not exist)")
     p.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="topics to record")
     p.add_argument("--all-maem", action="store_true", help="every /maem/* topic and /tf_static")
-    p.add_argument("--all", dest="all_topics", action="store_true",
-                   help="every topic except /rosout and /parameter_events")
-    p.add_argument("--duration", type=float, default=0.0, metavar="S",
-                   help="stop after S seconds (default: until SIGINT)")
-    p.add_argument("--discovery-timeout", type=float, default=10.0, metavar="S",
-                   help="warn about requested topics not seen after S seconds (polling goes on)")
+    p.add_argument(
+        "--all",
+        dest="all_topics",
+        action="store_true",
+        help="every topic except /rosout and /parameter_events",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="stop after S seconds (default: until SIGINT)",
+    )
+    p.add_argument(
+        "--discovery-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="warn about requested topics not seen after S seconds (polling goes on)",
+    )
     for spec in WriteOptions.specs():  # one definition: the ROS parameters use the same specs
         flag = "--" + spec.name.replace("_", "-")
         extra = f" [{spec.constraints()}]" if spec.constraints() else ""
@@ -69,23 +86,33 @@ def parse_args(argv: Sequence[str]) -> RecordOptions:
             p.add_argument(flag, action="store_true", default=None, help=spec.description)
         else:
             unit = spec.description.split(",")[0]  # "s, ..." / "MB, ..."
-            p.add_argument(flag, type=spec.ptype, default=None, metavar=unit.upper(),
-                           help=f"{spec.description} (default {spec.default:g}){extra}")
+            p.add_argument(
+                flag,
+                type=spec.ptype,
+                default=None,
+                metavar=unit.upper(),
+                help=f"{spec.description} (default {spec.default:g}){extra}",
+            )
     a = p.parse_args(list(argv))
     if not (a.topics or a.all_maem or a.all_topics):
         p.error("nothing to record: give --topics, --all-maem or --all")
     for t in a.topics:
         if not t.startswith("/"):
             p.error(f"--topics: {t!r} must be an absolute topic name (start with '/')")
-    flags = {s.name: getattr(a, s.name) for s in WriteOptions.specs()
-             if getattr(a, s.name) is not None}
+    flags = {s.name: getattr(a, s.name) for s in WriteOptions.specs() if getattr(a, s.name) is not None}
     try:
         WriteOptions(**flags)
     except ValueError as e:
         p.error(f"--{str(e).replace('_', '-')}")
-    return RecordOptions(out=a.out, topics=list(dict.fromkeys(a.topics)), all_maem=a.all_maem,
-                         all_topics=a.all_topics, duration_s=max(0.0, a.duration),
-                         discovery_timeout_s=a.discovery_timeout, write_flags=flags)
+    return RecordOptions(
+        out=a.out,
+        topics=list(dict.fromkeys(a.topics)),
+        all_maem=a.all_maem,
+        all_topics=a.all_topics,
+        duration_s=max(0.0, a.duration),
+        discovery_timeout_s=a.discovery_timeout,
+        write_flags=flags,
+    )
 
 
 def wanted(topic: str, opts: RecordOptions) -> bool:
@@ -110,15 +137,17 @@ def subscription_qos(publishers) -> QoSProfile:  # noqa: F821 - rclpy imported l
     """Match the publishers: best effort if any is, transient local if all are; keep last
     RECORD_DEPTH."""
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    best_effort = any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
-                      for p in publishers)
+
+    best_effort = any(p.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for p in publishers)
     latched = bool(publishers) and all(
-        p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=RECORD_DEPTH,
-                      reliability=ReliabilityPolicy.BEST_EFFORT if best_effort
-                      else ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
-                      else DurabilityPolicy.VOLATILE)
+        p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers
+    )
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=RECORD_DEPTH,
+        reliability=ReliabilityPolicy.BEST_EFFORT if best_effort else ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
 
 
 class Recorder:
@@ -128,6 +157,7 @@ class Recorder:
 
     def __init__(self, node, opts: RecordOptions, writer: bagio.BagWriter):
         from maem_ros.ros.diagnostics import Diagnostics
+
         self.node, self.opts, self.writer = node, opts, writer
         self.diag: Diagnostics = Diagnostics(node, DIAGNOSTICS_PERIOD_S, "maem_record")
         self.subs: dict[str, object] = {}
@@ -141,6 +171,7 @@ class Recorder:
         """Subscribe to newly visible wanted topics (first advertised type)."""
         from maem_ros.ros.intake import subscribe_counted
         from maem_ros.ros.player_node import message_class
+
         for topic, types in self.node.get_topic_names_and_types():
             if topic in self.subs or topic in self.rejected or not wanted(topic, self.opts):
                 continue
@@ -156,19 +187,29 @@ class Recorder:
                 continue
             qos = subscription_qos(self.node.get_publishers_info_by_topic(topic))
             self.subs[topic] = subscribe_counted(
-                self.node, self.diag, cls, topic, self._callback(topic, msgtype), qos, raw=True,
-                lost_reason=_lost_reason(topic))
+                self.node,
+                self.diag,
+                cls,
+                topic,
+                self._callback(topic, msgtype),
+                qos,
+                raw=True,
+                lost_reason=_lost_reason(topic),
+            )
             self.node.get_logger().info(f"recording {topic} [{msgtype}]")
         self._warn_missing()
 
     def _warn_missing(self) -> None:
         missing = [t for t in self.opts.topics if t not in self.subs and t not in self.rejected]
-        if (missing and not self.warned_missing
-                and time.monotonic() - self.t_start > self.opts.discovery_timeout_s):
+        if (
+            missing
+            and not self.warned_missing
+            and time.monotonic() - self.t_start > self.opts.discovery_timeout_s
+        ):
             self.warned_missing = True
             self.node.get_logger().warning(
-                f"no publisher yet after {self.opts.discovery_timeout_s:.0f} s for {missing}; "
-                "still waiting")
+                f"no publisher yet after {self.opts.discovery_timeout_s:.0f} s for {missing}; still waiting"
+            )
 
     def _callback(self, topic: str, msgtype: str):
         def on_message(data: bytes) -> None:
@@ -176,12 +217,12 @@ class Recorder:
             if self.error is not None:
                 return
             try:
-                self.writer.write_raw(topic, msgtype, data,
-                                      self.node.get_clock().now().nanoseconds)
+                self.writer.write_raw(topic, msgtype, data, self.node.get_clock().now().nanoseconds)
             except bagio.BagWriteError as e:
                 self.error = e
                 return
             self.diag.ok()
+
         return on_message
 
     def lost(self) -> dict[str, int]:
@@ -194,10 +235,12 @@ class Recorder:
         per_topic = ", ".join(f"{t}: {n}" for t, n in w.counts.items()) or "no topics"
         lost = {t: n for t, n in self.lost().items() if n}
         lost_text = f" ({', '.join(f'{t}: {n}' for t, n in lost.items())})" if lost else ""
-        return (f"maem-record: wrote {w.message_count} messages to {self.opts.out} in "
-                f"{len(w.files)} file(s) ({per_topic}); received {self.received}; lost before "
-                f"the recorder took them: {sum(lost.values())}{lost_text}"
-                f"{f'; not recorded: {sorted(self.rejected)}' if self.rejected else ''}")
+        return (
+            f"maem-record: wrote {w.message_count} messages to {self.opts.out} in "
+            f"{len(w.files)} file(s) ({per_topic}); received {self.received}; lost before "
+            f"the recorder took them: {sum(lost.values())}{lost_text}"
+            f"{f'; not recorded: {sorted(self.rejected)}' if self.rejected else ''}"
+        )
 
     def tick(self) -> None:
         """Timer: write the open chunk / metadata.yaml when due."""
@@ -216,6 +259,7 @@ def _lost_reason(topic: str) -> str:
 def _bag_qos(node, topic: str):
     """Offered QoS recorded in the bag metadata: latched if all publishers are transient local."""
     from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
     pubs = node.get_publishers_info_by_topic(topic)
     if pubs and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs):
         return bagio.QOS_LATCHED
@@ -228,6 +272,7 @@ def write_options(node, opts: RecordOptions) -> WriteOptions:
     """The node's WriteOptions parameters, overridden by the flags given (ConfigError, one
     line, on a bad parameter)."""
     from maem_ros.ros.params import declare_params
+
     values = declare_params(node, WriteOptions.specs())
     values.update(opts.write_flags)
     return WriteOptions(**values)
@@ -273,8 +318,7 @@ def main(args: Sequence[str] | None = None) -> int:
         node.create_timer(opts.poll_s, rec.poll_graph)
         node.create_timer(min(0.1, writer.options.chunk_duration / 4), rec.tick)
         deadline = time.monotonic() + opts.duration_s if opts.duration_s else None
-        while not stop.is_set() and rec.error is None and \
-                (deadline is None or time.monotonic() < deadline):
+        while not stop.is_set() and rec.error is None and (deadline is None or time.monotonic() < deadline):
             executor.spin_once(timeout_sec=0.1)
         if rec.error is None:
             _drain(executor, rec)

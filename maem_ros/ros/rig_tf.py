@@ -1,4 +1,5 @@
 """The rig's camera frames on /tf_static."""
+
 from __future__ import annotations
 
 from rclpy.node import Node
@@ -16,10 +17,11 @@ def publish_rig_tf(node: Node, rig, world_frame: str):
     try:
         from tf2_msgs.msg import TFMessage
     except ImportError:
-        node.get_logger().warning("TF skipped: tf2_msgs is not importable (make builds it from "
-                                  "its upstream definition; see doc/design.md §4)")
+        node.get_logger().warning(
+            "TF skipped: tf2_msgs is not importable (make builds it from "
+            "its upstream definition; see doc/design.md §4)"
+        )
         return None
     pub = node.create_publisher(TFMessage, wire.TF_STATIC_TOPIC, TF_STATIC_QOS)
-    pub.publish(wire.tf_message(rig_transforms(rig, world_frame),
-                                node.get_clock().now().nanoseconds))
+    pub.publish(wire.tf_message(rig_transforms(rig, world_frame), node.get_clock().now().nanoseconds))
     return pub

@@ -13,6 +13,7 @@ core.calibrate.board) at random points of the cameras' common volume, facing the
 that see the point with a random tilt and in-plane turn; with ``per_camera`` every camera gets
 its own poses in front of it instead (photographed one camera at a time, as for intrinsics).
 """
+
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -49,8 +50,9 @@ def board_texture(spec: BoardSpec) -> tuple[np.ndarray, float]:
         ij = np.add.outer(np.arange(sy * px) // px, np.arange(sx * px) // px)
         face = np.where(ij % 2 == 0, 0, 255).astype(np.uint8)
     border = int(round(BORDER_SQUARES * px))
-    return cv2.copyMakeBorder(face, border, border, border, border, cv2.BORDER_CONSTANT,
-                              value=255), px / spec.square
+    return cv2.copyMakeBorder(
+        face, border, border, border, border, cv2.BORDER_CONSTANT, value=255
+    ), px / spec.square
 
 
 def _rays(cam: Camera) -> np.ndarray:
@@ -86,8 +88,10 @@ def _undistort_dense(cam: Camera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndar
     pu, pv = distort_xy(cam, xy[sample][..., 0], xy[sample][..., 1])
     worst = float(np.nanmax(np.hypot(pu - u[sample], pv - v[sample])))
     if not worst < _MAX_MAP_ERROR_PX:
-        raise ValueError(f"camera {cam.name!r}: lens map not smooth enough to render a board "
-                         f"(interpolation error {worst:.2g} px)")
+        raise ValueError(
+            f"camera {cam.name!r}: lens map not smooth enough to render a board "
+            f"(interpolation error {worst:.2g} px)"
+        )
     return xy[..., 0], xy[..., 1]
 
 
@@ -98,8 +102,14 @@ _RAYS_KEPT = 8
 
 def _camera_rays(cam: Camera) -> np.ndarray:
     """The camera's supersampled pixel rays, computed once per lens and image size."""
-    key = (cam.width, cam.height, cam.distortion_model, tuple(cam.K.ravel()),
-           tuple(cam.K_rect.ravel()), tuple(cam.D))
+    key = (
+        cam.width,
+        cam.height,
+        cam.distortion_model,
+        tuple(cam.K.ravel()),
+        tuple(cam.K_rect.ravel()),
+        tuple(cam.D),
+    )
     if key not in _RAYS:
         _RAYS[key] = _rays(cam)
         while len(_RAYS) > _RAYS_KEPT:
@@ -108,9 +118,15 @@ def _camera_rays(cam: Camera) -> np.ndarray:
     return _RAYS[key]
 
 
-def render_board(cam: Camera, spec: BoardSpec, R_wb: np.ndarray, t_wb: np.ndarray,
-                 rng: np.random.Generator, texture: tuple[np.ndarray, float] | None = None,
-                 noise: float = 2.0) -> np.ndarray:
+def render_board(
+    cam: Camera,
+    spec: BoardSpec,
+    R_wb: np.ndarray,
+    t_wb: np.ndarray,
+    rng: np.random.Generator,
+    texture: tuple[np.ndarray, float] | None = None,
+    noise: float = 2.0,
+) -> np.ndarray:
     """(H,W) uint8 raw image of the board at pose (R_wb, t_wb) (board -> world, m) seen by ``cam``."""
     tex, ppm = texture or board_texture(spec)
     rays = _camera_rays(cam)
@@ -128,8 +144,17 @@ def render_board(cam: Camera, spec: BoardSpec, R_wb: np.ndarray, t_wb: np.ndarra
     x[~in_front] = -1e6
     y[~in_front] = -1e6
     sampled = cv2.remap(tex, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    inside = cv2.remap(np.full(tex.shape, 255, np.uint8), x, y, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float32) / 255
+    inside = (
+        cv2.remap(
+            np.full(tex.shape, 255, np.uint8),
+            x,
+            y,
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        ).astype(np.float32)
+        / 255
+    )
     face = sampled.astype(np.float32) if float(n @ o) > 0 else np.full(x.shape, _BACK_GREY, np.float32)
     background = _BACKGROUND + 25 * np.sin(np.linspace(0, 3, x.shape[1]))[None, :].astype(np.float32)
     img: np.ndarray = inside * face + (1 - inside) * background
@@ -146,19 +171,24 @@ def board_corners_world(spec: BoardSpec, R_wb: np.ndarray, t_wb: np.ndarray) -> 
 
 def _visible(cam: Camera, X: np.ndarray, margin: float) -> bool:
     uv = cam.project(X)
-    return bool(np.all(np.isfinite(uv)) and np.all(uv >= margin)
-                and np.all(uv[:, 0] <= cam.width - 1 - margin)
-                and np.all(uv[:, 1] <= cam.height - 1 - margin))
+    return bool(
+        np.all(np.isfinite(uv))
+        and np.all(uv >= margin)
+        and np.all(uv[:, 0] <= cam.width - 1 - margin)
+        and np.all(uv[:, 1] <= cam.height - 1 - margin)
+    )
 
 
-def _facing(spec: BoardSpec, centre: np.ndarray, towards: np.ndarray, rng: np.random.Generator,
-            max_tilt_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def _facing(
+    spec: BoardSpec, centre: np.ndarray, towards: np.ndarray, rng: np.random.Generator, max_tilt_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Board pose centred at ``centre`` whose pattern faces ``towards`` (unit, world), tilted
     by up to ``max_tilt_deg`` and turned in plane at random."""
     z = -towards / np.linalg.norm(towards)  # board z points away from the viewers
     axis = np.cross(z, rng.normal(size=3))
-    tilt = Rotation.from_rotvec(axis / max(np.linalg.norm(axis), 1e-9)
-                                * np.radians(rng.uniform(0, max_tilt_deg)))
+    tilt = Rotation.from_rotvec(
+        axis / max(np.linalg.norm(axis), 1e-9) * np.radians(rng.uniform(0, max_tilt_deg))
+    )
     z = tilt.apply(z)
     helper = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
     x = np.cross(helper, z)
@@ -195,8 +225,15 @@ class BoardPoses:
     camera: np.ndarray
 
 
-def board_poses(rig: Rig, spec: BoardSpec, frames: int, seed: int = 0, per_camera: bool = False,
-                min_cameras: int = 2, max_tilt_deg: float = 40.0) -> BoardPoses:
+def board_poses(
+    rig: Rig,
+    spec: BoardSpec,
+    frames: int,
+    seed: int = 0,
+    per_camera: bool = False,
+    min_cameras: int = 2,
+    max_tilt_deg: float = 40.0,
+) -> BoardPoses:
     """Random board poses (module docstring): shared ones seen whole by ``min_cameras``+
     cameras, or with ``per_camera`` ``frames`` poses per camera seen whole by that camera."""
     rng = np.random.default_rng([int(seed), 5151])
@@ -209,8 +246,10 @@ def board_poses(rig: Rig, spec: BoardSpec, frames: int, seed: int = 0, per_camer
         while got < count:
             tries += 1
             if tries > 400 * count:
-                raise ValueError(f"board poses: could not place {count} boards of {spec} in view "
-                                 f"({'camera ' + rig[owner].name if owner >= 0 else 'the common volume'})")
+                raise ValueError(
+                    f"board poses: could not place {count} boards of {spec} in view "
+                    f"({'camera ' + rig[owner].name if owner >= 0 else 'the common volume'})"
+                )
             if owner >= 0:
                 cam = rig[owner]
                 # close-ups all over the image, as for an intrinsic calibration
@@ -229,8 +268,9 @@ def board_poses(rig: Rig, spec: BoardSpec, frames: int, seed: int = 0, per_camer
                 turn = got % len(rig)
                 first = turn if turn in viewers else int(rng.choice(viewers))
                 dirs = {c: (rig[c].center - p) / np.linalg.norm(rig[c].center - p) for c in viewers}
-                second = max((c for c in viewers if c != first), key=lambda c: dirs[c] @ dirs[first],
-                             default=first)
+                second = max(
+                    (c for c in viewers if c != first), key=lambda c: dirs[c] @ dirs[first], default=first
+                )
                 towards = dirs[first] + dirs[second]
             R, t = _facing(spec, p, towards, rng, max_tilt_deg)
             X = board_corners_world(spec, R, t)
@@ -249,15 +289,16 @@ def _faces(cam: Camera, R_wb: np.ndarray, t_wb: np.ndarray, min_cos: float = 0.4
     return bool(float(-R_wb[:, 2] @ view) / np.linalg.norm(view) > min_cos)
 
 
-def write_board_sequence(out: str | Path, rig: Rig, spec: BoardSpec, poses: BoardPoses,
-                         seed: int = 0, intrinsics_only: bool = True) -> Path:
+def write_board_sequence(
+    out: str | Path, rig: Rig, spec: BoardSpec, poses: BoardPoses, seed: int = 0, intrinsics_only: bool = True
+) -> Path:
     """Render ``poses`` into every camera and write ``out``::
 
-        images/<camera>/<frame:06d>.png   raw grayscale images (per-camera poses: only the
-                                          owner camera's frames)
-        gt_rig.yaml                       the true rig
-        board.npz                         spec (str), R (F,3,3), t (F,3) board -> world, camera (F,)
-        cameras/<camera>.json             MAEM camera JSON (intrinsics only by default)
+    images/<camera>/<frame:06d>.png   raw grayscale images (per-camera poses: only the
+                                      owner camera's frames)
+    gt_rig.yaml                       the true rig
+    board.npz                         spec (str), R (F,3,3), t (F,3) board -> world, camera (F,)
+    cameras/<camera>.json             MAEM camera JSON (intrinsics only by default)
     """
     out = Path(out)
     rng = np.random.default_rng([int(seed), 5152])

@@ -8,6 +8,7 @@ up); between events players re-target (cuts, jogs, stops). Referees/bystanders w
 sidelines following the play. One second of warm-up is simulated and dropped so frame 0 is
 already in motion. Deterministic per seed.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -43,8 +44,9 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def simulate_motion(num_frames: int, fps: float, players: int, bystanders: int, seed: int,
-                    lead: int = 0) -> Motion:
+def simulate_motion(
+    num_frames: int, fps: float, players: int, bystanders: int, seed: int, lead: int = 0
+) -> Motion:
     """Simulate ``players`` + ``bystanders`` persons for ``num_frames`` frames at ``fps``.
 
     ``lead``: also keep that many warm-up frames before frame 0 (at the start of the arrays;
@@ -52,8 +54,10 @@ def simulate_motion(num_frames: int, fps: float, players: int, bystanders: int, 
     Frames 0.. are the same whatever ``lead`` and however many frames follow.
     """
     if num_frames < 1 or fps <= 0 or players < 0 or bystanders < 0 or players + bystanders < 1:
-        raise ValueError(f"motion: need frames >= 1, fps > 0 and at least one person "
-                         f"(frames={num_frames}, fps={fps}, players={players}, bystanders={bystanders})")
+        raise ValueError(
+            f"motion: need frames >= 1, fps > 0 and at least one person "
+            f"(frames={num_frames}, fps={fps}, players={players}, bystanders={bystanders})"
+        )
     if not 0 <= lead <= int(round(fps)):
         raise ValueError(f"motion: lead {lead} outside 0..{int(round(fps))} (one second of warm-up)")
     rng = np.random.default_rng([int(seed), 7001])
@@ -112,11 +116,26 @@ class _Crowd:
         phase = rng.uniform(0, 2 * np.pi, P)
         retarget_at = rng.uniform(0.0, 0.6, P)
         yaw_freq, yaw_phase = rng.uniform(0.2, 0.6, P), rng.uniform(0, 2 * np.pi, P)
-        return cls(is_player=is_player, team=team, height=height, width=width, vmax=vmax,
-                   side_y=side_y, pos=pos, vel=np.zeros((P, 2)), heading=heading, phase=phase,
-                   crouch=np.zeros(P), arm=np.zeros(P), target=pos.copy(), retarget_at=retarget_at,
-                   hold_until=np.zeros(P), raise_until=np.zeros(P), yaw_freq=yaw_freq,
-                   yaw_phase=yaw_phase)
+        return cls(
+            is_player=is_player,
+            team=team,
+            height=height,
+            width=width,
+            vmax=vmax,
+            side_y=side_y,
+            pos=pos,
+            vel=np.zeros((P, 2)),
+            heading=heading,
+            phase=phase,
+            crouch=np.zeros(P),
+            arm=np.zeros(P),
+            target=pos.copy(),
+            retarget_at=retarget_at,
+            hold_until=np.zeros(P),
+            raise_until=np.zeros(P),
+            yaw_freq=yaw_freq,
+            yaw_phase=yaw_phase,
+        )
 
     def move(self, play: _Play, t: float, dt: float) -> None:
         """One step of ``dt`` s: steering, contacts, heading, gait phase, crouch and arms."""
@@ -128,12 +147,13 @@ class _Crowd:
         self.pos = pos
         speed = np.linalg.norm(self.vel, axis=1)
         basket = BASKETS[0 if play.side < 0 else 1, :2]
-        look = np.where(is_player[:, None], basket - pos,
-                        np.stack([play.mean_x - pos[:, 0], -pos[:, 1]], 1))
-        want = np.where(speed > 1.0, np.arctan2(self.vel[:, 1], self.vel[:, 0]),
-                        np.arctan2(look[:, 1], look[:, 0]))
-        self.heading = _wrap(self.heading + np.clip(_wrap(want - self.heading), -TURN_RATE * dt,
-                                                    TURN_RATE * dt))
+        look = np.where(is_player[:, None], basket - pos, np.stack([play.mean_x - pos[:, 0], -pos[:, 1]], 1))
+        want = np.where(
+            speed > 1.0, np.arctan2(self.vel[:, 1], self.vel[:, 0]), np.arctan2(look[:, 1], look[:, 0])
+        )
+        self.heading = _wrap(
+            self.heading + np.clip(_wrap(want - self.heading), -TURN_RATE * dt, TURN_RATE * dt)
+        )
         cadence = np.where(speed > 0.2, 0.85 + 0.12 * speed, 0.0)  # strides per second
         self.phase = (self.phase + 2 * np.pi * cadence * dt) % (2 * np.pi)
         k = 1.0 - np.exp(-dt / 0.25)
@@ -169,15 +189,26 @@ class _Play:
             self._rebound(rng, crowd, t)
         due = (t >= crowd.retarget_at) & (t >= crowd.hold_until)
         if due.any():
-            _retarget(rng, due, crowd.is_player, crowd.pos, crowd.target, self.side,
-                      crowd.hold_until, crowd.retarget_at, t, crowd.side_y)
+            _retarget(
+                rng,
+                due,
+                crowd.is_player,
+                crowd.pos,
+                crowd.target,
+                self.side,
+                crowd.hold_until,
+                crowd.retarget_at,
+                t,
+                crowd.side_y,
+            )
         # follow the play with the referees
         hx = COURT_LENGTH / 2
         is_player = crowd.is_player
         self.mean_x = crowd.pos[is_player, 0].mean() if is_player.any() else 0.0
         ref = ~is_player
         crowd.target[ref, 0] = np.clip(
-            self.mean_x + np.where(np.arange(len(is_player))[ref] % 2 == 0, -3.0, 3.0), -hx + 1, hx - 1)
+            self.mean_x + np.where(np.arange(len(is_player))[ref] % 2 == 0, -3.0, 3.0), -hx + 1, hx - 1
+        )
         crowd.target[ref, 1] = crowd.side_y[ref]
 
     def _rebound(self, rng: np.random.Generator, crowd: _Crowd, t: float) -> None:
@@ -199,8 +230,9 @@ class _Record:
 
     def __init__(self, frames: int, persons: int) -> None:
         self.pos = np.zeros((frames, persons, 2))
-        self.arrays = {k: np.zeros((frames, persons))
-                       for k in ("speed", "heading", "phase", "crouch", "arm", "yaw")}
+        self.arrays = {
+            k: np.zeros((frames, persons)) for k in ("speed", "heading", "phase", "crouch", "arm", "yaw")
+        }
 
     def keep(self, f: int, crowd: _Crowd, t: float) -> None:
         out = self.arrays
@@ -212,9 +244,18 @@ class _Record:
 
     def motion(self, crowd: _Crowd) -> Motion:
         out = self.arrays
-        return Motion(pos=self.pos, speed=out["speed"], heading=out["heading"], phase=out["phase"],
-                      crouch=out["crouch"], arm_raise=out["arm"], head_yaw=out["yaw"],
-                      height=crowd.height, width=crowd.width, team=crowd.team)
+        return Motion(
+            pos=self.pos,
+            speed=out["speed"],
+            heading=out["heading"],
+            phase=out["phase"],
+            crouch=out["crouch"],
+            arm_raise=out["arm"],
+            head_yaw=out["yaw"],
+            height=crowd.height,
+            width=crowd.width,
+            team=crowd.team,
+        )
 
 
 def _retarget(rng, due, is_player, pos, target, play_side, hold_until, retarget_at, t, side_y) -> None:
@@ -243,8 +284,9 @@ def _steer(pos, vel, target, vmax, dt) -> np.ndarray:
         p = pos + ahead * vel
         diff = p[:, None, :] - p[None, :, :]
         gap = np.linalg.norm(diff, axis=2) + np.eye(len(pos)) * 1e3
-        push = np.where((gap < SEPARATION)[..., None],
-                        diff / gap[..., None] * (SEPARATION - gap)[..., None], 0.0)
+        push = np.where(
+            (gap < SEPARATION)[..., None], diff / gap[..., None] * (SEPARATION - gap)[..., None], 0.0
+        )
         desired = desired + gain * push.sum(axis=1)
     dv = desired - vel
     n = np.linalg.norm(dv, axis=1, keepdims=True)
@@ -268,18 +310,43 @@ def _resolve_contacts(pos: np.ndarray, min_gap: float = 0.5, iterations: int = 3
 #: amplitude (rad) of the slow per-person pose variation added to each gait angle: people hold
 #: their arms, torso and head differently, so poses differ between persons (as in real games)
 STYLE_AMPLITUDE = {
-    "sh_flex_l": 0.45, "sh_flex_r": 0.45, "sh_abd_l": 0.3, "sh_abd_r": 0.3, "elbow_l": 0.5, "elbow_r": 0.5,
-    "wrist_l": 0.3, "wrist_r": 0.3, "hip_flex_l": 0.15, "hip_flex_r": 0.15, "hip_abd_l": 0.08,
-    "hip_abd_r": 0.08, "knee_l": 0.2, "knee_r": 0.2, "twist": 0.3, "lean": 0.1, "side_lean": 0.07,
-    "head_pitch": 0.2, "finger_curl": 0.25,
+    "sh_flex_l": 0.45,
+    "sh_flex_r": 0.45,
+    "sh_abd_l": 0.3,
+    "sh_abd_r": 0.3,
+    "elbow_l": 0.5,
+    "elbow_r": 0.5,
+    "wrist_l": 0.3,
+    "wrist_r": 0.3,
+    "hip_flex_l": 0.15,
+    "hip_flex_r": 0.15,
+    "hip_abd_l": 0.08,
+    "hip_abd_r": 0.08,
+    "knee_l": 0.2,
+    "knee_r": 0.2,
+    "twist": 0.3,
+    "lean": 0.1,
+    "side_lean": 0.07,
+    "head_pitch": 0.2,
+    "finger_curl": 0.25,
 }
 #: lower bounds that keep joints anatomically plausible after the variation
-ANGLE_FLOOR = {"elbow_l": 0.03, "elbow_r": 0.03, "knee_l": 0.03, "knee_r": 0.03, "sh_abd_l": 0.04,
-               "sh_abd_r": 0.04, "hip_abd_l": 0.0, "hip_abd_r": 0.0, "finger_curl": 0.05}
+ANGLE_FLOOR = {
+    "elbow_l": 0.03,
+    "elbow_r": 0.03,
+    "knee_l": 0.03,
+    "knee_r": 0.03,
+    "sh_abd_l": 0.04,
+    "sh_abd_r": 0.04,
+    "hip_abd_l": 0.0,
+    "hip_abd_r": 0.0,
+    "finger_curl": 0.05,
+}
 
 
-def pose_style(num_frames: int, fps: float, persons: int, seed: int,
-               first_frame: int = 0) -> dict[str, np.ndarray]:
+def pose_style(
+    num_frames: int, fps: float, persons: int, seed: int, first_frame: int = 0
+) -> dict[str, np.ndarray]:
     """Smooth per-person angle offsets (F,P) rad: two random sinusoids (0.1-0.6 Hz) per angle,
     for frames ``first_frame`` .. ``first_frame + num_frames - 1`` (negative: before frame 0)."""
     rng = np.random.default_rng([int(seed), 7002])

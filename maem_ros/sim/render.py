@@ -6,6 +6,7 @@ stripes and the painted lanes follow the lens exactly; lines are world polylines
 the lens model. People are drawn far-to-near per body part as filled convex hulls of their
 projected mesh vertices (team colours, per-person skin tone), with floor shadows.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -40,23 +41,44 @@ def court_polylines(step: float = 0.05) -> list[np.ndarray]:
         a = np.linspace(a0, a1, n)
         return np.column_stack([c[0] + r * np.cos(a), c[1] + r * np.sin(a), np.zeros(n)])
 
-    lines.append(np.concatenate([seg((-hx, -hy), (hx, -hy)), seg((hx, -hy), (hx, hy)),
-                                 seg((hx, hy), (-hx, hy)), seg((-hx, hy), (-hx, -hy))]))
+    lines.append(
+        np.concatenate(
+            [
+                seg((-hx, -hy), (hx, -hy)),
+                seg((hx, -hy), (hx, hy)),
+                seg((hx, hy), (-hx, hy)),
+                seg((-hx, hy), (-hx, -hy)),
+            ]
+        )
+    )
     lines.append(seg((0, -hy), (0, hy)))
     lines.append(arc((0, 0), 1.8, 0, 2 * np.pi))
     for sgn in (-1.0, 1.0):
         bx = sgn * (hx - 1.575)
         ft = sgn * (hx - 5.8)  # free-throw line
-        lines.append(np.concatenate([seg((sgn * hx, -2.45), (ft, -2.45)), seg((ft, -2.45), (ft, 2.45)),
-                                     seg((ft, 2.45), (sgn * hx, 2.45))]))
+        lines.append(
+            np.concatenate(
+                [
+                    seg((sgn * hx, -2.45), (ft, -2.45)),
+                    seg((ft, -2.45), (ft, 2.45)),
+                    seg((ft, 2.45), (sgn * hx, 2.45)),
+                ]
+            )
+        )
         inward = np.pi if sgn > 0 else 0.0  # direction from this basket to the court centre
         lines.append(arc((ft, 0), 1.8, inward - np.pi / 2, inward + np.pi / 2))
         # three-point line: straight parts 0.9 m in from the sidelines, then the 6.75 m arc
         a = np.arcsin((hy - 0.9) / 6.75)
         xa = bx - sgn * 6.75 * np.cos(a)
-        lines.append(np.concatenate([seg((sgn * hx, -(hy - 0.9)), (xa, -(hy - 0.9))),
-                                     arc((bx, 0), 6.75, inward + sgn * a, inward - sgn * a),
-                                     seg((xa, hy - 0.9), (sgn * hx, hy - 0.9))]))
+        lines.append(
+            np.concatenate(
+                [
+                    seg((sgn * hx, -(hy - 0.9)), (xa, -(hy - 0.9))),
+                    arc((bx, 0), 6.75, inward + sgn * a, inward - sgn * a),
+                    seg((xa, hy - 0.9), (sgn * hx, hy - 0.9)),
+                ]
+            )
+        )
         lines.append(arc((bx, 0), 1.25, inward - np.pi / 2, inward + np.pi / 2))
     return lines
 
@@ -70,7 +92,7 @@ class Renderer:
         rng = np.random.default_rng([int(seed), 77])
         tone = rng.uniform(0.0, 1.0, len(self.team))
         light, dark = np.array([150, 180, 225.0]), np.array([45, 70, 110.0])
-        self.skin = (light[None] * (1 - tone[:, None]) + dark[None] * tone[:, None])
+        self.skin = light[None] * (1 - tone[:, None]) + dark[None] * tone[:, None]
         self.sample = body.part_vertex_sample(_HULL_SAMPLES)
         self.sample_part = body.part_of[self.sample]
         self._backgrounds: dict[str, np.ndarray] = {}
@@ -122,8 +144,13 @@ class Renderer:
 def _shadows(img: np.ndarray, cam: Camera, points: np.ndarray) -> None:
     a = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     centre = points[:, :70, :2].mean(axis=1)  # (P,2)
-    ring = np.concatenate([centre[:, None, :] + 0.45 * np.stack([np.cos(a), 0.7 * np.sin(a)], 1)[None],
-                           np.zeros((len(centre), len(a), 1))], axis=2)
+    ring = np.concatenate(
+        [
+            centre[:, None, :] + 0.45 * np.stack([np.cos(a), 0.7 * np.sin(a)], 1)[None],
+            np.zeros((len(centre), len(a), 1)),
+        ],
+        axis=2,
+    )
     uv = project_raw(cam, ring)
     overlay = img.copy()
     for poly in uv:
@@ -135,8 +162,9 @@ def _shadows(img: np.ndarray, cam: Camera, points: np.ndarray) -> None:
 def _background(cam: Camera, step: int = 8) -> np.ndarray:
     """Floor, stands, painted areas and lines of the court as seen in the raw image."""
     w, h = cam.width, cam.height
-    gx, gy = np.meshgrid(np.arange(0, w + step, step, dtype=np.float64),
-                         np.arange(0, h + step, step, dtype=np.float64))
+    gx, gy = np.meshgrid(
+        np.arange(0, w + step, step, dtype=np.float64), np.arange(0, h + step, step, dtype=np.float64)
+    )
     rect = cam.undistort_points(np.stack([gx, gy], -1).reshape(-1, 2))
     rays = np.column_stack([rect, np.ones(len(rect))]) @ np.linalg.inv(cam.K_rect).T @ cam.R  # world dirs
     c = cam.center
@@ -146,20 +174,28 @@ def _background(cam: Camera, step: int = 8) -> np.ndarray:
     xy = c[:2] + lam[:, None] * rays[:, :2]
     xy = np.where(hit[:, None], xy, 1e3)
     # coarse grid to full resolution (cv2.resize maps grid sample i to pixel i * step)
-    fx = cv2.resize(xy[:, 0].reshape(gx.shape).astype(np.float32), None, fx=step, fy=step,
-                    interpolation=cv2.INTER_LINEAR)[:h, :w]
-    fy = cv2.resize(xy[:, 1].reshape(gx.shape).astype(np.float32), None, fx=step, fy=step,
-                    interpolation=cv2.INTER_LINEAR)[:h, :w]
-    elev = cv2.resize(rays[:, 2].reshape(gx.shape).astype(np.float32), None, fx=step, fy=step,
-                      interpolation=cv2.INTER_LINEAR)[:h, :w]
+    fx = cv2.resize(
+        xy[:, 0].reshape(gx.shape).astype(np.float32), None, fx=step, fy=step, interpolation=cv2.INTER_LINEAR
+    )[:h, :w]
+    fy = cv2.resize(
+        xy[:, 1].reshape(gx.shape).astype(np.float32), None, fx=step, fy=step, interpolation=cv2.INTER_LINEAR
+    )[:h, :w]
+    elev = cv2.resize(
+        rays[:, 2].reshape(gx.shape).astype(np.float32),
+        None,
+        fx=step,
+        fy=step,
+        interpolation=cv2.INTER_LINEAR,
+    )[:h, :w]
     hx, hy = COURT_LENGTH / 2, COURT_WIDTH / 2
     floor = (np.abs(fx) < 45.0) & (np.abs(fy) < 35.0) & (elev < 0)  # the walls stop the floor
     court = floor & (np.abs(fx) <= hx) & (np.abs(fy) <= hy)
     apron = floor & (np.abs(fx) <= hx + 4) & (np.abs(fy) <= hy + 3.5)
     lane = court & (np.abs(fy) <= 2.45) & (np.abs(fx) >= hx - 5.8)
     img = np.empty((h, w, 3), np.float32)
-    stands = np.array([70, 60, 55], np.float32) \
-        + 25 * np.sin(np.arange(h, dtype=np.float32) / 9.0)[:, None, None]
+    stands = (
+        np.array([70, 60, 55], np.float32) + 25 * np.sin(np.arange(h, dtype=np.float32) / 9.0)[:, None, None]
+    )
     img[:] = stands
     img[floor] = _FLOOR_OUT
     img[apron] = np.array(_FLOOR_OUT) * 1.15
@@ -174,14 +210,22 @@ def _background(cam: Camera, step: int = 8) -> np.ndarray:
         for run in _finite_runs(uv):
             cv2.polylines(out, [np.round(run).astype(np.int32)], False, _LINE, thick, cv2.LINE_AA)
     for b in BASKETS:  # basket stanchion shadow + rim for orientation
-        uv = project_raw(cam, np.array([[b[0] + np.sign(b[0]) * 1.2, 0.0, 0.0], [b[0] + np.sign(b[0]) * 1.2,
-                                                                                   0.0, 3.3]]))
+        uv = project_raw(
+            cam, np.array([[b[0] + np.sign(b[0]) * 1.2, 0.0, 0.0], [b[0] + np.sign(b[0]) * 1.2, 0.0, 3.3]])
+        )
         if np.all(np.isfinite(uv)):
-            cv2.line(out, tuple(np.round(uv[0]).astype(int)), tuple(np.round(uv[1]).astype(int)),
-                     (90, 90, 90), thick * 3, cv2.LINE_AA)
+            cv2.line(
+                out,
+                tuple(np.round(uv[0]).astype(int)),
+                tuple(np.round(uv[1]).astype(int)),
+                (90, 90, 90),
+                thick * 3,
+                cv2.LINE_AA,
+            )
         a = np.linspace(0, 2 * np.pi, 24)
-        rim = project_raw(cam, np.column_stack([b[0] + 0.23 * np.cos(a), 0.23 * np.sin(a),
-                                                np.full(24, b[2])]))
+        rim = project_raw(
+            cam, np.column_stack([b[0] + 0.23 * np.cos(a), 0.23 * np.sin(a), np.full(24, b[2])])
+        )
         if np.all(np.isfinite(rim)):
             cv2.polylines(out, [np.round(rim).astype(np.int32)], True, (20, 80, 230), thick, cv2.LINE_AA)
     noise = np.random.default_rng(len(cam.name) * 131 + w).integers(-6, 7, out.shape, dtype=np.int16)

@@ -5,6 +5,7 @@ World frame: court centre, z up, metres. Detections follow the frontend contract
 same detections as SAM 3D Body dicts in RAW (distorted) px, the MAEM authors' npz layout.
 Everything is deterministic per ``SceneConfig`` (seed).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,10 +35,8 @@ def _with_time_offsets(rig: Rig, offsets: Mapping[str, float]) -> Rig:
     """The rig with each named camera's time_offset set (the scene's ground truth)."""
     unknown = sorted(set(offsets) - set(rig.names))
     if unknown:
-        raise ValueError(f"scene config time_offsets: unknown camera(s) {unknown}; the rig has "
-                         f"{rig.names}")
-    return Rig([dataclasses.replace(c, time_offset=offsets.get(c.name, c.time_offset))
-                for c in rig])
+        raise ValueError(f"scene config time_offsets: unknown camera(s) {unknown}; the rig has {rig.names}")
+    return Rig([dataclasses.replace(c, time_offset=offsets.get(c.name, c.time_offset)) for c in rig])
 
 
 @dataclass
@@ -61,28 +60,42 @@ class SceneConfig:
     def __post_init__(self) -> None:
         checks = [
             ("frames", isinstance(self.frames, (int, np.integer)) and self.frames >= 1, "an integer >= 1"),
-            ("fps", isinstance(self.fps, (int, float)) and np.isfinite(self.fps) and self.fps > 0,
-             "a positive number"),
+            (
+                "fps",
+                isinstance(self.fps, (int, float)) and np.isfinite(self.fps) and self.fps > 0,
+                "a positive number",
+            ),
             ("seed", isinstance(self.seed, (int, np.integer)) and self.seed >= 0, "an integer >= 0"),
             ("difficulty", self.difficulty in PRESETS, f"one of {list(PRESETS)}"),
-            ("num_vertices", isinstance(self.num_vertices, (int, np.integer)) and self.num_vertices >= 19,
-             "an integer >= 19"),
+            (
+                "num_vertices",
+                isinstance(self.num_vertices, (int, np.integer)) and self.num_vertices >= 19,
+                "an integer >= 19",
+            ),
             ("players", isinstance(self.players, (int, np.integer)) and self.players >= 0, "an integer >= 0"),
-            ("bystanders", isinstance(self.bystanders, (int, np.integer)) and self.bystanders >= 0,
-             "an integer >= 0"),
-            ("start_stamp_ns",
-             isinstance(self.start_stamp_ns, (int, np.integer)) and self.start_stamp_ns >= 0,
-             "an integer >= 0"),
+            (
+                "bystanders",
+                isinstance(self.bystanders, (int, np.integer)) and self.bystanders >= 0,
+                "an integer >= 0",
+            ),
+            (
+                "start_stamp_ns",
+                isinstance(self.start_stamp_ns, (int, np.integer)) and self.start_stamp_ns >= 0,
+                "an integer >= 0",
+            ),
             ("rig", isinstance(self.rig, str) and bool(self.rig), "a rig name or path"),
         ]
         for name, ok, want in checks:
             if not ok:
                 raise ValueError(f"scene config {name}: {getattr(self, name)!r} is not {want}")
         if not isinstance(self.time_offsets, Mapping) or not all(
-                isinstance(v, (int, float)) and np.isfinite(v) and abs(v) < MAX_TIME_OFFSET_S
-                for v in self.time_offsets.values()):
-            raise ValueError(f"scene config time_offsets: {self.time_offsets!r} is not a mapping "
-                             f"camera -> seconds within +-{MAX_TIME_OFFSET_S}")
+            isinstance(v, (int, float)) and np.isfinite(v) and abs(v) < MAX_TIME_OFFSET_S
+            for v in self.time_offsets.values()
+        ):
+            raise ValueError(
+                f"scene config time_offsets: {self.time_offsets!r} is not a mapping "
+                f"camera -> seconds within +-{MAX_TIME_OFFSET_S}"
+            )
         self.time_offsets = {str(k): float(v) for k, v in self.time_offsets.items()}
         if self.players + self.bystanders < 1:
             raise ValueError("scene config players/bystanders: the scene needs at least one person")
@@ -102,9 +115,16 @@ class SceneConfig:
         unknown = sorted(set(d) - known)
         if unknown:
             raise ValueError(f"scene config: unknown key(s) {', '.join(unknown)}")
-        values = {k: (int(v) if k in ("frames", "seed", "num_vertices", "players", "bystanders",
-                                      "start_stamp_ns") and isinstance(v, float) and v.is_integer()
-                      else v) for k, v in d.items()}
+        values = {
+            k: (
+                int(v)
+                if k in ("frames", "seed", "num_vertices", "players", "bystanders", "start_stamp_ns")
+                and isinstance(v, float)
+                and v.is_integer()
+                else v
+            )
+            for k, v in d.items()
+        }
         return cls(**values)  # type: ignore[arg-type]  # each value is checked in __post_init__
 
 
@@ -126,13 +146,14 @@ class Scene:
         pad += bool(pad)
         self._lead = pad
         persons = config.players + config.bystanders
-        self._motion = simulate_motion(config.frames + pad, config.fps, config.players,
-                                       config.bystanders, config.seed, lead=pad)
-        self._style = pose_style(config.frames + 2 * pad, config.fps, persons, config.seed,
-                                 first_frame=-pad)
+        self._motion = simulate_motion(
+            config.frames + pad, config.fps, config.players, config.bystanders, config.seed, lead=pad
+        )
+        self._style = pose_style(config.frames + 2 * pad, config.fps, persons, config.seed, first_frame=-pad)
         frames = slice(pad, pad + config.frames)
-        self.motion: Motion = dataclasses.replace(self._motion, **{
-            k: getattr(self._motion, k)[frames] for k in _PER_FRAME})
+        self.motion: Motion = dataclasses.replace(
+            self._motion, **{k: getattr(self._motion, k)[frames] for k in _PER_FRAME}
+        )
         self.style = {k: v[frames] for k, v in self._style.items()}
         self.body = BodyModel(config.num_vertices)
         self.is_player = np.arange(config.players + config.bystanders) < config.players
@@ -169,7 +190,7 @@ class Scene:
         self._cache[key] = value
         limit = {"skel": 64, "verts": 3, "det": len(self.rig) + 2}[key[0]]
         same_kind = [k for k in self._cache if k[0] == key[0]]
-        for old in same_kind[:max(0, len(same_kind) - limit)]:
+        for old in same_kind[: max(0, len(same_kind) - limit)]:
             del self._cache[old]
         return value
 
@@ -195,19 +216,18 @@ class Scene:
         f = self._check_frame(frame) if isinstance(frame, (int, np.integer)) else float(frame)
         m, at = self._motion, self._at
         arm = at(m.arm_raise, f)
-        angles = gait_angles(at(m.speed, f), at(m.phase, f, True), at(m.crouch, f), arm,
-                             at(m.head_yaw, f))
+        angles = gait_angles(at(m.speed, f), at(m.phase, f, True), at(m.crouch, f), arm, at(m.head_yaw, f))
         for key, offset in self._style.items():
             angles[key] = angles[key] + at(offset, f) * (1.0 - 0.7 * arm * key.startswith("sh_"))
         for key, floor in ANGLE_FLOOR.items():
             angles[key] = np.maximum(angles[key], floor)
-        return PersonState(m.height, m.width, at(m.pos, f), at(m.heading, f, True), angles,
-                           self.is_player)
+        return PersonState(m.height, m.width, at(m.pos, f), at(m.heading, f, True), angles, self.is_player)
 
     def skeleton(self, frame: int | float) -> Skeleton:
         def make():
             s = self.person_state(frame)
             return forward_kinematics(s.height, s.width, s.angles, s.root_xy, s.heading)
+
         key = int(frame) if isinstance(frame, (int, np.integer)) else float(frame)
         return self._cached(("skel", key), make)
 
@@ -219,8 +239,9 @@ class Scene:
         """(P,V,3) mesh vertices, world metres (vertex k = same body spot in every frame)."""
         m = self.motion
         key = int(frame) if isinstance(frame, (int, np.integer)) else float(frame)
-        return self._cached(("verts", key),
-                            lambda: self.body.vertices(self.skeleton(frame), m.height, m.width))
+        return self._cached(
+            ("verts", key), lambda: self.body.vertices(self.skeleton(frame), m.height, m.width)
+        )
 
     def _captured(self, camera: str | int, frame: int) -> int | float:
         """The frame position ``camera`` samples for ``frame`` (the frame itself without an
@@ -242,8 +263,8 @@ class Scene:
             rng = np.random.default_rng([self.config.seed, 4242, ci, f])
             at = self._captured(camera, f)
             skel = self.skeleton(at)
-            return simulate(cam, rng, self.noise, self.body, self.person_state(at), skel.points,
-                            gt_skel=skel)
+            return simulate(cam, rng, self.noise, self.body, self.person_state(at), skel.points, gt_skel=skel)
+
         return self._cached(("det", ci, f), make)
 
     def detections(self, camera: str | int, frame: int) -> FrameDetections:
@@ -251,8 +272,15 @@ class Scene:
         d = self.simulated(camera, frame)
         cam, _ = self._camera(camera)
         # copies: callers may modify their detections, the cache must stay intact
-        return FrameDetections(cam.name, self.stamp_ns(frame), d.bbox_rect.copy(), d.scores.copy(),
-                               d.kpts2d_rect.copy(), d.kpts3d.copy(), d.verts2d_rect.astype(np.float32))
+        return FrameDetections(
+            cam.name,
+            self.stamp_ns(frame),
+            d.bbox_rect.copy(),
+            d.scores.copy(),
+            d.kpts2d_rect.copy(),
+            d.kpts3d.copy(),
+            d.verts2d_rect.astype(np.float32),
+        )
 
     def detection_persons(self, camera: str | int, frame: int) -> np.ndarray:
         """(N,) GT person index of each detection (same order as ``detections``), -1 = false positive."""
@@ -267,16 +295,19 @@ class Scene:
         d = self.simulated(camera, frame)
         cam, _ = self._camera(camera)
         f32 = np.float32
-        return [{
-            "bbox": d.bbox_raw[i].astype(f32),
-            "bbox_score": f32(d.scores[i]),
-            "pred_keypoints_3d": (d.kpts3d[i] - d.cam_t[i]).astype(f32),
-            "pred_keypoints_2d": d.kpts2d_raw[i].astype(f32),
-            "pred_keypoints_2d_verts": d.verts2d_raw[i].astype(f32),
-            "pred_vertices": (d.verts3d[i] - d.cam_t[i]).astype(f32),
-            "pred_cam_t": d.cam_t[i].astype(f32),
-            "focal_length": f32(cam.K[0, 0]),
-        } for i in range(len(d.person))]
+        return [
+            {
+                "bbox": d.bbox_raw[i].astype(f32),
+                "bbox_score": f32(d.scores[i]),
+                "pred_keypoints_3d": (d.kpts3d[i] - d.cam_t[i]).astype(f32),
+                "pred_keypoints_2d": d.kpts2d_raw[i].astype(f32),
+                "pred_keypoints_2d_verts": d.verts2d_raw[i].astype(f32),
+                "pred_vertices": (d.verts3d[i] - d.cam_t[i]).astype(f32),
+                "pred_cam_t": d.cam_t[i].astype(f32),
+                "focal_length": f32(cam.K[0, 0]),
+            }
+            for i in range(len(d.person))
+        ]
 
     # ---- images --------------------------------------------------------------------------------
     def render(self, camera: str | int, frame: int) -> np.ndarray:

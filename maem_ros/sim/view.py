@@ -4,6 +4,7 @@ Polynomial lens models fold back beyond some normalised radius: a point far outs
 of view would land inside the image. The simulator treats every point beyond 95 % of the fold
 radius as outside the image.
 """
+
 from __future__ import annotations
 
 from functools import lru_cache
@@ -15,8 +16,9 @@ from maem_ros.core.geometry.camera import Camera
 
 def fold_radius(camera: Camera) -> float:
     """Normalised radius (tan of the off-axis angle) where the raw radius stops growing; inf if never."""
-    return _fold_radius(camera.distortion_model, tuple(float(x) for x in camera.D),
-                        tuple(float(x) for x in camera.K.ravel()))
+    return _fold_radius(
+        camera.distortion_model, tuple(float(x) for x in camera.D), tuple(float(x) for x in camera.K.ravel())
+    )
 
 
 @lru_cache(maxsize=64)
@@ -78,7 +80,7 @@ def _plumb_bob(D: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray,
     skipped when k4 = k5 = k6 = 0 (it is then exactly 1).
     """
     k = np.zeros(8)
-    k[:len(D)] = D
+    k[: len(D)] = D
     k1, k2, p1, p2, k3, k4, k5, k6 = k
     xx = x * x
     r2 = y * y
@@ -148,8 +150,9 @@ def normalised(camera: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([x, y], axis=-1), ok
 
 
-def normalised_to_raw_xy(camera: Camera, x: np.ndarray, y: np.ndarray,
-                         ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def normalised_to_raw_xy(
+    camera: Camera, x: np.ndarray, y: np.ndarray, ok: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Normalised x, y (...) and their mask from ``camera_to_normalised_xy`` -> raw px u, v (...),
     NaN where the mask is False."""
     if not ok.all():
@@ -205,5 +208,9 @@ def inside_image(camera: Camera, uv: np.ndarray, margin: float = 0.0) -> np.ndar
 def inside_image_xy(camera: Camera, u: np.ndarray, v: np.ndarray, margin: float = 0.0) -> np.ndarray:
     """(...,) bool: finite px u, v inside [margin, size - 1 - margin]."""
     with np.errstate(invalid="ignore"):
-        return ((u >= margin) & (u <= camera.width - 1 - margin)
-                & (v >= margin) & (v <= camera.height - 1 - margin))
+        return (
+            (u >= margin)
+            & (u <= camera.width - 1 - margin)
+            & (v >= margin)
+            & (v <= camera.height - 1 - margin)
+        )

@@ -17,6 +17,7 @@ thresholds and variants, which the offline tools read too) or a node's name (``f
 declares, as its ``--help`` lists them). Node tables import the node modules, so they need
 rclpy; the ``method`` table does not.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,8 +39,7 @@ NODE_MODULES = {
     "foxglove": ("maem_ros.ros.foxglove_node", ("PARAMS",)),
 }
 
-HEADER = ("| parameter | type | default | allowed | meaning |\n"
-          "|---|---|---|---|---|")
+HEADER = "| parameter | type | default | allowed | meaning |\n|---|---|---|---|---|"
 
 _TAG = re.compile(r"<(?=[A-Za-z/])")
 _MARKER = re.compile(r"<!-- paramdoc:(begin|end) ([A-Za-z0-9_-]+) -->")
@@ -53,6 +53,7 @@ def method_specs() -> tuple[ParamSpec, ...]:
     """The method's parameters: association then triangulation (core dataclasses)."""
     from ..core.association import AssociationParams
     from ..core.triangulation import TriangulationParams
+
     return AssociationParams.specs() + TriangulationParams.specs()
 
 
@@ -110,8 +111,10 @@ def render_table(specs: Sequence[ParamSpec]) -> str:
     rows = [HEADER]
     for spec in specs:
         allowed = format_allowed(spec)
-        rows.append(f"| `{spec.name}` | {spec.ptype.__name__} | `{_code_cell(format_default(spec))}` "
-                    f"| {_cell(allowed)} | {_cell(spec.description)} |")
+        rows.append(
+            f"| `{spec.name}` | {spec.ptype.__name__} | `{_code_cell(format_default(spec))}` "
+            f"| {_cell(allowed)} | {_cell(spec.description)} |"
+        )
     return "\n".join(rows)
 
 
@@ -138,7 +141,7 @@ def regenerate(text: str, where: str) -> tuple[str, list[str]]:
         if kind == "begin":
             if open_name is not None:
                 raise DocError(f"{where}:{line}: paramdoc:begin {name} inside table {open_name}")
-            out.append(text[pos:m.end()])
+            out.append(text[pos : m.end()])
             open_name, open_end = name, m.end()
             continue
         if open_name != name:
@@ -148,7 +151,7 @@ def regenerate(text: str, where: str) -> tuple[str, list[str]]:
         except DocError as e:
             raise DocError(f"{where}:{line}: {e}") from None
         new = "\n" + table + "\n"
-        if text[open_end:m.start()] != new:
+        if text[open_end : m.start()] != new:
             changed.append(name)
         out.append(new + m.group(0))
         pos, open_name = m.end(), None
@@ -180,21 +183,31 @@ def check_or_write(paths: Sequence[Path], write: bool) -> int:
             print(f"{path}: regenerated {', '.join(changed)}")
         else:
             stale += 1
-            print(f"{path}: parameter table(s) {', '.join(changed)} out of date; run "
-                  f"python -m maem_ros.tools.paramdoc --write {path}", file=sys.stderr)
+            print(
+                f"{path}: parameter table(s) {', '.join(changed)} out of date; run "
+                f"python -m maem_ros.tools.paramdoc --write {path}",
+                file=sys.stderr,
+            )
     return 1 if stale else 0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m maem_ros.tools.paramdoc",
-                                description=__doc__.splitlines()[0],
-                                epilog=f"tables: {', '.join(['method', *NODE_MODULES])}")
+    p = argparse.ArgumentParser(
+        prog="python -m maem_ros.tools.paramdoc",
+        description=__doc__.splitlines()[0],
+        epilog=f"tables: {', '.join(['method', *NODE_MODULES])}",
+    )
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--check", action="store_true",
-                      help="FILES: exit 1 when a marked table differs from the definitions")
+    mode.add_argument(
+        "--check", action="store_true", help="FILES: exit 1 when a marked table differs from the definitions"
+    )
     mode.add_argument("--write", action="store_true", help="FILES: regenerate marked tables")
-    p.add_argument("names", nargs="*", metavar="TABLE|FILE",
-                   help="tables to print, or with --check/--write the documents")
+    p.add_argument(
+        "names",
+        nargs="*",
+        metavar="TABLE|FILE",
+        help="tables to print, or with --check/--write the documents",
+    )
     return p
 
 

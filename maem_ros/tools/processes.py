@@ -1,5 +1,6 @@
 """Child processes of the graph tools (maem-demo, tools/bench/latency.py): start with a log file each,
 watch, stop with SIGINT and collect exit codes."""
+
 from __future__ import annotations
 
 import os
@@ -14,11 +15,13 @@ from pathlib import Path
 from maem_ros.ros.cli import SHUTDOWN_STALLED, STALLED_WITH_GIL
 
 #: node kind -> module run with ``python -m`` (works without installing the console scripts)
-NODE_MODULES = {"frontend": "maem_ros.ros.frontend_node",
-                "association": "maem_ros.ros.association_node",
-                "triangulation": "maem_ros.ros.triangulation_node",
-                "player": "maem_ros.ros.player_node",
-                "recorder": "maem_ros.ros.recorder_node"}
+NODE_MODULES = {
+    "frontend": "maem_ros.ros.frontend_node",
+    "association": "maem_ros.ros.association_node",
+    "triangulation": "maem_ros.ros.triangulation_node",
+    "player": "maem_ros.ros.player_node",
+    "recorder": "maem_ros.ros.recorder_node",
+}
 
 
 def module_command(module: str, *args: str) -> list[str]:
@@ -66,18 +69,21 @@ class ProcessGroup:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{name}.log"
         with open(log_path, "wb") as fh:
-            popen = subprocess.Popen(list(cmd), stdout=fh, stderr=subprocess.STDOUT, env=self.env,
-                                     stdin=subprocess.DEVNULL)
+            popen = subprocess.Popen(
+                list(cmd), stdout=fh, stderr=subprocess.STDOUT, env=self.env, stdin=subprocess.DEVNULL
+            )
         self.procs[name] = Proc(name, popen, log_path)
         return self.procs[name]
 
     def dead(self, names: Sequence[str] | None = None) -> dict[str, int]:
         """{name: exit code} of the processes (of ``names``) that have exited."""
-        return {n: p.popen.returncode for n, p in self.procs.items()
-                if (names is None or n in names) and p.popen.poll() is not None}
+        return {
+            n: p.popen.returncode
+            for n, p in self.procs.items()
+            if (names is None or n in names) and p.popen.poll() is not None
+        }
 
-    def stop(self, names: Sequence[str] | None = None,
-             timeout_s: float = 10.0) -> dict[str, int | None]:
+    def stop(self, names: Sequence[str] | None = None, timeout_s: float = 10.0) -> dict[str, int | None]:
         """SIGINT ``names`` (default all) still running, wait up to ``timeout_s``; kill leftovers.
         Exit codes, None = had to be killed."""
         names = list(self.procs) if names is None else names
@@ -112,8 +118,11 @@ class ProcessGroup:
     def forced_exits(self) -> list[str]:
         """Names of the processes whose shutdown watchdog ended them (see ros/cli.py: exit code
         0, or 1 from its backstop when the stalled teardown held the GIL)."""
-        return [p.name for p in self.procs.values()
-                if any(m in p.tail(100_000) for m in (SHUTDOWN_STALLED, STALLED_WITH_GIL))]
+        return [
+            p.name
+            for p in self.procs.values()
+            if any(m in p.tail(100_000) for m in (SHUTDOWN_STALLED, STALLED_WITH_GIL))
+        ]
 
     def shutdown(self) -> None:
         """SIGINT whatever still runs (recorder last, so it keeps what it received), then kill."""
@@ -127,5 +136,8 @@ class ProcessGroup:
 
     def logs(self, tail: int = 2000, names: Sequence[str] | None = None) -> str:
         """The last ``tail`` characters of every log (of ``names``), one section per process."""
-        return "\n".join(f"--- {p.name} ---\n{p.tail(tail)}" for p in self.procs.values()
-                         if (names is None or p.name in names) and p.log.exists())
+        return "\n".join(
+            f"--- {p.name} ---\n{p.tail(tail)}"
+            for p in self.procs.values()
+            if (names is None or p.name in names) and p.log.exists()
+        )

@@ -1,9 +1,10 @@
 """maem-sim: write a synthetic scene folder (cameras/, dets/, gt.npz, scene.json, optional images/).
 
-    maem-sim OUT --rig sportcenter6 --frames 90 --difficulty medium --seed 0 [--images] [--vertices N]
-             [--time-offset CAM=S ...] [--intrinsics-only]
-    maem-sim OUT --rig lab4 --board charuco:7x5:0.15:0.11:DICT_4X4_50 --frames 20 [--board-per-camera]
+maem-sim OUT --rig sportcenter6 --frames 90 --difficulty medium --seed 0 [--images] [--vertices N]
+         [--time-offset CAM=S ...] [--intrinsics-only]
+maem-sim OUT --rig lab4 --board charuco:7x5:0.15:0.11:DICT_4X4_50 --frames 20 [--board-per-camera]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,43 +43,79 @@ By default ground truth holds the players (is_player): referees/bystanders are d
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-sim", description=__doc__.splitlines()[0], epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="maem-sim",
+        description=__doc__.splitlines()[0],
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("out", type=Path, help="scene folder to write (created; existing files overwritten)")
-    p.add_argument("--rig", default="sportcenter6",
-                   help="shipped rig name or rig file (default sportcenter6)")
+    p.add_argument(
+        "--rig", default="sportcenter6", help="shipped rig name or rig file (default sportcenter6)"
+    )
     p.add_argument("--frames", type=int, default=90, help="number of frames (default 90)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
-    p.add_argument("--difficulty", default="medium", choices=("none", "easy", "medium", "hard"),
-                   help="detection-noise preset (none = exact, for tests)")
+    p.add_argument(
+        "--difficulty",
+        default="medium",
+        choices=("none", "easy", "medium", "hard"),
+        help="detection-noise preset (none = exact, for tests)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--vertices", type=int, default=None,
-                   help="mesh vertices per detection (default: the simulator's, 18439)")
-    p.add_argument("--gt-people", choices=("players", "all"), default="players",
-                   help="who gt.npz holds: players (default; referees/bystanders are distractors) or all")
+    p.add_argument(
+        "--vertices",
+        type=int,
+        default=None,
+        help="mesh vertices per detection (default: the simulator's, 18439)",
+    )
+    p.add_argument(
+        "--gt-people",
+        choices=("players", "all"),
+        default="players",
+        help="who gt.npz holds: players (default; referees/bystanders are distractors) or all",
+    )
     p.add_argument("--images", action="store_true", help="also render raw JPEG images")
-    p.add_argument("--time-offset", action="append", default=[], metavar="CAM=S",
-                   help="camera CAM captures each frame S seconds after its stamp (it samples the "
-                   "motion at its own time; |S| < 0.9; written as time_offset into the rig); "
-                   "repeat per camera")
-    p.add_argument("--board", default=None, metavar="SPEC",
-                   help="render a calibration-board sequence instead of people: "
-                   "charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT or checkerboard:COLSxROWS:SQUARE_M "
-                   "(--frames board poses; use a room-sized rig such as lab4)")
-    p.add_argument("--board-per-camera", action="store_true",
-                   help="with --board: --frames poses per camera, each seen by that camera only "
-                   "(photographed one camera at a time)")
-    p.add_argument("--with-extrinsics", action="store_true",
-                   help="with --board: cameras/ holds the full rig, not intrinsics only")
-    p.add_argument("--intrinsics-only", action="store_true",
-                   help="cameras/ holds intrinsics only (no extrinsics), for calibration tests; "
-                   "the true rig is in gt_rig.yaml")
+    p.add_argument(
+        "--time-offset",
+        action="append",
+        default=[],
+        metavar="CAM=S",
+        help="camera CAM captures each frame S seconds after its stamp (it samples the "
+        "motion at its own time; |S| < 0.9; written as time_offset into the rig); "
+        "repeat per camera",
+    )
+    p.add_argument(
+        "--board",
+        default=None,
+        metavar="SPEC",
+        help="render a calibration-board sequence instead of people: "
+        "charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT or checkerboard:COLSxROWS:SQUARE_M "
+        "(--frames board poses; use a room-sized rig such as lab4)",
+    )
+    p.add_argument(
+        "--board-per-camera",
+        action="store_true",
+        help="with --board: --frames poses per camera, each seen by that camera only "
+        "(photographed one camera at a time)",
+    )
+    p.add_argument(
+        "--with-extrinsics",
+        action="store_true",
+        help="with --board: cameras/ holds the full rig, not intrinsics only",
+    )
+    p.add_argument(
+        "--intrinsics-only",
+        action="store_true",
+        help="cameras/ holds intrinsics only (no extrinsics), for calibration tests; "
+        "the true rig is in gt_rig.yaml",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
 def scene_config(args: argparse.Namespace):
     from ..sim.scene import SceneConfig
+
     cfg = SceneConfig().to_dict()
     cfg.update(rig=args.rig, frames=args.frames, fps=args.fps, difficulty=args.difficulty, seed=args.seed)
     if args.vertices is not None:
@@ -111,15 +148,27 @@ def gt_arrays(scene, frames: int, people: str = "players") -> tuple[np.ndarray, 
     return pose, np.ones(pose.shape[:3], dtype=bool)
 
 
-def write_scene(out: Path, config, images: bool = False, progress: bool = True,
-                gt_people: str = "players", intrinsics_only: bool = False) -> SceneFolder:
+def write_scene(
+    out: Path,
+    config,
+    images: bool = False,
+    progress: bool = True,
+    gt_people: str = "players",
+    intrinsics_only: bool = False,
+) -> SceneFolder:
     """Simulate ``config`` and write the scene folder ``out`` (``intrinsics_only``: cameras/
     without extrinsics; the true rig is always in gt_rig.yaml)."""
     from ..sim.scene import Scene
+
     scene = Scene(config)
     n = scene.num_frames
-    info = {"fps": float(config.fps), "start_stamp_ns": int(scene.stamp_ns(0)), "num_frames": int(n),
-            "gt_people": gt_people, "scene_config": config.to_dict()}
+    info = {
+        "fps": float(config.fps),
+        "start_stamp_ns": int(scene.stamp_ns(0)),
+        "num_frames": int(n),
+        "gt_people": gt_people,
+        "scene_config": config.to_dict(),
+    }
     folder = SceneFolder.create(out, scene.rig, info, extrinsics=not intrinsics_only)
     scene.rig.to_yaml(Path(out) / "gt_rig.yaml")
     ids = {}
@@ -144,8 +193,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return write_board(args)
     try:
         config = scene_config(args)
-        write_scene(args.out, config, images=args.images, progress=not args.quiet,
-                    gt_people=args.gt_people, intrinsics_only=args.intrinsics_only)
+        write_scene(
+            args.out,
+            config,
+            images=args.images,
+            progress=not args.quiet,
+            gt_people=args.gt_people,
+            intrinsics_only=args.intrinsics_only,
+        )
     except ValueError as e:
         return fail("maem-sim", e)
     views = len(list((args.out / "cameras").glob("*.json")))
@@ -158,16 +213,15 @@ def write_board(args: argparse.Namespace) -> int:
     from ..core.calibrate.board import BoardSpec
     from ..sim.board import board_poses, write_board_sequence
     from ..sim.rigs import load_rig
+
     try:
         spec = BoardSpec.parse(args.board)
         rig = load_rig(args.rig)
         poses = board_poses(rig, spec, args.frames, args.seed, per_camera=args.board_per_camera)
-        write_board_sequence(args.out, rig, spec, poses, args.seed,
-                             intrinsics_only=not args.with_extrinsics)
+        write_board_sequence(args.out, rig, spec, poses, args.seed, intrinsics_only=not args.with_extrinsics)
     except ValueError as e:
         return fail("maem-sim", e)
-    print(f"maem-sim: wrote {len(poses.R)} board poses of {spec} x {len(rig)} views to "
-          f"{str(args.out)!r}")
+    print(f"maem-sim: wrote {len(poses.R)} board poses of {spec} x {len(rig)} views to {str(args.out)!r}")
     return 0
 
 

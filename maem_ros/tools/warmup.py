@@ -20,6 +20,7 @@ passes:
 Before compiling, cached kernels whose imported sources changed since they were cached are
 deleted (numba itself only notices a change of the kernel's own file).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,14 +45,21 @@ WIRES = ("f32", "q4")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-warmup", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--only", action="append", default=[], metavar="MODULE",
-                   help="only the warmup() of modules whose dotted name starts with this "
-                        "(repeatable; skips the node-path pass), e.g. "
-                        "maem_ros.core.triangulation")
-    p.add_argument("--clean", action="store_true",
-                   help="delete the cached kernels first (a full recompile)")
+    p = argparse.ArgumentParser(
+        prog="maem-warmup",
+        description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--only",
+        action="append",
+        default=[],
+        metavar="MODULE",
+        help="only the warmup() of modules whose dotted name starts with this "
+        "(repeatable; skips the node-path pass), e.g. "
+        "maem_ros.core.triangulation",
+    )
+    p.add_argument("--clean", action="store_true", help="delete the cached kernels first (a full recompile)")
     p.add_argument("--quiet", action="store_true", help="print only the summary line")
     return p
 
@@ -73,10 +81,11 @@ def node_paths() -> int:
 
     rig = load_bench_rig(SCENE_RIG)
     template = body_template(SCENE_VERTICES, SCENE_KEYPOINTS, 0)
-    seq = make_sequence(rig, template, np.random.default_rng(0), SCENE_PLAYERS, SCENE_EXTRAS,
-                        SCENE_FRAMES)
-    sent = {layout: [{c: wire.detections_to_msg(fd, layout) for c, fd in fr.frames.items()}
-                     for fr in seq] for layout in WIRES}
+    seq = make_sequence(rig, template, np.random.default_rng(0), SCENE_PLAYERS, SCENE_EXTRAS, SCENE_FRAMES)
+    sent = {
+        layout: [{c: wire.detections_to_msg(fd, layout) for c, fd in fr.frames.items()} for fr in seq]
+        for layout in WIRES
+    }
     runs = 0
     for name in SHIPPED_PARAMS:
         a = load_node_params(name, "association")
@@ -86,8 +95,7 @@ def node_paths() -> int:
         for layout in WIRES:
             stage = TemporalAssociator(rig, aparams, TemporalParams.from_mapping(a))
             for msgs in sent[layout]:
-                frames = {c: wire.msg_to_detections(m, f"/{c}/detections")
-                          for c, m in msgs.items()}
+                frames = {c: wire.msg_to_detections(m, f"/{c}/detections") for c, m in msgs.items()}
                 for fd in frames.values():  # as the node prepares each decoded frame
                     stage.gates.prepare(fd)
                 res = stage.step(frames, frames[rig.names[0]].stamp_ns)
@@ -96,8 +104,7 @@ def node_paths() -> int:
     return runs
 
 
-def warm(only: Sequence[str] = (), clean: bool = False,
-         say: Callable[[str], None] = print) -> dict[str, Any]:
+def warm(only: Sequence[str] = (), clean: bool = False, say: Callable[[str], None] = print) -> dict[str, Any]:
     """Passes 1 and 2 (pass 2 without ``only``); returns a summary (kernels loaded, compiled,
     deleted as stale, cache directories, seconds)."""
     t0 = time.monotonic()
@@ -106,9 +113,10 @@ def warm(only: Sequence[str] = (), clean: bool = False,
     stale = list(kc.kernel_files(found)) if clean else kc.stale_kernel_files(found)
     deleted = kc.purge_cache(stale, found) if stale else 0
     for f in stale:
-        say(f"maem-warmup: deleting the cached kernels of {f.name} ("
-            + ("--clean)" if clean else "stale: built from other sources than its imports' "
-                                        "current ones)"))
+        say(
+            f"maem-warmup: deleting the cached kernels of {f.name} ("
+            + ("--clean)" if clean else "stale: built from other sources than its imports' current ones)")
+        )
     before = kc.kernel_counts()
     kc.warm_kernels(modules)
     node_runs = 0
@@ -119,12 +127,17 @@ def warm(only: Sequence[str] = (), clean: bool = False,
             say(f"maem-warmup: node-path pass skipped ({e}); the kernels' own warm-ups ran")
     stats = kc.kernel_stats(before)
     kc.record_sources(kc.dispatchers())
-    return {"loaded": sum(s.loaded for s in stats), "compiled": sum(s.compiled for s in stats),
-            "kernels": len(stats), "stale_files": [f.name for f in stale],
-            "deleted_files": deleted, "node_frame_sets": node_runs,
-            "cache_dirs": sorted({s.cache_dir for s in stats
-                                  if s.cache_dir and (s.loaded or s.compiled)}),
-            "seconds": time.monotonic() - t0, "per_kernel": stats}
+    return {
+        "loaded": sum(s.loaded for s in stats),
+        "compiled": sum(s.compiled for s in stats),
+        "kernels": len(stats),
+        "stale_files": [f.name for f in stale],
+        "deleted_files": deleted,
+        "node_frame_sets": node_runs,
+        "cache_dirs": sorted({s.cache_dir for s in stats if s.cache_dir and (s.loaded or s.compiled)}),
+        "seconds": time.monotonic() - t0,
+        "per_kernel": stats,
+    }
 
 
 def _silent(text: str) -> None:
@@ -139,9 +152,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     say: Callable[[str], None] = _silent if a.quiet else print
     unknown = [p for p in a.only if not kc.kernel_modules([p])]
     if unknown:
-        print(f"maem-warmup: --only {unknown[0]!r}: no module of "
-              f"{' or '.join(kc.KERNEL_PACKAGES)} starts with it",
-              file=sys.stderr)
+        print(
+            f"maem-warmup: --only {unknown[0]!r}: no module of "
+            f"{' or '.join(kc.KERNEL_PACKAGES)} starts with it",
+            file=sys.stderr,
+        )
         return 2
     out = warm(a.only, a.clean, say)
     if not a.quiet:
@@ -149,9 +164,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             if s.compiled:
                 say(f"  compiled {s.compiled} signature(s) of {s.name}")
     where = ", ".join(str(Path(d)) for d in out["cache_dirs"]) or "nowhere (no kernel found)"
-    print(f"maem-warmup: {out['compiled']} signatures compiled, {out['loaded']} loaded from the "
-          f"cache, {out['kernels']} kernels, {out['node_frame_sets']} node-path frame sets, "
-          f"{out['seconds']:.1f} s; cache: {where}")
+    print(
+        f"maem-warmup: {out['compiled']} signatures compiled, {out['loaded']} loaded from the "
+        f"cache, {out['kernels']} kernels, {out['node_frame_sets']} node-path frame sets, "
+        f"{out['seconds']:.1f} s; cache: {where}"
+    )
     return 0
 
 

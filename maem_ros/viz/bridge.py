@@ -20,6 +20,7 @@ The rig scene, transforms and calibrations have no "latched" delivery in the pro
 are sent again whenever a client subscribes and every ``static_period_s`` after that.
 Message log times are the data's stamps (ns), so Foxglove's timeline shows recording time.
 """
+
 from __future__ import annotations
 
 import threading
@@ -82,10 +83,17 @@ class FoxgloveBridge:
     Thread-safe: calls may come from ROS callbacks or a playback loop.
     """
 
-    def __init__(self, rig: Rig, host: str = "127.0.0.1", port: int = 8765,
-                 court_size: tuple[float, float] = (28.0, 15.0), static_period_s: float = 1.0,
-                 convention: str | None = None, world_frame: str = scene.WORLD,
-                 name: str = "maem_ros"):
+    def __init__(
+        self,
+        rig: Rig,
+        host: str = "127.0.0.1",
+        port: int = 8765,
+        court_size: tuple[float, float] = (28.0, 15.0),
+        static_period_s: float = 1.0,
+        convention: str | None = None,
+        world_frame: str = scene.WORLD,
+        name: str = "maem_ros",
+    ):
         self.rig = rig
         self.world_frame = world_frame
         self._frames = rig_transforms(rig, world_frame)
@@ -103,15 +111,17 @@ class FoxgloveBridge:
         self.skeletons = SceneUpdateChannel(SKELETONS_TOPIC, context=ctx)
         self.rig_scene = SceneUpdateChannel(RIG_TOPIC, context=ctx)
         self.tf = FrameTransformsChannel(TF_TOPIC, context=ctx)
-        self.images = {c.name: CompressedImageChannel(image_topic(c.name), context=ctx)
-                       for c in rig}
-        self.calibrations = {c.name: CameraCalibrationChannel(calibration_topic(c.name),
-                                                              context=ctx) for c in rig}
-        self.annotations = {c.name: ImageAnnotationsChannel(annotations_topic(c.name),
-                                                            context=ctx) for c in rig}
+        self.images = {c.name: CompressedImageChannel(image_topic(c.name), context=ctx) for c in rig}
+        self.calibrations = {
+            c.name: CameraCalibrationChannel(calibration_topic(c.name), context=ctx) for c in rig
+        }
+        self.annotations = {
+            c.name: ImageAnnotationsChannel(annotations_topic(c.name), context=ctx) for c in rig
+        }
         try:
-            self.server = foxglove.start_server(name=name, host=host, port=port, context=ctx,
-                                                server_listener=_Listener(self))
+            self.server = foxglove.start_server(
+                name=name, host=host, port=port, context=ctx, server_listener=_Listener(self)
+            )
         except Exception as e:  # noqa: BLE001 - the SDK raises its own error types
             raise OSError(f"cannot listen on {host}:{port} ({e})") from None
         self.host = host
@@ -150,16 +160,15 @@ class FoxgloveBridge:
             self._statics_due, self._last_statics = False, now
             stamp = self._last_stamp_ns
             live = dict(self._live_calibration)
-        self.rig_scene.log(scene.rig_update(stamp, self.rig, self.court_size,
-                                            world=self.world_frame), log_time=stamp)
+        self.rig_scene.log(
+            scene.rig_update(stamp, self.rig, self.court_size, world=self.world_frame), log_time=stamp
+        )
         self.tf.log(scene.rig_transforms(stamp, self._frames), log_time=stamp)
         for cam in self.rig:
             info = live.get(cam.name, cam.to_camera_info())
-            self.calibrations[cam.name].log(scene.calibration(stamp, cam.name, info),
-                                            log_time=stamp)
+            self.calibrations[cam.name].log(scene.calibration(stamp, cam.name, info), log_time=stamp)
 
-    def publish_poses(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray,
-                      frame_id: str = "") -> None:
+    def publish_poses(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, frame_id: str = "") -> None:
         """One poses frame (in ``frame_id``, '' = the world frame): 3D skeletons, transforms and
         every camera's 2D reprojection.
         joints (P,J,3) world m (NaN = missing); ValueError when no keypoint convention has J
@@ -167,30 +176,30 @@ class FoxgloveBridge:
         joints = np.asarray(joints, dtype=np.float64)
         bones = self.bones_for(joints.shape[1]) if joints.ndim == 3 and len(joints) else ()
         self.tick(stamp_ns)
-        self.skeletons.log(scene.skeletons_update(stamp_ns, ids, joints, bones,
-                                                  frame_id=frame_id or self.world_frame),
-                           log_time=stamp_ns)
+        self.skeletons.log(
+            scene.skeletons_update(stamp_ns, ids, joints, bones, frame_id=frame_id or self.world_frame),
+            log_time=stamp_ns,
+        )
         self.tf.log(scene.rig_transforms(stamp_ns, self._frames), log_time=stamp_ns)
         for cam in self.rig:
             self.annotations[cam.name].log(
-                scene.skeleton_annotations(stamp_ns, cam, ids, joints, bones),
-                log_time=stamp_ns)
+                scene.skeleton_annotations(stamp_ns, cam, ids, joints, bones), log_time=stamp_ns
+            )
 
     def bones_for(self, num_joints: int) -> tuple[tuple[int, int], ...]:
         conv = self.convention or convention_for(num_joints)
         if conv.num_joints != num_joints:
-            raise ValueError(f"poses: {num_joints} joints, convention {conv.name} has "
-                             f"{conv.num_joints}")
+            raise ValueError(f"poses: {num_joints} joints, convention {conv.name} has {conv.num_joints}")
         return conv.bones
 
     def publish_image(self, cam: str, stamp_ns: int, data: bytes, fmt: str) -> None:
         """An encoded image (jpeg/png/webp bytes) of camera ``cam``."""
-        self._channel(self.images, cam).log(scene.compressed_image(stamp_ns, cam, data, fmt),
-                                            log_time=stamp_ns)
+        self._channel(self.images, cam).log(
+            scene.compressed_image(stamp_ns, cam, data, fmt), log_time=stamp_ns
+        )
         self.tick(stamp_ns)
 
-    def publish_bgr(self, cam: str, stamp_ns: int, image_bgr: np.ndarray,
-                    jpeg_quality: int = 90) -> None:
+    def publish_bgr(self, cam: str, stamp_ns: int, image_bgr: np.ndarray, jpeg_quality: int = 90) -> None:
         """A decoded BGR uint8 (H,W,3) image, sent JPEG-encoded."""
         import cv2
 

@@ -7,6 +7,7 @@ a uint8[] payload without copying it, which rclpy's own deserialisation does not
 the payload element by element: for six 1.8 MB full-mesh detections messages a frame, more
 than the association itself costs).
 """
+
 from __future__ import annotations
 
 import struct
@@ -39,8 +40,12 @@ def cdr_to_cloud(data: bytes, topic: str) -> Any:
         # a memoryview: rosbags slices it for the uint8[] payload (a bytes slice would copy)
         return bagio.deserialize(memoryview(data), bagio.POINT_CLOUD2)
     except Exception as e:  # noqa: BLE001 - any decoder failure is the same bad input
-        raise WireError(topic, "data", f"not a serialized PointCloud2 ({len(data)} bytes: "
-                        f"{type(e).__name__}: {e})", "bad_cdr") from None
+        raise WireError(
+            topic,
+            "data",
+            f"not a serialized PointCloud2 ({len(data)} bytes: {type(e).__name__}: {e})",
+            "bad_cdr",
+        ) from None
 
 
 def ns_to_stamp(ns: int) -> Any:
@@ -62,9 +67,14 @@ def to_rosbags(cloud: Cloud) -> Any:
     return _T[bagio.POINT_CLOUD2](
         header=_T["std_msgs/msg/Header"](
             stamp=_T["builtin_interfaces/msg/Time"](sec=h.stamp.sec, nanosec=h.stamp.nanosec),
-            frame_id=h.frame_id),
-        height=cloud.height, width=cloud.width,
-        fields=[pf(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count)
-                for f in cloud.fields],
-        is_bigendian=cloud.is_bigendian, point_step=cloud.point_step, row_step=cloud.row_step,
-        data=np.frombuffer(cloud.data, dtype=np.uint8), is_dense=cloud.is_dense)
+            frame_id=h.frame_id,
+        ),
+        height=cloud.height,
+        width=cloud.width,
+        fields=[pf(name=f.name, offset=f.offset, datatype=f.datatype, count=f.count) for f in cloud.fields],
+        is_bigendian=cloud.is_bigendian,
+        point_step=cloud.point_step,
+        row_step=cloud.row_step,
+        data=np.frombuffer(cloud.data, dtype=np.uint8),
+        is_dense=cloud.is_dense,
+    )

@@ -6,6 +6,7 @@ A decoder here reads any object shaped like sensor_msgs/PointCloud2 (``header.st
 ``is_bigendian``, ``point_step``, ``row_step``, ``data``): an rclpy message, a rosbags message
 read from a bag, or a :class:`Cloud`.
 """
+
 from __future__ import annotations
 
 import array
@@ -20,10 +21,26 @@ from maem_ros.core.errors import InputError
 #: sensor_msgs/PointField datatype codes (fixed by the message definition)
 INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
 F32, U32, U16, U8 = FLOAT32, UINT32, UINT16, UINT8
-_NP_OF_PF = {INT8: "i1", UINT8: "u1", INT16: "i2", UINT16: "u2", INT32: "i4", UINT32: "u4",
-             FLOAT32: "f4", FLOAT64: "f8"}
-_PF_NAME = {INT8: "INT8", UINT8: "UINT8", INT16: "INT16", UINT16: "UINT16", INT32: "INT32",
-            UINT32: "UINT32", FLOAT32: "FLOAT32", FLOAT64: "FLOAT64"}
+_NP_OF_PF = {
+    INT8: "i1",
+    UINT8: "u1",
+    INT16: "i2",
+    UINT16: "u2",
+    INT32: "i4",
+    UINT32: "u4",
+    FLOAT32: "f4",
+    FLOAT64: "f8",
+}
+_PF_NAME = {
+    INT8: "INT8",
+    UINT8: "UINT8",
+    INT16: "INT16",
+    UINT16: "UINT16",
+    INT32: "INT32",
+    UINT32: "UINT32",
+    FLOAT32: "FLOAT32",
+    FLOAT64: "FLOAT64",
+}
 
 #: builtin_interfaces/Time.sec is int32: stamps from 0 up to 2^31 s (2038-01-19) fit
 MAX_STAMP_NS = 2**31 * 1_000_000_000 - 1
@@ -49,8 +66,9 @@ def checked_stamp_ns(stamp: Any, topic: str) -> int:
     """stamp_to_ns for a received header: WireError (reason bad_stamp) for a negative sec or a
     nanosec outside 0..999,999,999, which would otherwise decode to a wrong instant."""
     if stamp.sec < 0 or not 0 <= stamp.nanosec < 1_000_000_000:
-        raise WireError(topic, "header.stamp", f"invalid stamp sec={stamp.sec} "
-                        f"nanosec={stamp.nanosec}", "bad_stamp")
+        raise WireError(
+            topic, "header.stamp", f"invalid stamp sec={stamp.sec} nanosec={stamp.nanosec}", "bad_stamp"
+        )
     return stamp_to_ns(stamp)
 
 
@@ -123,18 +141,22 @@ def packed_dtype(fields: Sequence[tuple[str, int, int]]) -> np.dtype:
     return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": off})
 
 
-def new_cloud(stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, int, int]],
-              n: int) -> tuple[Cloud, np.ndarray]:
+def new_cloud(
+    stamp_ns: int, frame_id: str, fields: Sequence[tuple[str, int, int]], n: int
+) -> tuple[Cloud, np.ndarray]:
     """An n-point Cloud and a writable structured (n,) view of its zeroed data buffer: fill
     the view, and the cloud carries the values (no copy)."""
     dtype = packed_dtype(fields)
     offsets = {name: dtype.fields[name][1] for name in dtype.names or ()}  # type: ignore[index]  # fields set: a record dtype
     sec, nsec = split_stamp(stamp_ns)
     buf = array.array("B", bytes(n * dtype.itemsize))
-    cloud = Cloud(header=Header(Time(sec, nsec), frame_id),
-                  fields=[PointField(name, offsets[name], dt, count)
-                          for name, dt, count in fields],
-                  width=n, point_step=dtype.itemsize, data=buf)
+    cloud = Cloud(
+        header=Header(Time(sec, nsec), frame_id),
+        fields=[PointField(name, offsets[name], dt, count) for name, dt, count in fields],
+        width=n,
+        point_step=dtype.itemsize,
+        data=buf,
+    )
     return cloud, np.frombuffer(buf, dtype=dtype, count=n)
 
 
@@ -149,8 +171,7 @@ def _layout(msg: Any, topic: str, expected: Mapping[str, int]) -> tuple[dict[str
         if f.name in seen:
             raise WireError(topic, label, "field listed twice", "duplicate_field")
         if f.name not in expected:
-            raise WireError(topic, label, f"unknown field (expected {sorted(expected)})",
-                            "unknown_field")
+            raise WireError(topic, label, f"unknown field (expected {sorted(expected)})", "unknown_field")
         seen[f.name] = f
     missing = [k for k in expected if k not in seen]
     if missing:
@@ -164,19 +185,23 @@ def _check_sizes(msg: Any, topic: str, step: int) -> int:
     if n and step <= 0:
         raise WireError(topic, "point_step", f"{step} with {n} points", "bad_size")
     if int(msg.height) > 1 and int(msg.row_step) != int(msg.width) * step:
-        raise WireError(topic, "row_step", f"{msg.row_step} != width {msg.width} x point_step "
-                        f"{step}", "bad_size")
+        raise WireError(
+            topic, "row_step", f"{msg.row_step} != width {msg.width} x point_step {step}", "bad_size"
+        )
     if int(msg.height) <= 1 and n and int(msg.row_step) != n * step:
-        raise WireError(topic, "row_step", f"{msg.row_step} != width {msg.width} x point_step "
-                        f"{step}", "bad_size")
+        raise WireError(
+            topic, "row_step", f"{msg.row_step} != width {msg.width} x point_step {step}", "bad_size"
+        )
     if len(msg.data) != n * step:
-        raise WireError(topic, "data", f"{len(msg.data)} bytes, expected {n} points x "
-                        f"{step} bytes", "bad_size")
+        raise WireError(
+            topic, "data", f"{len(msg.data)} bytes, expected {n} points x {step} bytes", "bad_size"
+        )
     return n
 
 
-def view_cloud(msg: Any, topic: str, expected: Mapping[str, int],
-               optional: Mapping[str, int] | None = None) -> np.ndarray:
+def view_cloud(
+    msg: Any, topic: str, expected: Mapping[str, int], optional: Mapping[str, int] | None = None
+) -> np.ndarray:
     """Validate layout and return a structured (N,) view of msg.data (zero-copy).
 
     ``expected`` maps every required field name to its PointField datatype, ``optional`` the
@@ -191,13 +216,18 @@ def view_cloud(msg: Any, topic: str, expected: Mapping[str, int],
     for name, dt in expected.items():
         f = seen[name]
         if f.datatype != dt:
-            raise WireError(topic, name, f"datatype {_PF_NAME.get(f.datatype, f.datatype)}, "
-                            f"expected {_PF_NAME[dt]}", "bad_datatype")
+            raise WireError(
+                topic,
+                name,
+                f"datatype {_PF_NAME.get(f.datatype, f.datatype)}, expected {_PF_NAME[dt]}",
+                "bad_datatype",
+            )
         base = np.dtype(endian + _NP_OF_PF[dt])
         size = base.itemsize * int(f.count)
         if f.offset + size > step:
-            raise WireError(topic, name, f"offset {f.offset} + {size} bytes exceeds point_step "
-                            f"{step}", "bad_layout")
+            raise WireError(
+                topic, name, f"offset {f.offset} + {size} bytes exceeds point_step {step}", "bad_layout"
+            )
         names.append(name)
         formats.append((base, (int(f.count),)))
         offsets.append(int(f.offset))
@@ -207,8 +237,7 @@ def view_cloud(msg: Any, topic: str, expected: Mapping[str, int],
         if b0 < a1:
             raise WireError(topic, bn, f"overlaps field {an!r}", "bad_layout")
     n = _check_sizes(msg, topic, step)
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                      "itemsize": max(step, 1)})
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": max(step, 1)})
     if n == 0:
         return np.zeros(0, dtype=dtype)
     return np.frombuffer(msg.data, dtype=dtype, count=n)
@@ -232,19 +261,23 @@ def check_count(msg: Any, topic: str, name: str, expected: int, what: str = "") 
         raise WireError(topic, name, f"count {got}, expected {expected}{what}", "bad_count")
 
 
-def check_finite(topic: str, name: str, arr: np.ndarray, what: str = "detection",
-                 allow_nan: bool = False) -> None:
+def check_finite(
+    topic: str, name: str, arr: np.ndarray, what: str = "detection", allow_nan: bool = False
+) -> None:
     """WireError (nonfinite) naming the first row with inf (or NaN unless ``allow_nan``)."""
     bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
     if bad.any():
         row = int(np.argwhere(bad.reshape(len(arr), -1).any(axis=1))[0][0])
-        raise WireError(topic, name, f"{'inf' if allow_nan else 'NaN or inf'} in {what} {row}",
-                        "nonfinite")
+        raise WireError(topic, name, f"{'inf' if allow_nan else 'NaN or inf'} in {what} {row}", "nonfinite")
 
 
 def check_score(topic: str, scores: np.ndarray, what: str) -> None:
     """WireError (bad_score) naming the first score outside [0, 1]."""
     bad = (scores < 0) | (scores > 1)
     if bad.any():
-        raise WireError(topic, "score", f"{float(scores[np.argmax(bad)]):g} outside [0, 1] in "
-                        f"{what} {int(np.argmax(bad))}", "bad_score")
+        raise WireError(
+            topic,
+            "score",
+            f"{float(scores[np.argmax(bad)]):g} outside [0, 1] in {what} {int(np.argmax(bad))}",
+            "bad_score",
+        )

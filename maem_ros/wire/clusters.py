@@ -1,5 +1,6 @@
 """Clusters (``/maem/clusters``): one point per (cluster, member view), with optional track
 fields. No rclpy."""
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -28,8 +29,7 @@ from maem_ros.wire.cloud import (
 )
 from maem_ros.wire.poses import UNTRACKED_ID
 
-CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, "cost": F32,
-                 "kpts2d": F32}
+CLUSTER_TYPES = {"cluster": U32, "camera": U16, "detection": U16, "score": F32, "cost": F32, "kpts2d": F32}
 #: optional cluster fields, written with temporal association: ``track``(uint32 track id,
 #: UNTRACKED_ID = tentative) ``track_flags``(uint8, core.tracking.temporal FLAG_* bits)
 CLUSTER_TRACK_TYPES = {"track": U32, "track_flags": U8}
@@ -61,8 +61,13 @@ class ClusterFrame:
         """Dense padded member arrays for core.triangulation.ransac.triangulate_members: cam (C,M),
         kpts2d (C,M,J,2), score (C,M), present (C,M); clusters in order of first row."""
         from maem_ros.core.triangulation.ransac import pad_members  # local: wire stays importable alone
-        return pad_members(self.cluster, self.camera.astype(np.int64),
-                           self.kpts2d.astype(np.float64), self.score.astype(np.float64))
+
+        return pad_members(
+            self.cluster,
+            self.camera.astype(np.int64),
+            self.kpts2d.astype(np.float64),
+            self.score.astype(np.float64),
+        )
 
     def cluster_tracks(self) -> np.ndarray | None:
         """(C,) track id per cluster in to_core order (-1 = tentative), None without tracks."""
@@ -72,10 +77,15 @@ class ClusterFrame:
         return self.track[np.sort(first)]
 
 
-def clusters_to_cloud(stamp_ns: int, frame_id: str, rig: Rig,
-                    frames: Mapping[str, FrameDetections], clusters: Sequence,
-                    track_ids: Sequence[int] | np.ndarray | None = None,
-                    track_flags: Sequence[int] | np.ndarray | None = None) -> Cloud:
+def clusters_to_cloud(
+    stamp_ns: int,
+    frame_id: str,
+    rig: Rig,
+    frames: Mapping[str, FrameDetections],
+    clusters: Sequence,
+    track_ids: Sequence[int] | np.ndarray | None = None,
+    track_flags: Sequence[int] | np.ndarray | None = None,
+) -> Cloud:
     """core Clusters (members = (camera index, detection index)) -> PointCloud2.
 
     ``frames`` are the FrameDetections the clusters index into, keyed by camera name; J is
@@ -91,8 +101,14 @@ def clusters_to_cloud(stamp_ns: int, frame_id: str, rig: Rig,
         members.append(m[:n])
         costs.append(c[:n])
     per_row = np.repeat(np.arange(len(clusters)), [len(m) for m in members])
-    fields = [("cluster", U32, 1), ("camera", U16, 1), ("detection", U16, 1), ("score", F32, 1),
-              ("cost", F32, 1), ("kpts2d", F32, 2 * j)]
+    fields = [
+        ("cluster", U32, 1),
+        ("camera", U16, 1),
+        ("detection", U16, 1),
+        ("score", F32, 1),
+        ("cost", F32, 1),
+        ("kpts2d", F32, 2 * j),
+    ]
     if track_ids is not None:
         fields += [(name, dt, 1) for name, dt in CLUSTER_TRACK_TYPES.items()]
     msg, rec = new_cloud(stamp_ns, frame_id, fields, len(per_row))
@@ -123,10 +139,15 @@ def msg_to_clusters(msg: Any, topic: str, num_cameras: int) -> ClusterFrame:
     names = rec.dtype.names or ()
     tracked = "track" in names
     if tracked != ("track_flags" in names):
-        raise WireError(topic, "track" if not tracked else "track_flags",
-                        "missing field (track and track_flags come together)", "missing_field")
+        raise WireError(
+            topic,
+            "track" if not tracked else "track_flags",
+            "missing field (track and track_flags come together)",
+            "missing_field",
+        )
     for name in ("cluster", "camera", "detection", "score", "cost") + (
-            tuple(CLUSTER_TRACK_TYPES) if tracked else ()):
+        tuple(CLUSTER_TRACK_TYPES) if tracked else ()
+    ):
         if count_of(msg, name) != 1:
             raise WireError(topic, name, f"count {count_of(msg, name)}, expected 1", "bad_count")
     c2 = count_of(msg, "kpts2d")
@@ -136,12 +157,15 @@ def msg_to_clusters(msg: Any, topic: str, num_cameras: int) -> ClusterFrame:
     f = {name: field_of(rec, name) for name in CLUSTER_TYPES}
     camera = f["camera"][:, 0].astype(np.int64)
     if n and camera.max() >= num_cameras:
-        raise WireError(topic, "camera", f"index {int(camera.max())} but the rig has "
-                        f"{num_cameras} cameras", "unknown_camera")
+        raise WireError(
+            topic,
+            "camera",
+            f"index {int(camera.max())} but the rig has {num_cameras} cameras",
+            "unknown_camera",
+        )
     pairs = camera * 65536 + f["detection"][:, 0]
     if len(np.unique(pairs)) != n:
-        raise WireError(topic, "detection", "a (camera, detection) pair appears twice",
-                        "duplicate_member")
+        raise WireError(topic, "detection", "a (camera, detection) pair appears twice", "duplicate_member")
     check_finite(topic, "kpts2d", f["kpts2d"], "member", allow_nan=True)  # NaN = not seen
     check_finite(topic, "score", f["score"], "member")
     check_finite(topic, "cost", f["cost"], "member", allow_nan=True)
@@ -154,21 +178,29 @@ def msg_to_clusters(msg: Any, topic: str, num_cameras: int) -> ClusterFrame:
         cluster = f["cluster"][:, 0].astype(np.int64)
         _, first, inverse = np.unique(cluster, return_index=True, return_inverse=True)
         if np.any(track != track[first][inverse]):
-            raise WireError(topic, "track", "members of one cluster carry different track ids",
-                            "bad_track")
-    return ClusterFrame(track=track, track_flags=flags,
-                        stamp_ns=checked_stamp_ns(msg.header.stamp, topic), frame_id=msg.header.frame_id,
-                        cluster=f["cluster"][:, 0].astype(np.int64), camera=camera,
-                        detection=f["detection"][:, 0].astype(np.int64),
-                        score=f["score"][:, 0].astype(np.float64),
-                        cost=f["cost"][:, 0].astype(np.float64),
-                        kpts2d=f["kpts2d"].reshape(n, c2 // 2, 2).astype(np.float64))
+            raise WireError(topic, "track", "members of one cluster carry different track ids", "bad_track")
+    return ClusterFrame(
+        track=track,
+        track_flags=flags,
+        stamp_ns=checked_stamp_ns(msg.header.stamp, topic),
+        frame_id=msg.header.frame_id,
+        cluster=f["cluster"][:, 0].astype(np.int64),
+        camera=camera,
+        detection=f["detection"][:, 0].astype(np.int64),
+        score=f["score"][:, 0].astype(np.float64),
+        cost=f["cost"][:, 0].astype(np.float64),
+        kpts2d=f["kpts2d"].reshape(n, c2 // 2, 2).astype(np.float64),
+    )
 
 
-def clusters_to_msg(stamp_ns: int, frame_id: str, rig: Rig,
-                    frames: Mapping[str, FrameDetections], clusters: Sequence,
-                    track_ids: Sequence[int] | np.ndarray | None = None,
-                    track_flags: Sequence[int] | np.ndarray | None = None) -> Any:
+def clusters_to_msg(
+    stamp_ns: int,
+    frame_id: str,
+    rig: Rig,
+    frames: Mapping[str, FrameDetections],
+    clusters: Sequence,
+    track_ids: Sequence[int] | np.ndarray | None = None,
+    track_flags: Sequence[int] | np.ndarray | None = None,
+) -> Any:
     """clusters_to_cloud as a rosbags sensor_msgs/PointCloud2 (for a bag writer)."""
-    return to_rosbags(clusters_to_cloud(stamp_ns, frame_id, rig, frames, clusters, track_ids,
-                                        track_flags))
+    return to_rosbags(clusters_to_cloud(stamp_ns, frame_id, rig, frames, clusters, track_ids, track_flags))

@@ -1,5 +1,6 @@
 """Detections (``/<cam>/detections``): the layout with its compact q4 variant (see the
 package docstring), encoded from and decoded to core FrameDetections. No rclpy."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -59,8 +60,7 @@ def decode_q4(code: np.ndarray, dtype=np.float32, origin: np.ndarray | None = No
     length 2; complex addition is the same two float additions), NaN written only when a code
     is missing."""
     if dtype is np.float32 and np.ndim(code) == 2:
-        fast = decode_pairs(
-            code, origin if origin is not None else np.zeros((len(code), 2), np.float32))
+        fast = decode_pairs(code, origin if origin is not None else np.zeros((len(code), 2), np.float32))
         if fast is not None:
             return fast
     out: np.ndarray = np.asarray(code).astype(dtype)
@@ -79,13 +79,15 @@ def q4_origin(verts2d: np.ndarray) -> np.ndarray:
     """(N, 2) px origin of each detection's q4 codes: the floor of its smallest finite vertex
     coordinates (0 where it has none), an integer so origin + code / 16 is exact in float32."""
     with np.errstate(invalid="ignore"):
-        lo = np.nanmin(np.where(np.isfinite(verts2d), verts2d, np.nan), axis=1) \
-            if verts2d.shape[1] else np.zeros((len(verts2d), 2))
+        lo = (
+            np.nanmin(np.where(np.isfinite(verts2d), verts2d, np.nan), axis=1)
+            if verts2d.shape[1]
+            else np.zeros((len(verts2d), 2))
+        )
     return np.floor(np.nan_to_num(lo, nan=0.0)).astype(np.float32)
 
 
-def detections_to_cloud(dets: FrameDetections, vertices: str = "f32",
-                      keypoints: str = "f32") -> Cloud:
+def detections_to_cloud(dets: FrameDetections, vertices: str = "f32", keypoints: str = "f32") -> Cloud:
     """FrameDetections -> PointCloud2 layout (a Cloud) (frame_id = camera, stamp = image stamp).
 
     ``vertices`` / ``keypoints``: ``f32`` (verts2d / kpts2d float32) or ``q4`` (verts2d_q4 /
@@ -104,8 +106,13 @@ def detections_to_cloud(dets: FrameDetections, vertices: str = "f32",
         k_code = None  # a keypoint outside 0 .. 4095.875 px: this message carries f32 keypoints
     k_field = ("kpts2d_q4", U16) if k_code is not None else ("kpts2d", F32)
     v_field = ("verts2d_q4", U16) if vertices == "q4" else ("verts2d", F32)
-    fields = [("bbox", F32, 4), ("score", F32, 1), (*k_field, 2 * j), ("kpts3d", F32, 3 * j),
-              (*v_field, 2 * v)]
+    fields = [
+        ("bbox", F32, 4),
+        ("score", F32, 1),
+        (*k_field, 2 * j),
+        ("kpts3d", F32, 3 * j),
+        (*v_field, 2 * v),
+    ]
     if vertices == "q4":
         fields.append((ORIGIN_FIELD, F32, 2))
     if dets.mesh_subset is not None:
@@ -154,17 +161,29 @@ def _mesh_subset(topic: str, sub: np.ndarray, v: int) -> tuple[int, int, int]:
     """The announced (mesh vertices, stride, count), identical in every point and giving V ids."""
     if len(sub) and np.any(sub != sub[0]):
         row = int(np.argmax(np.any(sub != sub[0], axis=1)))
-        raise WireError(topic, SUBSET_FIELD, f"detection {row} announces {sub[row].tolist()}, "
-                        f"detection 0 {sub[0].tolist()}", "bad_subset")
+        raise WireError(
+            topic,
+            SUBSET_FIELD,
+            f"detection {row} announces {sub[row].tolist()}, detection 0 {sub[0].tolist()}",
+            "bad_subset",
+        )
     mesh, stride, count = (int(x) for x in sub[0])
     if stride < 1 or mesh < v:
-        raise WireError(topic, SUBSET_FIELD, f"(mesh {mesh}, stride {stride}, count {count}) "
-                        f"for {v} vertices", "bad_subset")
+        raise WireError(
+            topic,
+            SUBSET_FIELD,
+            f"(mesh {mesh}, stride {stride}, count {count}) for {v} vertices",
+            "bad_subset",
+        )
     ids = vertex_subset(mesh, stride, count)
     got = mesh if ids is None else ids.size
     if got != v:
-        raise WireError(topic, SUBSET_FIELD, f"(mesh {mesh}, stride {stride}, count {count}) "
-                        f"selects {got} vertices, verts2d has {v}", "bad_subset")
+        raise WireError(
+            topic,
+            SUBSET_FIELD,
+            f"(mesh {mesh}, stride {stride}, count {count}) selects {got} vertices, verts2d has {v}",
+            "bad_subset",
+        )
     return mesh, stride, count
 
 
@@ -207,8 +226,7 @@ class DetectionsMessage:
         over contiguous memory only, which are several times faster than per-axis ones."""
         pairs = self.vertices.reshape(self.n, -1, 2)
         if self.vertices.dtype == np.uint16:
-            return _q4_extremes(pairs, self.origin) if exact \
-                else _q4_bounds(self.vertices, self.origin)
+            return _q4_extremes(pairs, self.origin) if exact else _q4_bounds(self.vertices, self.origin)
         out = np.full((2, 2), np.nan)
         if not exact and self.f32_range is not None:
             out[0], out[1] = self.f32_range
@@ -222,12 +240,21 @@ class DetectionsMessage:
         """The FrameDetections (marked validated: everything was checked on reading); q4
         vertex codes are decoded into one float32 array (NaN = missing), f32 ones stay a view."""
         n, v = self.n, self.num_vertices
-        verts = decode_q4(self.vertices, origin=self.origin) \
-            if self.vertices.dtype == np.uint16 else self.vertices
+        verts = (
+            decode_q4(self.vertices, origin=self.origin)
+            if self.vertices.dtype == np.uint16
+            else self.vertices
+        )
         return FrameDetections(
-            camera=self.camera, stamp_ns=self.stamp_ns, bboxes=self.bboxes, scores=self.scores,
-            kpts2d=self.kpts2d, kpts3d=self.kpts3d, verts2d=verts.reshape(n, v, 2),
-            mesh_subset=self.mesh_subset).mark_validated()
+            camera=self.camera,
+            stamp_ns=self.stamp_ns,
+            bboxes=self.bboxes,
+            scores=self.scores,
+            kpts2d=self.kpts2d,
+            kpts3d=self.kpts3d,
+            verts2d=verts.reshape(n, v, 2),
+            mesh_subset=self.mesh_subset,
+        ).mark_validated()
 
 
 def _q4_range_px(low: np.ndarray, high: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
@@ -269,8 +296,7 @@ def _q4_extremes(codes: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
     axes = [codes[..., k] for k in range(2)]
     low = np.stack([a.min(axis=1) for a in axes], axis=1).astype(np.float64)
     low[low == Q4_MISSING] = np.nan
-    high = np.stack([_largest_present(a, a.max(axis=1).astype(np.float64)) for a in axes],
-                    axis=1)
+    high = np.stack([_largest_present(a, a.max(axis=1).astype(np.float64)) for a in axes], axis=1)
     return _q4_range_px(low, high, origin)
 
 
@@ -295,38 +321,56 @@ def _check_counts(topic: str, counts: dict[str, int], kname: str, vname: str) ->
     if counts["score"] != 1:
         raise WireError(topic, "score", f"count {counts['score']}, expected 1", "bad_count")
     if counts[kname] % 2 or counts[kname] == 0:
-        raise WireError(topic, kname, f"count {counts[kname]}, expected 2J (J >= 1)",
-                        "bad_count")
+        raise WireError(topic, kname, f"count {counts[kname]}, expected 2J (J >= 1)", "bad_count")
     j = counts[kname] // 2
     if counts["kpts3d"] != 3 * j:
-        raise WireError(topic, "kpts3d", f"count {counts['kpts3d']}, expected 3J = {3 * j} "
-                        f"(J={j} from {kname})", "bad_count")
+        raise WireError(
+            topic,
+            "kpts3d",
+            f"count {counts['kpts3d']}, expected 3J = {3 * j} (J={j} from {kname})",
+            "bad_count",
+        )
     if counts[vname] % 2:
         raise WireError(topic, vname, f"count {counts[vname]}, expected 2V", "bad_count")
     if ORIGIN_FIELD in counts and counts[ORIGIN_FIELD] != 2:
-        raise WireError(topic, ORIGIN_FIELD, f"count {counts[ORIGIN_FIELD]}, expected 2 (u v px)",
-                        "bad_count")
+        raise WireError(
+            topic, ORIGIN_FIELD, f"count {counts[ORIGIN_FIELD]}, expected 2 (u v px)", "bad_count"
+        )
     if SUBSET_FIELD in counts and counts[SUBSET_FIELD] != 3:
-        raise WireError(topic, SUBSET_FIELD, f"count {counts[SUBSET_FIELD]}, expected 3 (mesh "
-                        f"vertices, stride, count)", "bad_count")
+        raise WireError(
+            topic,
+            SUBSET_FIELD,
+            f"count {counts[SUBSET_FIELD]}, expected 3 (mesh vertices, stride, count)",
+            "bad_count",
+        )
     return j
 
 
-def _check_camera(msg: Any, topic: str, known_cameras: Sequence[str] | None,
-                  expected_camera: str | None) -> str:
+def _check_camera(
+    msg: Any, topic: str, known_cameras: Sequence[str] | None, expected_camera: str | None
+) -> str:
     """header.frame_id, checked against the rig's cameras and the topic's camera."""
     cam: str = msg.header.frame_id
     if known_cameras is not None and cam not in known_cameras:
-        raise WireError(topic, "header.frame_id", f"unknown camera {cam!r} (rig has "
-                        f"{list(known_cameras)})", "unknown_camera")
+        raise WireError(
+            topic,
+            "header.frame_id",
+            f"unknown camera {cam!r} (rig has {list(known_cameras)})",
+            "unknown_camera",
+        )
     if expected_camera is not None and cam != expected_camera:
-        raise WireError(topic, "header.frame_id", f"camera {cam!r} on the topic of camera "
-                        f"{expected_camera!r}", "camera_mismatch")
+        raise WireError(
+            topic,
+            "header.frame_id",
+            f"camera {cam!r} on the topic of camera {expected_camera!r}",
+            "camera_mismatch",
+        )
     return cam
 
 
-def read_detections(msg: Any, topic: str, known_cameras: Sequence[str] | None = None,
-                    expected_camera: str | None = None) -> DetectionsMessage:
+def read_detections(
+    msg: Any, topic: str, known_cameras: Sequence[str] | None = None, expected_camera: str | None = None
+) -> DetectionsMessage:
     """PointCloud2 -> DetectionsMessage, every field checked (WireError with the reason), the
     mesh vertices left undecoded.
 
@@ -356,21 +400,35 @@ def read_detections(msg: Any, topic: str, known_cameras: Sequence[str] | None = 
     bbox = fields["bbox"]
     inverted = (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1])
     if inverted.any():
-        raise WireError(topic, "bbox", f"inverted box (x2<x1 or y2<y1) in detection "
-                        f"{int(np.argmax(inverted))}", "inverted_bbox")
+        raise WireError(
+            topic,
+            "bbox",
+            f"inverted box (x2<x1 or y2<y1) in detection {int(np.argmax(inverted))}",
+            "inverted_bbox",
+        )
     check_score(topic, fields["score"][:, 0], "detection")
-    subset = _mesh_subset(topic, fields[SUBSET_FIELD], fields[vname].shape[1] // 2) \
-        if SUBSET_FIELD in layout and n else None
+    subset = (
+        _mesh_subset(topic, fields[SUBSET_FIELD], fields[vname].shape[1] // 2)
+        if SUBSET_FIELD in layout and n
+        else None
+    )
     return DetectionsMessage(
-        camera=cam, stamp_ns=checked_stamp_ns(msg.header.stamp, topic), bboxes=bbox,
-        scores=fields["score"][:, 0], kpts2d=kpts2d.reshape(n, j, 2),
-        kpts3d=fields["kpts3d"].reshape(n, j, 3), vertices=fields[vname], origin=origin,
-        mesh_subset=subset, f32_range=f32_range)
+        camera=cam,
+        stamp_ns=checked_stamp_ns(msg.header.stamp, topic),
+        bboxes=bbox,
+        scores=fields["score"][:, 0],
+        kpts2d=kpts2d.reshape(n, j, 2),
+        kpts3d=fields["kpts3d"].reshape(n, j, 3),
+        vertices=fields[vname],
+        origin=origin,
+        mesh_subset=subset,
+        f32_range=f32_range,
+    )
 
 
-def msg_to_detections(msg: Any, topic: str,
-                      known_cameras: Sequence[str] | None = None,
-                      expected_camera: str | None = None) -> FrameDetections:
+def msg_to_detections(
+    msg: Any, topic: str, known_cameras: Sequence[str] | None = None, expected_camera: str | None = None
+) -> FrameDetections:
     """PointCloud2 -> FrameDetections, validated once (read_detections, then decoded; the
     result is marked validated, so the association does not check the arrays again); f32
     verts2d is a view of msg.data, q4 codes are decoded once into one float32 array (NaN =

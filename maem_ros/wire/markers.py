@@ -1,5 +1,6 @@
 """Skeleton markers (``/maem/skeletons``, visualization_msgs/MarkerArray): what each person's
 markers hold, computed here without rclpy; ros/wire/markers.py builds the Marker objects."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -29,8 +30,9 @@ class SkeletonPlan:
     labels: np.ndarray
 
 
-def skeleton_plan(ids: Sequence[int] | np.ndarray, joints: np.ndarray,
-                  bones: Sequence[tuple[int, int]]) -> SkeletonPlan:
+def skeleton_plan(
+    ids: Sequence[int] | np.ndarray, joints: np.ndarray, bones: Sequence[tuple[int, int]]
+) -> SkeletonPlan:
     """Persons with id >= 0 and at least one finite joint, from ``joints`` (P, J, 3) world m and
     the convention's ``bones`` (joint index pairs)."""
     pj = np.asarray(joints, dtype=np.float64)  # (P, J, 3)
@@ -47,7 +49,10 @@ def skeleton_plan(ids: Sequence[int] | np.ndarray, joints: np.ndarray,
     seen[shown] = finite[shown]
     slot = np.cumsum(seen).reshape(seen.shape) - 1  # (P, J) index into points where seen
     labels = top[shown] + np.array([0.0, 0.0, LABEL_LIFT_M]) if len(shown) else np.zeros((0, 3))
-    return SkeletonPlan(ids=pid[shown].tolist(), points=pj[seen],
-                        first=np.concatenate([[0], np.cumsum(seen[shown].sum(1))]),
-                        bones=[slot[p][ends[bone_ok[p]]].ravel().tolist() for p in shown.tolist()],
-                        labels=labels)
+    return SkeletonPlan(
+        ids=pid[shown].tolist(),
+        points=pj[seen],
+        first=np.concatenate([[0], np.cumsum(seen[shown].sum(1))]),
+        bones=[slot[p][ends[bone_ok[p]]].ravel().tolist() for p in shown.tolist()],
+        labels=labels,
+    )

@@ -1,5 +1,6 @@
 """Poses (``/maem/poses``): one point per person, with the optional ``joint_std`` field. No
 rclpy."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -42,9 +43,15 @@ class PoseFrame:
     joint_std: np.ndarray | None = None
 
 
-def poses_to_cloud(stamp_ns: int, frame_id: str, ids: np.ndarray, joints: np.ndarray,
-                 views: np.ndarray, scores: np.ndarray,
-                 joint_std: np.ndarray | None = None) -> Cloud:
+def poses_to_cloud(
+    stamp_ns: int,
+    frame_id: str,
+    ids: np.ndarray,
+    joints: np.ndarray,
+    views: np.ndarray,
+    scores: np.ndarray,
+    joint_std: np.ndarray | None = None,
+) -> Cloud:
     """Persons -> PointCloud2; ids < 0 (tentative tracks) are sent as UNTRACKED_ID; the
     ``joint_std`` field (P,J) m is written when given."""
     joints = np.asarray(joints, dtype=np.float64)
@@ -78,12 +85,15 @@ def msg_to_poses(msg: Any, topic: str) -> PoseFrame:
     check_finite(topic, "joints", f["joints"], "person", allow_nan=True)
     check_finite(topic, "score", f["score"], "person")
     n = len(rec)
-    return PoseFrame(stamp_ns=checked_stamp_ns(msg.header.stamp, topic), frame_id=msg.header.frame_id,
-                     ids=f["id"][:, 0].astype(np.int64),
-                     joints=f["joints"].reshape(n, c3 // 3, 3).astype(np.float64),
-                     views=f["views"][:, 0].astype(np.int64),
-                     scores=f["score"][:, 0].astype(np.float64),
-                     joint_std=_pose_joint_std(msg, rec, topic, c3 // 3))
+    return PoseFrame(
+        stamp_ns=checked_stamp_ns(msg.header.stamp, topic),
+        frame_id=msg.header.frame_id,
+        ids=f["id"][:, 0].astype(np.int64),
+        joints=f["joints"].reshape(n, c3 // 3, 3).astype(np.float64),
+        views=f["views"][:, 0].astype(np.int64),
+        scores=f["score"][:, 0].astype(np.float64),
+        joint_std=_pose_joint_std(msg, rec, topic, c3 // 3),
+    )
 
 
 def _pose_joint_std(msg: Any, rec: np.ndarray, topic: str, j: int) -> np.ndarray | None:
@@ -91,8 +101,9 @@ def _pose_joint_std(msg: Any, rec: np.ndarray, topic: str, j: int) -> np.ndarray
     if "joint_std" not in (rec.dtype.names or ()):
         return None
     if count_of(msg, "joint_std") != j:
-        raise WireError(topic, "joint_std", f"count {count_of(msg, 'joint_std')}, expected J={j}",
-                        "bad_count")
+        raise WireError(
+            topic, "joint_std", f"count {count_of(msg, 'joint_std')}, expected J={j}", "bad_count"
+        )
     std = field_of(rec, "joint_std")
     check_finite(topic, "joint_std", std, "person", allow_nan=True)
     if (std < 0).any():
@@ -100,8 +111,14 @@ def _pose_joint_std(msg: Any, rec: np.ndarray, topic: str, j: int) -> np.ndarray
     return std.reshape(len(rec), j).astype(np.float64)
 
 
-def poses_to_msg(stamp_ns: int, frame_id: str, ids: np.ndarray, joints: np.ndarray,
-                 views: np.ndarray, scores: np.ndarray,
-                 joint_std: np.ndarray | None = None) -> Any:
+def poses_to_msg(
+    stamp_ns: int,
+    frame_id: str,
+    ids: np.ndarray,
+    joints: np.ndarray,
+    views: np.ndarray,
+    scores: np.ndarray,
+    joint_std: np.ndarray | None = None,
+) -> Any:
     """poses_to_cloud as a rosbags sensor_msgs/PointCloud2 (for a bag writer)."""
     return to_rosbags(poses_to_cloud(stamp_ns, frame_id, ids, joints, views, scores, joint_std))

@@ -5,6 +5,7 @@ vectorised pass per detection.
 
 Bit-identical to the numpy path: code / 16 and the integer origin are exact in float32.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,8 +33,12 @@ def decode_pairs(code: np.ndarray, origin: np.ndarray) -> np.ndarray | None:
     """code (N, 2K) uint16 with contiguous rows (a message field: rows a point_step apart),
     origin (N, 2) px -> the decoded (N, 2K) float32 array; None without numba or for other
     layouts (the caller's numpy path)."""
-    if not have_numba() or code.ndim != 2 or code.dtype != np.uint16 \
-            or (code.shape[1] > 1 and code.strides[1] != code.itemsize):
+    if (
+        not have_numba()
+        or code.ndim != 2
+        or code.dtype != np.uint16
+        or (code.shape[1] > 1 and code.strides[1] != code.itemsize)
+    ):
         return None
     out = np.empty(code.shape, np.float32)
     start = np.asarray(origin, np.float32)

@@ -1,5 +1,6 @@
 """TF (tf2_msgs/TFMessage) <-> core.geometry.frames transforms; rosbags message classes by
 default, any others (rclpy's, from ros/wire) on request. No rclpy."""
+
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
@@ -16,8 +17,7 @@ TF_STATIC_TOPIC = "/tf_static"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 
-def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int,
-               types: Any = None) -> Any:
+def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int, types: Any = None) -> Any:
     """tf2_msgs/TFMessage of core.geometry.frames transforms (one TransformStamped each,
     header.stamp = ``stamp_ns``). ``types``: msgtype -> class, a mapping (default the rosbags
     typestore's ``types``, for a bag writer) or a callable (ros/wire passes rclpy's)."""
@@ -31,10 +31,15 @@ def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int,
     for tr in transforms:
         x, y, z = (float(v) for v in tr.translation)
         qx, qy, qz, qw = (float(v) for v in tr.quaternion)
-        out.append(Stamped(header=Header_(stamp=Time_(sec=sec, nanosec=nsec), frame_id=tr.parent),
-                           child_frame_id=tr.child,
-                           transform=Transform(translation=Vector3(x=x, y=y, z=z),
-                                               rotation=Quaternion(x=qx, y=qy, z=qz, w=qw))))
+        out.append(
+            Stamped(
+                header=Header_(stamp=Time_(sec=sec, nanosec=nsec), frame_id=tr.parent),
+                child_frame_id=tr.child,
+                transform=Transform(
+                    translation=Vector3(x=x, y=y, z=z), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)
+                ),
+            )
+        )
     return T(TF_MESSAGE)(transforms=out)
 
 
@@ -46,9 +51,12 @@ def msg_to_transforms(msg: Any, topic: str) -> list[FrameTransform]:
         t, r = ts.transform.translation, ts.transform.rotation
         tr = np.array([t.x, t.y, t.z], dtype=np.float64)
         q = np.array([r.x, r.y, r.z, r.w], dtype=np.float64)
-        if not (np.isfinite(tr).all() and np.isfinite(q).all()) or \
-                abs(np.linalg.norm(q) - 1) > 1e-6:
-            raise WireError(topic, f"transforms[{i}]", f"non-finite value or non-unit quaternion "
-                            f"{q.tolist()}", "bad_transform")
+        if not (np.isfinite(tr).all() and np.isfinite(q).all()) or abs(np.linalg.norm(q) - 1) > 1e-6:
+            raise WireError(
+                topic,
+                f"transforms[{i}]",
+                f"non-finite value or non-unit quaternion {q.tolist()}",
+                "bad_transform",
+            )
         out.append(FrameTransform(ts.header.frame_id, ts.child_frame_id, tr, q))
     return out

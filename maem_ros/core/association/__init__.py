@@ -12,9 +12,17 @@
 Exports: AssociationParams, AssociationResult, ExecutionParams, PAPER_PIPELINE, PairGates,
 associate, warmup.
 """
+
 from maem_ros.core.association.gates import ExecutionParams, PairGates
 from maem_ros.core.association.params import PAPER_PIPELINE, AssociationParams
 from maem_ros.core.association.pipeline import AssociationResult, associate, warmup
 
-__all__ = ["PAPER_PIPELINE", "AssociationParams", "AssociationResult", "ExecutionParams",
-           "PairGates", "associate", "warmup"]
+__all__ = [
+    "PAPER_PIPELINE",
+    "AssociationParams",
+    "AssociationResult",
+    "ExecutionParams",
+    "PairGates",
+    "associate",
+    "warmup",
+]

@@ -15,6 +15,7 @@ The frame set's gain tables (``gain_tables``: assignments and one subtraction) a
 moves' sums per cluster (``cluster_sums``: the same additions in the same order) are the
 numpy values too.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,8 +24,9 @@ from maem_ros.core.geometry.multiview_kernel import SINGULAR, adjugate, cofactor
 from maem_ros.core.jit import have_numba, jit
 
 
-def consistent(E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray,
-               rows: np.ndarray, tau: float) -> np.ndarray:
+def consistent(
+    E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray, rows: np.ndarray, tau: float
+) -> np.ndarray:
     """(K,) whether every member of candidate k (rows[k], -1 = padding) has a median
     reprojection error (px, over its usable joints) under tau, the joints triangulated (DLT)
     from all members: clustering._Verifier's check.
@@ -42,8 +44,12 @@ def verifier_entries(P: np.ndarray, uv: np.ndarray, usable: np.ndarray) -> np.nd
     (geometry.normal_entries' float64 operations, in one compiled pass instead of ~40 numpy
     passes over small arrays), 0 where unusable. P (R,3,4), uv (R,Jb,2), usable (R,Jb)."""
     E = np.empty((9,) + usable.shape)
-    _verifier_entries(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(uv, np.float64),
-                      np.ascontiguousarray(usable, np.bool_), E)
+    _verifier_entries(
+        np.ascontiguousarray(P, np.float64),
+        np.ascontiguousarray(uv, np.float64),
+        np.ascontiguousarray(usable, np.bool_),
+        E,
+    )
     return E
 
 
@@ -58,10 +64,20 @@ def absorb(x: np.ndarray, y: np.ndarray, between: np.ndarray, support: np.ndarra
     _absorb(x, y, every, support)
 
 
-def greedy_merges(links: np.ndarray, between: np.ndarray, support: np.ndarray,
-                  camset: np.ndarray, size: np.ndarray, label: np.ndarray, min_support: float,
-                  E: np.ndarray, P: np.ndarray, uv: np.ndarray, usable: np.ndarray, tau: float
-                  ) -> tuple[np.ndarray, int, int]:
+def greedy_merges(
+    links: np.ndarray,
+    between: np.ndarray,
+    support: np.ndarray,
+    camset: np.ndarray,
+    size: np.ndarray,
+    label: np.ndarray,
+    min_support: float,
+    E: np.ndarray,
+    P: np.ndarray,
+    uv: np.ndarray,
+    usable: np.ndarray,
+    tau: float,
+) -> tuple[np.ndarray, int, int]:
     """clustering._greedy_merges' rounds: (labels after the last round, merges applied, merges
     the check refused).
 
@@ -73,21 +89,51 @@ def greedy_merges(links: np.ndarray, between: np.ndarray, support: np.ndarray,
     ``consistent``)."""
     label = np.array(label, np.int64)  # a copy: the rounds relabel it in place
     counts = np.zeros(2, np.int64)
-    _greedy(np.ascontiguousarray(links, np.int64), between, support, camset, size, label,
-            float(min_support), E, P, uv, usable, float(tau), counts)
+    _greedy(
+        np.ascontiguousarray(links, np.int64),
+        between,
+        support,
+        camset,
+        size,
+        label,
+        float(min_support),
+        E,
+        P,
+        uv,
+        usable,
+        float(tau),
+        counts,
+    )
     return label, int(counts[0]), int(counts[1])
 
 
-def move_scores(G: np.ndarray, S: np.ndarray, label: np.ndarray, camset: np.ndarray,
-                cam: np.ndarray, refused: np.ndarray, size: np.ndarray, min_support: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def move_scores(
+    G: np.ndarray,
+    S: np.ndarray,
+    label: np.ndarray,
+    camset: np.ndarray,
+    cam: np.ndarray,
+    refused: np.ndarray,
+    size: np.ndarray,
+    min_support: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """clustering._move_scores' (into, d_best, leave) in one pass over the (N,K) tables
     (the same subtractions and comparisons; the first best cluster as np.argmax picks it)."""
     N = label.size
     into, d_best, leave = np.empty(N), np.empty(N, np.int64), np.empty(N)
-    _move_scores(G, S, np.ascontiguousarray(label, np.int64), camset,
-                 np.ascontiguousarray(cam, np.int64), refused, size, float(min_support), into,
-                 d_best, leave)
+    _move_scores(
+        G,
+        S,
+        np.ascontiguousarray(label, np.int64),
+        camset,
+        np.ascontiguousarray(cam, np.int64),
+        refused,
+        size,
+        float(min_support),
+        into,
+        d_best,
+        leave,
+    )
     return into, d_best, leave
 
 
@@ -100,9 +146,19 @@ def cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def gain_tables(i: np.ndarray, j: np.ndarray, stage: np.ndarray, cost: np.ndarray,
-                offsets: np.ndarray, n: int, tau: float, rejected: float, capped: float,
-                passed: int, rejected_cost: int) -> tuple[np.ndarray, np.ndarray]:
+def gain_tables(
+    i: np.ndarray,
+    j: np.ndarray,
+    stage: np.ndarray,
+    cost: np.ndarray,
+    offsets: np.ndarray,
+    n: int,
+    tau: float,
+    rejected: float,
+    capped: float,
+    passed: int,
+    rejected_cost: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """clustering._gain_matrix's (gain (n,n) float64, geometric (n,n) bool) from the pairs
     (rows i, j, stage, cost m), in one pass: geometric where stage is ``passed`` or
     ``rejected_cost``; gain tau - cost (passed), ``capped`` (cost cap), ``rejected`` (any
@@ -110,8 +166,20 @@ def gain_tables(i: np.ndarray, j: np.ndarray, stage: np.ndarray, cost: np.ndarra
     diagonal; the values are the numpy path's (the same subtraction, constants given)."""
     gain = np.empty((n, n))
     geometric = np.empty((n, n), np.bool_)
-    _gain_tables(i, j, stage, cost, np.ascontiguousarray(offsets, np.int64), float(tau),
-                 float(rejected), float(capped), passed, rejected_cost, gain, geometric)
+    _gain_tables(
+        i,
+        j,
+        stage,
+        cost,
+        np.ascontiguousarray(offsets, np.int64),
+        float(tau),
+        float(rejected),
+        float(capped),
+        passed,
+        rejected_cost,
+        gain,
+        geometric,
+    )
     return gain, geometric
 
 
@@ -120,18 +188,47 @@ def warmup() -> None:
     if not have_numba():
         return
     E = verifier_entries(np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.ones((2, 3), bool))
-    consistent(E, np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool),
-               np.array([[0, -1]]), 1.0)
+    consistent(E, np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool), np.array([[0, -1]]), 1.0)
     absorb(np.array([0]), np.array([1]), np.zeros((2, 2)), np.zeros((2, 2), np.int64))
-    greedy_merges(np.array([1]), np.ones((2, 2)), np.ones((2, 2), np.int32),
-                  np.eye(2, dtype=bool), np.ones(2, np.int64), np.arange(2), 0.5, E,
-                  np.zeros((2, 3, 4)), np.zeros((2, 3, 2)), np.zeros((2, 3), bool), 1.0)
-    move_scores(np.zeros((2, 2)), np.zeros((2, 2)), np.arange(2), np.eye(2, dtype=bool),
-                np.arange(2), np.zeros((2, 2), bool), np.ones(2), 0.5)
+    greedy_merges(
+        np.array([1]),
+        np.ones((2, 2)),
+        np.ones((2, 2), np.int32),
+        np.eye(2, dtype=bool),
+        np.ones(2, np.int64),
+        np.arange(2),
+        0.5,
+        E,
+        np.zeros((2, 3, 4)),
+        np.zeros((2, 3, 2)),
+        np.zeros((2, 3), bool),
+        1.0,
+    )
+    move_scores(
+        np.zeros((2, 2)),
+        np.zeros((2, 2)),
+        np.arange(2),
+        np.eye(2, dtype=bool),
+        np.arange(2),
+        np.zeros((2, 2), bool),
+        np.ones(2),
+        0.5,
+    )
     cluster_sums(np.eye(2, dtype=bool), np.arange(2), 2)
     cluster_sums(np.eye(2), np.arange(2), 2)
-    gain_tables(np.array([0]), np.array([1]), np.zeros(1, np.int8), np.zeros(1),
-                np.array([0, 1, 2]), 2, 1.0, -0.25, 0.0, 0, 3)
+    gain_tables(
+        np.array([0]),
+        np.array([1]),
+        np.zeros(1, np.int8),
+        np.zeros(1),
+        np.array([0, 1, 2]),
+        2,
+        1.0,
+        -0.25,
+        0.0,
+        0,
+        3,
+    )
 
 
 @jit
@@ -232,20 +329,19 @@ def _absorb(x, y, live, matrix):
 
 
 @jit
-def _greedy(links, between, support, camset, size, label, min_support, E, P, uv, usable, tau,
-            counts):
+def _greedy(links, between, support, camset, size, label, min_support, E, P, uv, usable, tau, counts):
     """The rounds of clustering._greedy_merges (see greedy_merges); counts[0] += merges,
     counts[1] += refused merges."""
     n = label.size
     # codes of verified-inconsistent (A, B, sizes); -1 is no code (seeds the set's type)
     refused = {np.int64(-1)}
     while links.size > 0:
-        a, b, gain, code = _candidates(links, between, support, camset, size, min_support,
-                                       refused)
+        a, b, gain, code = _candidates(links, between, support, camset, size, min_support, refused)
         if a.size == 0:
             break
-        taken = _verified_disjoint(a, b, _descending_order(gain), code, size, label, E, P, uv,
-                                   usable, tau, refused, counts)
+        taken = _verified_disjoint(
+            a, b, _descending_order(gain), code, size, label, E, P, uv, usable, tau, refused, counts
+        )
         if taken.size == 0:
             break
         x, y = a[taken], b[taken]
@@ -444,8 +540,7 @@ def _move_scores(G, S, label, camset, cam, refused, size, min_support, into, d_b
         best = -np.inf
         at = 0
         for k in range(G.shape[1]):
-            if (camset[k, cam[i]] or refused[i, k] or not size[k] > 0
-                    or not S[i, k] >= min_support * size[k]):
+            if camset[k, cam[i]] or refused[i, k] or not size[k] > 0 or not S[i, k] >= min_support * size[k]:
                 continue
             d = G[i, k] - own
             if d > best:  # strict: the first of equal ones, as np.argmax
@@ -464,8 +559,7 @@ def _cluster_sums(matrix, label, out):
 
 
 @jit
-def _gain_tables(i, j, stage, cost, offsets, tau, rejected, capped, passed, rejected_cost,
-                 gain, geometric):
+def _gain_tables(i, j, stage, cost, offsets, tau, rejected, capped, passed, rejected_cost, gain, geometric):
     gain[:] = rejected
     geometric[:] = False
     for k in range(i.size):
@@ -474,4 +568,4 @@ def _gain_tables(i, j, stage, cost, offsets, tau, rejected, capped, passed, reje
             geometric[a, b] = geometric[b, a] = True
             gain[a, b] = gain[b, a] = tau - cost[k] if stage[k] == passed else capped
     for c in range(offsets.size - 1):  # rows are grouped by camera
-        gain[offsets[c]:offsets[c + 1], offsets[c]:offsets[c + 1]] = 0.0
+        gain[offsets[c] : offsets[c + 1], offsets[c] : offsets[c + 1]] = 0.0

@@ -22,6 +22,7 @@ For every camera pair (a, b), a < b in rig order (doc/design.md §1):
 
 All 2D input is rectified pinhole px (FrameDetections), so only Camera.P and F are used.
 """
+
 from __future__ import annotations
 
 import time
@@ -50,8 +51,16 @@ from maem_ros.core.geometry.procrustes import pa_mpjpe_pairs
 from maem_ros.core.intsets import sorted_unique
 from maem_ros.core.skeleton import joint_subset
 
-__all__ = ["PAPER_PIPELINE", "STAT_KEYS", "AssociationParams", "AssociationResult", "PoseCosts",
-           "associate", "gate_pairs", "warmup"]
+__all__ = [
+    "PAPER_PIPELINE",
+    "STAT_KEYS",
+    "AssociationParams",
+    "AssociationResult",
+    "PoseCosts",
+    "associate",
+    "gate_pairs",
+    "warmup",
+]
 
 
 @dataclass
@@ -74,8 +83,9 @@ class AssociationResult:
 # ---------------------------------------------------------------------------------------
 # input checks
 # ---------------------------------------------------------------------------------------
-def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
-                  params: AssociationParams) -> dict[int, FrameDetections]:
+def _check_frames(
+    rig: Rig, frames: Mapping[str, FrameDetections], params: AssociationParams
+) -> dict[int, FrameDetections]:
     """Frames by camera index; ValueError naming the camera/field on bad input."""
     by_index: dict[int, FrameDetections] = {}
     joints: set[int] = set()
@@ -96,11 +106,15 @@ def _check_frames(rig: Rig, frames: Mapping[str, FrameDetections],
         raise ValueError(f"kpts2d: cameras disagree on the number of keypoints {sorted(joints)}")
     if params.epipolar_gate == "mesh" and by_index and verts:
         if len(verts) > 1:
-            raise ValueError(f"verts2d: cameras disagree on the number of mesh vertices "
-                             f"{sorted(verts)} (full mesh, before any announced subset)")
+            raise ValueError(
+                f"verts2d: cameras disagree on the number of mesh vertices "
+                f"{sorted(verts)} (full mesh, before any announced subset)"
+            )
         if 0 in verts:
-            raise ValueError("verts2d: epipolar_gate 'mesh' needs mesh vertices, got V=0 "
-                             "(use epipolar_gate 'sparse' or 'none')")
+            raise ValueError(
+                "verts2d: epipolar_gate 'mesh' needs mesh vertices, got V=0 "
+                "(use epipolar_gate 'sparse' or 'none')"
+            )
     if joints:
         joint_subset(params.cost_joints, next(iter(joints)))
     return by_index
@@ -149,8 +163,7 @@ class PoseCosts:
         return out
 
 
-def pair_cost(pose: np.ndarray, epi: np.ndarray, params: AssociationParams,
-              epipolar_gate: str) -> np.ndarray:
+def pair_cost(pose: np.ndarray, epi: np.ndarray, params: AssociationParams, epipolar_gate: str) -> np.ndarray:
     """(S,) m: the cost of pairs that passed the gates, their pose cost pose (S,) m plus
     ``cost_epipolar_weight`` per ``tau_mesh`` of their mean epipolar distance epi (S,) px
     (NaN = not measured: 0) under ``epipolar_gate`` (relative to the gate threshold, so one
@@ -159,9 +172,14 @@ def pair_cost(pose: np.ndarray, epi: np.ndarray, params: AssociationParams,
     return pose + weight * np.nan_to_num(epi, nan=0.0)
 
 
-def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
-               stats: dict[str, float], costs: PoseCosts | None = None,
-               gates: PairGates | None = None) -> PairSet:
+def gate_pairs(
+    rig: Rig,
+    table: DetectionTable,
+    params: AssociationParams,
+    stats: dict[str, float],
+    costs: PoseCosts | None = None,
+    gates: PairGates | None = None,
+) -> PairSet:
     """Steps 2-4 of the method on every kept pair: the pair gates (``gates``, by default new
     PairGates of the rig and params), costs (computed by ``costs``, by default a new PoseCosts
     of the table), the cost cap."""
@@ -181,8 +199,9 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
     pose = np.full(S, np.nan)
     if alive.size:
         if costs is None:
-            costs = PoseCosts(table, joint_subset(params.cost_joints, table.num_joints),
-                              params.execution.backend)
+            costs = PoseCosts(
+                table, joint_subset(params.cost_joints, table.num_joints), params.execution.backend
+            )
         pose[alive] = costs(i[alive], j[alive])
     cost = np.full(S, np.nan)  # NaN where a gate rejected the pair, as its pose cost
     cost[alive] = pair_cost(pose[alive], epi[alive], params, params.epipolar_gate)
@@ -198,14 +217,30 @@ def gate_pairs(rig: Rig, table: DetectionTable, params: AssociationParams,
 # ---------------------------------------------------------------------------------------
 # entry point
 # ---------------------------------------------------------------------------------------
-STAT_KEYS = ("pairs_considered", "rejected_score", "rejected_reproj", "rejected_epipolar",
-             "rejected_cost", "matched_pairs", "merges", "merges_rejected", "moves", "conflicts_removed",
-             "clusters_below_k_min", "t_reproj_ms", "t_epipolar_ms", "t_cost_ms",
-             "t_match_ms", "t_cluster_ms", "t_total_ms")
+STAT_KEYS = (
+    "pairs_considered",
+    "rejected_score",
+    "rejected_reproj",
+    "rejected_epipolar",
+    "rejected_cost",
+    "matched_pairs",
+    "merges",
+    "merges_rejected",
+    "moves",
+    "conflicts_removed",
+    "clusters_below_k_min",
+    "t_reproj_ms",
+    "t_epipolar_ms",
+    "t_cost_ms",
+    "t_match_ms",
+    "t_cluster_ms",
+    "t_total_ms",
+)
 
 
-def associate(rig: Rig, frames: Mapping[str, FrameDetections], params: AssociationParams,
-              gates: PairGates | None = None) -> AssociationResult:
+def associate(
+    rig: Rig, frames: Mapping[str, FrameDetections], params: AssociationParams, gates: PairGates | None = None
+) -> AssociationResult:
     """MAEM stage 2 on one synchronised frame set (frames keyed by camera name; absent = missing).
 
     Returns clusters (members index the detections as given) and per-stage stats: pair counts
@@ -223,9 +258,8 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections], params: Associati
     n_kept = np.array([kept[c].size for c in sorted(by_index)])
     stats["detections"] = float(n_all.sum())
     stats["detections_kept"] = float(n_kept.sum())
-    stats["pairs_considered"] = float((n_all.sum() ** 2 - (n_all ** 2).sum()) / 2)
-    stats["rejected_score"] = stats["pairs_considered"] - float(
-        (n_kept.sum() ** 2 - (n_kept ** 2).sum()) / 2)
+    stats["pairs_considered"] = float((n_all.sum() ** 2 - (n_all**2).sum()) / 2)
+    stats["rejected_score"] = stats["pairs_considered"] - float((n_kept.sum() ** 2 - (n_kept**2).sum()) / 2)
     joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
     pair_cost = PoseCosts(table, joints, params.execution.backend) if joints is not None else None
     gates = PairGates(rig, params) if gates is None else gates
@@ -233,8 +267,11 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections], params: Associati
 
     t = time.perf_counter()
     # no joints nor pair cost only for an empty table, which has nothing to cluster
-    found = (clustering.cluster(table, pairs, gates.geometry.P, joints, params, stats, pair_cost)
-             if joints is not None and pair_cost is not None else clustering.Found([]))
+    found = (
+        clustering.cluster(table, pairs, gates.geometry.P, joints, params, stats, pair_cost)
+        if joints is not None and pair_cost is not None
+        else clustering.Found([])
+    )
     stats["t_cluster_ms"], _ = _lap(t)
 
     kept_groups = _views_at_least(table, found, params.k_min)
@@ -244,8 +281,14 @@ def associate(rig: Rig, frames: Mapping[str, FrameDetections], params: Associati
     clusters.sort(key=lambda c: tuple(c.members[0].tolist()))
     stats["clusters"] = float(len(clusters))
     stats["t_total_ms"] = (time.perf_counter() - t_start) * 1e3
-    return AssociationResult(clusters=clusters, stats=stats, table=table, pairs=pairs,
-                             groups=found.groups, conflicts=found.conflicts)
+    return AssociationResult(
+        clusters=clusters,
+        stats=stats,
+        table=table,
+        pairs=pairs,
+        groups=found.groups,
+        conflicts=found.conflicts,
+    )
 
 
 def mean_costs(groups: list[np.ndarray], pair_cost: PoseCosts) -> list[np.ndarray]:
@@ -268,15 +311,14 @@ def mean_costs(groups: list[np.ndarray], pair_cost: PoseCosts) -> list[np.ndarra
     for m, which in batches:
         Cm = np.full((which.size, m, m), np.nan)
         n = which.size * r[m].size
-        Cm[:, r[m], c[m]] = Cm[:, c[m], r[m]] = flat[k:k + n].reshape(which.size, -1)
+        Cm[:, r[m], c[m]] = Cm[:, c[m], r[m]] = flat[k : k + n].reshape(which.size, -1)
         k += n
         for g, mean in zip(which.tolist(), clustering.mean_to_rest(Cm, np.ones(m, bool))):
             out[g] = mean
     return out
 
 
-def _views_at_least(table: DetectionTable, found: clustering.Found, k_min: int
-                    ) -> list[np.ndarray]:
+def _views_at_least(table: DetectionTable, found: clustering.Found, k_min: int) -> list[np.ndarray]:
     """The groups (table rows, conflicts removed, in order) seen by at least k_min cameras."""
     if not found.groups:
         return []
@@ -286,8 +328,7 @@ def _views_at_least(table: DetectionTable, found: clustering.Found, k_min: int
     alive[found.conflicts] = False
     rows, group = rows[alive[rows]], group[alive[rows]]
     C = int(table.cam.max()) + 1
-    views = np.bincount(sorted_unique(group * C + table.cam[rows]) // C,
-                        minlength=len(found.groups))
+    views = np.bincount(sorted_unique(group * C + table.cam[rows]) // C, minlength=len(found.groups))
     keep = np.flatnonzero(views >= k_min)
     bounds = zip(group.searchsorted(keep, "left").tolist(), group.searchsorted(keep, "right").tolist())
     return [rows[start:end] for start, end in bounds]

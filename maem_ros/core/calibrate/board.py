@@ -23,6 +23,7 @@ Steps (each a function here, pure computation on detections; reading images is t
    points out of the pattern (lay the board flat on the floor, pattern up, in that frame to
    get z up); x along its columns.
 """
+
 from __future__ import annotations
 
 import re
@@ -58,8 +59,10 @@ _SPEC_RE = {
     "charuco": re.compile(r"charuco:(\d+)x(\d+):([0-9.eE+-]+):([0-9.eE+-]+):(\w+)$"),
     "checkerboard": re.compile(r"checkerboard:(\d+)x(\d+):([0-9.eE+-]+)$"),
 }
-BOARD_SYNTAX = ("charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (e.g. charuco:7x5:0.12:0.09:DICT_4X4_50)"
-                " or checkerboard:COLSxROWS:SQUARE_M (COLSxROWS counts inner corners)")
+BOARD_SYNTAX = (
+    "charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (e.g. charuco:7x5:0.12:0.09:DICT_4X4_50)"
+    " or checkerboard:COLSxROWS:SQUARE_M (COLSxROWS counts inner corners)"
+)
 
 
 @dataclass(frozen=True)
@@ -83,11 +86,14 @@ class BoardSpec:
             raise ValueError(f"board: square size {self.square} m is not positive")
         if self.kind == "charuco":
             if not 0 < self.marker < self.square:
-                raise ValueError(f"board: marker size {self.marker} m must lie in (0, square "
-                                 f"{self.square} m)")
+                raise ValueError(
+                    f"board: marker size {self.marker} m must lie in (0, square {self.square} m)"
+                )
             if not self.dictionary.startswith("DICT_") or not hasattr(cv2.aruco, self.dictionary):
-                raise ValueError(f"board: unknown ArUco dictionary {self.dictionary!r} (cv2.aruco "
-                                 f"names such as DICT_4X4_50, DICT_5X5_100)")
+                raise ValueError(
+                    f"board: unknown ArUco dictionary {self.dictionary!r} (cv2.aruco "
+                    f"names such as DICT_4X4_50, DICT_5X5_100)"
+                )
 
     @classmethod
     def parse(cls, text: str) -> BoardSpec:
@@ -121,8 +127,9 @@ class BoardSpec:
     def corners(self) -> np.ndarray:
         """(N,3) inner corners in the board frame, m (id order)."""
         k = np.arange(self.num_corners)
-        return np.column_stack([(k % self.cols + 1) * self.square,
-                                (k // self.cols + 1) * self.square, np.zeros(k.size)])
+        return np.column_stack(
+            [(k % self.cols + 1) * self.square, (k // self.cols + 1) * self.square, np.zeros(k.size)]
+        )
 
     def charuco_board(self) -> cv2.aruco.CharucoBoard:
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
@@ -165,11 +172,18 @@ class CornerDetector:
         if not found:
             return None
         grid = corners.reshape(self.spec.rows, self.spec.cols, 2)
-        spacing = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
-                      np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
+        spacing = min(
+            np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
+            np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+        )
         half = int(np.clip(0.3 * spacing, 2, 8))  # the window stays inside one square
-        corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (half, half), (-1, -1),
-                                   (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4))
+        corners = cv2.cornerSubPix(
+            gray,
+            corners.astype(np.float32),
+            (half, half),
+            (-1, -1),
+            (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-4),
+        )
         return Detection(np.arange(self.spec.num_corners), corners.reshape(-1, 2).astype(np.float64))
 
 
@@ -194,25 +208,42 @@ class Intrinsics:
     joint: bool = False
 
 
-def calibrate_intrinsics(detections: list[Detection], spec: BoardSpec, size: tuple[int, int],
-                         camera: str = "camera", k3: bool = False) -> Intrinsics:
+def calibrate_intrinsics(
+    detections: list[Detection],
+    spec: BoardSpec,
+    size: tuple[int, int],
+    camera: str = "camera",
+    k3: bool = False,
+) -> Intrinsics:
     """``cv2.calibrateCamera`` on one camera's board views (``size`` = (width, height) px):
     k1 k2 p1 p2, and k3 only with ``k3`` (a free k3 trades off against the focal length on
     the few views a board session gives; wide-angle lenses may need it)."""
     flags = 0 if k3 else cv2.CALIB_FIX_K3
     views = [d for d in detections if d is not None and len(d.ids) >= MIN_CORNERS]
     if len(views) < 3:
-        raise ValueError(f"camera {camera!r}: the board was found in {len(views)} image(s); the "
-                         f"intrinsic calibration needs at least 3 (with {MIN_CORNERS}+ corners)")
+        raise ValueError(
+            f"camera {camera!r}: the board was found in {len(views)} image(s); the "
+            f"intrinsic calibration needs at least 3 (with {MIN_CORNERS}+ corners)"
+        )
     model = spec.corners()
 
     def run(chosen: list[Detection]):
         obj = [model[d.ids].astype(np.float32) for d in chosen]
         img = [d.uv.astype(np.float32).reshape(-1, 1, 2) for d in chosen]
         rms, K, D, rvecs, tvecs = cv2.calibrateCamera(obj, img, size, None, None, flags=flags)
-        per_view = [float(np.sqrt(np.mean(np.sum(
-            (cv2.projectPoints(o, r, t, K, D)[0].reshape(-1, 2) - i.reshape(-1, 2)) ** 2, axis=1))))
-            for o, i, r, t in zip(obj, img, rvecs, tvecs)]
+        per_view = [
+            float(
+                np.sqrt(
+                    np.mean(
+                        np.sum(
+                            (cv2.projectPoints(o, r, t, K, D)[0].reshape(-1, 2) - i.reshape(-1, 2)) ** 2,
+                            axis=1,
+                        )
+                    )
+                )
+            )
+            for o, i, r, t in zip(obj, img, rvecs, tvecs)
+        ]
         return float(rms), K, D.ravel(), np.asarray(per_view)
 
     rms, K, D, per_view = run(views)
@@ -222,8 +253,15 @@ def calibrate_intrinsics(detections: list[Detection], spec: BoardSpec, size: tup
         rms, K, D, per_view = run([v for v, k in zip(views, keep) if k])
     else:
         dropped = 0
-    return Intrinsics(K, np.concatenate([D[:5], np.zeros(max(0, 5 - D.size))]), int(size[0]),
-                      int(size[1]), rms, len(views) - dropped, dropped)
+    return Intrinsics(
+        K,
+        np.concatenate([D[:5], np.zeros(max(0, 5 - D.size))]),
+        int(size[0]),
+        int(size[1]),
+        rms,
+        len(views) - dropped,
+        dropped,
+    )
 
 
 # ---- extrinsics ------------------------------------------------------------------------------
@@ -270,13 +308,24 @@ def _board_pose(spec: BoardSpec, ids: np.ndarray, uv_rect: np.ndarray, K: np.nda
     ok, rvec, tvec = cv2.solvePnP(obj, uv_rect.reshape(-1, 1, 2), K, None, flags=cv2.SOLVEPNP_IPPE)
     if not ok or tvec[2, 0] <= 0:
         return None
-    ok, rvec, tvec = cv2.solvePnP(obj, uv_rect.reshape(-1, 1, 2), K, None, rvec, tvec,
-                                  useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
+    ok, rvec, tvec = cv2.solvePnP(
+        obj,
+        uv_rect.reshape(-1, 1, 2),
+        K,
+        None,
+        rvec,
+        tvec,
+        useExtrinsicGuess=True,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
     return (cv2.Rodrigues(rvec)[0], tvec.ravel()) if ok else None
 
 
-def _views(spec: BoardSpec, detections: dict[tuple[int, int], Detection],
-           cameras: list[tuple[np.ndarray, np.ndarray]]) -> list[_View]:
+def _views(
+    spec: BoardSpec,
+    detections: dict[tuple[int, int], Detection],
+    cameras: list[tuple[np.ndarray, np.ndarray]],
+) -> list[_View]:
     out = []
     for (c, f), det in sorted(detections.items()):
         if det is None or len(det.ids) < MIN_CORNERS:
@@ -332,8 +381,7 @@ def _pair_poses(spec: BoardSpec, views: list[_View], C: int):
             frames.setdefault(f, (R, t))
         if len(frames) >= MIN_SHARED_FRAMES:
             Rs = Rotation.from_matrix(np.stack([R for R, _ in frames.values()]))
-            out[pair] = (Rs.mean().as_matrix(), np.mean([t for _, t in frames.values()], axis=0),
-                         len(frames))
+            out[pair] = (Rs.mean().as_matrix(), np.mean([t for _, t in frames.values()], axis=0), len(frames))
     return out
 
 
@@ -393,8 +441,16 @@ def _frame_boards(spec: BoardSpec, views: list[_View], R: list, t: list):
     return boards, used
 
 
-def _bundle(spec: BoardSpec, cameras: list[tuple[np.ndarray, np.ndarray]], R: list, t: list,
-            boards, used, root: int, intrinsics: tuple[str, ...]):
+def _bundle(
+    spec: BoardSpec,
+    cameras: list[tuple[np.ndarray, np.ndarray]],
+    R: list,
+    t: list,
+    boards,
+    used,
+    root: int,
+    intrinsics: tuple[str, ...],
+):
     """The shared bundle adjustment with each frame's board as a rigid object: on the
     undistorted corners with the intrinsics fixed, or on the raw corners refining
     ``intrinsics`` (names of bundle_solver.INTRINSIC_NAMES) of every camera."""
@@ -412,14 +468,23 @@ def _bundle(spec: BoardSpec, cameras: list[tuple[np.ndarray, np.ndarray]], R: li
     keys = np.array(list(point_index), dtype=np.int64).reshape(-1, 2)
     oR = np.stack([b[1] for b in boards])
     ot = np.stack([b[2] for b in boards])
-    prob = BundleProblem(K=np.stack([K for K, _ in cameras]), R=np.stack(R), t=np.stack(t),
-                         points=np.einsum("pij,pj->pi", oR[keys[:, 0]], model[keys[:, 1]]) + ot[keys[:, 0]],
-                         obs_camera=np.array(obs_cam), obs_point=np.array(obs_pt),
-                         obs_uv=np.array(obs_uv), point_object=keys[:, 0], model=model[keys[:, 1]],
-                         object_R=oR, object_t=ot,
-                         dist=np.stack([D for _, D in cameras]) if raw else np.zeros((len(cameras), 5)))
-    opts = BundleOptions(schedule=BOARD_SCHEDULE, fixed_cameras=(root,), outlier_px=2.0,
-                         intrinsics=intrinsics)
+    prob = BundleProblem(
+        K=np.stack([K for K, _ in cameras]),
+        R=np.stack(R),
+        t=np.stack(t),
+        points=np.einsum("pij,pj->pi", oR[keys[:, 0]], model[keys[:, 1]]) + ot[keys[:, 0]],
+        obs_camera=np.array(obs_cam),
+        obs_point=np.array(obs_pt),
+        obs_uv=np.array(obs_uv),
+        point_object=keys[:, 0],
+        model=model[keys[:, 1]],
+        object_R=oR,
+        object_t=ot,
+        dist=np.stack([D for _, D in cameras]) if raw else np.zeros((len(cameras), 5)),
+    )
+    opts = BundleOptions(
+        schedule=BOARD_SCHEDULE, fixed_cameras=(root,), outlier_px=2.0, intrinsics=intrinsics
+    )
     return prob, bundle_adjust(prob, opts)
 
 
@@ -433,9 +498,13 @@ def _to_board_world(R: np.ndarray, t: np.ndarray, bR: np.ndarray, bt: np.ndarray
     return Rn, tn, A @ bR, bt @ A.T + b
 
 
-def calibrate_extrinsics(spec: BoardSpec, detections: dict[tuple[int, int], Detection],
-                         cameras: list[tuple[np.ndarray, np.ndarray]],
-                         names: list[str], intrinsics: tuple[str, ...] = ()) -> Extrinsics:
+def calibrate_extrinsics(
+    spec: BoardSpec,
+    detections: dict[tuple[int, int], Detection],
+    cameras: list[tuple[np.ndarray, np.ndarray]],
+    names: list[str],
+    intrinsics: tuple[str, ...] = (),
+) -> Extrinsics:
     """Extrinsics of cameras ``names`` (intrinsics ``cameras[c]`` = (K, D)) from
     ``detections[(camera index, frame)]`` (frames with the same index are simultaneous);
     with ``intrinsics`` (e.g. JOINT_INTRINSICS) those of every camera are refined too, from
@@ -449,30 +518,35 @@ def calibrate_extrinsics(spec: BoardSpec, detections: dict[tuple[int, int], Dete
     if not pairs:
         raise NotSimultaneous(
             f"no camera pair saw the board in {MIN_SHARED_FRAMES}+ simultaneous frames that "
-            f"agree (images taken one camera at a time?): extrinsics cannot be computed")
+            f"agree (images taken one camera at a time?): extrinsics cannot be computed"
+        )
     counts = np.bincount([v.camera for v in views], minlength=C)
     in_pairs = {c for pair in pairs for c in pair}
     root = max(in_pairs, key=lambda c: (counts[c], -c))
     R, t, edges = _spanning_tree(pairs, C, root)
     lonely = [names[c] for c in range(C) if R[c] is None]
     if lonely:
-        raise NotSimultaneous(f"camera(s) {', '.join(lonely)} share fewer than {MIN_SHARED_FRAMES} "
-                              f"consistent simultaneous board frames with the others: extrinsics "
-                              f"cannot be computed for the whole rig")
+        raise NotSimultaneous(
+            f"camera(s) {', '.join(lonely)} share fewer than {MIN_SHARED_FRAMES} "
+            f"consistent simultaneous board frames with the others: extrinsics "
+            f"cannot be computed for the whole rig"
+        )
     boards, used = _frame_boards(spec, views, R, t)
     placed = {v.camera for kept in used for v, _ in kept}
     if len(placed) < C:
-        raise NotSimultaneous(f"camera(s) {', '.join(names[c] for c in range(C) if c not in placed)} "
-                              f"have no board view that agrees with the initial rig: extrinsics "
-                              f"cannot be computed for the whole rig")
+        raise NotSimultaneous(
+            f"camera(s) {', '.join(names[c] for c in range(C) if c not in placed)} "
+            f"have no board view that agrees with the initial rig: extrinsics "
+            f"cannot be computed for the whole rig"
+        )
     prob, res = _bundle(spec, cameras, R, t, boards, used, root, tuple(intrinsics))
     err = res.errors()
     ok = res.inliers & np.isfinite(err)
     errors = [err[ok & (prob.obs_camera == c)] for c in range(C)]
-    frames = np.array([sum(1 for kept in used if any(v.camera == c for v, _ in kept))
-                       for c in range(C)])
+    frames = np.array([sum(1 for kept in used if any(v.camera == c for v, _ in kept)) for c in range(C)])
     Rn, tn, bR, bt = _to_board_world(res.R, res.t, res.object_R, res.object_t)
     K = res.K if intrinsics else np.stack([K for K, _ in cameras])
     D = res.dist if intrinsics else np.stack([D for _, D in cameras])
-    return Extrinsics(Rn, tn, K, D, errors, frames, bR, bt, [b[0] for b in boards],
-                      [(a, b, n) for a, b, n in edges])
+    return Extrinsics(
+        Rn, tn, K, D, errors, frames, bR, bt, [b[0] for b in boards], [(a, b, n) for a, b, n in edges]
+    )

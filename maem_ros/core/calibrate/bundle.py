@@ -42,6 +42,7 @@ same accuracy (0.023 deg, 0.7 cm), scipy 16 x the run time (0.97 s against 0.06 
 issue's experiment on real keypoints found scipy also unreliable from a rough start (soft_l1 out
 of evaluations, Huber not moving) where an LM with a Schur complement converged.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -61,12 +62,22 @@ from .bundle_solver import (
     solve_step,
 )
 
-__all__ = ["BundleProblem", "BundleOptions", "BundleResult", "bundle_adjust", "robust_rho",
-           "DEFAULT_SCHEDULE", "WARM_SCHEDULE"]
+__all__ = [
+    "BundleProblem",
+    "BundleOptions",
+    "BundleResult",
+    "bundle_adjust",
+    "robust_rho",
+    "DEFAULT_SCHEDULE",
+    "WARM_SCHEDULE",
+]
 
 #: (loss name, scale px, max LM iterations) of each stage, from wide to narrow
 DEFAULT_SCHEDULE: tuple[tuple[str, float, int], ...] = (
-    ("cauchy", 50.0, 20), ("cauchy", 20.0, 20), ("soft_l1", 5.0, 40))
+    ("cauchy", 50.0, 20),
+    ("cauchy", 20.0, 20),
+    ("soft_l1", 5.0, 40),
+)
 #: the last stage alone: for a start that is already close (a re-run after new observations)
 WARM_SCHEDULE: tuple[tuple[str, float, int], ...] = (("soft_l1", 5.0, 40),)
 
@@ -103,28 +114,39 @@ class BundleProblem:
         self.obs_point = np.asarray(self.obs_point, np.int64).ravel()
         M = self.obs_camera.size
         self.obs_uv = np.asarray(self.obs_uv, np.float64).reshape(M, 2)
-        self.obs_weight = (np.ones(M) if self.obs_weight is None
-                           else np.asarray(self.obs_weight, np.float64).reshape(M))
-        self.obs_group = (None if self.obs_group is None
-                          else np.asarray(self.obs_group, np.int64).reshape(M))
-        self.point_object = (np.full(P, -1, np.int64) if self.point_object is None
-                             else np.asarray(self.point_object, np.int64).reshape(P))
+        self.obs_weight = (
+            np.ones(M) if self.obs_weight is None else np.asarray(self.obs_weight, np.float64).reshape(M)
+        )
+        self.obs_group = None if self.obs_group is None else np.asarray(self.obs_group, np.int64).reshape(M)
+        self.point_object = (
+            np.full(P, -1, np.int64)
+            if self.point_object is None
+            else np.asarray(self.point_object, np.int64).reshape(P)
+        )
         nobj = int(self.point_object.max(initial=-1)) + 1
-        self.model = (np.zeros((P, 3)) if self.model is None
-                      else np.asarray(self.model, np.float64).reshape(P, 3))
-        self.object_R = (np.zeros((0, 3, 3)) if self.object_R is None
-                         else np.asarray(self.object_R, np.float64).reshape(-1, 3, 3))
-        self.object_t = (np.zeros((0, 3)) if self.object_t is None
-                         else np.asarray(self.object_t, np.float64).reshape(-1, 3))
-        self.focal_scale = (np.ones(C) if self.focal_scale is None
-                            else np.asarray(self.focal_scale, np.float64).reshape(C))
-        self.dist = (np.zeros((C, 5)) if self.dist is None
-                     else np.asarray(self.dist, np.float64).reshape(C, 5))
-        self.k1 = (self.dist[:, 0].copy() if self.k1 is None
-                   else np.asarray(self.k1, np.float64).reshape(C))
+        self.model = (
+            np.zeros((P, 3)) if self.model is None else np.asarray(self.model, np.float64).reshape(P, 3)
+        )
+        self.object_R = (
+            np.zeros((0, 3, 3))
+            if self.object_R is None
+            else np.asarray(self.object_R, np.float64).reshape(-1, 3, 3)
+        )
+        self.object_t = (
+            np.zeros((0, 3))
+            if self.object_t is None
+            else np.asarray(self.object_t, np.float64).reshape(-1, 3)
+        )
+        self.focal_scale = (
+            np.ones(C) if self.focal_scale is None else np.asarray(self.focal_scale, np.float64).reshape(C)
+        )
+        self.dist = np.zeros((C, 5)) if self.dist is None else np.asarray(self.dist, np.float64).reshape(C, 5)
+        self.k1 = self.dist[:, 0].copy() if self.k1 is None else np.asarray(self.k1, np.float64).reshape(C)
         if self.object_R.shape[0] < nobj or self.object_t.shape[0] < nobj:
-            raise ValueError(f"bundle problem: point_object refers to {nobj} objects, "
-                             f"object_R/object_t hold {self.object_R.shape[0]}/{self.object_t.shape[0]}")
+            raise ValueError(
+                f"bundle problem: point_object refers to {nobj} objects, "
+                f"object_R/object_t hold {self.object_R.shape[0]}/{self.object_t.shape[0]}"
+            )
         if M and (self.obs_camera.min() < 0 or self.obs_camera.max() >= C):
             raise ValueError(f"bundle problem: obs_camera outside 0..{C - 1}")
         if M and (self.obs_point.min() < 0 or self.obs_point.max() >= P):
@@ -183,11 +205,14 @@ class BundleOptions:
     def __post_init__(self) -> None:
         unknown = set(self.intrinsics) - set(INTRINSIC_NAMES)
         if unknown:
-            raise ValueError(f"bundle options: unknown intrinsics {sorted(unknown)} (expected "
-                             f"some of {' '.join(INTRINSIC_NAMES)})")
+            raise ValueError(
+                f"bundle options: unknown intrinsics {sorted(unknown)} (expected "
+                f"some of {' '.join(INTRINSIC_NAMES)})"
+            )
         if self.intrinsics and (self.refine_focal or self.refine_k1):
-            raise ValueError("bundle options: intrinsics refine fx fy ... themselves; not with "
-                             "refine_focal / refine_k1")
+            raise ValueError(
+                "bundle options: intrinsics refine fx fy ... themselves; not with refine_focal / refine_k1"
+            )
 
 
 @dataclass
@@ -238,12 +263,23 @@ def _bundle_adjust(prob: BundleProblem, opts: BundleOptions) -> BundleResult:
     pose_free[list(opts.fixed_cameras)] = False
     D = prob.dist.copy()
     D[:, 0] = prob.k1
-    st = State(prob.R, prob.t, prob.focal_scale, prob.K, D, prob.points, prob.object_R,
-               prob.object_t, opts.refine_focal, opts.refine_k1, opts.intrinsics)
+    st = State(
+        prob.R,
+        prob.t,
+        prob.focal_scale,
+        prob.K,
+        D,
+        prob.points,
+        prob.object_R,
+        prob.object_t,
+        opts.refine_focal,
+        opts.refine_k1,
+        opts.intrinsics,
+    )
     # (C, dc) unknowns solved for: a fixed camera keeps its pose (the gauge), focal scale and
     # k1, not its lens: the board mode's intrinsics are refined for every camera
     free_cam = np.repeat(pose_free[:, None], st.dc, axis=1)
-    free_cam[:, st.dc - len(st.intrinsics):] = True
+    free_cam[:, st.dc - len(st.intrinsics) :] = True
     active = _constrained(prob, np.ones(prob.obs_camera.size, bool))
     iterations = []
     for loss, scale, max_it in opts.schedule:
@@ -265,10 +301,20 @@ def _bundle_adjust(prob: BundleProblem, opts: BundleOptions) -> BundleResult:
     solved = np.zeros(prob.points.shape[0], bool)
     solved[prob.obs_point[active]] = True
     points[~solved] = np.nan  # left out (fewer than two inlier cameras): not estimated
-    result = BundleResult(R=st.R, t=st.t, focal_scale=st.s, k1=st.k1.copy(),
-                          K=st.K, dist=st.D, points=points,
-                          object_R=st.oR, object_t=st.ot, inliers=active, residuals=residuals,
-                          iterations=iterations)
+    result = BundleResult(
+        R=st.R,
+        t=st.t,
+        focal_scale=st.s,
+        k1=st.k1.copy(),
+        K=st.K,
+        dist=st.D,
+        points=points,
+        object_R=st.oR,
+        object_t=st.ot,
+        inliers=active,
+        residuals=residuals,
+        iterations=iterations,
+    )
     if opts.covariance:
         result.camera_cov = _camera_covariance(st, prob, active, free_cam)
     return result
@@ -307,8 +353,7 @@ def _evaluable(prob: BundleProblem, active: np.ndarray) -> np.ndarray:
     return np.where(obj >= 0, solved_obj[np.maximum(obj, 0)], solved_pt[prob.obs_point])
 
 
-def _reject_outliers(st: State, prob: BundleProblem, active: np.ndarray,
-                     opts: BundleOptions) -> np.ndarray:
+def _reject_outliers(st: State, prob: BundleProblem, active: np.ndarray, opts: BundleOptions) -> np.ndarray:
     """Active observations less those over the threshold and those of outlier groups."""
     ob = Observations(prob, active)
     err = np.linalg.norm(_residuals(st, ob), axis=1)
@@ -329,9 +374,16 @@ def _reject_outliers(st: State, prob: BundleProblem, active: np.ndarray,
     return _constrained(prob, keep)
 
 
-def _levenberg_marquardt(st: State, prob: BundleProblem, active: np.ndarray, loss: str,
-                         scale: float, max_it: int, free_cam: np.ndarray,
-                         opts: BundleOptions) -> tuple[State, int]:
+def _levenberg_marquardt(
+    st: State,
+    prob: BundleProblem,
+    active: np.ndarray,
+    loss: str,
+    scale: float,
+    max_it: int,
+    free_cam: np.ndarray,
+    opts: BundleOptions,
+) -> tuple[State, int]:
     """Iteratively re-weighted LM on the active observations with one robust loss; returns
     the new state and the number of accepted steps."""
     ob = Observations(prob, active)
@@ -357,8 +409,9 @@ def _levenberg_marquardt(st: State, prob: BundleProblem, active: np.ndarray, los
             step = solve_step(ne, mu, free_here)
             if step is not None:
                 dcam, dpt, dobj = step
-                cand = st.updated(dcam, _scatter(dpt, ob.points, st.X.shape[0]),
-                                  _scatter(dobj, ob.objects, st.oR.shape[0]))
+                cand = st.updated(
+                    dcam, _scatter(dpt, ob.points, st.X.shape[0]), _scatter(dobj, ob.objects, st.oR.shape[0])
+                )
                 cand_cost = cost(cand)
                 if np.isfinite(cand_cost) and cand_cost < current:
                     new = cand
@@ -391,8 +444,9 @@ def _scatter(step: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-def _camera_covariance(st: State, prob: BundleProblem, active: np.ndarray,
-                       free_cam: np.ndarray) -> np.ndarray:
+def _camera_covariance(
+    st: State, prob: BundleProblem, active: np.ndarray, free_cam: np.ndarray
+) -> np.ndarray:
     """(C,6,6) covariance of (rotation perturbation rad, centre m) per camera: the
     pseudo-inverse of the reduced camera system (a tiny damping keeps the structure blocks
     invertible; gauge directions such as a free-point problem's scale get no variance) times
@@ -410,7 +464,7 @@ def _camera_covariance(st: State, prob: BundleProblem, active: np.ndarray,
     full = np.linalg.pinv(red[0], rcond=1e-10, hermitian=True) * sigma2
     dc = st.dc
     for c in np.flatnonzero(free_cam[:, 0]):
-        blk = full[c * dc:c * dc + 6, c * dc:c * dc + 6]
+        blk = full[c * dc : c * dc + 6, c * dc : c * dc + 6]
         Rt = st.R[c].T
         T = np.zeros((6, 6))
         T[:3, :3] = np.eye(3)

@@ -16,6 +16,7 @@ W^T (ds, C dc), zero for cameras that do not see it: the Schur complement of a g
 one BLAS product (ds n, C dc)^T (V^-1 W^T) over all its structures, with no scatter into
 per-chunk matrices, and the back-substitution another.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,17 +48,31 @@ def robust_rho(loss: str, s: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarr
 def skew(v: np.ndarray) -> np.ndarray:
     """(...,3) -> (...,3,3) cross-product matrices."""
     z = np.zeros(v.shape[:-1])
-    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
-                     np.stack([v[..., 2], z, -v[..., 0]], -1),
-                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+    return np.stack(
+        [
+            np.stack([z, -v[..., 2], v[..., 1]], -1),
+            np.stack([v[..., 2], z, -v[..., 0]], -1),
+            np.stack([-v[..., 1], v[..., 0], z], -1),
+        ],
+        -2,
+    )
 
 
 #: intrinsic unknowns :class:`State` can refine, in camera-block order (K entries px, plumb_bob
 #: distortion coefficients of the observations' image)
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 #: where each lives: ("K", row, col) or ("D", index)
-_INTRINSIC_AT = {"fx": ("K", 0, 0), "fy": ("K", 1, 1), "cx": ("K", 0, 2), "cy": ("K", 1, 2),
-                 "k1": ("D", 0), "k2": ("D", 1), "p1": ("D", 2), "p2": ("D", 3), "k3": ("D", 4)}
+_INTRINSIC_AT = {
+    "fx": ("K", 0, 0),
+    "fy": ("K", 1, 1),
+    "cx": ("K", 0, 2),
+    "cy": ("K", 1, 2),
+    "k1": ("D", 0),
+    "k2": ("D", 1),
+    "p1": ("D", 2),
+    "p2": ("D", 3),
+    "k3": ("D", 4),
+}
 
 
 class State:
@@ -66,8 +81,9 @@ class State:
     (O,3,3), ot (O,3). Camera block = [rotation 3, t 3, (s), (k1), (the ``intrinsics`` named,
     in INTRINSIC_NAMES order)]."""
 
-    def __init__(self, R, t, s, K, D, X, oR, ot, refine_focal: bool, refine_k1: bool,
-                 intrinsics: tuple[str, ...] = ()):
+    def __init__(
+        self, R, t, s, K, D, X, oR, ot, refine_focal: bool, refine_k1: bool, intrinsics: tuple[str, ...] = ()
+    ):
         self.R, self.t, self.s, self.K, self.D = R.copy(), t.copy(), s.copy(), K.copy(), D.copy()
         self.X, self.oR, self.ot = X.copy(), oR.copy(), ot.copy()
         self.refine_focal, self.refine_k1 = refine_focal, refine_k1
@@ -101,8 +117,19 @@ class State:
         if len(oR):
             oR = Rotation.from_rotvec(dobj[:, :3]).as_matrix() @ self.oR
             ot = self.ot + dobj[:, 3:]
-        return State(R, self.t + dcam[:, 3:6], s, K, D, self.X + dpt, oR, ot,
-                     self.refine_focal, self.refine_k1, self.intrinsics)
+        return State(
+            R,
+            self.t + dcam[:, 3:6],
+            s,
+            K,
+            D,
+            self.X + dpt,
+            oR,
+            ot,
+            self.refine_focal,
+            self.refine_k1,
+            self.intrinsics,
+        )
 
 
 class Block:
@@ -111,8 +138,15 @@ class Block:
     sorted by object (runs starting at ``run_start``, relative to the rigid part, with keys
     ``run_key`` into Observations.objects)."""
 
-    def __init__(self, cam: int, sl: slice, n_free: int, free_key: np.ndarray,
-                 run_start: np.ndarray, run_key: np.ndarray):
+    def __init__(
+        self,
+        cam: int,
+        sl: slice,
+        n_free: int,
+        free_key: np.ndarray,
+        run_start: np.ndarray,
+        run_key: np.ndarray,
+    ):
         self.cam, self.sl, self.n_free = cam, sl, n_free
         self.free_key, self.run_start, self.run_key = free_key, run_start, run_key
 
@@ -146,9 +180,9 @@ class Observations:
             for a in range(int(bounds[c]), int(bounds[c + 1]), _CHUNK):
                 b = min(a + _CHUNK, int(bounds[c + 1]))
                 nf = int(np.count_nonzero(free[a:b]))
-                rk = key[a + nf:b]
+                rk = key[a + nf : b]
                 runs = np.flatnonzero(np.r_[True, rk[1:] != rk[:-1]]) if rk.size else rk
-                self.blocks.append(Block(c, slice(a, b), nf, key[a:a + nf], runs, rk[runs]))
+                self.blocks.append(Block(c, slice(a, b), nf, key[a : a + nf], runs, rk[runs]))
 
     def __len__(self) -> int:
         return int(self.idx.size)
@@ -177,8 +211,11 @@ def _distort(st: State, c: int, x: np.ndarray, y: np.ndarray):
     xy = x * y
     xd = x * d + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
     yd = y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
-    M = (d + 2 * x * x * g + 2 * p1 * y + 6 * p2 * x, 2 * xy * g + 2 * p1 * x + 2 * p2 * y,
-         d + 2 * y * y * g + 6 * p1 * y + 2 * p2 * x)
+    M = (
+        d + 2 * x * x * g + 2 * p1 * y + 6 * p2 * x,
+        2 * xy * g + 2 * p1 * x + 2 * p2 * y,
+        d + 2 * y * y * g + 6 * p1 * y + 2 * p2 * x,
+    )
     return xd, yd, r2, M
 
 
@@ -213,11 +250,11 @@ def project(st: State, ob: Observations, blk: Block, jac: bool):
     length-k rows (the (k,2,n) layout makes numpy loop over tiny 2x3 matrices)."""
     c, sl, nf = blk.cam, blk.sl, blk.n_free
     X = np.empty((sl.stop - sl.start, 3))
-    X[:nf] = st.X[ob.pt[sl.start:sl.start + nf]]
+    X[:nf] = st.X[ob.pt[sl.start : sl.start + nf]]
     RoM = None
     if nf < X.shape[0]:
-        o = ob.obj[sl.start + nf:sl.stop]
-        RoM = np.einsum("nij,nj->in", st.oR[o], ob.model[sl.start + nf:sl.stop])
+        o = ob.obj[sl.start + nf : sl.stop]
+        RoM = np.einsum("nij,nj->in", st.oR[o], ob.model[sl.start + nf : sl.stop])
         X[nf:] = RoM.T + st.ot[o]
     Rc = st.R[c]
     RX = Rc @ X.T  # (3,k)
@@ -268,8 +305,16 @@ class Group:
         self.gs = np.zeros((n, ds))
         self.Wt = np.zeros((n, ds, C, dc))
 
-    def add(self, cam: int, keys: np.ndarray, runs: np.ndarray | None, Jc_w: np.ndarray,
-            Js: np.ndarray, w: np.ndarray, res: np.ndarray) -> None:
+    def add(
+        self,
+        cam: int,
+        keys: np.ndarray,
+        runs: np.ndarray | None,
+        Jc_w: np.ndarray,
+        Js: np.ndarray,
+        w: np.ndarray,
+        res: np.ndarray,
+    ) -> None:
         """Add one camera's observations (Jacobians coordinate-first, as :func:`project`
         gives them) of the structures ``keys`` (unique; with ``runs``, consecutive
         observations of one structure are summed first)."""
@@ -312,8 +357,7 @@ class NormalEquations:
         if nf:
             self.free.add(c, blk.free_key, None, Jc_w[:, :, :nf], Jp, w[:nf], res[:nf])
         if nf < res.shape[0]:
-            self.rigid.add(c, blk.run_key, blk.run_start, Jc_w[:, :, nf:], Jo, w[nf:],
-                           res[nf:])
+            self.rigid.add(c, blk.run_key, blk.run_start, Jc_w[:, :, nf:], Jo, w[nf:], res[nf:])
 
 
 def damp(A: np.ndarray, mu: float) -> np.ndarray:
@@ -330,7 +374,7 @@ def reduced_system(ne: NormalEquations, mu: float, free_cam: np.ndarray):
     Ud = damp(ne.U, mu)
     S = np.zeros((C * dc, C * dc))
     for c in range(C):
-        S[c * dc:(c + 1) * dc, c * dc:(c + 1) * dc] = Ud[c]
+        S[c * dc : (c + 1) * dc, c * dc : (c + 1) * dc] = Ud[c]
     rhs = -ne.gc.ravel().copy()
     inverses = []
     for g in (ne.free, ne.rigid):

@@ -11,6 +11,7 @@ giving t from its joints), its length the median of the pairs' 3D centroid offse
 (metric, from the skeletons). Several people, referees, false positives and swapped sides only
 add hypotheses that disagree.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -60,8 +61,12 @@ def _hypotheses(data: PeopleData, a: int, b: int, frames: np.ndarray):
     if not rows:
         return np.zeros((0, 4), np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3))
     pairs = np.concatenate(rows)
-    pairs = np.concatenate([np.column_stack([pairs, np.zeros(len(pairs), np.int64)]),
-                            np.column_stack([pairs, np.ones(len(pairs), np.int64)])])
+    pairs = np.concatenate(
+        [
+            np.column_stack([pairs, np.zeros(len(pairs), np.int64)]),
+            np.column_stack([pairs, np.ones(len(pairs), np.int64)]),
+        ]
+    )
     Y = ca.kpts3d[pairs[:, 1]]
     X = cb.kpts3d[pairs[:, 2]]
     X = np.where(pairs[:, 3, None, None] == 1, X[:, data.flip], X)
@@ -123,8 +128,9 @@ def _translation_consensus(rows: np.ndarray, t3d: np.ndarray, tol: float):
     return best, inl
 
 
-def estimate_pair(data: PeopleData, a: int, b: int, frames: np.ndarray,
-                  rng: np.random.Generator) -> PairEstimate | None:
+def estimate_pair(
+    data: PeopleData, a: int, b: int, frames: np.ndarray, rng: np.random.Generator
+) -> PairEstimate | None:
     """The relative pose of cameras a, b from the detections of ``frames`` (None when no
     detection pair exists)."""
     pairs, R, t3d = _hypotheses(data, a, b, frames)

@@ -12,6 +12,7 @@ A landmark seen in two or more views is triangulated; one seen in a single view 
 the floor (z = 0) is that view's ray through the people's floor. Three or more non-collinear
 landmarks fix the similarity (Umeyama); two fix scale, origin and heading on the people's floor.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -46,10 +47,15 @@ def read_court_points(path: str | Path) -> CourtPoints:
         raise ValueError(f"{where}: cannot read ({e.strerror})") from None
     except yaml.YAMLError as e:
         raise ValueError(f"{where}: not YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("landmarks"), dict) \
-            or not isinstance(data.get("pixels"), dict):
-        raise ValueError(f"{where}: needs a 'landmarks' mapping (name: [x, y, z] m) and a "
-                         f"'pixels' mapping (camera: {{name: [u, v]}})")
+    if (
+        not isinstance(data, dict)
+        or not isinstance(data.get("landmarks"), dict)
+        or not isinstance(data.get("pixels"), dict)
+    ):
+        raise ValueError(
+            f"{where}: needs a 'landmarks' mapping (name: [x, y, z] m) and a "
+            f"'pixels' mapping (camera: {{name: [u, v]}})"
+        )
     names = [str(n) for n in data["landmarks"]]
     try:
         court = np.array([np.asarray(data["landmarks"][n], float).reshape(3) for n in data["landmarks"]])
@@ -68,8 +74,9 @@ def read_court_points(path: str | Path) -> CourtPoints:
             try:
                 pixels.setdefault(str(cam), {})[index[str(name)]] = np.asarray(uv, float).reshape(2)
             except (TypeError, ValueError):
-                raise ValueError(f"{where}: pixels of camera {cam!r} landmark {name!r}: "
-                                 f"expected [u, v]") from None
+                raise ValueError(
+                    f"{where}: pixels of camera {cam!r} landmark {name!r}: expected [u, v]"
+                ) from None
     if not np.all(np.isfinite(court)):
         raise ValueError(f"{where}: landmarks: NaN or inf")
     return CourtPoints(names, court, pixels)
@@ -85,8 +92,11 @@ def locate_landmarks(points: CourtPoints, rig: Rig) -> np.ndarray:
         cam = rig[name]
         for i, px in points.pixels[name].items():
             uv[k, i] = cam.undistort_points(px[None])[0]
-    P = projection_matrices(np.stack([rig[n].K_rect for n in cams]),
-                            np.stack([rig[n].R for n in cams]), np.stack([rig[n].t for n in cams]))
+    P = projection_matrices(
+        np.stack([rig[n].K_rect for n in cams]),
+        np.stack([rig[n].R for n in cams]),
+        np.stack([rig[n].t for n in cams]),
+    )
     X = triangulate(P, uv) if len(cams) >= 2 else np.full((L, 3), np.nan)
     for i in range(L):
         seen = np.flatnonzero(np.all(np.isfinite(uv[:, i]), axis=1))
@@ -117,8 +127,9 @@ def court_similarity(points: CourtPoints, rig: Rig) -> Similarity:
     if len(idx) < 4:
         return sim
     cam_arr, idx_arr, uv_arr = np.array(cams), np.array(idx), np.array(uv)
-    P = projection_matrices(np.stack([c.K_rect for c in rig]), np.stack([c.R for c in rig]),
-                            np.stack([c.t for c in rig]))
+    P = projection_matrices(
+        np.stack([c.K_rect for c in rig]), np.stack([c.R for c in rig]), np.stack([c.t for c in rig])
+    )
 
     def residuals(x: np.ndarray) -> np.ndarray:
         Q = Rotation.from_rotvec(x[:3]).as_matrix()
@@ -134,8 +145,10 @@ def court_similarity(points: CourtPoints, rig: Rig) -> Similarity:
 def _fit(X: np.ndarray, points: CourtPoints) -> Similarity:
     ok = np.all(np.isfinite(X), axis=1)
     if ok.sum() < 2:
-        raise ValueError(f"court points: only {int(ok.sum())} landmark(s) located (each needs "
-                         f"two views, or one view and z = 0); need at least 2")
+        raise ValueError(
+            f"court points: only {int(ok.sum())} landmark(s) located (each needs "
+            f"two views, or one view and z = 0); need at least 2"
+        )
     A, B = X[ok], points.court[ok]
     spread = np.linalg.svd(B - B.mean(0), compute_uv=False)
     if ok.sum() >= 3 and spread[1] > 1e-3 * spread[0]:

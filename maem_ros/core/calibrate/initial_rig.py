@@ -3,6 +3,7 @@
 
 Frame: camera ``root``'s camera frame, metres from the skeletons. Poses world -> camera.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

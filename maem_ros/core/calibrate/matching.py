@@ -6,6 +6,7 @@ under the gate are merged greedily, cheapest first, into clusters holding at mos
 detection per camera (union-find that tracks each member's side swap relative to its
 cluster). A cluster seen by two or more cameras is one person at that frame.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -62,10 +63,18 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
     """Clusters of every frame under the rig (R, t) (cameras with NaN poses are left out)."""
     C = data.num_cameras
     ok = np.all(np.isfinite(t), axis=1)
-    P = np.stack([data.rig[c].K_rect @ np.hstack([R[c], t[c][:, None]]) if ok[c]
-                  else np.full((3, 4), np.nan) for c in range(C)])
-    Fs = {(a, b): fundamental(data.rig[a].K_rect, R[a], t[a], data.rig[b].K_rect, R[b], t[b])
-          for a in range(C) for b in range(a + 1, C) if ok[a] and ok[b]}
+    P = np.stack(
+        [
+            data.rig[c].K_rect @ np.hstack([R[c], t[c][:, None]]) if ok[c] else np.full((3, 4), np.nan)
+            for c in range(C)
+        ]
+    )
+    Fs = {
+        (a, b): fundamental(data.rig[a].K_rect, R[a], t[a], data.rig[b].K_rect, R[b], t[b])
+        for a in range(C)
+        for b in range(a + 1, C)
+        if ok[a] and ok[b]
+    }
     out: list[list] = [[] for _ in range(5)]
     next_id = 0
     for f in range(data.num_frames):
@@ -90,8 +99,9 @@ def match_frames(data: PeopleData, R: np.ndarray, t: np.ndarray, gate_px: float)
                 for lst, v in zip(out, (next_id, f, cam, det, s_)):
                     lst.append(v)
             next_id += 1
-    return Clusters(*(np.asarray(v, dt) for v, dt in zip(out, (np.int64, np.int64, np.int64,
-                                                                 np.int64, bool))))
+    return Clusters(
+        *(np.asarray(v, dt) for v, dt in zip(out, (np.int64, np.int64, np.int64, np.int64, bool)))
+    )
 
 
 class _Consistency:
@@ -107,8 +117,12 @@ class _Consistency:
         if len(members) < 3:
             return True
         cams = np.array([m[0] for m in members])
-        uv = np.stack([self.data.cameras[c].kpts2d[r][self.data.flip] if s
-                       else self.data.cameras[c].kpts2d[r] for c, r, s in members])
+        uv = np.stack(
+            [
+                self.data.cameras[c].kpts2d[r][self.data.flip] if s else self.data.cameras[c].kpts2d[r]
+                for c, r, s in members
+            ]
+        )
         X = dlt(self.P[cams], np.swapaxes(uv, 0, 1))
         h = np.einsum("cij,jk->cik", self.P[cams][:, :, :3], X.T) + self.P[cams][:, :, 3:]
         with np.errstate(all="ignore"):
@@ -145,8 +159,9 @@ def _greedy_clusters(edges: list, consistent) -> dict:
         if ra == rb or cams[ra] & cams[rb]:
             continue
         srb = sa ^ sb ^ s
-        union = [(n[0], n[1], find(n)[1]) for n in members[ra]] + \
-                [(n[0], n[1], find(n)[1] ^ srb) for n in members[rb]]
+        union = [(n[0], n[1], find(n)[1]) for n in members[ra]] + [
+            (n[0], n[1], find(n)[1] ^ srb) for n in members[rb]
+        ]
         if not consistent(union):
             continue
         parent[rb] = ra

@@ -5,6 +5,7 @@ nominal time; any capture offset is what the time-offset step estimates). Joints
 and foot joints of the detections' keypoint convention (names from core.skeleton), with the
 left/right permutation used to undo a detector's swapped sides.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -17,8 +18,16 @@ from ..geometry.camera import Rig
 from ..skeleton import body_joints, convention_for
 
 #: foot joints (their lowest point touches the floor), matched by name in any convention
-FOOT_NAMES = ("left_ankle", "right_ankle", "left_heel", "right_heel", "left_big_toe_tip",
-              "right_big_toe_tip", "left_foot_index", "right_foot_index")
+FOOT_NAMES = (
+    "left_ankle",
+    "right_ankle",
+    "left_heel",
+    "right_heel",
+    "left_big_toe_tip",
+    "right_big_toe_tip",
+    "left_foot_index",
+    "right_foot_index",
+)
 #: head joints used for a person's height (eye height 0.936, nose ~0.91 of stature)
 HEAD_NAMES = ("nose",)
 
@@ -97,8 +106,7 @@ def joint_selection(num_joints: int) -> tuple[np.ndarray, tuple[str, ...], np.nd
     return idx, names, flip
 
 
-def people_data(rig: Rig, frames: Mapping[str, Sequence[FrameDetections | None]],
-                fps: float) -> PeopleData:
+def people_data(rig: Rig, frames: Mapping[str, Sequence[FrameDetections | None]], fps: float) -> PeopleData:
     """PeopleData of ``frames[camera][k]`` (None or an empty FrameDetections = nothing seen)
     for the rig's cameras that have any detection; ValueError if fewer than two have people."""
     num_frames = max((len(v) for v in frames.values()), default=0)
@@ -115,22 +123,36 @@ def people_data(rig: Rig, frames: Mapping[str, Sequence[FrameDetections | None]]
             continue
         for d in seq:
             if d is not None and d.n and d.num_joints != J:
-                raise ValueError(f"detections of camera {cam.name!r}: {d.num_joints} keypoints, "
-                                 f"other cameras have {J}")
+                raise ValueError(
+                    f"detections of camera {cam.name!r}: {d.num_joints} keypoints, other cameras have {J}"
+                )
         present = [d for d in seq if d is not None and d.n]
-        cams.append(CameraFrames(
-            kpts2d=np.concatenate([d.kpts2d[:, joints] for d in present]),
-            kpts3d=np.concatenate([d.kpts3d[:, joints] for d in present]),
-            scores=np.concatenate([d.scores for d in present]),
-            offsets=np.concatenate([[0], np.cumsum(counts)])))
+        cams.append(
+            CameraFrames(
+                kpts2d=np.concatenate([d.kpts2d[:, joints] for d in present]),
+                kpts3d=np.concatenate([d.kpts3d[:, joints] for d in present]),
+                scores=np.concatenate([d.scores for d in present]),
+                offsets=np.concatenate([[0], np.cumsum(counts)]),
+            )
+        )
         used.append(cam)
     if len(used) < 2:
-        raise ValueError(f"detections: fewer than two cameras saw people "
-                         f"({', '.join(c.name for c in used) or 'none'})")
+        raise ValueError(
+            f"detections: fewer than two cameras saw people ({', '.join(c.name for c in used) or 'none'})"
+        )
     feet = np.array([k for k, n in enumerate(names) if n in FOOT_NAMES], np.int64)
     head = np.array([k for k, n in enumerate(names) if n in HEAD_NAMES], np.int64)
-    return PeopleData(rig=Rig(used), cameras=cams, num_frames=num_frames, fps=float(fps),
-                      joints=joints, names=names, flip=flip, feet=feet, head=head)
+    return PeopleData(
+        rig=Rig(used),
+        cameras=cams,
+        num_frames=num_frames,
+        fps=float(fps),
+        joints=joints,
+        names=names,
+        flip=flip,
+        feet=feet,
+        head=head,
+    )
 
 
 def normalised(rig: Rig, c: int, uv: np.ndarray) -> np.ndarray:

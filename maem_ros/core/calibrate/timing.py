@@ -17,6 +17,7 @@ first cannot: on humanm3_4 (4 person-height cameras, 10-20 people, synchronised)
 settles at +-5-10 ms, each offset 10-20 of its own standard errors from 0, while the fit with
 them is worse than with none (z = -5).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -44,8 +45,13 @@ def _project(P: np.ndarray, X: np.ndarray) -> np.ndarray:
         return np.where(h[..., 2:] > 0, h[..., :2] / h[..., 2:], np.nan)
 
 
-def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarray,
-                  sigma: float = SMOOTH_SIGMA, quadratic: bool = False) -> np.ndarray:
+def kernel_tracks(
+    X: np.ndarray,
+    where: tuple[np.ndarray, ...],
+    deltas: np.ndarray,
+    sigma: float = SMOOTH_SIGMA,
+    quadratic: bool = False,
+) -> np.ndarray:
     """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
     evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
     arrays: track, frame k, joint), for each of the D ``deltas`` (NaN-aware; NaN where the
@@ -89,24 +95,29 @@ def kernel_tracks(X: np.ndarray, where: tuple[np.ndarray, ...], deltas: np.ndarr
     return out
 
 
-def _local_quadratic(W: np.ndarray, u: np.ndarray, G: np.ndarray, ok: np.ndarray,
-                     mean: np.ndarray) -> np.ndarray:
+def _local_quadratic(
+    W: np.ndarray, u: np.ndarray, G: np.ndarray, ok: np.ndarray, mean: np.ndarray
+) -> np.ndarray:
     """(D,N,3): the constant term of the weighted quadratic fit in u (D,M frames from the
     evaluation point) of the samples G (N,M,3) valid where ok (N,M), weights W (D,M); Cramer's
     rule on the 3x3 normal equations of every (delta, entry); ``mean`` where singular."""
     Gf = G.transpose(1, 0, 2).reshape(G.shape[1], -1)
-    S = [(W * u ** p) @ ok.T.astype(float) for p in range(5)]  # (D,N) moments
-    T = [((W * u ** p) @ Gf).reshape(W.shape[0], -1, 3) for p in range(3)]
-    det = (S[0] * (S[2] * S[4] - S[3] ** 2) - S[1] * (S[1] * S[4] - S[2] * S[3])
-           + S[2] * (S[1] * S[3] - S[2] ** 2))
+    S = [(W * u**p) @ ok.T.astype(float) for p in range(5)]  # (D,N) moments
+    T = [((W * u**p) @ Gf).reshape(W.shape[0], -1, 3) for p in range(3)]
+    det = (
+        S[0] * (S[2] * S[4] - S[3] ** 2)
+        - S[1] * (S[1] * S[4] - S[2] * S[3])
+        + S[2] * (S[1] * S[3] - S[2] ** 2)
+    )
     c0, c1, c2 = (S[2] * S[4] - S[3] ** 2), (S[2] * S[3] - S[1] * S[4]), (S[1] * S[3] - S[2] ** 2)
     fit = (c0[..., None] * T[0] + c1[..., None] * T[1] + c2[..., None] * T[2]) / det[..., None]
     good = np.abs(det) > 1e-9 * np.maximum(S[0], 1e-300) ** 3
     return np.where(good[..., None], fit, mean)
 
 
-def _residuals(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray
-               ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+def _residuals(
+    P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray
+) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """(D,N,2) px: the N keypoints of camera c seen in U_c (T,F,J,2) minus the projections of
     the 3D tracks X (T,F,J,3) smoothed and evaluated at frame k + delta (kernel_tracks), for
     each of the D deltas; and where the N keypoints are (track, frame, joint)."""
@@ -123,8 +134,9 @@ def truncation_px(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, delta: float)
     return max(TRUNCATE_PX, TRUNCATE_REL * float(np.median(e))) if e.size else TRUNCATE_PX
 
 
-def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray,
-          cap_px: float = TRUNCATE_PX) -> np.ndarray:
+def _scan(
+    P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray, cap_px: float = TRUNCATE_PX
+) -> np.ndarray:
     """Mean truncated squared error (px^2, capped at cap_px^2) of camera c's keypoints U_c
     (T,F,J,2) against the 3D tracks X (T,F,J,3) at frame k + delta (_residuals), for every
     delta, over the terms defined at all of them (so that the costs compare the same
@@ -133,11 +145,12 @@ def _scan(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, deltas: np.ndarray,
     common = np.all(np.isfinite(e2), axis=0)
     if not common.any():
         return np.full(len(deltas), np.inf)
-    return np.mean(np.minimum(e2[:, common], cap_px ** 2), axis=1)
+    return np.mean(np.minimum(e2[:, common], cap_px**2), axis=1)
 
 
-def offset_sd(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, delta: float,
-              cap_px: float, step: float = 0.05) -> float:
+def offset_sd(
+    P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, delta: float, cap_px: float, step: float = 0.05
+) -> float:
     """Standard error (frames) of camera c's offset ``delta`` (frames): the Gauss-Newton
     curvature of the capped cost (the keypoints' image speed px/frame, from a central
     difference of +-step frames) with a sandwich over tracks, whose errors are correlated (a
@@ -145,14 +158,14 @@ def offset_sd(P_c: np.ndarray, X: np.ndarray, U_c: np.ndarray, delta: float,
     r3, where = _residuals(P_c, X, U_c, np.array([delta - step, delta, delta + step]))
     ok = np.all(np.isfinite(r3), axis=(0, 2))
     r, J = r3[1][ok], (r3[2] - r3[0])[ok] / (2 * step)
-    keep = np.sum(r * r, axis=1) < cap_px ** 2
+    keep = np.sum(r * r, axis=1) < cap_px**2
     H = float(np.sum(J[keep] ** 2))
     if H <= 0:
         return np.inf
     _, track = np.unique(where[0][ok][keep], return_inverse=True)
     g = np.bincount(track, np.sum(J[keep] * r[keep], axis=1))
     n = g.size
-    return float(np.sqrt(np.sum(g ** 2) * n / max(n - 1, 1)) / H)
+    return float(np.sqrt(np.sum(g**2) * n / max(n - 1, 1)) / H)
 
 
 def _best_delta(P_c, X, U_c, centre: float, reach: float) -> tuple[float, float]:
@@ -166,7 +179,7 @@ def _best_delta(P_c, X, U_c, centre: float, reach: float) -> tuple[float, float]
     k = int(np.argmin(costs))
     best = grid[k]
     if 0 < k < len(grid) - 1:
-        c0, c1, c2 = costs[k - 1:k + 2]
+        c0, c1, c2 = costs[k - 1 : k + 2]
         den = c0 - 2 * c1 + c2
         if den > 0:
             best = grid[k] + 0.1 * (c0 - c2) / den
@@ -177,9 +190,14 @@ def _best_delta(P_c, X, U_c, centre: float, reach: float) -> tuple[float, float]
     return float(best), offset_sd(P_c, X, U_c, float(best), cap)
 
 
-def gauss_seidel_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds: int = 8,
-                         tol: float = 0.01, start: np.ndarray | None = None
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def gauss_seidel_offsets(
+    P: np.ndarray,
+    U: np.ndarray,
+    max_frames: float,
+    rounds: int = 8,
+    tol: float = 0.01,
+    start: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """(C,) offsets in frames of the C > 2 cameras with projection matrices P (C,3,4) and 2D
     tracks U (C,T,F,J,2), relative to the median camera, and their (C,) standard errors
     (frames, each with the others fixed). Gauss-Seidel: each camera's offset is re-estimated
@@ -199,8 +217,9 @@ def gauss_seidel_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, rounds
             others = [d for d in range(C) if d != c]
             X = triangulate(P[others], shifted[others])
             near = bool(r or warm)
-            delta[c], sd[c] = _best_delta(P[c], X, U[c], delta[c] if near else 0.0,
-                                          0.5 if near else max_frames)
+            delta[c], sd[c] = _best_delta(
+                P[c], X, U[c], delta[c] if near else 0.0, 0.5 if near else max_frames
+            )
             shifted[c] = shift_in_time(U[c], delta[c])
         delta -= np.median(delta)  # offsets are relative: keep the common part at 0
         shifted = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)])
@@ -251,7 +270,7 @@ def _two_camera_offset(P: np.ndarray, U: np.ndarray, max_frames: float) -> np.nd
         X = triangulate(P, moved)
         e2 = np.sum((np.stack([_project(P[c], X) for c in range(2)]) - moved) ** 2, axis=-1)
         e2 = e2[np.isfinite(e2)]
-        return float(np.mean(np.minimum(e2, TRUNCATE_PX ** 2))) if e2.size else np.inf
+        return float(np.mean(np.minimum(e2, TRUNCATE_PX**2))) if e2.size else np.inf
 
     costs = np.array([cost(d) for d in grid])
     d = float(grid[int(np.nanargmin(costs))]) if np.isfinite(costs).any() else 0.0

@@ -22,6 +22,7 @@ fit then refines all offsets together and gives standard errors that include the
 correlation. The gauge (a common offset of all cameras changes nothing) is fixed by
 stepping only in the sum-zero subspace; offsets are reported relative to the median camera.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -62,8 +63,10 @@ class _Problem:
         self.P, self.X = P, X
         self.U = np.where(inlier[..., None], U, np.nan)
         self.where = [np.nonzero(np.all(np.isfinite(u), axis=-1)) for u in self.U]
-        self.at_k = [_project(P[c], kernel_tracks(X, w, np.zeros(1), JOINT_SIGMA, True)[0])
-                     for c, w in enumerate(self.where)]
+        self.at_k = [
+            _project(P[c], kernel_tracks(X, w, np.zeros(1), JOINT_SIGMA, True)[0])
+            for c, w in enumerate(self.where)
+        ]
 
     def moved(self, c: int, deltas: np.ndarray) -> np.ndarray:
         """(D,T,F,J,2) px: camera c's keypoints moved to the reference times, for D deltas."""
@@ -82,8 +85,7 @@ class _Problem:
 
     def at(self, delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """residuals and triangulation at offsets delta (C,) frames."""
-        return self.residuals(np.stack([self.moved(c, delta[c:c + 1])[0]
-                                        for c in range(len(delta))]))
+        return self.residuals(np.stack([self.moved(c, delta[c : c + 1])[0] for c in range(len(delta))]))
 
     def jacobian(self, delta: np.ndarray, r0: np.ndarray) -> np.ndarray:
         """(C,C,T,F,J,2) px/frame: d residuals / d delta_d for every camera d (forward
@@ -108,26 +110,28 @@ def _caps(r: np.ndarray) -> np.ndarray:
 
 def _capped_cost(r: np.ndarray, cap: np.ndarray) -> float:
     """Sum of the squared errors capped at cap_c^2 (px^2) over the defined residuals."""
-    e2 = np.sum(r ** 2, axis=-1)
-    e2 = np.minimum(e2, (cap ** 2)[:, None, None, None])
+    e2 = np.sum(r**2, axis=-1)
+    e2 = np.minimum(e2, (cap**2)[:, None, None, None])
     return float(np.sum(e2[np.isfinite(e2)]))
 
 
-def _linearise(P: np.ndarray, U: np.ndarray, X: np.ndarray, delta: np.ndarray
-               ) -> tuple[_Problem, np.ndarray, np.ndarray]:
+def _linearise(
+    P: np.ndarray, U: np.ndarray, X: np.ndarray, delta: np.ndarray
+) -> tuple[_Problem, np.ndarray, np.ndarray]:
     """The problem at 3D tracks X (T,F,J,3) and offsets ``delta`` (C,) frames: each camera's
     cap from its errors there, inliers = keypoints under the cap; and the caps (C,) px and
     the inliers' residuals (C,T,F,J,2) px at delta."""
     C = P.shape[0]
     r = _Problem(P, U, X, np.ones(U.shape[:-1], bool)).at(delta)[0]
     cap = _caps(r)
-    inlier = np.sum(r ** 2, axis=-1) < (cap ** 2).reshape((C,) + (1,) * (r.ndim - 2))
+    inlier = np.sum(r**2, axis=-1) < (cap**2).reshape((C,) + (1,) * (r.ndim - 2))
     prob = _Problem(P, U, X, inlier)
     return prob, cap, prob.at(delta)[0]
 
 
-def _normal(J: np.ndarray, r: np.ndarray, B: np.ndarray, track: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _normal(
+    J: np.ndarray, r: np.ndarray, B: np.ndarray, track: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Gauss-Newton in the sum-zero coordinates z (delta = B z): H (C-1,C-1), gradient g
     (C-1,) and the per-track gradients' outer sum S (C-1,C-1) (sandwich: a track's errors
     are correlated), over the residuals defined in r and in every column of J."""
@@ -140,20 +144,20 @@ def _normal(J: np.ndarray, r: np.ndarray, B: np.ndarray, track: np.ndarray
     H = Jz @ Jz.T
     g = Jz @ rf[ok]
     _, t = np.unique(tr[ok], return_inverse=True)
-    per = np.stack([np.bincount(t, Jz[i] * rf[ok], minlength=t.max() + 1 if t.size else 0)
-                    for i in range(len(Jz))])  # (C-1,tracks)
+    per = np.stack(
+        [np.bincount(t, Jz[i] * rf[ok], minlength=t.max() + 1 if t.size else 0) for i in range(len(Jz))]
+    )  # (C-1,tracks)
     n = per.shape[1]
     S = per @ per.T * n / max(n - 1, 1)
     return H, g, S
 
 
-def refine_joint(P: np.ndarray, U: np.ndarray, start: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def refine_joint(P: np.ndarray, U: np.ndarray, start: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(C,) offsets in frames of the cameras P (C,3,4) with 2D tracks U (C,T,F,J,2) px,
     refined jointly from ``start`` (C,) frames, relative to the median camera; and their (C,)
     standard errors (frames, sandwich over tracks, in that median gauge)."""
     C = P.shape[0]
-    B = np.linalg.svd(np.eye(C) - 1.0 / C)[0][:, :C - 1]  # orthonormal sum-zero basis
+    B = np.linalg.svd(np.eye(C) - 1.0 / C)[0][:, : C - 1]  # orthonormal sum-zero basis
     track = np.arange(U.shape[1])[None, :, None, None, None]
     delta = np.asarray(start, float) - np.mean(start)
     X = triangulate(P, np.stack([shift_in_time(U[c], delta[c]) for c in range(C)]))
@@ -195,8 +199,9 @@ def _median_gauge_sd(delta: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return np.sqrt(np.where(var > 0, var, np.nan))
 
 
-def estimate_offsets(P: np.ndarray, U: np.ndarray, max_frames: float, method: str = "joint",
-                     start: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def estimate_offsets(
+    P: np.ndarray, U: np.ndarray, max_frames: float, method: str = "joint", start: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(C,) offsets in frames of the cameras with projection matrices P (C,3,4) and 2D tracks
     U (C,T,F,J,2) px, relative to the median camera, and their (C,) standard errors (frames;
     NaN for a two-camera rig). ``method``: "joint" (the Gauss-Seidel scan, START_ROUNDS

@@ -4,6 +4,7 @@ per camera as dense arrays, linear triangulation, and moving a camera's 2D track
 Dense layout: U (C,T,F,J,2) rectified px of camera c, track T, frame F, joint J (NaN = not
 seen, sides already unswapped); D (C,T,F) the detection row (-1 = none) for outlier groups.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

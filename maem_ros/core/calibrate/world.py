@@ -11,6 +11,7 @@
 
 The result is a similarity X_world = s Q X + d applied to the rig and the points.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -20,11 +21,18 @@ import numpy as np
 
 #: segment fractions of stature (Drillis & Contini 1966): floor to ankle/knee/hip/shoulder/nose
 _FRACTION = {"ankle": 0.039, "knee": 0.285, "hip": 0.530, "shoulder": 0.818, "nose": 0.91}
-_BONES = (("left_shoulder", "left_elbow"), ("right_shoulder", "right_elbow"),
-          ("left_hip", "left_knee"), ("right_hip", "right_knee"), ("left_knee", "left_ankle"),
-          ("right_knee", "right_ankle"), ("left_shoulder", "left_hip"),
-          ("right_shoulder", "right_hip"), ("left_hip", "right_hip"),
-          ("left_shoulder", "right_shoulder"))
+_BONES = (
+    ("left_shoulder", "left_elbow"),
+    ("right_shoulder", "right_elbow"),
+    ("left_hip", "left_knee"),
+    ("right_hip", "right_knee"),
+    ("left_knee", "left_ankle"),
+    ("right_knee", "right_ankle"),
+    ("left_shoulder", "left_hip"),
+    ("right_shoulder", "right_hip"),
+    ("left_hip", "right_hip"),
+    ("left_shoulder", "right_shoulder"),
+)
 
 
 @dataclass
@@ -57,8 +65,9 @@ def _bone_lengths(X: np.ndarray, names: tuple[str, ...]) -> dict[str, np.ndarray
     return out
 
 
-def skeleton_scale(X: np.ndarray, rows: np.ndarray, kpts3d: list[np.ndarray],
-                   names: tuple[str, ...]) -> float:
+def skeleton_scale(
+    X: np.ndarray, rows: np.ndarray, kpts3d: list[np.ndarray], names: tuple[str, ...]
+) -> float:
     """Metres per rig unit: the median over every (camera, track, frame, bone) of the
     detection's metric bone length (its camera-frame 3D keypoints) over the triangulated one.
     X (T,F,J,3) rig units; rows (C,T,F) the detection row of each camera (-1 = none); NaN
@@ -90,8 +99,9 @@ def stature(X: np.ndarray, names: tuple[str, ...]) -> float:
         lb = [f"{s}_{hi}" if hi != "nose" else "nose" for s in ("left", "right")]
         if not all(n in pos for n in la + lb):
             return np.nan
-        length = np.concatenate([np.linalg.norm(X[..., pos[a], :] - X[..., pos[b], :], axis=-1).ravel()
-                                 for a, b in zip(la, lb)])
+        length = np.concatenate(
+            [np.linalg.norm(X[..., pos[a], :] - X[..., pos[b], :], axis=-1).ravel() for a, b in zip(la, lb)]
+        )
         est.append(np.nanmedian(length))
     return float(sum(est) / (_FRACTION["nose"] - _FRACTION["ankle"]))
 

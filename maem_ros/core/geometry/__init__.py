@@ -11,10 +11,21 @@
 Exports: Camera, Rig, fundamental_matrix, dlt, reprojection_error, reprojection_errors,
 procrustes_align, pa_mpjpe, FrameTransform, rig_transforms.
 """
+
 from maem_ros.core.geometry.camera import Camera, Rig, fundamental_matrix
 from maem_ros.core.geometry.frames import FrameTransform, rig_transforms
 from maem_ros.core.geometry.multiview import dlt, reprojection_error, reprojection_errors
 from maem_ros.core.geometry.procrustes import pa_mpjpe, procrustes_align
 
-__all__ = ["Camera", "Rig", "fundamental_matrix", "FrameTransform", "rig_transforms", "dlt",
-           "reprojection_error", "reprojection_errors", "pa_mpjpe", "procrustes_align"]
+__all__ = [
+    "Camera",
+    "Rig",
+    "fundamental_matrix",
+    "FrameTransform",
+    "rig_transforms",
+    "dlt",
+    "reprojection_error",
+    "reprojection_errors",
+    "pa_mpjpe",
+    "procrustes_align",
+]

@@ -6,6 +6,7 @@ pixel centre as in OpenCV. "Raw" pixels are in the distorted image the camera
 delivers; "rectified" pixels are in the ideal pinhole image with intrinsics
 ``K_rect`` (equal to ``K`` unless configured otherwise).
 """
+
 from __future__ import annotations
 
 import json
@@ -46,10 +47,13 @@ def _as_matrix(value, shape: tuple[int, ...], what: str) -> np.ndarray:
 def _check_intrinsics(name: str, label: str, K: np.ndarray) -> None:
     """Pinhole intrinsics: fx, fy > 0, K[1,0] = 0, bottom row [0, 0, 1] (projection code and P
     must agree on the pixel grid)."""
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and abs(K[1, 0]) < 1e-9
-            and np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9)):
-        raise ValueError(f"camera {name!r} {label}: not pinhole intrinsics [[fx,s,cx],[0,fy,cy],"
-                         f"[0,0,1]] with fx, fy > 0: {K.tolist()}")
+    if not (
+        K[0, 0] > 0 and K[1, 1] > 0 and abs(K[1, 0]) < 1e-9 and np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-9)
+    ):
+        raise ValueError(
+            f"camera {name!r} {label}: not pinhole intrinsics [[fx,s,cx],[0,fy,cy],"
+            f"[0,0,1]] with fx, fy > 0: {K.tolist()}"
+        )
 
 
 @dataclass
@@ -75,31 +79,40 @@ class Camera:
         self.K = _as_matrix(self.K, (3, 3), f"camera {self.name!r} K")
         self.R = _as_matrix(self.R, (3, 3), f"camera {self.name!r} R")
         self.t = _as_matrix(self.t, (3,), f"camera {self.name!r} t")
-        self.K_rect = self.K.copy() if self.K_rect is None else _as_matrix(
-            self.K_rect, (3, 3), f"camera {self.name!r} K_rect")
+        self.K_rect = (
+            self.K.copy()
+            if self.K_rect is None
+            else _as_matrix(self.K_rect, (3, 3), f"camera {self.name!r} K_rect")
+        )
         for label, K in (("K", self.K), ("K_rect", self.K_rect)):
             _check_intrinsics(self.name, label, K)
         if self.distortion_model not in DISTORTION_MODELS:
             raise ValueError(
                 f"camera {self.name!r} distortion_model: unknown {self.distortion_model!r}, "
-                f"expected one of {sorted(DISTORTION_MODELS)}")
+                f"expected one of {sorted(DISTORTION_MODELS)}"
+            )
         n = DISTORTION_MODELS[self.distortion_model]
         d = np.asarray(self.D, dtype=np.float64).ravel()
         if d.size > n and np.any(d[n:] != 0):
-            raise ValueError(f"camera {self.name!r} D: {self.distortion_model} takes {n} "
-                             f"coefficients, got {d.size} with non-zero extras")
+            raise ValueError(
+                f"camera {self.name!r} D: {self.distortion_model} takes {n} "
+                f"coefficients, got {d.size} with non-zero extras"
+            )
         self.D = np.concatenate([d[:n], np.zeros(max(0, n - d.size))])
         if not np.all(np.isfinite(self.D)):
             raise ValueError(f"camera {self.name!r} D: contains NaN or inf")
         ortho_err = np.abs(self.R @ self.R.T - np.eye(3)).max()
         if ortho_err > 1e-3 or abs(np.linalg.det(self.R) - 1.0) > 1e-3:
-            raise ValueError(f"camera {self.name!r} R: not a rotation (det={np.linalg.det(self.R):.4f}, "
-                             f"max |R R^T - I| = {ortho_err:.2g})")
+            raise ValueError(
+                f"camera {self.name!r} R: not a rotation (det={np.linalg.det(self.R):.4f}, "
+                f"max |R R^T - I| = {ortho_err:.2g})"
+            )
         try:
             self.time_offset = float(self.time_offset)
         except (TypeError, ValueError):
-            raise ValueError(f"camera {self.name!r} time_offset: {self.time_offset!r} is not a "
-                             f"number of seconds") from None
+            raise ValueError(
+                f"camera {self.name!r} time_offset: {self.time_offset!r} is not a number of seconds"
+            ) from None
         if not np.isfinite(self.time_offset):
             raise ValueError(f"camera {self.name!r} time_offset: {self.time_offset} is not finite")
         self.width, self.height = int(self.width), int(self.height)
@@ -164,11 +177,13 @@ class Camera:
         if not self.has_distortion and np.array_equal(self.K, self.K_rect):
             return uv_raw.copy()
         if self.is_fisheye:
-            out = cv2.fisheye.undistortPoints(pts, self.K, self.D, R=np.eye(3), P=self.K_rect,
-                                              criteria=_UNDISTORT_CRITERIA)
+            out = cv2.fisheye.undistortPoints(
+                pts, self.K, self.D, R=np.eye(3), P=self.K_rect, criteria=_UNDISTORT_CRITERIA
+            )
         else:
-            out = cv2.undistortPoints(pts, self.K, self.D, R=np.eye(3), P=self.K_rect,
-                                      criteria=_UNDISTORT_CRITERIA)
+            out = cv2.undistortPoints(
+                pts, self.K, self.D, R=np.eye(3), P=self.K_rect, criteria=_UNDISTORT_CRITERIA
+            )
         return out.reshape(*shape, 2)
 
     def _distort_normalised(self, xn: np.ndarray) -> np.ndarray:
@@ -208,14 +223,23 @@ class Camera:
         """Build from a CameraInfo-shaped dict plus world->camera extrinsics (not in CameraInfo)."""
         P = _as_matrix(info["p"], (3, 4), f"camera {name!r} camera_info.p")
         K_rect = P[:, :3] if np.any(P[:, :3]) else None
-        return cls(name=name, K=info["k"], R=R, t=t, width=info["width"], height=info["height"],
-                   distortion_model=info["distortion_model"] or "plumb_bob", D=info["d"],
-                   K_rect=K_rect)
+        return cls(
+            name=name,
+            K=info["k"],
+            R=R,
+            t=t,
+            width=info["width"],
+            height=info["height"],
+            distortion_model=info["distortion_model"] or "plumb_bob",
+            D=info["d"],
+            K_rect=K_rect,
+        )
 
     # ---- MAEM authors' camera JSON ------------------------------------------
     @classmethod
-    def from_maem_json(cls, data: Mapping, name: str | None = None,
-                       default_size: tuple[int, int] | None = None) -> Camera:
+    def from_maem_json(
+        cls, data: Mapping, name: str | None = None, default_size: tuple[int, int] | None = None
+    ) -> Camera:
         """Parse a MAEM/xrmocap camera JSON dict.
 
         Accepts ``extrinsic_r`` + ``extrinsic_t`` or a 4x4 ``extrinsic`` (world->camera), a 3x3 or
@@ -237,8 +261,10 @@ class Camera:
             E = _as_matrix(data["extrinsic"], (4, 4), f"{where} extrinsic")
             R, t = E[:3, :3], E[:3, 3]
         else:
-            raise ValueError(f"{where}: needs extrinsic_r + extrinsic_t or a 4x4 extrinsic (intrinsics "
-                             f"only: calibrate the rig first, maem-calibrate)")
+            raise ValueError(
+                f"{where}: needs extrinsic_r + extrinsic_t or a 4x4 extrinsic (intrinsics "
+                f"only: calibrate the rig first, maem-calibrate)"
+            )
         if data.get("world2cam") is False:
             R = np.asarray(R, dtype=np.float64).T
             t = -R @ np.asarray(t, dtype=np.float64).ravel()
@@ -254,9 +280,17 @@ class Camera:
             width, height = default_size
         else:
             width, height = int(round(2 * K[0, 2])), int(round(2 * K[1, 2]))
-        return cls(name=cam_name, K=K, R=R, t=t, width=width, height=height,
-                   distortion_model=model, D=np.asarray(D, float),
-                   time_offset=data.get("time_offset", 0.0))
+        return cls(
+            name=cam_name,
+            K=K,
+            R=R,
+            t=t,
+            width=width,
+            height=height,
+            distortion_model=model,
+            D=np.asarray(D, float),
+            time_offset=data.get("time_offset", 0.0),
+        )
 
     def to_maem_json(self, extrinsics: bool = True) -> dict:
         """MAEM/xrmocap camera JSON dict (extrinsic_r + extrinsic_t, 3x3 intrinsic); without
@@ -290,9 +324,13 @@ class Camera:
     def to_dict(self, extrinsics: bool = True) -> dict:
         """Rig YAML entry (``extrinsics`` False: no R, t; read by Rig.load_intrinsics)."""
         d = {
-            "width": self.width, "height": self.height,
-            "K": self.K.tolist(), "R": self.R.tolist(), "t": self.t.tolist(),
-            "distortion_model": self.distortion_model, "D": self.D.tolist(),
+            "width": self.width,
+            "height": self.height,
+            "K": self.K.tolist(),
+            "R": self.R.tolist(),
+            "t": self.t.tolist(),
+            "distortion_model": self.distortion_model,
+            "D": self.D.tolist(),
         }
         if not extrinsics:
             del d["R"], d["t"]
@@ -307,10 +345,18 @@ class Camera:
         missing = [k for k in ("width", "height", "K", "R", "t") if k not in d]
         if missing:
             raise ValueError(f"camera {name!r}: missing {', '.join(missing)}")
-        return cls(name=name, K=d["K"], R=d["R"], t=d["t"], width=d["width"], height=d["height"],
-                   distortion_model=d.get("distortion_model", "plumb_bob"),
-                   D=d.get("D", []), K_rect=d.get("K_rect"),
-                   time_offset=d.get("time_offset", 0.0))
+        return cls(
+            name=name,
+            K=d["K"],
+            R=d["R"],
+            t=d["t"],
+            width=d["width"],
+            height=d["height"],
+            distortion_model=d.get("distortion_model", "plumb_bob"),
+            D=d.get("D", []),
+            K_rect=d.get("K_rect"),
+            time_offset=d.get("time_offset", 0.0),
+        )
 
 
 def _maem_distortion_model(data: Mapping, coeff: Mapping[str, float]) -> str:
@@ -388,8 +434,11 @@ class Rig:
     def fundamental_matrices(self) -> dict[tuple[int, int], np.ndarray]:
         """F for every ordered index pair (a, b), a < b: x_b^T F x_a = 0."""
         cams = self.cameras
-        return {(a, b): fundamental_matrix(cams[a], cams[b])
-                for a in range(len(cams)) for b in range(a + 1, len(cams))}
+        return {
+            (a, b): fundamental_matrix(cams[a], cams[b])
+            for a in range(len(cams))
+            for b in range(a + 1, len(cams))
+        }
 
     # ---- I/O ----------------------------------------------------------------
     @classmethod
@@ -405,12 +454,15 @@ class Rig:
             return cls.from_yaml(p)
         if is_calibration_file(p):
             return cls([Camera(**params) for params in read_calibration(p)])
-        raise ValueError(f"rig {str(p)!r}: expected a .yaml file, a folder of camera JSONs, a "
-                         f"Qualisys .qca.txt or a Pose2Sim .toml")
+        raise ValueError(
+            f"rig {str(p)!r}: expected a .yaml file, a folder of camera JSONs, a "
+            f"Qualisys .qca.txt or a Pose2Sim .toml"
+        )
 
     @classmethod
-    def from_json_folder(cls, folder: str | Path, default_size: tuple[int, int] | None = None,
-                         defaults: Mapping | None = None) -> Rig:
+    def from_json_folder(
+        cls, folder: str | Path, default_size: tuple[int, int] | None = None, defaults: Mapping | None = None
+    ) -> Rig:
         """Cameras named by JSON file stem, in natural order (camera_2 before camera_10);
         ``defaults``: keys a file may lack."""
         folder = Path(folder)
@@ -425,8 +477,9 @@ class Rig:
                 raise ValueError(f"rig camera file {str(f)!r}: unreadable JSON ({e})") from None
             if not isinstance(data, dict):
                 raise ValueError(f"rig camera file {str(f)!r}: expected a JSON object")
-            cams.append(Camera.from_maem_json({**(defaults or {}), **data}, name=f.stem,
-                                              default_size=default_size))
+            cams.append(
+                Camera.from_maem_json({**(defaults or {}), **data}, name=f.stem, default_size=default_size)
+            )
         return cls(cams)
 
     def to_json_folder(self, folder: str | Path, extrinsics: bool = True) -> None:
@@ -434,8 +487,7 @@ class Rig:
         folder = Path(folder)
         folder.mkdir(parents=True, exist_ok=True)
         for cam in self:
-            (folder / f"{cam.name}.json").write_text(json.dumps(cam.to_maem_json(extrinsics),
-                                                                indent=2))
+            (folder / f"{cam.name}.json").write_text(json.dumps(cam.to_maem_json(extrinsics), indent=2))
 
     @classmethod
     def load_intrinsics(cls, path: str | Path) -> Rig:
@@ -445,11 +497,16 @@ class Rig:
         calibration to replace, never a pose."""
         p = Path(path)
         if p.is_dir() or p.suffix.lower() in (".yaml", ".yml"):
-            placeholder = {"extrinsic_r": np.eye(3).tolist(), "extrinsic_t": [0.0, 0.0, 0.0],
-                           "R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}
+            placeholder = {
+                "extrinsic_r": np.eye(3).tolist(),
+                "extrinsic_t": [0.0, 0.0, 0.0],
+                "R": np.eye(3).tolist(),
+                "t": [0.0, 0.0, 0.0],
+            }
             if p.is_dir():
-                rig = cls.from_json_folder(p / "cameras" if (p / "cameras").is_dir() else p,
-                                           defaults=placeholder)
+                rig = cls.from_json_folder(
+                    p / "cameras" if (p / "cameras").is_dir() else p, defaults=placeholder
+                )
             else:
                 rig = cls.from_yaml(p, defaults=placeholder)
         else:
@@ -469,8 +526,7 @@ class Rig:
         bad = [str(n) for n, d in data["cameras"].items() if not isinstance(d, dict)]
         if bad:
             raise ValueError(f"rig {str(path)!r}: camera(s) {bad} are not mappings")
-        return cls([Camera.from_dict(str(n), {**(defaults or {}), **d})
-                    for n, d in data["cameras"].items()])
+        return cls([Camera.from_dict(str(n), {**(defaults or {}), **d}) for n, d in data["cameras"].items()])
 
     def to_yaml(self, path: str | Path, extrinsics: bool = True) -> None:
         """Write the rig YAML (``extrinsics`` False: intrinsics only, for Rig.load_intrinsics)."""

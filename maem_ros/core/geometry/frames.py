@@ -5,6 +5,7 @@ camera (the frame_id of its images, camera_info and detections). The transform w
 is the camera's pose in world: translation = camera centre (m, world), rotation = R^T (camera
 axes in world), as a unit quaternion (x, y, z, w).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -31,6 +32,12 @@ class FrameTransform:
 
 def rig_transforms(rig: Rig, world_frame: str = "world") -> list[FrameTransform]:
     """world -> camera for every camera of the rig, in rig order."""
-    return [FrameTransform(world_frame, cam.name, np.asarray(cam.center, dtype=np.float64),
-                           Rotation.from_matrix(cam.R.T).as_quat())
-            for cam in rig]
+    return [
+        FrameTransform(
+            world_frame,
+            cam.name,
+            np.asarray(cam.center, dtype=np.float64),
+            Rotation.from_matrix(cam.R.T).as_quat(),
+        )
+        for cam in rig
+    ]

@@ -6,6 +6,7 @@ them from the epipolar geometry, which settles most pairs without triangulating)
 reprojection errors of point hypotheses in member views used by the RANSAC triangulation and
 the cluster check.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -144,12 +145,12 @@ def reprojection_errors(P: np.ndarray, uv: np.ndarray, reduce: str = "mean") -> 
     """
     S = P.shape[0]
     first = np.arange(0, 2 * S, 2)
-    return pair_reprojection_errors(P.reshape(2 * S, 3, 4), uv.reshape(2 * S, 2), first,
-                                    first + 1, reduce)
+    return pair_reprojection_errors(P.reshape(2 * S, 3, 4), uv.reshape(2 * S, 2), first, first + 1, reduce)
 
 
-def pair_reprojection_errors(P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np.ndarray,
-                             reduce: str = "mean") -> np.ndarray:
+def pair_reprojection_errors(
+    P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np.ndarray, reduce: str = "mean"
+) -> np.ndarray:
     """(S,) px reprojection error of the two-view pairs (i[s], j[s]) of N single views.
 
     P (N,3,4) world -> rectified px and uv (N,2) px of each view (e.g. one detection's bbox
@@ -165,8 +166,7 @@ def pair_reprojection_errors(P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np
     errors = []
     for view in (i, j):
         Q = P[view]  # (S,3,4)
-        h = (Q[:, :, 0] * X[:, 0:1] + Q[:, :, 1] * X[:, 1:2] + Q[:, :, 2] * X[:, 2:3]
-             + Q[:, :, 3])
+        h = Q[:, :, 0] * X[:, 0:1] + Q[:, :, 1] * X[:, 1:2] + Q[:, :, 2] * X[:, 2:3] + Q[:, :, 3]
         with np.errstate(divide="ignore", invalid="ignore"):
             du = h[:, 0] / h[:, 2] - uv[view, 0]
             dv = h[:, 1] / h[:, 2] - uv[view, 1]
@@ -175,8 +175,9 @@ def pair_reprojection_errors(P: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np
     return 0.5 * (errors[0] + errors[1]) if reduce == "mean" else np.maximum(*errors)
 
 
-def pair_reprojection_bound(F: np.ndarray, cam: np.ndarray, uv: np.ndarray, i: np.ndarray,
-                            j: np.ndarray, reduce: str = "mean") -> np.ndarray:
+def pair_reprojection_bound(
+    F: np.ndarray, cam: np.ndarray, uv: np.ndarray, i: np.ndarray, j: np.ndarray, reduce: str = "mean"
+) -> np.ndarray:
     """(S,) px lower bound of :func:`pair_reprojection_errors` of the pairs (i[s], j[s]).
 
     F (C,C,3,3): F[a, b] the fundamental matrix with x_b^T F[a, b] x_a = 0 (F[b, a] its

@@ -8,6 +8,7 @@ the functions as they are and the numpy paths run instead).
 - :func:`adjugate`: multiview.adjugate_solve for scalars;
 - ``SINGULAR``: the relative determinant below which a system is singular (multiview's).
 """
+
 from __future__ import annotations
 
 from maem_ros.core.geometry.multiview import SINGULAR, adjugate_solve, normal_cofactors

@@ -5,6 +5,7 @@ Shared by the association cost (PA-MPJPE between two detections' 3D keypoints: t
 Horn's quaternion, with the stacked SVD as fallback for near-degenerate poses) and the
 evaluation metrics (``pa_mpjpe``, masked, SVD). Units are whatever the inputs use (metres here).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,13 +31,15 @@ def _valid_mask(X: np.ndarray, Y: np.ndarray, mask: np.ndarray | None) -> np.nda
         try:
             valid = valid & np.broadcast_to(mask, valid.shape)
         except ValueError:
-            raise ValueError(f"procrustes: mask shape {mask.shape} does not match joints "
-                             f"{valid.shape}") from None
+            raise ValueError(
+                f"procrustes: mask shape {mask.shape} does not match joints {valid.shape}"
+            ) from None
     return valid
 
 
-def procrustes_align(X: np.ndarray, Y: np.ndarray, mask: np.ndarray | None = None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def procrustes_align(
+    X: np.ndarray, Y: np.ndarray, mask: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Align X onto Y with the least-squares similarity s R X + t (batched over leading dims).
 
     X, Y: (...,J,3); mask: (...,J) bool or None. Joints that are masked out or non-finite in
@@ -56,7 +59,7 @@ def procrustes_align(X: np.ndarray, Y: np.ndarray, mask: np.ndarray | None = Non
     mu_y = Yz.sum(-2) / n_safe
     Xc = (Xz - mu_x[..., None, :]) * w
     Yc = (Yz - mu_y[..., None, :]) * w
-    var_x = (Xc ** 2).sum((-2, -1)) / n_safe[..., 0]
+    var_x = (Xc**2).sum((-2, -1)) / n_safe[..., 0]
     cov = np.swapaxes(Yc, -1, -2) @ Xc / n_safe[..., None]
     U, S, Vt = np.linalg.svd(cov)
     # reflection guard: flip the weakest axis when the best orthogonal map is improper
@@ -160,8 +163,7 @@ def pa_mpjpe_columns(Xt: np.ndarray, Yt: np.ndarray) -> np.ndarray:
     return out
 
 
-def pa_mpjpe_pairs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, backend: str = "auto"
-                   ) -> np.ndarray:
+def pa_mpjpe_pairs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, backend: str = "auto") -> np.ndarray:
     """(S,) PA-MPJPE of detection a[s] aligned onto b[s]: :func:`pa_mpjpe_columns` of
     ``columns[:, :, a]`` onto ``columns[:, :, b]`` for columns (3,J,N) float64 finite.
 
@@ -169,14 +171,19 @@ def pa_mpjpe_pairs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, backend: s
     columns in place; ~1e-16 relative from numpy's summation order), ``numpy``, or ``auto``
     (numba when installed). Near-degenerate pairs take the SVD path in both."""
     from maem_ros.core.geometry import procrustes_kernel
+
     a = np.asarray(a, dtype=np.int64)
     b = np.asarray(b, dtype=np.int64)
     if backend not in ("auto", "numba", "numpy"):
         raise ValueError(f"backend: expected auto, numba or numpy, got {backend!r}")
     if backend == "numba" and not procrustes_kernel.have_numba():
         raise ValueError("backend: 'numba' requested but numba is not installed")
-    if (backend == "numpy" or not procrustes_kernel.have_numba() or columns.shape[1] < MIN_JOINTS
-            or a.size == 0):
+    if (
+        backend == "numpy"
+        or not procrustes_kernel.have_numba()
+        or columns.shape[1] < MIN_JOINTS
+        or a.size == 0
+    ):
         return pa_mpjpe_columns(columns[:, :, a], columns[:, :, b])
     out, ok = procrustes_kernel.pair_costs(columns, a, b, _QCP_MAX_STEPS, _QCP_MIN_GAP)
     bad = np.flatnonzero(~ok)
@@ -193,8 +200,7 @@ def _centred(Xt: np.ndarray) -> np.ndarray:
     return Xc
 
 
-def _qcp_eigenvalue(H: np.ndarray, gx: np.ndarray, gy: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def _qcp_eigenvalue(H: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(largest eigenvalue of Horn's key matrix (S,), well separated (S,) bool) of H (3,3,S).
 
     The characteristic polynomial of the traceless key matrix K is
@@ -234,16 +240,17 @@ def _key_matrix(H: np.ndarray) -> np.ndarray:
     Entry by entry (not a matrix product), like every step of the closed form: each pair's
     result depends on its own numbers only, not on the batch it is computed in."""
     K = np.empty((4, 4) + H.shape[2:])
-    fill_key_matrix(K, H[0, 0], H[0, 1], H[0, 2], H[1, 0], H[1, 1], H[1, 2], H[2, 0], H[2, 1],
-                    H[2, 2])
+    fill_key_matrix(K, H[0, 0], H[0, 1], H[0, 2], H[1, 0], H[1, 1], H[1, 2], H[2, 0], H[2, 1], H[2, 2])
     return K
 
 
 def _det3(a: np.ndarray) -> np.ndarray:
     """Determinants of (3,3,S) matrices."""
-    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
-            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
-            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    return (
+        a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+        - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+        + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
+    )
 
 
 def _minors(a: np.ndarray) -> np.ndarray:

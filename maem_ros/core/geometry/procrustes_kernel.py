@@ -11,6 +11,7 @@ test_association_fast_paths.py compares them). The key matrix and the rotation a
 procrustes' own functions, compiled. Pairs with a near-degenerate eigenvalue
 gap are flagged for the SVD path, as in numpy.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -29,21 +30,32 @@ _fill_key_matrix = jit(fill_key_matrix, inline=True)
 _fill_rotation = jit(fill_rotation, inline=True)
 
 #: the adjugate table as kernel arguments (global arrays would keep numba from caching)
-_ADJUGATE = (np.ascontiguousarray(ADJ_ENTRY, np.int64),
-             np.ascontiguousarray(ADJ_MINOR, np.int64),
-             np.ascontiguousarray(ADJ_SIGN, np.float64))
+_ADJUGATE = (
+    np.ascontiguousarray(ADJ_ENTRY, np.int64),
+    np.ascontiguousarray(ADJ_MINOR, np.int64),
+    np.ascontiguousarray(ADJ_SIGN, np.float64),
+)
 
-def pair_costs(columns: np.ndarray, a: np.ndarray, b: np.ndarray, max_steps: int,
-               min_gap: float) -> tuple[np.ndarray, np.ndarray]:
+
+def pair_costs(
+    columns: np.ndarray, a: np.ndarray, b: np.ndarray, max_steps: int, min_gap: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(costs (S,), closed form usable (S,) bool) of columns[:, :, a[s]] aligned onto
     columns[:, :, b[s]]: columns (3,J,N) float64 finite keypoints (J >= 3); a pair whose flag is
     False has no cost yet (NaN): its eigenvalue gap is too small (pa_mpjpe_columns)."""
     S = a.size
     out = np.empty(S)
     ok = np.empty(S, np.bool_)
-    _kernel(np.ascontiguousarray(columns, dtype=np.float64), np.ascontiguousarray(a, np.int64),
-            np.ascontiguousarray(b, np.int64), _ADJUGATE, int(max_steps), float(min_gap), out,
-            ok)
+    _kernel(
+        np.ascontiguousarray(columns, dtype=np.float64),
+        np.ascontiguousarray(a, np.int64),
+        np.ascontiguousarray(b, np.int64),
+        _ADJUGATE,
+        int(max_steps),
+        float(min_gap),
+        out,
+        ok,
+    )
     return out, ok
 
 
@@ -91,20 +103,20 @@ def _pair(centred, norm2, i, k, h, K, m, q, R, adj, max_steps, min_gap):
             h[p, o] = acc
     gx = norm2[i]
     gy = norm2[k]
-    _fill_key_matrix(K, h[0, 0], h[0, 1], h[0, 2], h[1, 0], h[1, 1], h[1, 2], h[2, 0], h[2, 1],
-                     h[2, 2])
+    _fill_key_matrix(K, h[0, 0], h[0, 1], h[0, 2], h[1, 0], h[1, 1], h[1, 2], h[2, 0], h[2, 1], h[2, 2])
     f2 = 0.0
     for p in range(3):
         for o in range(3):
             f2 += h[p, o] * h[p, o]
     c2 = -2.0 * f2
-    det3 = (h[0, 0] * (h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1])
-            - h[0, 1] * (h[1, 0] * h[2, 2] - h[1, 2] * h[2, 0])
-            + h[0, 2] * (h[1, 0] * h[2, 1] - h[1, 1] * h[2, 0]))
+    det3 = (
+        h[0, 0] * (h[1, 1] * h[2, 2] - h[1, 2] * h[2, 1])
+        - h[0, 1] * (h[1, 0] * h[2, 2] - h[1, 2] * h[2, 0])
+        + h[0, 2] * (h[1, 0] * h[2, 1] - h[1, 1] * h[2, 0])
+    )
     c1 = -8.0 * det3
     _minors(K, m)
-    c0 = (m[0] * m[11] - m[1] * m[10] + m[2] * m[9] + m[3] * m[8] - m[4] * m[7]
-          + m[5] * m[6])
+    c0 = m[0] * m[11] - m[1] * m[10] + m[2] * m[9] + m[3] * m[8] - m[4] * m[7] + m[5] * m[6]
     frob = np.sqrt(f2)
     lam = min(np.sqrt(gx * gy), np.sqrt(3.0) * frob)
     tol = 1e-13 * frob
@@ -194,5 +206,4 @@ def _kernel(cols, a, b, adj, max_steps, min_gap, out, ok):
             if not done[n]:
                 _centre(cols, n, centred, norm2)
                 done[n] = True
-        out[s], ok[s] = _pair(centred, norm2, a[s], b[s], h, K, m, q, R, adj, max_steps,
-                              min_gap)
+        out[s], ok[s] = _pair(centred, norm2, a[s], b[s], h, K, m, q, R, adj, max_steps, min_gap)

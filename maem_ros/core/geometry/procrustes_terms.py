@@ -2,6 +2,7 @@
 (S,) stacks and core.geometry.procrustes_kernel compiles for scalars (one home of the
 arithmetic for both): Horn's key matrix, the quaternion's rotation and the 4x4 adjugate's
 term table."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -31,6 +31,7 @@ and translation in metres, both world -> camera, fisheye false; a ``[metadata]``
 an optional ``time_offset`` (s, this project's key, ignored by Pose2Sim and anipose) is kept).
 :func:`write_pose2sim_toml` writes the same layout.
 """
+
 from __future__ import annotations
 
 import json
@@ -100,8 +101,9 @@ def _child(cam: ET.Element, name: str, where: str) -> ET.Element:
     return tag
 
 
-def rotate_view(K: np.ndarray, D: np.ndarray, R: np.ndarray, t: np.ndarray, size: tuple[int, int],
-                degrees: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+def rotate_view(
+    K: np.ndarray, D: np.ndarray, R: np.ndarray, t: np.ndarray, size: tuple[int, int], degrees: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
     """The same physical camera whose delivered image is rotated clockwise by ``degrees``
     (0/90/180/270): new K, D (k1 k2 p1 p2), R, t (world -> new camera) and (width, height).
 
@@ -153,16 +155,30 @@ def _qualisys_camera(cam: ET.Element, where: str, binning: int) -> CameraParams:
     where = f"{where.rsplit(' camera ', 1)[0]} camera {name!r}"
     fov = _child(cam, "fov_video", where)
     left, top = _attr(fov, "left", where), _attr(fov, "top", where)
-    size = (int(round((_attr(fov, "right", where) - left + 1) / binning)),
-            int(round((_attr(fov, "bottom", where) - top + 1) / binning)))
+    size = (
+        int(round((_attr(fov, "right", where) - left + 1) / binning)),
+        int(round((_attr(fov, "bottom", where) - top + 1) / binning)),
+    )
     intr = _child(cam, "intrinsic", where)
     scale = QUALISYS_SUBPIXELS * binning
     fx, fy = _attr(intr, "focalLengthU", where) / scale, _attr(intr, "focalLengthV", where) / scale
     cx = _attr(intr, "centerPointU", where) / scale - left
     cy = _attr(intr, "centerPointV", where) / scale - top
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    D = np.array([_attr(intr, k, where) for k in ("radialDistortion1", "radialDistortion2",
-                                                  "tangentalDistortion1", "tangentalDistortion2")]) / scale
+    D = (
+        np.array(
+            [
+                _attr(intr, k, where)
+                for k in (
+                    "radialDistortion1",
+                    "radialDistortion2",
+                    "tangentalDistortion1",
+                    "tangentalDistortion2",
+                )
+            ]
+        )
+        / scale
+    )
     tr = _child(cam, "transform", where)
     # r_ij at row i, column j: Pose2Sim reads it by column (its transpose) as the camera pose and
     # inverts that (transposes back) to world -> camera
@@ -176,8 +192,17 @@ def _qualisys_camera(cam: ET.Element, where: str, binning: int) -> CameraParams:
     except ValueError:
         raise ValueError(f"{where}: viewrotation {rotation!r} is not a number") from None
     K, D, R, t, size = rotate_view(K, D, R, t, size, degrees)
-    return dict(name=name, K=K, R=R, t=t, width=size[0], height=size[1],
-                distortion_model="plumb_bob", D=D, time_offset=0.0)
+    return dict(
+        name=name,
+        K=K,
+        R=R,
+        t=t,
+        width=size[0],
+        height=size[1],
+        distortion_model="plumb_bob",
+        D=D,
+        time_offset=0.0,
+    )
 
 
 def read_pose2sim_toml(path: str | Path) -> list[CameraParams]:
@@ -190,11 +215,16 @@ def read_pose2sim_toml(path: str | Path) -> list[CameraParams]:
         raise ValueError(f"{where}: cannot read ({e.strerror})") from None
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{where}: not valid TOML ({e})") from None
-    cams = [_pose2sim_camera(key, table, where) for key, table in data.items()
-            if key != "metadata" and isinstance(table, dict)]
+    cams = [
+        _pose2sim_camera(key, table, where)
+        for key, table in data.items()
+        if key != "metadata" and isinstance(table, dict)
+    ]
     if not cams:
-        raise ValueError(f"{where}: no camera tables (expected [cam_name] with size, matrix, "
-                         f"distortions, rotation, translation)")
+        raise ValueError(
+            f"{where}: no camera tables (expected [cam_name] with size, matrix, "
+            f"distortions, rotation, translation)"
+        )
     return cams
 
 
@@ -215,9 +245,17 @@ def _pose2sim_camera(key: str, table: Mapping, where: str) -> CameraParams:
     fisheye = bool(table.get("fisheye", False))
     model = "equidistant" if fisheye else "rational_polynomial" if D.size > 5 else "plumb_bob"
     R = cv2.Rodrigues(rvec)[0]
-    return dict(name=name, K=table["matrix"], R=R, t=table["translation"],
-                width=int(round(size[0])), height=int(round(size[1])),
-                distortion_model=model, D=D, time_offset=table.get("time_offset", 0.0))
+    return dict(
+        name=name,
+        K=table["matrix"],
+        R=R,
+        t=table["translation"],
+        width=int(round(size[0])),
+        height=int(round(size[1])),
+        distortion_model=model,
+        D=D,
+        time_offset=table.get("time_offset", 0.0),
+    )
 
 
 def _toml_value(value) -> str:
@@ -250,13 +288,16 @@ def pose2sim_toml_text(cameras: Sequence[CameraLike], error_px: float | None = N
         D = [float(d) for d in cam.D]
         keep = 4 if cam.is_fisheye else max(4, max((i + 1 for i, d in enumerate(D) if d), default=0))
         rvec = cv2.Rodrigues(cam.R)[0].ravel()
-        lines = [f"[{_toml_key(cam.name)}]", f"name = {json.dumps(cam.name)}",
-                 f"size = {_toml_value([float(cam.width), float(cam.height)])}",
-                 f"matrix = {_toml_value([list(row) for row in cam.K])}",
-                 f"distortions = {_toml_value(D[:keep])}",
-                 f"rotation = {_toml_value(list(rvec))}",
-                 f"translation = {_toml_value(list(cam.t))}",
-                 f"fisheye = {_toml_value(cam.is_fisheye)}"]
+        lines = [
+            f"[{_toml_key(cam.name)}]",
+            f"name = {json.dumps(cam.name)}",
+            f"size = {_toml_value([float(cam.width), float(cam.height)])}",
+            f"matrix = {_toml_value([list(row) for row in cam.K])}",
+            f"distortions = {_toml_value(D[:keep])}",
+            f"rotation = {_toml_value(list(rvec))}",
+            f"translation = {_toml_value(list(cam.t))}",
+            f"fisheye = {_toml_value(cam.is_fisheye)}",
+        ]
         if cam.time_offset:
             lines.append(f"time_offset = {_toml_value(cam.time_offset)}")
         tables.append("\n".join(lines))
@@ -264,8 +305,9 @@ def pose2sim_toml_text(cameras: Sequence[CameraLike], error_px: float | None = N
     return "\n\n".join(tables) + "\n"
 
 
-def write_pose2sim_toml(path: str | Path, cameras: Sequence[CameraLike],
-                        error_px: float | None = None) -> None:
+def write_pose2sim_toml(
+    path: str | Path, cameras: Sequence[CameraLike], error_px: float | None = None
+) -> None:
     """Write ``cameras`` as a Pose2Sim/anipose ``Calib.toml`` (see :func:`pose2sim_toml_text`)."""
     if any(c.name == "metadata" for c in cameras):
         raise ValueError("pose2sim toml: a camera named 'metadata' clashes with the metadata table")

@@ -6,6 +6,7 @@
 
 Exports: mpjpe, pa_mpjpe, evaluate_sequence, identity_metrics.
 """
+
 from maem_ros.core.metrics.identity import identity_metrics
 from maem_ros.core.metrics.poses import evaluate_sequence, mpjpe, pa_mpjpe
 

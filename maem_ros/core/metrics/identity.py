@@ -18,6 +18,7 @@ A (GT person, hypothesis) pair *matches* in a frame when both are present and th
 when the GT holds the players only) are left out before scoring, so IDF1 is not lowered by
 people the GT does not hold; false positives are what AP measures.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -37,10 +38,15 @@ def _frame_distances(gt: np.ndarray, gt_mask: np.ndarray, pred: np.ndarray) -> n
     return mpjpe(pred[None], gt[:, None], gt_mask[:, None])
 
 
-def identity_metrics(gt_ids: Sequence[np.ndarray], gts: Sequence[np.ndarray],
-                     gt_masks: Sequence[np.ndarray], pred_ids: Sequence[np.ndarray],
-                     preds: Sequence[np.ndarray], threshold_m: float = MATCH_THRESHOLD_M,
-                     players_only: bool = True) -> dict[str, float]:
+def identity_metrics(
+    gt_ids: Sequence[np.ndarray],
+    gts: Sequence[np.ndarray],
+    gt_masks: Sequence[np.ndarray],
+    pred_ids: Sequence[np.ndarray],
+    preds: Sequence[np.ndarray],
+    threshold_m: float = MATCH_THRESHOLD_M,
+    players_only: bool = True,
+) -> dict[str, float]:
     """IDF1, IDP, IDR, ID switches over a sequence (see the module docstring).
 
     Per frame f: gt_ids[f] (P,) int identities, gts[f] (P,J,3) world m, gt_masks[f] (P,J) bool;
@@ -49,8 +55,7 @@ def identity_metrics(gt_ids: Sequence[np.ndarray], gts: Sequence[np.ndarray],
     gt_detections, hyp_detections, hyp_left_out (hypotheses dropped by players_only).
     """
     n = len(gts)
-    for name, seq in (("gt_ids", gt_ids), ("gt_masks", gt_masks), ("pred_ids", pred_ids),
-                      ("preds", preds)):
+    for name, seq in (("gt_ids", gt_ids), ("gt_masks", gt_masks), ("pred_ids", pred_ids), ("preds", preds)):
         if len(seq) != n:
             raise ValueError(f"{name}: {len(seq)} frames but gts has {n}")
     pairs: dict[tuple[int, int], int] = {}
@@ -71,8 +76,7 @@ def identity_metrics(gt_ids: Sequence[np.ndarray], gts: Sequence[np.ndarray],
         if len(np.unique(g_ids)) != len(g_ids):
             raise ValueError(f"gt_ids[{f}]: an identity appears twice in one frame")
         hyp = h_ids >= 0
-        d = _frame_distances(np.asarray(gts[f], np.float64), np.asarray(gt_masks[f], bool),
-                             pred[hyp])
+        d = _frame_distances(np.asarray(gts[f], np.float64), np.asarray(gt_masks[f], bool), pred[hyp])
         h_ids = h_ids[hyp]
         ok = np.isfinite(d) & (d < threshold_m)
         if players_only:
@@ -91,14 +95,23 @@ def identity_metrics(gt_ids: Sequence[np.ndarray], gts: Sequence[np.ndarray],
     n_gt, n_hyp = sum(gt_count.values()), sum(hyp_count.values())
     idfn, idfp = n_gt - idtp, n_hyp - idtp
     div = lambda a, b: a / b if b else float("nan")  # noqa: E731
-    return {"idf1": div(2 * idtp, 2 * idtp + idfp + idfn), "idp": div(idtp, idtp + idfp),
-            "idr": div(idtp, idtp + idfn), "id_switches": int(switches), "idtp": int(idtp),
-            "idfp": int(idfp), "idfn": int(idfn), "gt_detections": int(n_gt),
-            "hyp_detections": int(n_hyp), "hyp_left_out": int(left_out)}
+    return {
+        "idf1": div(2 * idtp, 2 * idtp + idfp + idfn),
+        "idp": div(idtp, idtp + idfp),
+        "idr": div(idtp, idtp + idfn),
+        "id_switches": int(switches),
+        "idtp": int(idtp),
+        "idfp": int(idfp),
+        "idfn": int(idfn),
+        "gt_detections": int(n_gt),
+        "hyp_detections": int(n_hyp),
+        "hyp_left_out": int(left_out),
+    }
 
 
-def _clear_mot_step(g_ids: np.ndarray, h_ids: np.ndarray, d: np.ndarray, ok: np.ndarray,
-                    last: dict[int, int]) -> int:
+def _clear_mot_step(
+    g_ids: np.ndarray, h_ids: np.ndarray, d: np.ndarray, ok: np.ndarray, last: dict[int, int]
+) -> int:
     """Match one frame (keep last matches that still hold, Hungarian for the rest); update
     ``last`` (GT id -> hypothesis id of its last match); return the switches of this frame."""
     if d.size == 0:

@@ -31,6 +31,7 @@ Definitions (per sequence of frames):
   changes of (r_{i+1} - r_i) * p_{i+1}  (the VoxelPose/Panoptic area under the PR curve).
   AP is NaN when the sequence has no GT person.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -86,8 +87,9 @@ def _pairwise_mpjpe(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.nd
     return mpjpe(pred[:, None], gt[None], mask[None])
 
 
-def match_frame(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray,
-                threshold_m: float = MATCH_THRESHOLD_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def match_frame(
+    pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, threshold_m: float = MATCH_THRESHOLD_M
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Hungarian matching of predictions (K,J,3) to GT (P,J,3) on MPJPE, pairs < threshold only.
 
     Returns (pred indices, gt indices, MPJPE metres) of the matched pairs.
@@ -102,8 +104,9 @@ def match_frame(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray,
     return rows[keep], cols[keep], cost[rows[keep], cols[keep]]
 
 
-def average_precision(frame_costs: Sequence[np.ndarray], scores: Sequence[np.ndarray],
-                      threshold_m: float) -> float:
+def average_precision(
+    frame_costs: Sequence[np.ndarray], scores: Sequence[np.ndarray], threshold_m: float
+) -> float:
     """AP at one MPJPE threshold (metres) as defined in the module docstring.
 
     frame_costs[f]: (K_f,P_f) MPJPE metres (NaN = not comparable); scores[f]: (K_f,).
@@ -158,8 +161,12 @@ def _check_frame(f: int, pred, score, gt, gmask) -> tuple[np.ndarray, ...]:
     return pred, score, gt, gmask.astype(bool)
 
 
-def evaluate_sequence(preds: Sequence[np.ndarray], scores: Sequence[np.ndarray],
-                      gts: Sequence[np.ndarray], gt_masks: Sequence[np.ndarray]) -> dict:
+def evaluate_sequence(
+    preds: Sequence[np.ndarray],
+    scores: Sequence[np.ndarray],
+    gts: Sequence[np.ndarray],
+    gt_masks: Sequence[np.ndarray],
+) -> dict:
     """All metrics over a sequence (inputs in metres, errors out in mm; see module docstring).
 
     preds[f] (K,J,3), scores[f] (K,), gts[f] (P,J,3), gt_masks[f] (P,J) bool.

@@ -9,6 +9,7 @@
 
 Exports: Tracker, TemporalAssociator, TemporalParams, TemporalResult, BoneLengthFilter.
 """
+
 from maem_ros.core.tracking.bone_filter import BoneLengthFilter
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams, TemporalResult
 from maem_ros.core.tracking.tracks import Tracker

@@ -10,6 +10,7 @@ triangulated or marked missing. The median uses every measured length (accepted 
 the first frames cannot lock a wrong length in; it is applied once a track has ``min_samples``
 lengths of the bone. Untracked people (id < 0) pass unchanged.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -26,9 +27,15 @@ LIMB_BONES = (("shoulder", "elbow"), ("elbow", "wrist"), ("hip", "knee"), ("knee
 def limb_bones(names: Sequence[str]) -> np.ndarray:
     """(B,2) (proximal, distal) joint indices of the limb bones present in a convention."""
     idx = {n: i for i, n in enumerate(names)}
-    return np.array([(idx[f"{s}_{a}"], idx[f"{s}_{b}"]) for s in ("left", "right")
-                     for a, b in LIMB_BONES if f"{s}_{a}" in idx and f"{s}_{b}" in idx],
-                    dtype=np.int64).reshape(-1, 2)
+    return np.array(
+        [
+            (idx[f"{s}_{a}"], idx[f"{s}_{b}"])
+            for s in ("left", "right")
+            for a, b in LIMB_BONES
+            if f"{s}_{a}" in idx and f"{s}_{b}" in idx
+        ],
+        dtype=np.int64,
+    ).reshape(-1, 2)
 
 
 class BoneLengthFilter:
@@ -39,11 +46,9 @@ class BoneLengthFilter:
     NaN padding of a short history is ignored like an unmeasured length).
     """
 
-    def __init__(self, names: Sequence[str], tolerance: float, history: int = 60,
-                 min_samples: int = 5):
+    def __init__(self, names: Sequence[str], tolerance: float, history: int = 60, min_samples: int = 5):
         if not np.isfinite(tolerance) or tolerance <= 0:
-            raise ValueError(f"bone_tolerance: must be > 0 (a fraction of the bone length), "
-                             f"got {tolerance}")
+            raise ValueError(f"bone_tolerance: must be > 0 (a fraction of the bone length), got {tolerance}")
         self.bones = limb_bones(names)
         self.tolerance = float(tolerance)
         self.history = int(history)
@@ -91,7 +96,8 @@ class BoneLengthFilter:
             if not self._free:
                 grow = max(len(self._count), 8)
                 self._lengths = np.concatenate(
-                    [self._lengths, np.full((grow,) + self._lengths.shape[1:], np.nan)])
+                    [self._lengths, np.full((grow,) + self._lengths.shape[1:], np.nan)]
+                )
                 self._count = np.concatenate([self._count, np.zeros(grow, np.int64)])
                 self._free = list(range(len(self._count) - 1, len(self._count) - grow - 1, -1))
             row = self._free.pop()
@@ -103,8 +109,7 @@ class BoneLengthFilter:
         self._count[row] = 0
         self._free.append(row)
 
-    def _check(self, people: np.ndarray, rows: np.ndarray, length: np.ndarray,
-               joints: np.ndarray) -> int:
+    def _check(self, people: np.ndarray, rows: np.ndarray, length: np.ndarray, joints: np.ndarray) -> int:
         """Mark the distal joints of bones off their track's median (tracks with min_samples
         lengths); people, rows (K,) distinct tracks; length (K,B) m."""
         judged = np.minimum(self._count[rows], self.history) >= self.min_samples

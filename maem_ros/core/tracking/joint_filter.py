@@ -11,6 +11,7 @@ A joint without a finite measurement or covariance keeps its prediction for the 
 published as missing (NaN); a track unseen for more than ``max_gap_s`` restarts from its next
 measurement. Everything is batched over a frame's tracks and joints.
 """
+
 from __future__ import annotations
 
 import functools
@@ -25,13 +26,18 @@ from maem_ros.core.paramspec import Params, param
 class JointFilterParams(Params):
     """The joint filter of tracked people (one field = one triangulation-node parameter)."""
 
-    joint_filter: bool = param(True, "filter tracked people's joints over time with their "
-                                     "triangulation covariance (constant velocity; off = each "
-                                     "frame's triangulation as is, the paper)")
-    joint_accel_std: float = param(30.0, "m/s^2, joint acceleration std of the joint filter",
-                                   minimum=0.0, exclusive_minimum=True)
-    joint_filter_gap: float = param(0.5, "s, a track unseen this long restarts its joint filter",
-                                    minimum=0.0, exclusive_minimum=True)
+    joint_filter: bool = param(
+        True,
+        "filter tracked people's joints over time with their "
+        "triangulation covariance (constant velocity; off = each "
+        "frame's triangulation as is, the paper)",
+    )
+    joint_accel_std: float = param(
+        30.0, "m/s^2, joint acceleration std of the joint filter", minimum=0.0, exclusive_minimum=True
+    )
+    joint_filter_gap: float = param(
+        0.5, "s, a track unseen this long restarts its joint filter", minimum=0.0, exclusive_minimum=True
+    )
 
     def make(self) -> JointFilter | None:
         """The filter these parameters describe (None when off)."""
@@ -58,8 +64,9 @@ class JointFilter:
     def reset(self) -> None:
         self._tracks.clear()
 
-    def update(self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, cov: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray]:
+    def update(
+        self, stamp_ns: int, ids: np.ndarray, joints: np.ndarray, cov: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Filtered joints (P,J,3) m and their covariance (P,J,3,3) m^2 for one frame.
 
         ids (P,) track ids (< 0 = untracked: returned as given); joints (P,J,3) world m (NaN =
@@ -73,8 +80,13 @@ class JointFilter:
         x, P, fresh = self._predicted(stamp_ns, np.asarray(ids)[rows], joints[rows], cov[rows])
         z, R = joints[rows], cov[rows]
         usable = np.isfinite(z).all(-1) & np.isfinite(R).all((-1, -2))  # (T,J)
-        x, P = _kalman_update(x, P, np.where(usable[..., None], z, 0.0),
-                              np.where(usable[..., None, None], R, np.eye(3)), usable & ~fresh)
+        x, P = _kalman_update(
+            x,
+            P,
+            np.where(usable[..., None], z, 0.0),
+            np.where(usable[..., None, None], R, np.eye(3)),
+            usable & ~fresh,
+        )
         # a fresh track starts at its measurement (zero velocity, wide velocity prior)
         x = np.where((fresh & usable)[..., None], _start_state(z), x)
         P = np.where((fresh & usable)[..., None, None], _start_cov(R), P)
@@ -85,8 +97,9 @@ class JointFilter:
         out_C[rows] = np.where(usable[..., None, None], P[..., :3, :3], np.nan)
         return out_X, out_C
 
-    def _predicted(self, stamp_ns: int, ids: np.ndarray, z: np.ndarray, R: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _predicted(
+        self, stamp_ns: int, ids: np.ndarray, z: np.ndarray, R: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each track's state predicted to stamp_ns (T,J,6), (T,J,6,6) and which are fresh."""
         T, J = z.shape[:2]
         x = np.zeros((T, J, 6))
@@ -113,14 +126,15 @@ def _transition(dt: float, accel_std: float) -> tuple[np.ndarray, np.ndarray]:
     Cached (read-only arrays): every track of a steady stream has the same dt."""
     I3 = np.eye(3)
     F = np.block([[I3, dt * I3], [np.zeros((3, 3)), I3]])
-    q = accel_std ** 2
-    Q = q * np.block([[dt ** 4 / 4 * I3, dt ** 3 / 2 * I3], [dt ** 3 / 2 * I3, dt ** 2 * I3]])
+    q = accel_std**2
+    Q = q * np.block([[dt**4 / 4 * I3, dt**3 / 2 * I3], [dt**3 / 2 * I3, dt**2 * I3]])
     F.flags.writeable = Q.flags.writeable = False
     return F, Q
 
 
-def _kalman_update(x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray,
-                   use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _kalman_update(
+    x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray, use: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Position measurement update, batched over (T,J); rows with use False keep the prediction."""
     S = P[..., :3, :3] + R  # (T,J,3,3)
     K = np.linalg.solve(S, P[..., :3, :]).swapaxes(-1, -2)  # (T,J,6,3) = P H^T S^-1
@@ -142,18 +156,25 @@ def _start_state(z: np.ndarray) -> np.ndarray:
 def _start_cov(R: np.ndarray) -> np.ndarray:
     P = np.zeros(R.shape[:-2] + (6, 6))
     P[..., :3, :3] = R
-    P[..., 3:, 3:] = np.eye(3) * _START_VELOCITY_STD ** 2
+    P[..., 3:, 3:] = np.eye(3) * _START_VELOCITY_STD**2
     return P
 
 
-def filter_and_score(stamp_ns: int, ids: np.ndarray, joints: np.ndarray, cov: np.ndarray,
-                     detection_scores: np.ndarray, joint_filter: JointFilter | None,
-                     pose_score: str, score_ref_m: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def filter_and_score(
+    stamp_ns: int,
+    ids: np.ndarray,
+    joints: np.ndarray,
+    cov: np.ndarray,
+    detection_scores: np.ndarray,
+    joint_filter: JointFilter | None,
+    pose_score: str,
+    score_ref_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What is published for one frame's tracked poses (the triangulation node and maem-eval):
     joints (P,J,3) world m filtered over time when ``joint_filter`` is given, their per-joint
     std (P,J) m and the scores (P,) (core/triangulation/uncertainty.pose_scores)."""
     from maem_ros.core.triangulation.uncertainty import joint_std, pose_scores
+
     if joint_filter is not None:
         joints, cov = joint_filter.update(stamp_ns, ids, joints, cov)
     std = joint_std(cov)

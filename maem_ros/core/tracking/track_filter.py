@@ -2,6 +2,7 @@
 body joints) as a constant-velocity Kalman filter (m, m/s) and the body joints as offsets from
 it, smoothed with weight ``joint_alpha`` on the newest pose; a track gets an id after
 ``confirm_hits`` supported frames."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -65,8 +66,8 @@ class Tracker3D:
             return
         F = np.eye(6)
         F[:3, 3:] = dt * np.eye(3)
-        q = self.p.accel_std ** 2
-        Q1 = q * np.array([[dt ** 4 / 4, dt ** 3 / 2], [dt ** 3 / 2, dt ** 2]])
+        q = self.p.accel_std**2
+        Q1 = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
         Q = np.kron(Q1, np.eye(3))
         for t in self.tracks:  # one 6x6 product per person
             t.x = F @ t.x
@@ -75,7 +76,7 @@ class Tracker3D:
     def start(self, joints: np.ndarray) -> Track:
         """A tentative track from a triangulated pose (J,3)."""
         root = root_of(joints)
-        Pc = np.diag([self.p.meas_std ** 2] * 3 + [4.0] * 3)  # velocity unknown: ~2 m/s std
+        Pc = np.diag([self.p.meas_std**2] * 3 + [4.0] * 3)  # velocity unknown: ~2 m/s std
         t = Track(self._next_key, np.concatenate([root, np.zeros(3)]), Pc, joints - root)
         self._next_key += 1
         self.tracks.append(t)

@@ -1,6 +1,7 @@
 """Batched multi-view geometry of the track stage (core.tracking.temporal): projections of
 predicted joints, NaN-aware medians, the triangulation and verification of candidate
 clusters padded to M members, and the one-view update's ray point (rectified px, world m)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -32,8 +33,7 @@ def nanmedian(a: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
-def triangulate_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def triangulate_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Joints X (T,J,3) from members padded to M views and each member's median reprojection
     error (T,M) px (inf where absent or not reprojectable).
 
@@ -50,8 +50,9 @@ def triangulate_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray
     return X, np.where(present & np.isfinite(med), med, np.inf)
 
 
-def verify_clusters(P: np.ndarray, uv: np.ndarray, present: np.ndarray, passes: np.ndarray,
-            tau_px: float, min_support: float) -> tuple[np.ndarray, np.ndarray]:
+def verify_clusters(
+    P: np.ndarray, uv: np.ndarray, present: np.ndarray, passes: np.ndarray, tau_px: float, min_support: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Geometric verification of clusters padded to M members, as in the consistent clustering:
     every member must pass the pair gates with at least ``min_support`` of the other members
     (passes (T,M,M) bool) and reproject under tau_px (median over the body joints triangulated
@@ -75,8 +76,7 @@ def verify_clusters(P: np.ndarray, uv: np.ndarray, present: np.ndarray, passes: 
     return keep, X
 
 
-def rays_nearest(cam_P: np.ndarray, center: np.ndarray, uv: np.ndarray, X_pred: np.ndarray
-                  ) -> np.ndarray:
+def rays_nearest(cam_P: np.ndarray, center: np.ndarray, uv: np.ndarray, X_pred: np.ndarray) -> np.ndarray:
     """(J,3) points on the back-projected rays of uv (J,2) nearest to X_pred (J,3): one view
     plus the prediction (the view fixes the direction, the prediction the depth)."""
     M_inv = np.linalg.inv(cam_P[:, :3])
@@ -84,8 +84,6 @@ def rays_nearest(cam_P: np.ndarray, center: np.ndarray, uv: np.ndarray, X_pred: 
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     s = np.einsum("jk,jk->j", X_pred - center, d)
     return center + s[:, None] * d
-
-
 
 
 def mean_distance(A: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -13,6 +13,7 @@ A stamp older than the previous update's stamp (bag loop, restart) resets the tr
 first; the poses of that update then start new tentative tracks. Equal stamps are a
 normal update with dt = 0.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -81,8 +82,9 @@ class Tracker:
         self._last_stamp = stamp_ns
         self._keep(stamp_ns - self._stamp <= self.timeout_ns)
         if self.num_tracks and self._joints.shape[1] != joints.shape[1]:
-            raise ValueError(f"joints: {joints.shape[1]} joints per pose, tracks have "
-                             f"{self._joints.shape[1]}")
+            raise ValueError(
+                f"joints: {joints.shape[1]} joints per pose, tracks have {self._joints.shape[1]}"
+            )
 
         ids = np.full(joints.shape[0], -1, np.int64)
         rows, cols = self._assign(stamp_ns, joints)
@@ -129,8 +131,11 @@ class Tracker:
         moved = (dt > 0) & common.any(-1)
         with np.errstate(invalid="ignore", divide="ignore"):  # rows not moved: discarded
             v = (_centroid(joints, common) - _centroid(last, common)) / dt[:, None]
-        smoothed = np.where((self._hits[rows] == 1)[:, None], v,
-                            _VELOCITY_ALPHA * v + (1 - _VELOCITY_ALPHA) * self._velocity[rows])
+        smoothed = np.where(
+            (self._hits[rows] == 1)[:, None],
+            v,
+            _VELOCITY_ALPHA * v + (1 - _VELOCITY_ALPHA) * self._velocity[rows],
+        )
         velocity = np.where(moved[:, None], smoothed, self._velocity[rows])
         # joints not seen now keep their last position, carried along by the velocity
         carried = last + velocity[:, None, :] * np.maximum(dt, 0.0)[:, None, None]

@@ -3,6 +3,7 @@ inliers (``ransac``; its fused numba kernel in ``ransac_kernel``).
 
 Exports: TriangulationParams, Poses, triangulate.
 """
+
 from maem_ros.core.triangulation.ransac import Poses, TriangulationParams, triangulate
 
 __all__ = ["Poses", "TriangulationParams", "triangulate"]

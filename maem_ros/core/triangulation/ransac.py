@@ -18,6 +18,7 @@ Everything is batched: all clusters, view pairs and joints are solved in array
 operations, with the 3x3 normal equations of the DLT solved in closed form (numpy's
 per-matrix SVD/LAPACK calls have a fixed cost each, far too much for ~10^4 small systems).
 """
+
 from __future__ import annotations
 
 import warnings
@@ -42,29 +43,45 @@ class TriangulationParams(Params):
     """Per-keypoint RANSAC triangulation thresholds (one field = one parameter of the
     triangulation node, see core/paramspec.py)."""
 
-    tau_kps: float = param(20.0, "px, keypoint inlier threshold (rectified image)", minimum=0.0,
-                           exclusive_minimum=True)
+    tau_kps: float = param(
+        20.0, "px, keypoint inlier threshold (rectified image)", minimum=0.0, exclusive_minimum=True
+    )
     min_views: int = param(2, "inlier views needed per keypoint", minimum=2)
-    left_right: bool = param(False, "relabel each cluster's views left/right consistently before "
-                                    "the RANSAC (monocular left/right swaps; off = the paper)")
-    tau_member: float = param(0.0, "px, from three views on leave out (and re-triangulate "
-                                   "without) each member whose median reprojection error over "
-                                   "the triangulated joints is >= this: a wrong detection as a "
-                                   "whole, e.g. a body mixed from two people (0 = off, the paper)",
-                              minimum=0.0)
-    ransac_backend: str = param("auto", "RANSAC kernel (auto = numba when installed, else the "
-                                        "numpy path; the same results)", choices=BACKENDS)
-    pose_score: str = param("uncertainty", "a pose's score: uncertainty (the members' mean "
-                                           "detection score times a confidence from the joints' "
-                                           "predicted error, core/triangulation/uncertainty.py) "
-                                           "or paper (mean detection score of the members)",
-                            choices=("uncertainty", "paper"))
-    noise_prior_px: float = param(2.0, "px, prior keypoint noise of the joint covariance",
-                                  minimum=0.0, exclusive_minimum=True)
-    noise_prior_dof: float = param(2.0, "weight of noise_prior_px in residual degrees of freedom",
-                                   minimum=0.0)
-    score_ref_m: float = param(0.05, "m, predicted pose error that halves the uncertainty score",
-                               minimum=0.0, exclusive_minimum=True)
+    left_right: bool = param(
+        False,
+        "relabel each cluster's views left/right consistently before "
+        "the RANSAC (monocular left/right swaps; off = the paper)",
+    )
+    tau_member: float = param(
+        0.0,
+        "px, from three views on leave out (and re-triangulate "
+        "without) each member whose median reprojection error over "
+        "the triangulated joints is >= this: a wrong detection as a "
+        "whole, e.g. a body mixed from two people (0 = off, the paper)",
+        minimum=0.0,
+    )
+    ransac_backend: str = param(
+        "auto",
+        "RANSAC kernel (auto = numba when installed, else the numpy path; the same results)",
+        choices=BACKENDS,
+    )
+    pose_score: str = param(
+        "uncertainty",
+        "a pose's score: uncertainty (the members' mean "
+        "detection score times a confidence from the joints' "
+        "predicted error, core/triangulation/uncertainty.py) "
+        "or paper (mean detection score of the members)",
+        choices=("uncertainty", "paper"),
+    )
+    noise_prior_px: float = param(
+        2.0, "px, prior keypoint noise of the joint covariance", minimum=0.0, exclusive_minimum=True
+    )
+    noise_prior_dof: float = param(
+        2.0, "weight of noise_prior_px in residual degrees of freedom", minimum=0.0
+    )
+    score_ref_m: float = param(
+        0.05, "m, predicted pose error that halves the uncertainty score", minimum=0.0, exclusive_minimum=True
+    )
 
 
 @dataclass
@@ -99,13 +116,20 @@ class Poses:
 # ---------------------------------------------------------------------------------------
 # stage 3
 # ---------------------------------------------------------------------------------------
-def triangulate(rig: Rig, frames: Mapping[str, FrameDetections], clusters: Sequence[Cluster],
-                params: TriangulationParams | None = None) -> Poses:
+def triangulate(
+    rig: Rig,
+    frames: Mapping[str, FrameDetections],
+    clusters: Sequence[Cluster],
+    params: TriangulationParams | None = None,
+) -> Poses:
     """Triangulate every cluster (members = (camera index in rig order, detection index))."""
     J = _num_joints(frames)
     if not clusters:
-        return triangulate_members(_rig_P(rig), *pad_members(np.zeros(0, np.int64), np.zeros(0, np.int64),
-                                                             np.zeros((0, J, 2)), np.zeros(0)), params)
+        return triangulate_members(
+            _rig_P(rig),
+            *pad_members(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, J, 2)), np.zeros(0)),
+            params,
+        )
     members = [np.asarray(c.members, dtype=np.int64).reshape(-1, 2) for c in clusters]
     allm = np.concatenate(members)
     names = rig.names
@@ -122,8 +146,9 @@ def triangulate(rig: Rig, frames: Mapping[str, FrameDetections], clusters: Seque
     bad = (allm[:, 1] < 0) | (allm[:, 1] >= sizes[allm[:, 0]])
     if bad.any():
         c, d = allm[int(np.argmax(bad))]
-        raise ValueError(f"clusters: members: detection {d} out of range for camera "
-                         f"{names[c]!r} ({sizes[c]} detections)")
+        raise ValueError(
+            f"clusters: members: detection {d} out of range for camera {names[c]!r} ({sizes[c]} detections)"
+        )
     kpts2d, score = np.empty((len(allm), J, 2)), np.empty(len(allm))
     for ci, fd in by_index.items():  # one gather per camera of the members' rows
         rows = np.flatnonzero(allm[:, 0] == ci)
@@ -137,8 +162,9 @@ def _rig_P(rig: Rig) -> np.ndarray:
     return np.stack([c.P for c in rig.cameras]) if len(rig) else np.zeros((0, 3, 4))
 
 
-def pad_members(cluster: np.ndarray, camera: np.ndarray, kpts2d: np.ndarray, score: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def pad_members(
+    cluster: np.ndarray, camera: np.ndarray, kpts2d: np.ndarray, score: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Member rows (R,) -> dense padded arrays, clusters in order of first appearance.
 
     cluster (R,) id of each row's cluster; camera (R,) rig index; kpts2d (R,J,2) rectified px;
@@ -146,8 +172,7 @@ def pad_members(cluster: np.ndarray, camera: np.ndarray, kpts2d: np.ndarray, sco
     with M >= 2 (one view pair at least).
     """
     J = kpts2d.shape[1] if kpts2d.ndim == 3 else 0
-    _, first, inverse, counts = np.unique(cluster, return_index=True, return_inverse=True,
-                                          return_counts=True)
+    _, first, inverse, counts = np.unique(cluster, return_index=True, return_inverse=True, return_counts=True)
     rank = np.argsort(np.argsort(first, kind="stable"), kind="stable")  # order of appearance
     k = rank[inverse] if cluster.size else np.zeros(0, np.int64)
     C, M = first.size, max(2, int(counts.max(initial=0)))
@@ -163,8 +188,14 @@ def pad_members(cluster: np.ndarray, camera: np.ndarray, kpts2d: np.ndarray, sco
     return cam, uv, sc, present
 
 
-def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: np.ndarray,
-                        present: np.ndarray, params: TriangulationParams | None = None) -> Poses:
+def triangulate_members(
+    P_rig: np.ndarray,
+    cam: np.ndarray,
+    uv: np.ndarray,
+    score: np.ndarray,
+    present: np.ndarray,
+    params: TriangulationParams | None = None,
+) -> Poses:
     """Stage 3 on dense member arrays (see pad_members): P_rig (K,3,4) rectified world->px of
     the rig's cameras; cam (C,M) rig index per member; uv (C,M,J,2) px; score (C,M);
     present (C,M). Returns Poses in cluster order."""
@@ -172,9 +203,15 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
     C, M = present.shape
     J = uv.shape[2]
     if C == 0:
-        return Poses(np.zeros((0, J, 3)), np.zeros(0, np.int64), np.zeros((0, J), np.int64),
-                     np.zeros(0), joint_std=np.zeros((0, J)), joint_cov=np.zeros((0, J, 3, 3)),
-                     detection_scores=np.zeros(0))
+        return Poses(
+            np.zeros((0, J, 3)),
+            np.zeros(0, np.int64),
+            np.zeros((0, J), np.int64),
+            np.zeros(0),
+            joint_std=np.zeros((0, J)),
+            joint_cov=np.zeros((0, J, 3, 3)),
+            detection_scores=np.zeros(0),
+        )
     poses = _ransac_members(P_rig, cam, uv, score, present, params)
     if params.tau_member > 0:
         rejected = _rejected_members(P_rig[cam], uv, present, poses, params.tau_member)
@@ -186,8 +223,9 @@ def triangulate_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, scor
     return poses
 
 
-def _rejected_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray, poses: Poses,
-                      tau: float) -> np.ndarray:
+def _rejected_members(
+    P: np.ndarray, uv: np.ndarray, present: np.ndarray, poses: Poses, tau: float
+) -> np.ndarray:
     """(C,M) members whose median reprojection error (px) over the cluster's triangulated joints
     is >= tau, in clusters that keep two members or more without them (else none)."""
     if poses.mirrored is not None:  # compare each view with the labels the RANSAC used
@@ -203,8 +241,14 @@ def _rejected_members(P: np.ndarray, uv: np.ndarray, present: np.ndarray, poses:
     return bad & enough[:, None]
 
 
-def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: np.ndarray,
-                    present: np.ndarray, params: TriangulationParams) -> Poses:
+def _ransac_members(
+    P_rig: np.ndarray,
+    cam: np.ndarray,
+    uv: np.ndarray,
+    score: np.ndarray,
+    present: np.ndarray,
+    params: TriangulationParams,
+) -> Poses:
     """The per-keypoint RANSAC of triangulate_members on the present members."""
     J = uv.shape[2]
     P = P_rig[cam]  # (C,M,3,4)
@@ -218,17 +262,24 @@ def _ransac_members(P_rig: np.ndarray, cam: np.ndarray, uv: np.ndarray, score: n
         X, n_inl = ransac_keypoints(P, uv, usable, weight, params.tau_kps, params.min_views)
     else:
         X, n_inl = _ransac_numpy(P, uv, usable, weight, params.tau_kps, params.min_views)
-    cov, _ = joint_covariance(P, X, uv, usable, params.tau_kps, params.noise_prior_px,
-                              params.noise_prior_dof)
+    cov, _ = joint_covariance(P, X, uv, usable, params.tau_kps, params.noise_prior_px, params.noise_prior_dof)
     std = joint_std(cov)
     detection_scores = (score * present).sum(1) / np.maximum(present.sum(1), 1)
-    return Poses(X, present.sum(1).astype(np.int64), n_inl.astype(np.int64),
-                 pose_scores(detection_scores, std, params.pose_score, params.score_ref_m),
-                 mirrored, joint_std=std, joint_cov=cov, detection_scores=detection_scores)
+    return Poses(
+        X,
+        present.sum(1).astype(np.int64),
+        n_inl.astype(np.int64),
+        pose_scores(detection_scores, std, params.pose_score, params.score_ref_m),
+        mirrored,
+        joint_std=std,
+        joint_cov=cov,
+        detection_scores=detection_scores,
+    )
 
 
-def _ransac_numpy(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray,
-                  tau: float, min_views: int) -> tuple[np.ndarray, np.ndarray]:
+def _ransac_numpy(
+    P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray, tau: float, min_views: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The numpy path of triangulation_kernel.ransac_keypoints (same arguments and results):
     every hypothesis of every view pair reprojected into every view as (C,M,Q,J) arrays."""
     M = usable.shape[1]
@@ -261,6 +312,7 @@ def mirror_permutation(num_joints: int) -> np.ndarray:
     """(J,) joint index of each joint's left/right counterpart (itself when central), for the
     keypoint convention with ``num_joints`` joints (core.skeleton); ValueError when none."""
     from maem_ros.core.skeleton import convention_for
+
     names = convention_for(num_joints).names
     idx = {n: i for i, n in enumerate(names)}
     swap = lambda n: n.replace("left", "\0").replace("right", "left").replace("\0", "right")  # noqa: E731
@@ -271,8 +323,9 @@ def mirror_permutation(num_joints: int) -> np.ndarray:
 _MAX_LR_VIEWS = 12
 
 
-def consistent_left_right(P: np.ndarray, uv: np.ndarray, score: np.ndarray, present: np.ndarray,
-                          mirror: np.ndarray) -> np.ndarray:
+def consistent_left_right(
+    P: np.ndarray, uv: np.ndarray, score: np.ndarray, present: np.ndarray, mirror: np.ndarray
+) -> np.ndarray:
     """(C,M) bool: which views of each cluster to relabel (swap left and right) for consistency.
 
     Pair residual r(a, b) = median over joints of the two-view DLT reprojection error (mean of
@@ -315,8 +368,9 @@ def consistent_left_right(P: np.ndarray, uv: np.ndarray, score: np.ndarray, pres
 
 
 def _num_joints(frames: Mapping[str, FrameDetections]) -> int:
-    counts = {name: f.kpts2d.shape[1] for name, f in frames.items()
-              if f.kpts2d.ndim == 3 and f.kpts2d.shape[0] > 0}
+    counts = {
+        name: f.kpts2d.shape[1] for name, f in frames.items() if f.kpts2d.ndim == 3 and f.kpts2d.shape[0] > 0
+    }
     if len(set(counts.values())) > 1:
         raise ValueError(f"frames: keypoint count differs between cameras: {counts}")
     if counts:

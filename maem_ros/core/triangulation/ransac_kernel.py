@@ -10,6 +10,7 @@ and weighted refit are those of the numpy path. The one difference is the order 
 4-term dot products of the projection (numpy hands them to a BLAS matmul), a relative
 difference of ~1e-16 in the pixel errors; see test_triangulation_kernel.py.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,8 +29,9 @@ def use_numba(backend: str) -> bool:
     return backend == "numba" or (backend == "auto" and have_numba())
 
 
-def ransac_keypoints(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray,
-                     tau: float, min_views: int) -> tuple[np.ndarray, np.ndarray]:
+def ransac_keypoints(
+    P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: np.ndarray, tau: float, min_views: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-keypoint RANSAC over view-pair hypotheses and score-weighted refit (numba).
 
     P (C,M,3,4) rectified world->px per member; uv (C,M,J,2) px; usable (C,M,J) bool (present
@@ -41,9 +43,17 @@ def ransac_keypoints(P: np.ndarray, uv: np.ndarray, usable: np.ndarray, weight: 
     X = np.empty((C, J, 3))
     n_inl = np.empty((C, J), np.int64)
     uv = np.asarray(uv, dtype=np.float64)
-    _kernel(np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(uv[..., 0]),
-              np.ascontiguousarray(uv[..., 1]), np.ascontiguousarray(usable, np.bool_),
-              np.ascontiguousarray(weight, np.float64), float(tau), int(min_views), X, n_inl)
+    _kernel(
+        np.ascontiguousarray(P, dtype=np.float64),
+        np.ascontiguousarray(uv[..., 0]),
+        np.ascontiguousarray(uv[..., 1]),
+        np.ascontiguousarray(usable, np.bool_),
+        np.ascontiguousarray(weight, np.float64),
+        float(tau),
+        int(min_views),
+        X,
+        n_inl,
+    )
     return X, n_inl
 
 
@@ -51,8 +61,9 @@ def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernel now, so a node's first frame
     does not pay for it. No-op without numba."""
     if have_numba():
-        ransac_keypoints(np.zeros((1, 2, 3, 4)), np.zeros((1, 2, 1, 2)), np.ones((1, 2, 1), bool),
-                         np.ones((1, 2)), 1.0, 2)
+        ransac_keypoints(
+            np.zeros((1, 2, 3, 4)), np.zeros((1, 2, 1, 2)), np.ones((1, 2, 1), bool), np.ones((1, 2)), 1.0, 2
+        )
 
 
 # every loop below runs over the keypoints j innermost (contiguous, independent): LLVM
@@ -123,12 +134,14 @@ def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
                 count[:] = 0
                 total[:] = 0.0
                 for m in range(M):
-                    _score(P[c, m], hyp, u[c, m], v[c, m], usable[c, m], tau, inl[m], count,
-                           total)
+                    _score(P[c, m], hyp, u[c, m], v[c, m], usable[c, m], tau, inl[m], count, total)
                 for j in range(J):
                     # most inliers first; mean error / (2 tau) < 0.5 breaks ties
-                    key = (count[j] - (total[j] / max(count[j], 1)) / (2.0 * tau)
-                           if np.isfinite(hyp[0, j]) else -1.0)
+                    key = (
+                        count[j] - (total[j] / max(count[j], 1)) / (2.0 * tau)
+                        if np.isfinite(hyp[0, j])
+                        else -1.0
+                    )
                     if key > best_key[j]:  # strict: the first of equal keys
                         best_key[j] = key
                         best_hyp[0, j] = hyp[0, j]
@@ -159,4 +172,3 @@ def _kernel(P, u, v, usable, weight, tau, min_views, X_out, n_out):
             else:
                 X_out[c, j, 0] = X_out[c, j, 1] = X_out[c, j, 2] = np.nan
                 n_out[c, j] = 0
-

@@ -30,6 +30,7 @@ false positive (a low-score bystander) still ranks low and a confident detection
 geometry or disagreeing views ranks below a well-supported one (doc/design.md gives the AP
 figures that chose it).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -38,9 +39,15 @@ import numpy as np
 _SINGULAR_DET = 1e-30
 
 
-def joint_covariance(P: np.ndarray, X: np.ndarray, uv: np.ndarray, usable: np.ndarray,
-                     tau_px: float, prior_px: float, prior_dof: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def joint_covariance(
+    P: np.ndarray,
+    X: np.ndarray,
+    uv: np.ndarray,
+    usable: np.ndarray,
+    tau_px: float,
+    prior_px: float,
+    prior_dof: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """Covariance (C,J,3,3) m^2 of every triangulated joint and its supporting views (C,J).
 
     P (C,M,3,4) world -> rectified px of each member view; X (C,J,3) world m (NaN = missing);
@@ -67,7 +74,7 @@ def joint_covariance(P: np.ndarray, X: np.ndarray, uv: np.ndarray, usable: np.nd
         rss = np.where(support, r2, 0.0).sum(1)  # (C,J) px^2
         # the pose's keypoint noise, pooled over its joints (tens of residual degrees of
         # freedom), is each joint's prior: a joint seen by two views has one of its own
-        pose_s2 = (prior_dof * prior_px ** 2 + rss.sum(1)) / (prior_dof + dof.sum(1))  # (C,)
+        pose_s2 = (prior_dof * prior_px**2 + rss.sum(1)) / (prior_dof + dof.sum(1))  # (C,)
         s2 = (prior_dof * pose_s2[:, None] + rss) / (prior_dof + dof)
     ok = (n >= 2) & np.isfinite(X).all(-1) & (np.abs(np.linalg.det(H)) > _SINGULAR_DET)
     cov = np.full((C, J, 3, 3), np.nan)
@@ -86,14 +93,13 @@ def pose_confidence(std: np.ndarray, ref_m: float) -> np.ndarray:
     finite joints of the predicted 3D error sqrt(3) * std; 0 for a pose with no finite joint."""
     with np.errstate(all="ignore"):
         finite = np.isfinite(std)
-        mean_var = np.where(finite, 3.0 * std ** 2, 0.0).sum(-1) / finite.sum(-1)
+        mean_var = np.where(finite, 3.0 * std**2, 0.0).sum(-1) / finite.sum(-1)
         e = np.sqrt(mean_var)
         conf = 1.0 / (1.0 + e / ref_m)
     return np.where(finite.any(-1), conf, 0.0)
 
 
-def pose_scores(detection_scores: np.ndarray, std: np.ndarray, mode: str, ref_m: float
-                ) -> np.ndarray:
+def pose_scores(detection_scores: np.ndarray, std: np.ndarray, mode: str, ref_m: float) -> np.ndarray:
     """(P,) published score: ``paper`` = the members' mean detection score; ``uncertainty`` =
     that times :func:`pose_confidence` of the per-joint std (P,J) m."""
     if mode == "paper":

@@ -1,4 +1,5 @@
 """rclpy image, CameraInfo and TF messages (the codec, maem_ros.wire, builds rosbags ones)."""
+
 from __future__ import annotations
 
 import importlib
@@ -19,8 +20,9 @@ def bgr_to_image(image: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
     """BGR uint8 (H,W,3) -> sensor_msgs/Image bgr8."""
     image = np.ascontiguousarray(image, dtype=np.uint8)
     h, w = image.shape[:2]
-    msg = Image(header=make_header(stamp_ns, frame_id), height=h, width=w, encoding="bgr8",
-                is_bigendian=0, step=w * 3)
+    msg = Image(
+        header=make_header(stamp_ns, frame_id), height=h, width=w, encoding="bgr8", is_bigendian=0, step=w * 3
+    )
     msg.data = image.tobytes()
     return msg
 
@@ -32,8 +34,7 @@ def compressed_image_msg(data: bytes, fmt: str, stamp_ns: int, frame_id: str) ->
     return msg
 
 
-def bgr_to_compressed(image: np.ndarray, stamp_ns: int, frame_id: str,
-                      quality: int = 90) -> CompressedImage:
+def bgr_to_compressed(image: np.ndarray, stamp_ns: int, frame_id: str, quality: int = 90) -> CompressedImage:
     """BGR uint8 (H,W,3) -> sensor_msgs/CompressedImage, JPEG at ``quality`` (1..100)."""
     return compressed_image_msg(encode_jpeg(image, quality), JPEG_FORMAT, stamp_ns, frame_id)
 
@@ -42,9 +43,16 @@ def camera_info_msg(camera: Camera, stamp_ns: int, frame_id: str) -> CameraInfo:
     """Camera -> sensor_msgs/CameraInfo of the RAW image: K, D and distortion model; R = I;
     P = [K_rect | 0] of the rectified image the frontends work in."""
     info = camera.to_camera_info()
-    return CameraInfo(header=make_header(stamp_ns, frame_id), width=int(info["width"]),
-                      height=int(info["height"]), distortion_model=str(info["distortion_model"]),
-                      d=info["d"], k=info["k"], r=info["r"], p=info["p"])
+    return CameraInfo(
+        header=make_header(stamp_ns, frame_id),
+        width=int(info["width"]),
+        height=int(info["height"]),
+        distortion_model=str(info["distortion_model"]),
+        d=info["d"],
+        k=info["k"],
+        r=info["r"],
+        p=info["p"],
+    )
 
 
 def _rclpy_type(msgtype: str) -> Any:

@@ -1,4 +1,5 @@
 """rclpy skeleton MarkerArray from the codec's plan (maem_ros.wire.markers)."""
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -20,10 +21,16 @@ def id_color(track_id: int, alpha: float = 1.0) -> ColorRGBA:
     return ColorRGBA(r=r, g=g, b=b, a=float(alpha))
 
 
-def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int] | np.ndarray,
-                     joints: np.ndarray,
-                     bones: Sequence[tuple[int, int]], lifetime_s: float = 0.5,
-                     joint_diameter: float = 0.06, bone_width: float = 0.03) -> MarkerArray:
+def skeleton_markers(
+    stamp_ns: int,
+    frame_id: str,
+    ids: Sequence[int] | np.ndarray,
+    joints: np.ndarray,
+    bones: Sequence[tuple[int, int]],
+    lifetime_s: float = 0.5,
+    joint_diameter: float = 0.06,
+    bone_width: float = 0.03,
+) -> MarkerArray:
     """Per person: SPHERE_LIST joints (ns skeleton/joints), LINE_LIST bones (ns skeleton/bones,
     bones with a NaN end skipped), TEXT_VIEW_FACING id 0.3 m above the highest joint
     (ns skeleton/ids). Marker id = track id in each ns; persons with id < 0 or no finite joint
@@ -34,8 +41,7 @@ def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int] | np.ndarr
     header = make_header(stamp_ns, frame_id)
     sec, nsec = divmod(int(round(lifetime_s * 1e9)), 1_000_000_000)
     life = Duration(sec=sec, nanosec=nsec)
-    out = MarkerArray(markers=[Marker(header=header, ns=NS_DELETE_ALL, id=0,
-                                      action=Marker.DELETEALL)])
+    out = MarkerArray(markers=[Marker(header=header, ns=NS_DELETE_ALL, id=0, action=Marker.DELETEALL)])
     if len(ids) == 0:
         return out
     plan = skeleton_plan(ids, joints, bones)
@@ -43,18 +49,40 @@ def skeleton_markers(stamp_ns: int, frame_id: str, ids: Sequence[int] | np.ndarr
     first = plan.first.tolist()
     for k, mid in enumerate(plan.ids):
         color = id_color(mid)
-        joint_m = Marker(header=header, ns=NS_JOINTS, id=mid, type=Marker.SPHERE_LIST,
-                         action=Marker.ADD, lifetime=life, color=color,
-                         points=points[first[k]:first[k + 1]])
+        joint_m = Marker(
+            header=header,
+            ns=NS_JOINTS,
+            id=mid,
+            type=Marker.SPHERE_LIST,
+            action=Marker.ADD,
+            lifetime=life,
+            color=color,
+            points=points[first[k] : first[k + 1]],
+        )
         joint_m.pose.orientation.w = 1.0
         joint_m.scale.x = joint_m.scale.y = joint_m.scale.z = joint_diameter
-        bone_m = Marker(header=header, ns=NS_BONES, id=mid, type=Marker.LINE_LIST,
-                        action=Marker.ADD, lifetime=life, color=color,
-                        points=[points[i] for i in plan.bones[k]])
+        bone_m = Marker(
+            header=header,
+            ns=NS_BONES,
+            id=mid,
+            type=Marker.LINE_LIST,
+            action=Marker.ADD,
+            lifetime=life,
+            color=color,
+            points=[points[i] for i in plan.bones[k]],
+        )
         bone_m.pose.orientation.w = 1.0
         bone_m.scale.x = bone_width
-        text_m = Marker(header=header, ns=NS_LABELS, id=mid, type=Marker.TEXT_VIEW_FACING,
-                        action=Marker.ADD, lifetime=life, text=str(mid), color=color)
+        text_m = Marker(
+            header=header,
+            ns=NS_LABELS,
+            id=mid,
+            type=Marker.TEXT_VIEW_FACING,
+            action=Marker.ADD,
+            lifetime=life,
+            text=str(mid),
+            color=color,
+        )
         x, y, z = plan.labels[k].tolist()
         text_m.pose.position = Point(x=x, y=y, z=z)
         text_m.pose.orientation.w = 1.0

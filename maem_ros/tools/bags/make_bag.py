@@ -16,6 +16,7 @@ stamp and in metadata custom_data (``maem.scene``); the rig YAML is stored as ``
 or a shipped rig name; video files are matched to its camera names by file stem, and every
 video frame must have the calibration's size (a rotated or rescaled video is an error, exit 2).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -91,13 +92,18 @@ def image_folders(frames_dir: Path, rig: Rig, report: Report) -> dict[str, dict[
     """camera -> {stem: file} for every <view>/ folder with images; folders not in the rig skipped."""
     out: dict[str, dict[str, Path]] = {}
     for sub in sorted((p for p in frames_dir.iterdir() if p.is_dir()), key=lambda p: natural_key(p.name)):
-        files = {f.stem: f for f in sorted(sub.iterdir(), key=lambda f: natural_key(f.name))
-                 if f.is_file() and f.suffix.lower() in IMAGE_FORMATS}
+        files = {
+            f.stem: f
+            for f in sorted(sub.iterdir(), key=lambda f: natural_key(f.name))
+            if f.is_file() and f.suffix.lower() in IMAGE_FORMATS
+        }
         if not files:
             continue
         if sub.name not in rig:
-            warn(f"image folder {str(sub)!r}: camera {sub.name!r} has no calibration in the rig "
-                 f"(known: {rig.names}); skipped")
+            warn(
+                f"image folder {str(sub)!r}: camera {sub.name!r} has no calibration in the rig "
+                f"(known: {rig.names}); skipped"
+            )
             report.skip("camera without calibration", sub.name)
             continue
         out[sub.name] = files
@@ -109,15 +115,24 @@ def frame_stems(images: dict[str, dict[str, Path]]) -> list[str]:
     return sorted({s for files in images.values() for s in files}, key=natural_key)
 
 
-def sources_from_frames(frames_dir: Path, rig_path: str, fps: float, start_ns: int,
-                        dets: Path | None, gt: Path | None, report: Report) -> Sources:
+def sources_from_frames(
+    frames_dir: Path,
+    rig_path: str,
+    fps: float,
+    start_ns: int,
+    dets: Path | None,
+    gt: Path | None,
+    report: Report,
+) -> Sources:
     if not frames_dir.is_dir():
         raise ValueError(f"--frames-dir {str(frames_dir)!r}: no such folder")
     rig = Rig.load(rig_path)
     images = image_folders(frames_dir, rig, report)
     if not images:
-        raise ValueError(f"--frames-dir {str(frames_dir)!r}: no <camera>/*.jpg|png folder matching "
-                         f"the rig's cameras {rig.names}")
+        raise ValueError(
+            f"--frames-dir {str(frames_dir)!r}: no <camera>/*.jpg|png folder matching "
+            f"the rig's cameras {rig.names}"
+        )
     return Sources(rig, fps, start_ns, frame_stems(images), images, dets, gt)
 
 
@@ -127,13 +142,21 @@ def sources_from_scene(root: Path, report: Report) -> Sources:
     images = image_folders(root / "images", folder.rig, report) if (root / "images").is_dir() else {}
     num = folder.num_frames
     if not num and images:
-        num = max((int(m.group(1)) + 1 for s in frame_stems(images)
-                   if (m := re.search(r"(\d+)$", s))), default=0)
+        num = max(
+            (int(m.group(1)) + 1 for s in frame_stems(images) if (m := re.search(r"(\d+)$", s))), default=0
+        )
     if num == 0:
         raise ValueError(f"--scene {str(root)!r}: no frames (no scene.json num_frames, images or dets)")
-    return Sources(folder.rig, folder.fps, folder.start_stamp_ns, [f"{k:06d}" for k in range(num)],
-                   images, root / "dets" if (root / "dets").is_dir() else None,
-                   root / "gt.npz" if folder.has_gt else None, folder.info or None)
+    return Sources(
+        folder.rig,
+        folder.fps,
+        folder.start_stamp_ns,
+        [f"{k:06d}" for k in range(num)],
+        images,
+        root / "dets" if (root / "dets").is_dir() else None,
+        root / "gt.npz" if folder.has_gt else None,
+        folder.info or None,
+    )
 
 
 def video_files(videos_dir: Path, rig: Rig, report: Report) -> dict[str, Path]:
@@ -143,12 +166,16 @@ def video_files(videos_dir: Path, rig: Rig, report: Report) -> dict[str, Path]:
         if not (f.is_file() and f.suffix.lower() in VIDEO_SUFFIXES):
             continue
         if f.stem not in rig:
-            warn(f"video {str(f)!r}: camera {f.stem!r} has no calibration in the rig "
-                 f"(known: {rig.names}); skipped")
+            warn(
+                f"video {str(f)!r}: camera {f.stem!r} has no calibration in the rig "
+                f"(known: {rig.names}); skipped"
+            )
             report.skip("video without calibration", f.name)
         elif f.stem in out:
-            raise ValueError(f"--videos {str(videos_dir)!r}: two videos for camera {f.stem!r} "
-                             f"({out[f.stem].name}, {f.name})")
+            raise ValueError(
+                f"--videos {str(videos_dir)!r}: two videos for camera {f.stem!r} "
+                f"({out[f.stem].name}, {f.name})"
+            )
         else:
             out[f.stem] = f
     return out
@@ -168,8 +195,10 @@ class VideoReader:
         h = int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         if (w, h) != (camera.width, camera.height):
             self.cap.release()
-            raise ValueError(f"video {str(path)!r}: frames are {w}x{h} but camera "
-                             f"{camera.name!r} is calibrated at {camera.width}x{camera.height}")
+            raise ValueError(
+                f"video {str(path)!r}: frames are {w}x{h} but camera "
+                f"{camera.name!r} is calibrated at {camera.width}x{camera.height}"
+            )
 
     def read(self) -> np.ndarray | None:
         """The next frame (BGR), None at the end or when it cannot be decoded."""
@@ -180,16 +209,19 @@ class VideoReader:
         self.cap.release()
 
 
-def sources_from_videos(videos_dir: Path, rig_path: str, fps: float | None, start_ns: int,
-                        report: Report) -> Sources:
+def sources_from_videos(
+    videos_dir: Path, rig_path: str, fps: float | None, start_ns: int, report: Report
+) -> Sources:
     """One video per rig camera; frame k of every video is frame k of the bag."""
     if not videos_dir.is_dir():
         raise ValueError(f"--videos {str(videos_dir)!r}: no such folder")
     rig = Rig.load(rig_path)
     videos = video_files(videos_dir, rig, report)
     if not videos:
-        raise ValueError(f"--videos {str(videos_dir)!r}: no <camera>{'|'.join(VIDEO_SUFFIXES)} "
-                         f"named after the rig's cameras {rig.names}")
+        raise ValueError(
+            f"--videos {str(videos_dir)!r}: no <camera>{'|'.join(VIDEO_SUFFIXES)} "
+            f"named after the rig's cameras {rig.names}"
+        )
     readers = [VideoReader(path, rig[cam]) for cam, path in videos.items()]
     for r in readers:
         r.close()
@@ -200,8 +232,10 @@ def sources_from_videos(videos_dir: Path, rig_path: str, fps: float | None, star
             raise ValueError(f"--videos {str(videos_dir)!r}: the videos give no frame rate; pass --fps")
         fps = float(np.median(good))
     if any(f > 0 and abs(f - fps) > 0.01 * fps for f in rates.values()):
-        warn(f"video frame rates {rates} differ from the bag's {fps:g} fps; frame k of every "
-             f"video gets stamp start + k / {fps:g} s")
+        warn(
+            f"video frame rates {rates} differ from the bag's {fps:g} fps; frame k of every "
+            f"video gets stamp start + k / {fps:g} s"
+        )
     num = max(r.frames for r in readers)
     if num <= 0:
         raise ValueError(f"--videos {str(videos_dir)!r}: the videos report no frames")
@@ -247,8 +281,9 @@ def gt_message(pose: np.ndarray, mask: np.ndarray, stamp: int):
     mask = np.asarray(mask, bool) & np.all(np.isfinite(pose[..., :3]), axis=-1)
     keep = np.flatnonzero(mask.any(axis=1))
     joints = np.where(mask[keep, :, None], pose[keep, :, :3], np.nan)
-    return wire.poses_to_msg(stamp, GT_FRAME_ID, keep, joints, np.zeros(len(keep), np.int64),
-                             np.ones(len(keep)))
+    return wire.poses_to_msg(
+        stamp, GT_FRAME_ID, keep, joints, np.zeros(len(keep), np.int64), np.ones(len(keep))
+    )
 
 
 def find_dets_file(dets_dir: Path, cam: str, stem: str, k: int) -> Path | None:
@@ -259,8 +294,9 @@ def find_dets_file(dets_dir: Path, cam: str, stem: str, k: int) -> Path | None:
 
 
 def rig_yaml(rig: Rig) -> str:
-    return yaml.safe_dump({"cameras": {c.name: c.to_dict() for c in rig}}, sort_keys=False,
-                          default_flow_style=None)
+    return yaml.safe_dump(
+        {"cameras": {c.name: c.to_dict() for c in rig}}, sort_keys=False, default_flow_style=None
+    )
 
 
 # ---- writing ---------------------------------------------------------------------------------
@@ -285,8 +321,10 @@ def load_gt(src: Sources, report: Report) -> tuple[np.ndarray, np.ndarray, str] 
         return None
     pose, mask, convention = read_gt(src.gt_path)
     if pose.shape[0] != len(src.frames):
-        warn(f"gt {str(src.gt_path)!r}: {pose.shape[0]} frames, the images have {len(src.frames)}; "
-             "GT frame k goes with image frame k")
+        warn(
+            f"gt {str(src.gt_path)!r}: {pose.shape[0]} frames, the images have {len(src.frames)}; "
+            "GT frame k goes with image frame k"
+        )
         for k in range(pose.shape[0], len(src.frames)):
             report.skip("frame without ground truth", src.frames[k])
     return pose, mask, convention
@@ -304,8 +342,16 @@ def video_frame_message(reader: VideoReader, t: int, quality: int, stem: str, re
         raise ValueError(f"video {str(reader.path)!r} frame {stem}: {e}") from None
 
 
-def write_frame(w: bagio.BagWriter, src: Sources, cams: Sequence[str], k: int, gt, opts,
-                report: Report, readers: dict[str, VideoReader] | None = None) -> None:
+def write_frame(
+    w: bagio.BagWriter,
+    src: Sources,
+    cams: Sequence[str],
+    k: int,
+    gt,
+    opts,
+    report: Report,
+    readers: dict[str, VideoReader] | None = None,
+) -> None:
     """All messages of frame k: per camera camera_info, image, detections; then GT."""
     stem, t = src.frames[k], stamp_ns(src.start_ns, src.fps, k)
     for cam in cams:
@@ -325,16 +371,18 @@ def write_frame(w: bagio.BagWriter, src: Sources, cams: Sequence[str], k: int, g
                     warn(f"image {str(img)!r}: {fmt}; skipped")
                     report.skip("unreadable image", str(img))
                 else:
-                    msgs.append((f"/{cam}/image_raw/compressed",
-                                 wire.compressed_image_msg(data, fmt, t, cam)))
+                    msgs.append(
+                        (f"/{cam}/image_raw/compressed", wire.compressed_image_msg(data, fmt, t, cam))
+                    )
         if src.dets_dir is not None and (src.dets_dir / cam).is_dir():
             path = find_dets_file(src.dets_dir, cam, stem, k)
             if path is None:
                 report.skip(f"missing detections of camera {cam}", stem)
             else:
                 try:
-                    msgs.append((f"/{cam}/detections",
-                                 detections_message(path, camera, t, opts.max_vertices)))
+                    msgs.append(
+                        (f"/{cam}/detections", detections_message(path, camera, t, opts.max_vertices))
+                    )
                 except ValueError as e:
                     warn(f"{e}; skipped")
                     report.skip("bad detections file", str(path))
@@ -352,8 +400,7 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
     if not cams:
         raise ValueError("no camera has both a calibration and images or detections")
     gt = load_gt(src, report)
-    readers = {cam: VideoReader(path, src.rig[cam]) for cam, path in src.videos.items()
-               if cam in cams}
+    readers = {cam: VideoReader(path, src.rig[cam]) for cam, path in src.videos.items() if cam in cams}
     w = bagio.BagWriter(out, compress=opts.compress)
     try:
         w.set_custom(bagio.CUSTOM_RIG, rig_yaml(src.rig))
@@ -365,10 +412,13 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
             w.write(bagio.SCENE_TOPIC, bagio.string_msg(text), src.start_ns, bagio.QOS_LATCHED)
         # world -> each camera, latched, so TF users (RViz, Foxglove) place the cameras
         tf = [t for t in rig_transforms(src.rig) if t.child in cams]
-        w.write(wire.TF_STATIC_TOPIC, wire.tf_message(tf, src.start_ns, bagio.TYPESTORE.types),
-                src.start_ns, bagio.QOS_LATCHED)
-        for k in tqdm(range(len(src.frames)), desc="maem-make-bag", unit="frame",
-                      disable=opts.quiet):
+        w.write(
+            wire.TF_STATIC_TOPIC,
+            wire.tf_message(tf, src.start_ns, bagio.TYPESTORE.types),
+            src.start_ns,
+            bagio.QOS_LATCHED,
+        )
+        for k in tqdm(range(len(src.frames)), desc="maem-make-bag", unit="frame", disable=opts.quiet):
             write_frame(w, src, cams, k, gt, opts, report, readers)
     finally:
         w.close()
@@ -379,28 +429,57 @@ def make_bag(out: Path, src: Sources, opts, report: Report) -> bagio.BagWriter:
 
 # ---- CLI -------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-make-bag",
-                                description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-                                epilog=__doc__.split("\n\n", 2)[2],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="maem-make-bag",
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        epilog=__doc__.split("\n\n", 2)[2],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("out", type=Path, help="output bag folder (must not exist)")
-    p.add_argument("--scene", type=Path, help="maem-sim scene folder (uses its cameras/, images/, "
-                   "dets/, gt.npz, scene.json)")
+    p.add_argument(
+        "--scene",
+        type=Path,
+        help="maem-sim scene folder (uses its cameras/, images/, dets/, gt.npz, scene.json)",
+    )
     p.add_argument("--frames-dir", type=Path, help="folder of <camera>/*.jpg|png image folders")
-    p.add_argument("--videos", type=Path, help="folder of one video per camera, "
-                   "<camera>.mp4|avi|mov|mkv (camera = name in --rig)")
-    p.add_argument("--rig", help="rig YAML, folder of MAEM camera JSONs, Qualisys .qca.txt, "
-                   "Pose2Sim Calib*.toml, or shipped rig name")
-    p.add_argument("--fps", type=float, help="frame rate for the stamps (frame k at start + k/fps; "
-                   "with --videos default: the videos' rate)")
-    p.add_argument("--jpeg-quality", type=int, default=DEFAULT_JPEG_QUALITY, metavar="Q",
-                   help=f"JPEG quality of --videos frames (default {DEFAULT_JPEG_QUALITY})")
+    p.add_argument(
+        "--videos",
+        type=Path,
+        help="folder of one video per camera, <camera>.mp4|avi|mov|mkv (camera = name in --rig)",
+    )
+    p.add_argument(
+        "--rig",
+        help="rig YAML, folder of MAEM camera JSONs, Qualisys .qca.txt, "
+        "Pose2Sim Calib*.toml, or shipped rig name",
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate for the stamps (frame k at start + k/fps; with --videos default: the videos' rate)",
+    )
+    p.add_argument(
+        "--jpeg-quality",
+        type=int,
+        default=DEFAULT_JPEG_QUALITY,
+        metavar="Q",
+        help=f"JPEG quality of --videos frames (default {DEFAULT_JPEG_QUALITY})",
+    )
     p.add_argument("--dets", type=Path, help="MAEM npz folder dets/<camera>/<frame>.npz")
     p.add_argument("--gt", type=Path, help="xrmocap keypoints3d gt.npz (row k = frame k)")
-    p.add_argument("--start-stamp", type=int, default=None, metavar="NS",
-                   help=f"stamp of frame 0 in ns (default {DEFAULT_START_NS})")
-    p.add_argument("--max-vertices", type=int, default=0, metavar="N",
-                   help="keep N evenly spaced mesh vertices per detection (default all)")
+    p.add_argument(
+        "--start-stamp",
+        type=int,
+        default=None,
+        metavar="NS",
+        help=f"stamp of frame 0 in ns (default {DEFAULT_START_NS})",
+    )
+    p.add_argument(
+        "--max-vertices",
+        type=int,
+        default=0,
+        metavar="N",
+        help="keep N evenly spaced mesh vertices per detection (default all)",
+    )
     p.add_argument("--compress", action="store_true", help="zstd MCAP chunk compression")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -409,31 +488,45 @@ def build_parser() -> argparse.ArgumentParser:
 def resolve_sources(a: argparse.Namespace, p: argparse.ArgumentParser, report: Report) -> Sources:
     if a.scene is not None:
         if a.frames_dir or a.videos or a.rig or a.fps or a.start_stamp is not None:
-            p.error("--scene takes frames, rig, fps and stamps from the scene folder; do not combine "
-                    "it with --frames-dir/--rig/--fps/--start-stamp")
+            p.error(
+                "--scene takes frames, rig, fps and stamps from the scene folder; do not combine "
+                "it with --frames-dir/--rig/--fps/--start-stamp"
+            )
         src = sources_from_scene(a.scene, report)
         src.dets_dir = a.dets or src.dets_dir
         src.gt_path = a.gt or src.gt_path
         return src
     from maem_ros.params import resolve_rig_path
+
     if a.fps is not None and not a.fps > 0:
         p.error(f"--fps: must be > 0, got {a.fps}")
     if a.videos is not None:
         if a.frames_dir or a.dets or a.gt:
-            p.error("--videos takes the images from the videos; do not combine it with "
-                    "--frames-dir/--dets/--gt")
+            p.error(
+                "--videos takes the images from the videos; do not combine it with --frames-dir/--dets/--gt"
+            )
         if not a.rig:
             p.error("--videos needs --rig (the calibration whose camera names the videos carry)")
         if not 1 <= a.jpeg_quality <= 100:
             p.error(f"--jpeg-quality: must be 1..100, got {a.jpeg_quality}")
-        return sources_from_videos(a.videos, str(resolve_rig_path(a.rig)), a.fps,
-                                   DEFAULT_START_NS if a.start_stamp is None else a.start_stamp,
-                                   report)
+        return sources_from_videos(
+            a.videos,
+            str(resolve_rig_path(a.rig)),
+            a.fps,
+            DEFAULT_START_NS if a.start_stamp is None else a.start_stamp,
+            report,
+        )
     if not (a.frames_dir and a.rig and a.fps):
         p.error("give --scene DIR, --videos DIR and --rig, or --frames-dir, --rig and --fps")
-    return sources_from_frames(a.frames_dir, str(resolve_rig_path(a.rig)), a.fps,
-                               DEFAULT_START_NS if a.start_stamp is None else a.start_stamp,
-                               a.dets, a.gt, report)
+    return sources_from_frames(
+        a.frames_dir,
+        str(resolve_rig_path(a.rig)),
+        a.fps,
+        DEFAULT_START_NS if a.start_stamp is None else a.start_stamp,
+        a.dets,
+        a.gt,
+        report,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -456,8 +549,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     for line in report.lines():
         print(f"maem-make-bag: {line}", file=sys.stderr)
     data_msgs = sum(n for t, n in w.counts.items() if t.endswith(("/compressed", "/detections")))
-    print(f"maem-make-bag: wrote {w.message_count} messages ({len(src.frames)} frames, "
-          f"{len([t for t in w.counts if t.endswith('/camera_info')])} cameras) to {str(a.out)!r}")
+    print(
+        f"maem-make-bag: wrote {w.message_count} messages ({len(src.frames)} frames, "
+        f"{len([t for t in w.counts if t.endswith('/camera_info')])} cameras) to {str(a.out)!r}"
+    )
     if data_msgs == 0:
         return fail("maem-make-bag", "no image or detection could be written", 1)
     return 0

@@ -12,6 +12,7 @@ and detection pairs, per-pair undistortion of the raw bbox centres and raw mesh 
 OpenCV, one DLT least-squares solve per pair, per-pair distance computation, per-pair SVD
 Procrustes, Hungarian, union-find, conflict removal, K_min.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -39,9 +40,18 @@ def ring_rig(num_cameras: int = 16) -> Rig:
         eye = np.array([24.0 * np.cos(phi), 17.0 * np.sin(phi), 7.0 + 0.3 * (k % 3)])
         R, t = look_at(eye, np.array([0.0, 0.0, 0.8]))
         K = np.array([[1000.0, 0.0, 959.5 + k % 5], [0.0, 1000.0, 539.5 - k % 4], [0.0, 0.0, 1.0]])
-        cams.append(Camera(name=f"camera_{k}", K=K, R=R, t=t, width=1920, height=1080,
-                           distortion_model="plumb_bob",
-                           D=np.array([-0.08 - 0.002 * (k % 4), 0.02, 0.0005, -0.0003, 0.0])))
+        cams.append(
+            Camera(
+                name=f"camera_{k}",
+                K=K,
+                R=R,
+                t=t,
+                width=1920,
+                height=1080,
+                distortion_model="plumb_bob",
+                D=np.array([-0.08 - 0.002 * (k % 4), 0.02, 0.0005, -0.0003, 0.0]),
+            )
+        )
     return Rig(cams)
 
 
@@ -50,6 +60,7 @@ def load_bench_rig(name: str) -> Rig:
     if name.startswith("ring") and name[4:].isdigit():
         return ring_rig(int(name[4:]))
     from maem_ros.sim.rigs import load_rig
+
     return load_rig(name)
 
 
@@ -74,18 +85,21 @@ class BenchFrame:
 # synthetic bodies
 # ---------------------------------------------------------------------------------------
 #: body parts as ellipsoids: centre (x, y, z) m, radii m (person faces +x, z up)
-_PARTS = np.array([
-    [0.0, 0.0, 1.65, 0.10, 0.09, 0.12],  # head
-    [0.0, 0.0, 1.20, 0.13, 0.20, 0.30],  # torso
-    [0.0, 0.28, 1.15, 0.06, 0.06, 0.33],  # left arm
-    [0.0, -0.28, 1.15, 0.06, 0.06, 0.33],  # right arm
-    [0.0, 0.10, 0.45, 0.08, 0.08, 0.45],  # left leg
-    [0.0, -0.10, 0.45, 0.08, 0.08, 0.45],  # right leg
-])
+_PARTS = np.array(
+    [
+        [0.0, 0.0, 1.65, 0.10, 0.09, 0.12],  # head
+        [0.0, 0.0, 1.20, 0.13, 0.20, 0.30],  # torso
+        [0.0, 0.28, 1.15, 0.06, 0.06, 0.33],  # left arm
+        [0.0, -0.28, 1.15, 0.06, 0.06, 0.33],  # right arm
+        [0.0, 0.10, 0.45, 0.08, 0.08, 0.45],  # left leg
+        [0.0, -0.10, 0.45, 0.08, 0.08, 0.45],  # right leg
+    ]
+)
 
 
-def body_template(num_vertices: int, num_joints: int, seed: int = 0
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def body_template(
+    num_vertices: int, num_joints: int, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(verts (V,3), joints (J,3), attach (V,) nearest joint of each vertex), metres.
 
     Vertices on the surface of six ellipsoids, joints inside the body; a fixed topology.
@@ -121,13 +135,13 @@ def _in_view(cam: Camera, X: np.ndarray, margin: float = 40.0) -> bool:
     return bool(np.all(np.isfinite(uv)) and np.all(uv >= margin) and np.all(uv <= hi))
 
 
-def _place(rig_cams: list[Camera], rng, taken: list[np.ndarray], min_sep: float = 1.0
-           ) -> np.ndarray:
+def _place(rig_cams: list[Camera], rng, taken: list[np.ndarray], min_sep: float = 1.0) -> np.ndarray:
     """A floor position (x, y, 0) whose body box is in view of every camera in rig_cams."""
     box = np.array([[dx, dy, z] for dx in (-0.3, 0.3) for dy in (-0.3, 0.3) for z in (0.0, 1.8)])
     for _ in range(10000):
-        p = np.array([rng.uniform(-COURT_HALF[0], COURT_HALF[0]),
-                      rng.uniform(-COURT_HALF[1], COURT_HALF[1]), 0.0])
+        p = np.array(
+            [rng.uniform(-COURT_HALF[0], COURT_HALF[0]), rng.uniform(-COURT_HALF[1], COURT_HALF[1]), 0.0]
+        )
         if any(np.linalg.norm(p - q) < min_sep for q in taken):
             continue
         if all(_in_view(c, box + p) for c in rig_cams):
@@ -136,8 +150,9 @@ def _place(rig_cams: list[Camera], rng, taken: list[np.ndarray], min_sep: float 
     raise ValueError("bench load: cannot place a person in view of the required cameras")
 
 
-def _detect(cam: Camera, verts: np.ndarray, joints: np.ndarray, rng, px_noise: float
-            ) -> tuple[np.ndarray, ...]:
+def _detect(
+    cam: Camera, verts: np.ndarray, joints: np.ndarray, rng, px_noise: float
+) -> tuple[np.ndarray, ...]:
     """One detection of a world-space body: raw bbox, rectified bbox, raw verts, rectified
     verts, rectified kpts2d, kpts3d (camera-relative, root-relative metres)."""
     raw_v = cam.project(verts) + rng.normal(0.0, px_noise, (len(verts), 2))
@@ -152,16 +167,30 @@ def _detect(cam: Camera, verts: np.ndarray, joints: np.ndarray, rng, px_noise: f
     return raw_box, rect_box, raw_v, rect_v, kp2d, kp3d
 
 
-def make_frame(rig: Rig, template, rng: np.random.Generator, players: int = 10, extras: int = 2,
-               px_noise: float = 0.5, stamp_ns: int = 0) -> BenchFrame:
+def make_frame(
+    rig: Rig,
+    template,
+    rng: np.random.Generator,
+    players: int = 10,
+    extras: int = 2,
+    px_noise: float = 0.5,
+    stamp_ns: int = 0,
+) -> BenchFrame:
     """One frame of the standard load (detection order within a camera is shuffled)."""
-    return _detect_people(rig, _people(rig, template, rng, players, extras), rng, px_noise,
-                          stamp_ns, players)
+    return _detect_people(rig, _people(rig, template, rng, players, extras), rng, px_noise, stamp_ns, players)
 
 
-def make_sequence(rig: Rig, template, rng: np.random.Generator, players: int = 10,
-                  extras: int = 2, frames: int = 30, fps: float = 30.0, px_noise: float = 0.5,
-                  speed: float = 1.5) -> list[BenchFrame]:
+def make_sequence(
+    rig: Rig,
+    template,
+    rng: np.random.Generator,
+    players: int = 10,
+    extras: int = 2,
+    frames: int = 30,
+    fps: float = 30.0,
+    px_noise: float = 0.5,
+    speed: float = 1.5,
+) -> list[BenchFrame]:
     """The standard load in motion: the same people (placed as in make_frame) walking at
     ``speed`` m/s in random directions for ``frames`` frames at ``fps`` (the temporal bench)."""
     people = _people(rig, template, rng, players, extras)
@@ -192,8 +221,9 @@ def _people(rig: Rig, template, rng: np.random.Generator, players: int, extras: 
     return people
 
 
-def _detect_people(rig: Rig, people: list, rng: np.random.Generator, px_noise: float,
-                   stamp_ns: int, players: int) -> BenchFrame:
+def _detect_people(
+    rig: Rig, people: list, rng: np.random.Generator, px_noise: float, stamp_ns: int, players: int
+) -> BenchFrame:
     """Every camera's detections of ``people`` (shuffled order) and the true player clusters."""
     truth: dict[int, set[tuple[int, int]]]
     frames, raw, truth = {}, {}, {k: set() for k in range(players)}
@@ -206,12 +236,20 @@ def _detect_people(rig: Rig, people: list, rng: np.random.Generator, px_noise: f
                 truth[seen[o]].add((c, d_idx))
         scores = rng.uniform(0.92, 1.0, len(dets))
         frames[cam.name] = FrameDetections(
-            cam.name, stamp_ns, np.array([d[1] for d in dets]), scores,
-            np.array([d[4] for d in dets]), np.array([d[5] for d in dets]),
-            np.array([d[3] for d in dets], dtype=np.float32))
-        raw[cam.name] = RawDetections(np.array([d[0] for d in dets]), scores,
-                                      np.array([d[2] for d in dets]),
-                                      np.array([d[5] for d in dets]))
+            cam.name,
+            stamp_ns,
+            np.array([d[1] for d in dets]),
+            scores,
+            np.array([d[4] for d in dets]),
+            np.array([d[5] for d in dets]),
+            np.array([d[3] for d in dets], dtype=np.float32),
+        )
+        raw[cam.name] = RawDetections(
+            np.array([d[0] for d in dets]),
+            scores,
+            np.array([d[2] for d in dets]),
+            np.array([d[5] for d in dets]),
+        )
     return BenchFrame(frames, raw, [frozenset(s) for s in truth.values()])
 
 
@@ -220,8 +258,7 @@ def _detect_people(rig: Rig, people: list, rng: np.random.Generator, px_noise: f
 # ---------------------------------------------------------------------------------------
 def _dlt_two(Pa: np.ndarray, Pb: np.ndarray, xa: np.ndarray, xb: np.ndarray) -> np.ndarray:
     """Inhomogeneous DLT of one point seen in two views (least squares, X4 = 1)."""
-    A = np.array([xa[0] * Pa[2] - Pa[0], xa[1] * Pa[2] - Pa[1],
-                  xb[0] * Pb[2] - Pb[0], xb[1] * Pb[2] - Pb[1]])
+    A = np.array([xa[0] * Pa[2] - Pa[0], xa[1] * Pa[2] - Pa[1], xb[0] * Pb[2] - Pb[0], xb[1] * Pb[2] - Pb[1]])
     return np.linalg.lstsq(A[:, :3], -A[:, 3], rcond=None)[0]
 
 
@@ -252,19 +289,20 @@ def pa_mpjpe_one(X: np.ndarray, Y: np.ndarray) -> float:
     U, S, Vt = np.linalg.svd(Yc.T @ Xc)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
     R = U @ D @ Vt
-    s = np.trace(np.diag(S) @ D) / np.sum(Xc ** 2)
+    s = np.trace(np.diag(S) @ D) / np.sum(Xc**2)
     return float(np.mean(np.linalg.norm(s * Xc @ R.T - Yc, axis=1)))
 
 
-def straightforward_associate(rig: Rig, raw: dict[str, RawDetections],
-                              params: AssociationParams) -> list[np.ndarray]:
+def straightforward_associate(
+    rig: Rig, raw: dict[str, RawDetections], params: AssociationParams
+) -> list[np.ndarray]:
     """Reference MAEM association; returns clusters as (M,2) (camera index, detection) arrays,
     sorted like core.association.pipeline.associate's."""
     names = [n for n in rig.names if n in raw]
     sub = None
     edges = []
     for ka, a in enumerate(names):
-        for b in names[ka + 1:]:
+        for b in names[ka + 1 :]:
             ca, cb, A, B = rig[a], rig[b], raw[a], raw[b]
             F = fundamental_matrix(ca, cb)
             ia = [i for i in range(len(A.scores)) if A.scores[i] >= params.tau_det]
@@ -281,8 +319,8 @@ def straightforward_associate(rig: Rig, raw: dict[str, RawDetections],
                         continue
                     if sub is None:
                         from maem_ros.core.detections import vertex_subset
-                        sub = vertex_subset(A.verts.shape[1], params.vertex_stride,
-                                            params.vertex_count)
+
+                        sub = vertex_subset(A.verts.shape[1], params.vertex_stride, params.vertex_count)
                         sub = np.arange(A.verts.shape[1]) if sub is None else sub
                     va = ca.undistort_points(A.verts[i][sub])
                     vb = cb.undistort_points(B.verts[j][sub])

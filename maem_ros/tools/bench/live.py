@@ -25,6 +25,7 @@ dropped/behind; ``accounting`` says whether every frame without poses was counte
 ``--keep-every-set`` turns it off. ``--runs`` / ``--stress``: tools/bench/live_runs.py. The
 report's figures: tools/bench/live_report.py.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -52,17 +53,26 @@ def _encode(fd, wire_layout: str, stride: int, count: int = 0) -> bytes:
     from rclpy.serialization import serialize_message
 
     from maem_ros.ros import wire
+
     if stride > 1 or count > 0:
         fd = fd.with_vertex_subset(stride, count)
     return bytes(serialize_message(wire.detections_to_msg(fd, wire_layout)))
 
 
-def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: int,
-                    wire_layout: str, stride: int, count: int = 0) -> list[tuple[int, bytes]]:
+def camera_messages(
+    camera: str,
+    params_file: Path,
+    bag: Path | None,
+    frames: int,
+    wire_layout: str,
+    stride: int,
+    count: int = 0,
+) -> list[tuple[int, bytes]]:
     """(stamp ns, serialized /<camera>/detections) per frame, in order."""
     if bag is not None:
         from maem_ros import bagio
         from maem_ros.ros import wire
+
         out: list[tuple[int, bytes]] = []
         for m in bagio.read_messages(bag, [f"/{camera}/detections"]):
             if len(out) >= frames:
@@ -73,9 +83,12 @@ def camera_messages(camera: str, params_file: Path, bag: Path | None, frames: in
             raise ValueError(f"bag {str(bag)!r}: no /{camera}/detections")
         return out
     from maem_ros.tools.bench.latency import make_scene
+
     scene = make_scene(params_file)
-    return [(scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride, count))
-            for f in range(min(frames, scene.num_frames))]
+    return [
+        (scene.stamp_ns(f), _encode(scene.detections(camera, f), wire_layout, stride, count))
+        for f in range(min(frames, scene.num_frames))
+    ]
 
 
 #: where the publishers keep their messages (KEY/CAM.pkl) for every run of this process: the
@@ -90,8 +103,17 @@ def messages_dir(a: argparse.Namespace) -> Path:
         _MESSAGES_DIR.append(Path(tempfile.mkdtemp(prefix="maem_live_messages_")))
         atexit.register(shutil.rmtree, _MESSAGES_DIR[0], ignore_errors=True)
     params = Path(a.params) if a.params else None
-    key = repr((params.read_text() if params and params.is_file() else str(params), a.frames,
-                a.vertices, a.wire, a.vertex_stride, a.vertex_count, str(a.bag)))
+    key = repr(
+        (
+            params.read_text() if params and params.is_file() else str(params),
+            a.frames,
+            a.vertices,
+            a.wire,
+            a.vertex_stride,
+            a.vertex_count,
+            str(a.bag),
+        )
+    )
     out = _MESSAGES_DIR[0] / hashlib.sha1(key.encode()).hexdigest()[:16]
     out.mkdir(exist_ok=True)
     return out
@@ -104,8 +126,9 @@ def _load_or_build(a: argparse.Namespace) -> list[tuple[int, bytes]]:
     if path.exists():
         loaded: list[tuple[int, bytes]] = pickle.loads(path.read_bytes())
         return loaded
-    msgs = camera_messages(a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride,
-                           a.vertex_count)
+    msgs = camera_messages(
+        a.publish, Path(a.params), a.bag, a.frames, a.wire, a.vertex_stride, a.vertex_count
+    )
     part = path.with_suffix(".part")
     with open(part, "wb") as fh:
         pickle.dump(msgs, fh)
@@ -147,8 +170,7 @@ def publish_main(a: argparse.Namespace) -> int:
     pub = node.create_publisher(PointCloud2, f"/{a.publish}/detections", DATA_QOS)
     try:
         deadline = time.monotonic() + 120
-        while (pub.get_subscription_count() == 0 and time.monotonic() < deadline
-               and not stop.is_set()):
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline and not stop.is_set():
             time.sleep(0.05)
         (work / f"{a.publish}.ready").write_text("ready")
         start = work / "start"
@@ -203,8 +225,10 @@ def _listener():
         with bg.lock:
             bg.poses.setdefault(pf.stamp_ns, (t, pf))
 
-    bg.subs = [bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS),
-               bg.node.create_subscription(PointCloud2, "/maem/clusters", on_clusters, DATA_QOS)]
+    bg.subs = [
+        bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS),
+        bg.node.create_subscription(PointCloud2, "/maem/clusters", on_clusters, DATA_QOS),
+    ]
     bg.watch_diagnostics()
     return bg.start()
 
@@ -215,15 +239,21 @@ def _unready(listener, cameras: Sequence[str]) -> list[str]:
     from maem_ros.ros.probe import fusion_links, unmatched_links
 
     ours = [] if listener.subs[0].get_publisher_count() else ["/maem/poses -> listener"]
-    return ours + unmatched_links(listener.diagnostics_snapshot(),
-                                  fusion_links(cameras, image_topic=None))
+    return ours + unmatched_links(listener.diagnostics_snapshot(), fusion_links(cameras, image_topic=None))
 
 
 def _ros_env(env: dict[str, str]) -> list[str]:
     """NAME=value of the variables the publishers need (``ip netns exec`` keeps the environment,
     spelled out so a sudo wrapper cannot drop them)."""
-    keys = ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_STATIC_PEERS",
-            "FASTRTPS_DEFAULT_PROFILES_FILE", "PYTHONUNBUFFERED", "OMP_NUM_THREADS", "PATH")
+    keys = (
+        "ROS_DOMAIN_ID",
+        "ROS_AUTOMATIC_DISCOVERY_RANGE",
+        "ROS_STATIC_PEERS",
+        "FASTRTPS_DEFAULT_PROFILES_FILE",
+        "PYTHONUNBUFFERED",
+        "OMP_NUM_THREADS",
+        "PATH",
+    )
     return [f"{k}={env[k]}" for k in keys if k in env]
 
 
@@ -252,21 +282,31 @@ def _write_live_params(a: argparse.Namespace, work: Path) -> tuple[Path, Any]:
     from maem_ros.ros.params import load_rig_param
     from maem_ros.tools.bench.latency import write_params
 
-    policy = {**({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
-              **({"keep_every_set": True} if a.keep_every_set else {}),
-              **({"catch_up": a.catch_up} if a.catch_up else {})}
+    policy = {
+        **({"max_backlog": a.max_backlog} if a.max_backlog is not None else {}),
+        **({"keep_every_set": True} if a.keep_every_set else {}),
+        **({"catch_up": a.catch_up} if a.catch_up else {}),
+    }
     assoc_over = {**({"max_wait": a.max_wait} if a.max_wait else {}), **policy} or None
-    params = write_params(a.params, work / "params.yaml",
-                          frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
-                          association=assoc_over, triangulation=policy or None)
+    params = write_params(
+        a.params,
+        work / "params.yaml",
+        frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
+        association=assoc_over,
+        triangulation=policy or None,
+    )
     if a.bag is not None:
         from maem_ros import bagio
+
         rig_yaml = bagio.read_rig_yaml(a.bag)
         if rig_yaml:
             (work / "rig.yaml").write_text(rig_yaml)
-            params = write_params(params, work / "params.yaml",
-                                  association={"rig": str(work / "rig.yaml")},
-                                  triangulation={"rig": str(work / "rig.yaml")})
+            params = write_params(
+                params,
+                work / "params.yaml",
+                association={"rig": str(work / "rig.yaml")},
+                triangulation={"rig": str(work / "rig.yaml")},
+            )
     return params, load_rig_param(load_node_params(params, "association").get("rig", ""))
 
 
@@ -292,8 +332,7 @@ class _Graph:
     hog: subprocess.Popen | None = None
 
 
-def _run_graph(a: argparse.Namespace, work: Path, params: Path, rig, env: dict[str, str]
-               ) -> Observed:
+def _run_graph(a: argparse.Namespace, work: Path, params: Path, rig, env: dict[str, str]) -> Observed:
     """Start the nodes and one publisher per camera, wait until every link matched, run the
     timed publication, stop everything."""
     from maem_ros.tools.processes import ProcessGroup
@@ -310,20 +349,34 @@ def _run_graph(a: argparse.Namespace, work: Path, params: Path, rig, env: dict[s
     return run
 
 
-def _start_graph(a: argparse.Namespace, group, work: Path, params: Path, rig,
-                 env: dict[str, str]) -> None:
+def _start_graph(a: argparse.Namespace, group, work: Path, params: Path, rig, env: dict[str, str]) -> None:
     from maem_ros.tools.processes import module_command, node_command
 
     for kind in ("association", "triangulation"):
         group.start(kind, node_command(kind, params))
     for cam in rig.names:
-        cmd = module_command("maem_ros.tools.bench.live", "--publish", cam, "--params", str(params),
-                             "--work", str(work), "--messages", str(messages_dir(a)),
-                             "--frames", str(a.frames), "--rate",
-                             f"{a.rate}", "--wire", a.wire, "--vertex-stride",
-                             str(a.vertex_stride), "--vertex-count", str(a.vertex_count))
-        cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile
-                                                            else [])
+        cmd = module_command(
+            "maem_ros.tools.bench.live",
+            "--publish",
+            cam,
+            "--params",
+            str(params),
+            "--work",
+            str(work),
+            "--messages",
+            str(messages_dir(a)),
+            "--frames",
+            str(a.frames),
+            "--rate",
+            f"{a.rate}",
+            "--wire",
+            a.wire,
+            "--vertex-stride",
+            str(a.vertex_stride),
+            "--vertex-count",
+            str(a.vertex_count),
+        )
+        cmd += (["--bag", str(a.bag)] if a.bag else []) + (["--no-profile"] if a.no_profile else [])
         if a.publisher_netns:  # the camera machines: another network namespace
             cmd = ["ip", "netns", "exec", a.publisher_netns, "env", *_ros_env(env), *cmd]
         group.start(f"publisher_{cam}", cmd)
@@ -336,16 +389,15 @@ def _wait_ready(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> None:
     deadline = time.monotonic() + a.startup_timeout
     while not all((work / f"{c}.ready").exists() for c in rig.names):
         if group.dead():
-            raise RuntimeError(f"process exited during start-up: {group.dead()}\n"
-                               f"{group.logs()}")
+            raise RuntimeError(f"process exited during start-up: {group.dead()}\n{group.logs()}")
         if time.monotonic() > deadline:
-            raise RuntimeError(f"publishers not ready after {a.startup_timeout:.0f} s\n"
-                               f"{group.logs()}")
+            raise RuntimeError(f"publishers not ready after {a.startup_timeout:.0f} s\n{group.logs()}")
         time.sleep(0.1)
     while unready := _unready(graph.listener, rig.names):
         if time.monotonic() > deadline:
-            raise RuntimeError(f"graph not matched after {a.startup_timeout:.0f} s: {unready}"
-                               f"\n{group.logs()}")
+            raise RuntimeError(
+                f"graph not matched after {a.startup_timeout:.0f} s: {unready}\n{group.logs()}"
+            )
         time.sleep(0.05)
 
 
@@ -367,8 +419,7 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
     (work / "start.tmp").write_text(repr(t0))
     (work / "start.tmp").rename(work / "start")  # atomic: a publisher never reads it half
     end = t0 + len(stamps) / a.rate
-    while time.time() < end + a.drain and not (time.time() > end and stamps[-1] in
-                                               listener.poses):
+    while time.time() < end + a.drain and not (time.time() > end and stamps[-1] in listener.poses):
         failed = {n: c for n, c in group.dead().items() if c != 0}
         if failed:
             raise RuntimeError(f"process failed during the run: {failed}\n{group.logs()}")
@@ -376,15 +427,29 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
     wall = time.time() - t0
     cpu1 = {p.name: p.cpu_seconds() for p in procs}
     time.sleep(1.2)  # one more /diagnostics period (the publishers' lateness files too)
-    late = [float(x) for c in rig.names if (work / f"{c}.late").exists()
-            for x in eval_list((work / f"{c}.late").read_text())]
+    late = [
+        float(x)
+        for c in rig.names
+        if (work / f"{c}.late").exists()
+        for x in eval_list((work / f"{c}.late").read_text())
+    ]
     with listener.lock:
         poses = dict(listener.poses)
         clusters = dict(listener.clusters)
         diags = dict(listener.diagnostics)
-    return Observed(stamps=stamps, messages=messages, t0=t0, wall=wall, cpu0=cpu0, cpu1=cpu1,
-                     poses=poses, diags=diags, hog_at=hog_at, clusters=clusters,
-                     publisher_late_s=late)
+    return Observed(
+        stamps=stamps,
+        messages=messages,
+        t0=t0,
+        wall=wall,
+        cpu0=cpu0,
+        cpu1=cpu1,
+        poses=poses,
+        diags=diags,
+        hog_at=hog_at,
+        clusters=clusters,
+        publisher_late_s=late,
+    )
 
 
 def eval_list(text: str) -> list[float]:
@@ -406,8 +471,7 @@ def _stop_graph(graph: _Graph) -> tuple[dict[str, int | None], Any]:
     forced = group.forced_exits()
     if failed_names := [n for n, c in codes.items() if c != 0]:
         # the work folder and its logs go when the run ends: say here why they failed
-        print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed_names)}",
-              file=sys.stderr)
+        print(f"maem-bench --live: exit codes {codes}\n{group.logs(names=failed_names)}", file=sys.stderr)
     if graph.listener is not None:
         graph.listener.close()
     if graph.hog is not None and graph.hog.poll() is None:
@@ -418,37 +482,64 @@ def _stop_graph(graph: _Graph) -> tuple[dict[str, int | None], Any]:
 def add_live_arguments(p: argparse.ArgumentParser) -> None:
     """The --live options of maem-bench (--frames, --wire, --vertices, --params are shared)."""
     g = p.add_argument_group("live benchmark (--live)")
-    g.add_argument("--live", action="store_true",
-                   help="publish detections at camera rate through the node graph (see above)")
-    g.add_argument("--bag", type=Path, default=None,
-                   help="--live: publish this bag's recorded /<cam>/detections")
+    g.add_argument(
+        "--live",
+        action="store_true",
+        help="publish detections at camera rate through the node graph (see above)",
+    )
+    g.add_argument(
+        "--bag", type=Path, default=None, help="--live: publish this bag's recorded /<cam>/detections"
+    )
     g.add_argument("--rate", type=float, default=30.0, help="--live: frames per second")
-    g.add_argument("--vertex-stride", type=int, default=1,
-                   help="--live: send every n-th vertex (announced subset)")
-    g.add_argument("--vertex-count", type=int, default=0,
-                   help="--live: send this many of those vertices, spread evenly (announced "
-                        "subset; 0 = all)")
+    g.add_argument(
+        "--vertex-stride", type=int, default=1, help="--live: send every n-th vertex (announced subset)"
+    )
+    g.add_argument(
+        "--vertex-count",
+        type=int,
+        default=0,
+        help="--live: send this many of those vertices, spread evenly (announced subset; 0 = all)",
+    )
     g.add_argument("--max-wait", type=float, default=None, help="--live: association max_wait, s")
-    g.add_argument("--max-backlog", type=float, default=None,
-                   help="--live: the nodes' max_backlog, s (skip frames that waited that long "
-                        "for the node; default: their automatic bound, 4 frame periods)")
-    g.add_argument("--catch-up", choices=("newest", "stale"), default=None,
-                   help="--live: the nodes' catch_up (what a node that fell behind skips; "
-                        "default: theirs, newest)")
-    g.add_argument("--keep-every-set", action="store_true",
-                   help="--live: the nodes process every frame however far behind (what a "
-                        "replay wanting every frame sets; the live default skips stale ones)")
+    g.add_argument(
+        "--max-backlog",
+        type=float,
+        default=None,
+        help="--live: the nodes' max_backlog, s (skip frames that waited that long "
+        "for the node; default: their automatic bound, 4 frame periods)",
+    )
+    g.add_argument(
+        "--catch-up",
+        choices=("newest", "stale"),
+        default=None,
+        help="--live: the nodes' catch_up (what a node that fell behind skips; default: theirs, newest)",
+    )
+    g.add_argument(
+        "--keep-every-set",
+        action="store_true",
+        help="--live: the nodes process every frame however far behind (what a "
+        "replay wanting every frame sets; the live default skips stale ones)",
+    )
     from maem_ros.tools.bench.live_runs import add_arguments as add_runs_arguments
+
     add_runs_arguments(g)
-    g.add_argument("--drain", type=float, default=3.0,
-                   help="--live: seconds to wait for the last poses")
-    g.add_argument("--startup-timeout", type=float, default=180.0,
-                   help="--live: seconds for publishers to build messages and match")
-    g.add_argument("--no-profile", action="store_true",
-                   help="--live: Fast DDS defaults instead of config/fastdds.xml")
-    g.add_argument("--publisher-netns", default=None, metavar="NS",
-                   help="--live: run the camera publishers in network namespace NS (ip netns; "
-                        "root), as separate machines (see scripts/netns_link.sh)")
+    g.add_argument("--drain", type=float, default=3.0, help="--live: seconds to wait for the last poses")
+    g.add_argument(
+        "--startup-timeout",
+        type=float,
+        default=180.0,
+        help="--live: seconds for publishers to build messages and match",
+    )
+    g.add_argument(
+        "--no-profile", action="store_true", help="--live: Fast DDS defaults instead of config/fastdds.xml"
+    )
+    g.add_argument(
+        "--publisher-netns",
+        default=None,
+        metavar="NS",
+        help="--live: run the camera publishers in network namespace NS (ip netns; "
+        "root), as separate machines (see scripts/netns_link.sh)",
+    )
 
 
 def check_live_arguments(a: argparse.Namespace) -> None:
@@ -463,6 +554,7 @@ def check_live_arguments(a: argparse.Namespace) -> None:
     if a.bag is not None and not Path(a.bag).exists():
         raise ValueError(f"--bag: {str(a.bag)!r} does not exist")
     from maem_ros.tools.bench.live_runs import check_arguments as check_runs_arguments
+
     check_runs_arguments(a)
 
 

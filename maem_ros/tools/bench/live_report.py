@@ -2,6 +2,7 @@
 scheduled publish time of the frame, ms), frames without poses, the nodes' /diagnostics (partial
 sets, drops, lag, stage times), CPU per process, and recall against ground truth, live and
 offline (the nodes' pipeline on the same messages in this process)."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,23 +18,27 @@ import numpy as np
 RECALL_MM = 500.0
 
 
-def ground_truth(params_file: Path, bag: Path | None, stamps: Sequence[int]
-                 ) -> dict[int, np.ndarray]:
+def ground_truth(params_file: Path, bag: Path | None, stamps: Sequence[int]) -> dict[int, np.ndarray]:
     """stamp -> (P,13,3) world m ground-truth players (sportcenter_13, NaN = masked joint)."""
     from maem_ros.core.skeleton import SPORTCENTER_13
+
     if bag is not None:
         from maem_ros.tools.demo.demo_bag import load_bag
+
         return dict(load_bag(bag).gt)
     from maem_ros.tools.bench.latency import make_scene
+
     scene = make_scene(params_file)
     frame = {scene.stamp_ns(f): f for f in range(scene.num_frames)}
-    return {s: SPORTCENTER_13.select(scene.gt_keypoints(frame[s])[scene.is_player])
-            for s in stamps if s in frame}
+    return {
+        s: SPORTCENTER_13.select(scene.gt_keypoints(frame[s])[scene.is_player]) for s in stamps if s in frame
+    }
 
 
 def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[int]) -> float:
     """Fraction of ground-truth players of ``stamps`` with a pose within RECALL_MM."""
     from maem_ros.tools.bench.latency import match_mpjpe
+
     hit = total = 0
     for s in stamps:
         want = gt.get(s)
@@ -45,8 +50,9 @@ def recall(poses: dict[int, Any], gt: dict[int, np.ndarray], stamps: Sequence[in
     return hit / total if total else float("nan")
 
 
-def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, bytes]]]
-                  ) -> dict[int, np.ndarray]:
+def offline_poses(
+    rig, params_file: Path, messages: dict[str, list[tuple[int, bytes]]]
+) -> dict[int, np.ndarray]:
     """The nodes' pipeline on the same messages in this process, every frame set complete
     (the reference recall): the association node's TemporalAssociator (track-assisted or the
     per-frame pipeline, as ``params_file`` says), triangulation, and the triangulation node's
@@ -62,14 +68,16 @@ def offline_poses(rig, params_file: Path, messages: dict[str, list[tuple[int, by
     assoc = load_node_params(params_file, "association")
     tri = {s.name: s.default for s in TRIANGULATION_PARAMS}
     tri.update(load_node_params(params_file, "triangulation"))
-    temporal = TemporalAssociator(rig, AssociationParams.from_mapping(assoc),
-                                  TemporalParams.from_mapping(assoc))
+    temporal = TemporalAssociator(
+        rig, AssociationParams.from_mapping(assoc), TemporalParams.from_mapping(assoc)
+    )
     tp = TriangulationParams.from_mapping(tri)
     by_stamp: dict[int, dict] = {}
     for cam, msgs in messages.items():
         for stamp, data in msgs:
             by_stamp.setdefault(stamp, {})[cam] = wire.msg_to_detections(
-                wire.cdr_to_cloud(data, f"/{cam}/detections"), f"/{cam}/detections")
+                wire.cdr_to_cloud(data, f"/{cam}/detections"), f"/{cam}/detections"
+            )
     out = {}
     for stamp, frames in sorted(by_stamp.items()):
         res = temporal.step(frames, stamp)
@@ -108,20 +116,25 @@ class Observed:
 _OFFLINE_RECALL: dict[tuple, float] = {}
 
 
-def _offline_recall(a: argparse.Namespace, params: Path, rig,
-                    messages: dict[str, list[tuple[int, bytes]]], gt, stamps: Sequence[int]
-                    ) -> float:
+def _offline_recall(
+    a: argparse.Namespace,
+    params: Path,
+    rig,
+    messages: dict[str, list[tuple[int, bytes]]],
+    gt,
+    stamps: Sequence[int],
+) -> float:
     """recall() of offline_poses() on ``messages``, cached by the params file's text, the
     layout options, the bag and the stamps."""
-    key = (params.read_text(), a.wire, a.vertex_stride, a.vertex_count, str(a.bag),
-           tuple(stamps))
+    key = (params.read_text(), a.wire, a.vertex_stride, a.vertex_count, str(a.bag), tuple(stamps))
     if key not in _OFFLINE_RECALL:
         _OFFLINE_RECALL[key] = recall(offline_poses(rig, params, messages), gt, stamps)
     return _OFFLINE_RECALL[key]
 
 
-def live_report(a: argparse.Namespace, params: Path, rig, profile: str | None,
-                 run: Observed) -> dict[str, Any]:
+def live_report(
+    a: argparse.Namespace, params: Path, rig, profile: str | None, run: Observed
+) -> dict[str, Any]:
     """The run's figures (the JSON maem-bench --live prints)."""
     from maem_ros.core.skeleton import SPORTCENTER_13, convert
     from maem_ros.ros.process import DDS_PROFILE_VARS
@@ -131,15 +144,22 @@ def live_report(a: argparse.Namespace, params: Path, rig, profile: str | None,
     gt = ground_truth(params, a.bag, stamps)
     live = {s: convert(p.joints, SPORTCENTER_13) for s, (_, p) in poses.items()}
     assoc: dict[str, str] = next(
-        (kv for n, kv in run.diags.items() if n.strip("/").endswith("association")), {})
+        (kv for n, kv in run.diags.items() if n.strip("/").endswith("association")), {}
+    )
     tri: dict[str, str] = next(
-        (kv for n, kv in run.diags.items() if n.strip("/").endswith("triangulation")), {})
+        (kv for n, kv in run.diags.items() if n.strip("/").endswith("triangulation")), {}
+    )
     size = np.median([len(d) for m in messages.values() for _, d in m])
-    received = sum(int(v) for k, v in assoc.items()
-                   if k.startswith("received/") and k.endswith("/detections"))
+    received = sum(
+        int(v) for k, v in assoc.items() if k.startswith("received/") and k.endswith("/detections")
+    )
     report = {
-        "cameras": len(rig), "frames_published": len(stamps), "rate_hz": a.rate,
-        "wire": a.wire, "vertex_stride": a.vertex_stride, "vertex_count": a.vertex_count,
+        "cameras": len(rig),
+        "frames_published": len(stamps),
+        "rate_hz": a.rate,
+        "wire": a.wire,
+        "vertex_stride": a.vertex_stride,
+        "vertex_count": a.vertex_count,
         "max_backlog_s": a.max_backlog or 0.0,  # 0: the nodes' automatic bound
         "keep_every_set": bool(a.keep_every_set),
         "catch_up": a.catch_up or "newest",
@@ -156,12 +176,10 @@ def live_report(a: argparse.Namespace, params: Path, rig, profile: str | None,
         **node_figures(assoc, tri, run, len(rig)),
         "recall_live": recall(live, gt, stamps),
         "recall_offline": _offline_recall(a, params, rig, messages, gt, stamps),
-        "cpu_percent": {n: round(100 * (run.cpu1[n] - run.cpu0[n]) / run.wall, 1)
-                        for n in run.cpu0},
+        "cpu_percent": {n: round(100 * (run.cpu1[n] - run.cpu0[n]) / run.wall, 1) for n in run.cpu0},
         # CPU time per published frame: what a process needs of one core at this rate (< 1000 /
         # rate ms to keep up), less dependent on what else loads the machine than the latency
-        "cpu_ms_per_frame": {n: round(1e3 * (run.cpu1[n] - run.cpu0[n]) / len(stamps), 2)
-                             for n in run.cpu0},
+        "cpu_ms_per_frame": {n: round(1e3 * (run.cpu1[n] - run.cpu0[n]) / len(stamps), 2) for n in run.cpu0},
         "exit_codes": run.codes,
         # processes whose shutdown watchdog ended a stalled teardown (exit code 0; 1 from its
         # backstop when the stall held the GIL)
@@ -169,8 +187,9 @@ def live_report(a: argparse.Namespace, params: Path, rig, profile: str | None,
     }
     if a.stress:
         assert run.hog_at is not None  # started with --stress
-        report["stress"] = stress_figures(report["latency_ms_by_frame"], a.rate,
-                                          run.hog_at[0] - run.t0, run.hog_at[1] - run.t0)
+        report["stress"] = stress_figures(
+            report["latency_ms_by_frame"], a.rate, run.hog_at[0] - run.t0, run.hog_at[1] - run.t0
+        )
     return report
 
 
@@ -186,24 +205,29 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
         "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
         "latency_ms_max": float(lat.max()) if len(lat) else None,
         # where the tail is: (frame index, ms) of the five slowest frames
-        "slowest_frames": [(f, round(ms, 1)) for f, ms in
-                           sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]],
+        "slowest_frames": [
+            (f, round(ms, 1)) for f, ms in sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]
+        ],
         # every frame's latency in publish order (None: no poses): where a stall starts and
         # whether the node recovers from it
-        "latency_ms_by_frame": [round(lat_by_frame[f], 1) if f in lat_by_frame else None
-                                for f in range(len(stamps))],
+        "latency_ms_by_frame": [
+            round(lat_by_frame[f], 1) if f in lat_by_frame else None for f in range(len(stamps))
+        ],
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
         # where the latency is: publish -> /maem/clusters (the association's hop) and
         # /maem/clusters -> /maem/poses (triangulation's), medians over frames with poses
-        "association_hop_ms_median": _median_ms([run.clusters[s] - sent[s] for s in stamps
-                                                 if s in run.clusters]),
-        "triangulation_hop_ms_median": _median_ms([poses[s][0] - run.clusters[s] for s in stamps
-                                                   if s in poses and s in run.clusters]),
+        "association_hop_ms_median": _median_ms(
+            [run.clusters[s] - sent[s] for s in stamps if s in run.clusters]
+        ),
+        "triangulation_hop_ms_median": _median_ms(
+            [poses[s][0] - run.clusters[s] for s in stamps if s in poses and s in run.clusters]
+        ),
         # how late the camera publishers sent (their publish returned after the schedule): a
         # machine too loaded for its publishers delays every frame before any node sees it
         "publisher_late_ms_median": _median_ms(run.publisher_late_s),
-        "publisher_late_ms_p99": (round(float(np.percentile(run.publisher_late_s, 99)) * 1e3, 1)
-                                  if run.publisher_late_s else None),
+        "publisher_late_ms_p99": (
+            round(float(np.percentile(run.publisher_late_s, 99)) * 1e3, 1) if run.publisher_late_s else None
+        ),
     }
 
 
@@ -211,8 +235,7 @@ def _median_ms(seconds: list[float]) -> float | None:
     return round(float(np.median(seconds)) * 1e3, 1) if seconds else None
 
 
-def node_figures(assoc: dict[str, str], tri: dict[str, str], run: Observed,
-                  cameras: int) -> dict[str, Any]:
+def node_figures(assoc: dict[str, str], tri: dict[str, str], run: Observed, cameras: int) -> dict[str, Any]:
     """What the nodes' /diagnostics say: partial sets, drops, lag, stage times (ms)."""
     from maem_ros.tools.bench.live_runs import accounting
 
@@ -221,13 +244,13 @@ def node_figures(assoc: dict[str, str], tri: dict[str, str], run: Observed,
         "partial_sets": int(float(assoc.get("count/sync_partial_sets", 0))),
         # where they happen: frames whose best-seen person has fewer views than the run's best
         "frames_with_fewer_views": _fewer_views(poses, stamps),
-        "missing_camera_counts": {k.split("/", 1)[1]: int(v) for k, v in assoc.items()
-                                  if k.startswith("missing/")},
+        "missing_camera_counts": {
+            k.split("/", 1)[1]: int(v) for k, v in assoc.items() if k.startswith("missing/")
+        },
         "association_dropped": {k: v for k, v in assoc.items() if k.startswith("dropped/")},
         "triangulation_dropped": {k: v for k, v in tri.items() if k.startswith("dropped/")},
         # every frame without poses counted by a node? (live_runs.accounting)
-        "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)),
-                                 cameras, assoc, tri),
+        "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)), cameras, assoc, tri),
         # the longest time a node was behind (skipping, or working on stale frames), s
         "behind_longest_s": max(float(kv.get("behind/longest_s", 0)) for kv in (assoc, tri)),
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
@@ -240,8 +263,11 @@ def node_figures(assoc: dict[str, str], tri: dict[str, str], run: Observed,
 
 def _stage_medians(diagnostics: dict[str, str], stat: str = "median") -> dict[str, float]:
     """stage -> ms from a node's /diagnostics (``time_ms/<stage>/<stat>``, median or p99)."""
-    return {k.split("/")[1]: float(v) for k, v in diagnostics.items()
-            if k.startswith("time_ms/") and k.endswith(f"/{stat}")}
+    return {
+        k.split("/")[1]: float(v)
+        for k, v in diagnostics.items()
+        if k.startswith("time_ms/") and k.endswith(f"/{stat}")
+    }
 
 
 def _fewer_views(poses: dict[int, Any], stamps: Sequence[int]) -> list[int]:

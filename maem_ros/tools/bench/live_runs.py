@@ -13,6 +13,7 @@ in the middle of each run and reports the latency during it and how long after i
 latency takes to come back (:func:`stress_figures`), and whether every frame without poses is
 counted by a node (:func:`accounting`).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,8 +32,12 @@ RECOVERY_WINDOW_S = 0.5
 #: a run with --stress needs this much time after the hog to measure the recovery (s)
 AFTER_HOG_S = 3.0
 #: the issue's targets by rate: 60 fps (worst run) and 30 fps
-TARGETS_60 = {"latency_ms_median": 40.0, "latency_ms_p99": 100.0,
-              "frames_without_poses_pct": 1.0, "recall_shortfall": 0.01}
+TARGETS_60 = {
+    "latency_ms_median": 40.0,
+    "latency_ms_p99": 100.0,
+    "frames_without_poses_pct": 1.0,
+    "recall_shortfall": 0.01,
+}
 TARGETS_30 = {"latency_ms_p99": 33.0, "frames_without_poses_pct": 0.0}
 #: figures where a higher value is worse (the rest: lower is worse)
 _LOWER_IS_WORSE = ("recall_live",)
@@ -59,10 +64,22 @@ def hog_main(a: argparse.Namespace) -> int:
 
 def start_hog(start_at: float, seconds: float, cpu: int = 0) -> subprocess.Popen:
     """The hog process, waiting for ``start_at`` (epoch s)."""
-    return subprocess.Popen([sys.executable, "-m", "maem_ros.tools.bench.live_runs", "--hog",
-                             "--start-at", repr(start_at), "--seconds", repr(seconds),
-                             "--cpu", str(cpu)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "maem_ros.tools.bench.live_runs",
+            "--hog",
+            "--start-at",
+            repr(start_at),
+            "--seconds",
+            repr(seconds),
+            "--cpu",
+            str(cpu),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
 
 
 def hog_window(t0: float, frames: int, rate: float, seconds: float) -> tuple[float, float]:
@@ -76,8 +93,9 @@ def hog_window(t0: float, frames: int, rate: float, seconds: float) -> tuple[flo
 # ---------------------------------------------------------------------------------------------
 # figures of one run
 # ---------------------------------------------------------------------------------------------
-def stress_figures(latency_by_frame: Sequence[float | None], rate: float, hog_start_s: float,
-                   hog_end_s: float) -> dict[str, Any]:
+def stress_figures(
+    latency_by_frame: Sequence[float | None], rate: float, hog_start_s: float, hog_end_s: float
+) -> dict[str, Any]:
     """Latency during the hog and the recovery after it; times relative to the first frame's
     publishing (s). ``recovery_s``: from the hog's end until the first moment t from which the
     frames published in [t, t + RECOVERY_WINDOW_S] have a median latency under RECOVERED_MS
@@ -100,7 +118,8 @@ def stress_figures(latency_by_frame: Sequence[float | None], rate: float, hog_st
             break
     after = window(hog_end_s + 1.0, hog_end_s + 2.0)
     return {
-        "hog_start_s": round(hog_start_s, 3), "hog_end_s": round(hog_end_s, 3),
+        "hog_start_s": round(hog_start_s, 3),
+        "hog_end_s": round(hog_end_s, 3),
         "latency_ms_median_during": _nanpct(during, 50),
         "latency_ms_p99_during": _nanpct(during, 99),
         "frames_without_poses_during": int(np.isnan(during).sum()),
@@ -117,8 +136,9 @@ def _nanpct(x, q: float) -> float | None:
     return round(float(np.percentile(x, q)), 1) if len(x) else None
 
 
-def accounting(frames_published: int, frames_without_poses: int, cameras: int,
-               assoc: dict[str, str], tri: dict[str, str]) -> dict[str, int]:
+def accounting(
+    frames_published: int, frames_without_poses: int, cameras: int, assoc: dict[str, str], tri: dict[str, str]
+) -> dict[str, int]:
     """Whether every frame without poses is counted by a node (``assoc`` / ``tri``: the
     nodes' last /diagnostics values): ``no_set`` frames the association made no frame set of,
     of which ``no_set_counted`` have their messages counted (the association's per-message
@@ -128,33 +148,55 @@ def accounting(frames_published: int, frames_without_poses: int, cameras: int,
     is counted; all of them when the association's /diagnostics never came)."""
     sets = int(float(assoc.get("count/sync_sets", 0)))
     no_set = max(0, frames_published - sets)
-    message_drops = sum(int(float(v)) for k, v in assoc.items()
-                        if k == "dropped/dds_lost" or k.startswith("dropped/sync_"))
+    message_drops = sum(
+        int(float(v)) for k, v in assoc.items() if k == "dropped/dds_lost" or k.startswith("dropped/sync_")
+    )
     no_set_counted = min(no_set, message_drops // max(cameras, 1))
     behind_a = int(float(assoc.get("dropped/behind", 0)))
     behind_t = int(float(tri.get("dropped/behind", 0)))
     set_level = ("association_error", "internal_error")
-    other = sum(int(float(assoc.get(f"dropped/{r}", 0))) for r in set_level) + \
-        int(float(tri.get("frames_dropped", 0))) - behind_t
+    other = (
+        sum(int(float(assoc.get(f"dropped/{r}", 0))) for r in set_level)
+        + int(float(tri.get("frames_dropped", 0)))
+        - behind_t
+    )
     explained = no_set_counted + behind_a + behind_t + other
-    return {"frames_without_poses": frames_without_poses, "no_set": no_set,
-            "no_set_counted": no_set_counted, "skipped_association": behind_a,
-            "skipped_triangulation": behind_t, "other_drops": other,
-            "unaccounted": max(0, frames_without_poses - explained)}
+    return {
+        "frames_without_poses": frames_without_poses,
+        "no_set": no_set,
+        "no_set_counted": no_set_counted,
+        "skipped_association": behind_a,
+        "skipped_triangulation": behind_t,
+        "other_drops": other,
+        "unaccounted": max(0, frames_without_poses - explained),
+    }
 
 
 def summary(report: dict[str, Any]) -> dict[str, Any]:
     """The figures of one run that --runs compares."""
     n = report["frames_published"]
-    out = {k: report[k] for k in ("latency_ms_median", "latency_ms_p99", "latency_ms_max",
-                                  "frames_without_poses", "partial_sets", "recall_live",
-                                  "recall_offline", "association_hop_ms_median",
-                                  "triangulation_hop_ms_median", "publisher_late_ms_median",
-                                  "publisher_late_ms_p99", "load_average_1min")}
+    out = {
+        k: report[k]
+        for k in (
+            "latency_ms_median",
+            "latency_ms_p99",
+            "latency_ms_max",
+            "frames_without_poses",
+            "partial_sets",
+            "recall_live",
+            "recall_offline",
+            "association_hop_ms_median",
+            "triangulation_hop_ms_median",
+            "publisher_late_ms_median",
+            "publisher_late_ms_p99",
+            "load_average_1min",
+        )
+    }
     out["frames_without_poses_pct"] = round(100.0 * report["frames_without_poses"] / max(n, 1), 2)
     out["recall_shortfall"] = round(report["recall_offline"] - report["recall_live"], 4)
-    out["dropped_behind"] = report["accounting"]["skipped_association"] + \
-        report["accounting"]["skipped_triangulation"]
+    out["dropped_behind"] = (
+        report["accounting"]["skipped_association"] + report["accounting"]["skipped_triangulation"]
+    )
     out["unaccounted"] = report["accounting"]["unaccounted"]
     out["behind_longest_s"] = report["behind_longest_s"]
     if "stress" in report:
@@ -182,16 +224,19 @@ def aggregate(summaries: list[dict[str, Any]], rate: float) -> dict[str, Any]:
         median[k] = statistics.median(values)
         worst[k] = min(values) if k in _LOWER_IS_WORSE else max(values)
     targets = TARGETS_60 if rate >= 59 else TARGETS_30
-    met = {k: {"target": v, "worst": worst.get(k),
-               "met": worst.get(k) is not None and worst[k] <= v} for k, v in targets.items()}
+    met = {
+        k: {"target": v, "worst": worst.get(k), "met": worst.get(k) is not None and worst[k] <= v}
+        for k, v in targets.items()
+    }
     if "stress_recovery_s" in worst:
         w = worst["stress_recovery_s"]
         met["stress_recovery_s"] = {"target": 1.0, "worst": w, "met": w is not None and w <= 1.0}
     return {"runs": len(summaries), "median": median, "worst": worst, "targets": met}
 
 
-def run_repeated(a: argparse.Namespace,
-                 run_live: Callable[[argparse.Namespace], dict[str, Any]]) -> dict[str, Any]:
+def run_repeated(
+    a: argparse.Namespace, run_live: Callable[[argparse.Namespace], dict[str, Any]]
+) -> dict[str, Any]:
     """``a.runs`` live runs (``run_live``: tools/bench/live.run_live) one after the other: each run's
     summary, the median, the worst (with a single run: that run's full report, with its
     summary)."""
@@ -201,28 +246,54 @@ def run_repeated(a: argparse.Namespace,
         r["summary"] = summary(r)
         reports.append(r)
         if a.runs > 1:
-            print(f"maem-bench --live: run {k + 1}/{a.runs}: " + ", ".join(
-                f"{n} {v}" for n, v in r["summary"].items()), file=sys.stderr, flush=True)
+            print(
+                f"maem-bench --live: run {k + 1}/{a.runs}: "
+                + ", ".join(f"{n} {v}" for n, v in r["summary"].items()),
+                file=sys.stderr,
+                flush=True,
+            )
     if a.runs == 1:
         return reports[0]
-    out = {"settings": {k: reports[0][k] for k in ("cameras", "frames_published", "rate_hz",
-                                                    "wire", "vertex_stride", "vertex_count",
-                                                    "max_backlog_s", "keep_every_set",
-                                                    "catch_up",
-                                                    "message_mb", "dds_profile")},
-           "stress_s": a.stress or 0.0,
-           **aggregate([r["summary"] for r in reports], a.rate),
-           "per_run": [r["summary"] for r in reports]}
+    out = {
+        "settings": {
+            k: reports[0][k]
+            for k in (
+                "cameras",
+                "frames_published",
+                "rate_hz",
+                "wire",
+                "vertex_stride",
+                "vertex_count",
+                "max_backlog_s",
+                "keep_every_set",
+                "catch_up",
+                "message_mb",
+                "dds_profile",
+            )
+        },
+        "stress_s": a.stress or 0.0,
+        **aggregate([r["summary"] for r in reports], a.rate),
+        "per_run": [r["summary"] for r in reports],
+    }
     return out
 
 
 def add_arguments(g: argparse._ArgumentGroup) -> None:
-    g.add_argument("--runs", type=int, default=1,
-                   help="--live: repeat the run N times; report each run, the median and the "
-                        "worst (default 1: the run's full report)")
-    g.add_argument("--stress", type=float, default=0.0, metavar="S",
-                   help="--live: a CPU hog on CPU 0 for S s in the middle of each run; report "
-                        "the latency during it and how long it takes to come back")
+    g.add_argument(
+        "--runs",
+        type=int,
+        default=1,
+        help="--live: repeat the run N times; report each run, the median and the "
+        "worst (default 1: the run's full report)",
+    )
+    g.add_argument(
+        "--stress",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="--live: a CPU hog on CPU 0 for S s in the middle of each run; report "
+        "the latency during it and how long it takes to come back",
+    )
 
 
 def check_arguments(a: argparse.Namespace) -> None:
@@ -231,9 +302,11 @@ def check_arguments(a: argparse.Namespace) -> None:
     if a.stress < 0:
         raise ValueError(f"--stress: must be >= 0, got {a.stress}")
     if a.stress and a.frames / a.rate < a.stress + AFTER_HOG_S + 1.0:
-        raise ValueError(f"--stress {a.stress:g}: the run ({a.frames} frames at {a.rate:g} fps "
-                         f"= {a.frames / a.rate:.1f} s) must last at least {AFTER_HOG_S:g} s "
-                         f"beyond the hog plus 1 s before it; give more --frames")
+        raise ValueError(
+            f"--stress {a.stress:g}: the run ({a.frames} frames at {a.rate:g} fps "
+            f"= {a.frames / a.rate:.1f} s) must last at least {AFTER_HOG_S:g} s "
+            f"beyond the hog plus 1 s before it; give more --frames"
+        )
 
 
 def _hog_parser() -> argparse.ArgumentParser:

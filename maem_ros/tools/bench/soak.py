@@ -15,6 +15,7 @@ be received or counted lost (``dropped/dds_lost``) by the next, and what a node 
 processed or dropped under a reason. ``unexplained`` is the sum of those imbalances (0 = every
 frame that did not produce poses is accounted for). A soak is a tool, not a test.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -54,8 +55,9 @@ def _n(d: Mapping[str, str], key: str) -> int:
     return int(float(d.get(key, "0")))
 
 
-def balance(diags: Mapping[str, Mapping[str, str]], cameras: Sequence[str], images_sent: int,
-            poses_received: int) -> dict[str, int]:
+def balance(
+    diags: Mapping[str, Mapping[str, str]], cameras: Sequence[str], images_sent: int, poses_received: int
+) -> dict[str, int]:
     """Per edge / node: messages neither delivered nor counted (0 everywhere = all explained).
 
     images -> frontend: sent = received + dds_lost; frontend: received = processed + dropped
@@ -72,8 +74,12 @@ def balance(diags: Mapping[str, Mapping[str, str]], cameras: Sequence[str], imag
         topic = f"{c}/image_raw"
         lost = _n(fe, "dropped/dds_lost")
         out[f"images->{c}"] = images_sent - _n(fe, f"received/{topic}") - lost
-        out[f"frontend {c}"] = (_n(fe, f"received/{topic}") - _n(fe, "frames_processed")
-                                - (_n(fe, "frames_dropped") - lost) - _n(fe, "count/skipped_max_rate"))
+        out[f"frontend {c}"] = (
+            _n(fe, f"received/{topic}")
+            - _n(fe, "frames_processed")
+            - (_n(fe, "frames_dropped") - lost)
+            - _n(fe, "count/skipped_max_rate")
+        )
         detections += _n(fe, "frames_processed")
     received = sum(_n(assoc, f"received/{c}/detections") for c in cameras)
     assoc_lost = _n(assoc, "dropped/dds_lost")
@@ -81,19 +87,35 @@ def balance(diags: Mapping[str, Mapping[str, str]], cameras: Sequence[str], imag
     per_set = ("dropped/association_error", "dropped/internal_error")
     set_drops = sum(_n(assoc, k) for k in per_set)
     msg_drops = _n(assoc, "frames_dropped") - assoc_lost - set_drops
-    out["association"] = (received - len(cameras) * _n(assoc, "count/sync_sets")
-                          + sum(_n(assoc, f"missing/{c}") for c in cameras) - msg_drops)
+    out["association"] = (
+        received
+        - len(cameras) * _n(assoc, "count/sync_sets")
+        + sum(_n(assoc, f"missing/{c}") for c in cameras)
+        - msg_drops
+    )
     tri_lost = _n(tri, "dropped/dds_lost")
-    out["association->triangulation"] = (_n(assoc, "frames_processed")
-                                         - _n(tri, "received/maem/clusters") - tri_lost)
-    out["triangulation"] = (_n(tri, "received/maem/clusters") - _n(tri, "frames_processed")
-                            - (_n(tri, "frames_dropped") - tri_lost))
+    out["association->triangulation"] = (
+        _n(assoc, "frames_processed") - _n(tri, "received/maem/clusters") - tri_lost
+    )
+    out["triangulation"] = (
+        _n(tri, "received/maem/clusters")
+        - _n(tri, "frames_processed")
+        - (_n(tri, "frames_dropped") - tri_lost)
+    )
     out["triangulation->poses"] = _n(tri, "frames_processed") - poses_received
     return out
 
 
-def run(params_file: Path, minutes: float, rate_hz: float, log_dir: Path, sample_s: float,
-        warmup_s: float, faults: Faults, startup_timeout: float = 180.0) -> dict[str, Any]:
+def run(
+    params_file: Path,
+    minutes: float,
+    rate_hz: float,
+    log_dir: Path,
+    sample_s: float,
+    warmup_s: float,
+    faults: Faults,
+    startup_timeout: float = 180.0,
+) -> dict[str, Any]:
     rig = load_rig_param(load_node_params(params_file, "association").get("rig", ""))
     scene = make_scene(params_file)
     frames = min(scene.num_frames, int(round(minutes * 60 * rate_hz)))
@@ -106,8 +128,9 @@ def run(params_file: Path, minutes: float, rate_hz: float, log_dir: Path, sample
     samples: list[tuple[float, dict[str, float]]] = []
     try:
         if not client.wait_ready(startup_timeout, alive=lambda: not graph.dead()):
-            raise RuntimeError(f"graph not ready (dead: {graph.dead()}; not matched: "
-                               f"{client.unready()})\n{graph.logs()}")
+            raise RuntimeError(
+                f"graph not ready (dead: {graph.dead()}; not matched: {client.unready()})\n{graph.logs()}"
+            )
         stamps = [scene.stamp_ns(f) for f in range(frames)]
         t0 = next_sample = time.perf_counter()
         for offset, stamp, cams in faults.schedule(stamps, rig.names, rate_hz):
@@ -120,8 +143,7 @@ def run(params_file: Path, minutes: float, rate_hz: float, log_dir: Path, sample
             client.publish_frame(stamp, cams)
             if graph.dead():
                 raise RuntimeError(f"nodes died during the soak: {graph.dead()}\n{graph.logs()}")
-        samples.append((time.perf_counter() - t0, {p.name: rss_mb(p.popen.pid)
-                                                   for p in graph.procs}))
+        samples.append((time.perf_counter() - t0, {p.name: rss_mb(p.popen.pid) for p in graph.procs}))
         time.sleep(3.0)  # drain, then two more diagnostics periods
         time.sleep(2.5)
     finally:
@@ -132,16 +154,28 @@ def run(params_file: Path, minutes: float, rate_hz: float, log_dir: Path, sample
     valid = set(stamps)
     start = next((s for t, s in samples if t >= warmup_s), samples[0][1])
     end = samples[-1][1]
-    memory = {n: {"start_mb": round(start[n], 1), "end_mb": round(end[n], 1),
-                  "growth_percent": round(100 * (end[n] - start[n]) / start[n], 2)}
-              for n in sorted(end)}
-    drops = {n: {k: v for k, v in d.items() if k.startswith("dropped/")}
-             for n, d in sorted(diags.items())}
+    memory = {
+        n: {
+            "start_mb": round(start[n], 1),
+            "end_mb": round(end[n], 1),
+            "growth_percent": round(100 * (end[n] - start[n]) / start[n], 2),
+        }
+        for n in sorted(end)
+    }
+    drops = {n: {k: v for k, v in d.items() if k.startswith("dropped/")} for n, d in sorted(diags.items())}
     bal = balance(diags, rig.names, frames, sum(s in poses for s in valid))
-    return {"minutes": round(samples[-1][0] / 60, 2), "rate_hz": rate_hz, "cameras": len(rig.names),
-            "frames_published": frames, "frames_with_poses": sum(s in poses for s in valid),
-            "rss": memory, "drops": drops, "balance": bal,
-            "unexplained": int(sum(abs(v) for v in bal.values())), "exit_codes": codes}
+    return {
+        "minutes": round(samples[-1][0] / 60, 2),
+        "rate_hz": rate_hz,
+        "cameras": len(rig.names),
+        "frames_published": frames,
+        "frames_with_poses": sum(s in poses for s in valid),
+        "rss": memory,
+        "drops": drops,
+        "balance": bal,
+        "unexplained": int(sum(abs(v) for v in bal.values())),
+        "exit_codes": codes,
+    }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -149,11 +183,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     add_params_argument(ap, "demo.yaml")
     ap.add_argument("--minutes", type=float, default=10.0, help="soak duration (default 10)")
     ap.add_argument("--rate", type=float, default=10.0, help="frames per second (default 10)")
-    ap.add_argument("--num-vertices", type=int, default=300,
-                    help="mesh vertices per person of the synthetic frontends (default 300)")
+    ap.add_argument(
+        "--num-vertices",
+        type=int,
+        default=300,
+        help="mesh vertices per person of the synthetic frontends (default 300)",
+    )
     ap.add_argument("--sample", type=float, default=10.0, help="RSS sample period, s")
-    ap.add_argument("--warmup", type=float, default=30.0,
-                    help="RSS baseline taken this many s in (imports, kernels, first frames)")
+    ap.add_argument(
+        "--warmup",
+        type=float,
+        default=30.0,
+        help="RSS baseline taken this many s in (imports, kernels, first frames)",
+    )
     add_fault_arguments(ap)
     ap.add_argument("--log-dir", type=Path, default=None, help="node logs (default: a temp dir)")
     add_json_argument(ap)
@@ -166,11 +208,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail("maem-soak", e)
     tmp = Path(tempfile.mkdtemp(prefix="maem_soak_"))
     frames = int(round(a.minutes * 60 * a.rate)) + 1
-    params = write_params(a.params, tmp / "params.yaml",
-                          frontend={"frames": frames, "num_vertices": a.num_vertices,
-                                    "fps": a.rate})
-    report = run(params, a.minutes, a.rate, a.log_dir or tmp / "logs", a.sample,
-                 min(a.warmup, a.minutes * 30), faults_from(a))
+    params = write_params(
+        a.params,
+        tmp / "params.yaml",
+        frontend={"frames": frames, "num_vertices": a.num_vertices, "fps": a.rate},
+    )
+    report = run(
+        params,
+        a.minutes,
+        a.rate,
+        a.log_dir or tmp / "logs",
+        a.sample,
+        min(a.warmup, a.minutes * 30),
+        faults_from(a),
+    )
     print_report(report, a.json)
     return 0
 

@@ -1,20 +1,26 @@
 """``maem-calibrate``: calibrate a rig. Subcommands: ``people`` (from the players,
 tools/calibrate/calibrate_people.py) and ``board`` (from a ChArUco or checkerboard,
 tools/calibrate/calibrate_board.py). How-to: doc/calibration.md."""
+
 from __future__ import annotations
 
 import argparse
 import importlib
 import importlib.util
 
-SUBCOMMANDS = {"people": "maem_ros.tools.calibrate.calibrate_people",
-               "board": "maem_ros.tools.calibrate.calibrate_board"}
+SUBCOMMANDS = {
+    "people": "maem_ros.tools.calibrate.calibrate_people",
+    "board": "maem_ros.tools.calibrate.calibrate_board",
+}
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="maem-calibrate", description="calibrate a rig: people "
-                                 "(from the players) or board (ChArUco, checkerboard); how-to: "
-                                 "doc/calibration.md")
+    ap = argparse.ArgumentParser(
+        prog="maem-calibrate",
+        description="calibrate a rig: people "
+        "(from the players) or board (ChArUco, checkerboard); how-to: "
+        "doc/calibration.md",
+    )
     sub = ap.add_subparsers(dest="command", required=True)
     for name, module in SUBCOMMANDS.items():
         if importlib.util.find_spec(module) is None:

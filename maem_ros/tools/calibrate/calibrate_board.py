@@ -14,6 +14,7 @@ SOURCE is one of:
 The algorithm is core.calibrate.board's. Extrinsics need frames that several cameras see
 together; images taken one camera at a time give intrinsics only (said in one line).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -54,25 +55,51 @@ class SourceError(ValueError):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     """The ``board`` subcommand's arguments."""
-    p.add_argument("source", type=Path, help="folder of per-camera image folders or videos, or "
-                   "a rosbag2 folder with /<camera>/image_raw[/compressed]")
-    p.add_argument("--board", required=True, help="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT or "
-                   "checkerboard:COLSxROWS:SQUARE_M (COLSxROWS counts inner corners)")
+    p.add_argument(
+        "source",
+        type=Path,
+        help="folder of per-camera image folders or videos, or "
+        "a rosbag2 folder with /<camera>/image_raw[/compressed]",
+    )
+    p.add_argument(
+        "--board",
+        required=True,
+        help="charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT or "
+        "checkerboard:COLSxROWS:SQUARE_M (COLSxROWS counts inner corners)",
+    )
     p.add_argument("--out", required=True, type=Path, help="rig file to write")
-    p.add_argument("--intrinsics", type=Path, default=None, help="rig (any format maem reads) "
-                   "whose K, distortion and image size are used instead of calibrating them")
-    p.add_argument("--intrinsics-only", action="store_true",
-                   help="calibrate intrinsics only (e.g. images taken one camera at a time)")
-    p.add_argument("--format", choices=("yaml", "toml"), default=None,
-                   help="yaml: the rig YAML the nodes read; toml: a Pose2Sim/anipose Calib.toml "
-                   "(default: from --out's suffix, else yaml)")
+    p.add_argument(
+        "--intrinsics",
+        type=Path,
+        default=None,
+        help="rig (any format maem reads) "
+        "whose K, distortion and image size are used instead of calibrating them",
+    )
+    p.add_argument(
+        "--intrinsics-only",
+        action="store_true",
+        help="calibrate intrinsics only (e.g. images taken one camera at a time)",
+    )
+    p.add_argument(
+        "--format",
+        choices=("yaml", "toml"),
+        default=None,
+        help="yaml: the rig YAML the nodes read; toml: a Pose2Sim/anipose Calib.toml "
+        "(default: from --out's suffix, else yaml)",
+    )
     p.add_argument("--step", type=int, default=1, help="use every STEP-th frame (default 1)")
-    p.add_argument("--k3", action="store_true", help="also estimate the k3 distortion term "
-                   "(wide-angle lenses; by default k3 = 0)")
-    p.add_argument("--per-camera-intrinsics", action="store_true",
-                   help="without --intrinsics: keep each camera's own cv2.calibrateCamera "
-                   "intrinsics (default: refine them all in the joint bundle, from the shared "
-                   "frames; more accurate, doc/calibration_board.md)")
+    p.add_argument(
+        "--k3",
+        action="store_true",
+        help="also estimate the k3 distortion term (wide-angle lenses; by default k3 = 0)",
+    )
+    p.add_argument(
+        "--per-camera-intrinsics",
+        action="store_true",
+        help="without --intrinsics: keep each camera's own cv2.calibrateCamera "
+        "intrinsics (default: refine them all in the joint bundle, from the shared "
+        "frames; more accurate, doc/calibration_board.md)",
+    )
     p.add_argument("--quiet", action="store_true", help="no per-camera summary")
 
 
@@ -107,15 +134,19 @@ def _read_gray(path: Path) -> np.ndarray:
 def _images(source: Path) -> dict[str, Iterator[tuple[int, np.ndarray]]]:
     """camera -> (frame key, grayscale image) of a folder SOURCE."""
     root = source / "images" if (source / "images").is_dir() else source
-    folders = sorted(p for p in root.iterdir() if p.is_dir()
-                     and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()))
+    folders = sorted(
+        p
+        for p in root.iterdir()
+        if p.is_dir() and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir())
+    )
     if folders:
         return {f.name: ((k, _read_gray(p)) for k, p in _image_folder_frames(f)) for f in folders}
     videos = sorted(p for p in root.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
     if videos:
         return {v.stem: _video_frames(v) for v in videos}
-    raise SourceError(f"source {str(source)!r}: no per-camera image folders, videos or rosbag2 "
-                      f"(metadata.yaml) found")
+    raise SourceError(
+        f"source {str(source)!r}: no per-camera image folders, videos or rosbag2 (metadata.yaml) found"
+    )
 
 
 def _video_frames(path: Path) -> Iterator[tuple[int, np.ndarray]]:
@@ -142,18 +173,25 @@ def _bag_images(source: Path) -> dict[str, Iterator[tuple[int, np.ndarray]]]:
     from maem_ros import bagio, wire
 
     info = bagio.bag_info(source)
-    topics = {t: m for t, m in info.topics.items() if bagio.is_image_type(m)
-              and re.fullmatch(r"/[^/]+/image_raw(/compressed)?", t)}
+    topics = {
+        t: m
+        for t, m in info.topics.items()
+        if bagio.is_image_type(m) and re.fullmatch(r"/[^/]+/image_raw(/compressed)?", t)
+    }
     if not topics:
         raise SourceError(f"bag {str(source)!r}: no /<camera>/image_raw[/compressed] topics")
     images: dict[str, list[tuple[int, np.ndarray]]] = {}
     for m in bagio.read_messages(source, topics):
         msg = m.decode()
         cam = m.topic.split("/")[1]
-        bgr = (wire.compressed_to_bgr(msg, m.topic) if m.topic.endswith("/compressed")
-               else wire.image_to_bgr(msg, m.topic))
-        images.setdefault(cam, []).append((bagio.stamp_to_ns(msg.header.stamp),
-                                           cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)))
+        bgr = (
+            wire.compressed_to_bgr(msg, m.topic)
+            if m.topic.endswith("/compressed")
+            else wire.image_to_bgr(msg, m.topic)
+        )
+        images.setdefault(cam, []).append(
+            (bagio.stamp_to_ns(msg.header.stamp), cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+        )
     stamps = sorted(s for frames in images.values() for s, _ in frames)
     keys, start, key = {}, None, -1
     for s in stamps:
@@ -168,8 +206,9 @@ def detect_source(source: Path, spec: BoardSpec, step: int = 1) -> Frames:
     if not source.exists():
         raise SourceError(f"source {str(source)!r}: no such file or folder")
     if not source.is_dir():
-        raise SourceError(f"source {str(source)!r}: expected a folder (image folders, videos or "
-                          f"a rosbag2 folder)")
+        raise SourceError(
+            f"source {str(source)!r}: expected a folder (image folders, videos or a rosbag2 folder)"
+        )
     streams = _bag_images(source) if (source / "metadata.yaml").is_file() else _images(source)
     detector = CornerDetector(spec)
     sizes: dict = {}
@@ -181,8 +220,10 @@ def detect_source(source: Path, spec: BoardSpec, step: int = 1) -> Frames:
                 continue
             size = (gray.shape[1], gray.shape[0])
             if sizes.setdefault(cam, size) != size:
-                raise SourceError(f"camera {cam!r}: image size {size[0]}x{size[1]} at frame {key} "
-                                  f"differs from {sizes[cam][0]}x{sizes[cam][1]}")
+                raise SourceError(
+                    f"camera {cam!r}: image size {size[0]}x{size[1]} at frame {key} "
+                    f"differs from {sizes[cam][0]}x{sizes[cam][1]}"
+                )
             detections[cam][key] = detector(gray)
     return Frames(sizes, detections)
 
@@ -194,8 +235,9 @@ def _spread(items: list, n: int) -> list:
     return [items[i] for i in np.linspace(0, len(items) - 1, n).round().astype(int)]
 
 
-def intrinsics_of(frames: Frames, spec: BoardSpec, known: Rig | None,
-                  k3: bool = False) -> dict[str, Intrinsics]:
+def intrinsics_of(
+    frames: Frames, spec: BoardSpec, known: Rig | None, k3: bool = False
+) -> dict[str, Intrinsics]:
     """Per camera: the given intrinsics (``known``) or cv2.calibrateCamera's."""
     out = {}
     for cam, dets in frames.detections.items():
@@ -204,11 +246,15 @@ def intrinsics_of(frames: Frames, spec: BoardSpec, known: Rig | None,
                 raise SourceError(f"--intrinsics: no camera {cam!r} (it has {known.names})")
             c = known[cam]
             if (c.width, c.height) != frames.sizes[cam]:
-                raise SourceError(f"--intrinsics camera {cam!r}: {c.width}x{c.height} px, its images "
-                                  f"are {frames.sizes[cam][0]}x{frames.sizes[cam][1]}")
+                raise SourceError(
+                    f"--intrinsics camera {cam!r}: {c.width}x{c.height} px, its images "
+                    f"are {frames.sizes[cam][0]}x{frames.sizes[cam][1]}"
+                )
             if c.distortion_model != "plumb_bob":
-                raise SourceError(f"--intrinsics camera {cam!r}: {c.distortion_model} distortion "
-                                  f"is not supported by the board mode (plumb_bob only)")
+                raise SourceError(
+                    f"--intrinsics camera {cam!r}: {c.distortion_model} distortion "
+                    f"is not supported by the board mode (plumb_bob only)"
+                )
             out[cam] = Intrinsics(c.K, c.D, c.width, c.height, float("nan"), 0)
             continue
         views = _spread([d for d in dets.values() if d is not None], MAX_INTRINSIC_VIEWS)
@@ -219,13 +265,22 @@ def intrinsics_of(frames: Frames, spec: BoardSpec, known: Rig | None,
 def _cameras(intr: dict[str, Intrinsics], ext=None) -> list[Camera]:
     """Cameras of the calibration (without extrinsics: R = I, t = 0 placeholders, which the
     YAML writer leaves out)."""
-    return [Camera(name, i.K, np.eye(3) if ext is None else ext.R[c],
-                   np.zeros(3) if ext is None else ext.t[c], i.width, i.height, "plumb_bob", i.D)
-            for c, (name, i) in enumerate(intr.items())]
+    return [
+        Camera(
+            name,
+            i.K,
+            np.eye(3) if ext is None else ext.R[c],
+            np.zeros(3) if ext is None else ext.t[c],
+            i.width,
+            i.height,
+            "plumb_bob",
+            i.D,
+        )
+        for c, (name, i) in enumerate(intr.items())
+    ]
 
 
-def write_rig(path: Path, cameras: list[Camera], fmt: str, extrinsics: bool,
-              error_px: float | None) -> None:
+def write_rig(path: Path, cameras: list[Camera], fmt: str, extrinsics: bool, error_px: float | None) -> None:
     """YAML (intrinsics only without extrinsics) or Pose2Sim TOML (placeholder zero poses)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "toml":
@@ -238,16 +293,20 @@ def _summary(intr: dict[str, Intrinsics], ext, names: list[str]) -> list[str]:
     lines = []
     for c, name in enumerate(names):
         i = intr[name]
-        line = (f"  {name}: fx {i.K[0, 0]:.2f} fy {i.K[1, 1]:.2f} cx {i.K[0, 2]:.2f} "
-                f"cy {i.K[1, 2]:.2f} px, k1 {i.D[0]:+.4f} k2 {i.D[1]:+.4f}")
-        line += (f", RMS {i.rms:.3f} px over {i.views} views ({i.dropped} dropped)"
-                 if i.views else " (given)")
+        line = (
+            f"  {name}: fx {i.K[0, 0]:.2f} fy {i.K[1, 1]:.2f} cx {i.K[0, 2]:.2f} "
+            f"cy {i.K[1, 2]:.2f} px, k1 {i.D[0]:+.4f} k2 {i.D[1]:+.4f}"
+        )
+        line += f", RMS {i.rms:.3f} px over {i.views} views ({i.dropped} dropped)" if i.views else " (given)"
         line += " (refined in the joint bundle)" if i.joint else ""
         if ext is not None:
             e = ext.errors[c]
-            line += (f"; extrinsics from {ext.frames_per_camera[c]} frames, reprojection median "
-                     f"{np.median(e):.3f} p90 {np.percentile(e, 90):.3f} px" if e.size else
-                     "; no board corners in the bundle adjustment")
+            line += (
+                f"; extrinsics from {ext.frames_per_camera[c]} frames, reprojection median "
+                f"{np.median(e):.3f} p90 {np.percentile(e, 90):.3f} px"
+                if e.size
+                else "; no board corners in the bundle adjustment"
+            )
         lines.append(line)
     return lines
 
@@ -269,17 +328,26 @@ def run(args: argparse.Namespace) -> int:
         ext = None
         if not args.intrinsics_only:
             if len(names) < 2:
-                print(f"{PROG}: one camera ({names[0]}): extrinsics need two or more; writing "
-                      f"intrinsics only")
+                print(
+                    f"{PROG}: one camera ({names[0]}): extrinsics need two or more; writing intrinsics only"
+                )
             else:
                 try:
-                    dets = {(c, k): d for c, n in enumerate(names)
-                            for k, d in frames.detections[n].items() if d is not None}
+                    dets = {
+                        (c, k): d
+                        for c, n in enumerate(names)
+                        for k, d in frames.detections[n].items()
+                        if d is not None
+                    }
                     # intrinsics calibrated here (not given) start the joint refinement
-                    joint = () if known is not None or args.per_camera_intrinsics else \
-                        JOINT_INTRINSICS + (("k3",) if args.k3 else ())
-                    ext = calibrate_extrinsics(spec, dets, [(intr[n].K, intr[n].D) for n in names],
-                                               names, joint)
+                    joint = (
+                        ()
+                        if known is not None or args.per_camera_intrinsics
+                        else JOINT_INTRINSICS + (("k3",) if args.k3 else ())
+                    )
+                    ext = calibrate_extrinsics(
+                        spec, dets, [(intr[n].K, intr[n].D) for n in names], names, joint
+                    )
                     if joint:
                         for c, n in enumerate(names):
                             intr[n] = replace(intr[n], K=ext.K[c], D=ext.D[c], joint=True)
@@ -287,15 +355,17 @@ def run(args: argparse.Namespace) -> int:
                     print(f"{PROG}: {e}; writing intrinsics only")
         cameras = _cameras(intr, ext)
         errors = np.concatenate(ext.errors) if ext is not None else np.zeros(0)
-        rms = float(np.sqrt(np.mean(errors ** 2))) if errors.size else None
+        rms = float(np.sqrt(np.mean(errors**2))) if errors.size else None
         write_rig(args.out, cameras, fmt, ext is not None, rms)
     except (ValueError, OSError) as e:  # SourceError, bad board / rig / bag: one line
         print(f"{PROG}: {e}", file=sys.stderr)
         return 2
     if not args.quiet:
         found = {n: sum(d is not None for d in frames.detections[n].values()) for n in names}
-        print(f"{PROG}: board {spec} found in " + ", ".join(
-            f"{n} {found[n]}/{len(frames.detections[n])}" for n in names))
+        print(
+            f"{PROG}: board {spec} found in "
+            + ", ".join(f"{n} {found[n]}/{len(frames.detections[n])}" for n in names)
+        )
         for line in _summary(intr, ext, names):
             print(line)
     what = "rig" if ext is not None else "intrinsics only"
@@ -304,8 +374,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog=PROG, description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     add_arguments(p)
     return run(p.parse_args(argv))
 

@@ -1,6 +1,7 @@
 """The people calibration's report: a per-camera table on stdout, and with ``--report DIR`` a
 top-down picture of the rig and the people's floor tracks (rig.png) and, where the source has
 images, one overlay per camera of the observed (green) and reprojected (magenta) keypoints."""
+
 from __future__ import annotations
 
 import warnings
@@ -14,33 +15,43 @@ from maem_ros.core.calibrate.people_data import PeopleData
 
 
 def print_summary(result: PeopleCalibration, data: PeopleData, out: TextIO) -> None:
-    print(f"{'camera':<14}{'obs':>7}{'median px':>11}{'p90 px':>9}{'rot sd deg':>12}"
-          f"{'centre sd cm':>14}{'offset ms':>11}{'sd ms':>7}", file=out)
+    print(
+        f"{'camera':<14}{'obs':>7}{'median px':>11}{'p90 px':>9}{'rot sd deg':>12}"
+        f"{'centre sd cm':>14}{'offset ms':>11}{'sd ms':>7}",
+        file=out,
+    )
     for c in result.cameras:
         if not c.calibrated:
             print(f"{c.name:<14}  NOT CALIBRATED", file=out)
             continue
-        print(f"{c.name:<14}{c.observations:>7d}{c.median_px:>11.2f}{c.p90_px:>9.2f}"
-              f"{c.rotation_sd_deg:>12.3f}{100 * c.centre_sd_m:>14.2f}{1000 * c.time_offset_s:>11.1f}"
-              f"{1000 * c.time_offset_sd_s:>7.1f}", file=out)
+        print(
+            f"{c.name:<14}{c.observations:>7d}{c.median_px:>11.2f}{c.p90_px:>9.2f}"
+            f"{c.rotation_sd_deg:>12.3f}{100 * c.centre_sd_m:>14.2f}{1000 * c.time_offset_s:>11.1f}"
+            f"{1000 * c.time_offset_sd_s:>7.1f}",
+            file=out,
+        )
     print(f"scale from: {result.scale_source}", file=out)
     for w in result.warnings:
         print(f"warning: {w}", file=out)
 
 
-def write_report(result: PeopleCalibration, data: PeopleData, folder: Path,
-                 images: dict) -> list[Path]:
+def write_report(result: PeopleCalibration, data: PeopleData, folder: Path, images: dict) -> list[Path]:
     """Write rig.png and the overlays; returns the files written."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     folder.mkdir(parents=True, exist_ok=True)
     written = [_top_down(result, data, folder / "rig.png", plt)]
     for cam in result.rig:
         frame = _overlay_frame(images, cam.name, result)
         if frame is not None:
-            written.append(_overlay(result, data, cam, frame, images[(cam.name, frame)],
-                                    folder / f"overlay_{cam.name}.jpg"))
+            written.append(
+                _overlay(
+                    result, data, cam, frame, images[(cam.name, frame)], folder / f"overlay_{cam.name}.jpg"
+                )
+            )
     return written
 
 
@@ -60,8 +71,13 @@ def _top_down(result: PeopleCalibration, data: PeopleData, path: Path, plt) -> P
         look = cam.R[2]
         ax.plot(c[0], c[1], "k^", ms=9)
         ax.arrow(c[0], c[1], 3 * look[0], 3 * look[1], head_width=0.5, color="k")
-        ax.annotate(f"{cam.name}\n{c[2]:.1f} m high", (c[0], c[1]), textcoords="offset points",
-                    xytext=(6, 6), fontsize=8)
+        ax.annotate(
+            f"{cam.name}\n{c[2]:.1f} m high",
+            (c[0], c[1]),
+            textcoords="offset points",
+            xytext=(6, 6),
+            fontsize=8,
+        )
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -82,9 +98,11 @@ def _overlay_frame(images: dict, cam: str, result: PeopleCalibration) -> int | N
     return max(frames, key=lambda k: count[k] if k < count.size else -1)
 
 
-def _overlay(result: PeopleCalibration, data: PeopleData, cam, frame: int, image_path: Path,
-             path: Path) -> Path:
+def _overlay(
+    result: PeopleCalibration, data: PeopleData, cam, frame: int, image_path: Path, path: Path
+) -> Path:
     import cv2
+
     img = cv2.imread(str(image_path))
     if img is None:
         raise ValueError(f"image {str(image_path)!r}: unreadable")

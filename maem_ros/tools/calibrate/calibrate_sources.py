@@ -14,6 +14,7 @@ bag's recorded scene description when the params give none. ``--save-detections 
 what a backend found as a bag of ``/<cam>/detections`` (the frontend's costly part, reusable as
 a SOURCE). Every problem the user must fix raises :class:`BadInput` (one line, exit 2).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,8 +51,9 @@ def load_source(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
     elif src.is_dir():
         loaded = _media(src, intr, args)
     else:
-        raise BadInput(f"source {str(src)!r}: not a scene folder (dets/), a bag or a folder of "
-                       f"per-camera images/videos")
+        raise BadInput(
+            f"source {str(src)!r}: not a scene folder (dets/), a bag or a folder of per-camera images/videos"
+        )
     if getattr(args, "save_detections", None) is not None:
         save_detections(args.save_detections, loaded[0], loaded[1])
     return loaded
@@ -74,30 +76,38 @@ def _scene_folder(src: Path, intr: Rig, max_frames: int | None) -> Loaded:
     frames: dict[str, list[FrameDetections | None]] = {}
     for v in views:
         cam = intr[v]
-        frames[v] = [outputs_to_detections(read_maem_npz(files[v][k]), cam, k,
-                                           where=f"npz {str(files[v][k])!r} outputs")
-                     if k in files[v] else None for k in range(n)]
-    images = {(v, k): p for v in views for k in range(n)
-              if (p := src / "images" / v / f"{k:06d}.jpg").is_file()}
+        frames[v] = [
+            outputs_to_detections(
+                read_maem_npz(files[v][k]), cam, k, where=f"npz {str(files[v][k])!r} outputs"
+            )
+            if k in files[v]
+            else None
+            for k in range(n)
+        ]
+    images = {
+        (v, k): p for v in views for k in range(n) if (p := src / "images" / v / f"{k:06d}.jpg").is_file()
+    }
     return frames, fps, images
 
 
 def _bag(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
     from maem_ros import bagio
+
     try:
         info = bagio.bag_info(src)
     except (ValueError, OSError) as e:
         raise BadInput(f"bag {str(src)!r}: unreadable ({' '.join(str(e).split())})") from None
     dets = sorted(t for t in info.topics if t.endswith("/detections"))
-    imgs = sorted(t for t, ty in info.topics.items() if bagio.is_image_type(ty)
-                  and "/image_raw" in t)
+    imgs = sorted(t for t, ty in info.topics.items() if bagio.is_image_type(ty) and "/image_raw" in t)
     if dets and args.backend is None:
         stamped = _bag_detections(src, dets, intr)
     elif imgs:
         stamped = _bag_images(src, imgs, intr, args)
     else:
-        raise BadInput(f"bag {str(src)!r}: no /<camera>/detections topic and no "
-                       f"/<camera>/image_raw images (record the frontends or the cameras)")
+        raise BadInput(
+            f"bag {str(src)!r}: no /<camera>/detections topic and no "
+            f"/<camera>/image_raw images (record the frontends or the cameras)"
+        )
     return _frames_from_stamps(stamped, args.frames, str(src))
 
 
@@ -108,6 +118,7 @@ def _camera_of(topic: str) -> str:
 def _bag_detections(src: Path, topics: list[str], intr: Rig) -> dict[str, list[FrameDetections]]:
     from maem_ros import bagio
     from maem_ros.wire import msg_to_detections  # the wire decoder (no rclpy)
+
     cams = [_camera_of(t) for t in topics]
     _check_cameras(cams, intr, f"bag {str(src)!r}")
     per_cam: dict[str, list[FrameDetections]] = {c: [] for c in cams}
@@ -119,12 +130,14 @@ def _bag_detections(src: Path, topics: list[str], intr: Rig) -> dict[str, list[F
     return per_cam
 
 
-def _bag_images(src: Path, topics: list[str], intr: Rig, args: argparse.Namespace
-                ) -> dict[str, list[FrameDetections]]:
+def _bag_images(
+    src: Path, topics: list[str], intr: Rig, args: argparse.Namespace
+) -> dict[str, list[FrameDetections]]:
     """Every image message of the bag through the backend (rectified first)."""
     from maem_ros import bagio
     from maem_ros.frontend.rectify import Rectifier
     from maem_ros.wire import compressed_to_bgr, image_to_bgr
+
     by_cam: dict[str, str] = {}
     for t in topics:  # one image topic per camera; the compressed one if both were recorded
         if t.endswith("/compressed") or _camera_of(t) not in by_cam:
@@ -136,13 +149,15 @@ def _bag_images(src: Path, topics: list[str], intr: Rig, args: argparse.Namespac
     if backend == "synthetic" and "scene_dict" not in options:
         scene = bagio.read_scene_config(src)
         if scene is None:
-            raise BadInput(f"bag {str(src)!r}: no scene description (/maem/scene): the synthetic "
-                           f"backend cannot regenerate its detections")
+            raise BadInput(
+                f"bag {str(src)!r}: no scene description (/maem/scene): the synthetic "
+                f"backend cannot regenerate its detections"
+            )
         options["scene_dict"] = scene
     est = _estimator(backend, options, Rig([intr[c] for c in cams]))
     rect = {c: Rectifier(intr[c]) for c in cams}
     per_cam: dict[str, list[FrameDetections]] = {c: [] for c in cams}
-    limit = args.frames or 10 ** 9
+    limit = args.frames or 10**9
     for m in bagio.read_messages(src, list(by_cam.values())):
         cam = _camera_of(m.topic)
         if m.topic != by_cam[cam] or len(per_cam[cam]) >= limit:
@@ -155,8 +170,9 @@ def _bag_images(src: Path, topics: list[str], intr: Rig, args: argparse.Namespac
     return per_cam
 
 
-def _frames_from_stamps(per_cam: dict[str, list[FrameDetections]], max_frames: int | None,
-                        where: str) -> Loaded:
+def _frames_from_stamps(
+    per_cam: dict[str, list[FrameDetections]], max_frames: int | None, where: str
+) -> Loaded:
     """Per-camera stamped detections on one frame index (the median stamp step)."""
     stamps = np.concatenate([[d.stamp_ns for d in v] for v in per_cam.values() if v] or [[]])
     if np.unique(stamps).size < 2:
@@ -180,6 +196,7 @@ def frontend_options(backend: str, params: Path | None) -> dict[str, Any]:
     """The ``frontend`` section of ``params`` (a node params file), else of the project's
     config/<backend>.yaml when it ships one for this backend, else no options."""
     from maem_ros.params import InputError, load_node_params, resolve_config_path
+
     if params is None:
         try:
             params = resolve_config_path(f"{backend}.yaml")
@@ -190,12 +207,13 @@ def frontend_options(backend: str, params: Path | None) -> dict[str, Any]:
     except (InputError, ValueError) as e:
         raise BadInput(f"--frontend-params: {' '.join(str(e).split())}") from None
     if options.get("backend", backend) != backend:  # the file is for another backend: its
-        return {}                                   # options would not apply
+        return {}  # options would not apply
     return {k: v for k, v in options.items() if k != "backend"}
 
 
 def _estimator(backend: str, options: dict[str, Any], rig: Rig):
     from maem_ros.frontend.base import make_estimator
+
     try:
         return make_estimator(backend, options, rig)
     except ImportError as e:
@@ -215,6 +233,7 @@ def _media(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
     """Per-camera image folders or videos through a frontend backend; frame k is stamped
     k / fps s (fps: --fps, else the first video's, else 30)."""
     from maem_ros.frontend.rectify import Rectifier
+
     entries: dict[str, list[Path] | Path] = {}
     for p in sorted(src.iterdir()):
         if p.is_dir() and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir()):
@@ -225,10 +244,11 @@ def _media(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
         raise BadInput(f"source {str(src)!r}: no per-camera image folders or videos")
     _check_cameras(list(entries), intr, f"source {str(src)!r}")
     fps = float(args.fps or _video_fps(entries) or DEFAULT_FPS)
-    limit = args.frames or 10 ** 9
+    limit = args.frames or 10**9
     backend = args.backend or "mediapipe"
-    est = _estimator(backend, frontend_options(backend, args.frontend_params),
-                     Rig([intr[c] for c in entries]))
+    est = _estimator(
+        backend, frontend_options(backend, args.frontend_params), Rig([intr[c] for c in entries])
+    )
     frames: dict[str, list[FrameDetections | None]] = {}
     images: dict[tuple[str, Path | int], Path] = {}
     for cam, what in entries.items():
@@ -238,11 +258,9 @@ def _media(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
             try:
                 rect.check_size(img)
             except ValueError as e:
-                raise BadInput(f"source {str(src)!r} camera {cam}: {' '.join(str(e).split())}"
-                               ) from None
+                raise BadInput(f"source {str(src)!r} camera {cam}: {' '.join(str(e).split())}") from None
             image = rect.rectify(img) if est.needs_image else None
-            seq.append(_estimate(est, intr[cam], int(round(k * 1e9 / fps)), image,
-                                 f"camera {cam} frame {k}"))
+            seq.append(_estimate(est, intr[cam], int(round(k * 1e9 / fps)), image, f"camera {cam} frame {k}"))
             if isinstance(what, list):  # image files can be overlaid in the report
                 images[(cam, k)] = what[k]
         frames[cam] = seq
@@ -251,6 +269,7 @@ def _media(src: Path, intr: Rig, args: argparse.Namespace) -> Loaded:
 
 def _video_fps(entries: dict[str, list[Path] | Path]) -> float | None:
     import cv2
+
     for what in entries.values():
         if isinstance(what, Path):
             cap = cv2.VideoCapture(str(what))
@@ -263,6 +282,7 @@ def _video_fps(entries: dict[str, list[Path] | Path]) -> float | None:
 
 def _images(what: list[Path] | Path, limit: int) -> Iterator[np.ndarray]:
     import cv2
+
     if isinstance(what, list):
         for path in what[:limit]:
             img = cv2.imread(str(path))
@@ -283,11 +303,13 @@ def _images(what: list[Path] | Path, limit: int) -> Iterator[np.ndarray]:
         cap.release()
 
 
-def save_detections(out: Path, frames: dict[str, list[FrameDetections | None]], fps: float,
-                    start_ns: int = 0) -> None:
+def save_detections(
+    out: Path, frames: dict[str, list[FrameDetections | None]], fps: float, start_ns: int = 0
+) -> None:
     """Write ``frames`` as a bag of ``/<cam>/detections`` (frame k stamped start + k / fps s),
     a SOURCE this tool reads back without running the backend again."""
     from maem_ros import bagio, wire
+
     if out.exists():
         raise BadInput(f"--save-detections {str(out)!r}: already exists")
     w = bagio.BagWriter(out)
@@ -304,4 +326,5 @@ def save_detections(out: Path, frames: dict[str, list[FrameDetections | None]], 
 
 def _restamped(d: FrameDetections, stamp: int) -> FrameDetections:
     import dataclasses
+
     return dataclasses.replace(d, stamp_ns=stamp)

@@ -11,6 +11,7 @@ the calibrated rig into the reference's world frame.
 * time offsets (s): calibrated minus reference, after removing their median (only relative
   offsets are observable).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -37,14 +38,16 @@ class RigComparison:
     radius_m: float
 
     def summary(self) -> dict[str, float]:
-        return {"rot_median_deg": float(np.median(self.rotation_deg)),
-                "rot_max_deg": float(np.max(self.rotation_deg)),
-                "centre_median_m": float(np.median(self.centre_m)),
-                "centre_max_m": float(np.max(self.centre_m)),
-                "centre_max_pct_radius": float(100 * np.max(self.centre_m) / self.radius_m),
-                "scale_error_pct": float(100 * abs(self.scale - 1)),
-                "up_deg": self.up_deg,
-                "offset_max_ms": float(1e3 * np.max(np.abs(self.offset_s)))}
+        return {
+            "rot_median_deg": float(np.median(self.rotation_deg)),
+            "rot_max_deg": float(np.max(self.rotation_deg)),
+            "centre_median_m": float(np.median(self.centre_m)),
+            "centre_max_m": float(np.max(self.centre_m)),
+            "centre_max_pct_radius": float(100 * np.max(self.centre_m) / self.radius_m),
+            "scale_error_pct": float(100 * abs(self.scale - 1)),
+            "up_deg": self.up_deg,
+            "offset_max_ms": float(1e3 * np.max(np.abs(self.offset_s))),
+        }
 
 
 def _angle_deg(R: np.ndarray) -> float:
@@ -57,34 +60,39 @@ def compare_rigs(est: Rig, ref: Rig) -> RigComparison:
     names = [n for n in ref.names if n in est]
     if len(names) < 3:
         raise ValueError(f"rig comparison: {len(names)} common cameras, need 3")
-    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
-    rot = np.array([_angle_deg((est[a].R @ est[b].R.T) @ (ref[a].R @ ref[b].R.T).T)
-                    for a, b in pairs])
+    pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1 :]]
+    rot = np.array([_angle_deg((est[a].R @ est[b].R.T) @ (ref[a].R @ ref[b].R.T).T) for a, b in pairs])
     A = np.stack([est[n].center for n in names])
     B = np.stack([ref[n].center for n in names])
     aligned, s, _, _ = procrustes_align(A[None], B[None])
-    up = np.median([np.degrees(np.arccos(np.clip(est[n].R[:, 2] @ ref[n].R[:, 2], -1, 1)))
-                    for n in names])
+    up = np.median([np.degrees(np.arccos(np.clip(est[n].R[:, 2] @ ref[n].R[:, 2], -1, 1))) for n in names])
     off = np.array([est[n].time_offset - ref[n].time_offset for n in names])
-    return RigComparison(names=names, pairs=pairs, rotation_deg=rot,
-                         centre_m=np.linalg.norm(aligned[0] - B, axis=1), scale=float(1 / s[0]),
-                         up_deg=float(up), offset_s=off - np.median(off),
-                         radius_m=float(np.max(np.linalg.norm(B - B.mean(0), axis=1))))
+    return RigComparison(
+        names=names,
+        pairs=pairs,
+        rotation_deg=rot,
+        centre_m=np.linalg.norm(aligned[0] - B, axis=1),
+        scale=float(1 / s[0]),
+        up_deg=float(up),
+        offset_s=off - np.median(off),
+        radius_m=float(np.max(np.linalg.norm(B - B.mean(0), axis=1))),
+    )
 
 
 def format_comparison(c: RigComparison, what: str) -> str:
     """A few lines for a terminal."""
     s = c.summary()
     worst = c.pairs[int(np.argmax(c.rotation_deg))]
-    lines = [f"against reference {what} ({len(c.names)} cameras):",
-             f"  relative rotation deg: median {s['rot_median_deg']:.2f}, max "
-             f"{s['rot_max_deg']:.2f} ({worst[0]}-{worst[1]})",
-             f"  centres after a similarity alignment: median {100 * s['centre_median_m']:.1f} cm, "
-             f"max {100 * s['centre_max_m']:.1f} cm ({s['centre_max_pct_radius']:.1f} % of the "
-             f"rig radius {c.radius_m:.2f} m)",
-             f"  scale: calibrated / reference {c.scale:.3f} ({s['scale_error_pct']:.1f} % off)",
-             f"  up axis deg: {s['up_deg']:.2f}; time offsets: max {s['offset_max_ms']:.1f} ms "
-             f"apart"]
+    lines = [
+        f"against reference {what} ({len(c.names)} cameras):",
+        f"  relative rotation deg: median {s['rot_median_deg']:.2f}, max "
+        f"{s['rot_max_deg']:.2f} ({worst[0]}-{worst[1]})",
+        f"  centres after a similarity alignment: median {100 * s['centre_median_m']:.1f} cm, "
+        f"max {100 * s['centre_max_m']:.1f} cm ({s['centre_max_pct_radius']:.1f} % of the "
+        f"rig radius {c.radius_m:.2f} m)",
+        f"  scale: calibrated / reference {c.scale:.3f} ({s['scale_error_pct']:.1f} % off)",
+        f"  up axis deg: {s['up_deg']:.2f}; time offsets: max {s['offset_max_ms']:.1f} ms apart",
+    ]
     lines += [f"    {n}: centre {100 * e:.1f} cm" for n, e in zip(c.names, c.centre_m)]
     return "\n".join(lines)
 

@@ -1,5 +1,6 @@
 """The maem-demo bag: generating it (sim scene -> maem-make-bag), reading what the demo needs from
 it, checking that the simulator still regenerates it, trimming it to the played frames."""
+
 from __future__ import annotations
 
 import tempfile
@@ -21,9 +22,17 @@ from maem_ros.wire import msg_to_poses
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 #: the committed demo bag's scene (maem-demo --make-bag)
-DEMO_SCENE: dict[str, Any] = {"rig": "sportcenter6", "frames": 30, "fps": 30.0, "seed": 0,
-                              "difficulty": "medium", "num_vertices": 18439, "players": 10,
-                              "bystanders": 2, "start_stamp_ns": 1_700_000_000_000_000_000}
+DEMO_SCENE: dict[str, Any] = {
+    "rig": "sportcenter6",
+    "frames": 30,
+    "fps": 30.0,
+    "seed": 0,
+    "difficulty": "medium",
+    "num_vertices": 18439,
+    "players": 10,
+    "bystanders": 2,
+    "start_stamp_ns": 1_700_000_000_000_000_000,
+}
 #: demo bag size knobs: JPEG quality of the rendered images, mesh vertices kept per detection
 JPEG_QUALITY = 35
 BAG_VERTICES = 256
@@ -51,8 +60,7 @@ def subset_outputs(outputs: list[dict], idx: np.ndarray | None) -> list[dict]:
     if idx is None:
         return outputs
     keys = ("pred_keypoints_2d_verts", "pred_vertices")
-    return [{k: (np.ascontiguousarray(v[idx]) if k in keys else v) for k, v in o.items()}
-            for o in outputs]
+    return [{k: (np.ascontiguousarray(v[idx]) if k in keys else v) for k, v in o.items()} for o in outputs]
 
 
 def write_demo_scene(root: Path, scene_config: dict, quality: int, vertices: int) -> Path:
@@ -60,8 +68,12 @@ def write_demo_scene(root: Path, scene_config: dict, quality: int, vertices: int
     evenly spaced subset of ``vertices`` mesh vertices, gt.npz, scene.json (full config)."""
     scene = Scene(SceneConfig.from_dict(scene_config))
     n = scene.num_frames
-    info = {"fps": float(scene.fps), "start_stamp_ns": int(scene.stamp_ns(0)), "num_frames": n,
-            "scene_config": scene.config.to_dict()}
+    info = {
+        "fps": float(scene.fps),
+        "start_stamp_ns": int(scene.stamp_ns(0)),
+        "num_frames": n,
+        "scene_config": scene.config.to_dict(),
+    }
     folder = SceneFolder.create(root, scene.rig, info)
     idx = make_bag.vertex_subset(scene.config.num_vertices, vertices)
     for frame in range(n):
@@ -72,8 +84,13 @@ def write_demo_scene(root: Path, scene_config: dict, quality: int, vertices: int
     return root
 
 
-def make_demo_bag(out: Path, frames: int = DEMO_SCENE["frames"], seed: int = DEMO_SCENE["seed"],
-                  quality: int = JPEG_QUALITY, vertices: int = BAG_VERTICES) -> Path:
+def make_demo_bag(
+    out: Path,
+    frames: int = DEMO_SCENE["frames"],
+    seed: int = DEMO_SCENE["seed"],
+    quality: int = JPEG_QUALITY,
+    vertices: int = BAG_VERTICES,
+) -> Path:
     """Build the demo bag at ``out`` (must not exist): sim scene -> maem-make-bag --compress."""
     if out.exists():
         raise ValueError(f"--make-bag {str(out)!r}: exists already; remove it first")
@@ -97,8 +114,9 @@ def ensure_bag(bag: Path | None, frames: int) -> Path:
     bag without metadata.yaml, as a killed recorder leaves, is one)."""
     if bag is not None:
         if not bag.exists():
-            raise bagio.BagError(f"--bag {str(bag)!r}: no such file or directory (maem-demo "
-                                 f"--make-bag DIR builds a demo bag)")
+            raise bagio.BagError(
+                f"--bag {str(bag)!r}: no such file or directory (maem-demo --make-bag DIR builds a demo bag)"
+            )
         bagio.bag_info(bag)  # BagError: not a rosbag2 folder / not MCAP / nothing complete
         return bag
     bag = default_bag()
@@ -145,8 +163,7 @@ def load_bag(path: Path) -> DemoBag:
     rig_yaml = bagio.read_rig_yaml(path)
     if not rig_yaml:
         raise ValueError(f"bag {str(path)!r}: no rig in metadata custom_data ({bagio.CUSTOM_RIG})")
-    stamps = sorted({m.log_time_ns for m in bagio.read_messages(path, [image_topic(cams[0])],
-                                                                info=info)})
+    stamps = sorted({m.log_time_ns for m in bagio.read_messages(path, [image_topic(cams[0])], info=info)})
     convention = info.custom.get(bagio.CUSTOM_GT_CONVENTION)
     gt = {}
     for m in bagio.read_messages(path, [bagio.GT_TOPIC], info=info):
@@ -164,13 +181,18 @@ def check_scene(demo: DemoBag, tol_m: float = 1e-3) -> None:
     stamp = min(demo.gt)
     frame = scene.frame_at(stamp)
     want = demo.gt[stamp]
-    got = SPORTCENTER_13.select(scene.gt_keypoints(frame)[scene.is_player]) if frame is not None \
+    got = (
+        SPORTCENTER_13.select(scene.gt_keypoints(frame)[scene.is_player])
+        if frame is not None
         else np.zeros((0, SPORTCENTER_13.num_joints, 3))
+    )
     ok = got.shape == want.shape and bool(np.nanmax(np.abs(got - want), initial=0.0) < tol_m)
     if not ok:
-        raise ValueError(f"bag {str(demo.path)!r} was made by another simulator version: its "
-                         f"ground truth differs from the scene its description regenerates; "
-                         f"rebuild it with: maem-demo --make-bag {demo.path} (after removing it)")
+        raise ValueError(
+            f"bag {str(demo.path)!r} was made by another simulator version: its "
+            f"ground truth differs from the scene its description regenerates; "
+            f"rebuild it with: maem-demo --make-bag {demo.path} (after removing it)"
+        )
 
 
 def trim_bag(src: DemoBag, dst: Path, frames: int) -> Path:

@@ -15,6 +15,7 @@ first stage of the pipeline that made it unreachable, in pipeline order:
   k_min          its cluster has fewer than k_min views
   triangulation  a pure cluster of >= k_min views exists, yet no pose matched the person
 """
+
 from __future__ import annotations
 
 from collections import Counter
@@ -27,12 +28,22 @@ from scipy.sparse.csgraph import connected_components
 from maem_ros.core.association.pipeline import AssociationResult
 from maem_ros.core.detections import PASSED, REJECTED_EPIPOLAR, REJECTED_REPROJ
 
-CAUSES = ("frontend", "reproj_gate", "epipolar_gate", "cost_cap", "wrong_match", "merge",
-          "conflict", "k_min", "triangulation")
+CAUSES = (
+    "frontend",
+    "reproj_gate",
+    "epipolar_gate",
+    "cost_cap",
+    "wrong_match",
+    "merge",
+    "conflict",
+    "k_min",
+    "triangulation",
+)
 
 
-def row_persons(result: AssociationResult, rig_names: list[str],
-                det_ids: Mapping[str, np.ndarray]) -> np.ndarray:
+def row_persons(
+    result: AssociationResult, rig_names: list[str], det_ids: Mapping[str, np.ndarray]
+) -> np.ndarray:
     """(N,) GT person of every table row (-1 = false positive or unknown)."""
     table = result.table
     assert table is not None, "explain needs the association's table"
@@ -60,8 +71,7 @@ def _max_views_connected(table, pairs, rows_of_p: np.ndarray, allowed: np.ndarra
     return max(np.unique(cams[comp == k]).size for k in np.unique(comp))
 
 
-def explain_frame(result: AssociationResult, persons: np.ndarray, lost: np.ndarray,
-                  k_min: int) -> Counter:
+def explain_frame(result: AssociationResult, persons: np.ndarray, lost: np.ndarray, k_min: int) -> Counter:
     """Counter of CAUSES over the lost GT person ids ``lost`` of one frame set."""
     table, pairs = result.table, result.pairs
     assert table is not None and pairs is not None, "explain needs the association's table"
@@ -71,16 +81,20 @@ def explain_frame(result: AssociationResult, persons: np.ndarray, lost: np.ndarr
         group_of[rows] = g
     conflicted = np.zeros(len(table), np.bool_)
     conflicted[result.conflicts] = True
-    stage_ok = {"reproj_gate": pairs.stage != REJECTED_REPROJ,
-                "epipolar_gate": ~np.isin(pairs.stage, (REJECTED_REPROJ, REJECTED_EPIPOLAR)),
-                "cost_cap": pairs.stage == PASSED}
+    stage_ok = {
+        "reproj_gate": pairs.stage != REJECTED_REPROJ,
+        "epipolar_gate": ~np.isin(pairs.stage, (REJECTED_REPROJ, REJECTED_EPIPOLAR)),
+        "cost_cap": pairs.stage == PASSED,
+    }
     for p in lost:
         mine = np.flatnonzero(persons == p)
         if np.unique(table.cam[mine]).size < k_min:
             out["frontend"] += 1
             continue
-        cause = next((name for name, ok in stage_ok.items()
-                      if _max_views_connected(table, pairs, mine, ok) < k_min), None)
+        cause = next(
+            (name for name, ok in stage_ok.items() if _max_views_connected(table, pairs, mine, ok) < k_min),
+            None,
+        )
         if cause is None:
             groups = np.unique(group_of[mine])
             members = np.concatenate([result.groups[g] for g in groups if g >= 0] or [np.zeros(0, int)])
@@ -98,11 +112,13 @@ def explain_frame(result: AssociationResult, persons: np.ndarray, lost: np.ndarr
     return out
 
 
-def oracle_clusters(rig_names: list[str], frames: Mapping, det_ids: Mapping[str, np.ndarray],
-                    tau_det: float, k_min: int) -> list:
+def oracle_clusters(
+    rig_names: list[str], frames: Mapping, det_ids: Mapping[str, np.ndarray], tau_det: float, k_min: int
+) -> list:
     """The perfect association: kept detections grouped by their GT person (one per camera,
     the highest score), people seen by at least k_min cameras; false positives left out."""
     from maem_ros.core.detections import Cluster
+
     by_person: dict[int, dict[int, tuple[float, int]]] = {}
     for name, fd in frames.items():
         ids = det_ids.get(name)
@@ -139,14 +155,22 @@ def oracle_clusters(rig_names: list[str], frames: Mapping, det_ids: Mapping[str,
 #:   wrong_new_cluster   a cluster from the cross-view association mixing people
 #:   triangulation       a pure cluster of three views or more, triangulated far off
 #:   not_in_gt           every member is a bystander (not in gt.npz): not an error of the pipeline
-TRACK_CAUSES = ("stale_or_duplicate", "prediction", "wrong_track", "weak_two_view",
-                "wrong_new_cluster", "triangulation", "not_in_gt")
+TRACK_CAUSES = (
+    "stale_or_duplicate",
+    "prediction",
+    "wrong_track",
+    "weak_two_view",
+    "wrong_new_cluster",
+    "triangulation",
+    "not_in_gt",
+)
 #: a published pose further than this from its matched person is explained (m)
 FAR_M = 0.15
 
 
-def member_persons(members: np.ndarray, rig_names: list[str],
-                   det_ids: Mapping[str, np.ndarray]) -> np.ndarray:
+def member_persons(
+    members: np.ndarray, rig_names: list[str], det_ids: Mapping[str, np.ndarray]
+) -> np.ndarray:
     """(M,) GT person of each cluster member (camera index, detection index); -1 = false
     positive or unknown."""
     out = np.full(len(members), -1, np.int64)
@@ -157,9 +181,15 @@ def member_persons(members: np.ndarray, rig_names: list[str],
     return out
 
 
-def explain_poses(published: np.ndarray, raw: np.ndarray, persons: list[np.ndarray],
-                  tracked: np.ndarray, gt: np.ndarray, gt_mask: np.ndarray,
-                  far_m: float = FAR_M) -> list[str | None]:
+def explain_poses(
+    published: np.ndarray,
+    raw: np.ndarray,
+    persons: list[np.ndarray],
+    tracked: np.ndarray,
+    gt: np.ndarray,
+    gt_mask: np.ndarray,
+    far_m: float = FAR_M,
+) -> list[str | None]:
     """First cause (TRACK_CAUSES) of every published pose of one frame, None for a good one.
 
     published (K,13,3) world m as published (filtered); raw (K,13,3) this frame's own
@@ -169,6 +199,7 @@ def explain_poses(published: np.ndarray, raw: np.ndarray, persons: list[np.ndarr
     gt_mask (P,13) every GT person of the frame (mask all False = absent).
     """
     from maem_ros.core.metrics.poses import match_frame, mpjpe
+
     P = len(gt)
     present = np.flatnonzero(gt_mask.any(-1))
     rows, cols, cost = match_frame(published, gt[present], gt_mask[present])

@@ -1,4 +1,5 @@
 """PNG plots for maem-eval (matplotlib Agg): per-frame MPJPE, AP vs threshold, top-down court view."""
+
 from __future__ import annotations
 
 import warnings
@@ -17,16 +18,25 @@ AP_CURVE_MM = np.arange(25, 301, 5)
 
 def _pyplot():
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
     return plt
 
 
-def ap_curve(preds: Sequence[np.ndarray], scores: Sequence[np.ndarray], gts: Sequence[np.ndarray],
-             gt_masks: Sequence[np.ndarray], thresholds_mm: np.ndarray = AP_CURVE_MM) -> np.ndarray:
+def ap_curve(
+    preds: Sequence[np.ndarray],
+    scores: Sequence[np.ndarray],
+    gts: Sequence[np.ndarray],
+    gt_masks: Sequence[np.ndarray],
+    thresholds_mm: np.ndarray = AP_CURVE_MM,
+) -> np.ndarray:
     """AP (0..1) at each MPJPE threshold (mm), same definition as evaluate_sequence's AP@d."""
-    costs = [mpjpe(np.asarray(p)[:, None], np.asarray(g)[None], np.asarray(m)[None]).reshape(len(p), len(g))
-             for p, g, m in zip(preds, gts, gt_masks)]
+    costs = [
+        mpjpe(np.asarray(p)[:, None], np.asarray(g)[None], np.asarray(m)[None]).reshape(len(p), len(g))
+        for p, g, m in zip(preds, gts, gt_masks)
+    ]
     return np.array([average_precision(costs, scores, t / 1e3) for t in thresholds_mm])
 
 
@@ -34,8 +44,9 @@ def per_frame_recall(preds, gts, gt_masks) -> np.ndarray:
     """(F,) matched GT people / GT people per frame (NaN for a frame without GT people)."""
     out = []
     for p, g, m in zip(preds, gts, gt_masks):
-        out.append(len(match_frame(np.asarray(p), np.asarray(g), np.asarray(m))[1]) / len(g) if len(g)
-                   else np.nan)
+        out.append(
+            len(match_frame(np.asarray(p), np.asarray(g), np.asarray(m))[1]) / len(g) if len(g) else np.nan
+        )
     return np.array(out, dtype=float)
 
 
@@ -84,8 +95,9 @@ def _draw_skeletons(ax, people: np.ndarray, color, label: str | None, ls: str = 
         segs = [joints[[a, b], :2] for a, b in SPORTCENTER_13.bones]
         segs = [seg for seg in segs if np.all(np.isfinite(seg))]
         for k, seg in enumerate(segs):
-            ax.plot(seg[:, 0], seg[:, 1], color=color, lw=lw, ls=ls,
-                    label=label if i == 0 and k == 0 else None)
+            ax.plot(
+                seg[:, 0], seg[:, 1], color=color, lw=lw, ls=ls, label=label if i == 0 and k == 0 else None
+            )
         ok = np.isfinite(joints).all(-1)
         ax.scatter(joints[ok, 0], joints[ok, 1], s=5, color=color, zorder=3)
 
@@ -97,14 +109,16 @@ def _root(people: np.ndarray) -> np.ndarray:
         return np.nanmean(people[..., :2], axis=-2) if len(people) else np.zeros((0, 2))
 
 
-def plot_court(path: Path, frame: int, gt: np.ndarray, pred: np.ndarray, rig: Rig,
-               max_zoom: int = 12) -> Path:
+def plot_court(
+    path: Path, frame: int, gt: np.ndarray, pred: np.ndarray, rig: Rig, max_zoom: int = 12
+) -> Path:
     """Top-down (world x-y) view of GT (black) against estimated (red) skeletons, court and cameras.
 
     Left: the whole court with every person's position (circle = GT, cross = estimate, grey line
     = matched pair). Right: each GT person zoomed to +-1 m with its MPJPE.
     """
     from maem_ros.sim.rigs import court_corners
+
     plt = _pyplot()
     n_zoom = min(len(gt), max_zoom)
     cols = 3 if n_zoom > 4 else 2
@@ -120,8 +134,11 @@ def plot_court(path: Path, frame: int, gt: np.ndarray, pred: np.ndarray, rig: Ri
     for c, xyz in zip(rig, centres):
         ax.annotate(c.name, xyz[:2], fontsize=7, xytext=(3, 3), textcoords="offset points")
     g_root, p_root = _root(gt), _root(pred)
-    cost = mpjpe(pred[:, None], gt[None]).reshape(len(pred), len(gt)) if len(pred) and len(gt) else \
-        np.zeros((len(pred), len(gt)))
+    cost = (
+        mpjpe(pred[:, None], gt[None]).reshape(len(pred), len(gt))
+        if len(pred) and len(gt)
+        else np.zeros((len(pred), len(gt)))
+    )
     best = np.full(len(gt), -1)
     for j in range(len(gt)):
         col = np.where(np.isfinite(cost[:, j]), cost[:, j], np.inf)
@@ -139,10 +156,10 @@ def plot_court(path: Path, frame: int, gt: np.ndarray, pred: np.ndarray, rig: Ri
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3)
     for k in range(n_zoom):
         z = fig.add_subplot(grid[k // cols, 1 + k % cols])
-        _draw_skeletons(z, gt[k:k + 1], "black", None)
+        _draw_skeletons(z, gt[k : k + 1], "black", None)
         err = "missed"
         if best[k] >= 0:
-            _draw_skeletons(z, pred[best[k]:best[k] + 1], "tab:red", None, ls="--")
+            _draw_skeletons(z, pred[best[k] : best[k] + 1], "tab:red", None, ls="--")
             err = f"{1e3 * cost[best[k], k]:.0f} mm"
         z.set_xlim(g_root[k, 0] - 1, g_root[k, 0] + 1)
         z.set_ylim(g_root[k, 1] - 1, g_root[k, 1] + 1)
@@ -155,19 +172,26 @@ def plot_court(path: Path, frame: int, gt: np.ndarray, pred: np.ndarray, rig: Ri
     return path
 
 
-def write_plots(out_dir: Path, runs, frame_ids: Sequence[int], gts, gt_masks, rig: Rig,
-                plot_frame: int | None = None) -> list[Path]:
+def write_plots(
+    out_dir: Path, runs, frame_ids: Sequence[int], gts, gt_masks, rig: Rig, plot_frame: int | None = None
+) -> list[Path]:
     """All maem-eval PNGs into ``out_dir``; the court view shows the last run (full config)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    written = [plot_per_frame_mpjpe(out_dir / "per_frame_mpjpe.png", frame_ids, runs, gts, gt_masks),
-               plot_ap_curve(out_dir / "ap_vs_threshold.png", runs, gts, gt_masks)]
+    written = [
+        plot_per_frame_mpjpe(out_dir / "per_frame_mpjpe.png", frame_ids, runs, gts, gt_masks),
+        plot_ap_curve(out_dir / "ap_vs_threshold.png", runs, gts, gt_masks),
+    ]
     if frame_ids:
         if plot_frame is None or plot_frame not in frame_ids:
-            plot_frame = frame_ids[len(frame_ids) // 2] if plot_frame is None else \
-                min(frame_ids, key=lambda f: abs(f - plot_frame))
+            plot_frame = (
+                frame_ids[len(frame_ids) // 2]
+                if plot_frame is None
+                else min(frame_ids, key=lambda f: abs(f - plot_frame))
+            )
         i = list(frame_ids).index(plot_frame)
         gt = np.where(gt_masks[i][..., None], gts[i], np.nan)
-        written.append(plot_court(out_dir / f"court_frame_{plot_frame:06d}.png", plot_frame, gt,
-                                  runs[-1].preds[i], rig))
+        written.append(
+            plot_court(out_dir / f"court_frame_{plot_frame:06d}.png", plot_frame, gt, runs[-1].preds[i], rig)
+        )
     return written

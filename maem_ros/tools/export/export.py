@@ -23,6 +23,7 @@ Persons without a confirmed track (id 4294967295) have no identity across frames
 out of TRC and C3D (their count is printed). ``--min-frames N`` drops tracks seen in fewer than
 N frames (any finite joint) from every format. Bad inputs give one line naming the input, exit 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -95,24 +96,27 @@ def read_pose_series(bag: str | Path, topic: str) -> PoseSeries:
         print(f"maem-export: warning: {info.damage}", file=sys.stderr, flush=True)
     if topic not in info.topics:
         poses = sorted(t for t, ty in info.topics.items() if ty == bagio.POINT_CLOUD2)
-        hint = (f"; --topic {bagio.GT_TOPIC} exports the ground truth" if bagio.GT_TOPIC in poses
-                else "")
-        raise InputError(f"bag {str(bag)!r}: no topic {topic!r} (PointCloud2 topics: "
-                         f"{', '.join(poses) or 'none'}{hint})")
+        hint = f"; --topic {bagio.GT_TOPIC} exports the ground truth" if bagio.GT_TOPIC in poses else ""
+        raise InputError(
+            f"bag {str(bag)!r}: no topic {topic!r} (PointCloud2 topics: {', '.join(poses) or 'none'}{hint})"
+        )
     if info.topics[topic] != bagio.POINT_CLOUD2:
-        raise InputError(f"bag {str(bag)!r}: topic {topic!r} is {info.topics[topic]}, expected "
-                         f"{bagio.POINT_CLOUD2} (poses layout)")
+        raise InputError(
+            f"bag {str(bag)!r}: topic {topic!r} is {info.topics[topic]}, expected "
+            f"{bagio.POINT_CLOUD2} (poses layout)"
+        )
     stamps, ids, joints, j = [], [], [], None
     for m in bagio.read_messages(bag, [topic], info=info):
         try:
             frame = wire.msg_to_poses(m.decode(), topic)
         except (ValueError, KeyError) as e:
-            raise InputError(f"bag {str(bag)!r}: {topic} message at log time {m.log_time_ns}: "
-                             f"{e}") from None
+            raise InputError(f"bag {str(bag)!r}: {topic} message at log time {m.log_time_ns}: {e}") from None
         if frame.ids.size:
             if j is not None and frame.joints.shape[1] != j:
-                raise InputError(f"bag {str(bag)!r}: {topic} at stamp {frame.stamp_ns}: "
-                                 f"{frame.joints.shape[1]} joints, earlier messages have {j}")
+                raise InputError(
+                    f"bag {str(bag)!r}: {topic} at stamp {frame.stamp_ns}: "
+                    f"{frame.joints.shape[1]} joints, earlier messages have {j}"
+                )
             j = frame.joints.shape[1]
         stamps.append(frame.stamp_ns)
         ids.append(frame.ids)
@@ -125,17 +129,16 @@ def read_pose_series(bag: str | Path, topic: str) -> PoseSeries:
     st = np.asarray(stamps, dtype=np.int64)[order]
     dup = np.flatnonzero(np.diff(st) == 0)
     if dup.size:
-        raise InputError(f"bag {str(bag)!r}: {topic}: header stamp {int(st[dup[0]])} appears in "
-                         f"two messages")
-    return PoseSeries(st, [ids[i] for i in order],
-                      [joints[i] if joints[i].size else np.zeros((0, j, 3)) for i in order], j)
+        raise InputError(f"bag {str(bag)!r}: {topic}: header stamp {int(st[dup[0]])} appears in two messages")
+    return PoseSeries(
+        st, [ids[i] for i in order], [joints[i] if joints[i].size else np.zeros((0, j, 3)) for i in order], j
+    )
 
 
 def frame_rate(stamps: np.ndarray, where: str) -> float:
     """Hz from the median stamp step of sorted unique ns ``stamps`` (InputError below 2)."""
     if len(stamps) < 2:
-        raise InputError(f"{where}: {len(stamps)} message(s); a frame rate needs at least 2 "
-                         f"stamps")
+        raise InputError(f"{where}: {len(stamps)} message(s); a frame rate needs at least 2 stamps")
     return 1e9 / float(np.median(np.diff(stamps)))
 
 
@@ -148,8 +151,10 @@ def grid_tracks(series: PoseSeries, min_frames: int, where: str) -> tuple[Tracks
     clash = np.flatnonzero(np.diff(grid) == 0)
     if clash.size:
         a, b = series.stamps[clash[0]], series.stamps[clash[0] + 1]
-        raise InputError(f"{where}: stamps {int(a)} and {int(b)} fall on one frame of the "
-                         f"{rate:.3f} Hz grid (irregular stamps)")
+        raise InputError(
+            f"{where}: stamps {int(a)} and {int(b)} fall on one frame of the "
+            f"{rate:.3f} Hz grid (irregular stamps)"
+        )
     all_ids = np.concatenate(series.ids)
     untracked = int(np.sum(all_ids == UNTRACKED))
     tracked = np.unique(all_ids[all_ids != UNTRACKED])
@@ -161,15 +166,13 @@ def grid_tracks(series: PoseSeries, min_frames: int, where: str) -> tuple[Tracks
         ordered = np.sort(ids[keep])
         twice = ordered[1:][np.diff(ordered) == 0]
         if twice.size:
-            raise InputError(f"{where}: track id {int(twice[0])} appears twice at stamp "
-                             f"{int(stamp)}")
+            raise InputError(f"{where}: track id {int(twice[0])} appears twice at stamp {int(stamp)}")
         col = np.searchsorted(tracked, ids[keep])
         joints[g, col] = pj[keep]
         seen[col] += np.isfinite(pj[keep]).all(axis=2).any(axis=1)
     enough = seen >= min_frames
     dropped = [int(i) for i in tracked[~enough]]
-    return Tracks(tracked[enough], joints[:, enough], grid, rate, int(series.stamps[0])), \
-        untracked, dropped
+    return Tracks(tracked[enough], joints[:, enough], grid, rate, int(series.stamps[0])), untracked, dropped
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,8 +189,9 @@ def zup_to_yup(xyz: np.ndarray) -> np.ndarray:
     return xyz[..., [1, 2, 0]]
 
 
-def write_trc(path: Path, joints_m: np.ndarray, names: Sequence[str], rate_hz: float,
-              axes: str = "yup") -> None:
+def write_trc(
+    path: Path, joints_m: np.ndarray, names: Sequence[str], rate_hz: float, axes: str = "yup"
+) -> None:
     """One track as a TRC file: joints (K,J,3) world metres on the uniform grid, NaN = missing.
 
     Pose2Sim / OpenSim layout (tab separated): PathFileType 4 header, rate line, marker names
@@ -200,16 +204,20 @@ def write_trc(path: Path, joints_m: np.ndarray, names: Sequence[str], rate_hz: f
     rate = f"{rate_hz:.6g}"
     header = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
-        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame"
-        "\tOrigNumFrames",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
         f"{rate}\t{rate}\t{k}\t{j}\tmm\t{rate}\t1\t{k}",
         "Frame#\tTime\t" + "\t\t\t".join(names) + "\t\t",
         "\t\t" + "\t".join(f"X{i}\tY{i}\tZ{i}" for i in range(1, j + 1)),
         "",
     ]
     frames = np.arange(1, k + 1)
-    cells = np.column_stack([frames.astype(str), np.char.mod("%.6f", (frames - 1) / rate_hz),
-                             _fmt_cells(xyz.reshape(k, 3 * j) * 1000.0, 3)])
+    cells = np.column_stack(
+        [
+            frames.astype(str),
+            np.char.mod("%.6f", (frames - 1) / rate_hz),
+            _fmt_cells(xyz.reshape(k, 3 * j) * 1000.0, 3),
+        ]
+    )
     # every row ends with a tab: OpenSim's TRC reader drops trailing empty cells otherwise
     rows = ["\t".join(r) + "\t" for r in cells]
     path.write_text("\n".join(header + rows) + "\n")
@@ -246,9 +254,14 @@ def write_csv(path: Path, series: PoseSeries, keep_ids: set[int], names: Sequenc
         p = int(keep.sum())
         if not p:
             continue
-        cells = np.column_stack([
-            np.full(p * j, str(int(stamp))), np.repeat(ids[keep].astype(str), j),
-            np.tile(np.asarray(names), p), _fmt_cells(pj[keep].reshape(p * j, 3), 6)])
+        cells = np.column_stack(
+            [
+                np.full(p * j, str(int(stamp))),
+                np.repeat(ids[keep].astype(str), j),
+                np.tile(np.asarray(names), p),
+                _fmt_cells(pj[keep].reshape(p * j, 3), 6),
+            ]
+        )
         blocks.append("\n".join(",".join(r) for r in cells))
     path.write_text("stamp_ns,id,joint,x,y,z\n" + "".join(b + "\n" for b in blocks))
     return sum(b.count("\n") + 1 for b in blocks)
@@ -259,18 +272,27 @@ def write_csv(path: Path, series: PoseSeries, keep_ids: set[int], names: Sequenc
 # ---------------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="maem-export", description=__doc__.split("\n\n")[0],
-        epilog=__doc__.split("\n\n", 2)[2], formatter_class=argparse.RawDescriptionHelpFormatter)
+        prog="maem-export",
+        description=__doc__.split("\n\n")[0],
+        epilog=__doc__.split("\n\n", 2)[2],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("bag", help="rosbag2 folder (metadata.yaml + .mcap)")
     p.add_argument("--format", required=True, choices=FORMATS, help="output format")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--topic", default="/maem/poses", help="poses topic (default /maem/poses)")
-    p.add_argument("--min-frames", type=int, default=1,
-                   help="drop tracks seen in fewer frames (default 1)")
-    p.add_argument("--convention", choices=sorted(CONVENTIONS),
-                   help="keypoint convention of the joints (default: the one with J joints)")
-    p.add_argument("--trc-axes", choices=("yup", "zup"), default="yup",
-                   help="TRC axes: yup = Pose2Sim/OpenSim (default), zup = world axes")
+    p.add_argument("--min-frames", type=int, default=1, help="drop tracks seen in fewer frames (default 1)")
+    p.add_argument(
+        "--convention",
+        choices=sorted(CONVENTIONS),
+        help="keypoint convention of the joints (default: the one with J joints)",
+    )
+    p.add_argument(
+        "--trc-axes",
+        choices=("yup", "zup"),
+        default="yup",
+        help="TRC axes: yup = Pose2Sim/OpenSim (default), zup = world axes",
+    )
     return p
 
 
@@ -280,8 +302,7 @@ def _convention(name: str | None, num_joints: int, where: str) -> KeypointConven
     except ValueError as e:
         raise InputError(f"{where}: {e}") from None
     if conv.num_joints != num_joints:
-        raise InputError(f"{where}: {num_joints} joints, convention {conv.name} has "
-                         f"{conv.num_joints}")
+        raise InputError(f"{where}: {num_joints} joints, convention {conv.name} has {conv.num_joints}")
     return conv
 
 
@@ -304,11 +325,15 @@ def export(args: argparse.Namespace, log=print) -> list[Path]:
     tracks, untracked, dropped = grid_tracks(series, args.min_frames, where)
     out = _out_dir(args.out)
     stem = Path(args.bag).resolve().name
-    log(f"{where}: {series.num_frames} messages, {tracks.rate_hz:.3f} Hz, "
-        f"{len(tracks.ids)} tracks ({conv.name}, {conv.num_joints} joints)")
+    log(
+        f"{where}: {series.num_frames} messages, {tracks.rate_hz:.3f} Hz, "
+        f"{len(tracks.ids)} tracks ({conv.name}, {conv.num_joints} joints)"
+    )
     if dropped:
-        log(f"skipped {len(dropped)} track(s) seen in fewer than {args.min_frames} frames: "
-            f"{', '.join(map(str, dropped))}")
+        log(
+            f"skipped {len(dropped)} track(s) seen in fewer than {args.min_frames} frames: "
+            f"{', '.join(map(str, dropped))}"
+        )
     if untracked and args.format != "csv":
         log(f"left out {untracked} untracked person-frame(s) (id {UNTRACKED}, no identity)")
     if args.format != "csv" and not len(tracks.ids):

@@ -15,6 +15,7 @@ live node ``ros2 run maem_ros foxglove`` (see maem_ros/ros/foxglove_node.py).
 Open Foxglove, "Open connection", ws://127.0.0.1:8765 (the default address). Channels:
 see maem_ros/viz/bridge.py. Bad inputs: one line naming the input, exit 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,25 +41,46 @@ class InputError(ValueError):
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="maem-foxglove", description=__doc__.split("\n\n")[0],
-        epilog=__doc__.split("\n\n", 2)[2], formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--bag", action="append", required=True,
-                   help="rosbag2 folder to replay (repeat to merge several by log time)")
+        prog="maem-foxglove",
+        description=__doc__.split("\n\n")[0],
+        epilog=__doc__.split("\n\n", 2)[2],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--bag",
+        action="append",
+        required=True,
+        help="rosbag2 folder to replay (repeat to merge several by log time)",
+    )
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int, default=8765, help="port (default 8765; 0 = a free one)")
     p.add_argument("--rate", type=float, default=1.0, help="replay speed factor (default 1)")
     p.add_argument("--loop", action="store_true", help="replay again and again until Ctrl-C")
     p.add_argument("--topic", default="/maem/poses", help="poses topic (default /maem/poses)")
-    p.add_argument("--rig", help="rig YAML, camera-JSON folder or shipped rig name "
-                                 "(default: from the bag's metadata)")
-    p.add_argument("--court", type=float, nargs=2, default=(28.0, 15.0), metavar=("L", "W"),
-                   help="court floor size in m (default 28 15)")
-    p.add_argument("--convention", choices=sorted(CONVENTIONS),
-                   help="keypoint convention of the poses (default: the one with J joints)")
-    p.add_argument("--frame", default="world",
-                   help="the rig's world frame: parent of the camera transforms (default world)")
-    p.add_argument("--no-wait", action="store_true",
-                   help="start replaying at once instead of at the first subscription")
+    p.add_argument(
+        "--rig", help="rig YAML, camera-JSON folder or shipped rig name (default: from the bag's metadata)"
+    )
+    p.add_argument(
+        "--court",
+        type=float,
+        nargs=2,
+        default=(28.0, 15.0),
+        metavar=("L", "W"),
+        help="court floor size in m (default 28 15)",
+    )
+    p.add_argument(
+        "--convention",
+        choices=sorted(CONVENTIONS),
+        help="keypoint convention of the poses (default: the one with J joints)",
+    )
+    p.add_argument(
+        "--frame",
+        default="world",
+        help="the rig's world frame: parent of the camera transforms (default world)",
+    )
+    p.add_argument(
+        "--no-wait", action="store_true", help="start replaying at once instead of at the first subscription"
+    )
     return p
 
 
@@ -104,19 +126,28 @@ class BagSource:
             self.topics.update(info.topics)
         self.camera_of: dict[str, tuple[str, str]] = {}  # topic -> (camera, kind)
         for cam in rig.names:
-            for kind, topic in (("compressed", f"/{cam}/image_raw/compressed"),
-                                ("raw", f"/{cam}/image_raw"), ("info", f"/{cam}/camera_info")):
+            for kind, topic in (
+                ("compressed", f"/{cam}/image_raw/compressed"),
+                ("raw", f"/{cam}/image_raw"),
+                ("info", f"/{cam}/camera_info"),
+            ):
                 if topic in self.topics:
                     self.camera_of[topic] = (cam, kind)
         if poses_topic in self.topics and self.topics[poses_topic] != bagio.POINT_CLOUD2:
-            raise InputError(f"bag {self.bags[0]!r}: topic {poses_topic!r} is "
-                             f"{self.topics[poses_topic]}, expected {bagio.POINT_CLOUD2}")
+            raise InputError(
+                f"bag {self.bags[0]!r}: topic {poses_topic!r} is "
+                f"{self.topics[poses_topic]}, expected {bagio.POINT_CLOUD2}"
+            )
         if poses_topic not in self.topics:
-            log(f"no {poses_topic} in the bag(s): images only (--topic {bagio.GT_TOPIC} shows "
-                "the ground truth of maem-make-bag bags)")
+            log(
+                f"no {poses_topic} in the bag(s): images only (--topic {bagio.GT_TOPIC} shows "
+                "the ground truth of maem-make-bag bags)"
+            )
         if not self.camera_of and poses_topic not in self.topics:
-            raise InputError(f"bag {self.bags[0]!r}: neither {poses_topic} nor any camera topic "
-                             f"of the rig ({', '.join(rig.names)})")
+            raise InputError(
+                f"bag {self.bags[0]!r}: neither {poses_topic} nor any camera topic "
+                f"of the rig ({', '.join(rig.names)})"
+            )
         self.wanted = [t for t in [poses_topic, *self.camera_of] if t in self.topics]
 
     def messages(self) -> Iterator:
@@ -154,8 +185,7 @@ class Player:
             msg = m.decode()
             if m.topic == self.source.poses_topic:
                 frame = self.wire.msg_to_poses(msg, m.topic)
-                self.bridge.publish_poses(frame.stamp_ns, frame.ids, frame.joints,
-                                          frame.frame_id)
+                self.bridge.publish_poses(frame.stamp_ns, frame.ids, frame.joints, frame.frame_id)
             else:
                 cam, kind = self.source.camera_of[m.topic]
                 stamp = self.wire.checked_stamp_ns(msg.header.stamp, m.topic)
@@ -171,8 +201,10 @@ class Player:
             n = self.rejected.get(m.topic, 0)
             self.rejected[m.topic] = n + 1
             if n == 0:
-                self.log(f"skipped {m.topic} at log time {m.log_time_ns}: {why} (further skips "
-                         f"on this topic are counted)")
+                self.log(
+                    f"skipped {m.topic} at log time {m.log_time_ns}: {why} (further skips "
+                    f"on this topic are counted)"
+                )
 
 
 def run_bag(args: argparse.Namespace, log=print) -> int:
@@ -188,15 +220,23 @@ def run_bag(args: argparse.Namespace, log=print) -> int:
     rig = load_rig(args)
     source = BagSource(args.bag, rig, args.topic, log)
     try:
-        bridge = FoxgloveBridge(rig, host=args.host, port=args.port, court_size=tuple(args.court),
-                                convention=args.convention, world_frame=args.frame)
+        bridge = FoxgloveBridge(
+            rig,
+            host=args.host,
+            port=args.port,
+            court_size=tuple(args.court),
+            convention=args.convention,
+            world_frame=args.frame,
+        )
     except OSError as e:
         raise InputError(f"--port {args.port}: {e}") from None
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    log(f"Foxglove server on {bridge.url} ({len(rig)} cameras, topics: "
-        f"{', '.join(source.wanted)})", flush=True)
+    log(
+        f"Foxglove server on {bridge.url} ({len(rig)} cameras, topics: {', '.join(source.wanted)})",
+        flush=True,
+    )
     player = Player(source, bridge, args.rate, stop, log)
     try:
         if not args.no_wait:
@@ -210,8 +250,7 @@ def run_bag(args: argparse.Namespace, log=print) -> int:
     finally:
         bridge.close()
     skipped = sum(player.rejected.values())
-    log(f"sent {player.sent} messages" + (f", skipped {skipped}: {player.rejected}"
-                                          if skipped else ""))
+    log(f"sent {player.sent} messages" + (f", skipped {skipped}: {player.rejected}" if skipped else ""))
     return 0
 
 
@@ -232,6 +271,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print_help()
             return 0
         from maem_ros.ros.foxglove_node import main as node_main
+
         return node_main([sys.argv[0], *argv])
     args = build_parser().parse_args(argv)
     try:

@@ -20,16 +20,27 @@ Modules: ``pair_gates`` (the interface), ``reprojection`` (+ ``reprojection_kern
 Exports: EPIPOLAR_GATES, EVERY_VERTEX, ExecutionParams, FrameSet, GateDecisions, PairGates,
 RigGeometry, gate_columns, rig_geometry, warmup.
 """
+
 from maem_ros.core.association.gates.execution import EVERY_VERTEX, ExecutionParams
 from maem_ros.core.association.gates.pair_gates import (
-                                                        EPIPOLAR_GATES,
-                                                        FrameSet,
-                                                        GateDecisions,
-                                                        PairGates,
-                                                        gate_columns,
-                                                        warmup,
+    EPIPOLAR_GATES,
+    FrameSet,
+    GateDecisions,
+    PairGates,
+    gate_columns,
+    warmup,
 )
 from maem_ros.core.association.gates.rig_geometry import RigGeometry, rig_geometry
 
-__all__ = ["EPIPOLAR_GATES", "EVERY_VERTEX", "ExecutionParams", "FrameSet", "GateDecisions",
-           "PairGates", "RigGeometry", "gate_columns", "rig_geometry", "warmup"]
+__all__ = [
+    "EPIPOLAR_GATES",
+    "EVERY_VERTEX",
+    "ExecutionParams",
+    "FrameSet",
+    "GateDecisions",
+    "PairGates",
+    "RigGeometry",
+    "gate_columns",
+    "rig_geometry",
+    "warmup",
+]

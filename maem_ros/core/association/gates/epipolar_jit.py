@@ -2,6 +2,7 @@
 epipolar_kernel): the compile options (fast-math flags that keep NaN and inf, float32 1/sqrt
 as the hardware estimate), raw pointer access to a detection's points, prefetch hints and
 per-kernel LLVM function attributes. Imported only when numba is installed."""
+
 from __future__ import annotations
 
 import numba as nb
@@ -30,6 +31,7 @@ def pointer_like(typingctx, like, address):
 
     def codegen(context, builder, signature, args):
         return builder.inttoptr(args[1], context.get_value_type(signature.return_type))
+
     return sig, codegen
 
 
@@ -37,6 +39,7 @@ def _prefetch_intrinsic(locality: int, towards: str):
     """An intrinsic asking the CPU to bring the cache line at an int64 address towards
     ``towards`` (a hint: never faults, even for an address outside any mapping); LLVM's
     temporal locality 3 = L1, 2 = L2."""
+
     @nb.extending.intrinsic
     def intrinsic(typingctx, address):
         sig = nb.types.void(nb.types.int64)
@@ -46,13 +49,16 @@ def _prefetch_intrinsic(locality: int, towards: str):
             byte_ptr = cgutils.voidptr_t
             i32 = cgutils.int32_t
             fn = builder.module.declare_intrinsic(
-                "llvm.prefetch", [byte_ptr],
-                cgutils.ir.FunctionType(cgutils.ir.VoidType(), [byte_ptr, i32, i32, i32]))
+                "llvm.prefetch",
+                [byte_ptr],
+                cgutils.ir.FunctionType(cgutils.ir.VoidType(), [byte_ptr, i32, i32, i32]),
+            )
             # read (0), locality, data cache (1)
-            builder.call(fn, [builder.inttoptr(args[0], byte_ptr), i32(0), i32(locality),
-                              i32(1)])
+            builder.call(fn, [builder.inttoptr(args[0], byte_ptr), i32(0), i32(locality), i32(1)])
             return context.get_dummy_value()
+
         return sig, codegen
+
     intrinsic.__doc__ = f"Prefetch the cache line at the int64 address towards {towards}."
     return intrinsic
 
@@ -86,6 +92,7 @@ def _function_attribute(attribute: str, doc: str, x86_only: bool = False):
     """An intrinsic that marks the calling kernel with the LLVM function attribute
     ``attribute`` (x86_only: on x86-64 targets only). A no-op where llvmlite's function
     attributes are not the set of printed strings they are today."""
+
     @nb.extending.intrinsic
     def intrinsic(typingctx):
         def codegen(context, builder, signature, args):
@@ -95,15 +102,17 @@ def _function_attribute(attribute: str, doc: str, x86_only: bool = False):
                 # set.add: llvmlite's own add() accepts only LLVM's keyword attributes
                 set.add(attributes, attribute)
             return context.get_dummy_value()
+
         return nb.types.none(), codegen
+
     intrinsic.__doc__ = doc
     return intrinsic
 
 
-wide_vectors = _function_attribute(_WIDE, "Mark the calling kernel with _WIDE (else only "
-                                          "narrower vectors).")
-estimated_rsqrt = _function_attribute(_ESTIMATE, "Mark the calling float32 kernel with "
-                                                 "_ESTIMATE (x86-64 only).", x86_only=True)
+wide_vectors = _function_attribute(_WIDE, "Mark the calling kernel with _WIDE (else only narrower vectors).")
+estimated_rsqrt = _function_attribute(
+    _ESTIMATE, "Mark the calling float32 kernel with _ESTIMATE (x86-64 only).", x86_only=True
+)
 
 
 @inline
@@ -112,5 +121,3 @@ def points(like, address, start, count):
     reference counting (a typed list of the cameras' arrays costs ~20 ns per access in the
     hot loop); the caller keeps the arrays alive."""
     return nb.carray(pointer_like(like, address + start * like.itemsize), (count,))
-
-

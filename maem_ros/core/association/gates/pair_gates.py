@@ -13,6 +13,7 @@ The cross-view association (core.association.pipeline) and the track-assisted as
 (core.tracking.temporal) both gate their pairs here; a frame that was not prepared is gated
 the same way (its subsets read in place), only slower.
 """
+
 from __future__ import annotations
 
 import weakref
@@ -94,6 +95,7 @@ class _PreparedFrames:
         def drop(ref: weakref.ref, key: int = key) -> None:
             if entries.get(key, (None,))[0] is ref:
                 del entries[key]
+
         entries[key] = (weakref.ref(frame, drop), prepared)
 
     def get(self, frame: FrameDetections) -> _Prepared | None:
@@ -114,12 +116,16 @@ class PairGates:
     :meth:`with_epipolar_gate`, which shares the prepared frames.
     """
 
-    def __init__(self, rig: Rig, params: GateParams, epipolar_gate: str | None = None,
-                 prepared: _PreparedFrames | None = None):
+    def __init__(
+        self,
+        rig: Rig,
+        params: GateParams,
+        epipolar_gate: str | None = None,
+        prepared: _PreparedFrames | None = None,
+    ):
         mode = params.epipolar_gate if epipolar_gate is None else epipolar_gate
         if mode not in EPIPOLAR_GATES:
-            raise ValueError(f"epipolar_gate: expected one of {list(EPIPOLAR_GATES)}, got "
-                             f"{mode!r}")
+            raise ValueError(f"epipolar_gate: expected one of {list(EPIPOLAR_GATES)}, got {mode!r}")
         self.rig, self.params, self.epipolar_gate = rig, params, mode
         self.execution: ExecutionParams = params.execution
         self._prepared = _PreparedFrames() if prepared is None else prepared
@@ -153,9 +159,14 @@ class PairGates:
         out = frame.select(index)
         made = self._prepared.get(frame)
         if made is not None:
-            self._prepared.put(out, _Prepared(out.verts2d,
-                                              {s: a[index] for s, a in made.copies.items()},
-                                              {s: a[index] for s, a in made.ranges.items()}))
+            self._prepared.put(
+                out,
+                _Prepared(
+                    out.verts2d,
+                    {s: a[index] for s, a in made.copies.items()},
+                    {s: a[index] for s, a in made.ranges.items()},
+                ),
+            )
         return out
 
     def is_prepared(self, frame: FrameDetections) -> bool:
@@ -172,14 +183,18 @@ class PairGates:
         levels when the numba gate compares every vertex a camera sends, else none (the gate
         would not read them; the numpy backend reads the subsets in place)."""
         p, e = self.params, self.execution
-        if self.epipolar_gate != "mesh" or p.vertex_stride != 1 or p.vertex_count > 0 \
-                or e.backend == "numpy" or not have_numba():
+        if (
+            self.epipolar_gate != "mesh"
+            or p.vertex_stride != 1
+            or p.vertex_count > 0
+            or e.backend == "numpy"
+            or not have_numba()
+        ):
             return ()
         return tuple(stride for stride, _ in e.screen_levels())
 
     # -- per frame set -------------------------------------------------------------------
-    def candidates(self, table: DetectionTable) -> tuple[np.ndarray, np.ndarray,
-                                                         np.ndarray | None]:
+    def candidates(self, table: DetectionTable) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """(i, j, reprojection ok (S,) bool or None when the gate is off) of every pair of
         table rows of different cameras (reprojection.enumerate_pairs' order): with numba
         the enumeration and the reprojection gate are one pass; pass ok to
@@ -188,20 +203,32 @@ class PairGates:
         p = self.params
         kernel = reprojection_kernel(self.execution.backend) if p.reproj_gate else None
         if kernel is not None:
-            return kernel(table.offsets, geometry.stack, geometry.P[table.cam], table.centers,
-                          float(p.tau_reproj_bbox), BOUND_MARGIN, p.reproj_reduce == "max")
+            return kernel(
+                table.offsets,
+                geometry.stack,
+                geometry.P[table.cam],
+                table.centers,
+                float(p.tau_reproj_bbox),
+                BOUND_MARGIN,
+                p.reproj_reduce == "max",
+            )
         i, j = enumerate_pairs(table.offsets)
-        ok = (reprojection_ok(geometry.stack, geometry.P, table.cam, table.centers, i, j,
-                              p.tau_reproj_bbox, p.reproj_reduce)
-              if p.reproj_gate and i.size else None)
+        ok = (
+            reprojection_ok(
+                geometry.stack, geometry.P, table.cam, table.centers, i, j, p.tau_reproj_bbox, p.reproj_reduce
+            )
+            if p.reproj_gate and i.size
+            else None
+        )
         return i, j, ok
 
     def frame_set(self, frames: Mapping[int, FrameDetections]) -> FrameSet:
         """The gates of one frame set (frames keyed by camera index in the rig)."""
         return FrameSet(self, dict(frames))
 
-    def camera_points(self, frame: FrameDetections, columns: np.ndarray | None
-                      ) -> tuple[PointRows, list[PointRows | None]]:
+    def camera_points(
+        self, frame: FrameDetections, columns: np.ndarray | None
+    ) -> tuple[PointRows, list[PointRows | None]]:
         """One camera's points for the epipolar gate (the verts2d ``columns``, None = all, or
         the 2D keypoints) and their screening subsets (coarse to fine; None = too few
         points): what :meth:`prepare` made where it did, else read in place."""
@@ -215,8 +242,11 @@ class PairGates:
         subsets: list[PointRows | None] = []
         for stride, _ in self.execution.screen_levels():
             copy = made.copies.get(stride) if made else None
-            subsets.append(screen_rows(full, stride) if copy is None or made is None
-                           else point_rows(copy, made.ranges.get(stride)))
+            subsets.append(
+                screen_rows(full, stride)
+                if copy is None or made is None
+                else point_rows(copy, made.ranges.get(stride))
+            )
         return full, subsets
 
 
@@ -231,28 +261,43 @@ class FrameSet:
         self._points: dict[int, tuple[PointRows, list[PointRows | None]]] = {}
         self._views: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
-    def decide(self, cam_a: np.ndarray, det_a: np.ndarray, cam_b: np.ndarray,
-               det_b: np.ndarray, reprojected: np.ndarray | None = None) -> GateDecisions:
+    def decide(
+        self,
+        cam_a: np.ndarray,
+        det_a: np.ndarray,
+        cam_b: np.ndarray,
+        det_b: np.ndarray,
+        reprojected: np.ndarray | None = None,
+    ) -> GateDecisions:
         """The gates of the S pairs (detection det_a[s] of camera cam_a[s], det_b[s] of
         cam_b[s]; cam_a < cam_b). ``reprojected``: the reprojection gate's decisions when
         already made (:meth:`PairGates.candidates`), else the gate runs here (when on)."""
         pairs = tuple(np.asarray(v, np.int64) for v in (cam_a, det_a, cam_b, det_b))
         if reprojected is None and self.gates.params.reproj_gate and pairs[0].size:
             reprojected = self._reprojection(*pairs)
-        return self._decide(pairs[0].size, reprojected,
-                            lambda alive: tuple(v[alive] for v in pairs))
+        return self._decide(pairs[0].size, reprojected, lambda alive: tuple(v[alive] for v in pairs))
 
-    def decide_rows(self, table: DetectionTable, i: np.ndarray, j: np.ndarray,
-                    reprojected: np.ndarray | None) -> GateDecisions:
+    def decide_rows(
+        self, table: DetectionTable, i: np.ndarray, j: np.ndarray, reprojected: np.ndarray | None
+    ) -> GateDecisions:
         """:meth:`decide` of the pairs of table rows (i, j) (:meth:`PairGates.candidates`),
         the rows' cameras and detections looked up for the reprojection survivors only."""
         if reprojected is None and self.gates.params.reproj_gate and i.size:
             return self.decide(table.cam[i], table.det[i], table.cam[j], table.det[j])
-        return self._decide(i.size, reprojected, lambda alive: (
-            table.cam[i[alive]], table.det[i[alive]], table.cam[j[alive]], table.det[j[alive]]))
+        return self._decide(
+            i.size,
+            reprojected,
+            lambda alive: (
+                table.cam[i[alive]],
+                table.det[i[alive]],
+                table.cam[j[alive]],
+                table.det[j[alive]],
+            ),
+        )
 
-    def _decide(self, S: int, reprojected: np.ndarray | None,
-                pairs_of: Callable[[np.ndarray], tuple[np.ndarray, ...]]) -> GateDecisions:
+    def _decide(
+        self, S: int, reprojected: np.ndarray | None, pairs_of: Callable[[np.ndarray], tuple[np.ndarray, ...]]
+    ) -> GateDecisions:
         """Stages and means of S pairs after the reprojection gate's decisions (None: off);
         pairs_of(alive) -> (cam_a, det_a, cam_b, det_b) of the pairs alive (indices)."""
         if reprojected is not None:  # masks over every pair, not index arrays
@@ -269,8 +314,9 @@ class FrameSet:
             stage[alive[~keep]] = REJECTED_EPIPOLAR
         return GateDecisions(stage, epi, fraction)
 
-    def _reprojection(self, cam_a: np.ndarray, det_a: np.ndarray, cam_b: np.ndarray,
-                      det_b: np.ndarray) -> np.ndarray:
+    def _reprojection(
+        self, cam_a: np.ndarray, det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray
+    ) -> np.ndarray:
         """(S,) reprojection gate of the pairs, over every detection of the frame set."""
         if self._views is None:
             cams = sorted(self.frames)
@@ -278,17 +324,24 @@ class FrameSet:
             for c in cams:
                 sizes[c] = self.frames[c].n
             offsets = np.concatenate([[0], np.cumsum(sizes)])
-            centers = (np.concatenate([self.frames[c].centers for c in cams]) if cams
-                       else np.zeros((0, 2)))
+            centers = np.concatenate([self.frames[c].centers for c in cams]) if cams else np.zeros((0, 2))
             self._views = offsets, np.repeat(np.arange(sizes.size), sizes), centers
         offsets, cam, centers = self._views
         geometry, p = self.gates.geometry, self.gates.params
-        return reprojection_ok(geometry.stack, geometry.P, cam, centers,
-                               offsets[cam_a] + det_a, offsets[cam_b] + det_b,
-                               p.tau_reproj_bbox, p.reproj_reduce)
+        return reprojection_ok(
+            geometry.stack,
+            geometry.P,
+            cam,
+            centers,
+            offsets[cam_a] + det_a,
+            offsets[cam_b] + det_b,
+            p.tau_reproj_bbox,
+            p.reproj_reduce,
+        )
 
-    def _epipolar(self, cam_a: np.ndarray, det_a: np.ndarray, cam_b: np.ndarray,
-                  det_b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    def _epipolar(
+        self, cam_a: np.ndarray, det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, float]:
         """(keep, mean px exact where kept, fraction of the gate points summed) of pairs."""
         p, e = self.gates.params, self.gates.execution
         cams = np.unique(np.concatenate([cam_a, cam_b])).tolist()
@@ -303,9 +356,19 @@ class FrameSet:
         # one kernel call for every camera pair of the frame (per level): a detection's block
         # is read once from memory for all its candidate pairs
         keep, mean, evaluated = frame_screened_means(
-            full, levels, self.gates.geometry.pairs, cam_a, det_a, cam_b, det_b, p.tau_mesh,
-            symmetric=p.epipolar_distance == "symmetric", early_exit=e.early_exit,
-            backend=e.backend, precision=e.epipolar_precision)
+            full,
+            levels,
+            self.gates.geometry.pairs,
+            cam_a,
+            det_a,
+            cam_b,
+            det_b,
+            p.tau_mesh,
+            symmetric=p.epipolar_distance == "symmetric",
+            early_exit=e.early_exit,
+            backend=e.backend,
+            precision=e.epipolar_precision,
+        )
         budget = cam_a.size * full[cams[0]].n
         return keep, mean, evaluated / budget if budget else 0.0
 
@@ -314,15 +377,14 @@ class FrameSet:
         hit = self._points.get(c)
         if hit is None:
             if self._columns is None:
-                self._columns = (gate_columns(self.frames, self.gates.params)
-                                 if self.gates.epipolar_gate == "mesh" else {})
-            hit = self._points[c] = self.gates.camera_points(self.frames[c],
-                                                             self._columns.get(c))
+                self._columns = (
+                    gate_columns(self.frames, self.gates.params) if self.gates.epipolar_gate == "mesh" else {}
+                )
+            hit = self._points[c] = self.gates.camera_points(self.frames[c], self._columns.get(c))
         return hit
 
 
-def gate_columns(frames: Mapping[int, FrameDetections], params: GateParams
-                 ) -> dict[int, np.ndarray | None]:
+def gate_columns(frames: Mapping[int, FrameDetections], params: GateParams) -> dict[int, np.ndarray | None]:
     """Per camera, the verts2d columns the mesh gate uses (None = all of them, no copy).
 
     The gate compares full-mesh vertex ids: the ones the params select (vertex_stride /
@@ -355,6 +417,7 @@ def warmup(backend: str = "auto", epipolar_gate: str = "mesh") -> None:
     """Compile (or load from numba's on-disk cache) the gates' numba kernels now, so a node's
     first frame does not pay for it. No-op for the numpy backend or without numba."""
     from maem_ros.core.association.gates import epipolar, reprojection, screening
+
     if reprojection_kernel(backend) is None:
         return
     if epipolar_gate != "none":

@@ -1,6 +1,7 @@
 """How the epipolar gate's kernels read one camera's points (:class:`PointRows`: in place, in
 runs, with block ranges) and the fundamental matrices of a rig's camera pairs
 (:class:`PairMatrices`), and the fixed block order every backend walks."""
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -63,7 +64,7 @@ class PointRows:
 
     def points(self, i: int) -> np.ndarray:
         """(n,2) copy of detection i's points."""
-        return self._gather(self.rows[i:i + 1])[0]
+        return self._gather(self.rows[i : i + 1])[0]
 
     def _gather(self, rows: np.ndarray) -> np.ndarray:
         """(len(rows),n,2) copy of the points of the detections at element offsets rows."""
@@ -84,8 +85,9 @@ def point_rows(x: np.ndarray | PointRows, ranges: np.ndarray | None = None) -> P
     N, n = int(x.shape[0]), int(x.shape[1])
     if ranges is not None:
         if ranges.shape != (N, -(-n // BLOCK), 2) or x.dtype != np.float32:
-            raise ValueError(f"epipolar points: block ranges {ranges.shape} do not describe "
-                             f"{x.dtype} points {x.shape}")
+            raise ValueError(
+                f"epipolar points: block ranges {ranges.shape} do not describe {x.dtype} points {x.shape}"
+            )
         rows = point_rows(x)  # dataclasses.replace took ~5 us a call, 48 a large-load set
         return PointRows(rows.flat, rows.rows, rows.n, rows.run, rows.period, ranges)
     if x.dtype not in (np.float32, np.float64) or not x.dtype.isnative:
@@ -97,8 +99,17 @@ def point_rows(x: np.ndarray | PointRows, ranges: np.ndarray | None = None) -> P
         return PointRows(flat, np.arange(N, dtype=np.int64) * (2 * n), n)
     item = x.dtype.itemsize
     inner_ok = n <= 1 or x.strides[1] == 2 * item
-    if N and n and not (inner_ok and x.strides[2] == item and x.strides[0] % item == 0
-                        and x.strides[0] >= 0 and x.ctypes.data % item == 0):
+    if (
+        N
+        and n
+        and not (
+            inner_ok
+            and x.strides[2] == item
+            and x.strides[0] % item == 0
+            and x.strides[0] >= 0
+            and x.ctypes.data % item == 0
+        )
+    ):
         x = np.ascontiguousarray(x)
     if N == 0 or n == 0:
         return PointRows(np.zeros(max(2 * n, 1), dtype=x.dtype), np.zeros(N, dtype=np.int64), n)
@@ -127,8 +138,9 @@ class PairMatrices:
         rows[inside] = self.lookup[cam_a[inside] * self.cameras + cam_b[inside]]
         if rows.size and rows.min() < 0:
             s = int(np.argmin(rows))
-            raise ValueError(f"epipolar pairs: no fundamental matrix for camera pair "
-                             f"{(int(cam_a[s]), int(cam_b[s]))}")
+            raise ValueError(
+                f"epipolar pairs: no fundamental matrix for camera pair {(int(cam_a[s]), int(cam_b[s]))}"
+            )
         return rows
 
 
@@ -147,4 +159,3 @@ def pair_matrices(F: Mapping[tuple[int, int], np.ndarray] | PairMatrices) -> Pai
     lookup = np.full(C * C, -1, dtype=np.int64)
     lookup[[a * C + b for a, b in keys]] = np.arange(len(keys))
     return PairMatrices(C, lookup, unit)
-

@@ -7,6 +7,7 @@ most pairs of different people without triangulating; the rest get the DLT. The 
 a relative margin for rounding, so the decisions are exactly the DLT's. With numba, the
 enumeration of a frame set's pairs and the gate run in one pass (reprojection_kernel).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -36,8 +37,16 @@ def enumerate_pairs(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return offsets[a][group] + k // width, offsets[b][group] + k % width
 
 
-def reprojection_ok(stack: np.ndarray, P: np.ndarray, cam: np.ndarray, centers: np.ndarray,
-                    i: np.ndarray, j: np.ndarray, tau: float, reduce: str) -> np.ndarray:
+def reprojection_ok(
+    stack: np.ndarray,
+    P: np.ndarray,
+    cam: np.ndarray,
+    centers: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    tau: float,
+    reduce: str,
+) -> np.ndarray:
     """(S,) pairs of views (i[s], j[s]) whose bbox-centre reprojection error is under tau px.
 
     stack (C,C,3,3) F[a, b] both ways; P (C,3,4) rectified projections; cam (N,) each view's
@@ -58,6 +67,7 @@ def reprojection_kernel(backend: str) -> Callable | None:
     if backend == "numpy" or not have_numba():
         return None
     from maem_ros.core.association.gates.reprojection_kernel import reprojection_gate
+
     return reprojection_gate
 
 
@@ -65,5 +75,12 @@ def warmup(backend: str = "auto") -> None:
     """Compile (or load from numba's on-disk cache) the reprojection kernel now."""
     kernel = reprojection_kernel(backend)
     if kernel is not None:
-        kernel(np.arange(3, dtype=np.int64), np.zeros((2, 2, 3, 3)), np.zeros((2, 3, 4)),
-               np.zeros((2, 2)), 1.0, BOUND_MARGIN, False)
+        kernel(
+            np.arange(3, dtype=np.int64),
+            np.zeros((2, 2, 3, 3)),
+            np.zeros((2, 3, 4)),
+            np.zeros((2, 2)),
+            1.0,
+            BOUND_MARGIN,
+            False,
+        )

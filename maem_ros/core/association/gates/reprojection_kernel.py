@@ -15,6 +15,7 @@ multiply-add), so the errors compared with tau are the same numbers. The DLT ste
 core.geometry.multiview_kernel's (multiview's normal entries and cofactor solve, compiled
 for scalars).
 """
+
 from __future__ import annotations
 
 import numba as nb
@@ -55,8 +56,7 @@ def _pair_errors(P, U, V, usable, E, pi, pj, todo, reduce_max, tau, ok):
         det, trace = cof[6], cof[7]
         if not abs(det) > SINGULAR * trace * trace * trace:
             det = np.nan
-        x0, x1, x2 = adjugate(cof[:6], det, E[6, i] + E[6, j], E[7, i] + E[7, j],
-                                     E[8, i] + E[8, j])
+        x0, x1, x2 = adjugate(cof[:6], det, E[6, i] + E[6, j], E[7, i] + E[7, j], E[8, i] + E[8, j])
         ei = _view_error(P, i, x0, x1, x2, U[i], V[i])
         ej = _view_error(P, j, x0, x1, x2, U[j], V[j])
         err = max(ei, ej) if reduce_max else 0.5 * (ei + ej)
@@ -83,7 +83,7 @@ def reprojection_gate(offsets, F, P, uv, tau, margin, reduce_max):
         usable[n] = np.isfinite(uv[n, 0]) and np.isfinite(uv[n, 1])
     E = np.empty((9, N))  # each view's share of every pair's DLT system
     for n in range(N):
-        view_entries(P[n], uv[n:n + 1, 0], uv[n:n + 1, 1], usable[n:n + 1], E[:, n:n + 1])
+        view_entries(P[n], uv[n : n + 1, 0], uv[n : n + 1, 1], usable[n : n + 1], E[:, n : n + 1])
     scale = 0.5 if not reduce_max else np.sqrt(0.5)
     limit = tau * (1.0 + margin)
     # the centres' coordinates apart and contiguous, and one camera's bounds at a time: the

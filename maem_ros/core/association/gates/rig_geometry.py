@@ -1,6 +1,7 @@
 """A rig's geometry as the pair gates read it (projections, fundamental matrices both ways and
 as the epipolar kernels take them), computed once per Rig object and again only when a
 camera's intrinsics or pose change."""
+
 from __future__ import annotations
 
 import weakref
@@ -34,8 +35,11 @@ def rig_geometry(rig: Rig) -> RigGeometry:
         return hit
     cams = rig.cameras
     P = np.stack([c.P for c in cams]) if cams else np.zeros((0, 3, 4))
-    F = {(a, b): fundamental_matrix(cams[a], cams[b])
-         for a in range(len(cams)) for b in range(a + 1, len(cams))}
+    F = {
+        (a, b): fundamental_matrix(cams[a], cams[b])
+        for a in range(len(cams))
+        for b in range(a + 1, len(cams))
+    }
     stack = np.zeros((len(cams), len(cams), 3, 3))
     for (a, b), f in F.items():
         stack[a, b], stack[b, a] = f, f.T

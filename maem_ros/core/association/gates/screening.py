@@ -4,6 +4,7 @@ within a margin of tau (:func:`frame_screened_means`), and the contiguous copies
 with their block ranges that a camera frame's one preparing pass makes
 (:func:`screen_copies`). The sums are core.association.gates.epipolar's.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
@@ -90,8 +91,19 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     inner_ranges = _ranges_buffer(full.count, coarse.n if coarse is not None else 0)
     det_addr = full.flat.__array_interface__["data"][0] + full.rows * full.flat.itemsize
     first_inf = numba_kernels().scan_gather_runs(
-        full.flat, det_addr, full.n, BLOCK, fine.run, fine.period, out, every, inner, ranges[1],
-        ranges[stride], inner_ranges)
+        full.flat,
+        det_addr,
+        full.n,
+        BLOCK,
+        fine.run,
+        fine.period,
+        out,
+        every,
+        inner,
+        ranges[1],
+        ranges[stride],
+        inner_ranges,
+    )
     copies = {stride: out.reshape(full.count, fine.n, 2)}
     if coarse is not None:
         copies[coarse_stride] = inner.reshape(full.count, coarse.n, 2)
@@ -112,8 +124,10 @@ def _read_only(arrays: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
         a.setflags(write=False)
     return arrays
 
-def _gathered_screens(plan: FramePairs, screens: Sequence[ScreenLevel], backend: str
-                      ) -> Sequence[ScreenLevel]:
+
+def _gathered_screens(
+    plan: FramePairs, screens: Sequence[ScreenLevel], backend: str
+) -> Sequence[ScreenLevel]:
     """The screening levels with the subsets of the plan's detections gathered once,
     contiguous, for the numba kernel: one pass over each detection's points copies the finest
     level's runs and, of them, a coarser level's (its runs are every k-th of the finest's when
@@ -130,9 +144,13 @@ def _gathered_screens(plan: FramePairs, screens: Sequence[ScreenLevel], backend:
     every = 0
     if len(levels) == 2:
         coarse = levels[0]
-        if any(coarse[c].flat is not fine[c].flat or coarse[c].rows is not fine[c].rows
-               or coarse[c].run != fine[c].run or coarse[c].period % fine[c].period
-               for c in plan.cams):
+        if any(
+            coarse[c].flat is not fine[c].flat
+            or coarse[c].rows is not fine[c].rows
+            or coarse[c].run != fine[c].run
+            or coarse[c].period % fine[c].period
+            for c in plan.cams
+        ):
             return screens
         every = coarse[plan.cams[0]].period // fine[plan.cams[0]].period
         if any(coarse[c].period != every * fine[c].period for c in plan.cams):
@@ -142,45 +160,77 @@ def _gathered_screens(plan: FramePairs, screens: Sequence[ScreenLevel], backend:
     # flats keeps the message buffers referenced while the kernel reads them by address;
     # slot: each detection's place among those gathered
     flats = [r.flat for r in rows]
-    dets, slot, det_addr = detections_read(plan, plan.key_a, plan.key_b, flats,
-                                            [r.rows for r in rows])
+    dets, slot, det_addr = detections_read(plan, plan.key_a, plan.key_b, flats, [r.rows for r in rows])
     run, period, n, dtype = rows[0].run, rows[0].period, rows[0].n, rows[0].flat.dtype
     out = gather_buffer(dets.size * 2 * n, dtype, 1).reshape(dets.size, 2 * n)
     n_coarse = levels[0][plan.cams[0]].n if every else 0
     inner = gather_buffer(dets.size * 2 * n_coarse, dtype, 2).reshape(dets.size, 2 * n_coarse)
     numba_kernels().gather_runs(flats[0], det_addr, run, period, out, every, inner)
     gathered = []
-    for (_level, margin), buffer, size in zip(screens, [inner, out][-len(screens):],
-                                             [n_coarse, n][-len(screens):]):
+    for (_level, margin), buffer, size in zip(
+        screens, [inner, out][-len(screens) :], [n_coarse, n][-len(screens) :]
+    ):
         flat = buffer.reshape(-1).view()
         flat.setflags(write=False)
         at = slot.clip(0) * (2 * size)  # each detection's row in the buffer (unread if absent)
-        gathered.append(({c: PointRows(flat, at[plan.offsets[k]:plan.offsets[k + 1]], size)
-                          for k, c in enumerate(plan.cams)}, margin))
+        gathered.append(
+            (
+                {
+                    c: PointRows(flat, at[plan.offsets[k] : plan.offsets[k + 1]], size)
+                    for k, c in enumerate(plan.cams)
+                },
+                margin,
+            )
+        )
     return gathered
 
 
-def screened_means(full: tuple[PointRows, PointRows], screen: tuple[PointRows, PointRows] | None,
-                   F: np.ndarray, ia: np.ndarray, jb: np.ndarray, tau: float, margin: float,
-                   symmetric: bool = True, early_exit: bool = True, backend: str = "auto",
-                   precision: str = "mixed") -> tuple[np.ndarray, np.ndarray, int]:
+def screened_means(
+    full: tuple[PointRows, PointRows],
+    screen: tuple[PointRows, PointRows] | None,
+    F: np.ndarray,
+    ia: np.ndarray,
+    jb: np.ndarray,
+    tau: float,
+    margin: float,
+    symmetric: bool = True,
+    early_exit: bool = True,
+    backend: str = "auto",
+    precision: str = "mixed",
+) -> tuple[np.ndarray, np.ndarray, int]:
     """The epipolar gate of detection pairs (ia[s] in a, jb[s] in b) of one camera pair with
     one screening level (or None): :func:`frame_screened_means` of that camera pair."""
     ia = np.asarray(ia)
-    return frame_screened_means(dict(enumerate(full)),
-                                [] if screen is None else [(dict(enumerate(screen)), margin)],
-                                {(0, 1): F}, np.zeros(ia.shape, np.int64), ia,
-                                np.ones(ia.shape, np.int64), jb, tau, symmetric, early_exit,
-                                backend, precision)
+    return frame_screened_means(
+        dict(enumerate(full)),
+        [] if screen is None else [(dict(enumerate(screen)), margin)],
+        {(0, 1): F},
+        np.zeros(ia.shape, np.int64),
+        ia,
+        np.ones(ia.shape, np.int64),
+        jb,
+        tau,
+        symmetric,
+        early_exit,
+        backend,
+        precision,
+    )
 
 
-def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[ScreenLevel],
-                         F: Mapping[tuple[int, int], np.ndarray] | PairMatrices,
-                         cam_a: np.ndarray, det_a: np.ndarray, cam_b: np.ndarray,
-                         det_b: np.ndarray, tau: float,
-                         symmetric: bool = True, early_exit: bool = True,
-                         backend: str = "auto", precision: str = "mixed"
-                         ) -> tuple[np.ndarray, np.ndarray, int]:
+def frame_screened_means(
+    full: Mapping[int, PointRows],
+    screens: Sequence[ScreenLevel],
+    F: Mapping[tuple[int, int], np.ndarray] | PairMatrices,
+    cam_a: np.ndarray,
+    det_a: np.ndarray,
+    cam_b: np.ndarray,
+    det_b: np.ndarray,
+    tau: float,
+    symmetric: bool = True,
+    early_exit: bool = True,
+    backend: str = "auto",
+    precision: str = "mixed",
+) -> tuple[np.ndarray, np.ndarray, int]:
     """The epipolar gate of the detection pairs of a frame (as :func:`frame_sums`): (keep (S,)
     bool, mean (S,) px over the points the decision used, points evaluated); one kernel call
     per level for every camera pair at once.
@@ -208,8 +258,9 @@ def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[Screen
             break
         # every point counted: whether half the subset is there does not depend on where an
         # early exit stopped
-        sums, used, summed = level_sums(plan, screen, todo, tau + margin, symmetric,
-                                         early_exit, backend, precision, True)
+        sums, used, summed = level_sums(
+            plan, screen, todo, tau + margin, symmetric, early_exit, backend, precision, True
+        )
         evaluated += int(summed.sum())
         with np.errstate(invalid="ignore", divide="ignore"):
             m = sums / used
@@ -221,8 +272,7 @@ def frame_screened_means(full: Mapping[int, PointRows], screens: Sequence[Screen
         mean[todo[accepted]] = m[accepted]
         todo = todo[~(accepted | rejected)]
     if todo.size:
-        sums, used, _ = level_sums(plan, full, todo, tau, symmetric, early_exit, backend,
-                                    precision, False)
+        sums, used, _ = level_sums(plan, full, todo, tau, symmetric, early_exit, backend, precision, False)
         evaluated += int(used.sum())
         ok = sums < tau * used
         keep[todo] = ok
@@ -237,12 +287,15 @@ def warmup() -> None:
     if not have_numba():
         return
     from maem_ros.core.association.gates.epipolar import epipolar_sums
+
     F = np.eye(3)[[1, 0, 2]]
     one = np.zeros(1, dtype=np.int64)
     for dtype in (np.float32, np.float64):
         screen = screen_rows(np.ones((1, BLOCK, 2), dtype=dtype), 2)
         if screen is None:
-            raise RuntimeError(f"screening warmup: a BLOCK ({BLOCK}) of points makes no "
-                               "screen at stride 2 (SCREEN_MIN_POINTS too high)")
+            raise RuntimeError(
+                f"screening warmup: a BLOCK ({BLOCK}) of points makes no "
+                "screen at stride 2 (SCREEN_MIN_POINTS too high)"
+            )
         epipolar_sums(screen, screen, F, one, one, 1.0, True, True, "numba", "mixed")
     screen_copies(np.ones((1, BLOCK, 2), dtype=np.float32), (2, 4))
