@@ -5,13 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from helpers_scene import T0_NS, Person, look_at, ring_rig, walk_frame
-
 from maem_ros.core.association.pipeline import AssociationParams, associate
-from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.detections import FrameDetections
-from maem_ros.core.tracking.temporal import (FLAG_FEW_VIEWS, FLAG_TRACKED, TemporalAssociator,
-                                    TemporalParams)
+from maem_ros.core.geometry.camera import Rig
+from maem_ros.core.tracking.temporal import FLAG_FEW_VIEWS, FLAG_TRACKED, TemporalAssociator, TemporalParams
+
+from helpers_scene import T0_NS, Person, look_at, ring_rig, walk_frame
 
 V, J = 300, 24
 FPS = 30.0
