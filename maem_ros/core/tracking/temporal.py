@@ -14,9 +14,10 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
    ``gate_max_px``, where sigma_px is the root's predicted position std projected at the
    track's depth in that camera (so it grows with every frame without support).
 3. Per camera, Hungarian assignment of detections to tracks (gated pairs never match), so one
-   detection explains at most one track, on that distance plus ``pose_weight`` (px/m) times
-   the PA-MPJPE of the detection's 3D body pose aligned onto the track's skeleton (two people
-   overlapping in one image are told apart by their poses, as the cross-view cost does).
+   detection explains at most one track, on that distance; a contested pair (two people
+   overlapping in one image) adds ``pose_weight`` (px/m) times its mean association pair cost
+   against the track's uncontested views this frame, else the PA-MPJPE of the detection's 3D
+   body pose aligned onto the track's skeleton (core/tracking/contested.py).
    After verification (4) every track with a verified cluster is assigned once more against
    the projections of that cluster's own triangulation under ``refine_px``.
 4. Geometric verification, batched over tracks, as the consistent clustering verifies a merge:
