@@ -63,7 +63,14 @@ def consistency(stage: TemporalAssociator, view: _FrameView, okc: np.ndarray,
     lo = c1 < c2  # the gates and the cost take the lower camera first
     ca, cb = np.where(lo, c1, c2), np.where(lo, c2, c1)
     da, db = np.where(lo, d1, d2), np.where(lo, d2, d1)
-    cost = pair_costs(stage, view, ca, cb, da, db)
+    # the refinement pass proposes mostly the same pairs: each is costed once per frame
+    C, N = len(stage.rig), view.n
+    keys = ((ca * C + cb) * N + da) * N + db
+    cost = np.array([view.pair_cost_cache.get(k, np.nan) for k in keys.tolist()])
+    new = np.flatnonzero(np.isnan(cost))
+    if new.size:
+        cost[new] = pair_costs(stage, view, ca[new], cb[new], da[new], db[new])
+        view.pair_cost_cache.update(zip(keys[new].tolist(), cost[new].tolist()))
     sums = np.zeros(kc.size)
     np.add.at(sums, k, cost)
     n = np.bincount(k, minlength=kc.size)

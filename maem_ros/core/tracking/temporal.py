@@ -172,6 +172,8 @@ class _FrameView:
         self.gates: FrameSet = stage.verify_gates.frame_set(by_cam)
         self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
         self._known_ok = np.zeros(0, bool)
+        #: pair key -> the pair's capped association cost, m (core/tracking/contested.py)
+        self.pair_cost_cache: dict[int, float] = {}
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
                 ) -> np.ndarray:
