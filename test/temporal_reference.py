@@ -50,17 +50,38 @@ class ReferenceTemporalAssociator(TemporalAssociator):
         Returns members padded to (T,M): cam, det, present, kept, and joints X (T,J,3)."""
         T = len(joints)
         cand = np.full((T, len(self.rig)), -1, np.int64)
+        costs, gated = {}, {}  # camera -> (T,N) cost px, gated; N its valid detections
         for c, fd in by_cam.items():
             ok = np.flatnonzero(fd.scores >= self.params.tau_det)
             if ok.size == 0:
                 continue
             uv, _ = _project(self._P[c], joints)  # (T,J,2)
             diff = np.linalg.norm(uv[:, None] - fd.kpts2d[ok][:, body][None], axis=-1)  # (T,N,J)
-            cost = _nanmedian(diff)  # (T,N)
-            okc = np.isfinite(cost) & (cost < gate[:, c, None])
+            costs[c] = _nanmedian(diff)  # (T,N)
+            gated[c] = np.isfinite(costs[c]) & (costs[c] < gate[:, c, None])
+        contested = {c: g & ((g.sum(1, keepdims=True) > 1) | (g.sum(0, keepdims=True) > 1))
+                     for c, g in gated.items()}
+        anchor = {}  # (track, camera) -> detection: its only gated one, gated for no other track
+        for c, g in gated.items():
+            ok = np.flatnonzero(by_cam[c].scores >= self.params.tau_det)
+            for t in range(T):
+                if g[t].sum() == 1 and not contested[c][t].any():
+                    anchor[t, c] = int(ok[np.argmax(g[t])])
+        for c, fd in by_cam.items():
+            if c not in costs:
+                continue
+            ok = np.flatnonzero(fd.scores >= self.params.tau_det)
+            cost, okc = costs[c], gated[c]
             if self.tp.pose_weight > 0:
-                cost = cost + self.tp.pose_weight * self._pose_cost(okc, joints,
-                                                                    fd.kpts3d[ok][:, body])
+                for t, n in zip(*np.nonzero(contested[c])):
+                    others = [(c2, d2) for (t2, c2), d2 in anchor.items() if t2 == t and c2 != c]
+                    if others:
+                        pc = [self._pair_cost(by_cam, c, int(ok[n]), c2, d2) for c2, d2 in others]
+                        extra = float(np.mean(pc))
+                    else:
+                        extra = self._pose_cost(np.ones((1, 1), bool), joints[t:t + 1],
+                                                fd.kpts3d[ok[n:n + 1]][:, body])[0, 0]
+                    cost[t, n] += self.tp.pose_weight * extra
             rows, cols = linear_sum_assignment(np.where(okc, cost, _GATED))
             real = okc[rows, cols]
             cand[rows[real], c] = ok[cols[real]]
@@ -104,6 +125,16 @@ class ReferenceTemporalAssociator(TemporalAssociator):
             out[t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[n], joints[t]))
         return out
 
+    def _pair_cost(self, by_cam: dict[int, FrameDetections], c1: int, d1: int, c2: int,
+                   d2: int) -> float:
+        """m: the association's pair cost of two detections (cameras in either order), capped
+        at tau_cost; tau_cost when the pair fails the pair gates or has too few joints."""
+        (ca, da), (cb, db) = sorted([(c1, d1), (c2, d2)])
+        cam, det = np.array([[ca, cb]]), np.array([[da, db]])
+        _, cost = self._pair_tests(by_cam, cam, det, np.ones((1, 2), bool))
+        cap = self.params.tau_cost if self.params.tau_cost > 0 else 1.0
+        return float(min(cost[0], cap)) if np.isfinite(cost[0]) else cap
+
     def _pair_gates(self, by_cam: dict[int, FrameDetections], cam: np.ndarray, det: np.ndarray,
                     present: np.ndarray) -> np.ndarray:
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
@@ -112,6 +143,22 @@ class ReferenceTemporalAssociator(TemporalAssociator):
         tau_mesh of the pair's mean epipolar distance, under tau_cost), the same tests
         (core.geometry.multiview, core.association.gates.epipolar, core.geometry.procrustes) the cross-view association applies, on
         the few pairs inside the tracks' clusters only."""
+        T, M = present.shape
+        a_idx, b_idx = np.triu_indices(M, 1)
+        t, q = np.nonzero(present[:, a_idx] & present[:, b_idx])
+        ok, cost = self._pair_tests(by_cam, cam, det, present)
+        if self.params.tau_cost > 0:
+            ok[ok] = cost[ok] < self.params.tau_cost  # NaN (too few joints) fails
+        passes = np.zeros((T, M, M), bool)
+        passes[t, a_idx[q], b_idx[q]] = passes[t, b_idx[q], a_idx[q]] = ok
+        return passes
+
+    def _pair_tests(self, by_cam: dict[int, FrameDetections], cam: np.ndarray, det: np.ndarray,
+                    present: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The member pairs of each candidate cluster (np.nonzero order): (S,) bool passing the
+        bbox-centre reprojection and epipolar gates, and (S,) m their cost (PA-MPJPE of the
+        lower camera's 3D pose aligned onto the other's plus cost_epipolar_weight per tau_mesh
+        of the pair's mean epipolar distance; NaN where a gate failed)."""
         T, M = present.shape
         a_idx, b_idx = np.triu_indices(M, 1)
         both = present[:, a_idx] & present[:, b_idx]  # members sorted by camera: ca < cb
@@ -140,7 +187,8 @@ class ReferenceTemporalAssociator(TemporalAssociator):
                     early_exit=p.execution.early_exit, backend=p.execution.backend)
                 ok[s] = sums < p.tau_mesh * used  # missing (NaN) points are not counted
                 epi[s] = sums / np.maximum(used, 1)
-        if p.tau_cost > 0 and ok.any():
+        cost = np.full(t.size, np.nan)
+        if ok.any():
             s = np.flatnonzero(ok)
             J = next(fd.num_joints for fd in by_cam.values() if fd.n)
             joints = joint_subset(p.cost_joints, J)
@@ -150,11 +198,8 @@ class ReferenceTemporalAssociator(TemporalAssociator):
                 X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
                 Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
             weight = p.cost_epipolar_weight / p.tau_mesh if self.verify_epipolar != "none" else 0
-            # NaN (too few joints) fails
-            ok[s] = pa_mpjpe_finite(X, Y) + weight * epi[s] < p.tau_cost
-        passes = np.zeros((T, M, M), bool)
-        passes[t, ma, mb] = passes[t, mb, ma] = ok
-        return passes
+            cost[s] = pa_mpjpe_finite(X, Y) + weight * epi[s]
+        return ok, cost
 
     def _points(self, fd: FrameDetections) -> np.ndarray:
         """The (N,n,2) px the verification's epipolar test compares: 2D keypoints, or the

@@ -94,3 +94,23 @@ def test_batched_stage_equals_the_reference_when_the_pair_gates_reject_members()
     wrong = lambda cam, k: 1 - k if (cam == rig.names[3] and k == 0) else k
     seq = [walk_frame(rig, people, f, kpts3d_of=wrong)[0] for f in range(12)]
     run_both(rig, seq, dataclasses.replace(PARAMS, tau_cost=0.05), TemporalParams())
+
+
+def test_batched_stage_equals_the_reference_on_contested_candidates():
+    """Two people overlapping in two of four views, each track's pose swapped for the other's
+    at frame 4 (test_temporal: the contested candidates ordered by the tracks' other views)."""
+    rig = ring_rig(4, height=0.9, phase=0.0, target=(0.0, 0.0, 0.9))
+    a, b = Person((0.7, 0.0), 31), Person((-0.7, 0.0), 31)
+    b.joints = a.joints + np.random.default_rng(31).normal(0.0, 0.08, a.joints.shape)
+    params = AssociationParams(k_min=2)
+    fast = TemporalAssociator(rig, params, TemporalParams())
+    ref = ReferenceTemporalAssociator(rig, params, TemporalParams())
+    for f in range(8):
+        if f == 4:
+            for ta in (fast, ref):
+                t0, t1 = ta.tracker.tracks
+                t0.offsets, t1.offsets = t1.offsets.copy(), t0.offsets.copy()
+        frames = walk_frame(rig, [a, b], f)[0]
+        stamp = frames["cam0"].stamp_ns
+        assert_same_step(fast.step(frames, stamp), ref.step(frames, stamp), f)
+        assert_same_tracks(fast, ref, f)

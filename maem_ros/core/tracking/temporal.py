@@ -14,9 +14,10 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
    ``gate_max_px``, where sigma_px is the root's predicted position std projected at the
    track's depth in that camera (so it grows with every frame without support).
 3. Per camera, Hungarian assignment of detections to tracks (gated pairs never match), so one
-   detection explains at most one track, on that distance plus ``pose_weight`` (px/m) times
-   the PA-MPJPE of the detection's 3D body pose aligned onto the track's skeleton (two people
-   overlapping in one image are told apart by their poses, as the cross-view cost does).
+   detection explains at most one track, on that distance; a contested pair (two people
+   overlapping in one image) adds ``pose_weight`` (px/m) times its mean association pair cost
+   against the track's uncontested views this frame, else the PA-MPJPE of the detection's 3D
+   body pose aligned onto the track's skeleton (core/tracking/contested.py).
    After verification (4) every track with a verified cluster is assigned once more against
    the projections of that cluster's own triangulation under ``refine_px``.
 4. Geometric verification, batched over tracks, as the consistent clustering verifies a merge:
@@ -61,6 +62,7 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.skeleton import body_joints, joint_subset
+from maem_ros.core.tracking.contested import contested_cost
 from maem_ros.core.tracking.track_filter import Track, Tracker3D
 from maem_ros.core.tracking.track_geometry import (
     mean_distance,
@@ -103,8 +105,9 @@ class TemporalParams(Params):
                                exclusive_minimum=True)
     refine_px: float = param(20.0, "px, gate of the second assignment against each verified "
                                    "cluster's own triangulation (0 = off)", minimum=0.0)
-    pose_weight: float = param(100.0, "px per m of 3D-pose PA-MPJPE (detection vs track) added "
-                                      "to the assignment cost", minimum=0.0)
+    pose_weight: float = param(100.0, "px per m of pose cost added to a contested assignment's "
+                                      "cost: pair cost vs the track's other views, else "
+                                      "PA-MPJPE vs the track", minimum=0.0)
     min_track_views: int = param(2, "views a confirmed track may be updated from (below k_min: "
                                     "flagged)", minimum=2)
     one_view: bool = param(True, "keep a confirmed track alive on one view + its prediction")
@@ -169,6 +172,8 @@ class _FrameView:
         self.gates: FrameSet = stage.verify_gates.frame_set(by_cam)
         self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
         self._known_ok = np.zeros(0, bool)
+        #: pair key -> the pair's capped association cost, m (core/tracking/contested.py)
+        self.pair_cost_cache: dict[int, float] = {}
 
     def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
                 ) -> np.ndarray:
@@ -373,13 +378,9 @@ class TemporalAssociator:
         diff = np.linalg.norm(uv[:, :, None] - view.kp2[:, None], axis=-1)  # (C,T,N,J)
         cost = nanmedian(diff)  # (C,T,N)
         okc = view.valid[:, None] & np.isfinite(cost) & (cost < gate.T[:, :, None])
-        if self.tp.pose_weight > 0:
-            # the pose term only orders the candidates of a track or of a detection with more
-            # than one gated partner in a camera: an isolated gated pair is assigned whatever
-            # its cost (any other choice for its row or column is gated)
-            contested = okc & ((okc.sum(2, keepdims=True) > 1) | (okc.sum(1, keepdims=True) > 1))
-            cost = cost + self.tp.pose_weight * self._pose_cost(contested, joints, view.kp3,
-                                                                 self.params.execution.backend)
+        # contested candidates (two people close in one image) ordered by the track's other
+        # views this frame, else by pose (core/tracking/contested.py)
+        cost = cost + contested_cost(self, view, okc, joints)
         cand = np.full((T, C), -1, np.int64)
         for c, ok in view.ok.items():  # one Hungarian per camera
             gated = okc[c][:, ok]
@@ -403,19 +404,6 @@ class TemporalAssociator:
         keep, X = verify_clusters(self._P[cam], uv, present, passes, self.params.tau_verify,
                           self.params.min_support)
         return cam, det, present, keep, X
-
-    @staticmethod
-    def _pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray,
-                   backend: str = "auto") -> np.ndarray:
-        """(C,T,N) PA-MPJPE (m) of each selected (okc) detection's 3D body pose (kpts3d (C,N,J,3))
-        aligned onto the track's skeleton joints (T,J,3), one batched alignment over all
-        cameras (procrustes backend); 0 where not selected or the track has unseen joints (no
-        preference)."""
-        out = np.zeros(okc.shape)
-        c, t, n = np.nonzero(okc & np.isfinite(joints).all((1, 2))[None, :, None])
-        if t.size:
-            out[c, t, n] = np.nan_to_num(pa_mpjpe_finite(kpts3d[c, n], joints[t], backend))
-        return out
 
     def _pair_gates(self, view: _FrameView, cam: np.ndarray, det: np.ndarray,
                     present: np.ndarray) -> np.ndarray:
