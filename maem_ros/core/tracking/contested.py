@@ -13,43 +13,66 @@ detection and the track's uncontested candidates (its only gated detection in a 
 for no other track). Without uncontested views it falls back to ``pose_weight`` times the
 PA-MPJPE of the detection's pose aligned onto the track's skeleton.
 """
+
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
+from maem_ros.core.association.gates import FrameSet
+from maem_ros.core.association.params import AssociationParams
 from maem_ros.core.association.pipeline import pair_cost
-from maem_ros.core.detections import PASSED
+from maem_ros.core.detections import PASSED, FrameDetections
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import joint_subset
 
-if TYPE_CHECKING:
-    from maem_ros.core.tracking.temporal import TemporalAssociator, _FrameView
+
+class ContestView(Protocol):
+    """What the contested cost reads of the track stage's frame view (temporal._FrameView)."""
+
+    n: int  # detections per camera after padding
+    kp3: np.ndarray  # (C,N,J,3) body joints, camera m, NaN padded
+    by_cam: dict[int, FrameDetections]
+    gates: FrameSet  # the frame set's pair gates
+    pair_cost_cache: dict[int, float]  # pair key -> capped pair cost, m
 
 
-def contested_cost(stage: TemporalAssociator, view: _FrameView, okc: np.ndarray,
-                   joints: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class ContestSettings:
+    """The settings the contested cost needs: the association's parameters, the stage's
+    ``pose_weight`` (px per m) and epipolar variant, and the rig's camera count."""
+
+    params: AssociationParams
+    pose_weight: float
+    verify_epipolar: str
+    n_cameras: int
+
+
+def contested_cost(
+    cfg: ContestSettings, view: ContestView, okc: np.ndarray, joints: np.ndarray
+) -> np.ndarray:
     """(C,T,N) px added to the assignment cost of the gated pairs okc (C,T,N) (cameras, tracks
     joints (T,J,3) world m, padded detections): 0 on uncontested pairs (module docstring)."""
-    tp = stage.tp
     contested = okc & ((okc.sum(2, keepdims=True) > 1) | (okc.sum(1, keepdims=True) > 1))
     out = np.zeros(okc.shape)
     if not contested.any():
         return out
-    if tp.pose_weight <= 0:
+    if cfg.pose_weight <= 0:
         return out
     # one scale (m of pose disagreement) for both terms: a camera's contested pairs may mix them
-    cons = consistency(stage, view, okc, contested)
+    cons = consistency(cfg, view, okc, contested)
     fall = contested & ~np.isfinite(cons)
     out[contested & ~fall] = cons[contested & ~fall]
     if fall.any():
-        out += pose_cost(fall, joints, view.kp3, stage.params.execution.backend)
-    return tp.pose_weight * out
+        out += pose_cost(fall, joints, view.kp3, cfg.params.execution.backend)
+    return cfg.pose_weight * out
 
 
-def consistency(stage: TemporalAssociator, view: _FrameView, okc: np.ndarray,
-                contested: np.ndarray) -> np.ndarray:
+def consistency(
+    cfg: ContestSettings, view: ContestView, okc: np.ndarray, contested: np.ndarray
+) -> np.ndarray:
     """(C,T,N) m: mean pair cost of each contested pair's detection against the track's
     uncontested candidates in the other cameras; NaN where not contested or none."""
     anchor = okc & ~contested & (okc.sum(2, keepdims=True) == 1)  # (C,T,N)
@@ -64,12 +87,12 @@ def consistency(stage: TemporalAssociator, view: _FrameView, okc: np.ndarray,
     ca, cb = np.where(lo, c1, c2), np.where(lo, c2, c1)
     da, db = np.where(lo, d1, d2), np.where(lo, d2, d1)
     # the refinement pass proposes mostly the same pairs: each is costed once per frame
-    C, N = len(stage.rig), view.n
+    C, N = cfg.n_cameras, view.n
     keys = ((ca * C + cb) * N + da) * N + db
     cost = np.array([view.pair_cost_cache.get(k, np.nan) for k in keys.tolist()])
     new = np.flatnonzero(np.isnan(cost))
     if new.size:
-        cost[new] = pair_costs(stage, view, ca[new], cb[new], da[new], db[new])
+        cost[new] = pair_costs(cfg, view, ca[new], cb[new], da[new], db[new])
         view.pair_cost_cache.update(zip(keys[new].tolist(), cost[new].tolist()))
     sums = np.zeros(kc.size)
     np.add.at(sums, k, cost)
@@ -79,12 +102,13 @@ def consistency(stage: TemporalAssociator, view: _FrameView, okc: np.ndarray,
     return out
 
 
-def pair_costs(stage: TemporalAssociator, view: _FrameView, ca: np.ndarray, cb: np.ndarray,
-               da: np.ndarray, db: np.ndarray) -> np.ndarray:
+def pair_costs(
+    cfg: ContestSettings, view: ContestView, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
+) -> np.ndarray:
     """(S,) m: the association's pair cost of detection pairs (camera ca < cb), capped at
     ``tau_cost``; a pair failing the pair gates (or with too few joints) costs ``tau_cost``
     (1 m when the cost cap is off)."""
-    p = stage.params
+    p = cfg.params
     cap = p.tau_cost if p.tau_cost > 0 else 1.0
     decided = view.gates.decide(ca, da, cb, db)
     out = np.full(ca.size, cap)
@@ -98,13 +122,12 @@ def pair_costs(stage: TemporalAssociator, view: _FrameView, ca: np.ndarray, cb: 
             X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
             Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
         pose = pa_mpjpe_finite(X, Y, p.execution.backend)
-        cost = pair_cost(pose, decided.epi[s], p, stage.verify_epipolar)
+        cost = pair_cost(pose, decided.epi[s], p, cfg.verify_epipolar)
         out[s] = np.minimum(np.nan_to_num(cost, nan=cap), cap)
     return out
 
 
-def pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray,
-              backend: str = "auto") -> np.ndarray:
+def pose_cost(okc: np.ndarray, joints: np.ndarray, kpts3d: np.ndarray, backend: str = "auto") -> np.ndarray:
     """(C,T,N) PA-MPJPE (m) of each selected (okc) detection's 3D body pose (kpts3d (C,N,J,3))
     aligned onto the track's skeleton joints (T,J,3), one batched alignment over all cameras
     (procrustes backend); 0 where not selected or the track has unseen joints (no preference)."""

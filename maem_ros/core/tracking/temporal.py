@@ -62,7 +62,7 @@ from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.paramspec import Params, param
 from maem_ros.core.skeleton import body_joints, joint_subset
-from maem_ros.core.tracking.contested import contested_cost
+from maem_ros.core.tracking.contested import ContestSettings, contested_cost
 from maem_ros.core.tracking.track_filter import Track, Tracker3D
 from maem_ros.core.tracking.track_geometry import (
     mean_distance,
@@ -226,6 +226,7 @@ class TemporalAssociator:
         self.verify_epipolar = (params.epipolar_gate if temporal.verify_epipolar == "association"
                                 else temporal.verify_epipolar)
         self.verify_gates = self.gates.with_epipolar_gate(self.verify_epipolar)
+        self._contest = ContestSettings(params, temporal.pose_weight, self.verify_epipolar, len(rig))
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
@@ -380,7 +381,7 @@ class TemporalAssociator:
         okc = view.valid[:, None] & np.isfinite(cost) & (cost < gate.T[:, :, None])
         # contested candidates (two people close in one image) ordered by the track's other
         # views this frame, else by pose (core/tracking/contested.py)
-        cost = cost + contested_cost(self, view, okc, joints)
+        cost = cost + contested_cost(self._contest, view, okc, joints)
         cand = np.full((T, C), -1, np.int64)
         for c, ok in view.ok.items():  # one Hungarian per camera
             gated = okc[c][:, ok]
