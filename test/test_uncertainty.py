@@ -149,3 +149,14 @@ def test_poses_message_carries_joint_std_and_old_layout_still_decodes():
     assert wire.msg_to_poses(roundtrip(wire.poses_to_msg(*args)), "/maem/poses").joint_std is None
     with pytest.raises(wire.WireError, match="joint_std"):
         wire.msg_to_poses(roundtrip(wire.poses_to_msg(*args, joint_std=-std)), "/maem/poses")
+
+
+def test_closed_form_inverse_equals_numpys_on_symmetric_matrices():
+    from maem_ros.core.triangulation.uncertainty import _adjugate_det
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(50, 3, 3)) * rng.uniform(1e-3, 1e3, size=(50, 1, 1))
+    H = A @ A.swapaxes(-1, -2) + 1e-6 * np.eye(3)
+    adj, det = _adjugate_det(H)
+    np.testing.assert_allclose(det, np.linalg.det(H), rtol=1e-6)
+    np.testing.assert_allclose(adj / det[:, None, None], np.linalg.inv(H), rtol=1e-6, atol=0)
