@@ -10,6 +10,7 @@
 
 ``python -m maem_ros.sim.rigs [OUT_DIR]`` writes the rig YAMLs (default: config/rigs/).
 """
+
 from __future__ import annotations
 
 import sys
@@ -47,35 +48,116 @@ def look_at(eye: np.ndarray, target: np.ndarray, roll: float = 0.0) -> tuple[np.
     return R, -R @ eye
 
 
-def _camera(name: str, eye, target, size: tuple[int, int], f: float, D=(0.0,) * 5,
-            roll: float = 0.0, pp_shift: tuple[float, float] = (0.0, 0.0), aspect: float = 1.0) -> Camera:
+def _camera(
+    name: str,
+    eye,
+    target,
+    size: tuple[int, int],
+    f: float,
+    D=(0.0,) * 5,
+    roll: float = 0.0,
+    pp_shift: tuple[float, float] = (0.0, 0.0),
+    aspect: float = 1.0,
+) -> Camera:
     w, h = size
-    K = np.array([[f, 0.0, (w - 1) / 2 + pp_shift[0]], [0.0, f * aspect, (h - 1) / 2 + pp_shift[1]],
-                  [0.0, 0.0, 1.0]])
+    K = np.array(
+        [[f, 0.0, (w - 1) / 2 + pp_shift[0]], [0.0, f * aspect, (h - 1) / 2 + pp_shift[1]], [0.0, 0.0, 1.0]]
+    )
     R, t = look_at(np.asarray(eye, float), np.asarray(target, float), roll)
-    return Camera(name=name, K=K, R=R, t=t, width=w, height=h, distortion_model="plumb_bob",
-                  D=np.asarray(D, float))
+    return Camera(
+        name=name, K=K, R=R, t=t, width=w, height=h, distortion_model="plumb_bob", D=np.asarray(D, float)
+    )
+
+
+# sportcenter6: (eye xyz, target xyz, (w, h), f px, k1, k2, p1, p2, k3, roll rad, principal point shift px)
+_SPORTCENTER6 = [
+    (
+        (-6.8, -12.8, 7.1),
+        (-4.0, -4.5, 0.0),
+        (1376, 992),
+        648.0,
+        -0.34,
+        0.12,
+        -0.004,
+        0.0008,
+        -0.012,
+        0.010,
+        (-9.0, -20.0),
+    ),
+    (
+        (6.9, -13.0, 7.4),
+        (3.0, -2.0, 0.0),
+        (1536, 1200),
+        720.0,
+        -0.31,
+        0.10,
+        0.002,
+        -0.0010,
+        -0.010,
+        -0.008,
+        (6.0, -14.0),
+    ),
+    (
+        (16.2, -2.5, 6.4),
+        (8.0, -1.0, 0.0),
+        (1328, 896),
+        625.0,
+        -0.36,
+        0.13,
+        -0.003,
+        0.0006,
+        -0.014,
+        0.012,
+        (12.0, -10.0),
+    ),
+    (
+        (7.0, 12.9, 7.3),
+        (3.0, 2.0, 0.0),
+        (1376, 992),
+        646.0,
+        -0.35,
+        0.124,
+        -0.0068,
+        -0.0006,
+        -0.0125,
+        -0.006,
+        (0.0, -18.0),
+    ),
+    (
+        (-7.1, 12.8, 6.9),
+        (-3.0, 2.0, 0.0),
+        (1456, 1088),
+        684.0,
+        -0.33,
+        0.115,
+        0.005,
+        0.0012,
+        -0.011,
+        0.009,
+        (-14.0, -16.0),
+    ),
+    (
+        (-16.3, 2.5, 6.3),
+        (-8.0, 1.0, 0.0),
+        (1328, 896),
+        625.0,
+        -0.37,
+        0.135,
+        0.001,
+        -0.0004,
+        -0.015,
+        -0.011,
+        (8.0, -10.0),
+    ),
+]
 
 
 def sportcenter6() -> Rig:
     """6 elevated, strongly distorted cameras around the court (like SportCenter EPFL)."""
-    # (eye xyz, target xyz, (w, h), f px, k1, k2, p1, p2, k3, roll rad, principal point shift px)
-    spec = [
-        ((-6.8, -12.8, 7.1), (-4.0, -4.5, 0.0), (1376, 992), 648.0, -0.34, 0.12, -0.004, 0.0008, -0.012,
-         0.010, (-9.0, -20.0)),
-        ((6.9, -13.0, 7.4), (3.0, -2.0, 0.0), (1536, 1200), 720.0, -0.31, 0.10, 0.002, -0.0010, -0.010,
-         -0.008, (6.0, -14.0)),
-        ((16.2, -2.5, 6.4), (8.0, -1.0, 0.0), (1328, 896), 625.0, -0.36, 0.13, -0.003, 0.0006, -0.014, 0.012,
-         (12.0, -10.0)),
-        ((7.0, 12.9, 7.3), (3.0, 2.0, 0.0), (1376, 992), 646.0, -0.35, 0.124, -0.0068, -0.0006, -0.0125,
-         -0.006, (0.0, -18.0)),
-        ((-7.1, 12.8, 6.9), (-3.0, 2.0, 0.0), (1456, 1088), 684.0, -0.33, 0.115, 0.005, 0.0012, -0.011, 0.009,
-         (-14.0, -16.0)),
-        ((-16.3, 2.5, 6.3), (-8.0, 1.0, 0.0), (1328, 896), 625.0, -0.37, 0.135, 0.001, -0.0004, -0.015,
-         -0.011, (8.0, -10.0)),
+    cams = [
+        _camera(f"camera_{i}", eye, tgt, size, f, (k1, k2, p1, p2, k3), roll, pp, aspect=1.015)
+        for i, (eye, tgt, size, f, k1, k2, p1, p2, k3, roll, pp) in enumerate(_SPORTCENTER6)
     ]
-    cams = [_camera(f"camera_{i}", eye, tgt, size, f, (k1, k2, p1, p2, k3), roll, pp, aspect=1.015)
-            for i, (eye, tgt, size, f, k1, k2, p1, p2, k3, roll, pp) in enumerate(spec)]
     return Rig(cams)
 
 
@@ -89,8 +171,10 @@ def _humanm3(n: int) -> Rig:
     ]
     if n == 3:
         spec = [spec[0], spec[1], spec[2]]
-    cams = [_camera(f"camera_{i}", eye, tgt, (2048, 1536), f, roll=roll, pp_shift=(-1.3, 12.0), aspect=1.0002)
-            for i, (eye, tgt, f, roll) in enumerate(spec)]
+    cams = [
+        _camera(f"camera_{i}", eye, tgt, (2048, 1536), f, roll=roll, pp_shift=(-1.3, 12.0), aspect=1.0002)
+        for i, (eye, tgt, f, roll) in enumerate(spec)
+    ]
     return Rig(cams)
 
 
@@ -103,16 +187,23 @@ def lab4() -> Rig:
         ((-2.9, -0.4, 1.6), 575.0, -0.23, 0.07, 0.0003, 0.0007, 0.015, (3.0, 5.0)),
         ((-0.2, -3.0, 2.0), 555.0, -0.20, 0.055, -0.0004, -0.0003, -0.01, (-4.0, -6.0)),
     ]
-    cams = [_camera(f"camera_{i}", eye, (0.0, 0.0, 1.0), (800, 600), f, (k1, k2, p1, p2, 0.0), roll,
-                    pp, aspect=1.004)
-            for i, (eye, f, k1, k2, p1, p2, roll, pp) in enumerate(spec)]
+    cams = [
+        _camera(
+            f"camera_{i}", eye, (0.0, 0.0, 1.0), (800, 600), f, (k1, k2, p1, p2, 0.0), roll, pp, aspect=1.004
+        )
+        for i, (eye, f, k1, k2, p1, p2, roll, pp) in enumerate(spec)
+    ]
     return Rig(cams)
 
 
 def build_rig(name: str) -> Rig:
     """The named synthetic rig, computed (no file access)."""
-    builders = {"sportcenter6": sportcenter6, "humanm3_4": lambda: _humanm3(4),
-                "humanm3_3": lambda: _humanm3(3), "lab4": lab4}
+    builders = {
+        "sportcenter6": sportcenter6,
+        "humanm3_4": lambda: _humanm3(4),
+        "humanm3_3": lambda: _humanm3(3),
+        "lab4": lab4,
+    }
     if name not in builders:
         raise ValueError(f"rig: unknown synthetic rig {name!r}, expected one of {sorted(builders)}")
     return builders[name]()
