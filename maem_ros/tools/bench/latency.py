@@ -11,6 +11,7 @@ listens to /maem/poses. Latency = poses received - first image of that stamp pub
 Frames dropped = frames published without a poses message. Accuracy = MPJPE of poses matched to
 the scene's players (Hungarian, < 500 mm).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,8 +54,7 @@ class GraphProcesses:
     group: ProcessGroup = field(init=False)
 
     def __post_init__(self) -> None:
-        self.group = ProcessGroup(self.log_dir,
-                                  dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1"))
+        self.group = ProcessGroup(self.log_dir, dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1"))
 
     @property
     def procs(self) -> list[Proc]:
@@ -82,13 +82,20 @@ class GraphProcesses:
 # ---------------------------------------------------------------------------------------------
 # params / scene
 # ---------------------------------------------------------------------------------------------
-def write_params(base: str | Path, out: Path, frontend: dict[str, Any] | None = None,
-                 association: dict[str, Any] | None = None,
-                 triangulation: dict[str, Any] | None = None) -> Path:
+def write_params(
+    base: str | Path,
+    out: Path,
+    frontend: dict[str, Any] | None = None,
+    association: dict[str, Any] | None = None,
+    triangulation: dict[str, Any] | None = None,
+) -> Path:
     """Copy a params file with per-node overrides into ``out``."""
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
-    for node, extra in (("frontend", frontend), ("association", association),
-                        ("triangulation", triangulation)):
+    for node, extra in (
+        ("frontend", frontend),
+        ("association", association),
+        ("triangulation", triangulation),
+    ):
         if extra:
             key = next((k for k in (f"/**/{node}", node, f"/{node}") if k in data), f"/**/{node}")
             data.setdefault(key, {}).setdefault("ros__parameters", {}).update(extra)
@@ -103,8 +110,9 @@ def make_scene(params_file: Path) -> Scene:
     return Scene(SceneConfig.from_dict(scene_config_dict(backend_options(p))))
 
 
-def match_mpjpe(pred: np.ndarray, gt: np.ndarray,
-                max_m: float = 0.5) -> tuple[list[float], list[tuple[int, int]]]:
+def match_mpjpe(
+    pred: np.ndarray, gt: np.ndarray, max_m: float = 0.5
+) -> tuple[list[float], list[tuple[int, int]]]:
     """Hungarian on MPJPE (NaN joints ignored); pairs under ``max_m``: (errors m, (pred, gt))."""
     if len(pred) == 0 or len(gt) == 0:
         return [], []
@@ -139,15 +147,15 @@ class Faults:
     lag_s: float = 0.0
     stale_every_s: float = 0.0
 
-    def schedule(self, stamps: Sequence[int], cameras: Sequence[str], rate_hz: float
-                 ) -> list[tuple[float, int, tuple[str, ...]]]:
+    def schedule(
+        self, stamps: Sequence[int], cameras: Sequence[str], rate_hz: float
+    ) -> list[tuple[float, int, tuple[str, ...]]]:
         """(seconds after the start, stamp, cameras) publish events, in time order."""
         period = 1.0 / rate_hz
         on_time = tuple(c for c in cameras if c != self.lag_camera)
         events = [(f * period, s, on_time) for f, s in enumerate(stamps)]
         if self.lag_camera:
-            events += [(f * period + self.lag_s, s, (self.lag_camera,))
-                       for f, s in enumerate(stamps)]
+            events += [(f * period + self.lag_s, s, (self.lag_camera,)) for f, s in enumerate(stamps)]
         if self.stale_every_s > 0:
             step = max(1, int(round(self.stale_every_s * rate_hz)))
             for k, f in enumerate(range(step, len(stamps), step)):
@@ -161,8 +169,12 @@ def add_fault_arguments(p: argparse.ArgumentParser) -> None:
     (this module's main, maem-soak)."""
     p.add_argument("--lag-camera", default=None, help="fault: this camera's images come late")
     p.add_argument("--lag-ms", type=float, default=300.0, help="fault: its lag, ms")
-    p.add_argument("--stale-every", type=float, default=0.0,
-                   help="fault: every this many s one camera gets a stale stamp (0 = off)")
+    p.add_argument(
+        "--stale-every",
+        type=float,
+        default=0.0,
+        help="fault: every this many s one camera gets a stale stamp (0 = off)",
+    )
 
 
 def faults_from(a: argparse.Namespace) -> Faults:
@@ -173,8 +185,30 @@ def faults_from(a: argparse.Namespace) -> Faults:
 # ---------------------------------------------------------------------------------------------
 # replay
 # ---------------------------------------------------------------------------------------------
-def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_timeout: float = 120.0,
-        drain_s: float = 3.0, faults: Faults = Faults()) -> dict[str, Any]:
+def _pose_errors(params_file: Path, scene, poses: dict, frames: int) -> list[float]:
+    """MPJPE (m) of every received pose against the scene's ground truth, matched per frame,
+    in the triangulation's output convention."""
+    conv = get_convention(
+        load_node_params(params_file, "triangulation").get("output_convention", "sportcenter_13")
+    )
+    errors: list[float] = []
+    for f in range(frames):
+        s = scene.stamp_ns(f)
+        if s in poses:
+            gt = conv.select(scene.gt_keypoints(f)[scene.is_player])
+            errors += match_mpjpe(poses[s][1].joints, gt)[0]
+    return errors
+
+
+def run(
+    params_file: Path,
+    frames: int,
+    rate_hz: float,
+    log_dir: Path,
+    startup_timeout: float = 120.0,
+    drain_s: float = 3.0,
+    faults: Faults = Faults(),
+) -> dict[str, Any]:
     rig = load_rig_param(load_node_params(params_file, "association").get("rig", ""))
     scene = make_scene(params_file)
     frames = min(frames, scene.num_frames)
@@ -187,8 +221,9 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
     report: dict[str, Any] = {"cameras": len(rig.names), "frames_published": frames, "rate_hz": rate_hz}
     try:
         if not client.wait_ready(startup_timeout, alive=lambda: not graph.dead()):
-            raise RuntimeError(f"graph not ready (dead: {graph.dead()}; not matched: "
-                               f"{client.unready()})\n{graph.logs()}")
+            raise RuntimeError(
+                f"graph not ready (dead: {graph.dead()}; not matched: {client.unready()})\n{graph.logs()}"
+            )
         cpu0 = {p.name: p.cpu_seconds() for p in graph.procs}
         t0 = time.perf_counter()
         stamps = [scene.stamp_ns(f) for f in range(frames)]
@@ -211,39 +246,49 @@ def run(params_file: Path, frames: int, rate_hz: float, log_dir: Path, startup_t
         sent, poses, diags = dict(client.sent), dict(client.poses), dict(client.diagnostics)
     valid = set(scene.stamp_ns(f) for f in range(frames))
     lat = np.array([(poses[s][0] - t) * 1e3 for s, t in sent.items() if s in poses and s in valid])
-    conv = get_convention(load_node_params(params_file, "triangulation")
-                          .get("output_convention", "sportcenter_13"))
-    errors = []
-    for f in range(frames):
-        s = scene.stamp_ns(f)
-        if s in poses:
-            gt = conv.select(scene.gt_keypoints(f)[scene.is_player])
-            errors += match_mpjpe(poses[s][1].joints, gt)[0]
+    errors = _pose_errors(params_file, scene, poses, frames)
     max_rate = float(load_node_params(params_file, "frontend").get("max_rate", 0.0) or 0.0)
     expected = expected_stamps([scene.stamp_ns(f) for f in range(frames)], max_rate)
-    report.update({
-        "load_average_1min": round(os.getloadavg()[0], 2),
-        "frontend_max_rate_hz": max_rate,
-        "frames_expected": len(expected),
-        "poses_received": int(len(lat)),
-        "frames_dropped": int(sum(s not in poses for s in expected)),
-        "latency_ms_median": float(np.median(lat)) if len(lat) else None,
-        "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
-        "latency_ms_max": float(lat.max()) if len(lat) else None,
-        "mpjpe_mm_mean": float(np.mean(errors) * 1e3) if errors else None,
-        "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
-        "exit_codes": codes,
-        "nodes": {n: {k: v for k, v in d.items() if k.startswith(("dropped", "missing/", "frames_"))
-                      or (k.startswith("time_ms/") and k.endswith("/median"))}
-                  for n, d in sorted(diags.items())},
-    })
+    report.update(
+        {
+            "load_average_1min": round(os.getloadavg()[0], 2),
+            "frontend_max_rate_hz": max_rate,
+            "frames_expected": len(expected),
+            "poses_received": int(len(lat)),
+            "frames_dropped": int(sum(s not in poses for s in expected)),
+            "latency_ms_median": float(np.median(lat)) if len(lat) else None,
+            "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+            "latency_ms_max": float(lat.max()) if len(lat) else None,
+            "mpjpe_mm_mean": float(np.mean(errors) * 1e3) if errors else None,
+            "cpu_percent": {n: round(100 * (cpu1[n] - cpu0[n]) / wall, 1) for n in cpu0},
+            "exit_codes": codes,
+            "nodes": {
+                n: {
+                    k: v
+                    for k, v in d.items()
+                    if k.startswith(("dropped", "missing/", "frames_"))
+                    or (k.startswith("time_ms/") and k.endswith("/median"))
+                }
+                for n, d in sorted(diags.items())
+            },
+        }
+    )
     return report
 
 
-def sync_model(cameras: Sequence[str], frames: int, rate_hz: float, faults: Faults,
-               max_wait_s: float = 0.15, slop_s: float = 0.02, max_lag_s: float = 0.0,
-               poll_s: float = 0.01, delivery_ms: float = 12.0, jitter_ms: float = 4.0,
-               seed: int = 0) -> dict[str, Any]:
+def sync_model(
+    cameras: Sequence[str],
+    frames: int,
+    rate_hz: float,
+    faults: Faults,
+    max_wait_s: float = 0.15,
+    slop_s: float = 0.02,
+    max_lag_s: float = 0.0,
+    poll_s: float = 0.01,
+    delivery_ms: float = 12.0,
+    jitter_ms: float = 4.0,
+    seed: int = 0,
+) -> dict[str, Any]:
     """The association's synchroniser alone on the fault schedule (no processes, no CPU
     contention): each image reaches the synchroniser ``delivery_ms`` (frontend + transport)
     plus exponential jitter (mean ``jitter_ms``) after it is published, in order per camera;
@@ -262,8 +307,9 @@ def sync_model(cameras: Sequence[str], frames: int, rate_hz: float, faults: Faul
             last[c] = at = max(at, last[c] + 1)  # one FIFO transport per camera
             arrivals.append((at, c, stamp))
     arrivals.sort()
-    sync = ApproximateTimeSync(cameras, int(slop_s * 1e9), int(max_wait_s * 1e9),
-                               max_lag_ns=int(max_lag_s * 1e9))
+    sync = ApproximateTimeSync(
+        cameras, int(slop_s * 1e9), int(max_wait_s * 1e9), max_lag_ns=int(max_lag_s * 1e9)
+    )
     out, k, now = [], 0, 0
     end = arrivals[-1][0] + int(2e9)
     while now <= end:
@@ -276,12 +322,15 @@ def sync_model(cameras: Sequence[str], frames: int, rate_hz: float, faults: Faul
     emitted = {fs.stamp_ns: t for t, fs in out}
     lat = np.array([(emitted[s] - first_sent[s]) / 1e6 for s in stamps if s in emitted])
     missing = [c for _, fs in out for c in fs.missing]
-    return {"frames": frames, "frames_without_set": sum(s not in emitted for s in stamps),
-            "latency_ms_median": float(np.median(lat)), "latency_ms_p99":
-            float(np.percentile(lat, 99)), "missing_slots": {c: missing.count(c) for c in
-                                                             sorted(set(missing))},
-            "sync_timeouts": sync.stats.timeouts,
-            "dropped": {r.value: n for r, n in sync.stats.dropped.items() if n}}
+    return {
+        "frames": frames,
+        "frames_without_set": sum(s not in emitted for s in stamps),
+        "latency_ms_median": float(np.median(lat)),
+        "latency_ms_p99": float(np.percentile(lat, 99)),
+        "missing_slots": {c: missing.count(c) for c in sorted(set(missing))},
+        "sync_timeouts": sync.stats.timeouts,
+        "dropped": {r.value: n for r, n in sync.stats.dropped.items() if n},
+    }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -291,14 +340,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=30.0, help="publish rate, Hz")
     ap.add_argument("--difficulty", default=None, choices=("none", "easy", "medium", "hard"))
     ap.add_argument("--num-vertices", type=int, default=None, help="mesh vertices per person")
-    ap.add_argument("--max-rate", type=float, default=None,
-                    help="frontend max_rate, Hz (stamp-aligned decimation)")
+    ap.add_argument(
+        "--max-rate", type=float, default=None, help="frontend max_rate, Hz (stamp-aligned decimation)"
+    )
     ap.add_argument("--max-wait", type=float, default=None, help="association max_wait, s")
     add_fault_arguments(ap)
     ap.add_argument("--max-lag", type=float, default=None, help="association max_lag, s")
-    ap.add_argument("--sync-model", action="store_true",
-                    help="no processes: the synchroniser alone on the fault schedule, with a "
-                    "delivery model (see sync_model); isolates its decisions from CPU load")
+    ap.add_argument(
+        "--sync-model",
+        action="store_true",
+        help="no processes: the synchroniser alone on the fault schedule, with a "
+        "delivery model (see sync_model); isolates its decisions from CPU load",
+    )
     ap.add_argument("--log-dir", type=Path, default=None, help="node logs (default: a temp dir)")
     add_json_argument(ap)
     a = ap.parse_args(argv)
@@ -307,10 +360,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as e:
         return fail(PROG, e)
     if a.sync_model:
-        cams = load_rig_param(load_node_params(resolve_config_path(a.params), "association")
-                              .get("rig", "")).names
-        report = sync_model(cams, a.frames, a.rate, faults_from(a),
-                            max_wait_s=a.max_wait or 0.15, max_lag_s=a.max_lag or 0.0)
+        cams = load_rig_param(
+            load_node_params(resolve_config_path(a.params), "association").get("rig", "")
+        ).names
+        report = sync_model(
+            cams, a.frames, a.rate, faults_from(a), max_wait_s=a.max_wait or 0.15, max_lag_s=a.max_lag or 0.0
+        )
         print_report(report, a.json)
         return 0
     tmp = Path(tempfile.mkdtemp(prefix="maem_latency_"))
