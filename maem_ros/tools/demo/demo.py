@@ -37,6 +37,7 @@ at most 60 s per frame), at --rate (default 1) from there, and the images go rel
 best-effort queue and no frame set to the association's max_wait. A bag without ground truth
 is reported without the accuracy table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -74,6 +75,7 @@ from maem_ros.tools.demo.demo_bag import (
 from maem_ros.tools.demo.demo_graph import LOCKSTEP_BACKENDS, DemoError, run_graph, write_params
 from maem_ros.tools.demo.demo_report import (
     LATENCY_DEFINITION,
+    GraphRun,
     format_timing,
     latencies_ms,
     print_accuracy,
@@ -112,8 +114,9 @@ class OfflinePose:
     scores: np.ndarray
 
 
-def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
-                ) -> tuple[dict[int, OfflinePose], list[float]]:
+def run_offline(
+    demo: DemoBag, rig, params: str, stamps: Sequence[int]
+) -> tuple[dict[int, OfflinePose], list[float]]:
     """Association + triangulation of the bag's recorded detections, per frame, in process."""
     assoc, tri = load_params(params)
     frames: dict[int, dict[str, Any]] = {s: {} for s in stamps}
@@ -153,45 +156,83 @@ def run_offline(demo: DemoBag, rig, params: str, stamps: Sequence[int]
 # CLI
 # ---------------------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-demo",
-                                description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-                                epilog=f"{__doc__.split(chr(10) * 2, 2)[2]}\n{LATENCY_DEFINITION}.",
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--bag", type=Path, default=None,
-                   help="input bag, which must exist (default bags/demo, generated first when "
-                   "missing; --make-bag DIR builds one elsewhere)")
-    p.add_argument("--out", type=Path, default=Path("out/demo"),
-                   help="output folder (default out/demo)")
-    p.add_argument("--params", default=None,
-                   help="params file (default config/demo.yaml; config/mediapipe.yaml with "
-                   "--backend mediapipe)")
-    p.add_argument("--backend", choices=sorted(BACKENDS), default="synthetic",
-                   help="frontend backend of the graph (default synthetic: the simulated "
-                   "detections of the bag's scene; mediapipe: BlazePose on the bag's images)")
+    p = argparse.ArgumentParser(
+        prog="maem-demo",
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        epilog=f"{__doc__.split(chr(10) * 2, 2)[2]}\n{LATENCY_DEFINITION}.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--bag",
+        type=Path,
+        default=None,
+        help="input bag, which must exist (default bags/demo, generated first when "
+        "missing; --make-bag DIR builds one elsewhere)",
+    )
+    p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
+    p.add_argument(
+        "--params",
+        default=None,
+        help="params file (default config/demo.yaml; config/mediapipe.yaml with --backend mediapipe)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=sorted(BACKENDS),
+        default="synthetic",
+        help="frontend backend of the graph (default synthetic: the simulated "
+        "detections of the bag's scene; mediapipe: BlazePose on the bag's images)",
+    )
     g = p.add_mutually_exclusive_group()
     g.add_argument("--frames", type=int, default=None, help="play only the first N frames")
-    g.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="play only the first S seconds of bag time")
-    p.add_argument("--rate", type=float, default=None,
-                   help=f"playback rate (default {DEFAULT_RATE}, with --frontends "
-                        f"{FRONTENDS_RATE}; the bag is 30 fps; 1 with --backend mediapipe, in lockstep "
-                        "with the graph)")
-    p.add_argument("--keep-going", action="store_true",
-                   help="finish the replay when a node crashes (reported at the end, exit 1)")
+    g.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="play only the first S seconds of bag time"
+    )
+    p.add_argument(
+        "--rate",
+        type=float,
+        default=None,
+        help=f"playback rate (default {DEFAULT_RATE}, with --frontends "
+        f"{FRONTENDS_RATE}; the bag is 30 fps; 1 with --backend mediapipe, in lockstep "
+        "with the graph)",
+    )
+    p.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="finish the replay when a node crashes (reported at the end, exit 1)",
+    )
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--no-graph", action="store_true",
-                      help="offline: core association + triangulation on the bag's recorded "
-                      "detections")
-    mode.add_argument("--frontends", action="store_true",
-                      help="run the synthetic frontends on the bag's images instead of playing "
-                      "its recorded detections")
-    p.add_argument("--startup-timeout", type=float, default=60.0, metavar="S",
-                   help="give up when the graph is not wired after S seconds (default 60)")
-    p.add_argument("--make-bag", type=Path, default=None, metavar="DIR",
-                   help=f"only build the demo bag into DIR (seeded; JPEG quality {JPEG_QUALITY}, "
-                   f"{BAG_VERTICES} mesh vertices per recorded detection) and exit")
-    p.add_argument("--bag-frames", type=int, default=DEMO_SCENE["frames"], metavar="N",
-                   help=f"frames of a generated demo bag (default {DEMO_SCENE['frames']})")
+    mode.add_argument(
+        "--no-graph",
+        action="store_true",
+        help="offline: core association + triangulation on the bag's recorded detections",
+    )
+    mode.add_argument(
+        "--frontends",
+        action="store_true",
+        help="run the synthetic frontends on the bag's images instead of playing its recorded detections",
+    )
+    p.add_argument(
+        "--startup-timeout",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="give up when the graph is not wired after S seconds (default 60)",
+    )
+    p.add_argument(
+        "--make-bag",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help=f"only build the demo bag into DIR (seeded; JPEG quality {JPEG_QUALITY}, "
+        f"{BAG_VERTICES} mesh vertices per recorded detection) and exit",
+    )
+    p.add_argument(
+        "--bag-frames",
+        type=int,
+        default=DEMO_SCENE["frames"],
+        metavar="N",
+        help=f"frames of a generated demo bag (default {DEMO_SCENE['frames']})",
+    )
     return p
 
 
@@ -248,47 +289,83 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail("maem-demo", e, 1)
 
 
-def offline_mode(a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
-                 ) -> tuple[int, dict[int, Any], dict[str, Any]]:
+def offline_mode(
+    a: argparse.Namespace, demo: DemoBag, rig, stamps: list[int]
+) -> tuple[int, dict[int, Any], dict[str, Any]]:
     """--no-graph: (exit code, poses by stamp, report entries)."""
     poses, ms = run_offline(demo, rig, a.params, stamps)
     metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()})
     metrics["association_ms_median"] = float(np.median(ms))
     print_accuracy("offline (bag detections)", metrics)
-    print(f"\ncore association + triangulation per frame: median {np.median(ms):.1f} ms, "
-          f"p99 {np.percentile(ms, 99):.1f} ms (this process, bag's vertex subset)")
+    print(
+        f"\ncore association + triangulation per frame: median {np.median(ms):.1f} ms, "
+        f"p99 {np.percentile(ms, 99):.1f} ms (this process, bag's vertex subset)"
+    )
     return 0, poses, {"metrics": metrics, "pipeline_ms_median": float(np.median(ms))}
 
 
-def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: list[int]
-               ) -> tuple[int, dict[int, Any], dict[str, Any]]:
-    """The node graph replay: (exit code, recorded poses by stamp, report entries)."""
+def _replay_graph(
+    a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: list[int]
+) -> tuple[GraphRun, Path]:
+    """Check the bag has what the graph plays, write the graph's params file and replay the
+    first len(stamps) frames through the node graph: (GraphRun, params file)."""
     if a.frontends and a.backend == "synthetic":
         check_scene(demo)
     elif not a.frontends and not any(f"/{c}/detections" in demo.info.topics for c in demo.cameras):
-        raise ValueError(f"bag {str(demo.path)!r}: no recorded /<camera>/detections to play "
-                         f"(use --frontends to run the synthetic frontends on its images)")
+        raise ValueError(
+            f"bag {str(demo.path)!r}: no recorded /<camera>/detections to play "
+            f"(use --frontends to run the synthetic frontends on its images)"
+        )
     n = len(stamps)
     play_bag = demo.path if n == len(demo.stamps) else trim_bag(demo, a.out / "input", n)
-    params = write_params(a.params, a.out / "params.yaml", rig_path.resolve(), demo.scene_config,
-                          max_wait_s=BACKENDS[a.backend][2] if a.frontends else None,
-                          frontends=a.frontends, backend=a.backend if a.frontends else None)
+    params = write_params(
+        a.params,
+        a.out / "params.yaml",
+        rig_path.resolve(),
+        demo.scene_config,
+        max_wait_s=BACKENDS[a.backend][2] if a.frontends else None,
+        frontends=a.frontends,
+        backend=a.backend if a.frontends else None,
+    )
     lockstep = a.frontends and a.backend in LOCKSTEP_BACKENDS
-    log("every frame is processed however late (association and triangulation "
+    log(
+        "every frame is processed however late (association and triangulation "
         "keep_every_set: true; a live graph skips the frames it falls behind on)"
-        + ("; the replay goes in lockstep with /maem/clusters" if lockstep else ""))
-    run = run_graph(play_bag, demo, stamps, params, a.out, a.rate, a.keep_going,
-                    startup_timeout_s=a.startup_timeout, frontends=a.frontends,
-                    lockstep=lockstep)
+        + ("; the replay goes in lockstep with /maem/clusters" if lockstep else "")
+    )
+    run = run_graph(
+        play_bag,
+        demo,
+        stamps,
+        params,
+        a.out,
+        a.rate,
+        a.keep_going,
+        startup_timeout_s=a.startup_timeout,
+        frontends=a.frontends,
+        lockstep=lockstep,
+    )
+    return run, params
+
+
+def graph_mode(
+    a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: list[int]
+) -> tuple[int, dict[int, Any], dict[str, Any]]:
+    """The node graph replay: (exit code, recorded poses by stamp, report entries)."""
+    run, params = _replay_graph(a, demo, rig_path, stamps)
+    n = len(stamps)
     poses = recorded_poses(run.record)
     diags = recorded_diagnostics(run.record)
-    metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()}) \
-        if demo.gt else {}
+    metrics = score(demo, stamps, {s: (p.joints, p.scores) for s, p in poses.items()}) if demo.gt else {}
     assoc = next((kv for name, kv in diags.items() if name.strip("/") == "association"), {})
     metrics["association_ms_median"] = float(assoc.get("time_ms/associate/median", "nan"))
     if demo.gt:
-        print_accuracy("graph (maem-play -> frontends -> nodes)" if a.frontends
-                       else "graph (maem-play detections -> nodes)", metrics)
+        print_accuracy(
+            "graph (maem-play -> frontends -> nodes)"
+            if a.frontends
+            else "graph (maem-play detections -> nodes)",
+            metrics,
+        )
     else:
         print("\nthe bag has no ground truth (/maem/gt_poses): no accuracy table")
     quality = real_capture_measures(run.record, Rig.load(rig_path), params, stamps, poses)
@@ -298,16 +375,28 @@ def graph_mode(a: argparse.Namespace, demo: DemoBag, rig_path: Path, stamps: lis
     lat = latencies_ms(run.image_t, run.poses_t)
     dropped = [s for s in stamps if s not in poses]
     print_run_summary(a.rate, n, lat, dropped, diags, run)
-    definition = LATENCY_DEFINITION if a.frontends else LATENCY_DEFINITION.replace(
-        "/<cam>/image_raw/compressed", "/<cam>/detections").replace(
-        "the frontends, synchronisation", "synchronisation")
-    report = {"metrics": metrics, "latency_definition": definition,
-              "timing": [dict(zip(("node", "stage", "median_ms", "p99_ms", "processed",
-                                   "dropped"), r)) for r in rows],
-              "latency_ms_median": float(np.median(lat)) if len(lat) else None,
-              "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
-              "frames_dropped": len(dropped), "exit_codes": run.exit_codes, **quality,
-              "crashed": run.crashed, "record": str(run.record), "replay_wall_s": run.wall_s}
+    definition = (
+        LATENCY_DEFINITION
+        if a.frontends
+        else LATENCY_DEFINITION.replace("/<cam>/image_raw/compressed", "/<cam>/detections").replace(
+            "the frontends, synchronisation", "synchronisation"
+        )
+    )
+    report = {
+        "metrics": metrics,
+        "latency_definition": definition,
+        "timing": [
+            dict(zip(("node", "stage", "median_ms", "p99_ms", "processed", "dropped"), r)) for r in rows
+        ],
+        "latency_ms_median": float(np.median(lat)) if len(lat) else None,
+        "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
+        "frames_dropped": len(dropped),
+        "exit_codes": run.exit_codes,
+        **quality,
+        "crashed": run.crashed,
+        "record": str(run.record),
+        "replay_wall_s": run.wall_s,
+    }
     if run.crashed:
         print("\nNODE FAILURES:")
         for text in run.crashed.values():
@@ -326,40 +415,56 @@ def open_demo_bag(a: argparse.Namespace) -> DemoBag:
         raise InputError(str(e), "bad_bag") from None
 
 
-def real_capture_measures(record: Path, rig: Rig, params: Path, stamps: Sequence[int],
-                          poses: dict[int, Any]) -> dict[str, Any]:
+def real_capture_measures(
+    record: Path, rig: Rig, params: Path, stamps: Sequence[int], poses: dict[int, Any]
+) -> dict[str, Any]:
     """people_per_frame, reprojection and bone-length stability of the recorded run (printed)."""
     from maem_ros.core.skeleton import get_convention
     from maem_ros.params import load_node_params
     from maem_ros.tools.demo import demo_metrics as dm
+
     _, tri = load_params(str(params))
-    conv = get_convention(load_node_params(params, "triangulation")
-                          .get("output_convention", "sportcenter_13"))
+    conv = get_convention(
+        load_node_params(params, "triangulation").get("output_convention", "sportcenter_13")
+    )
     people = dm.people_per_frame(stamps, poses)
     reproj = dm.reprojection_summary(dm.reprojection_errors(record, rig, tri, stamps), tri.tau_kps)
     bones = dm.bone_length_cv(poses, conv)
     found = dm.joints_found(poses, conv)
     counts = np.bincount(people) if people else np.zeros(1, int)
-    print("\npeople per frame (/maem/poses): " + ", ".join(
-        f"{k}: {c} frames" for k, c in enumerate(counts) if c))
+    print(
+        "\npeople per frame (/maem/poses): "
+        + ", ".join(f"{k}: {c} frames" for k, c in enumerate(counts) if c)
+    )
     if reproj["reprojection_pairs"]:
-        print(f"reprojection error of the triangulated joints in their clusters' views: mean "
-              f"{reproj['reprojection_px_mean']:.1f} px, median "
-              f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
-              f"{reproj['reprojection_px_mean_inliers']:.1f} px "
-              f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "  # type: ignore[operator]  # a float here
-              f"{reproj['reprojection_pairs']} joint-views); all members "
-              f"{reproj['reprojection_px_mean_all_members']:.1f} px "
-              f"({reproj['reprojection_members_rejected']} of {reproj['reprojection_members']} "
-              f"members left out by tau_member)")
+        print(
+            f"reprojection error of the triangulated joints in their clusters' views: mean "
+            f"{reproj['reprojection_px_mean']:.1f} px, median "
+            f"{reproj['reprojection_px_median']:.1f} px, under tau_kps "
+            f"{reproj['reprojection_px_mean_inliers']:.1f} px "
+            f"({100 * reproj['reprojection_inlier_fraction']:.0f} % of "  # type: ignore[operator]  # a float here
+            f"{reproj['reprojection_pairs']} joint-views); all members "
+            f"{reproj['reprojection_px_mean_all_members']:.1f} px "
+            f"({reproj['reprojection_members_rejected']} of {reproj['reprojection_members']} "
+            f"members left out by tau_member)"
+        )
     if found["joints_found"]:
-        print("joints found per published person: " + ", ".join(
-            f"{j} {100 * v:.0f} %" for j, v in found["joints_found"].items()))
+        print(
+            "joints found per published person: "
+            + ", ".join(f"{j} {100 * v:.0f} %" for j, v in found["joints_found"].items())
+        )
     if bones["bone_length_cv"]:
-        print(f"bone length coefficient of variation over {bones['bone_length_tracks']} tracks: "
-              + ", ".join(f"{b} {100 * v:.1f} %" for b, v in bones["bone_length_cv"].items()))
-    return {"people_per_frame": people, **reproj, **bones, **found,
-            "reprojection_definition": dm.REPROJECTION_DEFINITION}
+        print(
+            f"bone length coefficient of variation over {bones['bone_length_tracks']} tracks: "
+            + ", ".join(f"{b} {100 * v:.1f} %" for b, v in bones["bone_length_cv"].items())
+        )
+    return {
+        "people_per_frame": people,
+        **reproj,
+        **bones,
+        **found,
+        "reprojection_definition": dm.REPROJECTION_DEFINITION,
+    }
 
 
 def run_demo(a: argparse.Namespace, t_start: float) -> int:
@@ -367,24 +472,34 @@ def run_demo(a: argparse.Namespace, t_start: float) -> int:
     demo = open_demo_bag(a)
     bag = demo.path
     prepare_out(a.out)
-    stamps = demo.stamps[:played_frames(demo, a.frames, a.duration)]
+    stamps = demo.stamps[: played_frames(demo, a.frames, a.duration)]
     rig_path = a.out / "rig.yaml"
     rig_path.write_text(demo.rig_yaml)
     rig = Rig.load(rig_path)
-    log(f"bag {str(bag)!r}: {len(demo.stamps)} frames x {len(demo.cameras)} cameras at "
+    log(
+        f"bag {str(bag)!r}: {len(demo.stamps)} frames x {len(demo.cameras)} cameras at "
         f"{demo.fps:.0f} fps; playing {len(stamps)} frames "
-        + ("offline (--no-graph)" if a.no_graph else f"at rate {a.rate:g}"))
-    mode = offline_mode(a, demo, rig, stamps) if a.no_graph else graph_mode(a, demo, rig_path,
-                                                                            stamps)
+        + ("offline (--no-graph)" if a.no_graph else f"at rate {a.rate:g}")
+    )
+    mode = offline_mode(a, demo, rig, stamps) if a.no_graph else graph_mode(a, demo, rig_path, stamps)
     code, poses, entries = mode
     pictures = write_pictures(a.out, demo, rig, stamps, poses)
-    report = {"bag": str(bag), "backend": a.backend, "frames_played": len(stamps),
-              "cameras": demo.cameras,
-              "mode": "offline" if a.no_graph else "graph", "rate": a.rate, **entries,
-              "pictures": [str(p) for p in pictures], "wall_s": time.monotonic() - t_start}
+    report = {
+        "bag": str(bag),
+        "backend": a.backend,
+        "frames_played": len(stamps),
+        "cameras": demo.cameras,
+        "mode": "offline" if a.no_graph else "graph",
+        "rate": a.rate,
+        **entries,
+        "pictures": [str(p) for p in pictures],
+        "wall_s": time.monotonic() - t_start,
+    }
     (a.out / "report.json").write_text(json.dumps(jsonable(report), indent=2))
-    print(f"\nwrote {', '.join(str(p) for p in pictures) or 'no pictures (no frame with poses)'}, "
-          f"{a.out / 'report.json'}")
+    print(
+        f"\nwrote {', '.join(str(p) for p in pictures) or 'no pictures (no frame with poses)'}, "
+        f"{a.out / 'report.json'}"
+    )
     log(f"done in {report['wall_s']:.1f} s")
     return code
 

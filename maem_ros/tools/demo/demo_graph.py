@@ -2,6 +2,7 @@
 processes (maem-record, the frontends or none, maem-association, maem-triangulation, last
 maem-play), the wait until every link is matched, the replay with a progress line, crash
 watching and the drain until every frame has its poses."""
+
 from __future__ import annotations
 
 import json
@@ -38,8 +39,14 @@ RECORD_TOPICS = ("/maem/poses", "/maem/skeletons", "/maem/clusters", "/diagnosti
 # params
 # ---------------------------------------------------------------------------------------------
 #: frontend scene keys that would override scene_dict: set to their "unset" sentinels
-_SCENE_SENTINELS = {"seed": -1, "difficulty": "", "frames": 0, "num_vertices": 0, "fps": 0.0,
-                    "start_stamp_ns": -1}
+_SCENE_SENTINELS = {
+    "seed": -1,
+    "difficulty": "",
+    "frames": 0,
+    "num_vertices": 0,
+    "fps": 0.0,
+    "start_stamp_ns": -1,
+}
 
 
 def node_section(data: dict, node: str) -> dict:
@@ -53,17 +60,22 @@ def node_section(data: dict, node: str) -> dict:
     return merged
 
 
-def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None,
-                 max_wait_s: float | None = 1.0, frontends: bool = True,
-                 backend: str | None = None) -> Path:
+def write_params(
+    base: str,
+    out: Path,
+    rig_path: Path,
+    scene_config: dict | None,
+    max_wait_s: float | None = 1.0,
+    frontends: bool = True,
+    backend: str | None = None,
+) -> Path:
     """``base`` params file with the bag's rig for every node; with ``frontends``, for them
     compressed images and the bag's scene description (the synthetic backend regenerates from
     it); for the association ``max_wait_s`` (s, None = the params file's; the six frontends
     share the CPU, so one frame's detections arrive spread over a few hundred ms); ``backend``
     replaces the frontends' backend."""
     data = yaml.safe_load(resolve_config_path(base).read_text()) or {}
-    nodes = {name: node_section(data, name)
-             for name in ("frontend", "association", "triangulation")}
+    nodes = {name: node_section(data, name) for name in ("frontend", "association", "triangulation")}
     data.setdefault("/**", {}).setdefault("ros__parameters", {})["rig"] = str(rig_path)
     for section in nodes.values():
         if "rig" in section:
@@ -76,8 +88,10 @@ def write_params(base: str, out: Path, rig_path: Path, scene_config: dict | None
         fe["image_reliability"] = "reliable"
     if frontends and fe.get("backend", "synthetic") == "synthetic":
         if scene_config is None:
-            raise ValueError("the bag has no scene description (/maem/scene): the synthetic "
-                             "frontend cannot regenerate its detections")
+            raise ValueError(
+                "the bag has no scene description (/maem/scene): the synthetic "
+                "frontend cannot regenerate its detections"
+            )
         fe.update(_SCENE_SENTINELS)
         fe["scene_dict"] = json.dumps(scene_config, sort_keys=True)
         fe["scene_rig"] = str(scene_config.get("rig", ""))
@@ -102,8 +116,7 @@ def child_env() -> dict[str, str]:
     return env
 
 
-def missing_links(listener: ArrivalListener, cameras: Sequence[str],
-                  frontends: bool = True) -> list[str]:
+def missing_links(listener: ArrivalListener, cameras: Sequence[str], frontends: bool = True) -> list[str]:
     """What is not wired yet (empty = frontends, association, triangulation, recorder ready).
 
     The ROS graph must list every subscriber, and the links between the nodes must be matched
@@ -113,13 +126,22 @@ def missing_links(listener: ArrivalListener, cameras: Sequence[str],
     need = [(image_topic(c), 2, "frontend") for c in cameras] if frontends else []
     # without frontends the player publishes the detections: association + this listener
     need += [(f"/{c}/detections", 1 if frontends else 2, "association") for c in cameras]
-    need += [("/maem/clusters", 1, "triangulation"), ("/maem/poses", 2, "recorder"),
-             ("/maem/skeletons", 1, "recorder"), ("/diagnostics", 1, "recorder")]
-    listed = [f"{topic} has no {who} subscriber" for topic, k, who in need
-              if listener.count_subscribers(topic) < k]
+    need += [
+        ("/maem/clusters", 1, "triangulation"),
+        ("/maem/poses", 2, "recorder"),
+        ("/maem/skeletons", 1, "recorder"),
+        ("/diagnostics", 1, "recorder"),
+    ]
+    listed = [
+        f"{topic} has no {who} subscriber" for topic, k, who in need if listener.count_subscribers(topic) < k
+    ]
     links = fusion_links(cameras, "image_raw/compressed" if frontends else None, sources=False)
-    return listed + [f"{link} not matched" for link in unmatched_links(
-        listener.diagnostics_snapshot(), links, at_least={"matched_subscribers/maem/poses": 2})]
+    return listed + [
+        f"{link} not matched"
+        for link in unmatched_links(
+            listener.diagnostics_snapshot(), links, at_least={"matched_subscribers/maem/poses": 2}
+        )
+    ]
 
 
 class DemoError(RuntimeError):
@@ -136,9 +158,66 @@ def _crash_text(proc: Proc, code: int | None) -> str:
     return f"{proc.name}: {what}\n    " + "\n    ".join(proc.tail().rstrip().splitlines()[-12:])
 
 
-def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out: Path,
-              rate: float, keep_going: bool, startup_timeout_s: float = 60.0,
-              drain_s: float = 5.0, frontends: bool = False, lockstep: bool = False) -> GraphRun:
+def _arrival_listener(cameras: Sequence[str], domain_id: int, frontends: bool) -> ArrivalListener:
+    """This process's listener of the played inputs (images with ``frontends``, else the
+    recorded detections) and of /maem/poses, on the graph's domain."""
+    if frontends:
+        return ArrivalListener([image_topic(c) for c in cameras], domain_id)
+    from sensor_msgs.msg import PointCloud2
+
+    return ArrivalListener([f"/{c}/detections" for c in cameras], domain_id, input_type=PointCloud2)
+
+
+def _player_command(
+    bag: Path, rate: float, startup_timeout_s: float, frontends: bool, lockstep: bool
+) -> list[str]:
+    """maem-play's command line for the graph replay: the images (``frontends``) or the
+    recorded detections, never the ground truth; ``lockstep``: one frame per /maem/clusters."""
+    played, dropped = (
+        ("/*/image_raw/compressed", "/*/detections")
+        if frontends
+        else ("/*/detections", "/*/image_raw/compressed")
+    )
+    step = [
+        "--lockstep",
+        LOCKSTEP_TOPIC,
+        "--lockstep-timeout",
+        f"{LOCKSTEP_TIMEOUT_S:g}",
+        "--reliable-images",
+    ]
+    return module_command(
+        "maem_ros.ros.player_node",
+        str(bag),
+        "--rate",
+        f"{rate:g}",
+        "--delay",
+        "1.0",
+        "--wait-subscribers",
+        f"{startup_timeout_s:g}",
+        "--wait-topics",
+        played,
+        "--min-subscribers",
+        "2",  # the frontend / association and this process's listener
+        "--exclude",
+        dropped,
+        bagio.GT_TOPIC,
+        *(step if lockstep else ()),
+    )
+
+
+def run_graph(
+    bag: Path,
+    demo: DemoBag,
+    stamps: Sequence[int],
+    params: Path,
+    out: Path,
+    rate: float,
+    keep_going: bool,
+    startup_timeout_s: float = 60.0,
+    drain_s: float = 5.0,
+    frontends: bool = False,
+    lockstep: bool = False,
+) -> GraphRun:
     """Start recorder + nodes, wait until wired, play ``bag`` (whose frames are ``stamps``:
     its recorded detections, or with ``frontends`` its images; ``lockstep``: one frame at a
     time, each when the last one's clusters came, images reliable), wait until every frame has
@@ -146,40 +225,24 @@ def run_graph(bag: Path, demo: DemoBag, stamps: Sequence[int], params: Path, out
     warm_numba_cache()
     group = ProcessGroup(out / "logs", child_env())
     record = out / "record"
-    nodes = ([f"frontend_{c}" for c in demo.cameras] if frontends else []) + \
-        ["association", "triangulation"]
+    nodes = ([f"frontend_{c}" for c in demo.cameras] if frontends else []) + ["association", "triangulation"]
     listener = None
     crashed: dict[str, str] = {}
     try:
-        group.start("recorder", module_command("maem_ros.ros.recorder_node", str(record),
-                                               "--topics", *RECORD_TOPICS))
-        for c in (demo.cameras if frontends else []):
+        group.start(
+            "recorder", module_command("maem_ros.ros.recorder_node", str(record), "--topics", *RECORD_TOPICS)
+        )
+        for c in demo.cameras if frontends else []:
             group.start(f"frontend_{c}", node_command("frontend", params, f"/{c}"))
         for kind in ("association", "triangulation"):
             group.start(kind, node_command(kind, params))
         # the listener (this process) joins the children's domain and discovery range
-        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE",
-                              group.env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
-        if frontends:
-            listener = ArrivalListener([image_topic(c) for c in demo.cameras],
-                                       int(group.env["ROS_DOMAIN_ID"]))
-        else:
-            from sensor_msgs.msg import PointCloud2
-            listener = ArrivalListener([f"/{c}/detections" for c in demo.cameras],
-                                       int(group.env["ROS_DOMAIN_ID"]), input_type=PointCloud2)
+        os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", group.env["ROS_AUTOMATIC_DISCOVERY_RANGE"])
+        listener = _arrival_listener(demo.cameras, int(group.env["ROS_DOMAIN_ID"]), frontends)
         _wait_wired(group, listener, demo.cameras, startup_timeout_s, frontends)
         t0 = time.monotonic()
-        played, dropped = (("/*/image_raw/compressed", "/*/detections") if frontends
-                           else ("/*/detections", "/*/image_raw/compressed"))
-        group.start("player", module_command(
-            "maem_ros.ros.player_node", str(bag), "--rate", f"{rate:g}", "--delay", "1.0",
-            "--wait-subscribers", f"{startup_timeout_s:g}", "--wait-topics", played,
-            "--min-subscribers", "2",  # the frontend / association and this process's listener
-            "--exclude", dropped, bagio.GT_TOPIC,
-            *(("--lockstep", LOCKSTEP_TOPIC, "--lockstep-timeout", f"{LOCKSTEP_TIMEOUT_S:g}",
-               "--reliable-images") if lockstep else ())))
-        crashed.update(_watch_play(group, nodes + ["recorder"], keep_going,
-                                   _progress(listener, len(stamps))))
+        group.start("player", _player_command(bag, rate, startup_timeout_s, frontends, lockstep))
+        crashed.update(_watch_play(group, nodes + ["recorder"], keep_going, _progress(listener, len(stamps))))
         _drain(group, listener, stamps, drain_s, nodes, crashed, keep_going)
         wall = time.monotonic() - t0
         time.sleep(1.3)  # one more /diagnostics period reaches the recorder
@@ -221,19 +284,26 @@ def _progress(listener: ArrivalListener, total: int, period_s: float = 1.0):
         state["next"] = now + period_s
         inputs, poses = listener.snapshot()
         text = f"maem-demo: played {len(inputs)}/{total} frames, poses for {len(poses)}"
-        print(("\r" + text + ("\n" if final else "")) if tty else text, end="" if tty else "\n",
-              flush=True)
+        print(("\r" + text + ("\n" if final else "")) if tty else text, end="" if tty else "\n", flush=True)
+
     return show
 
 
-def _wait_wired(group: ProcessGroup, listener: ArrivalListener, cameras: Sequence[str],
-                timeout_s: float, frontends: bool = True) -> None:
+def _wait_wired(
+    group: ProcessGroup,
+    listener: ArrivalListener,
+    cameras: Sequence[str],
+    timeout_s: float,
+    frontends: bool = True,
+) -> None:
     deadline = time.monotonic() + timeout_s
     while True:
         dead = group.dead()
         if dead:
-            raise DemoError("process exited during start-up:\n  " + "\n  ".join(
-                _crash_text(group.procs[n], c) for n, c in dead.items()))
+            raise DemoError(
+                "process exited during start-up:\n  "
+                + "\n  ".join(_crash_text(group.procs[n], c) for n, c in dead.items())
+            )
         missing = missing_links(listener, cameras, frontends)
         if not missing:
             return
@@ -242,8 +312,7 @@ def _wait_wired(group: ProcessGroup, listener: ArrivalListener, cameras: Sequenc
         time.sleep(0.2)
 
 
-def _watch_play(group: ProcessGroup, watched: list[str], keep_going: bool,
-                progress=None) -> dict[str, str]:
+def _watch_play(group: ProcessGroup, watched: list[str], keep_going: bool, progress=None) -> dict[str, str]:
     """Wait for the player to finish; a crashed node aborts unless ``keep_going``."""
     crashed: dict[str, str] = {}
     player = group.procs["player"].popen
@@ -258,20 +327,30 @@ def _watch_play(group: ProcessGroup, watched: list[str], keep_going: bool,
     return crashed
 
 
-def _check_crashes(group: ProcessGroup, watched: list[str], crashed: dict[str, str],
-                   keep_going: bool) -> None:
+def _check_crashes(
+    group: ProcessGroup, watched: list[str], crashed: dict[str, str], keep_going: bool
+) -> None:
     for name, code in group.dead(watched).items():
         if name not in crashed:
             crashed[name] = _crash_text(group.procs[name], code)
             if keep_going:
                 log(f"NODE CRASHED (--keep-going: replay continues): {crashed[name]}")
             else:
-                raise DemoError(f"{name} crashed during the replay (use --keep-going to finish "
-                                f"the replay anyway):\n  {crashed[name]}")
+                raise DemoError(
+                    f"{name} crashed during the replay (use --keep-going to finish "
+                    f"the replay anyway):\n  {crashed[name]}"
+                )
 
 
-def _drain(group: ProcessGroup, listener: ArrivalListener, stamps: Sequence[int], idle_s: float,
-           nodes: list[str], crashed: dict[str, str], keep_going: bool) -> None:
+def _drain(
+    group: ProcessGroup,
+    listener: ArrivalListener,
+    stamps: Sequence[int],
+    idle_s: float,
+    nodes: list[str],
+    crashed: dict[str, str],
+    keep_going: bool,
+) -> None:
     """Wait until every frame has its poses, or no new poses arrived for ``idle_s``."""
     last_n, last_change = -1, time.monotonic()
     while time.monotonic() - last_change < idle_s:
