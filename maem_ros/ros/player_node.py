@@ -17,6 +17,7 @@ Looping replays the same bytes, so header stamps are NOT rewritten: they jump ba
 loop start (the association node resets its queues when stamps go backwards). With --clock,
 /clock follows bag log time (also jumping back on loop) for nodes run with use_sim_time.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -54,41 +55,104 @@ class PlayOptions:
     reliable_images: bool = False
 
 
-def parse_args(argv: Sequence[str]) -> PlayOptions:
+def _parser() -> argparse.ArgumentParser:
+    """maem-play's options: what to play and how fast (_add_timing_options: when)."""
     p = argparse.ArgumentParser(
-        prog="maem-play", description="Publish a rosbag2 bag's messages with the original timing "
+        prog="maem-play",
+        description="Publish a rosbag2 bag's messages with the original timing "
         "(serialized bytes, per-topic QoS: images best effort, /maem/scene transient local, others "
-        "reliable). Header stamps are not rewritten on --loop.")
+        "reliable). Header stamps are not rewritten on --loop.",
+    )
     p.add_argument("bag", help="rosbag2 folder (metadata.yaml + .mcap)")
     p.add_argument("--rate", type=float, default=1.0, help="playback speed factor (default 1)")
     p.add_argument("--loop", action="store_true", help="replay forever until SIGINT")
-    p.add_argument("--start", type=float, default=0.0, metavar="S",
-                   help="start S seconds after the bag's first message")
-    p.add_argument("--topics", nargs="+", metavar="TOPIC",
-                   help="only these topics; shell-style patterns allowed, e.g. '/*/image_raw/*' "
-                   "(default all)")
-    p.add_argument("--exclude", nargs="+", default=[], metavar="TOPIC",
-                   help="leave out these topics (patterns allowed, e.g. '/*/detections')")
+    p.add_argument(
+        "--start", type=float, default=0.0, metavar="S", help="start S seconds after the bag's first message"
+    )
+    p.add_argument(
+        "--topics",
+        nargs="+",
+        metavar="TOPIC",
+        help="only these topics; shell-style patterns allowed, e.g. '/*/image_raw/*' (default all)",
+    )
+    p.add_argument(
+        "--exclude",
+        nargs="+",
+        default=[],
+        metavar="TOPIC",
+        help="leave out these topics (patterns allowed, e.g. '/*/detections')",
+    )
     p.add_argument("--remap", nargs="+", default=[], metavar="FROM:=TO", help="rename topics")
-    p.add_argument("--clock", nargs="?", type=float, const=40.0, default=None, metavar="HZ",
-                   help="publish /clock (bag time) at HZ (default 40) for use_sim_time")
-    p.add_argument("--delay", type=float, default=0.5, metavar="S",
-                   help="wait S seconds after creating publishers (discovery; default 0.5)")
-    p.add_argument("--wait-subscribers", type=float, default=0.0, metavar="S",
-                   help="wait up to S seconds until every publisher has a subscriber")
-    p.add_argument("--wait-topics", nargs="+", default=[], metavar="TOPIC",
-                   help="with --wait-subscribers: only these bag topics (patterns allowed) must have "
-                   "a subscriber, e.g. '/*/image_raw/compressed' (default all)")
-    p.add_argument("--min-subscribers", type=int, default=1, metavar="N",
-                   help="with --wait-subscribers: wait until each awaited topic has N subscribers")
-    p.add_argument("--lockstep", nargs="+", default=[], metavar="TOPIC",
-                   help="after each camera frame wait until every TOPIC (patterns allowed, "
-                   "matched on the live graph, e.g. /maem/clusters) has a message stamped at or "
-                   "after the frame, at most --lockstep-timeout s")
-    p.add_argument("--lockstep-timeout", type=float, default=30.0, metavar="S",
-                   help="with --lockstep: longest wait per frame (default 30 s)")
-    p.add_argument("--reliable-images", action="store_true",
-                   help="publish images reliable, keep last 10 (default best effort, keep last 2)")
+    p.add_argument(
+        "--clock",
+        nargs="?",
+        type=float,
+        const=40.0,
+        default=None,
+        metavar="HZ",
+        help="publish /clock (bag time) at HZ (default 40) for use_sim_time",
+    )
+    _add_timing_options(p)
+    return p
+
+
+def _add_timing_options(p: argparse.ArgumentParser) -> None:
+    """maem-play's options for when to start and how to pace against the graph."""
+    p.add_argument(
+        "--delay",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="wait S seconds after creating publishers (discovery; default 0.5)",
+    )
+    p.add_argument(
+        "--wait-subscribers",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="wait up to S seconds until every publisher has a subscriber",
+    )
+    p.add_argument(
+        "--wait-topics",
+        nargs="+",
+        default=[],
+        metavar="TOPIC",
+        help="with --wait-subscribers: only these bag topics (patterns allowed) must have "
+        "a subscriber, e.g. '/*/image_raw/compressed' (default all)",
+    )
+    p.add_argument(
+        "--min-subscribers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="with --wait-subscribers: wait until each awaited topic has N subscribers",
+    )
+    p.add_argument(
+        "--lockstep",
+        nargs="+",
+        default=[],
+        metavar="TOPIC",
+        help="after each camera frame wait until every TOPIC (patterns allowed, "
+        "matched on the live graph, e.g. /maem/clusters) has a message stamped at or "
+        "after the frame, at most --lockstep-timeout s",
+    )
+    p.add_argument(
+        "--lockstep-timeout",
+        type=float,
+        default=30.0,
+        metavar="S",
+        help="with --lockstep: longest wait per frame (default 30 s)",
+    )
+    p.add_argument(
+        "--reliable-images",
+        action="store_true",
+        help="publish images reliable, keep last 10 (default best effort, keep last 2)",
+    )
+
+
+def parse_args(argv: Sequence[str]) -> PlayOptions:
+    """maem-play's command line as PlayOptions (argparse error, exit 2, on a bad value)."""
+    p = _parser()
     a = p.parse_args(list(argv))
     if not a.lockstep_timeout > 0:
         p.error(f"--lockstep-timeout: must be > 0, got {a.lockstep_timeout}")
@@ -104,24 +168,40 @@ def parse_args(argv: Sequence[str]) -> PlayOptions:
         if not sep or not src or not dst:
             p.error(f"--remap: expected FROM:=TO, got {r!r}")
         remap[src] = dst
-    return PlayOptions(bag=a.bag, rate=a.rate, loop=a.loop, start_s=a.start, topics=a.topics,
-                       exclude=a.exclude,
-                       remap=remap, clock=a.clock is not None, clock_hz=a.clock or 40.0,
-                       delay_s=max(0.0, a.delay), wait_subscribers_s=max(0.0, a.wait_subscribers),
-                       wait_topics=a.wait_topics, min_subscribers=max(1, a.min_subscribers),
-                       lockstep=a.lockstep, lockstep_timeout_s=a.lockstep_timeout,
-                       reliable_images=a.reliable_images)
+    return PlayOptions(
+        bag=a.bag,
+        rate=a.rate,
+        loop=a.loop,
+        start_s=a.start,
+        topics=a.topics,
+        exclude=a.exclude,
+        remap=remap,
+        clock=a.clock is not None,
+        clock_hz=a.clock or 40.0,
+        delay_s=max(0.0, a.delay),
+        wait_subscribers_s=max(0.0, a.wait_subscribers),
+        wait_topics=a.wait_topics,
+        min_subscribers=max(1, a.min_subscribers),
+        lockstep=a.lockstep,
+        lockstep_timeout_s=a.lockstep_timeout,
+        reliable_images=a.reliable_images,
+    )
 
 
-def select_topics(available: Sequence[str], topics: Sequence[str] | None,
-                  exclude: Sequence[str] = ()) -> tuple[list[str], list[str]]:
+def select_topics(
+    available: Sequence[str], topics: Sequence[str] | None, exclude: Sequence[str] = ()
+) -> tuple[list[str], list[str]]:
     """(selected topics in bag order, --topics patterns that matched nothing).
 
     Patterns are shell-style (fnmatch); a plain name matches only itself.
     """
     pats = list(topics) if topics is not None else ["*"]
-    sel = [t for t in available if any(fnmatch.fnmatchcase(t, p) for p in pats)
-           and not any(fnmatch.fnmatchcase(t, x) for x in exclude)]
+    sel = [
+        t
+        for t in available
+        if any(fnmatch.fnmatchcase(t, p) for p in pats)
+        and not any(fnmatch.fnmatchcase(t, x) for x in exclude)
+    ]
     unmatched = [p for p in pats if not any(fnmatch.fnmatchcase(t, p) for t in available)]
     return sel, unmatched
 
@@ -134,8 +214,10 @@ def message_class(msgtype: str):
     try:
         return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
     except (ImportError, AttributeError):
-        raise ValueError(f"message type {msgtype!r}: Python package {pkg!r} has no {kind}.{name} "
-                         "(install its ROS message package)") from None
+        raise ValueError(
+            f"message type {msgtype!r}: Python package {pkg!r} has no {kind}.{name} "
+            "(install its ROS message package)"
+        ) from None
 
 
 def topic_qos(topic: str, msgtype: str, recorded: Sequence = (), reliable_images: bool = False):
@@ -145,12 +227,17 @@ def topic_qos(topic: str, msgtype: str, recorded: Sequence = (), reliable_images
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
     from maem_ros.ros.qos import DATA_QOS, IMAGE_QOS, RELIABLE_IMAGE_QOS
+
     latched = topic == bagio.SCENE_TOPIC or any(
-        q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in recorded)
+        q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in recorded
+    )
     if latched:
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                          reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        return QoSProfile(
+            history=HistoryPolicy.KEEP_LAST,
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
     if msgtype in _IMAGE_TYPES:
         return RELIABLE_IMAGE_QOS if reliable_images else IMAGE_QOS
     return DATA_QOS
@@ -204,8 +291,9 @@ class BagPlayer:
         self.info = bagio.bag_info(opts.bag)
         self.topics, unknown = select_topics(list(self.info.topics), opts.topics, opts.exclude)
         for t in unknown:
-            node.get_logger().warning(f"--topics: {t!r} matches no topic of the bag; known: "
-                                      f"{sorted(self.info.topics)}")
+            node.get_logger().warning(
+                f"--topics: {t!r} matches no topic of the bag; known: {sorted(self.info.topics)}"
+            )
         self.pubs = {}
         self.skipped: dict[str, str] = {}
         for t in self.topics:
@@ -217,12 +305,14 @@ class BagPlayer:
                 node.get_logger().error(f"topic {t!r} skipped: {e}")
                 continue
             out = opts.remap.get(t, t)
-            self.pubs[t] = node.create_publisher(cls, out, topic_qos(
-                t, msgtype, self.info.qos.get(t, ()), opts.reliable_images))
+            self.pubs[t] = node.create_publisher(
+                cls, out, topic_qos(t, msgtype, self.info.qos.get(t, ()), opts.reliable_images)
+            )
         self.clock_pub = None
         if opts.clock:
             from rclpy.qos import QoSProfile
             from rosgraph_msgs.msg import Clock
+
             self.clock_pub = node.create_publisher(Clock, "/clock", QoSProfile(depth=1))
         self.published = 0
         self.lockstep: Lockstep | None = None
@@ -231,6 +321,7 @@ class BagPlayer:
     def publish_clock(self, bag_ns: int) -> None:
         if self.clock_pub is not None:
             from rosgraph_msgs.msg import Clock
+
             msg = Clock()
             msg.clock.sec, msg.clock.nanosec = divmod(int(bag_ns), 1_000_000_000)
             self.clock_pub.publish(msg)
@@ -241,8 +332,11 @@ class BagPlayer:
         pats = self.opts.wait_topics or ["*"]
         awaited = [p for t, p in self.pubs.items() if any(fnmatch.fnmatchcase(t, x) for x in pats)]
         # best-effort images published before a subscriber is matched are simply lost
-        while (time.monotonic() < deadline and not self.stop.is_set()
-               and any(p.get_subscription_count() < self.opts.min_subscribers for p in awaited)):
+        while (
+            time.monotonic() < deadline
+            and not self.stop.is_set()
+            and any(p.get_subscription_count() < self.opts.min_subscribers for p in awaited)
+        ):
             self.stop.wait(0.02)
         if self.opts.delay_s:
             self.stop.wait(self.opts.delay_s)
@@ -253,6 +347,7 @@ class BagPlayer:
         """Before exiting: wait (bounded) until subscribers acknowledged every reliable message,
         so the last large messages are not lost when the process ends."""
         from rclpy.duration import Duration
+
         deadline = time.monotonic() + timeout_s
         ok = True
         for pub in self.pubs.values():
@@ -261,16 +356,18 @@ class BagPlayer:
         return ok
 
     def _messages(self, start_ns: int) -> Iterator[bagio.BagMessage]:
-        return bagio.read_messages(self.opts.bag, list(self.pubs), start_ns=start_ns,
-                                   info=self.info)
+        return bagio.read_messages(self.opts.bag, list(self.pubs), start_ns=start_ns, info=self.info)
 
     def _publish_latched_before(self, start_ns: int) -> None:
         """Latched topics (e.g. /maem/scene) recorded before --start are published first."""
-        latched = [t for t in self.pubs if t == bagio.SCENE_TOPIC or any(
-            q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in self.info.qos.get(t, ()))]
+        latched = [
+            t
+            for t in self.pubs
+            if t == bagio.SCENE_TOPIC
+            or any(q.durability == bagio.QosDurability.TRANSIENT_LOCAL for q in self.info.qos.get(t, ()))
+        ]
         if latched and start_ns > self.info.start_ns:
-            for m in bagio.read_messages(self.opts.bag, latched, stop_ns=start_ns,
-                                         info=self.info):
+            for m in bagio.read_messages(self.opts.bag, latched, stop_ns=start_ns, info=self.info):
                 self.pubs[m.topic].publish(m.data)
                 self.published += 1
 
@@ -280,11 +377,17 @@ class BagPlayer:
             return 0
         start_ns = self.info.start_ns + int(round(self.opts.start_s * 1e9))
         if start_ns > self.info.end_ns:
-            raise ValueError(f"--start: {self.opts.start_s} s is past the bag's end "
-                             f"({(self.info.end_ns - self.info.start_ns) / 1e9:.3f} s)")
+            raise ValueError(
+                f"--start: {self.opts.start_s} s is past the bag's end "
+                f"({(self.info.end_ns - self.info.start_ns) / 1e9:.3f} s)"
+            )
         self._publish_latched_before(start_ns)
-        pacer = Pacer(self.opts.rate, self.stop, self.publish_clock if self.clock_pub else None,
-                      1.0 / self.opts.clock_hz)
+        pacer = Pacer(
+            self.opts.rate,
+            self.stop,
+            self.publish_clock if self.clock_pub else None,
+            1.0 / self.opts.clock_hz,
+        )
         gap = loop_gap_ns(self.info)
         wall0 = None
         while not self.stop.is_set():
@@ -322,12 +425,12 @@ def lockstep_frame_topics(bag_topics: dict[str, str], played: Sequence[str]) -> 
     """The played topics whose messages make up a camera frame for --lockstep: the images, or
     in a replay without images the per-camera detections (PointCloud2 ``*/detections``)."""
     images = {t for t in played if bag_topics[t] in _IMAGE_TYPES}
-    return images or {t for t in played if bag_topics[t] == bagio.POINT_CLOUD2
-                      and t.endswith("/detections")}
+    return images or {t for t in played if bag_topics[t] == bagio.POINT_CLOUD2 and t.endswith("/detections")}
 
 
 def _stamp_ns(data: bytes) -> int:
     from maem_ros.ros.wire import cdr_header_stamp_ns
+
     return cdr_header_stamp_ns(bytes(data))
 
 
@@ -338,6 +441,7 @@ class Lockstep:
     def __init__(self, node, patterns: Sequence[str], stop: threading.Event):
         from rclpy.executors import SingleThreadedExecutor
         from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
         self.node, self.stop = node, stop
         self.latest: dict[str, int] = {}
         self.cond = threading.Condition()
@@ -346,12 +450,15 @@ class Lockstep:
         self.topics = sorted(t for t in graph if any(fnmatch.fnmatchcase(t, p) for p in patterns))
         missing = [p for p in patterns if not any(fnmatch.fnmatchcase(t, p) for t in graph)]
         if missing:
-            raise ValueError(f"--lockstep: {missing} match no topic on the graph (is the "
-                             f"consumer running?); topics: {sorted(graph)}")
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
-                         reliability=ReliabilityPolicy.RELIABLE)
-        self.subs = [node.create_subscription(message_class(graph[t][0]), t,
-                                              self._on(t), qos, raw=True) for t in self.topics]
+            raise ValueError(
+                f"--lockstep: {missing} match no topic on the graph (is the "
+                f"consumer running?); topics: {sorted(graph)}"
+            )
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.subs = [
+            node.create_subscription(message_class(graph[t][0]), t, self._on(t), qos, raw=True)
+            for t in self.topics
+        ]
         self.executor = SingleThreadedExecutor(context=node.context)
         self.executor.add_node(node)
         self._done = threading.Event()
@@ -377,6 +484,7 @@ class Lockstep:
             with self.cond:
                 self.latest[topic] = max(stamp, self.latest.get(topic, -1))
                 self.cond.notify_all()
+
         return callback
 
     def restart(self) -> None:
@@ -396,7 +504,8 @@ class Lockstep:
                         late = [t for t in self.topics if self.latest.get(t, -1) < stamp_ns]
                         self.node.get_logger().warning(
                             f"--lockstep: no message stamped >= {stamp_ns} on {late} within "
-                            f"{timeout_s:g} s; going on")
+                            f"{timeout_s:g} s; going on"
+                        )
                     return False
                 self.cond.wait(min(left, 0.1))
         return True
@@ -425,12 +534,16 @@ def main(args: Sequence[str] | None = None) -> int:
         player = BagPlayer(node, opts, stop)
         if not player.pubs:
             raise ValueError(f"{opts.bag}: no topic to play (bag topics: {sorted(player.info.topics)})")
-        log.info(f"playing {opts.bag}: {len(player.pubs)} topics, rate {opts.rate}"
-                 f"{', loop' if opts.loop else ''}{', /clock' if opts.clock else ''}")
+        log.info(
+            f"playing {opts.bag}: {len(player.pubs)} topics, rate {opts.rate}"
+            f"{', loop' if opts.loop else ''}{', /clock' if opts.clock else ''}"
+        )
         if opts.rate > 1 and not opts.lockstep:
-            log.warning(f"rate {opts.rate:g}: faster than real time, live nodes skip the frames "
-                        f"they fall behind on (counted dropped/behind); to process every frame "
-                        f"use --lockstep or run them with keep_every_set:=true")
+            log.warning(
+                f"rate {opts.rate:g}: faster than real time, live nodes skip the frames "
+                f"they fall behind on (counted dropped/behind); to process every frame "
+                f"use --lockstep or run them with keep_every_set:=true"
+            )
         player.wait_ready()
         t0 = time.monotonic()
         n = player.play()
@@ -438,12 +551,16 @@ def main(args: Sequence[str] | None = None) -> int:
         if not stop.is_set() and not player.wait_delivered():
             log.warning("some reliable messages were not acknowledged by all subscribers")
         if player.lockstep is not None:
-            log.info(f"lockstep on {player.lockstep.topics}: {player.lockstep.timeouts} "
-                     f"frame(s) timed out; every frame waited for the graph, so no node fell "
-                     f"behind and skipped one")
-        log.info(f"published {n} messages in {elapsed:.2f} s"
-                 f"{' (interrupted)' if stop.is_set() else ''}"
-                 f"{f'; skipped topics: {sorted(player.skipped)}' if player.skipped else ''}")
+            log.info(
+                f"lockstep on {player.lockstep.topics}: {player.lockstep.timeouts} "
+                f"frame(s) timed out; every frame waited for the graph, so no node fell "
+                f"behind and skipped one"
+            )
+        log.info(
+            f"published {n} messages in {elapsed:.2f} s"
+            f"{' (interrupted)' if stop.is_set() else ''}"
+            f"{f'; skipped topics: {sorted(player.skipped)}' if player.skipped else ''}"
+        )
     except ValueError as e:  # BagError (damaged mid-file), --start past the end, no topic
         log.error(str(e))
         code = EXIT_BAD_INPUT
