@@ -22,6 +22,7 @@ each hand 7.4 %, each foot 2.5 % (the SMPL-style foot + toe segments; approximat
 32.2 % on torso and limbs by surface area. The torso (chest, abdomen, pelvis, shoulders, hip band)
 thus holds about 16 % of the vertices instead of 43 % by area.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,16 +35,46 @@ from maem_ros.core.skeleton import MHR70_NAMES
 J = len(MHR70_NAMES)
 _IDX = {n: i for i, n in enumerate(MHR70_NAMES)}
 #: points computed beyond the 70 keypoints (anchors of surface parts), appended after them
-EXTRA_POINTS = ("pelvis", "spine_mid", "ear_mid", "chin", "head_top", "head_bottom",
-                "left_toe_mid", "right_toe_mid", "left_hand_end", "right_hand_end")
+EXTRA_POINTS = (
+    "pelvis",
+    "spine_mid",
+    "ear_mid",
+    "chin",
+    "head_top",
+    "head_bottom",
+    "left_toe_mid",
+    "right_toe_mid",
+    "left_hand_end",
+    "right_hand_end",
+)
 _PT = {**_IDX, **{n: J + i for i, n in enumerate(EXTRA_POINTS)}}
 #: reference vectors (world) that fix the angular origin of each part
 REFS = ("pelvis_lateral", "torso_lateral", "head_lateral", "pelvis_forward")
 
-ANGLE_KEYS = ("lean", "side_lean", "twist", "head_yaw", "head_pitch",
-              "hip_flex_l", "hip_flex_r", "hip_abd_l", "hip_abd_r", "knee_l", "knee_r",
-              "ankle_l", "ankle_r", "sh_flex_l", "sh_flex_r", "sh_abd_l", "sh_abd_r",
-              "elbow_l", "elbow_r", "wrist_l", "wrist_r", "finger_curl")
+ANGLE_KEYS = (
+    "lean",
+    "side_lean",
+    "twist",
+    "head_yaw",
+    "head_pitch",
+    "hip_flex_l",
+    "hip_flex_r",
+    "hip_abd_l",
+    "hip_abd_r",
+    "knee_l",
+    "knee_r",
+    "ankle_l",
+    "ankle_r",
+    "sh_flex_l",
+    "sh_flex_r",
+    "sh_abd_l",
+    "sh_abd_r",
+    "elbow_l",
+    "elbow_r",
+    "wrist_l",
+    "wrist_r",
+    "finger_curl",
+)
 
 # (name, anchor a, anchor b, radius along e1, radius along e2, reference, cap extension) at 1.8 m
 PARTS: tuple[tuple[str, str, str, float, float, str, float], ...] = (
@@ -70,15 +101,37 @@ PARTS: tuple[tuple[str, str, str, float, float, str, float], ...] = (
 PART_NAMES = tuple(p[0] for p in PARTS)
 #: fixed vertex shares (see the module docstring: SMPL-X FLAME / MANO counts); every other part
 #: shares the rest by template surface area
-PART_SHARE = {"head": 0.42, "neck": 0.06, "hand_l": 778 / 10475, "hand_r": 778 / 10475,
-              "foot_l": 0.025, "foot_r": 0.025}
+PART_SHARE = {
+    "head": 0.42,
+    "neck": 0.06,
+    "hand_l": 778 / 10475,
+    "hand_r": 778 / 10475,
+    "foot_l": 0.025,
+    "foot_r": 0.025,
+}
 #: noise group of each surface part and of each MHR70 keypoint (sim/noise.py scales errors by group)
 NOISE_GROUPS = ("torso", "limb", "extremity", "face", "foot", "hand")
-PART_GROUP = {"head": "face", "neck": "torso", "chest": "torso", "abdomen": "torso", "pelvis": "torso",
-              "upper_arm_l": "limb", "upper_arm_r": "limb", "forearm_l": "limb", "forearm_r": "limb",
-              "hand_l": "hand", "hand_r": "hand", "thigh_l": "limb", "thigh_r": "limb", "shin_l": "limb",
-              "shin_r": "limb", "foot_l": "foot", "foot_r": "foot", "shoulders": "torso",
-              "hips_band": "torso"}
+PART_GROUP = {
+    "head": "face",
+    "neck": "torso",
+    "chest": "torso",
+    "abdomen": "torso",
+    "pelvis": "torso",
+    "upper_arm_l": "limb",
+    "upper_arm_r": "limb",
+    "forearm_l": "limb",
+    "forearm_r": "limb",
+    "hand_l": "hand",
+    "hand_r": "hand",
+    "thigh_l": "limb",
+    "thigh_r": "limb",
+    "shin_l": "limb",
+    "shin_r": "limb",
+    "foot_l": "foot",
+    "foot_r": "foot",
+    "shoulders": "torso",
+    "hips_band": "torso",
+}
 
 
 def _joint_group(name: str) -> str:
@@ -98,10 +151,27 @@ def _joint_group(name: str) -> str:
 #: (70,) noise group index (into NOISE_GROUPS) of each MHR70 keypoint
 JOINT_GROUP = np.array([NOISE_GROUPS.index(_joint_group(n)) for n in MHR70_NAMES])
 #: part -> colour class used by the renderer: 0 skin, 1 jersey, 2 shorts, 3 shoes, 4 hair
-PART_CLASS = {"head": 0, "neck": 0, "chest": 1, "abdomen": 1, "pelvis": 2, "upper_arm_l": 1,
-              "upper_arm_r": 1, "forearm_l": 0, "forearm_r": 0, "hand_l": 0, "hand_r": 0,
-              "thigh_l": 2, "thigh_r": 2, "shin_l": 0, "shin_r": 0, "foot_l": 3, "foot_r": 3,
-              "shoulders": 1, "hips_band": 2}
+PART_CLASS = {
+    "head": 0,
+    "neck": 0,
+    "chest": 1,
+    "abdomen": 1,
+    "pelvis": 2,
+    "upper_arm_l": 1,
+    "upper_arm_r": 1,
+    "forearm_l": 0,
+    "forearm_r": 0,
+    "hand_l": 0,
+    "hand_r": 0,
+    "thigh_l": 2,
+    "thigh_r": 2,
+    "shin_l": 0,
+    "shin_r": 0,
+    "foot_l": 3,
+    "foot_r": 3,
+    "shoulders": 1,
+    "hips_band": 2,
+}
 
 
 @dataclass
@@ -137,8 +207,46 @@ def _lin(*terms) -> np.ndarray:
     return out
 
 
-def forward_kinematics(height: np.ndarray, width: np.ndarray, angles: dict[str, np.ndarray],
-                       root_xy: np.ndarray, heading: np.ndarray) -> Skeleton:
+def _placement(
+    pts: np.ndarray, heading: np.ndarray, root_xy: np.ndarray, s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(P,3,3) heading rotation about z and (P,3) world translation (m) that put P bodies'
+    points (P,K,3, pelvis-centred, m) on the floor (lowest sole point 0.012 s m above z = 0) at
+    root_xy (P,2) m facing heading (P,) rad."""
+    P = pts.shape[0]
+    soles = pts[:, [_IDX[n] for n in _SOLE_POINTS], 2]
+    lift = -soles.min(axis=1) + 0.012 * s
+    c, sn = np.cos(heading), np.sin(heading)
+    Rz = np.stack(
+        [
+            np.stack([c, -sn, np.zeros(P)], -1),
+            np.stack([sn, c, np.zeros(P)], -1),
+            np.broadcast_to([0.0, 0.0, 1.0], (P, 3)),
+        ],
+        axis=1,
+    )
+    offset = np.concatenate([np.asarray(root_xy, dtype=np.float64), lift[:, None]], axis=1)
+    return Rz, offset
+
+
+#: the points a standing body's soles touch the floor with
+_SOLE_POINTS = (
+    "left_heel",
+    "right_heel",
+    "left_big_toe_tip",
+    "right_big_toe_tip",
+    "left_small_toe_tip",
+    "right_small_toe_tip",
+)
+
+
+def forward_kinematics(
+    height: np.ndarray,
+    width: np.ndarray,
+    angles: dict[str, np.ndarray],
+    root_xy: np.ndarray,
+    heading: np.ndarray,
+) -> Skeleton:
     """Joint angles -> world keypoints for P persons.
 
     height (P,) m; width (P,) scale (1 = average); angles: ANGLE_KEYS -> (P,) rad; root_xy (P,2)
@@ -197,13 +305,7 @@ def forward_kinematics(height: np.ndarray, width: np.ndarray, angles: dict[str, 
     put("head_bottom", ear_mid + _lin((-0.075 * s, u_h), (0.02 * s, f_h)))
 
     # feet on the floor, then the heading rotation and the root translation
-    soles = pts[:, [_IDX["left_heel"], _IDX["right_heel"], _IDX["left_big_toe_tip"],
-                    _IDX["right_big_toe_tip"], _IDX["left_small_toe_tip"], _IDX["right_small_toe_tip"]], 2]
-    lift = -soles.min(axis=1) + 0.012 * s
-    c, sn = np.cos(heading), np.sin(heading)
-    Rz = np.stack([np.stack([c, -sn, np.zeros(P)], -1), np.stack([sn, c, np.zeros(P)], -1),
-                   np.broadcast_to([0.0, 0.0, 1.0], (P, 3))], axis=1)  # (P,3,3)
-    offset = np.concatenate([np.asarray(root_xy, dtype=np.float64), lift[:, None]], axis=1)
+    Rz, offset = _placement(pts, heading, root_xy, s)
     world = np.einsum("pij,pkj->pki", Rz, pts) + offset[:, None, :]
     refs = np.stack([ey, l_t, l_h, ex], axis=1)
     refs = np.einsum("pij,pkj->pki", Rz, refs)
@@ -235,10 +337,12 @@ def _arm(put, side, sg, sh, a, H, s, f_t, l_t, u_t) -> None:
     across = _front(th_h, f_t, u_t)  # thumb side (front when the arm hangs)
     palm = _unit(_cross(d_h, across) * sg)  # palm normal, medial when the arm hangs
     curl = a["finger_curl"]
-    fingers = {"index": (0.026, 0.085, (0.040, 0.024, 0.020)),
-               "middle": (0.008, 0.088, (0.045, 0.028, 0.022)),
-               "ring": (-0.011, 0.084, (0.042, 0.026, 0.021)),
-               "pinky": (-0.027, 0.077, (0.033, 0.019, 0.018))}
+    fingers = {
+        "index": (0.026, 0.085, (0.040, 0.024, 0.020)),
+        "middle": (0.008, 0.088, (0.045, 0.028, 0.022)),
+        "ring": (-0.011, 0.084, (0.042, 0.026, 0.021)),
+        "pinky": (-0.027, 0.077, (0.033, 0.019, 0.018)),
+    }
     dirs = _phalanx_dirs(d_h, palm, curl)  # the same for the four fingers
     for name, (off, base, lengths) in fingers.items():
         p = wrist + _lin((base * s, d_h), (off * s, across))
@@ -315,8 +419,9 @@ class BodyModel:
             out[:, sl] = np.matmul(M[:, k], self.coeff[sl].T).transpose(0, 2, 1)
         return out
 
-    def vertices_subset(self, skel: Skeleton, height: np.ndarray, width: np.ndarray,
-                        index: np.ndarray) -> np.ndarray:
+    def vertices_subset(
+        self, skel: Skeleton, height: np.ndarray, width: np.ndarray, index: np.ndarray
+    ) -> np.ndarray:
         """(P,len(index),3) world metres of the vertices ``index`` (sorted) only (same per-part
         products as ``vertices``)."""
         M = self.part_frames(skel, height, width)
@@ -354,8 +459,10 @@ class BodyModel:
 
     def part_vertex_sample(self, per_part: int) -> np.ndarray:
         """Indices of up to ``per_part`` evenly spread vertices of each part (for hulls/visibility)."""
-        idx = [np.linspace(sl.start, sl.stop - 1, min(per_part, sl.stop - sl.start)).round().astype(int)
-               for sl in self.slices]
+        idx = [
+            np.linspace(sl.start, sl.stop - 1, min(per_part, sl.stop - sl.start)).round().astype(int)
+            for sl in self.slices
+        ]
         return np.concatenate(idx)
 
 
@@ -372,10 +479,27 @@ def part_shares() -> np.ndarray:
 def _template_area(part) -> float:
     """Approximate surface area (m^2) of a part of the 1.8 m template: allots the vertices."""
     pi = np.pi
-    lengths = {"head": 0.22, "neck": 0.07, "chest": 0.3, "abdomen": 0.25, "pelvis": 0.18,
-               "upper_arm_l": 0.33, "upper_arm_r": 0.33, "forearm_l": 0.26, "forearm_r": 0.26,
-               "hand_l": 0.19, "hand_r": 0.19, "thigh_l": 0.44, "thigh_r": 0.44, "shin_l": 0.44,
-               "shin_r": 0.44, "foot_l": 0.25, "foot_r": 0.25, "shoulders": 0.38, "hips_band": 0.18}
+    lengths = {
+        "head": 0.22,
+        "neck": 0.07,
+        "chest": 0.3,
+        "abdomen": 0.25,
+        "pelvis": 0.18,
+        "upper_arm_l": 0.33,
+        "upper_arm_r": 0.33,
+        "forearm_l": 0.26,
+        "forearm_r": 0.26,
+        "hand_l": 0.19,
+        "hand_r": 0.19,
+        "thigh_l": 0.44,
+        "thigh_r": 0.44,
+        "shin_l": 0.44,
+        "shin_r": 0.44,
+        "foot_l": 0.25,
+        "foot_r": 0.25,
+        "shoulders": 0.38,
+        "hips_band": 0.18,
+    }
     name, _, _, r1, r2, _, ext = part
     return pi * (r1 + r2) * lengths[name] * (1 + 2 * ext) + 2 * pi * r1 * r2
 
@@ -391,8 +515,14 @@ def _lattice(n: int, ext: float) -> np.ndarray:
     return np.stack([np.ones(n), axial, prof * np.cos(phi), prof * np.sin(phi)], axis=1)
 
 
-def gait_angles(speed: np.ndarray, phase: np.ndarray, crouch: np.ndarray, arm_raise: np.ndarray,
-                head_yaw: np.ndarray, twist: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def gait_angles(
+    speed: np.ndarray,
+    phase: np.ndarray,
+    crouch: np.ndarray,
+    arm_raise: np.ndarray,
+    head_yaw: np.ndarray,
+    twist: np.ndarray | None = None,
+) -> dict[str, np.ndarray]:
     """Joint angles (rad) of a running/standing/crouching/reaching pose.
 
     speed (P,) m/s; phase (P,) rad of the stride cycle; crouch, arm_raise (P,) 0..1; head_yaw (P,) rad.
@@ -412,15 +542,19 @@ def gait_angles(speed: np.ndarray, phase: np.ndarray, crouch: np.ndarray, arm_ra
         "head_pitch": 0.05 - 0.2 * amp - 0.2 * c,
         "hip_flex_l": 0.75 * amp * sp + 0.55 * c,
         "hip_flex_r": -0.75 * amp * sp + 0.55 * c,
-        "hip_abd_l": 0.04 + 0.1 * c, "hip_abd_r": 0.04 + 0.1 * c,
-        "knee_l": 0.08 + 0.95 * c + amp * (0.25 + 1.1 * swing_l ** 2),
-        "knee_r": 0.08 + 0.95 * c + amp * (0.25 + 1.1 * swing_r ** 2),
-        "ankle_l": 0.25 * amp * sp, "ankle_r": -0.25 * amp * sp,
+        "hip_abd_l": 0.04 + 0.1 * c,
+        "hip_abd_r": 0.04 + 0.1 * c,
+        "knee_l": 0.08 + 0.95 * c + amp * (0.25 + 1.1 * swing_l**2),
+        "knee_r": 0.08 + 0.95 * c + amp * (0.25 + 1.1 * swing_r**2),
+        "ankle_l": 0.25 * amp * sp,
+        "ankle_r": -0.25 * amp * sp,
         "sh_flex_l": (1 - r) * (-0.8 * amp * sp + 0.2 * c) + r * 2.7,
         "sh_flex_r": (1 - r) * (0.8 * amp * sp + 0.2 * c) + r * 2.6,
-        "sh_abd_l": 0.12 + 0.15 * c + 0.1 * r, "sh_abd_r": 0.12 + 0.15 * c + 0.1 * r,
+        "sh_abd_l": 0.12 + 0.15 * c + 0.1 * r,
+        "sh_abd_r": 0.12 + 0.15 * c + 0.1 * r,
         "elbow_l": (1 - r) * (0.25 + 1.1 * amp + 0.5 * c) + r * 0.15,
         "elbow_r": (1 - r) * (0.25 + 1.1 * amp + 0.5 * c) + r * 0.2,
-        "wrist_l": 0.1 + zeros, "wrist_r": 0.1 + zeros,
+        "wrist_l": 0.1 + zeros,
+        "wrist_r": 0.1 + zeros,
         "finger_curl": 0.3 + 0.2 * (1 - r) + zeros,
     }
