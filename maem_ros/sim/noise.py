@@ -52,6 +52,7 @@ error per group, keypoints / vertices: torso 1.9 / 1.8, limb 2.2 / 1.9, extremit
 Easy / hard body PA-MPJPE: about 26 / 76 mm (all 70: 44 / 120 mm).
 Everything is deterministic per (seed, camera index, frame).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -61,6 +62,7 @@ import numpy as np
 from maem_ros.core.geometry.camera import Camera
 
 from .body import ANGLE_KEYS, JOINT_GROUP, BodyModel, Skeleton, forward_kinematics, gait_angles
+from .occlusion import sample_view
 from .rigs import COURT_LENGTH, COURT_WIDTH
 from .view import (
     camera_to_normalised_xy,
@@ -77,15 +79,38 @@ _SAMPLES_PER_PART = 12
 
 #: relative angle noise per joint angle (x ``angle_sigma``): the torso is estimated best; distal,
 #: small joints (wrists, ankles, fingers) and the head orientation worst
-ANGLE_SCALE = {"lean": 0.6, "side_lean": 0.6, "twist": 0.6, "head_yaw": 1.5, "head_pitch": 1.5,
-               "hip_flex_l": 0.8, "hip_flex_r": 0.8, "hip_abd_l": 0.8, "hip_abd_r": 0.8,
-               "knee_l": 1.0, "knee_r": 1.0, "ankle_l": 2.0, "ankle_r": 2.0,
-               "sh_flex_l": 1.0, "sh_flex_r": 1.0, "sh_abd_l": 1.0, "sh_abd_r": 1.0,
-               "elbow_l": 1.2, "elbow_r": 1.2, "wrist_l": 2.5, "wrist_r": 2.5, "finger_curl": 4.0}
+ANGLE_SCALE = {
+    "lean": 0.6,
+    "side_lean": 0.6,
+    "twist": 0.6,
+    "head_yaw": 1.5,
+    "head_pitch": 1.5,
+    "hip_flex_l": 0.8,
+    "hip_flex_r": 0.8,
+    "hip_abd_l": 0.8,
+    "hip_abd_r": 0.8,
+    "knee_l": 1.0,
+    "knee_r": 1.0,
+    "ankle_l": 2.0,
+    "ankle_r": 2.0,
+    "sh_flex_l": 1.0,
+    "sh_flex_r": 1.0,
+    "sh_abd_l": 1.0,
+    "sh_abd_r": 1.0,
+    "elbow_l": 1.2,
+    "elbow_r": 1.2,
+    "wrist_l": 2.5,
+    "wrist_r": 2.5,
+    "finger_curl": 4.0,
+}
 assert set(ANGLE_SCALE) == set(ANGLE_KEYS)
 #: the joint angles of each limb (gross errors): left arm, right arm, left leg, right leg
-_LIMBS = (("sh_flex_l", "sh_abd_l", "elbow_l", "wrist_l"), ("sh_flex_r", "sh_abd_r", "elbow_r", "wrist_r"),
-          ("hip_flex_l", "hip_abd_l", "knee_l", "ankle_l"), ("hip_flex_r", "hip_abd_r", "knee_r", "ankle_r"))
+_LIMBS = (
+    ("sh_flex_l", "sh_abd_l", "elbow_l", "wrist_l"),
+    ("sh_flex_r", "sh_abd_r", "elbow_r", "wrist_r"),
+    ("hip_flex_l", "hip_abd_l", "knee_l", "ankle_l"),
+    ("hip_flex_r", "hip_abd_r", "knee_r", "ankle_r"),
+)
 #: uniform ranges (rad) of a hallucinated arm / leg pose, per angle of _LIMBS
 _ARM_RANGE = ((-0.6, 2.8), (0.0, 1.2), (0.0, 2.0), (-0.5, 0.8))
 _LEG_RANGE = ((-0.4, 1.4), (0.0, 0.45), (0.0, 1.8), (-0.4, 0.5))
@@ -115,17 +140,54 @@ class NoiseParams:
 
 
 PRESETS: dict[str, NoiseParams] = {
-    "none": NoiseParams(exact=True, angle_sigma=0.0, heading_sigma=0.0, shape_sigma=0.0, kpt3d_sigma=0.0,
-                        depth_sigma=0.0, kpt2d_px=0.0, vert2d_px=0.0, bbox_px=0.0, gross_rate=0.0,
-                        min_visible=0.0, miss_rate=0.0, fp_rate=0.0),
-    "easy": NoiseParams(angle_sigma=0.05, heading_sigma=0.03, shape_sigma=0.02, kpt3d_sigma=0.008,
-                        depth_sigma=0.06, kpt2d_px=0.6, vert2d_px=0.3, bbox_px=1.0, gross_rate=0.02,
-                        min_visible=0.15, min_height_px=16.0, miss_rate=0.005, fp_rate=0.1),
+    "none": NoiseParams(
+        exact=True,
+        angle_sigma=0.0,
+        heading_sigma=0.0,
+        shape_sigma=0.0,
+        kpt3d_sigma=0.0,
+        depth_sigma=0.0,
+        kpt2d_px=0.0,
+        vert2d_px=0.0,
+        bbox_px=0.0,
+        gross_rate=0.0,
+        min_visible=0.0,
+        miss_rate=0.0,
+        fp_rate=0.0,
+    ),
+    "easy": NoiseParams(
+        angle_sigma=0.05,
+        heading_sigma=0.03,
+        shape_sigma=0.02,
+        kpt3d_sigma=0.008,
+        depth_sigma=0.06,
+        kpt2d_px=0.6,
+        vert2d_px=0.3,
+        bbox_px=1.0,
+        gross_rate=0.02,
+        min_visible=0.15,
+        min_height_px=16.0,
+        miss_rate=0.005,
+        fp_rate=0.1,
+    ),
     "medium": NoiseParams(),
-    "hard": NoiseParams(angle_sigma=0.15, heading_sigma=0.09, shape_sigma=0.05, kpt3d_sigma=0.02,
-                        depth_sigma=0.15, kpt2d_px=2.0, vert2d_px=1.0, bbox_px=4.0, gross_rate=0.1,
-                        min_visible=0.4, min_height_px=28.0, miss_rate=0.03, fp_rate=0.8,
-                        player_score=(0.93, 0.035), bystander_score=(0.8, 0.08)),
+    "hard": NoiseParams(
+        angle_sigma=0.15,
+        heading_sigma=0.09,
+        shape_sigma=0.05,
+        kpt3d_sigma=0.02,
+        depth_sigma=0.15,
+        kpt2d_px=2.0,
+        vert2d_px=1.0,
+        bbox_px=4.0,
+        gross_rate=0.1,
+        min_visible=0.4,
+        min_height_px=28.0,
+        miss_rate=0.03,
+        fp_rate=0.8,
+        player_score=(0.93, 0.035),
+        bystander_score=(0.8, 0.08),
+    ),
 }
 
 
@@ -166,8 +228,13 @@ class VertexSource:
         return len(self.depth)
 
     def concat(self, other: VertexSource) -> VertexSource:
-        return VertexSource(self.camera, *(np.concatenate([getattr(self, f), getattr(other, f)])
-                                           for f in ("rect_px", "rect_f32", "cam_m", "depth")))
+        return VertexSource(
+            self.camera,
+            *(
+                np.concatenate([getattr(self, f), getattr(other, f)])
+                for f in ("rect_px", "rect_f32", "cam_m", "depth")
+            ),
+        )
 
 
 @dataclass
@@ -217,77 +284,27 @@ class SimDetections:
     def verts3d(self) -> np.ndarray:
         """(N,V,3) float32 camera-frame m of the vertices (with the depth error)."""
         src, rows = self.verts_source, self.verts_rows
-        return self._once("3d", lambda: _scaled_f32(src.depth[rows, None, None],
-                                                    src.cam_m[rows].transpose(0, 2, 1)))
+        return self._once(
+            "3d", lambda: _scaled_f32(src.depth[rows, None, None], src.cam_m[rows].transpose(0, 2, 1))
+        )
 
 
-def visibility(camera: Camera, sample_world: np.ndarray, part_of_sample: np.ndarray,
-               num_parts: int) -> tuple[np.ndarray, np.ndarray]:
-    """Visible and in-image fractions (P,) of persons given their surface samples (P,S,3) world m.
-
-    Occluders are the per-part boxes (rectified px) of persons whose root is nearer the camera.
-    """
-    vis, in_img, _ = _sample_view(camera, sample_world, part_of_sample, num_parts)
-    return vis, in_img
-
-
-def _sample_view(camera: Camera, sample_world: np.ndarray, part_of_sample: np.ndarray,
-                 num_parts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``visibility`` plus the rectified v (P,S) px of the samples (NaN behind the camera)."""
-    Xc = world_to_camera(camera, sample_world)
-    in_img = inside_image_xy(camera, *normalised_to_raw_xy(camera, *camera_to_normalised_xy(camera, Xc)))
-    u, v = camera_to_rectified_xy(camera, Xc)
-    depth = Xc[..., 2].mean(axis=1)  # (P,)
-    boxes = _part_boxes(u, v, part_of_sample, num_parts)
-    occluded = _occluded(u, v, boxes, depth[None, :] < depth[:, None])  # nearer persons only
-    visible = in_img & ~occluded
-    return visible.mean(axis=1), in_img.mean(axis=1), v
-
-
-def _part_boxes(u: np.ndarray, v: np.ndarray, part_of_sample: np.ndarray, num_parts: int) -> np.ndarray:
-    """(P,K,4) px boxes (u0, v0, u1, v1) of each person's samples (P,S) per part, ignoring NaN
-    samples; NaN for a part without finite samples."""
-    keep = np.flatnonzero((part_of_sample >= 0) & (part_of_sample < num_parts))
-    order = keep[np.argsort(part_of_sample[keep], kind="stable")]
-    present, starts = np.unique(part_of_sample[order], return_index=True)
-    boxes = np.full((u.shape[0], num_parts, 4), np.nan)
-    if len(present):
-        us, vs = u[:, order], v[:, order]
-        for c, (fn, vals) in enumerate(((np.fmin, us), (np.fmin, vs), (np.fmax, us), (np.fmax, vs))):
-            boxes[:, present, c] = fn.reduceat(vals, starts, axis=1)  # fmin/fmax: NaN only if all are
-    return boxes
-
-
-def _occluded(u: np.ndarray, v: np.ndarray, boxes: np.ndarray, nearer: np.ndarray) -> np.ndarray:
-    """(P,S) samples (px u, v (P,S)) inside a part box (P,K,4) of a person q with nearer[p, q].
-
-    Only pairs whose sample extent overlaps the occluder's overall box are compared.
-    """
-    P, S = u.shape
-    ext = np.stack([np.fmin.reduce(u, 1), np.fmin.reduce(v, 1),
-                    np.fmax.reduce(u, 1), np.fmax.reduce(v, 1)], 1)
-    whole = np.stack([np.fmin.reduce(boxes[..., 0], 1), np.fmin.reduce(boxes[..., 1], 1),
-                      np.fmax.reduce(boxes[..., 2], 1), np.fmax.reduce(boxes[..., 3], 1)], 1)
-    with np.errstate(invalid="ignore"):
-        overlap = ((ext[:, None, 0] <= whole[None, :, 2]) & (ext[:, None, 2] >= whole[None, :, 0])
-                   & (ext[:, None, 1] <= whole[None, :, 3]) & (ext[:, None, 3] >= whole[None, :, 1]))
-        pp, qq = np.nonzero(nearer & overlap)
-        up, vp, b = u[pp][:, :, None], v[pp][:, :, None], boxes[qq][:, None]  # (M,S,1), (M,1,K,4)
-        cover = ((up >= b[..., 0]) & (up <= b[..., 2]) & (vp >= b[..., 1]) & (vp <= b[..., 3])).any(axis=2)
-    occluded = np.zeros((P, S), bool)
-    np.logical_or.at(occluded, pp, cover)
-    return occluded
-
-
-def simulate(camera: Camera, rng: np.random.Generator, params: NoiseParams, body: BodyModel,
-             state: PersonState, gt_points: np.ndarray, gt_verts: np.ndarray | None = None,
-             gt_skel: Skeleton | None = None) -> SimDetections:
+def simulate(
+    camera: Camera,
+    rng: np.random.Generator,
+    params: NoiseParams,
+    body: BodyModel,
+    state: PersonState,
+    gt_points: np.ndarray,
+    gt_verts: np.ndarray | None = None,
+    gt_skel: Skeleton | None = None,
+) -> SimDetections:
     """Detections of one camera: gt_points (P,70+,3) world m (keypoints first); the true meshes
     either as gt_verts (P,V,3) world m or, faster (no world mesh), as the skeletons gt_skel that
     ``body`` poses them from (then equal up to float64 rounding)."""
     sample_idx = body.part_vertex_sample(_SAMPLES_PER_PART)
     samples, gt_cam = _true_mesh(camera, body, state, sample_idx, gt_verts, gt_skel)
-    vis, in_img, sample_v = _sample_view(camera, samples, body.part_of[sample_idx], len(body.slices))
+    vis, in_img, sample_v = sample_view(camera, samples, body.part_of[sample_idx], len(body.slices))
     # every vertex once: the fold test, then the silhouette boxes of the detected persons
     gt_x, gt_y, gt_ok = camera_to_normalised_xy(camera, gt_cam.transpose(0, 2, 1))
     beyond_fold = ~np.all(gt_ok, axis=1)  # lens fold: no consistent raw px
@@ -315,13 +332,21 @@ def simulate(camera: Camera, rng: np.random.Generator, params: NoiseParams, body
     return _take(dets, order)
 
 
-def _true_mesh(camera: Camera, body: BodyModel, state: PersonState, sample_idx: np.ndarray,
-               gt_verts: np.ndarray | None, gt_skel: Skeleton | None) -> tuple[np.ndarray, np.ndarray]:
+def _true_mesh(
+    camera: Camera,
+    body: BodyModel,
+    state: PersonState,
+    sample_idx: np.ndarray,
+    gt_verts: np.ndarray | None,
+    gt_skel: Skeleton | None,
+) -> tuple[np.ndarray, np.ndarray]:
     """World m samples (P,S,3) (vertices ``sample_idx``) and camera-frame m vertices (P,3,V) of the
     true meshes, from gt_verts (P,V,3) world m or, when given, from the skeletons gt_skel."""
     if gt_skel is not None:
-        return (body.vertices_subset(gt_skel, state.height, state.width, sample_idx),
-                _camera_vertices(camera, body, gt_skel, state.height, state.width))
+        return (
+            body.vertices_subset(gt_skel, state.height, state.width, sample_idx),
+            _camera_vertices(camera, body, gt_skel, state.height, state.width),
+        )
     if gt_verts is None:
         raise ValueError("simulate: needs gt_verts or gt_skel")
     return gt_verts[:, sample_idx], world_to_camera(camera, gt_verts).transpose(0, 2, 1)
@@ -338,8 +363,9 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
         h = state.height[idx] * (1 + params.shape_sigma * rng.standard_normal(n))
         w = state.width[idx] * (1 + params.shape_sigma * rng.standard_normal(n))
         yaw = state.heading[idx] + params.heading_sigma * rng.standard_normal(n)
-        ang = {k: v + ANGLE_SCALE[k] * params.angle_sigma * rng.standard_normal(n)
-               for k, v in sub_angles.items()}
+        ang = {
+            k: v + ANGLE_SCALE[k] * params.angle_sigma * rng.standard_normal(n) for k, v in sub_angles.items()
+        }
         gross = _gross_limb_errors(rng, ang, params.gross_rate * (1 + 2 * occ))
     skel = forward_kinematics(h, w, ang, state.root_xy[idx], yaw)
     kp = skel.keypoints
@@ -352,8 +378,9 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     jit = 1.0 + 2.0 * occ[:, None, None]
     gscale = np.asarray(params.group_scale, dtype=np.float64)
     kscale = gscale[JOINT_GROUP][None, :, None]  # (1,70,1)
-    k2 = camera_to_rectified(camera, kc) \
-        + params.kpt2d_px * kscale * jit * rng.standard_normal(kp.shape[:2] + (2,))
+    k2 = camera_to_rectified(camera, kc) + params.kpt2d_px * kscale * jit * rng.standard_normal(
+        kp.shape[:2] + (2,)
+    )
     v2 = np.stack(camera_to_rectified_xy(camera, vc.transpose(0, 2, 1)), axis=-1)
     if params.vert2d_px > 0:
         z = rng.standard_normal(v2.shape).reshape(n, -1)  # (n, 2V): u, v of vertex k at 2k, 2k+1
@@ -366,11 +393,18 @@ def _estimate(camera, rng, params, body, state, idx, gt_kpts, gt_raw_verts, occ)
     u_raw, v_raw = gt_raw_verts
     bbox_raw = _silhouette_box(camera, u_raw, v_raw, rng, params.bbox_px)
     return SimDetections(
-        person=np.asarray(idx), scores=np.zeros(n), bbox_raw=bbox_raw, bbox_rect=_rect_box(camera, bbox_raw),
-        kpts2d_rect=k2, kpts2d_raw=distort_points(camera, k2), kpts3d=kpts3d,
+        person=np.asarray(idx),
+        scores=np.zeros(n),
+        bbox_raw=bbox_raw,
+        bbox_rect=_rect_box(camera, bbox_raw),
+        kpts2d_rect=k2,
+        kpts2d_raw=distort_points(camera, k2),
+        kpts3d=kpts3d,
         cam_t=(depth * kc.mean(axis=1, keepdims=True))[:, 0],
         verts_source=VertexSource(camera, v2, v2.astype(np.float32), vc, np.array(depth[:, 0, 0])),
-        verts_rows=np.arange(n), gross_limb=gross)
+        verts_rows=np.arange(n),
+        gross_limb=gross,
+    )
 
 
 def _gross_limb_errors(rng: np.random.Generator, ang: dict[str, np.ndarray], rate: np.ndarray) -> np.ndarray:
@@ -393,8 +427,14 @@ def _gross_limb_errors(rng: np.random.Generator, ang: dict[str, np.ndarray], rat
     return np.where(hit, limb, -1)
 
 
-def _camera_vertices(camera: Camera, body: BodyModel, skel: Skeleton, height: np.ndarray, width: np.ndarray,
-                     shift: np.ndarray | None = None) -> np.ndarray:
+def _camera_vertices(
+    camera: Camera,
+    body: BodyModel,
+    skel: Skeleton,
+    height: np.ndarray,
+    width: np.ndarray,
+    shift: np.ndarray | None = None,
+) -> np.ndarray:
     """(n,3,V) camera-frame m, component-major, of the meshes of ``skel`` moved by ``shift`` (n,1,3)
     world m: the part maps are moved into the camera frame, so each vertex costs one small product
     (equal to ``world_to_camera`` of ``body.vertices`` up to float64 rounding)."""
@@ -417,8 +457,13 @@ def _vertex_scale2(body: BodyModel, group_scale: tuple[float, ...]) -> np.ndarra
 
 def _scaled_f32(scale: np.ndarray, x: np.ndarray) -> np.ndarray:
     """float32 of scale * x, the product taken in float64 (one pass, no float64 temporary)."""
-    return np.multiply(scale, x, out=np.empty(np.broadcast_shapes(np.shape(scale), x.shape), np.float32),
-                       dtype=np.float64, casting="unsafe")
+    return np.multiply(
+        scale,
+        x,
+        out=np.empty(np.broadcast_shapes(np.shape(scale), x.shape), np.float32),
+        dtype=np.float64,
+        casting="unsafe",
+    )
 
 
 def _silhouette_box(camera: Camera, u: np.ndarray, v: np.ndarray, rng, jitter_px: float) -> np.ndarray:
@@ -470,8 +515,13 @@ def _false_positives(camera, rng, params, body) -> SimDetections | None:
     h = rng.uniform(1.55, 1.9, tries)
     w = rng.uniform(0.9, 1.15, tries)
     heading = rng.uniform(-np.pi, np.pi, tries)
-    ang = gait_angles(rng.uniform(0, 2, tries), rng.uniform(0, 2 * np.pi, tries), rng.uniform(0, 0.5, tries),
-                      np.zeros(tries), rng.uniform(-0.5, 0.5, tries))
+    ang = gait_angles(
+        rng.uniform(0, 2, tries),
+        rng.uniform(0, 2 * np.pi, tries),
+        rng.uniform(0, 0.5, tries),
+        np.zeros(tries),
+        rng.uniform(-0.5, 0.5, tries),
+    )
     state = PersonState(h, w, np.stack([x, y], 1), heading, ang, np.zeros(tries, bool))
     skel = forward_kinematics(h, w, ang, state.root_xy, heading)
     idx, raw = _first_in_view(camera, body, skel, h, w, k)
@@ -485,8 +535,9 @@ def _false_positives(camera, rng, params, body) -> SimDetections | None:
     return det
 
 
-def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.ndarray, width: np.ndarray,
-                   k: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+def _first_in_view(
+    camera: Camera, body: BodyModel, skel: Skeleton, height: np.ndarray, width: np.ndarray, k: int
+) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """The first ``k`` candidate bodies (in order) fully in front of the lens fold and > 60 % inside
     the raw image: their indices (m,) and raw px (u, v) each (m,V). Meshes are evaluated one
     candidate at a time, only until ``k`` are found."""
@@ -495,8 +546,8 @@ def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.n
     for i in range(len(height)):
         if len(found) == k:
             break
-        one = Skeleton(skel.points[i:i + 1], skel.refs[i:i + 1])
-        u, v = project_raw_xy(camera, body.vertices(one, height[i:i + 1], width[i:i + 1]))
+        one = Skeleton(skel.points[i : i + 1], skel.refs[i : i + 1])
+        u, v = project_raw_xy(camera, body.vertices(one, height[i : i + 1], width[i : i + 1]))
         if not np.isnan(u).any() and inside_image_xy(camera, u, v).mean() > 0.6:
             found.append(i)
             us.append(u)
@@ -507,20 +558,34 @@ def _first_in_view(camera: Camera, body: BodyModel, skel: Skeleton, height: np.n
 
 
 #: per-detection array fields (the vertex outputs follow verts_rows)
-_FIELDS = ("person", "scores", "bbox_raw", "bbox_rect", "kpts2d_rect", "kpts2d_raw", "kpts3d", "cam_t",
-           "visible_fraction", "gross_limb")
+_FIELDS = (
+    "person",
+    "scores",
+    "bbox_raw",
+    "bbox_rect",
+    "kpts2d_rect",
+    "kpts2d_raw",
+    "kpts3d",
+    "cam_t",
+    "visible_fraction",
+    "gross_limb",
+)
 
 
 def _concat(a: SimDetections, b: SimDetections) -> SimDetections:
-    return SimDetections(**{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},  # type: ignore[arg-type]  # _FIELDS: array fields
-                         verts_source=a.verts_source.concat(b.verts_source),
-                         verts_rows=np.concatenate([a.verts_rows, b.verts_rows + len(a.verts_source)]))
+    return SimDetections(
+        **{f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in _FIELDS},  # type: ignore[arg-type]  # _FIELDS: array fields
+        verts_source=a.verts_source.concat(b.verts_source),
+        verts_rows=np.concatenate([a.verts_rows, b.verts_rows + len(a.verts_source)]),
+    )
 
 
 def _take(d: SimDetections, order: np.ndarray) -> SimDetections:
-    return SimDetections(**{f: np.asarray(getattr(d, f))[order] for f in _FIELDS},
-                         verts_source=d.verts_source, verts_rows=d.verts_rows[order])
+    return SimDetections(
+        **{f: np.asarray(getattr(d, f))[order] for f in _FIELDS},
+        verts_source=d.verts_source,
+        verts_rows=d.verts_rows[order],
+    )
 
 
-__all__ = ["NoiseParams", "PRESETS", "get_preset", "PersonState", "SimDetections", "VertexSource", "simulate",
-           "visibility"]
+__all__ = ["NoiseParams", "PRESETS", "get_preset", "PersonState", "SimDetections", "VertexSource", "simulate"]
