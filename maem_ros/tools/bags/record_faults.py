@@ -16,9 +16,9 @@ the player published (nothing garbled), per topic in the player's order without 
 The numbers are printed as a table (doc/recording.md has one). The test suite
 (test/test_recording_faults.py) runs a few of each; set ROS_DOMAIN_ID to keep runs apart.
 """
+
 from __future__ import annotations
 
-import argparse
 import functools
 import random
 import re
@@ -127,8 +127,11 @@ class Feed:
 
     def __enter__(self) -> Feed:
         self.out = open(self.log, "w")
-        self.proc = subprocess.Popen([*PLAY, str(self.bag), "--loop", "--reliable-images",
-                                      "--delay", "0.5"], stdout=self.out, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(
+            [*PLAY, str(self.bag), "--loop", "--reliable-images", "--delay", "0.5"],
+            stdout=self.out,
+            stderr=subprocess.STDOUT,
+        )
         return self
 
     def stop(self) -> str:
@@ -147,11 +150,13 @@ class Feed:
         self.stop()
 
 
-def start_recorder(out: Path, args: Sequence[str], log: Path,
-                   preexec: Callable[[], None] | None = None) -> subprocess.Popen:
+def start_recorder(
+    out: Path, args: Sequence[str], log: Path, preexec: Callable[[], None] | None = None
+) -> subprocess.Popen:
     with open(log, "w") as f:
-        return subprocess.Popen([*RECORD, str(out), *args], stdout=f, stderr=subprocess.STDOUT,
-                                preexec_fn=preexec)
+        return subprocess.Popen(
+            [*RECORD, str(out), *args], stdout=f, stderr=subprocess.STDOUT, preexec_fn=preexec
+        )
 
 
 def wait_data(out: Path, proc: subprocess.Popen, min_bytes: int, timeout_s: float) -> bool:
@@ -185,16 +190,16 @@ class KillResult:
         """Recovered, nothing garbled, the newest message at most 1 s older than the kill.
         (Holes are messages DDS never delivered to the recorder, which writes every message
         it receives in order: reported apart, they depend on the machine's load.)"""
-        return (self.recover_rc == 0 and self.garbled == 0 and self.recovered > 0
-                and self.window_s <= 1.0)
+        return self.recover_rc == 0 and self.garbled == 0 and self.recovered > 0 and self.window_s <= 1.0
 
 
 #: low-traffic runs record only small topics: their chunks are closed by time, not size
 LOW_TRAFFIC = ["--topics", "/maem/gt_poses", "/camera_0/camera_info"]
 
 
-def kill_run(out: Path, source: Source, rng: random.Random, low_traffic: bool,
-             max_delay_s: float = 5.0) -> KillResult:
+def kill_run(
+    out: Path, source: Source, rng: random.Random, low_traffic: bool, max_delay_s: float = 5.0
+) -> KillResult:
     """Record from the running feed, SIGKILL after a random delay, ``maem-bag recover``."""
     args = LOW_TRAFFIC if low_traffic else ["--all"]
     for attempt in range(3):  # noqa: B007 - read after the loop; a recorder that never gets a message (DDS) is started again
@@ -219,9 +224,18 @@ def kill_run(out: Path, source: Source, rng: random.Random, low_traffic: bool,
     info = run([*BAG, "info", str(out)])
     rec = run([*BAG, "recover", str(out)])
     c = source.check(bagio.read_messages(out) if rec.returncode == 0 else [])
-    return KillResult(delay, "low" if low_traffic else "all", (kill_ns - c.newest_ns) / 1e9,
-                      c.count, c.garbled, c.holes, "CUT SHORT" in info.stdout, rec.returncode,
-                      rec.stdout + rec.stderr, attempt)
+    return KillResult(
+        delay,
+        "low" if low_traffic else "all",
+        (kill_ns - c.newest_ns) / 1e9,
+        c.count,
+        c.garbled,
+        c.holes,
+        "CUT SHORT" in info.stdout,
+        rec.returncode,
+        rec.stdout + rec.stderr,
+        attempt,
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -235,14 +249,18 @@ def chunk_contents(path: Path) -> list[tuple[int, list[tuple[str, int, bytes]]]]
     with open(path, "rb") as f:
         summary = make_reader(f).get_summary()
         if summary is None:
-            raise ValueError(f"MCAP file {str(path)!r}: no summary (not a complete file), "
-                             "its chunks cannot be listed")
+            raise ValueError(
+                f"MCAP file {str(path)!r}: no summary (not a complete file), its chunks cannot be listed"
+            )
         topics = {cid: c.topic for cid, c in summary.channels.items()}
         for ci in summary.chunk_indexes:
             f.seek(ci.chunk_start_offset + 1 + 8)
             chunk = Chunk.read(ReadDataStream(f))
-            msgs = [(topics[r.channel_id], r.log_time, bytes(r.data))
-                    for r in breakup_chunk(chunk) if isinstance(r, Message)]
+            msgs = [
+                (topics[r.channel_id], r.log_time, bytes(r.data))
+                for r in breakup_chunk(chunk)
+                if isinstance(r, Message)
+            ]
             out.append((ci.chunk_start_offset + ci.chunk_length, msgs))
     return out
 
@@ -261,8 +279,7 @@ class CutResult:
 
     @property
     def ok(self) -> bool:
-        return self.garbled == 0 and self.missing == 0 and self.extra == 0 and \
-            self.unordered == 0
+        return self.garbled == 0 and self.missing == 0 and self.extra == 0 and self.unordered == 0
 
 
 def cut_run(bag: Path, work: Path, offset: int, drop_metadata: bool = False) -> CutResult:
@@ -289,11 +306,17 @@ def cut_run(bag: Path, work: Path, offset: int, drop_metadata: bool = False) -> 
         got, refused = [], str(e)
     want, have = _multiset(expected), _multiset(got)
     known = {m for _, msgs in truth for m in msgs} | set(earlier)
-    return CutResult(offset, last.stat().st_size, len(expected), len(got),
-                     sum(m not in known for m in got),
-                     sum(max(0, n - have.get(k, 0)) for k, n in want.items()),
-                     sum(max(0, n - want.get(k, 0)) for k, n in have.items()), refused,
-                     sum(b[1] < a[1] for a, b in zip(got, got[1:])))
+    return CutResult(
+        offset,
+        last.stat().st_size,
+        len(expected),
+        len(got),
+        sum(m not in known for m in got),
+        sum(max(0, n - have.get(k, 0)) for k, n in want.items()),
+        sum(max(0, n - want.get(k, 0)) for k, n in have.items()),
+        refused,
+        sum(b[1] < a[1] for a, b in zip(got, got[1:])),
+    )
 
 
 def _multiset(items) -> dict:
@@ -319,8 +342,12 @@ class DiskResult:
 
     @property
     def ok(self) -> bool:
-        return (self.rc not in (0, None) and self.said == self.readable > 0 and self.garbled == 0
-                and "failed" in self.last_line)
+        return (
+            self.rc not in (0, None)
+            and self.said == self.readable > 0
+            and self.garbled == 0
+            and "failed" in self.last_line
+        )
 
 
 def _said(line: str) -> int:
@@ -334,13 +361,16 @@ def _said(line: str) -> int:
 def limit_file_size(nbytes: int) -> Callable[[], None]:
     """preexec_fn: the child's files may not grow beyond ``nbytes`` (writes fail with EFBIG;
     Python ignores SIGXFSZ)."""
+
     def apply() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (nbytes, nbytes))
+
     return apply
 
 
-def disk_full_run(out: Path, source: Source, mode: str, limit_mb: float,
-                  timeout_s: float = 90.0) -> DiskResult:
+def disk_full_run(
+    out: Path, source: Source, mode: str, limit_mb: float, timeout_s: float = 90.0
+) -> DiskResult:
     """Record from the running feed until the file size limit / the tmpfs at ``out.parent``
     (already mounted by the caller for tmpfs) is full."""
     preexec = limit_file_size(int(limit_mb * bagio.writer.MB)) if mode == "fsize" else None
@@ -369,8 +399,11 @@ class Tmpfs:
 
     def __enter__(self) -> Tmpfs:
         self.path.mkdir(parents=True, exist_ok=True)
-        proc = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={int(self.size_mb)}m",
-                               "tmpfs", str(self.path)], capture_output=True, text=True)
+        proc = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={int(self.size_mb)}m", "tmpfs", str(self.path)],
+            capture_output=True,
+            text=True,
+        )
         self.ok = proc.returncode == 0
         self.why = " ".join((proc.stderr or proc.stdout).split()) or f"exit {proc.returncode}"
         return self
@@ -401,8 +434,7 @@ class LongResult:
     def ok(self) -> bool:
         """Complete files and every received message written (holes are messages DDS did not
         deliver to the recorder: reported, a matter of the machine's load, not of the bag)."""
-        return self.complete == self.files and self.written == self.received and \
-            self.garbled == 0
+        return self.complete == self.files and self.written == self.received and self.garbled == 0
 
 
 def _said_count(line: str, label: str) -> int:
@@ -421,15 +453,24 @@ def long_run(out: Path, source: Source, feed: Feed, minutes: float, split_s: flo
     published = [ln for ln in feed.stop().splitlines() if "published" in ln]
     text = log.read_text()
     line = [ln for ln in text.splitlines() if "wrote" in ln and "received" in ln]
-    received, lost = (_said_count(line[-1], "received "),
-                      _said_count(line[-1], "took them: ")) if line else (-1, -1)
+    received, lost = (
+        (_said_count(line[-1], "received "), _said_count(line[-1], "took them: ")) if line else (-1, -1)
+    )
     info = bagio.bag_info(out)
     c = source.check(bagio.read_messages(out, info=info))
-    return LongResult(minutes, split_s, len(info.files), sum(fs.complete for fs in info.files),
-                      info.message_count, received, lost, published[-1] if published else "",
-                      c.holes,
-                      c.garbled, [((fs.end_ns or 0) - (fs.start_ns or 0)) / 1e9
-                                for fs in info.files])
+    return LongResult(
+        minutes,
+        split_s,
+        len(info.files),
+        sum(fs.complete for fs in info.files),
+        info.message_count,
+        received,
+        lost,
+        published[-1] if published else "",
+        c.holes,
+        c.garbled,
+        [((fs.end_ns or 0) - (fs.start_ns or 0)) / 1e9 for fs in info.files],
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -439,25 +480,6 @@ def _default_bag() -> Path:
     """bags/demo of the source checkout (demo_bag.default_bag without importing the
     simulator)."""
     return Path(__file__).resolve().parents[3] / "bags" / "demo"
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-record-faults", description=__doc__.split("\n\n")[0],
-                                epilog=__doc__.split("\n\n", 2)[2],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--bag", type=Path, default=None, help="bag the player loops (default "
-                   "bags/demo)")
-    p.add_argument("--kills", type=int, default=20, help="SIGKILL runs (default 20)")
-    p.add_argument("--cuts", type=int, default=100, help="cut offsets (default 100)")
-    p.add_argument("--disk", action="store_true", help="full-disk runs (file size limit; tmpfs "
-                   "when root)")
-    p.add_argument("--long", type=float, default=0.0, metavar="MIN",
-                   help="a MIN-minute recording split every --split s (default off)")
-    p.add_argument("--split", type=float, default=60.0, metavar="S")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--work", type=Path, default=Path("out/record_faults"),
-                   help="scratch folder (emptied first)")
-    return p
 
 
 def cut_bag(bag: Path, work: Path) -> Path:
@@ -471,95 +493,3 @@ def cut_bag(bag: Path, work: Path) -> Path:
             qos = info.qos.get(m.topic)
             w.write_raw(m.topic, m.msgtype, m.data, m.log_time_ns, qos[0] if qos else None)
     return out
-
-
-def _table(rows: list[tuple[str, str, str]]) -> str:
-    lines = ["| case | result | detail |", "|---|---|---|"]
-    return "\n".join(lines + [f"| {a} | {b} | {c} |" for a, b, c in rows])
-
-
-def run_all(a: argparse.Namespace, log=print) -> list[tuple[str, str, str]]:
-    rng = random.Random(a.seed)
-    bag = a.bag or _default_bag()
-    source = Source.load(bag)
-    rows = []
-    if a.cuts:
-        src = cut_bag(bag, a.work)
-        size = bagio.bag_info(src).files[-1].size
-        cuts = [cut_run(src, a.work / "cut", rng.randrange(8, size), drop_metadata=i % 2 == 1)
-                for i in range(a.cuts)]
-        ok = sum(c.ok for c in cuts)
-        rows.append((f"cut at {a.cuts} random offsets", f"{ok}/{a.cuts} exact",
-                     f"{sum(c.got for c in cuts):,} messages read back, "
-                     f"{sum(c.garbled for c in cuts)} garbled, {sum(c.missing for c in cuts)} "
-                     f"missing, {sum(c.extra for c in cuts)} from cut chunks; "
-                     f"{sum(bool(c.refused) for c in cuts)} cuts left nothing complete (refused "
-                     f"in one line)"))
-        log(rows[-1])
-    if a.kills or a.disk or a.long:
-        with Feed(bag, a.work / "play.log") as feed:
-            if a.kills:
-                kills = [kill_run(a.work / f"kill_{i}", source, rng, low_traffic=i % 2 == 1)
-                         for i in range(a.kills)]
-                for r in kills:
-                    log(f"kill after {r.delay_s:.2f} s ({r.topics}): window {r.window_s:.3f} s, "
-                        f"{r.recovered} recovered, garbled {r.garbled}, holes {r.holes}, "
-                        f"rc {r.recover_rc}")
-                w = sorted(r.window_s for r in kills)
-                rows.append((f"SIGKILL at {a.kills} random moments", f"{sum(r.ok for r in kills)}"
-                             f"/{a.kills} ok", f"newest recovered message {w[0]:.2f}-{w[-1]:.2f} "
-                             f"s before the kill (median {w[len(w) // 2]:.2f}); "
-                             f"{sum(r.recovered for r in kills):,} messages, "
-                             f"{sum(r.garbled for r in kills)} garbled, "
-                             f"{sum(r.holes for r in kills)} holes in what DDS delivered; "
-                             f"{sum(r.restarts for r in kills)} recorders restarted (no message "
-                             f"in 30 s)"))
-            if a.disk:
-                rows += _disk_rows(a.work, source, log)
-            if a.long:
-                lr = long_run(a.work / "long", source, feed, a.long, a.split)
-                rows.append((f"{a.long:g} min split every {a.split:g} s",
-                             f"{'ok' if lr.ok else 'FAILED'}: {lr.complete}/{lr.files} complete "
-                             f"files",
-                             f"{lr.written:,} written of {lr.received:,} received, "
-                             f"garbled {lr.garbled}; {lr.holes} holes in what DDS delivered "
-                             f"({lr.lost:,} counted lost by the recorder); "
-                             f"file spans "
-                             f"{min(lr.durations_s):.1f}-{max(lr.durations_s):.1f} s; player: "
-                             f"{lr.published.split('] ')[-1]}"))
-    return rows
-
-
-def _disk_rows(work: Path, source: Source, log) -> list[tuple[str, str, str]]:
-    rows = []
-    (work / "fsize").mkdir(parents=True)
-    r = disk_full_run(work / "fsize" / "bag", source, "fsize", 24.0)
-    rows.append(("file size limit 24 MB (EFBIG)", f"{'ok' if r.ok else 'FAILED'}: exit {r.rc}, "
-                 f"{r.readable:,} readable = said {r.said:,}, {r.holes} holes", r.last_line))
-    log(rows[-1])
-    with Tmpfs(work / "tmpfs", 32) as fs:
-        if not fs.ok:
-            rows.append(("tmpfs 32 MB (ENOSPC)", "skipped", fs.why))
-        else:
-            r = disk_full_run(fs.path / "bag", source, "tmpfs", 32.0)
-            rows.append(("tmpfs 32 MB (ENOSPC)", f"{'ok' if r.ok else 'FAILED'}: exit {r.rc}, "
-                         f"{r.readable:,} readable = said {r.said:,}, {r.holes} holes",
-                         r.last_line))
-    log(rows[-1])
-    return rows
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
-    if a.work.exists():
-        shutil.rmtree(a.work)
-    a.work.mkdir(parents=True)
-    t0 = time.monotonic()
-    rows = run_all(a)
-    print(_table(rows))
-    print(f"({time.monotonic() - t0:.0f} s, seed {a.seed}, bag {a.bag or _default_bag()})")
-    return 0 if all(not b.startswith(("FAILED", "0/")) for _, b, _ in rows) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())
