@@ -1,10 +1,11 @@
 """maem-eval: run MAEM association + triangulation offline on a scene folder and score it.
 
-    maem-eval SCENE_DIR --params config/sportcenter.yaml [--json OUT.json] [--plots DIR]
-              [--ablation] [--oracle] [--explain] [--explain-tracks] [--pred OUT.npz]
-              [--frames N]
-              [--temporal on|off]
+maem-eval SCENE_DIR --params config/sportcenter.yaml [--json OUT.json] [--plots DIR]
+          [--ablation] [--oracle] [--explain] [--explain-tracks] [--pred OUT.npz]
+          [--frames N]
+          [--temporal on|off]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,6 +28,7 @@ from maem_ros.core.interchange import MissingDataError, SceneFolder, det_ids_key
 from maem_ros.core.skeleton import SPORTCENTER_13, convert, get_convention
 from maem_ros.params import load_node_params
 from maem_ros.tools.cli import fail
+from maem_ros.tools.eval.options import build_parser
 from maem_ros.tools.eval.results import (
     METRIC_KEYS,
     Run,
@@ -50,68 +52,6 @@ ABLATION: tuple[tuple[str, dict[str, Any]], ...] = (
     ("full (reproj + mesh)", {"reproj_gate": True, "epipolar_gate": "mesh"}),
 )
 
-EPILOG = """\
-Metrics (VoxelPose / Panoptic form, as in the MAEM paper), over the evaluated frames, in the
-sportcenter_13 joints (estimated MHR70 poses are mapped with [0,5,6,7,8,62,41,9,10,11,12,13,14]):
-  GT person      a person of gt.npz with at least one joint whose mask is 1 in that frame;
-                 joints with mask 0 are excluded from every error below.
-  MPJPE          mean over a person's GT-masked joints of the Euclidean distance between the
-                 estimated and GT joint (world metres, reported in mm); untriangulated (NaN)
-                 joints of a prediction are ignored.
-  PA-MPJPE       MPJPE after aligning the prediction to the GT with the least-squares
-                 similarity (rotation, translation, uniform scale; Umeyama); a matched
-                 pair with fewer than 3 common joints has none and is left out of PA-MPJPE.
-  matching       per frame, Hungarian assignment of predictions to GT persons on MPJPE; only
-                 pairs with MPJPE < 500 mm count as matched. MPJPE / PA-MPJPE mean and median
-                 are taken over all matched pairs of the sequence.
-  Recall@500     matched GT persons / all GT persons.
-  AP@d           d = 75, 100, 125, 150 mm: all predictions of the sequence sorted by score
-                 (descending, stable); each is a true positive when its closest not-yet-taken
-                 GT person of its frame has MPJPE < d (that person is then taken), else a
-                 false positive. After each prediction i: recall_i = TP_i / #GT persons,
-                 precision_i = TP_i / (TP_i + FP_i); precision is replaced by its monotone
-                 envelope max_{k>=i} precision_k; with recall padded by 0 in front and 1
-                 behind and precision by 0 on both ends, AP = sum over the i where recall
-                 changes of (r_{i+1} - r_i) * p_{i+1} (VoxelPose / Panoptic area under PR).
-  assoc ms       wall-clock time of the association stage per frame (median), this machine.
-In --json, recall and AP are fractions (0..1), errors in mm; the table shows percentages.
-
-Input handling (never a crash mid-sequence; every case is counted and reported at the end):
-  a camera with no dets/<view>/ folder is left out of every frame; a missing or corrupt
-  (unreadable, mis-shaped, NaN) npz leaves that view out of that frame; a frame with no
-  readable view at all, or beyond the end of gt.npz, is not evaluated; a frame on which
-  association/triangulation raises is evaluated with no predictions (its people are missed).
---oracle adds a row whose association is the ground truth (det_ids.npz, as maem-sim writes it:
-                 every kept detection grouped with its true person, people seen by >= k_min
-                 cameras) with the same triangulation: the ceiling of any association.
---explain      per configuration, the first cause of every lost GT person-frame (needs
-                 det_ids.npz), in pipeline order: frontend (< k_min cameras detect it),
-                 reproj_gate / epipolar_gate / cost_cap (its surviving true pairs connect
-                 < k_min views), wrong_match (a cluster mixes it with another person), merge
-                 (its detections stay in several clusters), conflict (conflict removal), k_min,
-                 triangulation (a pure cluster exists, no pose matched). Counts sum to the
-                 lost person-frames.
---explain-tracks  per configuration, the first cause of every published pose more than 150 mm
-                 from its matched GT person or matched to none (needs det_ids.npz), in order:
-                 stale_or_duplicate (right for its members' person, whom another pose holds),
-                 prediction (its own triangulation is close, the joint filter's output is not),
-                 wrong_track (a track's cluster holds another person's detection),
-                 weak_two_view (a pure cluster of two views), wrong_new_cluster (the
-                 cross-view association mixed people), triangulation, not_in_gt (bystanders).
---pred writes pose (F,K,13,3) world metres in sportcenter_13 (NaN = joint not triangulated),
-valid (F,K) bool, score (F,K), id (F,K) int64 track id (-1 = none: tentative track or no
-prediction); F = scene frames considered, K = most people in one frame.
-Identities: with temporal on (the params file's 'temporal', on when absent, or --temporal) ids
-are the association's track ids (core/tracking/temporal.py), with temporal off those of the post-hoc 3D
-tracker (core/tracking/tracks.py, the triangulation node's track_* params; also for the oracle row).
-IDF1 / IDP / IDR and ID switches (core/metrics/identity.py: Ristani et al. 2016; CLEAR MOT switches)
-are scored against the GT persons of gt.npz (column = identity), MPJPE < 500 mm as a match;
-hypotheses matching no GT person of their frame (e.g. tracked referees) are left out ("players
-only"; idf1_all_hyp keeps them). --explain breaks down the per-frame association, so it implies
---temporal off.
-"""
-
-
 # ---- skip accounting --------------------------------------------------------------------------
 #: skip kind (key in --json "skips") -> what happened to the input
 SKIP_KINDS = {
@@ -124,6 +64,7 @@ SKIP_KINDS = {
     "pipeline_error": "association/triangulation raised: frame scored with no predictions",
     "gt_masked_joints": "GT joints with mask 0 among present people: excluded from errors",
 }
+
 
 @dataclass
 class SkipLog:
@@ -167,8 +108,9 @@ def load_gt(folder: SceneFolder) -> tuple[np.ndarray, np.ndarray] | None:
     return xyz, mask
 
 
-def load_frame(folder: SceneFolder, views: Sequence[str], frame: int, skips: SkipLog
-               ) -> dict[str, FrameDetections]:
+def load_frame(
+    folder: SceneFolder, views: Sequence[str], frame: int, skips: SkipLog
+) -> dict[str, FrameDetections]:
     """Readable detections of one frame by view; missing / corrupt files are logged and left out.
 
     A frame with no readable view at all is logged once as frame_without_detections (plus any
@@ -191,8 +133,15 @@ def load_frame(folder: SceneFolder, views: Sequence[str], frame: int, skips: Ski
     return out
 
 
-def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, skips: SkipLog,
-              frame: int, det_ids: Mapping[str, np.ndarray] | None = None):
+def run_frame(
+    run: Run,
+    rig,
+    frames: Mapping[str, FrameDetections],
+    tri_params,
+    skips: SkipLog,
+    frame: int,
+    det_ids: Mapping[str, np.ndarray] | None = None,
+):
     """Associate + triangulate one frame for one configuration; append its predictions.
 
     Returns the AssociationResult (None for the oracle or when the pipeline raised)."""
@@ -201,13 +150,13 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
     from maem_ros.core.triangulation.ransac import triangulate
 
     from .explain import oracle_clusters
+
     result = ids = step = None
     stamp = min(fd.stamp_ns for fd in frames.values())
     try:
         t0 = time.perf_counter()
         if run.oracle:
-            clusters = oracle_clusters(rig.names, frames, det_ids or {}, run.assoc.tau_det,
-                                       run.assoc.k_min)
+            clusters = oracle_clusters(rig.names, frames, det_ids or {}, run.assoc.tau_det, run.assoc.k_min)
         elif isinstance(run.tracker, TemporalAssociator):
             step = run.tracker.step(frames, stamp)
             clusters, ids = step.clusters, step.track_ids
@@ -216,14 +165,17 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
             clusters = result.clusters
         run.assoc_ms.append(1e3 * (time.perf_counter() - t0))
         poses = triangulate(rig, frames, clusters, tri_params)
-        raw = to_sportcenter13(np.asarray(poses.joints, dtype=np.float64)) if len(poses) else \
-            np.zeros((0, SPORTCENTER_13.num_joints, 3))
+        raw = (
+            to_sportcenter13(np.asarray(poses.joints, dtype=np.float64))
+            if len(poses)
+            else np.zeros((0, SPORTCENTER_13.num_joints, 3))
+        )
         joints, std, scores, ids = _published(run, poses, stamp, ids, tri_params)
         valid = np.isfinite(joints).all(-1).any(-1)
-        tracked = (np.asarray(step.flags) & FLAG_TRACKED > 0 if step is not None
-                   else np.zeros(len(clusters), bool))
-        run.last_clusters = ([c.members for c, v in zip(clusters, valid) if v], tracked[valid],
-                             raw[valid])
+        tracked = (
+            np.asarray(step.flags) & FLAG_TRACKED > 0 if step is not None else np.zeros(len(clusters), bool)
+        )
+        run.last_clusters = ([c.members for c, v in zip(clusters, valid) if v], tracked[valid], raw[valid])
         run.preds.append(joints[valid])
         run.scores.append(scores[valid])
         run.stds.append(std[valid])
@@ -238,11 +190,13 @@ def run_frame(run: Run, rig, frames: Mapping[str, FrameDetections], tri_params, 
     return result
 
 
-def explain_tracks_run(run: Run, rig, det_ids: Mapping[str, np.ndarray], gt: np.ndarray,
-                       gt_mask: np.ndarray) -> None:
+def explain_tracks_run(
+    run: Run, rig, det_ids: Mapping[str, np.ndarray], gt: np.ndarray, gt_mask: np.ndarray
+) -> None:
     """Add the first causes of this frame's published poses far from their person to
     run.far_causes (--explain-tracks); gt (P,13,3) / gt_mask (P,13): every column of gt.npz."""
     from .explain import explain_poses, member_persons
+
     members, tracked, raw = run.last_clusters
     persons = [member_persons(m, rig.names, det_ids) for m in members]
     causes = explain_poses(run.preds[-1], raw, persons, tracked, gt, gt_mask)
@@ -253,17 +207,29 @@ def explain_tracks_run(run: Run, rig, det_ids: Mapping[str, np.ndarray], gt: np.
 def format_far_causes(runs: Sequence[Run]) -> str:
     """Plain-text breakdown of far published poses: one row per configuration."""
     from .explain import TRACK_CAUSES
+
     head = ["config", "poses", "far"] + list(TRACK_CAUSES)
-    body = [[r.name, str(r.published), str(sum(r.far_causes.values()))]
-            + [str(r.far_causes.get(c, 0)) for c in TRACK_CAUSES] for r in runs]
+    body = [
+        [r.name, str(r.published), str(sum(r.far_causes.values()))]
+        + [str(r.far_causes.get(c, 0)) for c in TRACK_CAUSES]
+        for r in runs
+    ]
     widths = [max(len(row[i]) for row in [head] + body) for i in range(len(head))]
-    return "\n".join("  ".join(c.ljust(w) if i == 0 else c.rjust(w)
-                               for i, (c, w) in enumerate(zip(row, widths)))
-                     for row in [head] + body)
+    return "\n".join(
+        "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths)))
+        for row in [head] + body
+    )
 
 
-def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np.ndarray,
-                gt_mask: np.ndarray, gt_index: np.ndarray) -> None:
+def explain_run(
+    run: Run,
+    result,
+    rig,
+    det_ids: Mapping[str, np.ndarray],
+    gt: np.ndarray,
+    gt_mask: np.ndarray,
+    gt_index: np.ndarray,
+) -> None:
     """Add the causes of this frame's lost GT persons to run.causes (--explain).
 
     gt / gt_mask: the frame's present GT persons; gt_index: their person index in gt.npz
@@ -271,6 +237,7 @@ def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np
     from maem_ros.core.metrics.poses import match_frame
 
     from .explain import explain_frame, row_persons
+
     _, cols, _ = match_frame(run.preds[-1], gt, gt_mask)
     lost = np.setdiff1d(np.arange(len(gt)), cols)
     if not lost.size:
@@ -285,64 +252,47 @@ def explain_run(run: Run, result, rig, det_ids: Mapping[str, np.ndarray], gt: np
 # ---- what the triangulation node would publish ---------------------------------------------
 
 
-def _published(run: Run, poses, stamp: int, ids, tri_params
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _published(
+    run: Run, poses, stamp: int, ids, tri_params
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """What the triangulation node publishes for one frame's poses: sportcenter_13 joints (P,13,3)
     world m, their std (P,13) m, scores (P,) and track ids (P,) (the post-hoc 3D tracker's when
     ``ids`` is None, as the node does with temporal off), joints filtered over time when the run
     has a joint filter."""
     from maem_ros.core.tracking.joint_filter import filter_and_score
+
     n = len(poses)
-    joints = to_sportcenter13(np.asarray(poses.joints, dtype=np.float64)) if n else \
-        np.zeros((0, SPORTCENTER_13.num_joints, 3))
-    cov = (to_sportcenter13(np.asarray(poses.joint_cov).reshape(n, -1, 9)).reshape(n, -1, 3, 3)
-           if n else np.zeros((0, SPORTCENTER_13.num_joints, 3, 3)))
+    joints = (
+        to_sportcenter13(np.asarray(poses.joints, dtype=np.float64))
+        if n
+        else np.zeros((0, SPORTCENTER_13.num_joints, 3))
+    )
+    cov = (
+        to_sportcenter13(np.asarray(poses.joint_cov).reshape(n, -1, 9)).reshape(n, -1, 3, 3)
+        if n
+        else np.zeros((0, SPORTCENTER_13.num_joints, 3, 3))
+    )
     if ids is None:
         ids = run.tracker.update(stamp, joints)
     ids = np.asarray(ids, np.int64)
-    joints, std, scores = filter_and_score(stamp, ids, joints, cov,
-                                           np.asarray(poses.detection_scores), run.joint_filter,
-                                           tri_params.pose_score, tri_params.score_ref_m)
+    joints, std, scores = filter_and_score(
+        stamp,
+        ids,
+        joints,
+        cov,
+        np.asarray(poses.detection_scores),
+        run.joint_filter,
+        tri_params.pose_score,
+        tri_params.score_ref_m,
+    )
     return joints, std, scores, ids
 
 
 # ---- CLI --------------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="maem-eval", description=__doc__.splitlines()[0], epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("scene", type=Path, help="scene folder (cameras/, dets/, gt.npz)")
-    p.add_argument("--params", default="sportcenter.yaml",
-                   help="ROS params file the nodes use (sections 'association', 'triangulation'): a path "
-                        "or a shipped config name, e.g. config/humanm3.yaml (default sportcenter.yaml)")
-    p.add_argument("--json", type=Path, help="write the metrics (and ablation rows, skips) as JSON")
-    p.add_argument("--plots", type=Path, help="write PNG plots to this folder")
-    p.add_argument("--plot-frame", type=int, default=None,
-                   help="scene frame for the top-down court plot (default: middle evaluated frame)")
-    p.add_argument("--ablation", action="store_true",
-                   help="also run the paper's ablation rows (reproj only; mesh only; reproj + sparse; full)")
-    p.add_argument("--oracle", action="store_true",
-                   help="also run the association from the ground truth (det_ids.npz): the ceiling")
-    p.add_argument("--explain", action="store_true",
-                   help="print the first cause of every lost GT person-frame (needs det_ids.npz)")
-    p.add_argument("--explain-tracks", action="store_true",
-                   help="print the first cause of every published pose more than 150 mm from its "
-                        "GT person or matched to none (needs det_ids.npz)")
-    p.add_argument("--pred", type=Path, help="write predictions (full configuration) to this npz")
-    p.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
-    p.add_argument("--rig", type=Path, default=None,
-                   help="evaluate with this rig instead of the scene's cameras/ (e.g. a "
-                   "calibrated one moved into the scene's frame)")
-    p.add_argument("--temporal", choices=("on", "off"), default=None,
-                   help="track-assisted association on/off (default: the params file's 'temporal', "
-                        "on when absent; off with --explain); off = per-frame association + the "
-                        "post-hoc 3D tracker")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p
-
-
 def load_params(path: str):
     from maem_ros.core.association import AssociationParams
     from maem_ros.core.triangulation.ransac import TriangulationParams
+
     assoc = AssociationParams.from_mapping(load_node_params(path, "association"))
     tri = TriangulationParams.from_mapping(load_node_params(path, "triangulation"))
     return assoc, tri
@@ -353,6 +303,7 @@ def make_tracker(rig, assoc, params_path: str, temporal: str | None):
     the triangulation node's track_* parameters (temporal off)."""
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.tracking.tracks import Tracker
+
     section = dict(load_node_params(params_path, "association"))
     if temporal is not None:
         section["temporal"] = temporal == "on"
@@ -360,13 +311,17 @@ def make_tracker(rig, assoc, params_path: str, temporal: str | None):
     if tp.temporal:
         return TemporalAssociator(rig, assoc, tp)
     tri = load_node_params(params_path, "triangulation")
-    return Tracker(gate_m=tri.get("track_gate", 0.5), min_hits=tri.get("track_min_hits", 3),
-                   timeout_s=tri.get("track_timeout", 1.0))
+    return Tracker(
+        gate_m=tri.get("track_gate", 0.5),
+        min_hits=tri.get("track_min_hits", 3),
+        timeout_s=tri.get("track_timeout", 1.0),
+    )
 
 
 def make_joint_filter(params_path: str):
     """The triangulation node's joint filter (its joint_filter* parameters), or None when off."""
     from maem_ros.core.tracking.joint_filter import JointFilterParams
+
     return JointFilterParams.from_mapping(load_node_params(params_path, "triangulation")).make()
 
 
@@ -375,6 +330,7 @@ def _rig_option(path):
     if path is None:
         return None
     from maem_ros.core.geometry.camera import Rig
+
     if not Path(path).exists():
         raise ValueError(f"--rig {str(path)!r}: no such file or folder")
     return Rig.load(path)
@@ -391,16 +347,22 @@ def evaluate_scene(args: argparse.Namespace, log=print) -> dict[str, Any]:
     n = total if args.frames is None else min(args.frames, total)
     runs, det_ids = _make_runs(args, folder, assoc)
     truth = _run_frames(args, folder, views, runs, tri, gt, det_ids, n, skips)
-    report: dict[str, Any] = {"scene": str(args.scene), "params_file": str(args.params),
-                              "association_params": assoc.as_mapping(),
-                              "triangulation_params": dataclasses.asdict(tri),
-                              "evaluated_frames": truth.frame_ids, "frames_considered": n}
+    report: dict[str, Any] = {
+        "scene": str(args.scene),
+        "params_file": str(args.params),
+        "association_params": assoc.as_mapping(),
+        "triangulation_params": dataclasses.asdict(tri),
+        "evaluated_frames": truth.frame_ids,
+        "frames_considered": n,
+    }
     if gt is None:
         log("maem-eval: scene has no gt.npz: predictions only, no metrics")
         report["frames"] = len(truth.frame_ids)
     else:
-        log(f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
-            f"{len(truth.frame_ids)}/{n} frames evaluated, params {args.params}")
+        log(
+            f"scene {str(args.scene)!r}: {len(views)}/{len(folder.views)} views, "
+            f"{len(truth.frame_ids)}/{n} frames evaluated, params {args.params}"
+        )
         report.update(_score_runs(args, runs, truth, log))
     report["skips"] = dict(skips.counts)
     report["skip_examples"] = skips.examples
@@ -435,34 +397,59 @@ def _usable_views(folder: SceneFolder, skips: SkipLog) -> list[str]:
     return views
 
 
-def _make_runs(args: argparse.Namespace, folder: SceneFolder, assoc
-               ) -> tuple[list[Run], dict[str, np.ndarray] | None]:
+def _make_runs(
+    args: argparse.Namespace, folder: SceneFolder, assoc
+) -> tuple[list[Run], dict[str, np.ndarray] | None]:
     """The configurations to run (the full one, the ablation rows, the oracle first) and the
     GT person of every detection when --oracle / --explain need it."""
     rig = folder.rig
-    configs = ([(name, assoc.replaced(o)) for name, o in ABLATION] if args.ablation
-               else [("full", assoc)])
+    configs = [(name, assoc.replaced(o)) for name, o in ABLATION] if args.ablation else [("full", assoc)]
     if args.explain and args.temporal == "on":
         raise ValueError("--explain breaks down the per-frame association: use --temporal off")
     temporal = "off" if args.explain else args.temporal
-    runs = [Run(name, a, tracker=make_tracker(rig, a, args.params, temporal),
-                joint_filter=make_joint_filter(args.params)) for name, a in configs]
+    runs = [
+        Run(
+            name,
+            a,
+            tracker=make_tracker(rig, a, args.params, temporal),
+            joint_filter=make_joint_filter(args.params),
+        )
+        for name, a in configs
+    ]
     det_ids = None
     if args.oracle or args.explain or args.explain_tracks:
         if not folder.has_det_ids:
-            raise ValueError(f"scene folder {str(args.scene)!r}: --oracle/--explain/--explain-tracks "
-                             "need det_ids.npz "
-                             "(the GT person of every detection, as maem-sim writes it)")
+            raise ValueError(
+                f"scene folder {str(args.scene)!r}: --oracle/--explain/--explain-tracks "
+                "need det_ids.npz "
+                "(the GT person of every detection, as maem-sim writes it)"
+            )
         det_ids = folder.det_ids()
     if args.oracle:
-        runs.insert(0, Run("oracle (GT association)", assoc, oracle=True,
-                           tracker=make_tracker(rig, assoc, args.params, "off"),
-                           joint_filter=make_joint_filter(args.params)))
+        runs.insert(
+            0,
+            Run(
+                "oracle (GT association)",
+                assoc,
+                oracle=True,
+                tracker=make_tracker(rig, assoc, args.params, "off"),
+                joint_filter=make_joint_filter(args.params),
+            ),
+        )
     return runs, det_ids
 
 
-def _run_frames(args: argparse.Namespace, folder: SceneFolder, views: list[str], runs: list[Run],
-                tri, gt, det_ids, n: int, skips: SkipLog) -> _Truth:
+def _run_frames(
+    args: argparse.Namespace,
+    folder: SceneFolder,
+    views: list[str],
+    runs: list[Run],
+    tri,
+    gt,
+    det_ids,
+    n: int,
+    skips: SkipLog,
+) -> _Truth:
     """Every run on the first ``n`` frames (their predictions go into the runs), with --explain
     the cause of each lost person; returns the evaluated frames' ground truth."""
     rig = folder.rig
@@ -474,8 +461,11 @@ def _run_frames(args: argparse.Namespace, folder: SceneFolder, views: list[str],
         frames = load_frame(folder, views, f, skips)
         if not frames:
             continue
-        ids = ({v: det_ids[key] for v in frames if (key := det_ids_key(v, f)) in det_ids}
-               if det_ids is not None else None)
+        ids = (
+            {v: det_ids[key] for v in frames if (key := det_ids_key(v, f)) in det_ids}
+            if det_ids is not None
+            else None
+        )
         results = [run_frame(run, rig, frames, tri, skips, f, ids) for run in runs]
         truth.frame_ids.append(f)
         if gt is None:
@@ -491,8 +481,9 @@ def _run_frames(args: argparse.Namespace, folder: SceneFolder, views: list[str],
             assert ids is not None  # --explain loaded det_ids (checked above)
             for run, result in zip(runs, results):
                 if not run.oracle:
-                    explain_run(run, result, rig, ids, truth.gts[-1], truth.gt_masks[-1],
-                                np.flatnonzero(present))
+                    explain_run(
+                        run, result, rig, ids, truth.gts[-1], truth.gt_masks[-1], np.flatnonzero(present)
+                    )
         if args.explain_tracks:
             assert ids is not None  # --explain-tracks loaded det_ids (checked above)
             for run in runs:
@@ -508,8 +499,9 @@ def _score_runs(args: argparse.Namespace, runs: list[Run], truth: _Truth, log) -
     report: dict[str, Any] = {k: main_run.metrics.get(k) for k in METRIC_KEYS}
     report["per_frame_mpjpe"] = main_run.metrics.get("per_frame_mpjpe", [])
     if args.ablation:
-        report["ablation"] = [{"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}}
-                              for r in runs if not r.oracle]
+        report["ablation"] = [
+            {"name": r.name, **{k: r.metrics.get(k) for k in METRIC_KEYS}} for r in runs if not r.oracle
+        ]
     log(format_table([(r.name, r.metrics) for r in runs]))
     log("identities:")
     for line in format_id_lines(runs):
@@ -528,16 +520,26 @@ def _score_runs(args: argparse.Namespace, runs: list[Run], truth: _Truth, log) -
     return report
 
 
-def _write_outputs(args: argparse.Namespace, report: dict[str, Any], runs: list[Run],
-                   truth: _Truth, rig, n: int, has_gt: bool, log) -> None:
+def _write_outputs(
+    args: argparse.Namespace,
+    report: dict[str, Any],
+    runs: list[Run],
+    truth: _Truth,
+    rig,
+    n: int,
+    has_gt: bool,
+    log,
+) -> None:
     """--pred, --plots (scenes with ground truth) and --json."""
     if args.pred:
         write_pred(args.pred, runs[-1], truth.frame_ids, n)
         log(f"predictions -> {str(args.pred)!r}")
     if args.plots and has_gt:
         from .plots import write_plots
-        written = write_plots(args.plots, runs, truth.frame_ids, truth.gts, truth.gt_masks, rig,
-                              args.plot_frame)
+
+        written = write_plots(
+            args.plots, runs, truth.frame_ids, truth.gts, truth.gt_masks, rig, args.plot_frame
+        )
         log(f"plots -> {', '.join(str(p) for p in written)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
