@@ -45,6 +45,7 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
 
 ``temporal = False`` is the per-frame paper pipeline: ``associate`` on everything, no track ids.
 """
+
 from __future__ import annotations
 
 import time
@@ -60,9 +61,9 @@ from maem_ros.core.association.pipeline import associate, pair_cost
 from maem_ros.core.detections import PASSED, Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
-from maem_ros.core.paramspec import Params, param
 from maem_ros.core.skeleton import body_joints, joint_subset
 from maem_ros.core.tracking.contested import ContestSettings, contested_cost
+from maem_ros.core.tracking.temporal_params import TemporalParams
 from maem_ros.core.tracking.track_filter import Track, Tracker3D
 from maem_ros.core.tracking.track_geometry import (
     mean_distance,
@@ -78,58 +79,6 @@ FLAG_TRACKED = 1  # members explained by a track's prediction (not by cross-view
 FLAG_FEW_VIEWS = 2  # updated from fewer than k_min views (allowed for confirmed tracks only)
 FLAG_ONE_VIEW = 4  # kept by one view + its prediction (internal: such clusters are not emitted)
 _GATED = 1e9
-#: epipolar test inside a track's cluster: the association's own (default: its ``epipolar_gate``,
-#: so the track stage keeps every view the association would, and a keypoint-only frontend (no
-#: mesh: every mesh test fails) keeps its views; doc/tracking.md), the mesh vertices, the 2D
-#: keypoints (cheaper, but noisy keypoints fail it: views dropped from tracked people), or none
-VERIFY_EPIPOLAR = ("association", "sparse", "mesh", "none")
-
-
-@dataclass
-class TemporalParams(Params):
-    """Tracking stage of the association node (px, m, s, frames; module docstring); one field =
-    one parameter of the association node (core/paramspec.py)."""
-
-    temporal: bool = param(True, "track-assisted association (off = the per-frame paper "
-                                 "pipeline, no track ids)")
-    confirm_hits: int = param(3, "supported frames before a track gets an id", minimum=1)
-    max_misses: int = param(10, "frames a track survives without support", minimum=0)
-    max_gap_s: float = param(1.0, "s, a forward stamp jump beyond this ends all tracks",
-                             minimum=0.0, exclusive_minimum=True)
-    gate_px: float = param(25.0, "px, base gate of a detection's body keypoints vs a track's "
-                                 "projected predicted joints (median distance)", minimum=0.0,
-                           exclusive_minimum=True)
-    gate_sigma: float = param(3.0, "gate growth per projected root std (px per px)",
-                              minimum=0.0)
-    gate_max_px: float = param(80.0, "px, cap of the track gate", minimum=0.0,
-                               exclusive_minimum=True)
-    refine_px: float = param(20.0, "px, gate of the second assignment against each verified "
-                                   "cluster's own triangulation (0 = off)", minimum=0.0)
-    pose_weight: float = param(100.0, "px per m of pose cost added to a contested assignment's "
-                                      "cost: pair cost vs the track's other views, else "
-                                      "PA-MPJPE vs the track", minimum=0.0)
-    min_track_views: int = param(2, "views a confirmed track may be updated from (below k_min: "
-                                    "flagged)", minimum=2)
-    one_view: bool = param(True, "keep a confirmed track alive on one view + its prediction")
-    one_view_std: float = param(0.3, "m, root measurement std of a one-view update",
-                                minimum=0.0, exclusive_minimum=True)
-    verify_epipolar: str = param("association", "epipolar test inside a track's cluster: the "
-                                                "association's epipolar_gate, mesh vertices, 2D "
-                                                "keypoints (sparse) or none",
-                                 choices=VERIFY_EPIPOLAR)
-    reid_m: float = param(0.5, "m, a new cluster this close to a track re-acquires / merges it",
-                          minimum=0.0, exclusive_minimum=True)
-    accel_std: float = param(4.0, "m/s^2, process noise of the root Kalman filter", minimum=0.0,
-                             exclusive_minimum=True)
-    meas_std: float = param(0.03, "m, root measurement std", minimum=0.0,
-                            exclusive_minimum=True)
-    joint_alpha: float = param(0.6, "weight of the newest pose in the per-joint smoothing",
-                               minimum=0.0, maximum=1.0, exclusive_minimum=True)
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if self.gate_max_px < self.gate_px:
-            raise ValueError(f"gate_max_px: {self.gate_max_px} is below gate_px {self.gate_px}")
 
 
 @dataclass
@@ -150,8 +99,7 @@ class _FrameView:
     (their gate points built on first use), and the pair-gate results already computed this
     frame."""
 
-    def __init__(self, stage: TemporalAssociator, by_cam: dict[int, FrameDetections],
-                 body: np.ndarray):
+    def __init__(self, stage: TemporalAssociator, by_cam: dict[int, FrameDetections], body: np.ndarray):
         self.stage, self.by_cam = stage, by_cam
         C = len(stage.rig)
         self.n = max([fd.n for fd in by_cam.values()] + [1])
@@ -162,9 +110,9 @@ class _FrameView:
         #: camera -> indices of its valid detections, for cameras with any
         self.ok: dict[int, np.ndarray] = {}
         for c, fd in by_cam.items():
-            self.kp2[c, :fd.n] = fd.kpts2d[:, body]
-            self.kp3[c, :fd.n] = fd.kpts3d[:, body]
-            self.centers[c, :fd.n] = fd.centers
+            self.kp2[c, : fd.n] = fd.kpts2d[:, body]
+            self.kp3[c, : fd.n] = fd.kpts3d[:, body]
+            self.centers[c, : fd.n] = fd.centers
             ok = np.flatnonzero(fd.scores >= stage.params.tau_det)
             self.valid[c, ok] = True
             if ok.size:
@@ -175,8 +123,7 @@ class _FrameView:
         #: pair key -> the pair's capped association cost, m (core/tracking/contested.py)
         self.pair_cost_cache: dict[int, float] = {}
 
-    def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
-                ) -> np.ndarray:
+    def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray) -> np.ndarray:
         """(S,) bool pair gates of detection pairs, each distinct pair tested once per frame."""
         C = len(self.stage.rig)
         keys = ((ca * C + cb) * self.n + da) * self.n + db
@@ -200,11 +147,24 @@ class _FrameView:
 # ---------------------------------------------------------------------------------------
 # the stage
 # ---------------------------------------------------------------------------------------
-TEMPORAL_STAT_KEYS = ("tracks", "tracks_confirmed", "detections_explained", "detections_left",
-                      "tracks_supported", "tracks_few_views", "tracks_one_view",
-                      "tracks_two_view_jumps", "tracks_started", "tracks_reacquired",
-                      "tracks_merged", "tracks_ended", "track_resets", "verify_dropped", "t_track_ms",
-                      "t_associate_ms")
+TEMPORAL_STAT_KEYS = (
+    "tracks",
+    "tracks_confirmed",
+    "detections_explained",
+    "detections_left",
+    "tracks_supported",
+    "tracks_few_views",
+    "tracks_one_view",
+    "tracks_two_view_jumps",
+    "tracks_started",
+    "tracks_reacquired",
+    "tracks_merged",
+    "tracks_ended",
+    "track_resets",
+    "verify_dropped",
+    "t_track_ms",
+    "t_associate_ms",
+)
 
 
 class TemporalAssociator:
@@ -223,8 +183,9 @@ class TemporalAssociator:
         #: the association's pair gates (frames prepared as they arrive: prepare), and the
         #: same gates with the verification's epipolar test (verify_epipolar)
         self.gates = PairGates(rig, params)
-        self.verify_epipolar = (params.epipolar_gate if temporal.verify_epipolar == "association"
-                                else temporal.verify_epipolar)
+        self.verify_epipolar = (
+            params.epipolar_gate if temporal.verify_epipolar == "association" else temporal.verify_epipolar
+        )
         self.verify_gates = self.gates.with_epipolar_gate(self.verify_epipolar)
         self._contest = ContestSettings(params, temporal.pose_weight, self.verify_epipolar, len(rig))
         self._centers = np.stack([c.center for c in rig.cameras])
@@ -242,8 +203,9 @@ class TemporalAssociator:
         if not self.tp.temporal:
             res = associate(self.rig, frames, self.params, self.gates)
             n = len(res.clusters)
-            return TemporalResult(res.clusters, np.full(n, -1, np.int64), np.zeros(n, np.uint8),
-                                  dict(res.stats))
+            return TemporalResult(
+                res.clusters, np.full(n, -1, np.int64), np.zeros(n, np.uint8), dict(res.stats)
+            )
         t0 = time.perf_counter()
         stats: dict[str, float] = dict.fromkeys(TEMPORAL_STAT_KEYS, 0.0)
         self._advance(int(stamp_ns), stats)
@@ -261,16 +223,24 @@ class TemporalAssociator:
         # a camera none of whose detections a track explained goes in as given (no copy of its
         # vertex arrays); the others as the subset of what is left (few once tracks run)
         keep = {c: np.flatnonzero(~u) for c, u in used.items()}
-        stats["detections_left"] = float(sum(
-            int((by_cam[c].scores[k] >= self.params.tau_det).sum()) for c, k in keep.items()))
-        res = associate(self.rig, {self.rig.names[c]: self.gates.select(by_cam[c], k)
-                                   if used[c].any() else by_cam[c] for c, k in keep.items()},
-                        self.params, self.gates)
+        stats["detections_left"] = float(
+            sum(int((by_cam[c].scores[k] >= self.params.tau_det).sum()) for c, k in keep.items())
+        )
+        res = associate(
+            self.rig,
+            {
+                self.rig.names[c]: self.gates.select(by_cam[c], k) if used[c].any() else by_cam[c]
+                for c, k in keep.items()
+            },
+            self.params,
+            self.gates,
+        )
         stats["t_associate_ms"] = (time.perf_counter() - t1) * 1e3
         for k, v in res.stats.items():
             stats.setdefault(k, v)
-        new = [(np.stack([c.members[:, 0], keep_idx(keep, c.members)], axis=1), c.costs)
-               for c in res.clusters]
+        new = [
+            (np.stack([c.members[:, 0], keep_idx(keep, c.members)], axis=1), c.costs) for c in res.clusters
+        ]
         if new and J:
             self._attach(new, by_cam, body, out, stats)
         self._age(out, stats)
@@ -288,8 +258,13 @@ class TemporalAssociator:
                 self.tracker.predict(dt)
         self._last_stamp = stamp_ns
 
-    def _explain(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
-                 used: dict[int, np.ndarray], stats: dict[str, float]) -> dict[int, list]:
+    def _explain(
+        self,
+        by_cam: dict[int, FrameDetections],
+        body: np.ndarray,
+        used: dict[int, np.ndarray],
+        stats: dict[str, float],
+    ) -> dict[int, list]:
         """Steps 2-4: detections explained by the tracks' predictions, verified; then once more
         against the projections of each verified cluster's own triangulation (this frame's
         estimate, tighter than the prediction: a view where the prediction was ambiguous
@@ -300,8 +275,9 @@ class TemporalAssociator:
         sig = np.sqrt(np.stack([t.Pc[0, 0] + t.Pc[1, 1] + t.Pc[2, 2] for t in tracks]) / 3.0)
         _, z = project(self._P[:, None, None], pred[None])  # (C,T,J) m, all cameras at once
         depth = nanmedian(np.where(z > 0, z, np.nan))  # (C,T)
-        gate = np.minimum(self.tp.gate_px + self.tp.gate_sigma * self._focal[:, None] * sig
-                          / depth, self.tp.gate_max_px).T  # (T,C) px
+        gate = np.minimum(
+            self.tp.gate_px + self.tp.gate_sigma * self._focal[:, None] * sig / depth, self.tp.gate_max_px
+        ).T  # (T,C) px
         cand = self._assign(view, pred, gate)
         cam, det, present, keep, X = self._verify_candidates(view, cand)
         refit = keep.sum(1) >= 2
@@ -310,13 +286,19 @@ class TemporalAssociator:
             again = self._assign(view, np.where(refit[:, None, None], X, pred), gate)
             if not np.array_equal(again, cand):  # the same candidates verify the same way
                 cam, det, present, keep, X = self._verify_candidates(view, again)
-        return self._take_explained(cam, det, present, keep, X,
-                                    lambda c, d: view.kp2[c, d], used, stats)
+        return self._take_explained(cam, det, present, keep, X, lambda c, d: view.kp2[c, d], used, stats)
 
-    def _take_explained(self, cam: np.ndarray, det: np.ndarray, present: np.ndarray,
-                        keep: np.ndarray, X: np.ndarray,
-                        body_kpts: Callable[[int, int], np.ndarray], used: dict[int, np.ndarray],
-                        stats: dict[str, float]) -> dict[int, list]:
+    def _take_explained(
+        self,
+        cam: np.ndarray,
+        det: np.ndarray,
+        present: np.ndarray,
+        keep: np.ndarray,
+        X: np.ndarray,
+        body_kpts: Callable[[int, int], np.ndarray],
+        used: dict[int, np.ndarray],
+        stats: dict[str, float],
+    ) -> dict[int, list]:
         """Update every track from its verified members (padded (T,M) cam, det, present, keep;
         joints X (T,J,3)), or from one view and its prediction; mark the members used.
         body_kpts(c, d) -> (J,2) px body keypoints of detection d in camera c. Returns track key
@@ -336,16 +318,20 @@ class TemporalAssociator:
                 self.tracker.update(t, X[i])
                 few = n < self.params.k_min
                 stats["tracks_few_views"] += few
-                out[t.key] = [members, np.full(n, np.nan),
-                              FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
+                out[t.key] = [members, np.full(n, np.nan), FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
             elif t.id >= 0 and present[i].any() and self.tp.one_view:
                 c, d = self._one_view(present[i], keep[i], cam[i], det[i])
-                self.tracker.update(t, rays_nearest(self._P[c], self._centers[c],
-                                                     body_kpts(c, d), t.joints),
-                                    meas_std=self.tp.one_view_std)
+                self.tracker.update(
+                    t,
+                    rays_nearest(self._P[c], self._centers[c], body_kpts(c, d), t.joints),
+                    meas_std=self.tp.one_view_std,
+                )
                 stats["tracks_one_view"] += 1
-                out[t.key] = [np.array([[c, d]]), np.full(1, np.nan),
-                              FLAG_TRACKED | FLAG_FEW_VIEWS | FLAG_ONE_VIEW]
+                out[t.key] = [
+                    np.array([[c, d]]),
+                    np.full(1, np.nan),
+                    FLAG_TRACKED | FLAG_FEW_VIEWS | FLAG_ONE_VIEW,
+                ]
             else:
                 continue
             for c, d in out[t.key][0].tolist():
@@ -402,12 +388,14 @@ class TemporalAssociator:
         present = det >= 0
         uv = np.where(present[:, :, None, None], view.kp2[cam, np.maximum(det, 0)], np.nan)
         passes = self._pair_gates(view, cam, det, present)
-        keep, X = verify_clusters(self._P[cam], uv, present, passes, self.params.tau_verify,
-                          self.params.min_support)
+        keep, X = verify_clusters(
+            self._P[cam], uv, present, passes, self.params.tau_verify, self.params.min_support
+        )
         return cam, det, present, keep, X
 
-    def _pair_gates(self, view: _FrameView, cam: np.ndarray, det: np.ndarray,
-                    present: np.ndarray) -> np.ndarray:
+    def _pair_gates(
+        self, view: _FrameView, cam: np.ndarray, det: np.ndarray, present: np.ndarray
+    ) -> np.ndarray:
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
         gates (:meth:`_gate_pairs`); a pair already tested this frame (the refinement pass
         proposes mostly the same clusters) is looked up, not tested again."""
@@ -421,8 +409,9 @@ class TemporalAssociator:
         passes[t, ma, mb] = passes[t, mb, ma] = ok
         return passes
 
-    def _gate_pairs(self, view: _FrameView, ca: np.ndarray, cb: np.ndarray, da: np.ndarray,
-                    db: np.ndarray) -> np.ndarray:
+    def _gate_pairs(
+        self, view: _FrameView, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
+    ) -> np.ndarray:
         """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
         association's pair gates (core.association.gates: bbox-centre reprojection, epipolar
         on mesh vertices or keypoints, ``verify_epipolar``) and the association's pair cost
@@ -448,23 +437,29 @@ class TemporalAssociator:
         return ok
 
     @staticmethod
-    def _one_view(present: np.ndarray, keep: np.ndarray, cam: np.ndarray, det: np.ndarray
-                  ) -> tuple[int, int]:
+    def _one_view(present: np.ndarray, keep: np.ndarray, cam: np.ndarray, det: np.ndarray) -> tuple[int, int]:
         """The single view left: the verified one if any, else the first candidate."""
         k = int(np.flatnonzero(keep if keep.any() else present)[0])
         return int(cam[k]), int(det[k])
 
-    def _attach(self, new: list[tuple[np.ndarray, np.ndarray]],
-                by_cam: dict[int, FrameDetections], body: np.ndarray,
-                out: dict[int, list], stats: dict[str, float]) -> None:
+    def _attach(
+        self,
+        new: list[tuple[np.ndarray, np.ndarray]],
+        by_cam: dict[int, FrameDetections],
+        body: np.ndarray,
+        out: dict[int, list],
+        stats: dict[str, float],
+    ) -> None:
         """Step 5: each new (members, costs) cluster merges into a track supported this frame
         (the union verified as the track's own candidates are), re-acquires an unsupported
         track, or starts a tentative one."""
         joints = self._triangulate([m for m, _ in new], by_cam, body)  # (K,J,3)
         tracks = self.tracker.tracks
         taken = np.zeros(len(new), bool)
-        for group, merge in (([t for t in tracks if t.key in out], True),
-                             ([t for t in tracks if t.key not in out], False)):
+        for group, merge in (
+            ([t for t in tracks if t.key in out], True),
+            ([t for t in tracks if t.key not in out], False),
+        ):
             if not group or taken.all():
                 continue
             d = mean_distance(np.stack([t.joints for t in group]), joints)  # (G,K)
@@ -478,8 +473,7 @@ class TemporalAssociator:
                 taken[k] = True
                 if merge:
                     stats["tracks_merged"] += 1
-                    merged = self._merge(t, out[t.key], members, costs, joints[k], by_cam, body,
-                                         stats)
+                    merged = self._merge(t, out[t.key], members, costs, joints[k], by_cam, body, stats)
                     if merged is not None:
                         out[t.key] = merged
                 else:
@@ -491,9 +485,17 @@ class TemporalAssociator:
             out[t.key] = [new[k][0], new[k][1], 0]
             stats["tracks_started"] += 1
 
-    def _merge(self, t: Track, old: list, members: np.ndarray, costs: np.ndarray,
-               joints: np.ndarray, by_cam: dict[int, FrameDetections], body: np.ndarray,
-               stats: dict[str, float]) -> list | None:
+    def _merge(
+        self,
+        t: Track,
+        old: list,
+        members: np.ndarray,
+        costs: np.ndarray,
+        joints: np.ndarray,
+        by_cam: dict[int, FrameDetections],
+        body: np.ndarray,
+        stats: dict[str, float],
+    ) -> list | None:
         """The entry [members, costs, flags] of track t (its entry this frame ``old``) merged with
         a new cross-view cluster (members, costs; body joints (J,3)) lying within reid_m of it,
         or None to keep ``old``. The union is verified as the track's own candidates are
@@ -518,8 +520,9 @@ class TemporalAssociator:
         few = FLAG_FEW_VIEWS if len(both) < self.params.k_min else 0
         return [both, np.full(len(both), np.nan), (old[2] & ~FLAG_FEW_VIEWS & ~FLAG_ONE_VIEW) | few]
 
-    def _verify_union(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
-                      both: np.ndarray) -> np.ndarray:
+    def _verify_union(
+        self, by_cam: dict[int, FrameDetections], body: np.ndarray, both: np.ndarray
+    ) -> np.ndarray:
         """The verified members (K,2) (camera, detection; camera order) of a track's cluster
         merged with a new cluster of other cameras (both (M,2)). Each part was verified alone,
         their union was not: a view consistent with one part (e.g. a body mixed from two
@@ -531,16 +534,17 @@ class TemporalAssociator:
         cam, det, _, keep, _ = self._verify_candidates(_FrameView(self, by_cam, body), cand)
         return np.stack([cam[0, keep[0]], det[0, keep[0]]], axis=1)
 
-    def _triangulate(self, clusters: list[np.ndarray], by_cam: dict[int, FrameDetections],
-                     body: np.ndarray) -> np.ndarray:
+    def _triangulate(
+        self, clusters: list[np.ndarray], by_cam: dict[int, FrameDetections], body: np.ndarray
+    ) -> np.ndarray:
         """(K,J,3) DLT body joints of clusters (no member dropped; associate verified them)."""
         K, M = len(clusters), max(len(m) for m in clusters)
         cam = np.zeros((K, M), np.int64)
         present = np.zeros((K, M), bool)
         uv = np.full((K, M, body.size, 2), np.nan)
         for k, m in enumerate(clusters):  # one row per person
-            cam[k, :len(m)] = m[:, 0]
-            present[k, :len(m)] = True
+            cam[k, : len(m)] = m[:, 0]
+            present[k, : len(m)] = True
             for j, (c, d) in enumerate(m.tolist()):
                 uv[k, j] = by_cam[c].kpts2d[d][body]
         X, _ = triangulate_members(self._P[cam], uv, present)
@@ -560,12 +564,13 @@ class TemporalAssociator:
         stats["tracks_confirmed"] = float(sum(t.id >= 0 for t in alive))
         stats["tracks_supported"] = float(len(out))
 
-    def _result(self, out: dict[int, list], stats: dict[str, float], t0: float
-                ) -> TemporalResult:
+    def _result(self, out: dict[int, list], stats: dict[str, float], t0: float) -> TemporalResult:
         """Clusters of >= 2 views (one view triangulates nothing), ordered by first member."""
         ids = {t.key: t.id for t in self.tracker.tracks}
-        rows = sorted(((m, c, key, f) for key, (m, c, f) in out.items() if len(m) >= 2),
-                      key=lambda r: tuple(r[0][0].tolist()))
+        rows = sorted(
+            ((m, c, key, f) for key, (m, c, f) in out.items() if len(m) >= 2),
+            key=lambda r: tuple(r[0][0].tolist()),
+        )
         clusters = [Cluster(members=m, costs=c) for m, c, _, _ in rows]
         track_ids = np.array([ids.get(key, -1) for _, _, key, _ in rows], np.int64)
         flags = np.array([f for _, _, _, f in rows], np.uint8)
