@@ -3,8 +3,8 @@
 - ``gates``: the pair gates (bbox-centre reprojection, dense-mesh epipolar distance) behind
   one interface (PairGates: prepare each camera frame, decide a frame set's pairs) and the
   execution settings (ExecutionParams);
-- ``clustering``: gated pairs -> clusters (the consistent clustering, or the paper's per-pair
-  Hungarian + union-find) and its numba kernel;
+- ``clustering``: gated pairs -> clusters (the consistent clustering) and its numba kernel;
+  ``clustering_groups``: the paper's per-pair Hungarian + union-find and the spectral baseline;
 - ``params``: :class:`AssociationParams` (the method's thresholds, holding its
   ExecutionParams) and PAPER_PIPELINE;
 - ``pipeline``: :func:`associate` (frames keyed by camera -> :class:`AssociationResult`).

@@ -37,19 +37,22 @@ over all kept detections, weights exp(-(PA-MPJPE / sigma)^2) (0 within a camera;
 geometric gates), normalised spectral clustering into as many people as the most crowded
 camera has detections, then the paper's conflict removal.
 """
+
 from __future__ import annotations
 
-import warnings
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.cluster.vq import kmeans2
-from scipy.optimize import linear_sum_assignment
 
 import maem_ros.core.association.clustering_kernel as clustering_kernel
-from maem_ros.core.detections import PASSED, REJECTED_COST, DetectionTable, PairSet, camera_pair_groups
+from maem_ros.core.association.clustering_groups import (
+    Found,
+    PairCost,
+    groups_of,
+    paper,
+    spectral,
+)
+from maem_ros.core.detections import PASSED, REJECTED_COST, DetectionTable, PairSet
 from maem_ros.core.geometry.multiview import normal_entries, reprojection_error, solve_normal
 from maem_ros.core.intsets import sorted_unique, unique_inverse
 
@@ -65,28 +68,20 @@ REJECTED_PAIR_GAIN = -0.25
 #: objective weight (x tau_cost) of a pair that passed the geometric gates but costs more than
 #: tau_cost: it never starts a merge, and neither rewards nor penalises a cluster holding it
 CAPPED_PAIR_GAIN = 0.0
-#: spectral baseline affinity width (m): about the body-joint PA-MPJPE of one person's
-#: detections in two views (see the simulator's noise model), so that same-person weights
-#: stay near 1 and different-person weights fall towards 0
-SPECTRAL_SIGMA = 0.05
 #: upper bound on local moves per frame set, as a multiple of the detections (each move
 #: raises the objective, so the search ends anyway; this only bounds the time)
 MAX_MOVES_PER_DETECTION = 2
 
-#: (rows_a, rows_b) -> pose costs (m) of those detection pairs, aligned a onto b
-PairCost = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
-
-@dataclass
-class Found:
-    """Clusters as table rows (sorted arrays, before k_min) and rows dropped as conflicts."""
-
-    groups: list[np.ndarray]
-    conflicts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-
-def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.ndarray,
-            params: AssociationParams, stats: dict[str, float], pair_cost: PairCost) -> Found:
+def cluster(
+    table: DetectionTable,
+    pairs: PairSet,
+    P: np.ndarray,
+    joints: np.ndarray,
+    params: AssociationParams,
+    stats: dict[str, float],
+    pair_cost: PairCost,
+) -> Found:
     """Cluster the table's rows with ``params.clustering`` (see the module docstring).
 
     P (C,3,4) the rig's rectified projections; joints: keypoint indices of the pair cost and
@@ -94,12 +89,13 @@ def cluster(table: DetectionTable, pairs: PairSet, P: np.ndarray, joints: np.nda
     if len(table) == 0:
         return Found([])
     if params.clustering == "paper":
-        return _paper(table, pairs, stats, pair_cost)
+        return paper(table, pairs, stats, pair_cost)
     if params.clustering == "spectral":
-        return _spectral(table, stats, pair_cost)
+        return spectral(table, stats, pair_cost)
     kernels = _kernels(params.execution.backend)
-    return _consistent(table, pairs, _Verifier(table, P, joints, params.tau_verify, kernels),
-                       params, stats, kernels)
+    return _consistent(
+        table, pairs, _Verifier(table, P, joints, params.tau_verify, kernels), params, stats, kernels
+    )
 
 
 def _kernels(backend: str):
@@ -117,8 +113,7 @@ class _Verifier:
     """Batched cluster check: body joints triangulated (DLT) from all members, each member's
     median reprojection error (px) must stay under tau_verify."""
 
-    def __init__(self, table: DetectionTable, P: np.ndarray, joints: np.ndarray, tau: float,
-                 kernels=None):
+    def __init__(self, table: DetectionTable, P: np.ndarray, joints: np.ndarray, tau: float, kernels=None):
         # one extra row N stands for padding: no usable joint, zero DLT share
         N, Jb = len(table), joints.size
         self.uv = np.zeros((N + 1, Jb, 2))
@@ -130,8 +125,11 @@ class _Verifier:
         self.usable[:N] = np.isfinite(self.uv[:N]).all(-1)
         # each row's share of every candidate cluster's DLT system, computed once per frame
         # set (unusable joints weigh 0): (9,N+1,Jb)
-        self.E = (normal_entries(self.P[:, None], self.uv, self.usable) * self.usable
-                  if kernels is None else kernels.verifier_entries(self.P, self.uv, self.usable))
+        self.E = (
+            normal_entries(self.P[:, None], self.uv, self.usable) * self.usable
+            if kernels is None
+            else kernels.verifier_entries(self.P, self.uv, self.usable)
+        )
         self.kernels = kernels  # clustering_kernel (numba) or None (numpy)
 
     def __call__(self, rows: np.ndarray) -> np.ndarray:
@@ -140,7 +138,7 @@ class _Verifier:
             return np.zeros(rows.shape[0], bool)
         if self.kernels is not None:
             return self.kernels.consistent(self.E, self.P, self.uv, self.usable, rows, self.tau)
-        rows = rows[:, :int((rows >= 0).sum(1).max())]  # members first: drop padding columns
+        rows = rows[:, : int((rows >= 0).sum(1).max())]  # members first: drop padding columns
         present = rows >= 0
         r = np.where(present, rows, self.usable.shape[0] - 1)
         P = self.P[r]  # (K,M,3,4)
@@ -160,8 +158,9 @@ class _Verifier:
         return np.asarray(~bad.any(axis=1))  # (K,) bool (any's stubs allow a scalar)
 
 
-def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float, kernels=None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _gain_matrix(
+    table: DetectionTable, pairs: PairSet, tau: float, kernels=None
+) -> tuple[np.ndarray, np.ndarray]:
     """(gain (N,N), geometric (N,N) bool) over table rows.
 
     gain: tau - cost for pairs that passed everything, CAPPED_PAIR_GAIN x tau for pairs that
@@ -172,23 +171,40 @@ def _gain_matrix(table: DetectionTable, pairs: PairSet, tau: float, kernels=None
     (one compiled pass over the pairs, the same tables) or None."""
     N = len(table)
     if kernels is not None:
-        return kernels.gain_tables(pairs.i, pairs.j, pairs.stage, pairs.cost, table.offsets, N,
-                                   tau, REJECTED_PAIR_GAIN * tau, CAPPED_PAIR_GAIN * tau,
-                                   PASSED, REJECTED_COST)
+        return kernels.gain_tables(
+            pairs.i,
+            pairs.j,
+            pairs.stage,
+            pairs.cost,
+            table.offsets,
+            N,
+            tau,
+            REJECTED_PAIR_GAIN * tau,
+            CAPPED_PAIR_GAIN * tau,
+            PASSED,
+            REJECTED_COST,
+        )
     geo = np.flatnonzero(pairs.geometric)  # a few % of the pairs: index them once
     gi, gj = pairs.i[geo], pairs.j[geo]
     geometric = np.zeros((N, N), bool)
     geometric[gi, gj] = geometric[gj, gi] = True
     gain = np.full((N, N), REJECTED_PAIR_GAIN * tau)
-    gain[gi, gj] = gain[gj, gi] = np.where(pairs.stage[geo] == PASSED, tau - pairs.cost[geo],
-                                           CAPPED_PAIR_GAIN * tau)
+    gain[gi, gj] = gain[gj, gi] = np.where(
+        pairs.stage[geo] == PASSED, tau - pairs.cost[geo], CAPPED_PAIR_GAIN * tau
+    )
     for start, end in zip(table.offsets[:-1].tolist(), table.offsets[1:].tolist()):
         gain[start:end, start:end] = 0.0  # rows are grouped by camera
     return gain, geometric
 
 
-def _consistent(table: DetectionTable, pairs: PairSet, verify: _Verifier,
-                params: AssociationParams, stats: dict[str, float], kernels) -> Found:
+def _consistent(
+    table: DetectionTable,
+    pairs: PairSet,
+    verify: _Verifier,
+    params: AssociationParams,
+    stats: dict[str, float],
+    kernels,
+) -> Found:
     gain, geometric = _gain_matrix(table, pairs, params.tau_cost, kernels)
     label = np.arange(len(table))
     label = _greedy_merges(table, pairs, gain, geometric, label, verify, params, stats, kernels)
@@ -196,7 +212,7 @@ def _consistent(table: DetectionTable, pairs: PairSet, verify: _Verifier,
     # each pair once: the geometric pairs i < j within one cluster
     geo = np.flatnonzero(pairs.geometric)
     stats["matched_pairs"] = float(np.count_nonzero(label[pairs.i[geo]] == label[pairs.j[geo]]))
-    return Found(_groups(label))
+    return Found(groups_of(label))
 
 
 def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
@@ -220,8 +236,7 @@ def _members_padded(label: np.ndarray, parts: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kernels
-                   ) -> np.ndarray:
+def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kernels) -> np.ndarray:
     """Best-first verified merges in rounds until no allowed merge is left.
 
     label: each row its own cluster (label = row). Cluster-level tables indexed by label are
@@ -246,8 +261,19 @@ def _greedy_merges(table, pairs, gain, gated, label, verify, params, stats, kern
     size = np.bincount(label, minlength=N)
     if kernels is not None:  # the same rounds, compiled (clustering_kernel.greedy_merges)
         label, merged, rejected = kernels.greedy_merges(
-            links, between, support, camset, size, label, params.min_support,
-            verify.E, verify.P, verify.uv, verify.usable, verify.tau)
+            links,
+            between,
+            support,
+            camset,
+            size,
+            label,
+            params.min_support,
+            verify.E,
+            verify.P,
+            verify.uv,
+            verify.usable,
+            verify.tau,
+        )
         stats["merges_rejected"] += float(rejected)
         stats["merges"] += float(merged)
         return label
@@ -292,8 +318,14 @@ def _relabel_links(links: np.ndarray, into: np.ndarray, n: int) -> np.ndarray:
     return sorted_unique(a[apart] * n + b[apart])
 
 
-def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
-            support: np.ndarray, camset: np.ndarray) -> None:
+def _absorb(
+    x: np.ndarray,
+    y: np.ndarray,
+    size: np.ndarray,
+    between: np.ndarray,
+    support: np.ndarray,
+    camset: np.ndarray,
+) -> None:
     """Clusters y[k] merged into x[k] (all distinct) in the cluster-level tables, in place
     (the numpy rounds; the compiled rounds update the matrices by clustering_kernel._absorb,
     the same sums)."""
@@ -308,8 +340,9 @@ def _absorb(x: np.ndarray, y: np.ndarray, size: np.ndarray, between: np.ndarray,
     camset[y] = False
 
 
-def _verified_disjoint(a: np.ndarray, b: np.ndarray, size: np.ndarray, label: np.ndarray,
-                       verify: _Verifier, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _verified_disjoint(
+    a: np.ndarray, b: np.ndarray, size: np.ndarray, label: np.ndarray, verify: _Verifier, n: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(taken, failed) indices k of the candidate merges (a[k], b[k]) (cluster labels < n,
     best first): the best-first pass over the merges that pass the check (from three members
     on), and the merges the check refused on the way.
@@ -374,8 +407,9 @@ def _local_moves(table, gain, gated, label, verify, params, stats, kernels=None)
     camset[label, table.cam] = True
     refused = np.zeros((N, K), bool)  # verified inconsistent until the target changes
     for _ in range(MAX_MOVES_PER_DETECTION * N):
-        into, d_best, leave = _move_scores(G, S, label, camset, table.cam, refused, size,
-                                           params.min_support, kernels)
+        into, d_best, leave = _move_scores(
+            G, S, label, camset, table.cam, refused, size, params.min_support, kernels
+        )
         cand = np.flatnonzero((into > 1e-12) | (leave > 1e-12))
         if cand.size == 0:
             break
@@ -420,9 +454,17 @@ def _local_moves(table, gain, gated, label, verify, params, stats, kernels=None)
     return label
 
 
-def _move_scores(G: np.ndarray, S: np.ndarray, label: np.ndarray, camset: np.ndarray,
-                 cam: np.ndarray, refused: np.ndarray, size: np.ndarray, min_support: float,
-                 kernels=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _move_scores(
+    G: np.ndarray,
+    S: np.ndarray,
+    label: np.ndarray,
+    camset: np.ndarray,
+    cam: np.ndarray,
+    refused: np.ndarray,
+    size: np.ndarray,
+    min_support: float,
+    kernels=None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(into, d_best, leave) (N,) of the local moves' step: the best objective change of
     moving each detection into another cluster (-inf if none is allowed) and that cluster
     (the first best), and that of moving it out alone (-inf if alone already). G, S (N,K)
@@ -456,125 +498,3 @@ def _cluster_sums(matrix: np.ndarray, label: np.ndarray, k: int, kernels=None) -
         cols = np.flatnonzero(rank == r)
         out[:, label[cols]] += matrix[:, cols]
     return out
-
-
-def _groups(label: np.ndarray) -> list[np.ndarray]:
-    """Sorted row arrays of each label, ordered by first row."""
-    order = np.argsort(label, kind="stable")  # rows ascending within each label
-    bounds = np.flatnonzero(np.diff(label[order])) + 1
-    groups = [g for g in np.split(order, bounds) if g.size]
-    return [groups[k] for k in np.argsort([int(g[0]) for g in groups], kind="stable").tolist()]
-
-
-# ---------------------------------------------------------------------------------------
-# the paper's pipeline
-# ---------------------------------------------------------------------------------------
-#: cost given to gated pairs in the Hungarian matrix: any real match is preferred, and
-#: an assignment that lands on it is discarded
-_GATED = 1e9
-
-
-def _paper(table, pairs, stats, pair_cost) -> Found:
-    matched = _hungarian(table, pairs)
-    stats["matched_pairs"] = float(matched.size)
-    groups = _union_find(table, pairs.i[matched], pairs.j[matched])
-    return _remove_conflicts(table, groups, stats, pair_cost)
-
-
-def _hungarian(table, pairs) -> np.ndarray:
-    """Indices into pairs of the Hungarian matches, per camera pair (gated pairs never match)."""
-    ok = pairs.passed
-    matched = []
-    ca, cb = table.cam[pairs.i], table.cam[pairs.j]
-    for a, b, idx in camera_pair_groups(ca, cb):
-        pi = pairs.i[idx] - table.offsets[a]
-        pj = pairs.j[idx] - table.offsets[b]
-        M = np.full((table.offsets[a + 1] - table.offsets[a], table.offsets[b + 1] - table.offsets[b]),
-                    _GATED)
-        use = ok[idx]
-        M[pi[use], pj[use]] = pairs.cost[idx[use]]
-        rows, cols = linear_sum_assignment(M)
-        real = M[rows, cols] < _GATED
-        lookup = np.full(M.shape, -1, dtype=np.int64)
-        lookup[pi, pj] = idx
-        matched.append(lookup[rows[real], cols[real]])
-    return np.concatenate(matched) if matched else np.zeros(0, dtype=np.int64)
-
-
-def _union_find(table, u: np.ndarray, v: np.ndarray) -> list[np.ndarray]:
-    """Connected components (sorted row arrays) of the match graph, singletons included."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    N = len(table)
-    graph = coo_matrix((np.ones(u.size), (u, v)), shape=(N, N))
-    _, label = connected_components(graph, directed=False)
-    return _groups(label)
-
-
-def _remove_conflicts(table, groups, stats, pair_cost) -> Found:
-    """While a group holds two detections of one camera, drop the one with the highest mean
-    cost to the rest of the group (NaN counts as worst)."""
-    conflicts = []
-    for rows in groups:
-        cams = table.cam[rows]
-        if np.unique(cams).size == cams.size:
-            continue
-        Cm = cost_matrix(rows, pair_cost)
-        alive = np.ones(rows.size, bool)
-        while True:
-            c, counts = np.unique(cams[alive], return_counts=True)
-            dup = c[counts > 1]
-            if dup.size == 0:
-                break
-            cand = np.flatnonzero(alive & np.isin(cams, dup))
-            mean = mean_to_rest(Cm, alive)[cand]
-            worst = cand[int(np.argmax(np.where(np.isnan(mean), np.inf, mean)))]
-            alive[worst] = False
-            conflicts.append(rows[worst])
-    stats["conflicts_removed"] += float(len(conflicts))
-    return Found(groups, np.array(sorted(conflicts), dtype=np.int64))
-
-
-def cost_matrix(rows: np.ndarray, pair_cost: PairCost) -> np.ndarray:
-    """Symmetric (M,M) pair costs of the rows (entry m<n aligns m onto n), NaN diagonal."""
-    r, c = np.triu_indices(rows.size, 1)
-    Cm = np.full((rows.size, rows.size), np.nan)
-    Cm[r, c] = Cm[c, r] = pair_cost(rows[r], rows[c])
-    return Cm
-
-
-def mean_to_rest(Cm: np.ndarray, alive: np.ndarray) -> np.ndarray:
-    """(...,M) mean cost of each member to the other alive members, ignoring NaN (NaN if
-    none), of cost matrices Cm (...,M,M)."""
-    use = alive[None, :] & ~np.eye(len(alive), dtype=bool) & np.isfinite(Cm)
-    n = use.sum(axis=-1)
-    total = np.where(use, Cm, 0.0).sum(axis=-1)
-    return np.where(n > 0, total / np.maximum(n, 1), np.nan)
-
-
-# ---------------------------------------------------------------------------------------
-# spectral baseline (PA-MPJPE matching)
-# ---------------------------------------------------------------------------------------
-def _spectral(table, stats, pair_cost) -> Found:
-    N = len(table)
-    k = int(np.diff(table.offsets).max())
-    if N < 2 or k < 1:
-        return Found(_groups(np.arange(N)))
-    i, j = np.triu_indices(N, 1)
-    other = table.cam[i] != table.cam[j]
-    i, j = i[other], j[other]
-    W = np.zeros((N, N))
-    w = np.exp(-(np.nan_to_num(pair_cost(i, j), nan=np.inf) / SPECTRAL_SIGMA) ** 2)
-    W[i, j] = W[j, i] = w
-    d = W.sum(1)
-    inv = np.where(d > 0, 1.0 / np.sqrt(np.maximum(d, 1e-300)), 0.0)
-    L = inv[:, None] * W * inv[None, :]
-    _, vecs = np.linalg.eigh(L)
-    U = vecs[:, -min(k, N):]
-    U /= np.maximum(np.linalg.norm(U, axis=1, keepdims=True), 1e-12)
-    with warnings.catch_warnings():  # an emptied k-means cluster warns: simply fewer people
-        warnings.simplefilter("ignore", UserWarning)
-        _, label = kmeans2(U, min(k, N), minit="++", seed=np.random.default_rng(0), missing="warn")
-    groups = _groups(label)
-    stats["matched_pairs"] = float(sum(g.size - 1 for g in groups))
-    return _remove_conflicts(table, groups, stats, pair_cost)

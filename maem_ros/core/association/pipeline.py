@@ -34,6 +34,7 @@ import numpy as np
 import maem_ros.core.association.clustering as clustering
 import maem_ros.core.association.clustering_kernel as clustering_kernel
 import maem_ros.core.geometry.procrustes_kernel as procrustes_kernel
+from maem_ros.core.association.clustering_groups import mean_to_rest
 from maem_ros.core.association.gates import PairGates
 from maem_ros.core.association.gates import warmup as warmup_gates
 from maem_ros.core.association.params import PAPER_PIPELINE, AssociationParams
@@ -313,7 +314,7 @@ def mean_costs(groups: list[np.ndarray], pair_cost: PoseCosts) -> list[np.ndarra
         n = which.size * r[m].size
         Cm[:, r[m], c[m]] = Cm[:, c[m], r[m]] = flat[k : k + n].reshape(which.size, -1)
         k += n
-        for g, mean in zip(which.tolist(), clustering.mean_to_rest(Cm, np.ones(m, bool))):
+        for g, mean in zip(which.tolist(), mean_to_rest(Cm, np.ones(m, bool))):
             out[g] = mean
     return out
 

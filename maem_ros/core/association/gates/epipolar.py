@@ -55,6 +55,7 @@ contiguous array, float32 or float64; float64 points are summed in float64), wit
 A point at the epipole has an undefined line: its distance is inf (or NaN, mapped to inf),
 which rejects the pair.
 """
+
 from __future__ import annotations
 
 import threading
@@ -84,15 +85,34 @@ from maem_ros.core.detections import vertex_subset
 from maem_ros.core.intsets import sorted_unique
 from maem_ros.core.jit import have_numba
 
-__all__ = ["BACKENDS", "PRECISIONS", "PairMatrices", "PointRows", "block_order", "epipolar_sums",
-           "frame_sums", "pair_matrices", "point_distances", "point_rows", "vertex_subset",
-           "warmup"]
+__all__ = [
+    "BACKENDS",
+    "PRECISIONS",
+    "PairMatrices",
+    "PointRows",
+    "block_order",
+    "epipolar_sums",
+    "frame_sums",
+    "pair_matrices",
+    "point_distances",
+    "point_rows",
+    "vertex_subset",
+    "warmup",
+]
 
 
-def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.ndarray,
-                  ia: np.ndarray, jb: np.ndarray, tau: float, symmetric: bool = True,
-                  early_exit: bool = True, backend: str = "auto", precision: str = "mixed"
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def epipolar_sums(
+    xa: np.ndarray | PointRows,
+    xb: np.ndarray | PointRows,
+    F: np.ndarray,
+    ia: np.ndarray,
+    jb: np.ndarray,
+    tau: float,
+    symmetric: bool = True,
+    early_exit: bool = True,
+    backend: str = "auto",
+    precision: str = "mixed",
+) -> tuple[np.ndarray, np.ndarray]:
     """Distance sums of the detection pairs (ia[s] in a, jb[s] in b) of one camera pair.
 
     xa (Na,n,2), xb (Nb,n,2) rectified px (float32 or float64, point k = same body spot, NaN =
@@ -100,17 +120,35 @@ def epipolar_sums(xa: np.ndarray | PointRows, xb: np.ndarray | PointRows, F: np.
     Returns (sums (S,) px, used (S,) int points summed): :func:`frame_sums` of one camera pair.
     """
     ia = np.asarray(ia)
-    return frame_sums({0: point_rows(xa), 1: point_rows(xb)}, {(0, 1): F},
-                      np.zeros(ia.shape, np.int64), ia, np.ones(ia.shape, np.int64), jb, tau,
-                      symmetric, early_exit, backend, precision)
+    return frame_sums(
+        {0: point_rows(xa), 1: point_rows(xb)},
+        {(0, 1): F},
+        np.zeros(ia.shape, np.int64),
+        ia,
+        np.ones(ia.shape, np.int64),
+        jb,
+        tau,
+        symmetric,
+        early_exit,
+        backend,
+        precision,
+    )
 
 
-def frame_sums(points: Mapping[int, np.ndarray | PointRows],
-               F: Mapping[tuple[int, int], np.ndarray] | PairMatrices, cam_a: np.ndarray,
-               det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray, tau: float,
-               symmetric: bool = True,
-               early_exit: bool = True, backend: str = "auto", precision: str = "mixed",
-               count_rest: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def frame_sums(
+    points: Mapping[int, np.ndarray | PointRows],
+    F: Mapping[tuple[int, int], np.ndarray] | PairMatrices,
+    cam_a: np.ndarray,
+    det_a: np.ndarray,
+    cam_b: np.ndarray,
+    det_b: np.ndarray,
+    tau: float,
+    symmetric: bool = True,
+    early_exit: bool = True,
+    backend: str = "auto",
+    precision: str = "mixed",
+    count_rest: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """Distance sums of the detection pairs of every camera pair of a frame, in one kernel call.
 
     points[c]: camera c's (N,n,2) rectified px (float32 or float64, point k = same body spot,
@@ -132,22 +170,32 @@ def frame_sums(points: Mapping[int, np.ndarray | PointRows],
     not reach (read for presence only), so ``used`` is every point both detections have, for
     every pair, and early exit changes only the rejected pairs' sums.
     """
-    sums, used, _ = frame_sums_reached(points, F, cam_a, det_a, cam_b, det_b, tau, symmetric,
-                                early_exit, backend, precision, count_rest)
+    sums, used, _ = frame_sums_reached(
+        points, F, cam_a, det_a, cam_b, det_b, tau, symmetric, early_exit, backend, precision, count_rest
+    )
     return sums, used
 
 
-def frame_sums_reached(points: Mapping[int, np.ndarray | PointRows],
-                F: Mapping[tuple[int, int], np.ndarray] | PairMatrices, cam_a: np.ndarray,
-                det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray, tau: float,
-                symmetric: bool,
-                early_exit: bool, backend: str, precision: str, count_rest: bool
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def frame_sums_reached(
+    points: Mapping[int, np.ndarray | PointRows],
+    F: Mapping[tuple[int, int], np.ndarray] | PairMatrices,
+    cam_a: np.ndarray,
+    det_a: np.ndarray,
+    cam_b: np.ndarray,
+    det_b: np.ndarray,
+    tau: float,
+    symmetric: bool,
+    early_exit: bool,
+    backend: str,
+    precision: str,
+    count_rest: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`frame_sums` and, third, the points each pair's sum reached (``used`` without
     count_rest)."""
     plan = frame_pairs(points, F, cam_a, det_a, cam_b, det_b)
-    return level_sums(plan, points, np.arange(plan.which.size), tau, symmetric, early_exit,
-                       backend, precision, count_rest)
+    return level_sums(
+        plan, points, np.arange(plan.which.size), tau, symmetric, early_exit, backend, precision, count_rest
+    )
 
 
 @dataclass(frozen=True)
@@ -173,15 +221,21 @@ class FramePairs:
     order: np.ndarray
 
 
-def frame_pairs(points: Mapping[int, np.ndarray | PointRows],
-                 F: Mapping[tuple[int, int], np.ndarray] | PairMatrices, cam_a: np.ndarray,
-                 det_a: np.ndarray, cam_b: np.ndarray, det_b: np.ndarray) -> FramePairs:
+def frame_pairs(
+    points: Mapping[int, np.ndarray | PointRows],
+    F: Mapping[tuple[int, int], np.ndarray] | PairMatrices,
+    cam_a: np.ndarray,
+    det_a: np.ndarray,
+    cam_b: np.ndarray,
+    det_b: np.ndarray,
+) -> FramePairs:
     """:class:`FramePairs` of pairs (det_a[s] of camera cam_a[s], det_b[s] of cam_b[s]) over
     the cameras' points; ValueError naming the first bad input."""
     pairs = [np.ascontiguousarray(v, dtype=np.int64) for v in (cam_a, det_a, cam_b, det_b)]
     if any(v.ndim != 1 or v.shape != pairs[0].shape for v in pairs):
-        raise ValueError(f"epipolar pairs: cameras and detections must be equal-length 1D, got "
-                         f"{[v.shape for v in pairs]}")
+        raise ValueError(
+            f"epipolar pairs: cameras and detections must be equal-length 1D, got {[v.shape for v in pairs]}"
+        )
     cam_a, det_a, cam_b, det_b = pairs
     cams = sorted_unique(np.concatenate([cam_a, cam_b])).tolist()
     if cams and cams[0] < 0:
@@ -204,13 +258,22 @@ def frame_pairs(points: Mapping[int, np.ndarray | PointRows],
     K = int(offsets[-1])
     # one stable sort on a combined key (np.lexsort of the three keys took 3x as long)
     order = np.argsort((keys[0] * W + which) * K + keys[1], kind="stable")
-    return FramePairs(cam_a, det_a, cam_b, det_b, cams, counts, offsets, keys[0], keys[1],
-                       which, Fs.unit, order)
+    return FramePairs(
+        cam_a, det_a, cam_b, det_b, cams, counts, offsets, keys[0], keys[1], which, Fs.unit, order
+    )
 
 
-def level_sums(plan: FramePairs, points: Mapping[int, np.ndarray | PointRows],
-                todo: np.ndarray, tau: float, symmetric: bool, early_exit: bool, backend: str,
-                precision: str, count_rest: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def level_sums(
+    plan: FramePairs,
+    points: Mapping[int, np.ndarray | PointRows],
+    todo: np.ndarray,
+    tau: float,
+    symmetric: bool,
+    early_exit: bool,
+    backend: str,
+    precision: str,
+    count_rest: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(sums, used, points summed) of the plan's pairs ``todo`` (indices, ascending) over
     ``points`` (the plan's cameras, the same detections: the full sets or one screening
     level's subsets), as :func:`_frame_sums`."""
@@ -224,8 +287,9 @@ def level_sums(plan: FramePairs, points: Mapping[int, np.ndarray | PointRows],
         rows = {c: r.contiguous() for c, r in rows.items()}
     sizes = {rows[c].n for c in cams}
     if len(sizes) > 1:
-        raise ValueError(f"epipolar points: expected (N,n,2) with one n for every camera, got "
-                         f"n={sorted(sizes)}")
+        raise ValueError(
+            f"epipolar points: expected (N,n,2) with one n for every camera, got n={sorted(sizes)}"
+        )
     if any(rows[c].count != k for c, k in zip(cams, plan.counts.tolist())):
         raise ValueError("epipolar points: a level's detections differ from the pairs' cameras'")
     n = sizes.pop() if sizes else 0
@@ -234,35 +298,59 @@ def level_sums(plan: FramePairs, points: Mapping[int, np.ndarray | PointRows],
         return np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
     use_numba = backend == "numba" or (backend == "auto" and have_numba())
     if not use_numba:
-        return _numpylevel_sums(plan, rows, todo, float(tau) if early_exit else np.inf,
-                                 bool(symmetric), bool(count_rest))
+        return _numpylevel_sums(
+            plan, rows, todo, float(tau) if early_exit else np.inf, bool(symmetric), bool(count_rest)
+        )
     if not have_numba():
         raise ValueError("backend: 'numba' requested but numba is not installed")
-    return _numbalevel_sums(rows, plan, todo, n, float(tau), bool(symmetric),
-                             bool(early_exit), precision, bool(count_rest))
+    return _numbalevel_sums(
+        rows, plan, todo, n, float(tau), bool(symmetric), bool(early_exit), precision, bool(count_rest)
+    )
 
 
-def _numpylevel_sums(plan: FramePairs, rows: dict[int, PointRows], todo: np.ndarray,
-                      tau: float, symmetric: bool, count_rest: bool
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _numpylevel_sums(
+    plan: FramePairs,
+    rows: dict[int, PointRows],
+    todo: np.ndarray,
+    tau: float,
+    symmetric: bool,
+    count_rest: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The numpy reference on the plan's pairs todo, one camera pair at a time."""
     S = todo.size
     which = plan.which[todo]
-    cam_a, det_a, cam_b, det_b = (v[todo] for v in (plan.cam_a, plan.det_a, plan.cam_b,
-                                                    plan.det_b))
+    cam_a, det_a, cam_b, det_b = (v[todo] for v in (plan.cam_a, plan.det_a, plan.cam_b, plan.det_b))
     out = np.zeros(S), np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
     for g in sorted_unique(which).tolist():
         s = np.flatnonzero(which == g)
-        for v, got in zip(out, _numpy_sums(rows[int(cam_a[s[0]])], rows[int(cam_b[s[0]])],
-                                           plan.unit[g].reshape(3, 3), det_a[s], det_b[s],
-                                           tau, symmetric, count_rest)):
+        for v, got in zip(
+            out,
+            _numpy_sums(
+                rows[int(cam_a[s[0]])],
+                rows[int(cam_b[s[0]])],
+                plan.unit[g].reshape(3, 3),
+                det_a[s],
+                det_b[s],
+                tau,
+                symmetric,
+                count_rest,
+            ),
+        ):
             v[s] = got
     return out
 
 
-def _numbalevel_sums(rows: dict[int, PointRows], plan: FramePairs, todo: np.ndarray, n: int,
-                      tau: float, symmetric: bool, early_exit: bool, precision: str,
-                      count_rest: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _numbalevel_sums(
+    rows: dict[int, PointRows],
+    plan: FramePairs,
+    todo: np.ndarray,
+    n: int,
+    tau: float,
+    symmetric: bool,
+    early_exit: bool,
+    precision: str,
+    count_rest: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The numba kernel on the plan's pairs todo: the detections they read numbered once
     (each one's block ranges computed once for all its pairs), the pairs in the
     plan's order (a detection's pairs one after another: its block stays hot; those of one
@@ -273,21 +361,21 @@ def _numbalevel_sums(rows: dict[int, PointRows], plan: FramePairs, todo: np.ndar
     if len({f.dtype for f in flats}) > 1:  # mixed float32/float64 cameras: all in float64
         flats = [f.astype(np.float64) for f in flats]
     # float64 points (keypoints: few per detection) always take the float64 path
-    mixed = (precision == "mixed" and flats[0].dtype == np.float32 and rsqrt_within_bound())
+    mixed = precision == "mixed" and flats[0].dtype == np.float32 and rsqrt_within_bound()
     chosen = np.zeros(plan.which.size, bool)
     chosen[todo] = True
     order = plan.order[chosen[plan.order]]  # this level's pairs in the kernel's order
     key_a, key_b = plan.key_a[order], plan.key_b[order]
     # flats stay referenced during the call
-    dets, rank, det_addr = detections_read(plan, key_a, key_b, flats,
-                                            [rows[c].rows for c in cams])
+    dets, rank, det_addr = detections_read(plan, key_a, key_b, flats, [rows[c].rows for c in cams])
     like = flats[0]
     layout = rows[cams[0]]
     ranges = _known_ranges([rows[c] for c in cams], dets, n, mixed)
     if layout.run:  # a subset read in runs: each detection's points gathered once, contiguous
         like = gather_buffer(dets.size * 2 * n, like.dtype).reshape(dets.size, 2 * n)
-        numba_kernels().gather_runs(flats[0], det_addr, layout.run, layout.period, like, 0,
-                                     np.empty((0, 0), like.dtype))
+        numba_kernels().gather_runs(
+            flats[0], det_addr, layout.run, layout.period, like, 0, np.empty((0, 0), like.dtype)
+        )
         det_addr = like.ctypes.data + np.arange(dets.size, dtype=np.int64) * like.strides[0]
         like = like.reshape(-1)
     if like.flags.writeable:
@@ -297,9 +385,22 @@ def _numbalevel_sums(rows: dict[int, PointRows], plan: FramePairs, todo: np.ndar
         like = like.view()
         like.setflags(write=False)
     got = numba_kernels().sums_kernel(
-        like, det_addr, ranges, plan.unit, plan.which[order], rank[key_a], rank[key_b],
-        block_order(n), n, tau, early_exit, symmetric, mixed,
-        mixed and refined_rsqrt_within_bound(), count_rest)
+        like,
+        det_addr,
+        ranges,
+        plan.unit,
+        plan.which[order],
+        rank[key_a],
+        rank[key_b],
+        block_order(n),
+        n,
+        tau,
+        early_exit,
+        symmetric,
+        mixed,
+        mixed and refined_rsqrt_within_bound(),
+        count_rest,
+    )
     # back from the kernel's order to todo's
     at = np.empty(plan.which.size, np.int64)
     at[todo] = np.arange(todo.size)
@@ -309,9 +410,9 @@ def _numbalevel_sums(rows: dict[int, PointRows], plan: FramePairs, todo: np.ndar
     return out
 
 
-def detections_read(plan: FramePairs, key_a: np.ndarray, key_b: np.ndarray,
-                     flats: list[np.ndarray], rows: list[np.ndarray]
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def detections_read(
+    plan: FramePairs, key_a: np.ndarray, key_b: np.ndarray, flats: list[np.ndarray], rows: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(dets, rank, det_addr) of the detections that pairs (frame-wide keys key_a[s],
     key_b[s]) read: their keys ascending, each key's place among them (rank[key]; meaningless
     for keys no pair reads) and each one's first coordinate as an address in flats (one
@@ -337,9 +438,12 @@ def _known_ranges(rows: list[PointRows], dets: np.ndarray, n: int, mixed: bool) 
     given = [r.ranges for r in rows]
     if not mixed or all(g is None for g in given):
         return np.full((dets.size, order.shape[0], 2), np.nan)
-    natural = np.concatenate([g if g is not None else
-                              np.full((r.count, order.shape[0], 2), np.nan, np.float32)
-                              for g, r in zip(given, rows)])
+    natural = np.concatenate(
+        [
+            g if g is not None else np.full((r.count, order.shape[0], 2), np.nan, np.float32)
+            for g, r in zip(given, rows)
+        ]
+    )
     return natural[dets][:, order[:, 0] // BLOCK].astype(np.float64)
 
 
@@ -359,10 +463,12 @@ def gather_buffer(size: int, dtype: np.dtype, slot: int = 0, align: int = 64) ->
         _scratch.raw = {}
     raw = _scratch.raw.get(slot)
     if raw is None or raw.size < need:
-        raw = _scratch.raw[slot] = np.empty(max(need + need // 2, 2 * raw.size
-                                                if raw is not None else 0), np.uint8)
+        raw = _scratch.raw[slot] = np.empty(
+            max(need + need // 2, 2 * raw.size if raw is not None else 0), np.uint8
+        )
     skip = -raw.ctypes.data % align
-    return raw[skip:skip + need - align].view(dtype)
+    return raw[skip : skip + need - align].view(dtype)
+
 
 def warmup() -> None:
     """Compile (or load from numba's on-disk cache) the kernels for float32 mesh vertices and
@@ -393,22 +499,29 @@ def point_distances(xa: np.ndarray, xb: np.ndarray, F: np.ndarray, symmetric: bo
     l2 = F[2, 0] * ua + F[2, 1] * va + F[2, 2]
     e = np.abs(ub * l0 + vb * l1 + l2)
     q = l0 * l0 + l1 * l1
-    at_epipole = q <= EPIPOLE_NORM ** 2
+    at_epipole = q <= EPIPOLE_NORM**2
     with np.errstate(divide="ignore", invalid="ignore"):
         d = e / np.sqrt(q)
         if symmetric:
             m0 = F[0, 0] * ub + F[1, 0] * vb + F[2, 0]
             m1 = F[0, 1] * ub + F[1, 1] * vb + F[2, 1]
             qb = m0 * m0 + m1 * m1
-            at_epipole |= qb <= EPIPOLE_NORM ** 2
+            at_epipole |= qb <= EPIPOLE_NORM**2
             d = 0.5 * (d + e / np.sqrt(qb))
     missing = np.isnan(ua + va + ub + vb)
     return np.where(missing, np.nan, np.where(at_epipole | np.isnan(d), np.inf, d))
 
 
-def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb: np.ndarray,
-                tau: float, symmetric: bool, count_rest: bool
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _numpy_sums(
+    ra: PointRows,
+    rb: PointRows,
+    F: np.ndarray,
+    ia: np.ndarray,
+    jb: np.ndarray,
+    tau: float,
+    symmetric: bool,
+    count_rest: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Reference path: all pairs of a block at once, blocks in the fixed order, early exit;
     (sums, used, points summed)."""
     S = ia.size
@@ -437,9 +550,15 @@ def _numpy_sums(ra: PointRows, rb: PointRows, F: np.ndarray, ia: np.ndarray, jb:
     return sums, summed + rest, summed
 
 
-def _block_points(ra: PointRows, rb: PointRows, ia: np.ndarray, jb: np.ndarray,
-                  idx: np.ndarray, F: np.ndarray, symmetric: bool
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def _block_points(
+    ra: PointRows,
+    rb: PointRows,
+    ia: np.ndarray,
+    jb: np.ndarray,
+    idx: np.ndarray,
+    F: np.ndarray,
+    symmetric: bool,
+) -> tuple[np.ndarray, np.ndarray]:
     """(distances (S,m) px, present (S,m) bool) of points idx of the pairs (ia, jb)."""
     oa = ra.rows[ia, None] + 2 * ra.positions(idx)[None, :]
     ob = rb.rows[jb, None] + 2 * rb.positions(idx)[None, :]
@@ -449,13 +568,13 @@ def _block_points(ra: PointRows, rb: PointRows, ia: np.ndarray, jb: np.ndarray,
     return d, ~np.isnan(d)
 
 
-
 @lru_cache(maxsize=1)
 def rsqrt_within_bound() -> bool:
     """Whether the compiled float32 1/sqrt of the kernels (the instructions LLVM picks for
     this CPU) is within half of RSQRT_ERR of the exact value; if not, the mixed kernel's
     error bound would not hold, and "mixed" runs in float64 instead."""
     from maem_ros.core.association.gates.epipolar_kernel import rsqrt32
+
     return _rsqrt_probe(rsqrt32) <= RSQRT_ERR / 2
 
 
@@ -464,6 +583,7 @@ def refined_rsqrt_within_bound() -> bool:
     """Whether the refined float32 1/sqrt of a pair's second try is within half of
     RSQRT_ERR_REFINED; if not, pairs the first bound cannot settle go to float64 at once."""
     from maem_ros.core.association.gates.epipolar_kernel import rsqrt32_refined
+
     return _rsqrt_probe(rsqrt32_refined) <= RSQRT_ERR_REFINED / 2
 
 
@@ -473,8 +593,9 @@ def _rsqrt_probe(kernel) -> float:
     (8 or more arguments in every table cell of the 12- and 14-bit estimates) through the
     widest vector loop and through the narrower remainder code (chunks shorter than one
     vector), and a sweep over the whole exponent range."""
-    every = np.arange(np.float32(1.0).view(np.int32), np.float32(4.0).view(np.int32),
-                      61, dtype=np.int32).view(np.float32)
+    every = np.arange(
+        np.float32(1.0).view(np.int32), np.float32(4.0).view(np.int32), 61, dtype=np.int32
+    ).view(np.float32)
     q = np.concatenate([every, np.geomspace(1e-30, 1e30, 200_003).astype(np.float32)])
     worst = 0.0
     for probe, step in ((q, q.size), (every, _REMAINDER_PROBE)):
@@ -494,4 +615,5 @@ def numba_kernels():
     """The numba kernels' module (compiled, or loaded from numba's on-disk cache, on first
     use)."""
     from maem_ros.core.association.gates import epipolar_kernel
+
     return epipolar_kernel

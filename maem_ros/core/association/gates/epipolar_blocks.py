@@ -4,6 +4,7 @@ detection), block coordinate ranges, the float32 sums' rigorous rounding-error b
 per-pair steps of the frame kernel (epipolar_kernel) that settle, exit early or retry a pair.
 The arithmetic and its bound are documented in core.association.gates.epipolar.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,7 +31,7 @@ from maem_ros.core.association.gates.epipolar_jit import (
 )
 
 #: squared line norm at (or below) which a point is at the epipole (F of unit norm)
-_Q_EPIPOLE = EPIPOLE_NORM ** 2
+_Q_EPIPOLE = EPIPOLE_NORM**2
 
 
 @jit
@@ -156,8 +157,8 @@ def block32_sums(a, b, gs, k, symmetric, fetch, next_a, next_b):
     step = chunk_step(fetch, m)
     for k0 in range(0, m, step):
         k1 = chunk_start(k0, m, step, next_a, next_b)
-        ak = a[2 * k0:2 * k1]
-        bk = b[2 * k0:2 * k1]
+        ak = a[2 * k0 : 2 * k1]
+        bk = b[2 * k0 : 2 * k1]
         # a constant per call: a loop without the branch
         if symmetric:
             dp, ds, dq = chunk32(ak, bk, g0, g1, g2, g3, g4, g5, g6, g7, g8, True)
@@ -209,13 +210,11 @@ def chunk32x2(a, b, d, g0, g1, g2, g3, g4, g5, g6, g7, g8, symmetric):
         l1 = g3 * ua + g4 * va + g5
         l2 = g6 * ua + g7 * va + g8
         wa = np.float32(1.0) / np.sqrt(l0 * l0 + l1 * l1)
-        ew, w = b_terms(b[2 * j], b[2 * j + 1], l0, l1, l2, wa, g0, g1, g3, g4, g6, g7,
-                        symmetric)
+        ew, w = b_terms(b[2 * j], b[2 * j + 1], l0, l1, l2, wa, g0, g1, g3, g4, g6, g7, symmetric)
         p1 += ew
         s1 += w
         q1 += ew * w
-        ew, w = b_terms(d[2 * j], d[2 * j + 1], l0, l1, l2, wa, g0, g1, g3, g4, g6, g7,
-                        symmetric)
+        ew, w = b_terms(d[2 * j], d[2 * j + 1], l0, l1, l2, wa, g0, g1, g3, g4, g6, g7, symmetric)
         p2 += ew
         s2 += w
         q2 += ew * w
@@ -236,23 +235,23 @@ def block32x2(a, b, d, gs, k, symmetric, fetch, next_a, next_b):
     step = chunk_step(fetch, m)
     for k0 in range(0, m, step):
         k1 = chunk_start(k0, m, step, next_a, next_b)
-        ak = a[2 * k0:2 * k1]
-        bk = b[2 * k0:2 * k1]
-        dk = d[2 * k0:2 * k1]
+        ak = a[2 * k0 : 2 * k1]
+        bk = b[2 * k0 : 2 * k1]
+        dk = d[2 * k0 : 2 * k1]
         if symmetric:
-            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, g0, g1, g2, g3, g4, g5, g6,
-                                                     g7, g8, True)
+            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, g0, g1, g2, g3, g4, g5, g6, g7, g8, True)
         else:
-            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, g0, g1, g2, g3, g4, g5, g6,
-                                                     g7, g8, False)
+            dp1, ds1, dq1, dp2, ds2, dq2 = chunk32x2(ak, bk, dk, g0, g1, g2, g3, g4, g5, g6, g7, g8, False)
         p1 += dp1
         s1 += ds1
         q1 += dq1
         p2 += dp2
         s2 += ds2
         q2 += dq2
-    return ((np.float64(p1), np.float64(s1), np.float64(q1)),
-            (np.float64(p2), np.float64(s2), np.float64(q2)))
+    return (
+        (np.float64(p1), np.float64(s1), np.float64(q1)),
+        (np.float64(p2), np.float64(s2), np.float64(q2)),
+    )
 
 
 @inline
@@ -334,8 +333,7 @@ def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m, rsqrt_err):
     r2 = G[t, 2, 0] * xa0 + G[t, 2, 1] * xa1 + G[t, 2, 2]
     bil = r0 * xb0 + r1 * xb1 + r2
     la = r0 + r1
-    lb = ((G[t, 0, 0] + G[t, 0, 1]) * xb0 + (G[t, 1, 0] + G[t, 1, 1]) * xb1 + G[t, 2, 0]
-          + G[t, 2, 1])
+    lb = (G[t, 0, 0] + G[t, 0, 1]) * xb0 + (G[t, 1, 0] + G[t, 1, 1]) * xb1 + G[t, 2, 0] + G[t, 2, 1]
     lmax = max(la, lb) if h != 1.0 else la
     p, s, q = sums
     # a point at the epipole (float64 rule: ||l_12|| <= EPIPOLE_NORM = epi in g's units)
@@ -346,8 +344,7 @@ def block_bound(G, t, epi, xa0, xa1, xb0, xb1, sums, h, m, rsqrt_err):
         return np.inf, np.inf
     part = h * p
     # sum |e| (wa^2 + wb^2) <= sum |e| w^2 bounds the line-norm term of both sides
-    err = (10.0 * U32 * bil * h * s + 8.0 * U32 * h * lmax * q
-           + (rsqrt_err + (m + 8) * U32) * part)
+    err = 10.0 * U32 * bil * h * s + 8.0 * U32 * h * lmax * q + (rsqrt_err + (m + 8) * U32) * part
     return part, err * (1.0 + BOUND_SLACK)
 
 
@@ -362,7 +359,7 @@ def pair64(a, b, fs, fk, blocks, n, tau, early_exit, ha, symmetric):
     for r in range(blocks.shape[0]):
         lo = blocks[r, 0]
         hi = blocks[r, 1]
-        p, c = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], fs, fk, ha, symmetric)
+        p, c = block64(a[2 * lo : 2 * hi], b[2 * lo : 2 * hi], fs, fk, ha, symmetric)
         total += p if p == p else np.inf  # NaN: undefined line -> cannot pass
         count += c
         seen += hi - lo
@@ -374,12 +371,22 @@ def pair64(a, b, fs, fk, blocks, n, tau, early_exit, ha, symmetric):
 
 
 @inline
-def pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h, symmetric,
-                sums, used, last):
+def pair64_into(
+    s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h, symmetric, sums, used, last
+):
     """pair64 of pair s (detections pa[s], pb[s] under fs[fk[s]]) into sums, used, last."""
-    sums[s], used[s], last[s] = pair64(points(like, det_addr[pa[s]], 0, 2 * n),
-                                       points(like, det_addr[pb[s]], 0, 2 * n), fs, fk[s],
-                                       blocks, n, tau, early_exit, h, symmetric)
+    sums[s], used[s], last[s] = pair64(
+        points(like, det_addr[pa[s]], 0, 2 * n),
+        points(like, det_addr[pb[s]], 0, 2 * n),
+        fs,
+        fk[s],
+        blocks,
+        n,
+        tau,
+        early_exit,
+        h,
+        symmetric,
+    )
 
 
 @plain
@@ -388,8 +395,7 @@ def present64(a, b):
     four coordinates is not NaN), without the distances."""
     count = 0
     for k in range(a.shape[0] // 2):
-        s = (np.float64(a[2 * k]) + np.float64(a[2 * k + 1]) + np.float64(b[2 * k])
-             + np.float64(b[2 * k + 1]))
+        s = np.float64(a[2 * k]) + np.float64(a[2 * k + 1]) + np.float64(b[2 * k]) + np.float64(b[2 * k + 1])
         count += np.int64(s == s)
     return count
 
@@ -401,7 +407,7 @@ def rest_present(a, b, blocks, after):
     for r in range(after + 1, blocks.shape[0]):
         lo = blocks[r, 0]
         hi = blocks[r, 1]
-        count += present64(a[2 * lo:2 * hi], b[2 * lo:2 * hi])
+        count += present64(a[2 * lo : 2 * hi], b[2 * lo : 2 * hi])
     return count
 
 
@@ -474,8 +480,31 @@ def pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges):
 
 
 @inline
-def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, g, G, fs, fk, h,
-           symmetric, tau, early_exit, sums, err, used, alive, fetch):
+def single(
+    s,
+    r,
+    lo,
+    hi,
+    rest,
+    like,
+    det_addr,
+    pa,
+    pb,
+    ranges,
+    g,
+    G,
+    fs,
+    fk,
+    h,
+    symmetric,
+    tau,
+    early_exit,
+    sums,
+    err,
+    used,
+    alive,
+    fetch,
+):
     """Block r = points lo:hi of pair s alone (fetch: in chunks, prefetching the next pair's
     blocks)."""
     i, j, ab, bb, finite = pair_block(s, r, lo, hi, like, det_addr, pa, pb, ranges)
@@ -483,14 +512,13 @@ def single(s, r, lo, hi, rest, like, det_addr, pa, pb, ranges, g, G, fs, fk, h,
     e = np.inf
     if finite:  # no NaN or inf coordinate
         next_a, next_b = next_blocks(s, pa, pb, det_addr, 2 * lo * like.itemsize, fetch)
-        p, e = pair_bound(G, fk[s], ranges, i, j, r,
-                          block32(ab, bb, g, fk[s], symmetric, fetch, next_a, next_b), h,
-                          hi - lo)
+        p, e = pair_bound(
+            G, fk[s], ranges, i, j, r, block32(ab, bb, g, fk[s], symmetric, fetch, next_a, next_b), h, hi - lo
+        )
     if p < np.inf and e < np.inf:
         settle(s, p, e, hi - lo, rest, tau, early_exit, sums, err, used, alive)
     else:
-        settle64(s, ab, bb, fs, fk[s], rest, h, symmetric, tau, early_exit, sums, err, used,
-                 alive)
+        settle64(s, ab, bb, fs, fk[s], rest, h, symmetric, tau, early_exit, sums, err, used, alive)
 
 
 @inline
@@ -527,8 +555,19 @@ def centred_f(f, ca0, ca1, cb0, cb1):
     h02 = f[0] * ca0 + f[1] * ca1 + f[2]
     h12 = f[3] * ca0 + f[4] * ca1 + f[5]
     h22 = f[6] * ca0 + f[7] * ca1 + f[8]
-    t = np.array([f[0], f[1], h02, f[3], f[4], h12, cb0 * f[0] + cb1 * f[3] + f[6],
-                  cb0 * f[1] + cb1 * f[4] + f[7], cb0 * h02 + cb1 * h12 + h22])
+    t = np.array(
+        [
+            f[0],
+            f[1],
+            h02,
+            f[3],
+            f[4],
+            h12,
+            cb0 * f[0] + cb1 * f[3] + f[6],
+            cb0 * f[1] + cb1 * f[4] + f[7],
+            cb0 * h02 + cb1 * h12 + h22,
+        ]
+    )
     return float32_f(t.reshape(1, 9))
 
 
@@ -550,23 +589,22 @@ def refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric):
     for r in range(blocks.shape[0]):
         lo = blocks[r, 0]
         hi = blocks[r, 1]
-        ab = ac[2 * lo:2 * hi]
-        bb = bc[2 * lo:2 * hi]
+        ab = ac[2 * lo : 2 * hi]
+        bb = bc[2 * lo : 2 * hi]
         lo_a, hi_a = block_range(ab, ranges, 0, r)
         lo_b, hi_b = block_range(bb, ranges, 1, r)
         p = np.inf
         e = np.inf
         if lo_a <= hi_a and lo_b <= hi_b:
-            p, e = pair_bound(G, 0, ranges, 0, 1, r, block32_refined(ab, bb, g, 0, symmetric),
-                              h, hi - lo, RSQRT_ERR_REFINED)
+            p, e = pair_bound(
+                G, 0, ranges, 0, 1, r, block32_refined(ab, bb, g, 0, symmetric), h, hi - lo, RSQRT_ERR_REFINED
+            )
         if p < np.inf and e < np.inf:
             total += p
             bound += e
             count += hi - lo
         else:
-            p, k = block64(a[2 * lo:2 * hi], b[2 * lo:2 * hi], fs, fk[s], h, symmetric)
+            p, k = block64(a[2 * lo : 2 * hi], b[2 * lo : 2 * hi], fs, fk[s], h, symmetric)
             total += p if p == p else np.inf
             count += k
     return total, bound, count
-
-

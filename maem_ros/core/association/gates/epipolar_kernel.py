@@ -8,6 +8,7 @@ in a new process: a kernel defined in a closure is hashed with the closure's com
 whose identity changes from process to process, so each process recompiled them and added new
 cache files. The per-block arithmetic is epipolar_blocks'.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -42,8 +43,9 @@ from maem_ros.core.association.gates.epipolar_jit import (
 
 
 @plain
-def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit,
-                symmetric, mixed, refine, count_rest):
+def sums_kernel(
+    like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit, symmetric, mixed, refine, count_rest
+):
     """(sums, used, points summed) of pairs s (detections pa[s], pb[s] under unit F
     fs[fk[s]]); detection d's 2n coordinates start at address det_addr[d] (arrays of like's
     dtype); ranges (D, blocks, 2) float64: each detection's block ranges (block_range; NaN:
@@ -56,11 +58,41 @@ def sums_kernel(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_ex
     summed together; with several blocks the runs are taken in locality_order (each pair's
     sums are those of the given order: they depend on its run, not on the runs' order)."""
     if not (mixed and blocks.shape[0] > 1):
-        return ordered_sums(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau,
-                            early_exit, symmetric, mixed, refine, count_rest)
+        return ordered_sums(
+            like,
+            det_addr,
+            ranges,
+            fs,
+            fk,
+            pa,
+            pb,
+            blocks,
+            n,
+            tau,
+            early_exit,
+            symmetric,
+            mixed,
+            refine,
+            count_rest,
+        )
     perm = locality_order(pa, pb, fk, ranges.shape[0], LOCALITY_BLOCKS)
-    got = ordered_sums(like, det_addr, ranges, fs, fk[perm], pa[perm], pb[perm], blocks, n,
-                       tau, early_exit, symmetric, mixed, refine, count_rest)
+    got = ordered_sums(
+        like,
+        det_addr,
+        ranges,
+        fs,
+        fk[perm],
+        pa[perm],
+        pb[perm],
+        blocks,
+        n,
+        tau,
+        early_exit,
+        symmetric,
+        mixed,
+        refine,
+        count_rest,
+    )
     sums = np.empty(perm.size)
     total = np.empty(perm.size, dtype=np.int64)
     used = np.empty(perm.size, dtype=np.int64)
@@ -172,8 +204,9 @@ def read_recently(d, left, cached, recent):
 
 
 @plain
-def ordered_sums(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit,
-                 symmetric, mixed, refine, count_rest):
+def ordered_sums(
+    like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit, symmetric, mixed, refine, count_rest
+):
     """sums_kernel of the pairs in the order given."""
     S = pa.shape[0]
     h = 0.5 if symmetric else 1.0
@@ -185,8 +218,9 @@ def ordered_sums(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_e
     last = np.full(S, -1, dtype=np.int64)
     if not mixed:
         for s in range(S):
-            pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
-                        symmetric, sums, used, last)
+            pair64_into(
+                s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h, symmetric, sums, used, last
+            )
         return _with_rest(like, det_addr, pa, pb, blocks, n, sums, used, last, count_rest)
     # each camera pair's float32 F, then the blocks outermost: one block of every detection
     # stays in cache while all its candidate pairs read it; a run's lines and weights in a
@@ -216,40 +250,126 @@ def ordered_sums(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_e
                 lo_b, hi_b = block_range(bb, ranges, j, r)
                 lo_d, hi_d = block_range(db, ranges, j2, r)
                 if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
-                    next_a, next_b = next_blocks(t, pa, pb, det_addr,
-                                                 2 * lo * like.itemsize, fetch)
-                    one, two = block32x2(ab, bb, db, g, fk[t], symmetric, fetch, next_a,
-                                         next_b)
+                    next_a, next_b = next_blocks(t, pa, pb, det_addr, 2 * lo * like.itemsize, fetch)
+                    one, two = block32x2(ab, bb, db, g, fk[t], symmetric, fetch, next_a, next_b)
                     p, e = pair_bound(G, fk[t], ranges, i, j, r, one, h, hi - lo)
                     if p < np.inf and e < np.inf:
-                        settle(first, p, e, hi - lo, n - seen, tau, early_exit, sums, err,
-                               used, alive)
+                        settle(first, p, e, hi - lo, n - seen, tau, early_exit, sums, err, used, alive)
                     else:
-                        settle64(first, ab, bb, fs, fk[first], n - seen, h, symmetric, tau,
-                                 early_exit, sums, err, used, alive)
+                        settle64(
+                            first,
+                            ab,
+                            bb,
+                            fs,
+                            fk[first],
+                            n - seen,
+                            h,
+                            symmetric,
+                            tau,
+                            early_exit,
+                            sums,
+                            err,
+                            used,
+                            alive,
+                        )
                     p, e = pair_bound(G, fk[t], ranges, i, j2, r, two, h, hi - lo)
                     if p < np.inf and e < np.inf:
-                        settle(t, p, e, hi - lo, n - seen, tau, early_exit, sums, err, used,
-                               alive)
+                        settle(t, p, e, hi - lo, n - seen, tau, early_exit, sums, err, used, alive)
                     else:
-                        settle64(t, ab, db, fs, fk[t], n - seen, h, symmetric, tau,
-                                 early_exit, sums, err, used, alive)
+                        settle64(
+                            t,
+                            ab,
+                            db,
+                            fs,
+                            fk[t],
+                            n - seen,
+                            h,
+                            symmetric,
+                            tau,
+                            early_exit,
+                            sums,
+                            err,
+                            used,
+                            alive,
+                        )
                 else:
                     for u in (first, t):
-                        single(u, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges, g, G,
-                               fs, fk, h, symmetric, tau, early_exit, sums, err, used, alive,
-                               fetch)
+                        single(
+                            u,
+                            r,
+                            lo,
+                            hi,
+                            n - seen,
+                            like,
+                            det_addr,
+                            pa,
+                            pb,
+                            ranges,
+                            g,
+                            G,
+                            fs,
+                            fk,
+                            h,
+                            symmetric,
+                            tau,
+                            early_exit,
+                            sums,
+                            err,
+                            used,
+                            alive,
+                            fetch,
+                        )
                 first = -1
             if first >= 0:
-                single(first, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges,
-                       g, G, fs, fk, h, symmetric, tau, early_exit, sums, err,
-                       used, alive, fetch)
+                single(
+                    first,
+                    r,
+                    lo,
+                    hi,
+                    n - seen,
+                    like,
+                    det_addr,
+                    pa,
+                    pb,
+                    ranges,
+                    g,
+                    G,
+                    fs,
+                    fk,
+                    h,
+                    symmetric,
+                    tau,
+                    early_exit,
+                    sums,
+                    err,
+                    used,
+                    alive,
+                    fetch,
+                )
             s = run_end[s]
         for t in range(S):  # where this block's early exits stopped
             if not alive[t] and last[t] < 0:
                 last[t] = r
-    settle_open(like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric, tau, early_exit,
-                refine, sums, err, used, alive, last)
+    settle_open(
+        like,
+        det_addr,
+        pa,
+        pb,
+        blocks,
+        n,
+        fs,
+        fk,
+        h,
+        symmetric,
+        tau,
+        early_exit,
+        refine,
+        sums,
+        err,
+        used,
+        alive,
+        last,
+    )
     return _with_rest(like, det_addr, pa, pb, blocks, n, sums, used, last, count_rest)
 
 
@@ -266,22 +386,40 @@ def run_ends(pa, fk):
 
 
 @inline
-def settle_open(like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric, tau, early_exit,
-                refine, sums, err, used, alive, last):
+def settle_open(
+    like,
+    det_addr,
+    pa,
+    pb,
+    blocks,
+    n,
+    fs,
+    fk,
+    h,
+    symmetric,
+    tau,
+    early_exit,
+    refine,
+    sums,
+    err,
+    used,
+    alive,
+    last,
+):
     """The alive pairs whose float32 bound does not settle the decision (the mean is within
     ~2^-10 of tau): again with the refined 1/sqrt (~2^-20), then float64 throughout."""
     for s in range(pa.shape[0]):
         if not alive[s] or decided(sums[s], err[s], used[s], tau):
             continue
         if refine:
-            total, bound, count = refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk,
-                                               h, symmetric)
+            total, bound, count = refined_pair(s, like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric)
             if decided(total, bound, count, tau):
                 sums[s] = total
                 used[s] = count
                 continue
-        pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
-                    symmetric, sums, used, last)
+        pair64_into(
+            s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h, symmetric, sums, used, last
+        )
 
 
 @plain
@@ -291,9 +429,12 @@ def _with_rest(like, det_addr, pa, pb, blocks, n, sums, used, last, count_rest):
     if count_rest:
         for s in range(used.shape[0]):
             if 0 <= last[s] < blocks.shape[0] - 1:
-                total[s] += rest_present(points(like, det_addr[pa[s]], 0, 2 * n),
-                                         points(like, det_addr[pb[s]], 0, 2 * n), blocks,
-                                         last[s])
+                total[s] += rest_present(
+                    points(like, det_addr[pa[s]], 0, 2 * n),
+                    points(like, det_addr[pb[s]], 0, 2 * n),
+                    blocks,
+                    last[s],
+                )
     return sums, total, used
 
 
@@ -320,8 +461,7 @@ def gather_runs(like, det_addr, run, period, out, every, coarse):
                 prefetch(det_addr[d] + 2 * ahead * period * like.itemsize)
             elif d + 1 < D:
                 prefetch(det_addr[d + 1] + 2 * (ahead - runs) * period * like.itemsize)
-            copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
-                     coarse)
+            copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every, coarse)
 
 
 @inline
@@ -342,8 +482,9 @@ _INF_BITS = np.uint32(0x7F800000)
 
 
 @plain
-def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, ranges,
-                     out_ranges, coarse_ranges):
+def scan_gather_runs(
+    like, det_addr, n, block, run, period, out, every, coarse, ranges, out_ranges, coarse_ranges
+):
     """gather_runs of detections of n float32 points each, each detection's ranges[d, b]
     (float32) = block_range of its points b * block:(b + 1) * block (the kernel's blocks in
     their natural order), out_ranges and coarse_ranges the same of its rows of out and
@@ -358,18 +499,25 @@ def scan_gather_runs(like, det_addr, n, block, run, period, out, every, coarse, 
         address_ranges(like, det_addr[d], n, block, ranges, d)
         for b in range(ranges.shape[1]):
             # a NaN or inf in the block: whether an inf (the finiteness check)
-            if (first_inf < 0 and not ranges[d, b, 0] <= ranges[d, b, 1] and
-                    has_inf(block_points(like, det_addr[d], n, block, b).view(np.uint32))):
+            if (
+                first_inf < 0
+                and not ranges[d, b, 0] <= ranges[d, b, 1]
+                and has_inf(block_points(like, det_addr[d], n, block, b).view(np.uint32))
+            ):
                 first_inf = d
         for r in range(runs):
-            copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every,
-                     coarse)
+            copy_run(points(like, det_addr[d], 2 * r * period, 2 * run), d, r, out, every, coarse)
         # the copies' rows, just written (in cache)
-        address_ranges(out, out.ctypes.data + d * out.strides[0], out.shape[1] // 2, block,
-                       out_ranges, d)
+        address_ranges(out, out.ctypes.data + d * out.strides[0], out.shape[1] // 2, block, out_ranges, d)
         if every > 0:
-            address_ranges(coarse, coarse.ctypes.data + d * coarse.strides[0],
-                           coarse.shape[1] // 2, block, coarse_ranges, d)
+            address_ranges(
+                coarse,
+                coarse.ctypes.data + d * coarse.strides[0],
+                coarse.shape[1] // 2,
+                block,
+                coarse_ranges,
+                d,
+            )
     return first_inf
 
 
@@ -406,8 +554,8 @@ def rsqrt32_chunks(q, out, step):
     vector: the loop's remainder code)."""
     n = q.shape[0]
     for start in range(0, n, step):
-        qk = q[start:min(start + step, n)]
-        ok = out[start:min(start + step, n)]
+        qk = q[start : min(start + step, n)]
+        ok = out[start : min(start + step, n)]
         for k in range(qk.shape[0]):
             ok[k] = np.float32(1.0) / np.sqrt(qk[k])
 
