@@ -5,14 +5,16 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from helpers_scene import Person, look_at, pose_frames, ring_rig, two_facing_cameras
 
-from maem_ros.core.association.gates import epipolar
 from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
-from maem_ros.core.geometry.camera import Rig, fundamental_matrix
+from maem_ros.core.association.gates import epipolar
+from maem_ros.core.association.gates.epipolar_constants import RSQRT_ERR
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry.camera import Rig, fundamental_matrix
 from maem_ros.core.geometry.multiview import reprojection_errors
 from maem_ros.core.geometry.procrustes import pa_mpjpe, pa_mpjpe_finite
+
+from helpers_scene import Person, look_at, pose_frames, ring_rig, two_facing_cameras
 
 V, J = 400, 24
 PAPER = PAPER_PIPELINE
@@ -25,7 +27,7 @@ BACKENDS = ["numpy"] + (["numba"] if epipolar.have_numba() else [])
 #: precision evaluates the line equation in float32, whose terms (coordinates of hundreds to
 #: thousands of px) cancel to a small distance: an absolute error of a few 1e-3 px remains
 VARIANTS = [("numpy", "float64", 1e-9, 0.0)] + (
-    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", epipolar.RSQRT_ERR, 5e-3)]
+    [("numba", "float64", 1e-9, 0.0), ("numba", "mixed", RSQRT_ERR, 5e-3)]
     if epipolar.have_numba() else [])
 
 
@@ -463,8 +465,8 @@ def test_cost_cap_and_cost_joints_change_decisions():
 
 
 def test_body_cost_joints_are_the_sportcenter_joints_of_mhr70():
-    from maem_ros.core.skeleton import joint_subset as parse_cost_joints
     from maem_ros.core.skeleton import SPORTCENTER_13_FROM_MHR70
+    from maem_ros.core.skeleton import joint_subset as parse_cost_joints
     assert tuple(parse_cost_joints("body", 70)) == SPORTCENTER_13_FROM_MHR70
     assert tuple(parse_cost_joints("all", 5)) == tuple(range(5))
     assert tuple(parse_cost_joints("4,1,2", 5)) == (4, 1, 2)

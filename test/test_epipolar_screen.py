@@ -13,6 +13,7 @@ import pytest
 
 from maem_ros.core.association import AssociationParams, ExecutionParams, PairGates, associate
 from maem_ros.core.association.gates import epipolar, screening
+from maem_ros.core.association.gates.epipolar_constants import RSQRT_ERR
 from maem_ros.core.detections import DetectionTable, FrameDetections
 
 #: a rectified pair (b = a shifted along x): epipolar lines are image rows, so a vertex's
@@ -24,7 +25,7 @@ TAU = 8.0
 MARGIN = 1.0
 #: relative tolerance of an accepted mean (numba "mixed": the 1/sqrt estimate's bound; every
 #: vertex here sits at one distance, so its error does not average out over the points)
-MEAN_REL = epipolar.RSQRT_ERR
+MEAN_REL = RSQRT_ERR
 #: a coarser screening level before the screen
 COARSE = 32
 COARSE_MARGIN = 2.5

@@ -24,7 +24,7 @@ U32 = 2.0**-24
 #: relative error bound of the float32 1/sqrt of the kernels: the hardware estimate alone on
 #: x86-64 (documented |rel err| <= 1.5 * 2^-12, 3.7e-4; rsqrt14ps 2^-14; 2^-10 leaves a margin
 #: of ~2.7), elsewhere the estimate with LLVM's Newton steps. Checked at first use
-#: (epipolar.rsqrt_within_bound)
+#: (rsqrt_check.rsqrt_within_bound)
 RSQRT_ERR = 2.0**-10
 #: the same of the refined float32 1/sqrt that a pair's second try takes (the estimate plus
 #: one Newton step in float32: ~3 * 2^-24 + 1.7 * 2^-24; 2^-20 leaves a margin of ~3)

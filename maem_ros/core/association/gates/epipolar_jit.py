@@ -79,7 +79,7 @@ _WIDE = '"prefer-vector-width"="512"'
 #: LLVM function attribute: a float32 1/sqrt (``afn``) is the hardware estimate alone, no
 #: Newton step. x86's estimates are documented within 1.5 * 2^-12 relative (rsqrtps; the
 #: AVX-512 rsqrt14ps that 512-bit loops take, 2^-14), inside epipolar.RSQRT_ERR = 2^-10, so
-#: the error bound covers them (and epipolar._rsqrt_within_bound checks it at first use). A
+#: the error bound covers them (and rsqrt_check.rsqrt_within_bound checks it at first use). A
 #: Newton step is 4 vector operations, twice per point of ~36: without it (and with
 #: refined_pair's second try for the pairs the wider bound cannot settle) the large load's
 #: three kernel levels took 20.1-20.4 -> 18.2-19.3 ms (alternating runs, 2-core Xeon VM).

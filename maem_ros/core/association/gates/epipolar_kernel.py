@@ -16,11 +16,8 @@ import numpy as np
 from maem_ros.core.association.gates.epipolar_blocks import (
     FETCH_MIN_POINTS,
     block32x2,
-    block_range,
     decided,
     float32_f,
-    key_range,
-    key_values,
     next_blocks,
     pair64_into,
     pair_bound,
@@ -40,6 +37,7 @@ from maem_ros.core.association.gates.epipolar_jit import (
     prefetch,
     wide_vectors,
 )
+from maem_ros.core.association.gates.epipolar_ranges import block_range, key_range, key_values
 
 
 @plain
@@ -203,10 +201,12 @@ def read_recently(d, left, cached, recent):
     cached[d] = True
 
 
+# fmt: off
+# (the frame kernel's hot loop keeps its dense layout: formatted, its calls of 10-16
+# arguments would take one line each and the loop would no longer read as one screen)
 @plain
-def ordered_sums(
-    like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit, symmetric, mixed, refine, count_rest
-):
+def ordered_sums(like, det_addr, ranges, fs, fk, pa, pb, blocks, n, tau, early_exit,
+                 symmetric, mixed, refine, count_rest):
     """sums_kernel of the pairs in the order given."""
     S = pa.shape[0]
     h = 0.5 if symmetric else 1.0
@@ -218,9 +218,8 @@ def ordered_sums(
     last = np.full(S, -1, dtype=np.int64)
     if not mixed:
         for s in range(S):
-            pair64_into(
-                s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h, symmetric, sums, used, last
-            )
+            pair64_into(s, like, det_addr, pa, pb, fs, fk, blocks, n, tau, early_exit, h,
+                        symmetric, sums, used, last)
         return _with_rest(like, det_addr, pa, pb, blocks, n, sums, used, last, count_rest)
     # each camera pair's float32 F, then the blocks outermost: one block of every detection
     # stays in cache while all its candidate pairs read it; a run's lines and weights in a
@@ -250,127 +249,42 @@ def ordered_sums(
                 lo_b, hi_b = block_range(bb, ranges, j, r)
                 lo_d, hi_d = block_range(db, ranges, j2, r)
                 if lo_a <= hi_a and lo_b <= hi_b and lo_d <= hi_d:
-                    next_a, next_b = next_blocks(t, pa, pb, det_addr, 2 * lo * like.itemsize, fetch)
-                    one, two = block32x2(ab, bb, db, g, fk[t], symmetric, fetch, next_a, next_b)
+                    next_a, next_b = next_blocks(t, pa, pb, det_addr,
+                                                 2 * lo * like.itemsize, fetch)
+                    one, two = block32x2(ab, bb, db, g, fk[t], symmetric, fetch, next_a,
+                                         next_b)
                     p, e = pair_bound(G, fk[t], ranges, i, j, r, one, h, hi - lo)
                     if p < np.inf and e < np.inf:
-                        settle(first, p, e, hi - lo, n - seen, tau, early_exit, sums, err, used, alive)
+                        settle(first, p, e, hi - lo, n - seen, tau, early_exit, sums, err,
+                               used, alive)
                     else:
-                        settle64(
-                            first,
-                            ab,
-                            bb,
-                            fs,
-                            fk[first],
-                            n - seen,
-                            h,
-                            symmetric,
-                            tau,
-                            early_exit,
-                            sums,
-                            err,
-                            used,
-                            alive,
-                        )
+                        settle64(first, ab, bb, fs, fk[first], n - seen, h, symmetric, tau,
+                                 early_exit, sums, err, used, alive)
                     p, e = pair_bound(G, fk[t], ranges, i, j2, r, two, h, hi - lo)
                     if p < np.inf and e < np.inf:
-                        settle(t, p, e, hi - lo, n - seen, tau, early_exit, sums, err, used, alive)
+                        settle(t, p, e, hi - lo, n - seen, tau, early_exit, sums, err, used,
+                               alive)
                     else:
-                        settle64(
-                            t,
-                            ab,
-                            db,
-                            fs,
-                            fk[t],
-                            n - seen,
-                            h,
-                            symmetric,
-                            tau,
-                            early_exit,
-                            sums,
-                            err,
-                            used,
-                            alive,
-                        )
+                        settle64(t, ab, db, fs, fk[t], n - seen, h, symmetric, tau,
+                                 early_exit, sums, err, used, alive)
                 else:
                     for u in (first, t):
-                        single(
-                            u,
-                            r,
-                            lo,
-                            hi,
-                            n - seen,
-                            like,
-                            det_addr,
-                            pa,
-                            pb,
-                            ranges,
-                            g,
-                            G,
-                            fs,
-                            fk,
-                            h,
-                            symmetric,
-                            tau,
-                            early_exit,
-                            sums,
-                            err,
-                            used,
-                            alive,
-                            fetch,
-                        )
+                        single(u, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges, g, G,
+                               fs, fk, h, symmetric, tau, early_exit, sums, err, used, alive,
+                               fetch)
                 first = -1
             if first >= 0:
-                single(
-                    first,
-                    r,
-                    lo,
-                    hi,
-                    n - seen,
-                    like,
-                    det_addr,
-                    pa,
-                    pb,
-                    ranges,
-                    g,
-                    G,
-                    fs,
-                    fk,
-                    h,
-                    symmetric,
-                    tau,
-                    early_exit,
-                    sums,
-                    err,
-                    used,
-                    alive,
-                    fetch,
-                )
+                single(first, r, lo, hi, n - seen, like, det_addr, pa, pb, ranges,
+                       g, G, fs, fk, h, symmetric, tau, early_exit, sums, err,
+                       used, alive, fetch)
             s = run_end[s]
         for t in range(S):  # where this block's early exits stopped
             if not alive[t] and last[t] < 0:
                 last[t] = r
-    settle_open(
-        like,
-        det_addr,
-        pa,
-        pb,
-        blocks,
-        n,
-        fs,
-        fk,
-        h,
-        symmetric,
-        tau,
-        early_exit,
-        refine,
-        sums,
-        err,
-        used,
-        alive,
-        last,
-    )
+    settle_open(like, det_addr, pa, pb, blocks, n, fs, fk, h, symmetric, tau, early_exit,
+                refine, sums, err, used, alive, last)
     return _with_rest(like, det_addr, pa, pb, blocks, n, sums, used, last, count_rest)
+# fmt: on
 
 
 @inline
@@ -562,7 +476,7 @@ def rsqrt32_chunks(q, out, step):
 
 @jit32
 def rsqrt32(q, out, step):
-    """rsqrt32_chunks compiled as block32 is (the probe of epipolar._rsqrt_within_bound)."""
+    """rsqrt32_chunks compiled as block32 is (the probe of rsqrt_check.rsqrt_within_bound)."""
     wide_vectors()
     estimated_rsqrt()
     rsqrt32_chunks(q, out, step)
@@ -571,6 +485,6 @@ def rsqrt32(q, out, step):
 @jit32
 def rsqrt32_refined(q, out, step):
     """rsqrt32_chunks compiled as block32_refined is (the probe of
-    epipolar._rsqrt_within_bound)."""
+    rsqrt_check.rsqrt_within_bound)."""
     wide_vectors()
     rsqrt32_chunks(q, out, step)
