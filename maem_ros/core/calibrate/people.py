@@ -6,6 +6,7 @@ bundle adjustment (bundle) -> people matched again under the refined rig and adj
 time offsets (timing), observations moved to the reference times, adjusted again -> world frame
 (world; court points: court) -> per-camera statistics and warnings.
 """
+
 from __future__ import annotations
 
 import time
@@ -87,25 +88,41 @@ class PeopleCalibration:
     tracks: Tracks | None = None
 
 
+def _pairs_and_start(data: PeopleData, opts: PeopleOptions) -> tuple[list[PairEstimate], InitialRig]:
+    """Steps a and b: every camera pair's relative pose from the people (consensus over
+    detection pairs) and the initial rig over the camera graph; ValueError when fewer than two
+    cameras connect or the options name an unknown time method."""
+    if opts.time_method not in TIME_METHODS:
+        raise ValueError(
+            f"people calibration: PeopleOptions.time_method {opts.time_method!r} is not one of {TIME_METHODS}"
+        )
+    rng = np.random.default_rng(opts.seed)
+    C = data.num_cameras
+    frames = hypothesis_frames(data, _pair_search_frames(data, opts))
+    pairs = [
+        p
+        for a in range(C)
+        for b in range(a + 1, C)
+        if (p := estimate_pair(data, a, b, frames, rng)) is not None
+    ]
+    start = initial_rig(C, pairs)
+    if start.connected.sum() < 2:
+        raise ValueError(
+            "people calibration: no two cameras share enough people "
+            f"(each pair needs {MIN_SUPPORT} agreeing detection pairs)"
+        )
+    return pairs, start
+
+
 def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> PeopleCalibration:
     """Run every stage on ``data``; ValueError when fewer than two cameras can be connected."""
     opts = opts or PeopleOptions()
-    if opts.time_method not in TIME_METHODS:
-        raise ValueError(f"people calibration: PeopleOptions.time_method {opts.time_method!r} "
-                         f"is not one of {TIME_METHODS}")
-    rng = np.random.default_rng(opts.seed)
     timings: dict[str, float] = {}
     clock = time.perf_counter()
     C = data.num_cameras
-    frames = hypothesis_frames(data, _pair_search_frames(data, opts))
-    pairs = [p for a in range(C) for b in range(a + 1, C)
-             if (p := estimate_pair(data, a, b, frames, rng)) is not None]
-    start = initial_rig(C, pairs)
+    pairs, start = _pairs_and_start(data, opts)
     timings["pairs"] = time.perf_counter() - clock
     warnings = _pair_warnings(data, pairs, start)
-    if start.connected.sum() < 2:
-        raise ValueError("people calibration: no two cameras share enough people "
-                         f"(each pair needs {MIN_SUPPORT} agreeing detection pairs)")
     R, t = start.R, start.t
     K = np.stack([c.K_rect for c in data.rig])
     result: BundleResult | None = None
@@ -127,8 +144,9 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
         subset = None if warm else hypothesis_frames(data, opts.first_pass_frames)
         result, prob = _adjust(tracks, K, R, t, opts, start.connected, warm, subset)
         R, t = result.R, result.t
-        timings[f"match+bundle {gate:g}px"] = timings.get(f"match+bundle {gate:g}px", 0.0) + \
-            time.perf_counter() - clock
+        timings[f"match+bundle {gate:g}px"] = (
+            timings.get(f"match+bundle {gate:g}px", 0.0) + time.perf_counter() - clock
+        )
     if result is None or tracks is None or prob is None:
         raise ValueError("people calibration: PeopleOptions.gates_px is empty (no matching pass)")
     delta, delta_sd = np.zeros(C), np.full(C, np.nan)
@@ -143,14 +161,16 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
             P = projection_matrices(K, R, t)
             before = delta.copy()
             # later rounds only refine: the rig moved a little, the offsets a fraction of a frame
-            delta[ok], delta_sd[ok] = estimate_offsets(P[ok], observed.U[ok],
-                                                       opts.max_offset_s * data.fps,
-                                                       opts.time_method,
-                                                       start=delta[ok] if rnd else None)
+            delta[ok], delta_sd[ok] = estimate_offsets(
+                P[ok],
+                observed.U[ok],
+                opts.max_offset_s * data.fps,
+                opts.time_method,
+                start=delta[ok] if rnd else None,
+            )
             if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
                 break
-            tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]),
-                            observed.D)
+            tracks = Tracks(np.stack([shift_in_time(observed.U[c], delta[c]) for c in range(C)]), observed.D)
             result, prob = _adjust(tracks, K, R, t, opts, start.connected, True, None)
             R, t = result.R, result.t
         timings["time offsets"] = time.perf_counter() - clock
@@ -161,9 +181,16 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
     rig = _output_rig(data, R, t, sim, result, delta, start.connected)
     cams = _camera_reports(data, prob, result, sim, delta, delta_sd, start.connected)
     warnings += _camera_warnings(cams)
-    return PeopleCalibration(rig=rig, cameras=cams, warnings=warnings, points=sim.apply(X),
-                             pairs=pairs, scale_source=scale_source, timings=timings,
-                             tracks=tracks)
+    return PeopleCalibration(
+        rig=rig,
+        cameras=cams,
+        warnings=warnings,
+        points=sim.apply(X),
+        pairs=pairs,
+        scale_source=scale_source,
+        timings=timings,
+        tracks=tracks,
+    )
 
 
 def _rig_change_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
@@ -181,8 +208,9 @@ def _pair_search_frames(data: PeopleData, opts: PeopleOptions) -> int:
     return max(opts.hypothesis_frames, int(opts.hypothesis_pairs / pairs_per_frame))
 
 
-def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray, warm: bool,
-            frames: np.ndarray | None):
+def _adjust(
+    tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray, warm: bool, frames: np.ndarray | None
+):
     """Bundle-adjust the tracks' observations (every (track, frame, joint) a free point)
     from the rig (R, t), only ``frames`` when given; the observations of each detection form
     one outlier group."""
@@ -198,12 +226,24 @@ def _adjust(tracks: Tracks, K, R, t, opts: PeopleOptions, connected: np.ndarray,
     Rs = np.where(connected[:, None, None], R, np.eye(3))
     ts = np.where(connected[:, None], t, 0.0)
     group = c * (int(tracks.D.max(initial=0)) + 2) + tracks.D[c, tr, f]
-    prob = BundleProblem(K=K, R=Rs, t=ts, points=X0, obs_camera=c,
-                         obs_point=(tr * F + f) * J + j, obs_uv=U[c, tr, f, j], obs_group=group)
+    prob = BundleProblem(
+        K=K,
+        R=Rs,
+        t=ts,
+        points=X0,
+        obs_camera=c,
+        obs_point=(tr * F + f) * J + j,
+        obs_uv=U[c, tr, f, j],
+        obs_group=group,
+    )
     fixed = (int(np.flatnonzero(connected)[0]),) + tuple(np.flatnonzero(~connected))
-    opts_b = BundleOptions(schedule=WARM_SCHEDULE if warm else DEFAULT_SCHEDULE,
-                           refine_focal=opts.refine_intrinsics, refine_k1=opts.refine_intrinsics,
-                           fixed_cameras=fixed, covariance=True)
+    opts_b = BundleOptions(
+        schedule=WARM_SCHEDULE if warm else DEFAULT_SCHEDULE,
+        refine_focal=opts.refine_intrinsics,
+        refine_k1=opts.refine_intrinsics,
+        fixed_cameras=fixed,
+        covariance=True,
+    )
     return bundle_adjust(prob, opts_b), prob
 
 
@@ -214,8 +254,10 @@ def _world(data: PeopleData, X, rows, R, t, connected, opts: PeopleOptions, warn
     if opts.person_height is not None:
         h = stature(X, data.names)
         if not np.isfinite(h):
-            raise ValueError("person height: the detections lack the ankle, knee, hip, shoulder "
-                             "and nose joints it is measured with")
+            raise ValueError(
+                "person height: the detections lack the ankle, knee, hip, shoulder "
+                "and nose joints it is measured with"
+            )
         s, source = opts.person_height / h, f"person height {opts.person_height:g} m"
     else:
         s = skeleton_scale(X, rows, [c.kpts3d for c in data.cameras], data.names)
@@ -235,8 +277,7 @@ def _world(data: PeopleData, X, rows, R, t, connected, opts: PeopleOptions, warn
     return sim, source
 
 
-def _output_rig(data: PeopleData, R, t, sim: Similarity, result: BundleResult, delta,
-                connected) -> Rig:
+def _output_rig(data: PeopleData, R, t, sim: Similarity, result: BundleResult, delta, connected) -> Rig:
     cams = []
     for c, cam in enumerate(data.rig):
         if not connected[c]:
@@ -249,13 +290,13 @@ def _output_rig(data: PeopleData, R, t, sim: Similarity, result: BundleResult, d
         D = cam.D.copy()
         if result.k1[c] and not cam.is_fisheye:
             D[0] += result.k1[c]
-        cams.append(replace(cam, R=Rw, t=tw, K=K, K_rect=K_rect, D=D,
-                            time_offset=float(delta[c] / data.fps)))
+        cams.append(replace(cam, R=Rw, t=tw, K=K, K_rect=K_rect, D=D, time_offset=float(delta[c] / data.fps)))
     return Rig(cams)
 
 
-def _camera_reports(data: PeopleData, prob: BundleProblem, result: BundleResult, sim: Similarity,
-                    delta, delta_sd, connected) -> list[CameraReport]:
+def _camera_reports(
+    data: PeopleData, prob: BundleProblem, result: BundleResult, sim: Similarity, delta, delta_sd, connected
+) -> list[CameraReport]:
     err = result.errors()
     out = []
     for c, cam in enumerate(data.rig):
@@ -265,24 +306,37 @@ def _camera_reports(data: PeopleData, prob: BundleProblem, result: BundleResult,
         e = err[(prob.obs_camera == c) & result.inliers]
         e = e[np.isfinite(e)]
         cov = result.camera_cov[c] if result.camera_cov is not None else np.full((6, 6), np.nan)
-        out.append(CameraReport(
-            cam.name, True, int(e.size), float(np.median(e)) if e.size else np.nan,
-            float(np.percentile(e, 90)) if e.size else np.nan,
-            float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))),
-            float(sim.s * np.sqrt(max(np.trace(cov[3:, 3:]), 0.0))),
-            float(delta[c] / data.fps), float(delta_sd[c] / data.fps)))
+        out.append(
+            CameraReport(
+                cam.name,
+                True,
+                int(e.size),
+                float(np.median(e)) if e.size else np.nan,
+                float(np.percentile(e, 90)) if e.size else np.nan,
+                float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0)))),
+                float(sim.s * np.sqrt(max(np.trace(cov[3:, 3:]), 0.0))),
+                float(delta[c] / data.fps),
+                float(delta_sd[c] / data.fps),
+            )
+        )
     return out
 
 
 def _pair_warnings(data: PeopleData, pairs: list[PairEstimate], start: InitialRig) -> list[str]:
     names = data.rig.names
-    out = [f"camera pair {names[a]}-{names[b]}: too little shared evidence ({s} agreeing "
-           f"detection pairs, need {MIN_SUPPORT}); not used for the initial rig"
-           for a, b, s in start.weak_pairs]
-    out += [f"camera pair {names[a]}-{names[b]}: its own relative pose disagrees with the rig "
-            f"by {d:.1f} deg" for a, b, d in start.disagreeing]
-    out += [f"camera {names[c]}: NOT CALIBRATED (shares too few people with the other cameras)"
-            for c in np.flatnonzero(~start.connected)]
+    out = [
+        f"camera pair {names[a]}-{names[b]}: too little shared evidence ({s} agreeing "
+        f"detection pairs, need {MIN_SUPPORT}); not used for the initial rig"
+        for a, b, s in start.weak_pairs
+    ]
+    out += [
+        f"camera pair {names[a]}-{names[b]}: its own relative pose disagrees with the rig by {d:.1f} deg"
+        for a, b, d in start.disagreeing
+    ]
+    out += [
+        f"camera {names[c]}: NOT CALIBRATED (shares too few people with the other cameras)"
+        for c in np.flatnonzero(~start.connected)
+    ]
     return out
 
 
@@ -295,11 +349,12 @@ def _camera_warnings(cams: list[CameraReport]) -> list[str]:
     out = []
     for c in done:
         if c.observations < 0.25 * med_obs:
-            out.append(f"camera {c.name}: weak: {c.observations} observations (median camera "
-                       f"{med_obs:.0f})")
+            out.append(f"camera {c.name}: weak: {c.observations} observations (median camera {med_obs:.0f})")
         if c.median_px > 3 * med_err:
-            out.append(f"camera {c.name}: weak: median reprojection error {c.median_px:.1f} px "
-                       f"(median camera {med_err:.1f} px)")
+            out.append(
+                f"camera {c.name}: weak: median reprojection error {c.median_px:.1f} px "
+                f"(median camera {med_err:.1f} px)"
+            )
         if c.rotation_sd_deg > 0.5:
             out.append(f"camera {c.name}: weak: rotation uncertainty {c.rotation_sd_deg:.2f} deg")
     return out
