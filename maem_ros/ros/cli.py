@@ -56,28 +56,44 @@ def stop_on_signals(name: str = "", grace_s: float | None = SHUTDOWN_GRACE_S) ->
     when it begins its teardown by itself.
     """
     stop = threading.Event()
+    armed = threading.Event()  # the GIL-free backstop is set (_arm_backstop)
+
+    def on_signal(*_: object) -> None:
+        # the backstop is armed here, in the main thread, before the interrupted code resumes:
+        # armed by the watchdog thread alone, a main thread that went straight from the stop
+        # into C code holding the GIL would keep that thread from ever arming it
+        if grace_s is not None:
+            _arm_backstop(armed, grace_s)
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+        signal.signal(sig, on_signal)
     if hasattr(signal, "SIGUSR1"):
         faulthandler.register(signal.SIGUSR1, all_threads=True)
     if grace_s is not None:
         threading.Thread(
-            target=_exit_after_grace, args=(stop, name, grace_s), daemon=True, name="shutdown-watchdog"
+            target=_exit_after_grace, args=(stop, armed, name, grace_s), daemon=True, name="shutdown-watchdog"
         ).start()
     return stop
 
 
-#: how faulthandler's timed dump begins (the watchdog's backstop, see _exit_after_grace)
+#: how faulthandler's timed dump begins (the watchdog's backstop, see _arm_backstop)
 STALLED_WITH_GIL = "Timeout ("
 
 
-def _exit_after_grace(stop: threading.Event, name: str, grace_s: float) -> None:
+def _arm_backstop(armed: threading.Event, grace_s: float) -> None:
+    """Backstop without the GIL, once: a teardown stalled inside C code that holds it (seen:
+    rclpy's destroy_node -> destroy_when_not_in_use, 1 run in ~35 of maem-bench --live, until
+    ros/fastdds.py removed that deadlock's cause) keeps the watchdog thread from waking;
+    faulthandler's own thread then dumps the stacks and exits 1, grace_s + 1 s after the stop."""
+    if not armed.is_set():
+        armed.set()
+        faulthandler.dump_traceback_later(grace_s + 1.0, exit=True)
+
+
+def _exit_after_grace(stop: threading.Event, armed: threading.Event, name: str, grace_s: float) -> None:
     stop.wait()
-    # backstop without the GIL: a teardown stalled inside C code that holds it (seen: rclpy's
-    # destroy_node -> destroy_when_not_in_use, 1 run in ~35 of maem-bench --live here, until
-    # ros/fastdds.py removed that deadlock's cause) keeps this thread from waking;
-    # faulthandler's own thread then dumps the stacks and exits 1
-    faulthandler.dump_traceback_later(grace_s + 1.0, exit=True)
+    _arm_backstop(armed, grace_s)  # a stop set by the caller, not by a signal
     time.sleep(grace_s)
     print(
         f"[{name}] {SHUTDOWN_STALLED} {grace_s:g} s after the stop signal; exiting "
