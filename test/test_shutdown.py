@@ -36,9 +36,25 @@ STALLED = textwrap.dedent("""
 """)
 
 
+#: every process start() made, killed when the test ends: a stalled one that outlives a failed
+#: test would spin on a core (the GIL-holding stall never ends by itself)
+_STARTED: list[subprocess.Popen] = []
+
+
+@pytest.fixture(autouse=True)
+def _kill_started():
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(timeout=10)
+
+
 def start(grace_s: float, *how: str) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "-c", STALLED, str(grace_s), *how], text=True,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    _STARTED.append(proc)
     assert proc.stdout.readline().strip() == "ready"
     return proc
 
