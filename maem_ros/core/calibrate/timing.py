@@ -51,6 +51,7 @@ def kernel_tracks(
     deltas: np.ndarray,
     sigma: float = SMOOTH_SIGMA,
     quadratic: bool = False,
+    complete: bool = True,
 ) -> np.ndarray:
     """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
     evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
@@ -89,9 +90,12 @@ def kernel_tracks(
         out = num.reshape(len(deltas), -1, 3) / den[..., None]
         if quadratic:
             out = _local_quadratic(W, ms[None] - deltas[:, None], G, ok, out)
-    col = base - lo  # column of frame floor(k + delta)
-    both = ok[:, col].T & ok[:, col + 1].T  # (D,N)
-    out[~both] = np.nan
+    if complete:  # every sample the kernel weighs present
+        gap = (W > 0).astype(float) @ (~ok).T.astype(float) > 0  # (D,N)
+    else:  # only the two frames around k + delta
+        col = base - lo
+        gap = ~(ok[:, col].T & ok[:, col + 1].T)
+    out[gap] = np.nan
     return out
 
 
