@@ -38,10 +38,6 @@ SIGNIFICANCE = 3.0
 SMOOTH_SIGMA = 0.7
 #: the kernel is cut at this many sd (the weight there is 1e-3 of the centre's)
 KERNEL_REACH = 3.0
-#: complete windows (kernel_tracks): the samples weighing at least this much of the kernel's
-#: peak (within 2.1 sd of k + delta) must be present; a lighter one missing changes the
-#: mean's noise by < 0.1 %
-COMPLETE_WEIGHT = 0.01
 #: frames: a scan reaching further than this finds the basin on partial windows (a complete
 #: window over the whole +-max_offset scan would leave short tracks without any entry)
 COMPLETE_SCAN_REACH = 1.0
@@ -64,7 +60,7 @@ def kernel_tracks(
     """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
     evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
     arrays: track, frame k, joint), for each of the D ``deltas``. ``complete``: NaN unless
-    every sample of weight >= COMPLETE_WEIGHT around k + delta is present; otherwise
+    every sample the kernel weighs (KERNEL_REACH sd around k + delta) is present; otherwise
     (the method before, time_method "gauss_seidel_partial") NaN only where the track lacks
     either frame around k + delta, the missing samples left out of the mean.
 
@@ -109,7 +105,7 @@ def kernel_tracks(
         if quadratic:
             out = _local_quadratic(W, ms[None] - deltas[:, None], G, ok, out)
     if complete:  # every sample the kernel weighs present
-        gap = (W >= COMPLETE_WEIGHT).astype(float) @ (~ok).T.astype(float) > 0  # (D,N)
+        gap = (W > 0).astype(float) @ (~ok).T.astype(float) > 0  # (D,N)
     else:  # only the two frames around k + delta
         col = base - lo
         gap = ~(ok[:, col].T & ok[:, col + 1].T)
