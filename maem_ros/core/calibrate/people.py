@@ -37,7 +37,8 @@ class PeopleOptions:
     than settled_deg (deg) per round; max_offset_s: largest time offset searched (s);
     time_method: "gauss_seidel" (one camera at a time, to convergence) or "joint" (two
     Gauss-Seidel rounds, then all offsets refined together; less accurate on the bench's
-    humanm3_4 scene so far, see doc/calibration.md)."""
+    humanm3_4 scene so far, see doc/calibration.md) or "gauss_seidel_partial" (the default
+    before: also where the tracks have gaps, which biases the offsets; timing.kernel_tracks)."""
 
     hypothesis_frames: int = 15
     hypothesis_pairs: int = 2000

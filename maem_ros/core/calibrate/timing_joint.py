@@ -39,8 +39,10 @@ from .timing import (
 )
 from .tracks import shift_in_time, triangulate
 
-#: the estimators PeopleOptions.time_method may name
-TIME_METHODS = ("joint", "gauss_seidel")
+#: the estimators PeopleOptions.time_method may name ("gauss_seidel_partial": Gauss-Seidel
+#: with the 3D tracks also evaluated where part of the kernel's samples are missing, the
+#: default before; timing.kernel_tracks says why that biases the offsets)
+TIME_METHODS = ("joint", "gauss_seidel", "gauss_seidel_partial")
 #: Gauss-Seidel rounds of the start (the first scans +-max_frames; the second settles the
 #: cameras scanned first against the others' new offsets)
 START_ROUNDS = 2
@@ -64,7 +66,7 @@ class _Problem:
         self.U = np.where(inlier[..., None], U, np.nan)
         self.where = [np.nonzero(np.all(np.isfinite(u), axis=-1)) for u in self.U]
         self.at_k = [
-            _project(P[c], kernel_tracks(X, w, np.zeros(1), JOINT_SIGMA, True)[0])
+            _project(P[c], kernel_tracks(X, w, np.zeros(1), JOINT_SIGMA, True, False)[0])
             for c, w in enumerate(self.where)
         ]
 
@@ -72,7 +74,7 @@ class _Problem:
         """(D,T,F,J,2) px: camera c's keypoints moved to the reference times, for D deltas."""
         w = self.where[c]
         out = np.full((len(deltas),) + self.U.shape[1:], np.nan)
-        at = kernel_tracks(self.X, w, deltas, JOINT_SIGMA, True)
+        at = kernel_tracks(self.X, w, deltas, JOINT_SIGMA, True, False)
         shift = _project(self.P[c], at) - self.at_k[c]
         out[(slice(None),) + w] = self.U[c][w] - shift
         return out
@@ -205,9 +207,10 @@ def estimate_offsets(
     """(C,) offsets in frames of the cameras with projection matrices P (C,3,4) and 2D tracks
     U (C,T,F,J,2) px, relative to the median camera, and their (C,) standard errors (frames;
     NaN for a two-camera rig). ``method``: "joint" (the Gauss-Seidel scan, START_ROUNDS
-    rounds, then refine_joint) or "gauss_seidel" (timing.gauss_seidel_offsets to
-    convergence). ``start`` (C,) frames: offsets already close (a previous rig): no scan.
-    Then the significance tests: an offset within SIGNIFICANCE standard errors of 0 is set to
+    rounds, then refine_joint), "gauss_seidel" (timing.gauss_seidel_offsets to convergence)
+    or "gauss_seidel_partial" (the same on partial kernel windows, timing.kernel_tracks).
+    ``start`` (C,) frames: offsets already close (a previous rig): no scan. Then the
+    significance tests: an offset within SIGNIFICANCE standard errors of 0 is set to
     0, and all are when together they do not improve the cross-view fit (timing._fit_gain_z)
     by SIGNIFICANCE standard errors, so a synchronised rig stays synchronised."""
     if method not in TIME_METHODS:
@@ -215,14 +218,15 @@ def estimate_offsets(
     C = P.shape[0]
     if C == 2:
         return _two_camera_offset(P, U, max_frames), np.full(2, np.nan)
-    if method == "gauss_seidel":
-        delta, sd = gauss_seidel_offsets(P, U, max_frames, start=start)
+    complete = method != "gauss_seidel_partial"
+    if method != "joint":
+        delta, sd = gauss_seidel_offsets(P, U, max_frames, start=start, complete=complete)
     else:
         if start is None:
             start = gauss_seidel_offsets(P, U, max_frames, rounds=START_ROUNDS)[0]
         delta, sd = refine_joint(P, U, start)
     sd = np.where(np.isfinite(sd), sd, np.inf)
     delta[np.abs(delta) < SIGNIFICANCE * sd] = 0.0
-    if np.any(delta) and _fit_gain_z(P, U, delta) < SIGNIFICANCE:
+    if np.any(delta) and _fit_gain_z(P, U, delta, complete) < SIGNIFICANCE:
         delta[:] = 0.0
     return delta, sd

@@ -14,7 +14,7 @@ cameras, 1 px noise), and prints one row per run and a summary against issue 35'
 * run time (s) of the calibration (not of the simulation).
 
     maem-calib-bench [--frames 60] [--seeds 2] [--quick] [--large] [--only NAME]
-                     [--time-method joint|gauss_seidel]
+                     [--time-method joint|gauss_seidel|gauss_seidel_partial]
 
 Timings depend on the machine's load; the brief's machine is shared.
 """

@@ -16,6 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from maem_ros.core.calibrate.timing_joint import TIME_METHODS
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.tools.calibrate.calibrate_sources import BadInput, load_source
 
@@ -50,11 +51,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-offset", type=float, default=0.15, help="largest time offset searched, s")
     p.add_argument(
         "--time-method",
-        choices=("gauss_seidel", "joint"),
+        choices=TIME_METHODS,
         default="gauss_seidel",
-        help="time offset estimator: gauss_seidel (one camera at a time, default) or "
+        help="time offset estimator: gauss_seidel (one camera at a time, default), "
         "joint (then all offsets refined together; less accurate on the bench so far, "
-        "doc/calibration.md)",
+        "doc/calibration.md) or gauss_seidel_partial (the default before: biased by gaps "
+        "in the tracks)",
     )
     p.add_argument(
         "--backend",
