@@ -21,33 +21,25 @@ from typing import Protocol
 
 import numpy as np
 
-from maem_ros.core.association.gates import FrameSet
 from maem_ros.core.association.params import AssociationParams
-from maem_ros.core.association.pipeline import pair_cost
-from maem_ros.core.detections import PASSED, FrameDetections
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
-from maem_ros.core.skeleton import joint_subset
+from maem_ros.core.tracking.pair_costs import FramePairCosts
 
 
 class ContestView(Protocol):
     """What the contested cost reads of the track stage's frame view (temporal._FrameView)."""
 
-    n: int  # detections per camera after padding
     kp3: np.ndarray  # (C,N,J,3) body joints, camera m, NaN padded
-    by_cam: dict[int, FrameDetections]
-    gates: FrameSet  # the frame set's pair gates
-    pair_cost_cache: dict[int, float]  # pair key -> capped pair cost, m
+    costs: FramePairCosts  # the frame set's pair decisions and capped costs
 
 
 @dataclass(frozen=True)
 class ContestSettings:
-    """The settings the contested cost needs: the association's parameters, the stage's
-    ``pose_weight`` (px per m) and epipolar variant, and the rig's camera count."""
+    """The settings the contested cost needs: the association's parameters and the stage's
+    ``pose_weight`` (px per m)."""
 
     params: AssociationParams
     pose_weight: float
-    verify_epipolar: str
-    n_cameras: int
 
 
 def contested_cost(
@@ -86,44 +78,12 @@ def consistency(
     lo = c1 < c2  # the gates and the cost take the lower camera first
     ca, cb = np.where(lo, c1, c2), np.where(lo, c2, c1)
     da, db = np.where(lo, d1, d2), np.where(lo, d2, d1)
-    # the refinement pass proposes mostly the same pairs: each is costed once per frame
-    C, N = cfg.n_cameras, view.n
-    keys = ((ca * C + cb) * N + da) * N + db
-    cost = np.array([view.pair_cost_cache.get(k, np.nan) for k in keys.tolist()])
-    new = np.flatnonzero(np.isnan(cost))
-    if new.size:
-        cost[new] = pair_costs(cfg, view, ca[new], cb[new], da[new], db[new])
-        view.pair_cost_cache.update(zip(keys[new].tolist(), cost[new].tolist()))
+    cost = view.costs.get(ca, cb, da, db)[1]
     sums = np.zeros(kc.size)
     np.add.at(sums, k, cost)
     n = np.bincount(k, minlength=kc.size)
     with np.errstate(invalid="ignore"):
         out[kc, kt, kd] = np.where(n > 0, sums / np.maximum(n, 1), np.nan)
-    return out
-
-
-def pair_costs(
-    cfg: ContestSettings, view: ContestView, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
-) -> np.ndarray:
-    """(S,) m: the association's pair cost of detection pairs (camera ca < cb), capped at
-    ``tau_cost``; a pair failing the pair gates (or with too few joints) costs ``tau_cost``
-    (1 m when the cost cap is off)."""
-    p = cfg.params
-    cap = p.tau_cost if p.tau_cost > 0 else 1.0
-    decided = view.gates.decide(ca, da, cb, db)
-    out = np.full(ca.size, cap)
-    s = np.flatnonzero(decided.stage == PASSED)
-    if s.size:
-        J = next(fd.num_joints for fd in view.by_cam.values() if fd.n)
-        joints = joint_subset(p.cost_joints, J)
-        X = np.empty((s.size, joints.size, 3))
-        Y = np.empty_like(X)
-        for c, fd in view.by_cam.items():  # one gather per camera
-            X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
-            Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-        pose = pa_mpjpe_finite(X, Y, p.execution.backend)
-        cost = pair_cost(pose, decided.epi[s], p, cfg.verify_epipolar)
-        out[s] = np.minimum(np.nan_to_num(cost, nan=cap), cap)
     return out
 
 

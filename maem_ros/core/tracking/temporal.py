@@ -55,14 +55,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from maem_ros.core.association.gates import FrameSet, PairGates
+from maem_ros.core.association.gates import PairGates
 from maem_ros.core.association.params import AssociationParams
-from maem_ros.core.association.pipeline import associate, pair_cost
-from maem_ros.core.detections import PASSED, Cluster, FrameDetections
+from maem_ros.core.association.pipeline import associate
+from maem_ros.core.detections import Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
-from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
-from maem_ros.core.skeleton import body_joints, joint_subset
+from maem_ros.core.skeleton import body_joints
 from maem_ros.core.tracking.contested import ContestSettings, contested_cost
+from maem_ros.core.tracking.pair_costs import FramePairCosts, same_track_pairs
 from maem_ros.core.tracking.temporal_params import TemporalParams
 from maem_ros.core.tracking.track_filter import Track, Tracker3D
 from maem_ros.core.tracking.track_geometry import (
@@ -95,9 +95,8 @@ class TemporalResult:
 class _FrameView:
     """One frame set as the track stage reads it, built once per frame and shared by both
     assignment passes: every camera's detections padded to N rows (C = the rig's cameras;
-    absent cameras and padding rows are NaN and invalid), the pair gates of the frame set
-    (their gate points built on first use), and the pair-gate results already computed this
-    frame."""
+    absent cameras and padding rows are NaN and invalid) and the frame set's pair decisions
+    (FramePairCosts: each pair decided once)."""
 
     def __init__(self, stage: TemporalAssociator, by_cam: dict[int, FrameDetections], body: np.ndarray):
         self.stage, self.by_cam = stage, by_cam
@@ -117,31 +116,10 @@ class _FrameView:
             self.valid[c, ok] = True
             if ok.size:
                 self.ok[c] = ok
-        self.gates: FrameSet = stage.verify_gates.frame_set(by_cam)
-        self._known_keys = np.zeros(0, np.int64)  # sorted pair keys tested this frame
-        self._known_ok = np.zeros(0, bool)
-        #: pair key -> the pair's capped association cost, m (core/tracking/contested.py)
-        self.pair_cost_cache: dict[int, float] = {}
-
-    def pair_ok(self, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray) -> np.ndarray:
-        """(S,) bool pair gates of detection pairs, each distinct pair tested once per frame."""
-        C = len(self.stage.rig)
-        keys = ((ca * C + cb) * self.n + da) * self.n + db
-        pos = np.minimum(np.searchsorted(self._known_keys, keys), max(self._known_keys.size - 1, 0))
-        known = self._known_keys.size > 0
-        hit = known & (self._known_keys[pos] == keys) if known else np.zeros(keys.size, bool)
-        ok = np.zeros(keys.size, bool)
-        ok[hit] = self._known_ok[pos[hit]]
-        new_keys, first = np.unique(keys[~hit], return_index=True)
-        if new_keys.size:
-            s = np.flatnonzero(~hit)[first]
-            new_ok = self.stage._gate_pairs(self, ca[s], cb[s], da[s], db[s])
-            ok[~hit] = new_ok[np.searchsorted(new_keys, keys[~hit])]
-            keys_all = np.concatenate([self._known_keys, new_keys])
-            order = np.argsort(keys_all, kind="stable")
-            self._known_keys = keys_all[order]
-            self._known_ok = np.concatenate([self._known_ok, new_ok])[order]
-        return ok
+        #: the frame set's pair decisions and costs (core/tracking/pair_costs.py)
+        self.costs = FramePairCosts(
+            stage.verify_gates.frame_set(by_cam), by_cam, stage.params, stage.verify_epipolar, C, self.n
+        )
 
 
 # ---------------------------------------------------------------------------------------
@@ -187,7 +165,7 @@ class TemporalAssociator:
             params.epipolar_gate if temporal.verify_epipolar == "association" else temporal.verify_epipolar
         )
         self.verify_gates = self.gates.with_epipolar_gate(self.verify_epipolar)
-        self._contest = ContestSettings(params, temporal.pose_weight, self.verify_epipolar, len(rig))
+        self._contest = ContestSettings(params, temporal.pose_weight)
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
@@ -365,6 +343,8 @@ class TemporalAssociator:
         diff = np.linalg.norm(uv[:, :, None] - view.kp2[:, None], axis=-1)  # (C,T,N,J)
         cost = nanmedian(diff)  # (C,T,N)
         okc = view.valid[:, None] & np.isfinite(cost) & (cost < gate.T[:, :, None])
+        # every pair the contested order and the verification may ask about, decided together
+        view.costs.get(*same_track_pairs(okc))
         # contested candidates (two people close in one image) ordered by the track's other
         # views this frame, else by pose (core/tracking/contested.py)
         cost = cost + contested_cost(self._contest, view, okc, joints)
@@ -397,44 +377,17 @@ class TemporalAssociator:
         self, view: _FrameView, cam: np.ndarray, det: np.ndarray, present: np.ndarray
     ) -> np.ndarray:
         """(T,M,M) bool: member pairs of each candidate cluster passing the association's pair
-        gates (:meth:`_gate_pairs`); a pair already tested this frame (the refinement pass
-        proposes mostly the same clusters) is looked up, not tested again."""
+        gates and pair cost (core/tracking/pair_costs.py: pairs already decided this frame set
+        are looked up)."""
         T, M = present.shape
         a_idx, b_idx = np.triu_indices(M, 1)
         both = present[:, a_idx] & present[:, b_idx]  # members sorted by camera: ca < cb
         t, q = np.nonzero(both)
         ma, mb = a_idx[q], b_idx[q]
-        ok = view.pair_ok(cam[t, ma], cam[t, mb], det[t, ma], det[t, mb])
+        ok = view.costs.get(cam[t, ma], cam[t, mb], det[t, ma], det[t, mb])[0]
         passes = np.zeros((T, M, M), bool)
         passes[t, ma, mb] = passes[t, mb, ma] = ok
         return passes
-
-    def _gate_pairs(
-        self, view: _FrameView, ca: np.ndarray, cb: np.ndarray, da: np.ndarray, db: np.ndarray
-    ) -> np.ndarray:
-        """(S,) bool: detection pairs (camera ca < cb, detections da, db) passing the
-        association's pair gates (core.association.gates: bbox-centre reprojection, epipolar
-        on mesh vertices or keypoints, ``verify_epipolar``) and the association's pair cost
-        (the PA-MPJPE of the lower camera's 3D pose aligned onto the other's plus the epipolar
-        term, core.association.pipeline.pair_cost) under tau_cost, on the few pairs inside the
-        tracks' clusters only."""
-        by_cam = view.by_cam
-        p = self.params
-        decided = view.gates.decide(ca, da, cb, db)
-        ok = decided.stage == PASSED
-        if p.tau_cost > 0 and ok.any():
-            s = np.flatnonzero(ok)
-            J = next(fd.num_joints for fd in by_cam.values() if fd.n)
-            joints = joint_subset(p.cost_joints, J)
-            X = np.empty((s.size, joints.size, 3))
-            Y = np.empty_like(X)
-            for c, fd in by_cam.items():
-                X[ca[s] == c] = fd.kpts3d[da[s][ca[s] == c]][:, joints]
-                Y[cb[s] == c] = fd.kpts3d[db[s][cb[s] == c]][:, joints]
-            pose = pa_mpjpe_finite(X, Y, p.execution.backend)
-            # the association's cost (NaN, too few joints, fails)
-            ok[s] = pair_cost(pose, decided.epi[s], p, self.verify_epipolar) < p.tau_cost
-        return ok
 
     @staticmethod
     def _one_view(present: np.ndarray, keep: np.ndarray, cam: np.ndarray, det: np.ndarray) -> tuple[int, int]:
