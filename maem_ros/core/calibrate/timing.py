@@ -334,7 +334,7 @@ def _fit_gain_z_kernel(P: np.ndarray, U: np.ndarray, delta: np.ndarray) -> float
     standard error holds the other cameras fixed, and a rig can have a combination of
     offsets (opposite cameras shifted against each other) that the cross-view fit barely
     sees, along which Gauss-Seidel amplifies small biases. Bench (maem-calib-bench --frames
-    60 --seeds 4, first estimate): humanm3_4 s0 / s2 (offsets) z = 6.5 / 5.3, the synchronised
+    60 --seeds 4, first estimate): humanm3_4 s0 / s2 (offsets) z = 6.4 / 5.3, the synchronised
     humanm3_4 s1 and ring5_h5 s2 (Gauss-Seidel at up to 3.3 / 0.6 ms) -0.8 / -0.7."""
     gains, groups = [], []
     for c in range(P.shape[0]):
