@@ -21,7 +21,7 @@ from .court import CourtPoints, court_similarity
 from .initial_rig import InitialRig, initial_rig
 from .matching import match_frames
 from .people_data import PeopleData
-from .timing_joint import TIME_METHODS, estimate_offsets
+from .timing_joint import TIME_METHODS, TIME_TESTS, estimate_offsets
 from .tracks import Tracks, link_tracks, projection_matrices, shift_in_time, triangulate
 from .world import Similarity, floor_frame, skeleton_scale, stature
 
@@ -38,7 +38,10 @@ class PeopleOptions:
     time_method: "gauss_seidel" (one camera at a time, to convergence) or "joint" (two
     Gauss-Seidel rounds, then all offsets refined together; less accurate on the bench's
     humanm3_4 scene so far, see doc/calibration.md) or "gauss_seidel_partial" (the default
-    before: also where the tracks have gaps, which biases the offsets; timing.kernel_tracks)."""
+    before: also where the tracks have gaps, which biases the offsets; timing.kernel_tracks);
+    time_test: the joint significance test, "kernel" (the other cameras' tracks smoothed by
+    the estimator's Gaussian at each camera's capture times) or "interpolated" (the former:
+    moved by linear interpolation, which zeroed true offsets under half a frame)."""
 
     hypothesis_frames: int = 15
     hypothesis_pairs: int = 2000
@@ -50,6 +53,7 @@ class PeopleOptions:
     estimate_time: bool = True
     max_offset_s: float = 0.15
     time_method: str = "gauss_seidel"
+    time_test: str = "kernel"
     time_rounds: int = 4
     person_height: float | None = None
     court: CourtPoints | None = None
@@ -92,10 +96,14 @@ class PeopleCalibration:
 def _pairs_and_start(data: PeopleData, opts: PeopleOptions) -> tuple[list[PairEstimate], InitialRig]:
     """Steps a and b: every camera pair's relative pose from the people (consensus over
     detection pairs) and the initial rig over the camera graph; ValueError when fewer than two
-    cameras connect or the options name an unknown time method."""
+    cameras connect or the options name an unknown time method or test."""
     if opts.time_method not in TIME_METHODS:
         raise ValueError(
             f"people calibration: PeopleOptions.time_method {opts.time_method!r} is not one of {TIME_METHODS}"
+        )
+    if opts.time_test not in TIME_TESTS:
+        raise ValueError(
+            f"people calibration: PeopleOptions.time_test {opts.time_test!r} is not one of {TIME_TESTS}"
         )
     rng = np.random.default_rng(opts.seed)
     C = data.num_cameras
@@ -168,6 +176,7 @@ def calibrate_people(data: PeopleData, opts: PeopleOptions | None = None) -> Peo
                 opts.max_offset_s * data.fps,
                 opts.time_method,
                 start=delta[ok] if rnd else None,
+                test=opts.time_test,
             )
             if np.all(np.abs(delta) <= 0.02) or np.all(np.abs(delta - before) <= 0.03):
                 break

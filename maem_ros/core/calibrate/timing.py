@@ -13,10 +13,11 @@ The errors are capped (TRUNCATE_PX, raised with the keypoints' own noise). Each 
 with a standard error (offset_sd: Gauss-Newton curvature, sandwich over tracks); two tests
 keep a synchronised rig at 0: an offset within SIGNIFICANCE standard errors of 0 is dropped,
 and all of them are when together they do not improve the cross-view fit over a synchronised
-rig by SIGNIFICANCE standard errors of that gain (_fit_gain_z). The second catches what the
+rig by SIGNIFICANCE standard errors of that gain (_fit_gain_z_kernel, in the same kernel
+model; _fit_gain_z the former, with linear interpolation). The second catches what the
 first cannot: on humanm3_4 (4 person-height cameras, 10-20 people, synchronised) Gauss-Seidel
-settles at +-5-10 ms, each offset 10-20 of its own standard errors from 0, while the fit with
-them is worse than with none (z = -5).
+on partial windows settled at +-5-10 ms, each offset 10-20 of its own standard errors from 0,
+while the fit with them was worse than with none; on complete windows up to 3.3 ms (z < 0).
 """
 
 from __future__ import annotations
@@ -57,9 +58,10 @@ def kernel_tracks(
     quadratic: bool = False,
     complete: bool = True,
 ) -> np.ndarray:
-    """(D,N,3) tracks X (T,F,J,3) smoothed by a Gaussian kernel of ``sigma`` frames and
-    evaluated at the continuous frame positions k + delta of the N entries ``where`` (3
-    arrays: track, frame k, joint), for each of the D ``deltas``. ``complete``: NaN unless
+    """(D,N,dim) tracks X (T,F,J,dim: 3D points m, or 2D keypoints px) smoothed by a
+    Gaussian kernel of ``sigma`` frames and evaluated at the continuous frame positions
+    k + delta of the N entries ``where`` (3 arrays: track, frame k, joint), for each of the
+    D ``deltas``. ``complete``: NaN unless
     every sample the kernel weighs (KERNEL_REACH sd around k + delta) is present; otherwise
     (the method before, time_method "gauss_seidel_partial") NaN only where the track lacks
     either frame around k + delta, the missing samples left out of the mean.
@@ -98,10 +100,10 @@ def kernel_tracks(
     G = np.where(ok[..., None], G, 0.0)
     W = np.exp(-0.5 * ((ms[None] - deltas[:, None]) / sigma) ** 2)  # (D,M)
     W[(ms[None] < base[:, None] - half) | (ms[None] > base[:, None] + half + 1)] = 0.0
-    num = W @ G.transpose(1, 0, 2).reshape(len(ms), -1)  # (D,N*3)
+    num = W @ G.transpose(1, 0, 2).reshape(len(ms), -1)  # (D,N*dim)
     den = W @ ok.T.astype(float)  # (D,N)
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = num.reshape(len(deltas), -1, 3) / den[..., None]
+        out = num.reshape(len(deltas), -1, X.shape[-1]) / den[..., None]
         if quadratic:
             out = _local_quadratic(W, ms[None] - deltas[:, None], G, ok, out)
     if complete:  # every sample the kernel weighs present
@@ -121,7 +123,7 @@ def _local_quadratic(
     rule on the 3x3 normal equations of every (delta, entry); ``mean`` where singular."""
     Gf = G.transpose(1, 0, 2).reshape(G.shape[1], -1)
     S = [(W * u**p) @ ok.T.astype(float) for p in range(5)]  # (D,N) moments
-    T = [((W * u**p) @ Gf).reshape(W.shape[0], -1, 3) for p in range(3)]
+    T = [((W * u**p) @ Gf).reshape(W.shape[0], -1, G.shape[-1]) for p in range(3)]
     det = (
         S[0] * (S[2] * S[4] - S[3] ** 2)
         - S[1] * (S[1] * S[4] - S[2] * S[3])
@@ -264,15 +266,27 @@ def gauss_seidel_offsets(
     return delta, sd
 
 
+def _gain_z(gains: list[np.ndarray], groups: list[np.ndarray]) -> float:
+    """z of the summed gains (px^2; one array per camera) with their standard error from the
+    spread of the per-group sums (groups: one (camera, track) id per gain; a track's errors
+    are correlated), 0 with fewer than two groups."""
+    _, g = np.unique(np.concatenate(groups), return_inverse=True)
+    per = np.bincount(g, np.concatenate(gains))
+    if per.size < 2:
+        return 0.0
+    sd = np.sqrt(per.size) * np.std(per, ddof=1)
+    return float(per.sum() / sd) if sd > 0 else np.inf
+
+
 def _fit_gain_z(P: np.ndarray, U: np.ndarray, delta: np.ndarray, complete: bool = True) -> float:
-    """How many standard errors the offsets ``delta`` (C,) frames improve the cross-view fit
-    over a synchronised rig: each camera's capped squared errors against the others'
-    triangulation, with every camera at its offset and with all at 0, on the keypoints
-    defined in both; the gain summed per (camera, track), its standard error from the spread
-    of those sums (a track's errors are correlated). Why a joint test besides each offset's
-    own: an offset's standard error holds the other cameras fixed, and a rig can have a
-    combination of offsets (opposite cameras shifted against each other) that the cross-view
-    fit barely sees, along which Gauss-Seidel amplifies small biases."""
+    """The former joint test (time_test "interpolated"): how many standard errors the offsets
+    ``delta`` (C,) frames improve the cross-view fit over a synchronised rig, each camera's
+    capped squared errors against the others' triangulation from their 2D tracks moved to
+    the reference times by linear interpolation (tracks.shift_in_time), the camera's own
+    side evaluated by kernel_tracks; summed per (camera, track) (_gain_z). Interpolating
+    noisy samples and flattening curved motion between frames differ from the estimator's
+    kernel model, and on the bench's humanm3_4 s2 (true relative offsets -4.3 / +4.3 / -4.3
+    / +14.2 ms) that left z = 1.9 at the estimated offsets: all zeroed, 14.2 ms off."""
     C = P.shape[0]
     moved = np.stack([shift_in_time(U[c], delta[c]) for c in range(C)])
     gains, groups = [], []
@@ -288,12 +302,51 @@ def _fit_gain_z(P: np.ndarray, U: np.ndarray, delta: np.ndarray, complete: bool 
         ok = np.isfinite(e2[0]) & np.isfinite(e2[1])
         gains.append(np.minimum(e2[0][ok], cap2) - np.minimum(e2[1][ok], cap2))
         groups.append(c * (U.shape[1] + 1) + where[0][ok])
-    _, g = np.unique(np.concatenate(groups), return_inverse=True)
-    per = np.bincount(g, np.concatenate(gains))
-    if per.size < 2:
-        return 0.0
-    sd = np.sqrt(per.size) * np.std(per, ddof=1)
-    return float(per.sum() / sd) if sd > 0 else np.inf
+    return _gain_z(gains, groups)
+
+
+def _kernel_errors(P: np.ndarray, U: np.ndarray, delta: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """(2,N) px^2: camera c's N keypoints' squared reprojection errors against the other
+    cameras' triangulation at c's own capture times, with all cameras synchronised (row 0)
+    and at the offsets ``delta`` (C,) frames (row 1); and each keypoint's track (N,). Every
+    other camera d's 2D tracks are smoothed by the Gaussian kernel in continuous time and
+    evaluated at its frame position k + delta_c - delta_d (kernel_tracks, complete windows):
+    the same smoothing at any sub-frame position, so no offset is favoured by less noise or
+    less flattening, and camera c's keypoints are used as seen (no smoothing of its own)."""
+    C = P.shape[0]
+    seen = np.all(np.isfinite(U[c]), axis=-1)
+    where = np.nonzero(seen)
+    others = [d for d in range(C) if d != c]
+    V = np.stack(
+        [kernel_tracks(U[d], where, np.array([0.0, delta[c] - delta[d]])) for d in others]
+    )  # (C-1,2,N,2)
+    X = triangulate(P[others], V)  # (2,N,3)
+    e2 = np.sum((_project(P[c], X) - U[c][seen]) ** 2, axis=-1)
+    return e2, where[0]
+
+
+def _fit_gain_z_kernel(P: np.ndarray, U: np.ndarray, delta: np.ndarray) -> float:
+    """How many standard errors the offsets ``delta`` (C,) frames improve the cross-view fit
+    over a synchronised rig (time_test "kernel", the default): each camera's capped squared
+    errors against the other cameras' triangulation at its capture times (_kernel_errors),
+    synchronised and at the offsets, on the keypoints defined in both, capped at the larger
+    of the two caps (TRUNCATE_PX or TRUNCATE_REL x the median error); the gain summed per
+    (camera, track) (_gain_z). Why a joint test besides each offset's own: an offset's
+    standard error holds the other cameras fixed, and a rig can have a combination of
+    offsets (opposite cameras shifted against each other) that the cross-view fit barely
+    sees, along which Gauss-Seidel amplifies small biases. Bench (maem-calib-bench --frames
+    60 --seeds 4, first estimate): humanm3_4 s0 / s2 (offsets) z = 6.4 / 5.3, the synchronised
+    humanm3_4 s1 and ring5_h5 s2 (Gauss-Seidel at up to 3.3 / 0.6 ms) -0.8 / -0.7."""
+    gains, groups = [], []
+    for c in range(P.shape[0]):
+        e2, track = _kernel_errors(P, U, delta, c)
+        ok = np.all(np.isfinite(e2), axis=0)
+        with np.errstate(invalid="ignore"):
+            med = np.nanmedian(np.sqrt(e2[:, ok]), axis=1) if ok.any() else np.zeros(2)
+        cap2 = np.max(np.maximum(TRUNCATE_PX, TRUNCATE_REL * med)) ** 2
+        gains.append(np.minimum(e2[0, ok], cap2) - np.minimum(e2[1, ok], cap2))
+        groups.append(c * (U.shape[1] + 1) + track[ok])
+    return _gain_z(gains, groups)
 
 
 def _two_camera_offset(P: np.ndarray, U: np.ndarray, max_frames: float) -> np.ndarray:

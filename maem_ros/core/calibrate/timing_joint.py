@@ -32,6 +32,7 @@ from .timing import (
     TRUNCATE_PX,
     TRUNCATE_REL,
     _fit_gain_z,
+    _fit_gain_z_kernel,
     _project,
     _two_camera_offset,
     gauss_seidel_offsets,
@@ -43,6 +44,11 @@ from .tracks import shift_in_time, triangulate
 #: with the 3D tracks also evaluated where part of the kernel's samples are missing, the
 #: default before; timing.kernel_tracks says why that biases the offsets)
 TIME_METHODS = ("joint", "gauss_seidel", "gauss_seidel_partial")
+#: the joint significance tests PeopleOptions.time_test may name: "kernel" (the default,
+#: timing._fit_gain_z_kernel: the other cameras' 2D tracks smoothed by the estimator's
+#: Gaussian and evaluated at each camera's capture times) or "interpolated" (the former,
+#: timing._fit_gain_z: moved by linear interpolation; it zeroed humanm3_4 s2's true offsets)
+TIME_TESTS = ("kernel", "interpolated")
 #: Gauss-Seidel rounds of the start (the first scans +-max_frames; the second settles the
 #: cameras scanned first against the others' new offsets)
 START_ROUNDS = 2
@@ -202,7 +208,12 @@ def _median_gauge_sd(delta: np.ndarray, cov: np.ndarray) -> np.ndarray:
 
 
 def estimate_offsets(
-    P: np.ndarray, U: np.ndarray, max_frames: float, method: str = "joint", start: np.ndarray | None = None
+    P: np.ndarray,
+    U: np.ndarray,
+    max_frames: float,
+    method: str = "joint",
+    start: np.ndarray | None = None,
+    test: str = "kernel",
 ) -> tuple[np.ndarray, np.ndarray]:
     """(C,) offsets in frames of the cameras with projection matrices P (C,3,4) and 2D tracks
     U (C,T,F,J,2) px, relative to the median camera, and their (C,) standard errors (frames;
@@ -211,10 +222,13 @@ def estimate_offsets(
     or "gauss_seidel_partial" (the same on partial kernel windows, timing.kernel_tracks).
     ``start`` (C,) frames: offsets already close (a previous rig): no scan. Then the
     significance tests: an offset within SIGNIFICANCE standard errors of 0 is set to
-    0, and all are when together they do not improve the cross-view fit (timing._fit_gain_z)
-    by SIGNIFICANCE standard errors, so a synchronised rig stays synchronised."""
+    0, and all are when together they do not improve the cross-view fit by SIGNIFICANCE
+    standard errors, so a synchronised rig stays synchronised (``test``: "kernel",
+    timing._fit_gain_z_kernel, or "interpolated", timing._fit_gain_z, the former)."""
     if method not in TIME_METHODS:
         raise ValueError(f"time offsets: method {method!r} is not one of {TIME_METHODS}")
+    if test not in TIME_TESTS:
+        raise ValueError(f"time offsets: test {test!r} is not one of {TIME_TESTS}")
     C = P.shape[0]
     if C == 2:
         return _two_camera_offset(P, U, max_frames), np.full(2, np.nan)
@@ -227,6 +241,8 @@ def estimate_offsets(
         delta, sd = refine_joint(P, U, start)
     sd = np.where(np.isfinite(sd), sd, np.inf)
     delta[np.abs(delta) < SIGNIFICANCE * sd] = 0.0
-    if np.any(delta) and _fit_gain_z(P, U, delta, complete) < SIGNIFICANCE:
-        delta[:] = 0.0
+    if np.any(delta):
+        z = _fit_gain_z_kernel(P, U, delta) if test == "kernel" else _fit_gain_z(P, U, delta, complete)
+        if z < SIGNIFICANCE:
+            delta[:] = 0.0
     return delta, sd

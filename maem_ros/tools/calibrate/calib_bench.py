@@ -15,6 +15,7 @@ cameras, 1 px noise), and prints one row per run and a summary against issue 35'
 
     maem-calib-bench [--frames 60] [--seeds 2] [--quick] [--large] [--only NAME]
                      [--time-method joint|gauss_seidel|gauss_seidel_partial]
+                     [--time-test kernel|interpolated]
 
 Timings depend on the machine's load; the brief's machine is shared.
 """
@@ -34,7 +35,7 @@ import yaml
 from maem_ros.core.calibrate.court import CourtPoints
 from maem_ros.core.calibrate.people import PeopleOptions, calibrate_people
 from maem_ros.core.calibrate.people_data import people_data
-from maem_ros.core.calibrate.timing_joint import TIME_METHODS
+from maem_ros.core.calibrate.timing_joint import TIME_METHODS, TIME_TESTS
 from maem_ros.core.geometry.camera import Camera, Rig
 from maem_ros.core.geometry.procrustes import procrustes_align
 from maem_ros.sim.rigs import look_at
@@ -134,6 +135,7 @@ def run_one(
     frames: int,
     tmp: Path,
     time_method: str = "gauss_seidel",
+    time_test: str = "kernel",
 ) -> dict:
     rng = np.random.default_rng(100 + seed)
     rig_arg = name
@@ -161,7 +163,8 @@ def run_one(
     row: dict = {"scene": f"{name} s{seed} {players}p {difficulty}" + (" offs" if offsets else "")}
     t0, c0 = time.perf_counter(), time.process_time()
     res = calibrate_people(
-        people_data(intr, dets, cfg.fps), PeopleOptions(seed=seed, time_method=time_method)
+        people_data(intr, dets, cfg.fps),
+        PeopleOptions(seed=seed, time_method=time_method, time_test=time_test),
     )
     row["time_s"] = time.perf_counter() - t0
     row["cpu_s"] = time.process_time() - c0  # this process's CPU time: load-independent
@@ -212,6 +215,12 @@ def main(argv: list[str] | None = None) -> int:
         default=PeopleOptions.time_method,
         help="time-offset estimator (PeopleOptions.time_method)",
     )
+    ap.add_argument(
+        "--time-test",
+        choices=TIME_TESTS,
+        default=PeopleOptions.time_test,
+        help="joint significance test of the offsets (PeopleOptions.time_test)",
+    )
     args = ap.parse_args(argv)
     rows = []
     print(HEADER)
@@ -220,7 +229,13 @@ def main(argv: list[str] | None = None) -> int:
             if args.only and args.only not in sc[0]:
                 continue
             try:
-                row = run_one(*sc, frames=args.frames, tmp=Path(tmp), time_method=args.time_method)
+                row = run_one(
+                    *sc,
+                    frames=args.frames,
+                    tmp=Path(tmp),
+                    time_method=args.time_method,
+                    time_test=args.time_test,
+                )
             except ValueError as e:
                 print(f"{sc[0]} seed {sc[4]}: FAILED: {e}")
                 continue

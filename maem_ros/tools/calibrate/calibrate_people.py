@@ -16,7 +16,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from maem_ros.core.calibrate.timing_joint import TIME_METHODS
+from maem_ros.core.calibrate.timing_joint import TIME_METHODS, TIME_TESTS
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.tools.calibrate.calibrate_sources import BadInput, load_source
 
@@ -57,6 +57,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "joint (then all offsets refined together; less accurate on the bench so far, "
         "doc/calibration.md) or gauss_seidel_partial (the default before: biased by gaps "
         "in the tracks)",
+    )
+    p.add_argument(
+        "--time-test",
+        choices=TIME_TESTS,
+        default="kernel",
+        help="joint significance test of the offsets: kernel (default: the other cameras' "
+        "tracks smoothed as the estimator does) or interpolated (the former: zeroed true "
+        "offsets under half a frame)",
     )
     p.add_argument(
         "--backend",
@@ -144,6 +152,7 @@ def _options(args):
         estimate_time=not args.no_time,
         max_offset_s=args.max_offset,
         time_method=args.time_method,
+        time_test=args.time_test,
         person_height=args.person_height,
         court=court,
     )
