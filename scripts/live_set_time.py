@@ -1,0 +1,72 @@
+"""CPU time (ms per frame set) of the association node's work on the live benchmark's scene
+(config/demo.yaml, 6 cameras, f32 full mesh or q4), as the node does it but without DDS:
+check (read and limits), decode + gate preparation, the track-assisted association step, the
+clusters encoding. Frames are stamped at 60 fps.
+
+    python scripts/live_set_time.py f32|q4 [FRAMES] [--prof [tottime|cumulative]]
+"""
+
+import cProfile
+import pstats
+import sys
+import time
+
+from maem_ros.core.association import AssociationParams
+from maem_ros.core.limits import InputLimits, check_detection_arrays
+from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
+from maem_ros.params import load_node_params
+from maem_ros.ros import wire
+from maem_ros.ros.association_node import PARAMS
+from maem_ros.ros.params import load_rig_param
+from maem_ros.tools.bench.latency import make_scene
+from maem_ros.tools.bench.live import _encode
+
+layout = sys.argv[1] if len(sys.argv) > 1 else "f32"
+frames = int(sys.argv[2]) if len(sys.argv) > 2 and sys.argv[2].isdigit() else 120
+scene = make_scene("demo.yaml")
+p = {s.name: s.default for s in PARAMS}
+p.update(load_node_params("demo.yaml", "association"))
+rig = load_rig_param(p.get("rig", ""))
+msgs = [
+    [(c, wire.cdr_to_cloud(_encode(scene.detections(c, f), layout, 1), "/t")) for c in rig.names]
+    for f in range(min(frames, scene.num_frames))
+]
+stage = TemporalAssociator(rig, AssociationParams.from_mapping(p), TemporalParams.from_mapping(p))
+limits = InputLimits()
+totals = {"check": 0.0, "decode": 0.0, "step": 0.0, "encode": 0.0}
+
+
+def one(f: int) -> None:
+    stamp = int(f * 1e9 / 60)
+    t0 = time.process_time()
+    read = {}
+    for c, m in msgs[f]:
+        msg = wire.read_detections(m, f"/{c}/detections", rig.names, expected_camera=c)
+        check_detection_arrays(c, msg.bboxes, msg.kpts2d, msg.vertex_extremes, rig, limits, "/t")
+        read[c] = msg
+    t1 = time.process_time()
+    items = {c: stage.gates.prepare(m.decode()) for c, m in read.items()}
+    t2 = time.process_time()
+    res = stage.step(items, stamp)
+    t3 = time.process_time()
+    wire.clusters_to_msg(stamp, "world", rig, items, res.clusters, res.track_ids, res.flags)
+    t4 = time.process_time()
+    for k, a, b in (("check", t0, t1), ("decode", t1, t2), ("step", t2, t3), ("encode", t3, t4)):
+        totals[k] += b - a
+
+
+for f in range(10):  # warm: tracks confirmed, caches filled
+    one(f)
+for k in totals:
+    totals[k] = 0.0
+prof = cProfile.Profile() if "--prof" in sys.argv else None
+if prof:
+    prof.enable()
+for f in range(10, len(msgs)):
+    one(f)
+if prof:
+    prof.disable()
+    order = sys.argv[-1] if sys.argv[-1] in ("tottime", "cumulative") else "cumulative"
+    pstats.Stats(prof).sort_stats(order).print_stats(40)
+n = len(msgs) - 10
+print(layout, {k: round(v / n * 1e3, 2) for k, v in totals.items()}, "ms CPU per set")
