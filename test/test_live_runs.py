@@ -127,6 +127,7 @@ def test_bench_live_runs_twice_with_a_hog(scene, tmp_path) -> None:
         assert run["unaccounted"] == 0, run
         assert run["latency_ms_p99"] >= run["latency_ms_median"] > 0
         assert "stress_recovery_s" in run
+        assert run["association_cpu_ms_per_frame"] > 0 and run["triangulation_cpu_ms_per_frame"] > 0
     assert out["worst"]["latency_ms_p99"] == max(r["latency_ms_p99"] for r in out["per_run"])
     assert set(out["targets"]) >= {"latency_ms_p99", "frames_without_poses_pct"}
     assert out["settings"]["keep_every_set"] is False

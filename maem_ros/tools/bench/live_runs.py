@@ -199,6 +199,9 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
     )
     out["unaccounted"] = report["accounting"]["unaccounted"]
     out["behind_longest_s"] = report["behind_longest_s"]
+    # which node is short of CPU: its CPU time per published frame (ms; rmw threads included)
+    for node in ("association", "triangulation"):
+        out[f"{node}_cpu_ms_per_frame"] = report["cpu_ms_per_frame"].get(node)
     if "stress" in report:
         for k in ("recovery_s", "p50_1s_after_ms", "latency_ms_median_during"):
             out[f"stress_{k}"] = report["stress"][k]
