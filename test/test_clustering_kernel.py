@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from helpers_scene import ring_rig
@@ -46,6 +46,8 @@ def _table(rig, rng: np.random.Generator, people: int, noise_px: float) -> Detec
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10**6), cams=st.integers(3, 6), people=st.integers(1, 4),
        noise=st.sampled_from([0.5, 4.0, 40.0]), tau=st.sampled_from([2.0, 8.0, 30.0]))
+# a row whose members sit after the longest row's member count (the numpy check dropped them)
+@example(seed=76103, cams=5, people=4, noise=0.5, tau=30.0)
 def test_numba_merge_check_equals_the_numpy_check(seed, cams, people, noise, tau):
     rng = np.random.default_rng(seed)
     rig = ring_rig(cams)

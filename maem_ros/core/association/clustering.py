@@ -138,7 +138,9 @@ class _Verifier:
             return np.zeros(rows.shape[0], bool)
         if self.kernels is not None:
             return self.kernels.consistent(self.E, self.P, self.uv, self.usable, rows, self.tau)
-        rows = rows[:, : int((rows >= 0).sum(1).max())]  # members first: drop padding columns
+        # members first, in their order (padding may sit anywhere), then drop padding columns
+        rows = np.take_along_axis(rows, np.argsort(rows < 0, axis=1, kind="stable"), 1)
+        rows = rows[:, : int((rows >= 0).sum(1).max())]
         present = rows >= 0
         r = np.where(present, rows, self.usable.shape[0] - 1)
         P = self.P[r]  # (K,M,3,4)
