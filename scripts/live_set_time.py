@@ -1,6 +1,7 @@
 """CPU time (ms per frame set) of the association node's work on the live benchmark's scene
 (config/demo.yaml, 6 cameras, f32 full mesh or q4), as the node does it but without DDS:
-check (read and limits), decode + gate preparation, the track-assisted association step, the
+check (read, limits, and for f32 the gate preparation that checks the vertices), decode + gate
+preparation (q4), the track-assisted association step, the
 clusters encoding. Frames are stamped at 60 fps.
 
     python scripts/live_set_time.py f32|q4 [FRAMES] [--prof [tottime|cumulative]]
@@ -12,11 +13,11 @@ import sys
 import time
 
 from maem_ros.core.association import AssociationParams
-from maem_ros.core.limits import InputLimits, check_detection_arrays
+from maem_ros.core.limits import InputLimits
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire
-from maem_ros.ros.association_node import PARAMS
+from maem_ros.ros.association_node import PARAMS, checked_detections, prepared_detections
 from maem_ros.ros.params import load_rig_param
 from maem_ros.tools.bench.latency import make_scene
 from maem_ros.tools.bench.live import _encode
@@ -39,13 +40,9 @@ totals = {"check": 0.0, "decode": 0.0, "step": 0.0, "encode": 0.0}
 def one(f: int) -> None:
     stamp = int(f * 1e9 / 60)
     t0 = time.process_time()
-    read = {}
-    for c, m in msgs[f]:
-        msg = wire.read_detections(m, f"/{c}/detections", rig.names, expected_camera=c)
-        check_detection_arrays(c, msg.bboxes, msg.kpts2d, msg.vertex_extremes, rig, limits, "/t")
-        read[c] = msg
+    read = {c: checked_detections(m, f"/{c}/detections", c, rig, limits, stage.gates) for c, m in msgs[f]}
     t1 = time.process_time()
-    items = {c: stage.gates.prepare(m.decode()) for c, m in read.items()}
+    items = {c: prepared_detections(m, stage.gates) for c, m in read.items()}
     t2 = time.process_time()
     res = stage.step(items, stamp)
     t3 = time.process_time()

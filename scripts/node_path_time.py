@@ -1,5 +1,6 @@
 """The association node's work per frame set before it associates: every camera's message
-checked (fields, limits), decoded and prepared for the pair gates, on the maem-bench standard
+checked (fields, limits), decoded and prepared for the pair gates (as the node does it:
+ros.association_node.checked_detections and prepared_detections), on the maem-bench standard
 load (6 cameras x 12 detections, full mesh). Runs on this tree and on the pre-renovation tree
 (7768492, where wire decoded and screened in one call), to compare them in the same session:
 
@@ -33,17 +34,13 @@ msgs = {c: wire.detections_to_msg(fd, sys.argv[1]) for c, fd in fr.frames.items(
 limits = InputLimits()
 if NEW:
     from maem_ros.core.association import PairGates
-    from maem_ros.core.limits import check_detection_arrays
+    from maem_ros.ros.association_node import checked_detections, prepared_detections
 
     gates = PairGates(rig, ap)
 
     def one_set():
-        out = {}
-        for c, m in msgs.items():
-            msg = wire.read_detections(m, f"/{c}/detections", rig.names, expected_camera=c)
-            check_detection_arrays(c, msg.bboxes, msg.kpts2d, msg.vertex_extremes, rig, limits, "/t")
-            out[c] = gates.prepare(msg.decode())
-        return out
+        got = {c: checked_detections(m, f"/{c}/detections", c, rig, limits, gates) for c, m in msgs.items()}
+        return {c: prepared_detections(item, gates) for c, item in got.items()}
 else:
     from maem_ros.core.association import decode_screen_strides
     from maem_ros.core.limits import check_detections

@@ -27,6 +27,7 @@ from maem_ros.ros import wire
 from maem_ros.ros.cli import shutdown_ros
 from maem_ros.ros.fastdds import detach_discovery_listener
 from maem_ros.ros.probe import DiagnosticsTable, fusion_links, unmatched_links
+from maem_ros.ros.process import make_executor
 from maem_ros.ros.qos import DATA_QOS
 
 RELIABLE = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -130,7 +131,7 @@ class Graph:
     def __init__(self) -> None:
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = make_executor(self.context)  # the nodes' own (ros.process)
         self.nodes: list[Any] = []
         self._stop = threading.Event()
         self._error: BaseException | None = None

@@ -10,6 +10,8 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from maem_ros.core.association import AssociationParams, ExecutionParams, PairGates, associate
 from maem_ros.core.association.gates import epipolar, screening
@@ -234,13 +236,16 @@ def _block_ranges(x: np.ndarray) -> np.ndarray:
 def test_screen_copies_hold_each_screens_points_the_block_ranges_and_the_first_inf(strides):
     """screen_copies: every stride's screening subset (nested in the finest or not) as
     screen_rows reads it, NaN kept, read-only; each detection's block ranges (with numba);
-    the first detection with an inf coordinate, also in a block with a NaN."""
+    the first detection with an inf coordinate, also in a block with a NaN; the extremes of
+    the coordinates present."""
     rng = np.random.default_rng(len(strides))
     x = rng.uniform(-100, 2000, (5, 2 * epipolar.BLOCK + 1001, 2)).astype(np.float32)
     x[1, ::7, 0] = np.nan
     x[2, epipolar.BLOCK + 3, 1] = -np.nan
-    copies, ranges, first_inf = screening.screen_copies(x, strides)
+    x[1, 8, 1] = -150.5  # the smallest, in a detection whose blocks all hold a NaN
+    copies, ranges, first_inf, extremes = screening.screen_copies(x, strides)
     assert first_inf == -1 and sorted(copies) == sorted(s for s in strides if s > 1)
+    assert extremes == (-150.5, float(np.nanmax(x)))
     for stride, got in copies.items():
         screen = screening.screen_rows(x, stride)
         np.testing.assert_array_equal(got, screen._gather(screen.rows))
@@ -257,9 +262,30 @@ def test_screen_copies_hold_each_screens_points_the_block_ranges_and_the_first_i
         assert ranges == {}
     x[3, 2000, 1], x[4, 5, 0] = -np.inf, np.inf
     assert screening.screen_copies(x, strides).first_inf == 3
+    assert np.isnan(screening.screen_copies(x, strides).extremes).all()
     x[3, 2000, 1] = 0.0
     x[4, 0, 1] = np.nan  # the inf shares its block with a NaN
     assert screening.screen_copies(x, strides).first_inf == 4
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 3 * epipolar.BLOCK),
+    dets=st.integers(1, 4),
+    missing=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_screen_copies_extremes_are_those_of_the_coordinates_present(n, dets, missing, seed):
+    """The pass's extremes (what a receiver checks pixel limits with instead of reducing the
+    vertices again) equal nanmin / nanmax, whatever the blocks' NaN; NaN when none is present."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-3000, 5000, (dets, n, 2)).astype(np.float32)
+    x[rng.random(x.shape) < missing] = np.nan
+    low, high = screening.screen_copies(x, (8, 32)).extremes
+    if np.isnan(x).all():
+        assert np.isnan(low) and np.isnan(high)
+    else:
+        assert (low, high) == (float(np.nanmin(x)), float(np.nanmax(x)))
 
 
 @pytest.mark.skipif(not epipolar.have_numba(), reason="block ranges are the numba kernel's")

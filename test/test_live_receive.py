@@ -11,6 +11,8 @@ from rclpy.duration import Duration
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
+from maem_ros.core.association import AssociationParams, PairGates
+from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
 from maem_ros.ros import wire
@@ -170,6 +172,72 @@ def test_pixel_limits_fast_path_agrees_with_the_elementwise_check(margin: float)
             bad = (pts < lo) | (pts > hi)
         want = float(pts[bad].flat[0]) if bad.any() else None
         assert _first_outside(pts, lo, hi) == want
+
+
+def _received(dets, layout: str = "f32"):
+    return wire.cdr_to_cloud(bytes(serialize_message(wire.detections_to_msg(dets, layout))), "/t")
+
+
+@pytest.mark.parametrize("layout", ["f32", "q4"])
+def test_receive_check_prepares_f32_frames_in_the_pass_that_checks_them(scene, layout) -> None:
+    """checked_detections: an f32 message whose vertices the gates prepare comes back as the
+    prepared, validated frame (the preparing pass is the vertex check); a q4 one stays encoded
+    until its set is processed. Either way the frame is the reader's, and gated alike."""
+    from maem_ros.ros.association_node import checked_detections, prepared_detections
+
+    gates = PairGates(scene.rig, AssociationParams())
+    assert gates.prepare_strides()  # the default params screen: prepare makes its pass
+    cloud = _received(scene.detections("camera_1", 2), layout)
+    item = checked_detections(cloud, "/t", "camera_1", scene.rig, InputLimits(), gates)
+    assert isinstance(item, FrameDetections) == (layout == "f32")
+    if layout == "f32":
+        assert gates.is_prepared(item) and item._is_validated()
+    frame = prepared_detections(item, gates)
+    assert gates.is_prepared(frame) and frame._is_validated()
+    ref = wire.msg_to_detections(cloud, "/t")
+    for name in ("bboxes", "scores", "kpts2d", "kpts3d", "verts2d"):
+        np.testing.assert_array_equal(getattr(frame, name), getattr(ref, name))
+
+
+def test_receive_check_of_f32_vertices_rejects_as_the_reader_does(scene) -> None:
+    """With the check in the gates' pass, an inf vertex is refused with the reader's own error
+    (nonfinite, the detection named), a vertex beyond the image by the pixel limits; with
+    params under which the gates make no pass (vertex_stride 2) the reader checks."""
+    from maem_ros.ros.association_node import checked_detections
+
+    rig: Rig = scene.rig
+    for params in (AssociationParams(), AssociationParams(vertex_stride=2)):
+        gates = PairGates(rig, params)
+        dets = scene.detections("camera_1", 2)
+        dets.verts2d = dets.verts2d.copy()
+        dets.verts2d[2, 11, 0] = np.inf
+        dets.verts2d[0, :40] = np.nan  # missing vertices are fine
+        with pytest.raises(wire.WireError) as got:
+            checked_detections(_received(dets), "/t", "camera_1", rig, InputLimits(), gates)
+        with pytest.raises(wire.WireError) as want:
+            wire.read_detections(_received(dets), "/t")
+        assert (got.value.reason, str(got.value)) == ("nonfinite", str(want.value))
+        assert "inf in detection 2" in str(got.value)
+        dets.verts2d[2, 11, 0] = -3.5 * rig["camera_1"].width
+        with pytest.raises(LimitError, match="verts2d"):
+            checked_detections(_received(dets), "/t", "camera_1", rig, InputLimits(), gates)
+        dets.verts2d[2, 11, 0] = 5.0
+        item = checked_detections(_received(dets), "/t", "camera_1", rig, InputLimits(), gates)
+        assert isinstance(item, FrameDetections) == bool(gates.prepare_strides())
+
+
+def test_an_inf_vertex_is_dropped_as_nonfinite_and_the_node_goes_on(graph, scene):
+    """Through the node: a full-mesh f32 message with an inf vertex is counted under
+    nonfinite, the next frame goes through."""
+    g = start_pipeline(graph)
+    dets = scene.detections("camera_0", 0)
+    dets.verts2d = dets.verts2d.copy()
+    dets.verts2d[1, 5, 1] = -np.inf
+    g["player"].publish(dets)
+    g["diags"].wait_value("/association", "dropped/nonfinite", lambda v: v == 1, graph=graph)
+    for cam in g["assoc"].rig.names:
+        g["player"].publish(scene.detections(cam, 1))
+    assert wait_for(lambda: g["poses"].has(scene.stamp_ns(1)), 20.0, graph)
 
 
 def test_pixel_limits_on_a_strided_vertex_view(scene) -> None:

@@ -9,7 +9,8 @@ markers, stage 3), ``camera_node`` (video/image folder -> images), ``player_node
 
 Shared: ``node`` (the MaemNode base: parameters, diagnostics, errors, shutdown), ``params``
 (parameter declaration from core.paramspec, rig loading), ``qos``, ``diagnostics``,
-``intake`` (counted subscriptions, raw take), ``overload`` (the backlog policy on a node),
+``intake`` (counted subscriptions, taking what is pending), ``raw_take`` (serialized samples
+taken by librcl into arrays, and the executor that does it), ``overload`` (the backlog policy on a node),
 ``process`` (DDS profile, executor, run_node), ``rig_tf``, ``cli`` (--help), ``fastdds`` (a
 guard against a Fast DDS teardown deadlock), ``probe`` (in-process graph probes for the
 tools), ``wire`` (rclpy messages from the codec in maem_ros.wire).

@@ -3,9 +3,11 @@
     ros2 run maem_ros association --ros-args --params-file config/sportcenter.yaml
     maem-association --ros-args --params-file config/demo.yaml
 
-Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10; taken serialized
-and decoded in place, wire.cdr_to_cloud: rclpy's own deserialisation of a 1.8 MB full-mesh
-message costs more than its association), takes every pending message of all cameras before the
+Subscribes ``<camera>/detections`` for each rig camera (reliable, keep last 10; taken serialized,
+into an array without rclpy's bytes copy (ros.raw_take), and decoded in place, wire.cdr_to_cloud:
+rclpy's own deserialisation of a 1.8 MB full-mesh message costs more than its association; each
+message checked whole on receipt, f32 vertices in the pair gates' preparing pass,
+:func:`checked_detections`), takes every pending message of all cameras before the
 synchroniser decides (a busy executor would run the poll timer first and leave messages of the
 frame in the DDS queues) and counts ``max_wait`` and lags from each message's rmw receive time,
 groups them by capture time (stamp + the rig camera's ``time_offset``; the published frame set is
@@ -35,14 +37,17 @@ from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
+import numpy as np
 from rclpy.clock import ClockChange, JumpThreshold
 from rclpy.duration import Duration
 from sensor_msgs.msg import PointCloud2
 
 from maem_ros.core.association import AssociationParams, ExecutionParams
 from maem_ros.core.association import warmup as warmup_association
+from maem_ros.core.association.gates import PairGates
 from maem_ros.core.backlog import BacklogParams
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.geometry import Rig
 from maem_ros.core.limits import InputLimits, check_detection_arrays
 from maem_ros.core.paramspec import param, param_specs
 from maem_ros.core.sync import ApproximateTimeSync, SyncStats
@@ -165,7 +170,7 @@ class AssociationNode(MaemNode):
             self.temporal = TemporalAssociator(self.rig, self.params, TemporalParams.from_mapping(p))
         # compile/load the numba kernels now, not on the first frame
         warmup_association(self.params.execution.backend, self.params.epipolar_gate)
-        # each camera frame is prepared for the pair gates as its frame set is processed
+        # camera frames are prepared for the pair gates by checked_detections / prepared_detections
         self.gates = self.temporal.gates
         wire.warm_cdr_decoder()
         self.cameras = list(cams)
@@ -206,6 +211,7 @@ class AssociationNode(MaemNode):
                     detections_qos,
                     raw=True,
                     with_info=True,
+                    into_array=True,  # decoded in place: the frames keep views of it
                 )
             )
         self.timer = self.create_timer(p["poll_period"], self.on_timer)
@@ -220,39 +226,34 @@ class AssociationNode(MaemNode):
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
 
-    def on_detections(self, cam: str, topic: str, data: bytes, info) -> None:
+    def on_detections(self, cam: str, topic: str, data: bytes | np.ndarray, info) -> None:
         """One serialized detections message: check and queue it; then (unless called from
         _decide) take every other pending message and let the synchroniser decide."""
         self._receive(cam, topic, data, info)
         if not self._taking:
             self._decide()
 
-    def _receive(self, cam: str, topic: str, data: bytes, info) -> None:
+    def _receive(self, cam: str, topic: str, data: bytes | np.ndarray, info) -> None:
         """Check one serialized message and queue it by its stamp: every field and limit is
         checked here (a bad message never takes a place in a frame set; counted with its
-        reason), its mesh vertices are decoded only when its frame set is processed
-        (_decoded): a node that fell behind skips stale sets without paying their decoding,
-        which would otherwise keep it behind."""
+        reason), see :func:`checked_detections`."""
         with RejectErrors(self.diag, topic, "bad_detections") as step:
             with Stopwatch(self.diag, "check"):
-                msg = wire.read_detections(
-                    wire.cdr_to_cloud(data, topic), topic, self.rig.names, expected_camera=cam
-                )
-                check_detection_arrays(
-                    cam, msg.bboxes, msg.kpts2d, msg.vertex_extremes, self.rig, self.limits, topic
+                item = checked_detections(
+                    wire.cdr_to_cloud(data, topic), topic, cam, self.rig, self.limits, self.gates
                 )
         if step.failed:
             return
         now = self._now_ns()
         arrived = self._arrival.arrival_ns(topic, now, info)
-        self._ready += self.sync.add(cam, msg.stamp_ns, msg, now, arrived, poll=False)
+        self._ready += self.sync.add(cam, item.stamp_ns, item, now, arrived, poll=False)
         if self.timer.is_canceled() and self.sync.pending():
             self.timer.reset()  # a set is waiting: poll it (max_wait) until it goes out
 
     def _decoded(self, fs) -> dict[str, FrameDetections]:
         """The frame set's checked messages decoded and prepared for the pair gates."""
         with Stopwatch(self.diag, "decode"):
-            return {cam: self.gates.prepare(msg.decode()) for cam, msg in fs.items.items()}
+            return {cam: prepared_detections(item, self.gates) for cam, item in fs.items.items()}
 
     def _decide(self) -> None:
         """Take every message already waiting in the DDS queues (the executor runs the poll
@@ -409,6 +410,35 @@ class AssociationNode(MaemNode):
                 self.diag.time(stage, float(result.stats[key]))
         self.diag.set("last_clusters", len(result.clusters))
         self.diag.set("last_cameras", len(items))
+
+
+def checked_detections(
+    cloud: Any, topic: str, cam: str, rig: Rig, limits: InputLimits, gates: PairGates
+) -> FrameDetections | wire.DetectionsMessage:
+    """One detections message read and checked whole, as the synchroniser queues it (WireError
+    or InputError with the reason).
+
+    f32 vertices that the pair gates prepare come back as the prepared FrameDetections: the
+    gates' pass over the vertices is also their check, made here instead of the reader's, so a
+    message costs one pass over its vertices, not one on reading and another when its frame
+    set is processed, and a skipped set paid the same as before. Every other message comes back
+    still encoded: q4 vertices are decoded (:func:`prepared_detections`) only for the frame
+    sets processed, so a node that fell behind skips the stale ones without decoding them."""
+    scan = bool(gates.prepare_strides())
+    msg = wire.read_detections(cloud, topic, rig.names, expected_camera=cam, check_f32_vertices=not scan)
+    item: FrameDetections | wire.DetectionsMessage = msg
+    if not msg.vertices_checked:
+        frame = msg.decode()
+        found = gates.prepare_scanning(frame)
+        msg = msg.check_vertices(topic) if found is None else msg.with_vertex_scan(topic, *found)
+        item = frame.mark_validated()
+    check_detection_arrays(cam, msg.bboxes, msg.kpts2d, msg.vertex_extremes, rig, limits, topic)
+    return item
+
+
+def prepared_detections(item: FrameDetections | wire.DetectionsMessage, gates: PairGates) -> FrameDetections:
+    """A queued message (:func:`checked_detections`) decoded and prepared for the pair gates."""
+    return item if isinstance(item, FrameDetections) else gates.prepare(item.decode())
 
 
 def main(args: list[str] | None = None) -> int:

@@ -85,7 +85,7 @@ class _FastDDS:
 @lru_cache(maxsize=1)
 def _fastdds() -> _FastDDS | None:
     """The loaded Fast DDS library's functions, or None (not loaded, or other exports)."""
-    path = _loaded_library("libfastrtps.so")
+    path = loaded_library("libfastrtps.so")
     if path is None:
         return None
     try:
@@ -94,7 +94,7 @@ def _fastdds() -> _FastDDS | None:
         return None
 
 
-def _loaded_library(prefix: str) -> str | None:
+def loaded_library(prefix: str) -> str | None:
     """Path of the first shared library whose file name starts with ``prefix`` that this
     process has mapped (Linux: /proc/self/maps), or None."""
     try:

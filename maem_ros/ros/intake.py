@@ -14,6 +14,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile
 
 from maem_ros.ros.diagnostics import Diagnostics
+from maem_ros.ros.raw_take import ARRAY_TAKE, take_message
 
 
 class SequenceGaps:
@@ -59,6 +60,7 @@ def subscribe_counted(
     raw: bool = False,
     with_info: bool = False,
     lost_reason: str = "dds_lost",
+    into_array: bool = False,
 ):
     """create_subscription whose callback first records the input in ``diag`` and counts
     messages lost before the node took them (``dropped/<lost_reason>``, default
@@ -66,7 +68,9 @@ def subscribe_counted(
 
     ``raw``: the callback gets the serialized message (bytes), for decoders that read it in
     place (wire.cdr_to_cloud); ``with_info``: it gets ``(msg, info)``, the rmw message info
-    (``received_timestamp`` etc., see :func:`arrival_ns`)."""
+    (``received_timestamp`` etc., see :func:`arrival_ns`); ``into_array`` (with ``raw``): the
+    serialized message comes as a uint8 array its decoded views may keep, taken without
+    rclpy's extra copy (ros.raw_take; by :func:`take_pending` and the ArrayTakeExecutor)."""
     gaps = SequenceGaps()
     sub = None
 
@@ -92,6 +96,8 @@ def subscribe_counted(
     # (mypy: functions have no __signature__ attribute; inspect reads it)
     on_message.__signature__ = _MSG_INFO_SIGNATURE  # type: ignore[attr-defined]
     sub = node.create_subscription(msg_type, topic, on_message, qos, raw=raw)
+    if raw and into_array:
+        setattr(sub, ARRAY_TAKE, True)
     return sub
 
 
@@ -112,7 +118,7 @@ def take_pending(sub, limit: int = 1000) -> int:
     while taken < limit:
         try:
             with sub.handle:
-                got = sub.handle.take_message(sub.msg_type, sub.raw)
+                got = take_message(sub)
         except InvalidHandle:  # destroyed during shutdown
             return taken
         if got is None:

@@ -46,7 +46,8 @@ EXECUTORS = ("single", "events")
 
 def make_executor(context=None):
     """The executor a node process spins on ``context`` (rclpy's default when None), chosen
-    by ``MAEM_EXECUTOR``: ``single`` (default), rclpy's SingleThreadedExecutor, or ``events``,
+    by ``MAEM_EXECUTOR``: ``single`` (default), rclpy's SingleThreadedExecutor (which takes
+    the samples of subscriptions made with ``into_array`` into arrays, ros.raw_take), or ``events``,
     rclpy's experimental EventsExecutor (Jazzy 7.1), which dispatches from rmw callbacks in C++
     instead of rebuilding a wait set in Python on every wake-up (a cost that grows with the
     node's subscriptions, timers and parameter services, and shows most on an idle node woken
@@ -63,7 +64,9 @@ def make_executor(context=None):
         from rclpy.experimental import EventsExecutor
 
         return EventsExecutor(context=context)
-    return SingleThreadedExecutor(context=context)
+    from maem_ros.ros.raw_take import ArrayTakeExecutor
+
+    return ArrayTakeExecutor(context=context)
 
 
 def spin_slices(

@@ -32,13 +32,15 @@ def cdr_header_stamp_ns(data: bytes) -> int:
     return sec * 1_000_000_000 + nsec
 
 
-def cdr_to_cloud(data: bytes, topic: str) -> Any:
+def cdr_to_cloud(data: bytes | np.ndarray, topic: str) -> Any:
     """A serialized sensor_msgs/PointCloud2 (CDR, what a raw subscription takes or a bag holds)
     -> a rosbags message the decoders here read, its ``data`` a numpy view into ``data`` (no
-    copy). WireError (reason ``bad_cdr``) for bytes that are no PointCloud2."""
+    copy; ``data`` bytes, or a uint8 array as ros.raw_take takes it). WireError (reason
+    ``bad_cdr``) for bytes that are no PointCloud2."""
     try:
         # a memoryview: rosbags slices it for the uint8[] payload (a bytes slice would copy)
-        return bagio.deserialize(memoryview(data), bagio.POINT_CLOUD2)
+        view = data.data if isinstance(data, np.ndarray) else memoryview(data)
+        return bagio.deserialize(view, bagio.POINT_CLOUD2)
     except Exception as e:  # noqa: BLE001 - any decoder failure is the same bad input
         raise WireError(
             topic,

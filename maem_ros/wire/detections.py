@@ -4,7 +4,7 @@ package docstring), encoded from and decoded to core FrameDetections. No rclpy."
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -236,16 +236,37 @@ class DetectionsMessage:
                 out[1, k] = np.fmax.reduce(pairs[..., k], axis=None)
         return out
 
+    @property
+    def vertices_checked(self) -> bool:
+        """Whether the vertices were checked (q4 codes always are; f32 ones unless read with
+        ``check_f32_vertices=False``, see :meth:`with_vertex_scan`)."""
+        return self.vertices.dtype == np.uint16 or self.f32_range is not None
+
+    def check_vertices(self, topic: str) -> DetectionsMessage:
+        """This message with its f32 vertices checked (:func:`read_detections`' check)."""
+        if self.vertices_checked:
+            return self
+        return replace(self, f32_range=_check_f32_vertices(topic, self.vertices))
+
+    def with_vertex_scan(self, topic: str, first_inf: int, low: float, high: float) -> DetectionsMessage:
+        """This message with its f32 vertices checked by another pass over them (the pair
+        gates' preparation: first detection with an inf, -1 none; smallest and largest
+        coordinate present): WireError (nonfinite) as the reading check raises it."""
+        if first_inf >= 0:
+            raise WireError(topic, "verts2d", f"inf in detection {first_inf}", "nonfinite")
+        return replace(self, f32_range=(low, high))
+
     def decode(self) -> FrameDetections:
-        """The FrameDetections (marked validated: everything was checked on reading); q4
-        vertex codes are decoded into one float32 array (NaN = missing), f32 ones stay a view."""
+        """The FrameDetections (marked validated when everything was checked on reading: the
+        f32 vertices unless they were not, see :attr:`vertices_checked`); q4 vertex codes are
+        decoded into one float32 array (NaN = missing), f32 ones stay a view."""
         n, v = self.n, self.num_vertices
         verts = (
             decode_q4(self.vertices, origin=self.origin)
             if self.vertices.dtype == np.uint16
             else self.vertices
         )
-        return FrameDetections(
+        frame = FrameDetections(
             camera=self.camera,
             stamp_ns=self.stamp_ns,
             bboxes=self.bboxes,
@@ -254,7 +275,8 @@ class DetectionsMessage:
             kpts3d=self.kpts3d,
             verts2d=verts.reshape(n, v, 2),
             mesh_subset=self.mesh_subset,
-        ).mark_validated()
+        )
+        return frame.mark_validated() if self.vertices_checked else frame
 
 
 def _q4_range_px(low: np.ndarray, high: np.ndarray, origin: np.ndarray | None) -> np.ndarray:
@@ -369,13 +391,19 @@ def _check_camera(
 
 
 def read_detections(
-    msg: Any, topic: str, known_cameras: Sequence[str] | None = None, expected_camera: str | None = None
+    msg: Any,
+    topic: str,
+    known_cameras: Sequence[str] | None = None,
+    expected_camera: str | None = None,
+    check_f32_vertices: bool = True,
 ) -> DetectionsMessage:
     """PointCloud2 -> DetectionsMessage, every field checked (WireError with the reason), the
     mesh vertices left undecoded.
 
     ``known_cameras``: frame_id must be one of them; ``expected_camera``: frame_id must equal it
-    (the camera whose topic this came from).
+    (the camera whose topic this came from). ``check_f32_vertices=False``: f32 vertices are
+    left for a pass the receiver makes over them anyway (DetectionsMessage.with_vertex_scan,
+    or check_vertices); a q4 message is checked whole regardless.
     """
     cam = _check_camera(msg, topic, known_cameras, expected_camera)
     layout = _detection_layout(msg, topic)
@@ -396,7 +424,9 @@ def read_detections(
     if origin is not None:
         check_finite(topic, ORIGIN_FIELD, origin)
     # a q4 code is never inf; NaN = missing f32 vertex
-    f32_range = _check_f32_vertices(topic, fields[vname]) if vname == "verts2d" else None
+    f32_range = (
+        _check_f32_vertices(topic, fields[vname]) if vname == "verts2d" and check_f32_vertices else None
+    )
     bbox = fields["bbox"]
     inverted = (bbox[:, 2] < bbox[:, 0]) | (bbox[:, 3] < bbox[:, 1])
     if inverted.any():

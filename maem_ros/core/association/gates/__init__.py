@@ -4,6 +4,8 @@ over the dense mesh vertices, or over the 2D keypoints), with their numba kernel
 
 - ``PairGates(rig, params).prepare(frame)``: per camera frame as it arrives, the mesh gate's
   per-frame data (screening subsets copied contiguous, block ranges), kept by the gates;
+  ``prepare_scanning(frame)`` the same for a frame nobody checked yet, with what its pass
+  found (:class:`VertexScan`: the first infinite vertex, the extremes);
 - ``PairGates.candidates(table)`` / ``PairGates.frame_set(frames).decide(...)``: per frame
   set, every candidate pair's stage (passed, or the gate that rejected it) and mean epipolar
   distance (:class:`GateDecisions`);
@@ -18,7 +20,7 @@ Modules: ``pair_gates`` (the interface), ``reprojection`` (+ ``reprojection_kern
 ``rig_geometry``.
 
 Exports: EPIPOLAR_GATES, EVERY_VERTEX, ExecutionParams, FrameSet, GateDecisions, PairGates,
-RigGeometry, gate_columns, rig_geometry, warmup.
+RigGeometry, VertexScan, gate_columns, rig_geometry, warmup.
 """
 
 from maem_ros.core.association.gates.execution import EVERY_VERTEX, ExecutionParams
@@ -27,6 +29,7 @@ from maem_ros.core.association.gates.pair_gates import (
     FrameSet,
     GateDecisions,
     PairGates,
+    VertexScan,
     gate_columns,
     warmup,
 )
@@ -40,6 +43,7 @@ __all__ = [
     "GateDecisions",
     "PairGates",
     "RigGeometry",
+    "VertexScan",
     "gate_columns",
     "rig_geometry",
     "warmup",

@@ -72,6 +72,16 @@ class GateDecisions(NamedTuple):
     points_fraction: float
 
 
+class VertexScan(NamedTuple):
+    """What :meth:`PairGates.prepare_scanning`'s pass found over a frame's vertices."""
+
+    #: the first detection with an infinite coordinate (-1: none; NaN = missing is allowed)
+    first_inf: int
+    #: px, smallest and largest coordinate present, u and v together (NaN: none present)
+    low: float
+    high: float
+
+
 class _Prepared(NamedTuple):
     """What ``prepare`` made of one frame: valid while the frame holds ``verts``."""
 
@@ -153,6 +163,21 @@ class PairGates:
             made = screen_copies(frame.verts2d.reshape(n, v, 2), strides)
             self._prepared.put(frame, _Prepared(frame.verts2d, made.copies, made.block_ranges))
         return frame
+
+    def prepare_scanning(self, frame: FrameDetections) -> VertexScan | None:
+        """:meth:`prepare` for a frame whose vertices nobody has checked yet: the preparing
+        pass reads every vertex anyway, so it also says whether one is infinite and what the
+        extremes are (a receiver checks the frame at the cost of that one pass). None when
+        prepare makes no pass over this frame (its vertices are checked elsewhere, or it has
+        none). A frame with an infinite vertex is not kept."""
+        strides = self.prepare_strides()
+        if not strides or not frame.n:
+            return None
+        n, v = frame.verts2d.shape[:2]
+        made = screen_copies(frame.verts2d.reshape(n, v, 2), strides)
+        if made.first_inf < 0:
+            self._prepared.put(frame, _Prepared(frame.verts2d, made.copies, made.block_ranges))
+        return VertexScan(made.first_inf, *made.extremes)
 
     def select(self, frame: FrameDetections, index: np.ndarray) -> FrameDetections:
         """``frame.select(index)`` with the rows of what :meth:`prepare` made of the frame."""

@@ -60,6 +60,9 @@ class ScreenCopies(NamedTuple):
     block_ranges: dict[int, np.ndarray]
     #: the first detection with an infinite coordinate (-1: none; NaN = missing is allowed)
     first_inf: int
+    #: px, the smallest and the largest coordinate present (u and v together, NaN = missing
+    #: ignored; NaN when none is present or an infinite one was found)
+    extremes: tuple[float, float]
 
 
 def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
@@ -72,7 +75,8 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     finest subset and of one coarser subset nested in it) while they are in cache. The gate
     then reads the copies where it would gather the same runs from scattered cache lines,
     and the ranges where its kernel would scan the points again
-    (epipolar._known_ranges)."""
+    (epipolar._known_ranges). The pass is also the points' finiteness check and finds their
+    extremes (the full set's block ranges), so a receiver need not make one of its own."""
     x = np.asarray(x, dtype=np.float32)
     full = point_rows(x)
     screens = [(s, screen_rows(full, s)) for s in sorted(set(int(v) for v in strides))]
@@ -80,7 +84,8 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     if not have_numba() or full.count == 0 or not levels:
         bad = np.flatnonzero(np.isinf(x).any(axis=(1, 2)))
         copies = {s: rows._gather(rows.rows) for s, rows in levels}
-        return ScreenCopies(_read_only(copies), {}, int(bad[0]) if bad.size else -1)
+        first_inf = int(bad[0]) if bad.size else -1
+        return ScreenCopies(_read_only(copies), {}, first_inf, _extremes(x, None, first_inf))
     (stride, fine), rest = levels[0], levels[1:]
     nested = [(s, rows) for s, rows in rest if rows.period % fine.period == 0]
     coarse_stride, coarse = nested[0] if nested else (0, None)
@@ -111,7 +116,29 @@ def screen_copies(x: np.ndarray, strides: Sequence[int]) -> ScreenCopies:
     for s, rows in rest:  # a level not nested in the finest one: gathered on its own
         if s not in copies:
             copies[s] = rows._gather(rows.rows)
-    return ScreenCopies(_read_only(copies), _read_only(ranges), int(first_inf))
+    return ScreenCopies(
+        _read_only(copies), _read_only(ranges), int(first_inf), _extremes(x, ranges[1], int(first_inf))
+    )
+
+
+def _extremes(x: np.ndarray, block_ranges: np.ndarray | None, first_inf: int) -> tuple[float, float]:
+    """(smallest, largest) coordinate of the (N,n,2) points, NaN ignored (NaN, NaN when none
+    is present or one is infinite), from the blocks' ranges where the scan gave them: a block
+    holding a NaN has none (inf, -inf), and only its detections are reduced again."""
+    if first_inf >= 0 or x.size == 0:
+        return np.nan, np.nan
+    if block_ranges is None:
+        return float(np.fmin.reduce(x, axis=None)), float(np.fmax.reduce(x, axis=None))
+    low, high = block_ranges[..., 0], block_ranges[..., 1]
+    whole = low <= high
+    lo = float(low[whole].min()) if whole.any() else np.nan
+    hi = float(high[whole].max()) if whole.any() else np.nan
+    with_nan = np.flatnonzero(~whole.all(axis=1))
+    if with_nan.size:
+        rest = x[with_nan]
+        lo = float(np.fmin(lo, np.fmin.reduce(rest, axis=None)))
+        hi = float(np.fmax(hi, np.fmax.reduce(rest, axis=None)))
+    return lo, hi
 
 
 def _ranges_buffer(count: int, n: int) -> np.ndarray:
