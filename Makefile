@@ -65,8 +65,10 @@ lint: $(STAMP)
 test: lint $(TF2_STAMP) $(MP_STAMP) $(KERNELS_STAMP)
 	$(PY) -m pytest -q test
 
+# two workers (pytest-xdist): the unit tests are independent and CPU-bound; make test stays
+# serial, its graph tests each own a DDS participant and wait on timeouts
 test-fast: $(STAMP) $(KERNELS_STAMP)
-	$(PY) -m pytest -q test -m "$(SLOW_KINDS)"
+	$(PY) -m pytest -q -n 2 test -m "$(SLOW_KINDS)"
 
 demo: $(STAMP) $(TF2_STAMP) $(KERNELS_STAMP)
 	$(VENV)/bin/maem-demo
