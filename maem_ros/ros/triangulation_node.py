@@ -5,7 +5,7 @@
 
 Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2, one point per
 person: id, joints (3J world m, NaN = missing), views, score; see maem_ros/wire) and ``/maem/skeletons``
-(MarkerArray). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
+(MarkerArray; built only while something subscribes to it: a viewer, a recorder). Joints are converted from the clusters' convention (MHR70 from the SAM 3D Body
 frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
 the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they come
 from core.tracking.tracks.Tracker on the converted joints (post-hoc, 3D proximity). A person whose
@@ -305,11 +305,14 @@ class TriangulationNode(MaemNode):
             )
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
-        with Stopwatch(self.diag, "markers"):
-            markers = wire.skeleton_markers(
-                stamp_ns, self.frame_id, ids, joints, self.output.bones, self.lifetime_s()
-            )
-        self.marker_pub.publish(markers)
+        # the markers cost a fifth of this node's work per frame: made only for a subscriber
+        # (the topic is volatile, so one that joins later misses nothing it could have had)
+        if self.marker_pub.get_subscription_count() > 0:
+            with Stopwatch(self.diag, "markers"):
+                markers = wire.skeleton_markers(
+                    stamp_ns, self.frame_id, ids, joints, self.output.bones, self.lifetime_s()
+                )
+            self.marker_pub.publish(markers)
         self.diag.set("last_persons", int(len(ids)))
         self.diag.set("last_tracked", int((ids >= 0).sum()))
         self.diag.set("last_stamp_ns", stamp_ns)

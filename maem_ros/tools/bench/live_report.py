@@ -214,6 +214,11 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
             round(lat_by_frame[f], 1) if f in lat_by_frame else None for f in range(len(stamps))
         ],
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
+        # each frame's association hop (publish -> /maem/clusters; None: no clusters): which
+        # node a slow frame waited for
+        "association_hop_ms_by_frame": [
+            round((run.clusters[s] - sent[s]) * 1e3, 1) if s in run.clusters else None for s in stamps
+        ],
         # where the latency is: publish -> /maem/clusters (the association's hop) and
         # /maem/clusters -> /maem/poses (triangulation's), medians over frames with poses
         "association_hop_ms_median": _median_ms(
