@@ -6,7 +6,8 @@
 Subscribes ``/maem/clusters`` (reliable); publishes ``/maem/poses`` (PointCloud2, one point per
 person: id, joints (3J world m, NaN = missing), views, score; see maem_ros/wire) and ``/maem/skeletons``
 (MarkerArray; built only while something subscribes to it: a viewer, a recorder). Joints are
-converted from the clusters' convention (MHR70 from the SAM 3D Body frontends) to ``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
+converted from the clusters' convention (MHR70 from the SAM 3D Body frontends) to
+``output_convention`` (default sportcenter_13). Ids are the clusters' track ids when
 the association node tracks (``temporal: on``, clusters with a ``track`` field); otherwise they come
 from core.tracking.tracks.Tracker on the converted joints (post-hoc, 3D proximity). A person whose
 track is not confirmed yet has id 4294967295 in poses (dropped unless ``publish_tentative``) and no
