@@ -286,6 +286,7 @@ class TemporalAssociator:
         jumped = self._two_view_jumps(keep, X)
         stats["tracks_two_view_jumps"] = float(jumped.sum())
         out: dict[int, list] = {}
+        updated: list[int] = []  # tracks updated from their verified members, batched below
         for i, t in enumerate(tracks):  # one iteration per person
             if jumped[i]:  # left to the cross-view association, as with tracks off
                 continue
@@ -293,7 +294,7 @@ class TemporalAssociator:
             need = self.tp.min_track_views if t.id >= 0 else self.params.k_min
             if n >= max(need, 2):
                 members = np.stack([cam[i, keep[i]], det[i, keep[i]]], axis=1)
-                self.tracker.update(t, X[i])
+                updated.append(i)
                 few = n < self.params.k_min
                 stats["tracks_few_views"] += few
                 out[t.key] = [members, np.full(n, np.nan), FLAG_TRACKED | (FLAG_FEW_VIEWS if few else 0)]
@@ -314,6 +315,7 @@ class TemporalAssociator:
                 continue
             for c, d in out[t.key][0].tolist():
                 used[c][d] = True
+        self.tracker.update_many([tracks[i] for i in updated], X[updated])
         stats["detections_explained"] = float(sum(u.sum() for u in used.values()))
         return out
 

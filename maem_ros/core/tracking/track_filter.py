@@ -69,9 +69,11 @@ class Tracker3D:
         q = self.p.accel_std**2
         Q1 = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
         Q = np.kron(Q1, np.eye(3))
-        for t in self.tracks:  # one 6x6 product per person
-            t.x = F @ t.x
-            t.Pc = F @ t.Pc @ F.T + Q
+        # every track in one batched product: per-track numpy calls cost more than the maths
+        x = np.stack([t.x for t in self.tracks]) @ F.T
+        Pc = F @ np.stack([t.Pc for t in self.tracks]) @ F.T + Q
+        for t, xi, Pi in zip(self.tracks, x, Pc):
+            t.x, t.Pc = xi, Pi
 
     def start(self, joints: np.ndarray) -> Track:
         """A tentative track from a triangulated pose (J,3)."""
@@ -85,21 +87,34 @@ class Tracker3D:
 
     def update(self, t: Track, joints: np.ndarray, meas_std: float | None = None) -> None:
         """Kalman update of the root with a pose (J,3) (NaN = unseen), smooth the offsets."""
-        root = root_of(joints)
-        if np.isfinite(root).all():
+        self.update_many([t], joints[None], meas_std)
+
+    def update_many(self, tracks: list[Track], joints: np.ndarray, meas_std: float | None = None) -> None:
+        """:meth:`update` of each track with its pose (K,J,3), batched over the tracks (the
+        per-track numpy calls cost more than the maths); ids go to newly confirmed tracks in
+        the given order."""
+        root = root_of(joints)  # (K,3)
+        idx = np.flatnonzero(np.isfinite(root).all(-1))
+        if idx.size:
+            upd = [tracks[i] for i in idx]
+            x, Pc = np.stack([t.x for t in upd]), np.stack([t.Pc for t in upd])
             r = (meas_std or self.p.meas_std) ** 2
-            S = t.Pc[:3, :3] + r * np.eye(3)
-            K = t.Pc[:, :3] @ np.linalg.inv(S)
-            t.x = t.x + K @ (root - t.x[:3])
-            t.Pc = (np.eye(6) - K[:, :3] @ np.eye(3, 6)) @ t.Pc
-            new = joints - root
+            S = Pc[:, :3, :3] + r * np.eye(3)
+            K = Pc[:, :, :3] @ np.linalg.inv(S)  # (k,6,3) Kalman gains
+            x = x + (K @ (root[idx] - x[:, :3])[:, :, None])[:, :, 0]
+            Pc = (np.eye(6) - K @ np.eye(3, 6)) @ Pc
+            new = joints[idx] - root[idx, None]
+            old = np.stack([t.offsets for t in upd])
             a = self.p.joint_alpha
-            seen, known = np.isfinite(new).all(-1), np.isfinite(t.offsets).all(-1)
-            blend = np.where((seen & known)[:, None], a * new + (1 - a) * t.offsets, t.offsets)
-            t.offsets = np.where((seen & ~known)[:, None], new, blend)
-        t.hits += 1
-        t.misses = 0
-        self._confirm(t)
+            seen, known = np.isfinite(new).all(-1), np.isfinite(old).all(-1)
+            blend = np.where((seen & known)[..., None], a * new + (1 - a) * old, old)
+            offsets = np.where((seen & ~known)[..., None], new, blend)
+            for t, xi, Pi, oi in zip(upd, x, Pc, offsets):
+                t.x, t.Pc, t.offsets = xi, Pi, oi
+        for t in tracks:
+            t.hits += 1
+            t.misses = 0
+            self._confirm(t)
 
     def _confirm(self, t: Track) -> None:
         if t.id < 0 and t.hits >= self.p.confirm_hits:
