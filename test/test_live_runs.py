@@ -54,15 +54,16 @@ def test_accounting_explains_frames_without_poses_by_the_nodes_counts() -> None:
 def test_aggregate_reports_the_median_and_the_worst_against_the_targets() -> None:
     runs = [dict(latency_ms_median=20.0, latency_ms_p99=50.0, frames_without_poses_pct=0.0,
                  recall_live=1.0, recall_shortfall=0.0, stress_recovery_s=0.2,
-                 load_average_1min=3.0),
+                 load_average_1min=3.0, slowest_frames=[(3, 60.0), (4, 55.0)]),
             dict(latency_ms_median=45.0, latency_ms_p99=90.0, frames_without_poses_pct=0.5,
                  recall_live=0.97, recall_shortfall=0.02, stress_recovery_s=None,
-                 load_average_1min=9.0),
+                 load_average_1min=9.0, slowest_frames=[(0, 95.0)]),
             dict(latency_ms_median=25.0, latency_ms_p99=60.0, frames_without_poses_pct=0.2,
                  recall_live=0.99, recall_shortfall=0.0, stress_recovery_s=0.4,
-                 load_average_1min=4.0)]
+                 load_average_1min=4.0, slowest_frames=[(9, 70.0)])]
     out = aggregate(runs, 60.0)
     assert out["runs"] == 3
+    assert "slowest_frames" not in out["worst"]  # where each run's tail was, not a figure to rank
     assert out["median"]["latency_ms_median"] == 25.0 and out["worst"]["latency_ms_p99"] == 90.0
     assert out["worst"]["recall_live"] == 0.97  # lower is worse
     assert out["worst"]["stress_recovery_s"] is None  # a run that never recovered

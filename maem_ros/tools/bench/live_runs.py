@@ -190,6 +190,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
             "publisher_late_ms_median",
             "publisher_late_ms_p99",
             "load_average_1min",
+            "slowest_frames",  # (frame, ms): where a run's tail was (start-up, a hiccup)
         )
     }
     out["frames_without_poses_pct"] = round(100.0 * report["frames_without_poses"] / max(n, 1), 2)
@@ -214,7 +215,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
 def aggregate(summaries: list[dict[str, Any]], rate: float) -> dict[str, Any]:
     """Median and worst over the runs of every figure, and the issue's targets against the
     worst (60 fps: ``TARGETS_60``; below: ``TARGETS_30``)."""
-    keys = [k for k in summaries[0] if k != "load_average_1min"]
+    keys = [k for k in summaries[0] if k not in ("load_average_1min", "slowest_frames")]
     median: dict[str, Any] = {}
     worst: dict[str, Any] = {}
     for k in keys:
