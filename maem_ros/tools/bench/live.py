@@ -10,8 +10,9 @@ sets, CPU per process and recall against ground truth.
     maem-bench --live --rate 60 --frames 600 --runs 5 --stress 5   # worst of 5, a CPU hog
 
 Detections: from ``--bag`` (its /<cam>/detections and /maem/gt_poses), else regenerated from the
-params file's synthetic scene (every publisher builds its camera's messages before the clock
-starts, so generating them costs nothing during the run). Each camera's publisher process
+params file's synthetic scene, simulated at ``--rate`` (stamps 1/rate apart, as a camera at
+that rate stamps them; every publisher builds its camera's messages before the clock starts, so
+generating them costs nothing during the run). Each camera's publisher process
 (``python -m maem_ros.tools.bench.live --publish CAM``) sends frame f at T0 + f / rate (wall clock);
 maem-association and maem-triangulation run as nodes with the params file. This process
 subscribes /maem/poses: latency = arrival - scheduled publish time of that frame. Frames
@@ -180,8 +181,10 @@ def publish_main(a: argparse.Namespace) -> int:
         late = []  # s each publish returned after its frame's scheduled time
         for f, (_, data) in enumerate(msgs):
             target = t0 + f / a.rate
+            # one wake-up per frame, as a camera's: six publishers polling every few ms took
+            # CPU from the nodes they stand in front of
             while (now := time.time()) < target and not stop.is_set():
-                time.sleep(min(target - now, 0.002))
+                stop.wait(target - now)
             if stop.is_set():
                 break
             pub.publish(data)
@@ -291,7 +294,9 @@ def _write_live_params(a: argparse.Namespace, work: Path) -> tuple[Path, Any]:
     params = write_params(
         a.params,
         work / "params.yaml",
-        frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices},
+        # the scene simulated at the publishing rate, as a camera at that rate stamps its frames
+        # (1/rate apart) and sees people move: the nodes measure the frame period from the stamps
+        frontend={"frames": max(a.frames, 1), "num_vertices": a.vertices, "fps": a.rate},
         association=assoc_over,
         triangulation=policy or None,
     )
@@ -490,7 +495,12 @@ def add_live_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--bag", type=Path, default=None, help="--live: publish this bag's recorded /<cam>/detections"
     )
-    g.add_argument("--rate", type=float, default=30.0, help="--live: frames per second")
+    g.add_argument(
+        "--rate",
+        type=float,
+        default=30.0,
+        help="--live: frames per second (the synthetic scene is simulated at this rate)",
+    )
     g.add_argument(
         "--vertex-stride", type=int, default=1, help="--live: send every n-th vertex (announced subset)"
     )
