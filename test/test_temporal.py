@@ -442,3 +442,33 @@ def test_people_overlapping_in_two_views_keep_their_own_detections_there():
         res = ta.step(fr, fr["cam0"].stamp_ns)
         assert person_ids(res, rig, who) == first, f"frame {f}"
         assert sorted(len(c.members) for c in res.clusters) == [4, 4], f"frame {f}"
+
+
+def test_the_batched_filter_update_is_the_kalman_update_of_each_track():
+    """Tracker3D.update_many over several tracks: each track's root moves by the Kalman gain
+    S^-1-weighted innovation (a static prior: K = P / (P + R) per axis), its offsets blend with
+    joint_alpha, a pose without a finite joint leaves the state but counts the hit."""
+    from maem_ros.core.tracking.track_filter import Tracker3D
+
+    tp = TemporalParams(meas_std=0.1, joint_alpha=0.5, confirm_hits=2)
+    tracker = Tracker3D(tp)
+    rng = np.random.default_rng(3)
+    poses = [rng.normal(size=(5, 3)) + [k, 0, 1] for k in range(3)]
+    tracks = [tracker.start(p) for p in poses]
+    before = [(t.x.copy(), t.Pc.copy(), t.offsets.copy()) for t in tracks]
+    shift = np.array([0.2, -0.1, 0.05])
+    new = np.stack([poses[0] + shift, poses[1] + shift, np.full((5, 3), np.nan)])
+    tracker.update_many(tracks, new)
+    for k in range(2):
+        x0, P0, _ = before[k]
+        gain = P0[0, 0] / (P0[0, 0] + tp.meas_std**2)  # the start covariance is diagonal
+        np.testing.assert_allclose(tracks[k].x[:3], x0[:3] + gain * shift, atol=1e-12)
+        np.testing.assert_allclose(tracks[k].Pc[0, 0], (1 - gain) * P0[0, 0], atol=1e-12)
+        np.testing.assert_allclose(tracks[k].offsets, before[k][2], atol=1e-12)  # a rigid shift
+    np.testing.assert_array_equal(tracks[2].x, before[2][0])  # nothing seen: nothing moved
+    assert [t.hits for t in tracks] == [2, 2, 2] and [t.id for t in tracks] == [0, 1, 2]
+    one = Tracker3D(tp)
+    alone = one.start(poses[0])
+    one.update(alone, new[0])  # the single-track update is the same computation
+    np.testing.assert_allclose(alone.x, tracks[0].x, atol=1e-12)
+    np.testing.assert_allclose(alone.Pc, tracks[0].Pc, atol=1e-12)
