@@ -143,11 +143,6 @@ TRACK_COUNTS = (
 )
 
 
-#: the start-up warm-up (AssociationNode._warm_path): simulated people, frames (>= 2: the second
-#: runs the track-assisted path), mesh vertices (more than two of the epipolar kernel's 4096-point
-#: blocks, as maem-warmup) and keypoints per detection
-WARM_PLAYERS, WARM_FRAMES, WARM_VERTICES, WARM_KEYPOINTS = 4, 2, 9000, 70
-
 #: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,
 #: ~1.8 MB each) and one association step's arrays; measured: no page fault per message with it
 HEAP_PREFAULT_MB = 192
@@ -192,7 +187,6 @@ class AssociationNode(MaemNode):
                 time_offsets={c: self.rig[c].time_offset for c in self.cameras},
             )
             self.limits = InputLimits(max_detections=p["max_detections"], pixel_margin=p["pixel_margin"])
-        self._warm_path()  # before the subscriptions: the first real frame set runs warm
         self._sync_seen = SyncStats()
         self._arrival = QueuedArrival()  # arrival times that see every queue on the way
         self.start_diagnostics()
@@ -231,39 +225,6 @@ class AssociationNode(MaemNode):
 
     def _now_ns(self) -> int:
         return self.get_clock().now().nanoseconds
-
-    def _warm_path(self) -> None:
-        """Run this node's path (check -> decode -> track-assisted association -> encode) on
-        simulated frame sets of its rig, both wire layouts, with a throwaway track stage, so
-        the first real frame set pays no first-call costs: without it the first set cost
-        ~20 ms more than a warm one (offline, the demo scene), and at 60 fps the first frames
-        of a stream came late and some were skipped. A failure costs only the warm-up."""
-        from rclpy.serialization import serialize_message
-
-        from maem_ros.core.tracking.temporal import TemporalAssociator
-        from maem_ros.tools.bench.bench_load import body_template, make_sequence
-
-        try:
-            stage = TemporalAssociator(self.rig, self.params, self.temporal.tp)
-            template = body_template(WARM_VERTICES, WARM_KEYPOINTS, 0)
-            rng = np.random.default_rng(0)
-            for layout in ("f32", "q4"):
-                for fr in make_sequence(self.rig, template, rng, WARM_PLAYERS, 1, WARM_FRAMES):
-                    msgs = {c: wire.detections_to_msg(fd, layout) for c, fd in fr.frames.items()}
-                    self._warm_frame_set(stage, {c: bytes(serialize_message(m)) for c, m in msgs.items()})
-        except Exception as e:  # noqa: BLE001 - the warm-up must never keep the node from starting
-            self.get_logger().warning(f"start-up warm-up failed ({e}); the first frames run cold")
-
-    def _warm_frame_set(self, stage, sent: dict[str, bytes]) -> None:
-        """One serialized frame set (camera -> message) through the node's path with ``stage``."""
-        items = {}
-        for cam, data in sent.items():
-            cloud = wire.cdr_to_cloud(data, f"/{cam}/detections")
-            item = checked_detections(cloud, "warm-up", cam, self.rig, self.limits, stage.gates)
-            items[cam] = prepared_detections(item, stage.gates)
-        stamp = next(iter(items.values())).stamp_ns
-        res = stage.step(items, stamp)
-        wire.clusters_to_msg(stamp, self.frame_id, self.rig, items, res.clusters, res.track_ids, res.flags)
 
     def on_detections(self, cam: str, topic: str, data: bytes | np.ndarray, info) -> None:
         """One serialized detections message: check and queue it; then (unless called from
