@@ -306,7 +306,7 @@ class TriangulationNode(MaemNode):
             )
         # poses first: the markers (one Python object per point) must not delay them
         self.pose_pub.publish(poses_msg)
-        # the markers cost a fifth of this node's work per frame: made only for a subscriber
+        # the markers cost about a third of this node's work per frame: made only for a subscriber
         # (the topic is volatile, so one that joins later misses nothing it could have had)
         if self.marker_pub.get_subscription_count() > 0:
             with Stopwatch(self.diag, "markers"):
