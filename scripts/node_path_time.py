@@ -18,7 +18,8 @@ from maem_ros.params import load_node_params
 from maem_ros.ros import wire
 
 try:
-    from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_frame
+    from maem_ros.core.synthetic import body_template, make_frame
+    from maem_ros.tools.bench.bench_load import load_bench_rig
 
     NEW = True
 except ImportError:

@@ -15,17 +15,18 @@ The numbers behind screen_margin and screen_coarse_margin (doc/design.md §9.3).
 from __future__ import annotations
 
 import argparse
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.association.pipeline import AssociationParams, associate
+from maem_ros.core.synthetic import body_template, make_frame
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire
 from maem_ros.sim.scene import Scene, SceneConfig
-from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_frame
+from maem_ros.tools.bench.bench_load import load_bench_rig
 
 STRIDES = (64, 32, 16, 8, 4, 2)
 NEAR_TAU = 3.0  # px

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from maem_ros.core.association import PAPER_PIPELINE, AssociationParams, associate
+from maem_ros.core.synthetic import body_template, make_frame
 from maem_ros.sim.rigs import load_rig
-from maem_ros.tools.bench.bench_load import (body_template, make_frame, pa_mpjpe_one,
-                                       straightforward_associate)
+from maem_ros.tools.bench.bench_load import pa_mpjpe_one, straightforward_associate
 
 KEYS = ("cameras", "detections_per_camera", "vertices", "association_ms_median",
         "association_ms_p90", "triangulation_ms_median", "straightforward_association_ms_median",

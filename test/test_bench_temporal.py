@@ -8,9 +8,9 @@ import pytest
 from test_bench import _bench
 
 from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.synthetic import body_template, make_sequence
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
 from maem_ros.sim.rigs import load_rig
-from maem_ros.tools.bench.bench_load import body_template, make_sequence
 
 
 @pytest.mark.slow

@@ -10,16 +10,21 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from helpers_scene import ring_rig
-
-from maem_ros.core.association import clustering
-from maem_ros.core.association import clustering_kernel
-from maem_ros.core.association import AssociationParams, associate
+from maem_ros.core.association import AssociationParams, associate, clustering, clustering_kernel
 from maem_ros.core.association.gates import rig_geometry
-from maem_ros.core.detections import (PASSED, REJECTED_COST, REJECTED_EPIPOLAR, DetectionTable,
-                                      FrameDetections, PairSet)
+from maem_ros.core.detections import (
+    PASSED,
+    REJECTED_COST,
+    REJECTED_EPIPOLAR,
+    DetectionTable,
+    FrameDetections,
+    PairSet,
+)
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_frame
+from maem_ros.core.synthetic import body_template, make_frame
+from maem_ros.tools.bench.bench_load import load_bench_rig
+
+from helpers_scene import ring_rig
 
 pytestmark = pytest.mark.skipif(not clustering_kernel.have_numba(), reason="numba not installed")
 J = 13

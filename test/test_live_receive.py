@@ -388,3 +388,20 @@ def test_prefaulted_heap_serves_a_new_message_buffer_without_page_faults(prefaul
     assert out.returncode == 0, out.stderr
     faults = int(out.stdout.strip())
     assert (faults >= 400) if prefault_mb == 0 else (faults <= 20), faults
+
+
+def test_the_node_runs_its_path_warm_before_it_subscribes_and_keeps_no_trace_of_it(graph, scene):
+    """At start the node ran its own path on simulated frame sets of its rig (two frames in
+    each wire layout) with a throwaway track stage: its own stage has no tracks and no stamp,
+    nothing is counted, and the first real frame set gets clusters like any other."""
+    g = start_pipeline(graph)
+    assoc = g["assoc"]
+    assert assoc.warm_sets == 2 * len(wire.WIRE_VERTICES)
+    assert assoc.temporal.tracker.tracks == [] and assoc.temporal._last_stamp is None
+    for cam in assoc.rig.names:
+        g["player"].publish(scene.detections(cam, 0))
+    assert wait_for(lambda: g["clusters"].has(scene.stamp_ns(0)), 20.0, graph)
+    g["diags"].wait_value("/association", "count/sync_sets", lambda v: v == 1, graph=graph)
+    kv = g["diags"].get("/association")
+    assert kv["frames_dropped"] == "0", kv
+    assert len(g["clusters"].by_stamp[scene.stamp_ns(0)].cluster) > 0

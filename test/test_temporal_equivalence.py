@@ -9,13 +9,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from temporal_reference import ReferenceTemporalAssociator
-from helpers_scene import Person, ring_rig, walk_frame
-from test_temporal import PARAMS
-
 from maem_ros.core.association.pipeline import AssociationParams
+from maem_ros.core.synthetic import body_template, make_sequence
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
-from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_sequence
+from maem_ros.tools.bench.bench_load import load_bench_rig
+
+from helpers_scene import Person, ring_rig, walk_frame
+from temporal_reference import ReferenceTemporalAssociator
+from test_temporal import PARAMS
 
 
 def assert_same_step(a, b, f: int) -> None:

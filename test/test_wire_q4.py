@@ -11,15 +11,15 @@ from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import PointField
 
-from helpers_scene import random_detections
-
 from maem_ros.core.association.gates import epipolar
 from maem_ros.core.association.pipeline import AssociationParams, associate
 from maem_ros.core.detections import FrameDetections
+from maem_ros.core.synthetic import body_template, make_frame
 from maem_ros.params import load_node_params
 from maem_ros.ros import wire
 from maem_ros.sim.rigs import load_rig
-from maem_ros.tools.bench.bench_load import body_template, make_frame
+
+from helpers_scene import random_detections
 
 TOPIC = "/camera_0/detections"
 FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])

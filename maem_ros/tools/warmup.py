@@ -73,11 +73,12 @@ def node_paths() -> int:
 
     from maem_ros.core.association import AssociationParams
     from maem_ros.core.association import warmup as association_warmup
+    from maem_ros.core.synthetic import body_template, make_sequence
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.core.triangulation.ransac import TriangulationParams, triangulate
     from maem_ros.params import load_node_params
     from maem_ros.ros import wire
-    from maem_ros.tools.bench.bench_load import body_template, load_bench_rig, make_sequence
+    from maem_ros.tools.bench.bench_load import load_bench_rig
 
     rig = load_bench_rig(SCENE_RIG)
     template = body_template(SCENE_VERTICES, SCENE_KEYPOINTS, 0)

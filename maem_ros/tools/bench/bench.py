@@ -1,6 +1,6 @@
 """maem-bench: time MAEM association and triangulation on the standard load, one CPU thread.
 
-Standard load (tools/bench/bench_load.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob distortion),
+Standard load (core/synthetic.py): 6 cameras (shipped ``sportcenter6`` rig, plumb_bob distortion),
 12 detections per camera (10 players seen by every camera + 2 extra people per camera), 70
 keypoints, 18,439 mesh vertices, geometry consistent through the rig, 0.5 px pixel noise, fixed
 seed. ``--load large``: 16 cameras on a ring around the court (``ring16``), 25 detections per camera
@@ -16,7 +16,7 @@ undistortion of the raw vertex pixels, per-pair distances), and checks both give
     maem-bench --live [--wire q4] [--bag BAG]   # camera-rate run through the node graph
                                                 # (tools/bench/live.py)
 
-Temporal on/off (same run): the load in motion (tools/bench/bench_load.make_sequence: the same people
+Temporal on/off (same run): the load in motion (core/synthetic.make_sequence: the same people
 walking at 1.5 m/s, ``--temporal-frames`` frames at 30 fps) through core.tracking.temporal's
 track-assisted association and through the per-frame association; per-frame times after the
 first frame (steady state: tracks explain the known people, cross-view association runs on the
@@ -168,10 +168,11 @@ def run(args: argparse.Namespace) -> dict:
     from threadpoolctl import threadpool_limits
 
     from maem_ros.core.association import AssociationParams
+    from maem_ros.core.synthetic import body_template, make_frame
     from maem_ros.core.triangulation.ransac import TriangulationParams
     from maem_ros.params import load_node_params
 
-    from .bench_load import body_template, load_bench_rig, make_frame
+    from .bench_load import load_bench_rig
 
     for name in ("vertices", "keypoints", "players", "frames", "repeats"):
         if getattr(args, name) < 1:
@@ -340,10 +341,9 @@ def _temporal(args: argparse.Namespace, rig, aparams, template, dump: dict) -> d
     import numpy as np
 
     from maem_ros.core.association import associate
+    from maem_ros.core.synthetic import make_sequence
     from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
     from maem_ros.ros import wire
-
-    from .bench_load import make_sequence
 
     seq = make_sequence(
         rig, template, np.random.default_rng(args.seed + 1), args.players, args.extras, args.temporal_frames
