@@ -23,11 +23,14 @@ class ReferenceTemporalAssociator(TemporalAssociator):
     """TemporalAssociator with steps 2-4 computed camera by camera and pair gate by pair gate."""
 
     def _explain(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
-                 used: dict[int, np.ndarray], stats: dict[str, float]) -> dict[int, list]:
+                 used: dict[int, np.ndarray], stats: dict[str, float],
+                 light: bool = False) -> dict[int, list]:
         """Steps 2-4: detections explained by the tracks' predictions, verified; then once more
         against the projections of each verified cluster's own triangulation (this frame's
         estimate, tighter than the prediction: a view where the prediction was ambiguous
-        between two people is re-assigned by the views that agree)."""
+        between two people is re-assigned by the views that agree). The full step's reference
+        only (the light step is the same code with two parts left out)."""
+        assert not light, "the reference has no light step"
         tracks = self.tracker.tracks
         pred = np.stack([t.joints for t in tracks])  # (T,J,3)
         sig = np.sqrt(np.stack([np.trace(t.Pc[:3, :3]) / 3.0 for t in tracks]))  # (T,) m

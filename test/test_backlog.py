@@ -6,7 +6,8 @@ import math
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.backlog import (BACKLOG_PERIODS, MIN_BACKLOG_S, Backlog, BacklogParams)
+from maem_ros.core.backlog import (BACKLOG_PERIODS, LATE_PERIODS, MIN_BACKLOG_S, Backlog,
+                                   BacklogParams)
 
 MS = 1_000_000
 T0 = 1_700_000_000_000_000_000
@@ -198,3 +199,15 @@ def test_frames_going_stale_while_a_batch_is_processed(catch_up, processed) -> N
     # b has waited 110 ms when its turn comes: skipped; c 80 ms: worked through only with stale
     assert done == processed
     assert diag.rejected["behind"] == 4 - len(processed)
+
+
+def test_a_frame_is_late_once_it_waited_more_than_a_frame_period() -> None:
+    """is_late: the node is falling behind (a frame waited beyond LATE_PERIODS periods), long
+    before the bound makes it skip; never with keep_every_set or before the rate is known."""
+    b = fed(60)  # period ~16.7 ms
+    ready = T0 + 10**9
+    assert not b.is_late(ready, ready + int(LATE_PERIODS * 16 * MS))
+    assert b.is_late(ready, ready + int(LATE_PERIODS * 18 * MS))
+    assert not b.is_stale(ready, ready + int(LATE_PERIODS * 18 * MS))
+    assert not fed(60, keep_every_set=True).is_late(ready, ready + 10**9)
+    assert not Backlog(BacklogParams()).is_late(ready, ready + 10**9)

@@ -85,6 +85,45 @@ def test_node_that_fell_behind_skips_the_stale_sets_by_default(graph, scene, kee
     d.wait_value("/association", "behind/episodes", lambda v: v >= 1, graph=graph)
 
 
+@pytest.mark.parametrize("light_when_late", [True, False])
+def test_frame_sets_that_waited_beyond_a_frame_period_run_the_light_step(graph, scene, light_when_late):
+    """Tracks from four frames at 30 fps stamps; then two frame sets wait 0.1 s while the
+    executor is blocked: late (more than a frame period) but within the backlog bound (2 s
+    here), so both are processed, with the track stage's light step (counted light_steps), and
+    nothing is skipped; with light_when_late false both run the full step."""
+    g = start_pipeline(graph, association={"light_when_late": light_when_late, "keep_every_set": False,
+                                           "max_backlog": 2.0})
+    cams = g["assoc"].rig.names
+    stamp = lambda f: scene.stamp_ns(0) + f * 33_333_333  # noqa: E731 - 30 fps stamps
+
+    def publish(f: int) -> None:
+        for cam in cams:
+            dets = scene.detections(cam, f)
+            dets.stamp_ns = stamp(f)
+            g["player"].publish(dets)
+
+    for f in range(4):
+        publish(f)
+        assert wait_for(lambda: g["clusters"].has(stamp(f)), 20.0, graph)
+    release = threading.Event()
+    started = stall(graph, release)
+    assert wait_for(started.is_set, 10.0)
+    try:
+        for f in (4, 5):
+            publish(f)
+        for pub in g["player"].pubs.values():
+            assert pub.wait_for_all_acked(Duration(seconds=10))
+        time.sleep(0.1)
+    finally:
+        release.set()
+    assert wait_for(lambda: g["clusters"].has(stamp(5)), 20.0, graph)
+    d = g["diags"]
+    d.wait_value("/association", "frames_processed", lambda v: v == 6, graph=graph)
+    assert d.value("/association", "dropped/behind") == 0
+    assert d.value("/association", "count/light_steps") == (2 if light_when_late else 0)
+    assert g["clusters"].has(stamp(4)) and len(g["clusters"].by_stamp[stamp(5)].cluster) > 0
+
+
 def test_raw_detections_garbage_is_dropped_as_bad_cdr_and_the_node_goes_on(graph, scene):
     """Bytes that are no serialized PointCloud2 (published as a PointCloud2 whose CDR is cut)
     are counted under bad_cdr; the next frame goes through."""

@@ -472,3 +472,33 @@ def test_the_batched_filter_update_is_the_kalman_update_of_each_track():
     one.update(alone, new[0])  # the single-track update is the same computation
     np.testing.assert_allclose(alone.x, tracks[0].x, atol=1e-12)
     np.testing.assert_allclose(alone.Pc, tracks[0].Pc, atol=1e-12)
+
+
+def test_a_light_step_keeps_every_person_and_id_and_skips_the_refine_pass():
+    """The light step (a node falling behind): the same people in the same tracks as the full
+    step, frame by frame, with every track's members verified on keypoints; one assignment
+    pass instead of two (no refine pass)."""
+    rig = ring_rig(4)
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0)),
+              Person((1, -3), 3, v=(0.3, 0.8))]
+    full = TemporalAssociator(rig, PARAMS, TemporalParams())
+    light = TemporalAssociator(rig, PARAMS, TemporalParams())
+    assert light.light_epipolar == "sparse" and full.verify_epipolar == "mesh"
+    for f in range(12):
+        fr, who = walk_frame(rig, people, f)
+        stamp = fr[rig.names[0]].stamp_ns
+        a, b = full.step(fr, stamp), light.step(fr, stamp, light=f >= 3)
+        assert person_ids(b, rig, who) == person_ids(a, rig, who), f"frame {f}"
+        assert b.stats["light_steps"] == float(f >= 3)
+        assert a.stats["light_steps"] == 0.0
+        if f >= 3:
+            assert b.stats["detections_left"] == 0 and all(fl & FLAG_TRACKED for fl in b.flags)
+    # the assignment passes of one more frame set: two in the full step, one in the light
+    calls = []
+    for stage in (full, light):
+        assign = stage._assign
+        stage._assign = lambda *a, _f=assign, _s=stage: calls.append(_s) or _f(*a)  # type: ignore[method-assign]
+    fr, _ = walk_frame(rig, people, 12)
+    full.step(fr, fr[rig.names[0]].stamp_ns)
+    light.step(fr, fr[rig.names[0]].stamp_ns, light=True)
+    assert calls.count(full) == 2 and calls.count(light) == 1

@@ -48,6 +48,9 @@ from maem_ros.core.paramspec import Params, param
 BACKLOG_PERIODS = 4.0
 #: the automatic bound's floor (s): a node this short of time is jitter, not behind
 MIN_BACKLOG_S = 0.05
+#: frame periods a frame may wait for the node before it is *late*: the next frame is due and the
+#: node is falling behind (the association node then runs its light step: core/tracking/temporal.py)
+LATE_PERIODS = 1.0
 #: stamp intervals the frame period is the median of
 PERIOD_SAMPLES = 31
 #: an episode with no decision for this many bounds (at least 1 s) ended with its last one
@@ -172,6 +175,15 @@ class Backlog(Generic[T]):
         caller working through kept frames re-checks the ones a newer frame follows)."""
         bound = self.bound_ns()
         return bound is not None and int(now_ns) - int(ready_ns) > bound
+
+    def is_late(self, ready_ns: int, now_ns: int) -> bool:
+        """Whether a frame ready at ``ready_ns`` waited more than LATE_PERIODS frame periods at
+        ``now_ns`` (never with keep_every_set, or before the period is known): a node that
+        processes late frames more cheaply catches up before it has to skip any."""
+        period = self.period_ns()
+        if self.params.keep_every_set or period is None:
+            return False
+        return int(now_ns) - int(ready_ns) > LATE_PERIODS * period
 
     def skip(self, now_ns: int, n: int = 1) -> None:
         """``n`` frames skipped outside :meth:`select` (see :meth:`is_stale`)."""

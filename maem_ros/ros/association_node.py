@@ -127,6 +127,12 @@ class AssociationNodeParams(NodeParams):
     publish_tf: bool = param(
         True, "publish world -> each rig camera on /tf_static (transient local) at start"
     )
+    light_when_late: bool = param(
+        True,
+        "a frame set that waited more than a frame period for the node (it is falling behind) "
+        "runs the track stage's light step (track members verified on 2D keypoints, no refine "
+        "pass; counted light_steps); false = every set the full step",
+    )
 
 
 PARAMS = param_specs(AssociationNodeParams, BacklogParams, AssociationParams, ExecutionParams, TemporalParams)
@@ -140,6 +146,7 @@ TRACK_COUNTS = (
     "tracks_one_view",
     "track_resets",
     "verify_dropped",
+    "light_steps",
 )
 
 
@@ -193,6 +200,7 @@ class AssociationNode(MaemNode):
         self.start_diagnostics()
         self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p), "frame set(s)")
         self._skip_stale = not p["keep_every_set"]
+        self._light_when_late = p["light_when_late"]
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
         self._ready: list = []  # sets a stream reset replayed while receiving
@@ -419,8 +427,9 @@ class AssociationNode(MaemNode):
         self.diag.time("waited", (self._now_ns() - fs.ready_ns) / 1e6)
         with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
             items = self._decoded(fs)
+            light = self._light_when_late and self.backlog.policy.is_late(fs.ready_ns, self._now_ns())
             with Stopwatch(self.diag, "associate"):
-                result = self.temporal.step(items, fs.stamp_ns)
+                result = self.temporal.step(items, fs.stamp_ns, light)
             tracked = self.temporal.tp.temporal
             with Stopwatch(self.diag, "encode"):
                 out = wire.clusters_to_msg(

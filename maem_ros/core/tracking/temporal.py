@@ -44,6 +44,13 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
    more than ``max_gap_s``, ends all tracks first (ids are never reused).
 
 ``temporal = False`` is the per-frame paper pipeline: ``associate`` on everything, no track ids.
+
+A *light* step (``step(..., light=True)``: the association node when a frame set waited for it
+longer than a frame period, i.e. it is falling behind the camera rate) verifies a track's members
+with the epipolar distance of their 2D body keypoints (``sparse``) instead of their mesh
+vertices and leaves out the second assignment pass (step 3's ``refine_px``); everything else is
+as above. It costs about a fifth less than the full step on the 60 fps demo scene
+(doc/performance_live.md), so a node short of CPU catches up instead of skipping frame sets.
 """
 
 from __future__ import annotations
@@ -98,7 +105,13 @@ class _FrameView:
     absent cameras and padding rows are NaN and invalid) and the frame set's pair decisions
     (FramePairCosts: each pair decided once)."""
 
-    def __init__(self, stage: TemporalAssociator, by_cam: dict[int, FrameDetections], body: np.ndarray):
+    def __init__(
+        self,
+        stage: TemporalAssociator,
+        by_cam: dict[int, FrameDetections],
+        body: np.ndarray,
+        light: bool = False,
+    ):
         self.stage, self.by_cam = stage, by_cam
         C = len(stage.rig)
         self.n = max([fd.n for fd in by_cam.values()] + [1])
@@ -117,9 +130,10 @@ class _FrameView:
             if ok.size:
                 self.ok[c] = ok
         #: the frame set's pair decisions and costs (core/tracking/pair_costs.py)
-        self.costs = FramePairCosts(
-            stage.verify_gates.frame_set(by_cam), by_cam, stage.params, stage.verify_epipolar, C, self.n
-        )
+        gates, epipolar = stage.verify_gates, stage.verify_epipolar
+        if light:
+            gates, epipolar = stage.light_gates, stage.light_epipolar
+        self.costs = FramePairCosts(gates.frame_set(by_cam), by_cam, stage.params, epipolar, C, self.n)
 
 
 # ---------------------------------------------------------------------------------------
@@ -140,6 +154,7 @@ TEMPORAL_STAT_KEYS = (
     "tracks_ended",
     "track_resets",
     "verify_dropped",
+    "light_steps",
     "t_track_ms",
     "t_associate_ms",
 )
@@ -165,6 +180,9 @@ class TemporalAssociator:
             params.epipolar_gate if temporal.verify_epipolar == "association" else temporal.verify_epipolar
         )
         self.verify_gates = self.gates.with_epipolar_gate(self.verify_epipolar)
+        #: a light step's verification: 2D keypoints instead of mesh vertices (module docstring)
+        self.light_epipolar = "sparse" if self.verify_epipolar == "mesh" else self.verify_epipolar
+        self.light_gates = self.gates.with_epipolar_gate(self.light_epipolar)
         self._contest = ContestSettings(params, temporal.pose_weight)
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
@@ -176,8 +194,11 @@ class TemporalAssociator:
         self.tracker.reset()
         self._last_stamp = None
 
-    def step(self, frames: Mapping[str, FrameDetections], stamp_ns: int) -> TemporalResult:
-        """Associate one synchronised frame set (keyed by camera name) at stamp_ns (int ns)."""
+    def step(
+        self, frames: Mapping[str, FrameDetections], stamp_ns: int, light: bool = False
+    ) -> TemporalResult:
+        """Associate one synchronised frame set (keyed by camera name) at stamp_ns (int ns);
+        ``light``: the light step of the module docstring (no effect with ``temporal`` off)."""
         if not self.tp.temporal:
             res = associate(self.rig, frames, self.params, self.gates)
             n = len(res.clusters)
@@ -194,7 +215,8 @@ class TemporalAssociator:
         used = {c: np.zeros(fd.n, bool) for c, fd in by_cam.items()}
         out: dict[int, list] = {}  # track key -> [members (M,2), costs (M,), flags]
         if self.tracker.tracks and J:
-            out = self._explain(by_cam, body, used, stats)
+            out = self._explain(by_cam, body, used, stats, light)
+            stats["light_steps"] = float(light)
         stats["t_track_ms"] = (time.perf_counter() - t0) * 1e3
 
         t1 = time.perf_counter()
@@ -242,13 +264,14 @@ class TemporalAssociator:
         body: np.ndarray,
         used: dict[int, np.ndarray],
         stats: dict[str, float],
+        light: bool = False,
     ) -> dict[int, list]:
-        """Steps 2-4: detections explained by the tracks' predictions, verified; then once more
-        against the projections of each verified cluster's own triangulation (this frame's
-        estimate, tighter than the prediction: a view where the prediction was ambiguous
-        between two people is re-assigned by the views that agree)."""
+        """Steps 2-4: detections explained by the tracks' predictions, verified; then (unless
+        ``light``) once more against the projections of each verified cluster's own
+        triangulation (this frame's estimate, tighter than the prediction: a view where the
+        prediction was ambiguous between two people is re-assigned by the views that agree)."""
         tracks = self.tracker.tracks
-        view = _FrameView(self, by_cam, body)
+        view = _FrameView(self, by_cam, body, light)
         pred = np.stack([t.joints for t in tracks])  # (T,J,3)
         sig = np.sqrt(np.stack([t.Pc[0, 0] + t.Pc[1, 1] + t.Pc[2, 2] for t in tracks]) / 3.0)
         _, z = project(self._P[:, None, None], pred[None])  # (C,T,J) m, all cameras at once
@@ -259,7 +282,7 @@ class TemporalAssociator:
         cand = self._assign(view, pred, gate)
         cam, det, present, keep, X = self._verify_candidates(view, cand)
         refit = keep.sum(1) >= 2
-        if refit.any() and self.tp.refine_px > 0:
+        if refit.any() and self.tp.refine_px > 0 and not light:
             gate = np.where(refit[:, None], self.tp.refine_px, gate)
             again = self._assign(view, np.where(refit[:, None, None], X, pred), gate)
             if not np.array_equal(again, cand):  # the same candidates verify the same way
