@@ -16,6 +16,7 @@ from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.limits import InputLimits, LimitError, _first_outside, check_detections
 from maem_ros.ros import wire
+from maem_ros.ros.association_node import WARM_FRAMES
 from maem_ros.ros.intake import QueuedArrival, arrival_ns
 
 from helpers_ros import stall, start_pipeline, wait_for
@@ -430,12 +431,12 @@ def test_prefaulted_heap_serves_a_new_message_buffer_without_page_faults(prefaul
 
 
 def test_the_node_runs_its_path_warm_before_it_subscribes_and_keeps_no_trace_of_it(graph, scene):
-    """At start the node ran its own path on simulated frame sets of its rig (two frames in
-    each wire layout) with a throwaway track stage: its own stage has no tracks and no stamp,
+    """At start the node ran its own path on simulated frame sets of its rig (WARM_FRAMES in
+    each wire layout: no tracks, the full step, the light step) with a throwaway track stage: its own stage has no tracks and no stamp,
     nothing is counted, and the first real frame set gets clusters like any other."""
     g = start_pipeline(graph)
     assoc = g["assoc"]
-    assert assoc.warm_sets == 2 * len(wire.WIRE_VERTICES)
+    assert assoc.warm_sets == WARM_FRAMES * len(wire.WIRE_VERTICES) == 6
     assert assoc.temporal.tracker.tracks == [] and assoc.temporal._last_stamp is None
     for cam in assoc.rig.names:
         g["player"].publish(scene.detections(cam, 0))

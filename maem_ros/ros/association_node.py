@@ -150,6 +150,10 @@ TRACK_COUNTS = (
 )
 
 
+#: frames of the start-up warm pass (AssociationNode._warm_path): the first without tracks, then
+#: the track-assisted full step, then its light step
+WARM_FRAMES = 3
+
 #: heap touched at start (MiB): six cameras' full-mesh messages in flight (rmw buffer + bytes,
 #: ~1.8 MB each) and one association step's arrays; measured: no page fault per message with it
 HEAP_PREFAULT_MB = 192
@@ -236,9 +240,10 @@ class AssociationNode(MaemNode):
         return self.get_clock().now().nanoseconds
 
     def _warm_path(self) -> int:
-        """Run this node's path (check -> decode -> track-assisted association -> encode) on
-        simulated frame sets of its rig (core.synthetic.warm_sequence), both wire layouts, with
-        a throwaway track stage, so the first real frame set pays no first-call costs (lazy
+        """Run this node's path (check -> decode -> track-assisted association, its full and
+        its light step -> encode) on simulated frame sets of its rig
+        (core.synthetic.warm_sequence: WARM_FRAMES frames, the last one light), both wire
+        layouts, with a throwaway track stage, so the first real frame set pays no first-call costs (lazy
         imports, kernel dispatch, first allocations): a fresh track stage's first set cost about
         seven times a warm one's, and at 60 fps a stream's first frames came late and some were
         skipped. A failure (a rig the generator cannot place people in) costs only the warm-up.
@@ -250,19 +255,20 @@ class AssociationNode(MaemNode):
 
         runs = 0
         try:
-            sequence = warm_sequence(self.rig)
+            sequence = warm_sequence(self.rig, frames=WARM_FRAMES)
             for layout in wire.WIRE_VERTICES:  # vertices and keypoints: every decoder runs once
                 stage = TemporalAssociator(self.rig, self.params, self.temporal.tp)
-                for frame_set in sequence:
+                for k, frame_set in enumerate(sequence):
                     msgs = {c: wire.detections_to_msg(d, layout, layout) for c, d in frame_set.frames.items()}
-                    self._warm_frame_set(stage, {c: serialize_message(m) for c, m in msgs.items()})
+                    sent = {c: serialize_message(m) for c, m in msgs.items()}
+                    self._warm_frame_set(stage, sent, light=k == len(sequence) - 1)
                     runs += 1
         except Exception as e:  # noqa: BLE001 - the warm-up must never keep the node from starting
             self.get_logger().warning(f"start-up warm-up skipped ({e}); the first frames run cold")
             return 0
         return runs
 
-    def _warm_frame_set(self, stage: Any, sent: dict[str, bytes]) -> None:
+    def _warm_frame_set(self, stage: Any, sent: dict[str, bytes], light: bool) -> None:
         """One serialized frame set (camera -> message) through the node's path with ``stage``."""
         items = {}
         for cam, data in sent.items():
@@ -272,7 +278,7 @@ class AssociationNode(MaemNode):
             item = checked_detections(cloud, "warm-up", cam, self.rig, self.limits, stage.gates)
             items[cam] = prepared_detections(item, stage.gates)
         stamp = next(iter(items.values())).stamp_ns
-        res = stage.step(items, stamp)
+        res = stage.step(items, stamp, light)
         wire.clusters_to_msg(stamp, self.frame_id, self.rig, items, res.clusters, res.track_ids, res.flags)
 
     def on_detections(self, cam: str, topic: str, data: bytes | np.ndarray, info) -> None:
