@@ -10,8 +10,15 @@ import time
 
 import pytest
 
-from maem_ros.tools.bench.live_runs import (RECOVERED_MS, accounting, aggregate, hog_window,
-                                      start_hog, stress_figures)
+from maem_ros.tools.bench.live_report import Observed, cpu_times, latency_figures, steal_pct
+from maem_ros.tools.bench.live_runs import (
+    RECOVERED_MS,
+    accounting,
+    aggregate,
+    hog_window,
+    start_hog,
+    stress_figures,
+)
 
 RATE = 10.0  # frames per second of the synthetic latency series
 
@@ -36,6 +43,28 @@ def test_stress_figures_on_a_known_latency_series() -> None:
     assert st["p50_1s_after_ms"] == 20.0 and st["frames_without_poses_after"] == 0
     never = stress_figures([20.0] * 20 + [RECOVERED_MS + 1] * 60, RATE, 2.0, 4.0)
     assert never["recovery_s"] is None  # not back within the run
+
+
+def test_latency_figures_say_where_each_slow_frame_waited() -> None:
+    """Three frames at 10 fps: frame 1 waited 80 ms for the association and its camera 2 was
+    30 ms late; frame 2 has no poses."""
+    stamps = [100, 200, 300]
+    run = Observed(stamps=stamps, messages={}, t0=1000.0, wall=1.0, cpu0={}, cpu1={},
+                   poses={100: (1000.02, None), 200: (1000.2, None)}, diags={}, hog_at=None,
+                   clusters={100: 1000.01, 200: 1000.18},
+                   publisher_late_s={"c1": [0.001, 0.002, 0.001], "c2": [0.002, 0.03]})
+    fig = latency_figures(run, RATE)
+    assert fig["slowest_frames"] == [(1, 100.0, 80.0, 30.0), (0, 20.0, 10.0, 2.0)]
+    assert fig["frames_without_poses"] == 1 and fig["latency_ms_by_frame"][2] is None
+    assert fig["publisher_late_ms_median"] == 2.0  # every publish of every camera
+
+
+def test_steal_share_between_two_readings() -> None:
+    assert steal_pct((10, 1000), (60, 2000)) == 5.0
+    assert steal_pct(None, (60, 2000)) is None and steal_pct((10, 1000), (10, 1000)) is None
+    now = cpu_times()
+    if now is not None:  # Linux: steal is part of the total
+        assert 0 <= now[0] <= now[1]
 
 
 def test_accounting_explains_frames_without_poses_by_the_nodes_counts() -> None:
@@ -129,6 +158,9 @@ def test_bench_live_runs_twice_with_a_hog(scene, tmp_path) -> None:
         assert run["latency_ms_p99"] >= run["latency_ms_median"] > 0
         assert "stress_recovery_s" in run
         assert run["association_cpu_ms_per_frame"] > 0 and run["triangulation_cpu_ms_per_frame"] > 0
+        assert 0.0 <= run["cpu_steal_pct"] <= 100.0
+        frame, ms, hop, late = run["slowest_frames"][0]  # where the tail waited
+        assert 0 <= frame < 50 and ms >= run["latency_ms_p99"] and hop <= ms and late < ms
     assert out["worst"]["latency_ms_p99"] == max(r["latency_ms_p99"] for r in out["per_run"])
     assert set(out["targets"]) >= {"latency_ms_p99", "frames_without_poses_pct"}
     assert out["settings"]["keep_every_set"] is False

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from maem_ros.tools.bench.live_report import Observed, live_report
+from maem_ros.tools.bench.live_report import Observed, cpu_times, live_report, steal_pct
 
 
 # ---------------------------------------------------------------------------------------------
@@ -416,6 +416,7 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
     stamps = [s for s, _ in messages[rig.names[0]]]
     procs = list(group.procs.values())
     cpu0 = {p.name: p.cpu_seconds() for p in procs}
+    machine0 = cpu_times()
     t0 = time.time() + 0.5
     hog_at = None
     if a.stress:
@@ -431,13 +432,13 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
         time.sleep(0.05)
     wall = time.time() - t0
     cpu1 = {p.name: p.cpu_seconds() for p in procs}
+    machine1 = cpu_times()
     time.sleep(1.2)  # one more /diagnostics period (the publishers' lateness files too)
-    late = [
-        float(x)
+    late = {
+        c: [float(x) for x in eval_list((work / f"{c}.late").read_text())]
         for c in rig.names
         if (work / f"{c}.late").exists()
-        for x in eval_list((work / f"{c}.late").read_text())
-    ]
+    }
     with listener.lock:
         poses = dict(listener.poses)
         clusters = dict(listener.clusters)
@@ -454,6 +455,7 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
         hog_at=hog_at,
         clusters=clusters,
         publisher_late_s=late,
+        cpu_steal_pct=steal_pct(machine0, machine1),
     )
 
 

@@ -108,7 +108,29 @@ class Observed:
     codes: dict[str, int | None] = field(default_factory=dict)
     forced: Any = None
     clusters: dict[int, float] = field(default_factory=dict)  # stamp -> /maem/clusters arrival
-    publisher_late_s: list[float] = field(default_factory=list)  # every publish, all cameras
+    # camera -> s each publish returned after its frame's scheduled time, in frame order
+    publisher_late_s: dict[str, list[float]] = field(default_factory=dict)
+    # share of the machine's CPU time the hypervisor gave other guests during the run (%, from
+    # /proc/stat; None where unknown): a run starved from outside shows it here
+    cpu_steal_pct: float | None = None
+
+
+def cpu_times() -> tuple[int, int] | None:
+    """(steal, total) CPU time of the machine so far (jiffies, /proc/stat; None where there
+    is no such file)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    except OSError:
+        return None
+    ticks = [int(x) for x in fields[:8]]  # user nice system idle iowait irq softirq steal
+    return (ticks[7], sum(ticks)) if len(ticks) == 8 else None
+
+
+def steal_pct(before: tuple[int, int] | None, after: tuple[int, int] | None) -> float | None:
+    """Steal time between two :func:`cpu_times` readings, % of all CPU time."""
+    if before is None or after is None or after[1] <= before[1]:
+        return None
+    return round(100.0 * (after[0] - before[0]) / (after[1] - before[1]), 2)
 
 
 #: the reference recall of the messages of a run, by what makes them: every run of one
@@ -200,13 +222,23 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
     sent = {s: run.t0 + f / rate for f, s in enumerate(stamps)}
     lat_by_frame = {f: (poses[s][0] - sent[s]) * 1e3 for f, s in enumerate(stamps) if s in poses}
     lat = np.array(list(lat_by_frame.values()))
+    assoc_hop = [round((run.clusters[s] - sent[s]) * 1e3, 1) if s in run.clusters else None for s in stamps]
+    every_late = [x for lates in run.publisher_late_s.values() for x in lates]
+    # each frame's latest publish over the cameras (a camera that stopped early counts no more)
+    late = [
+        max(lates[f] for lates in run.publisher_late_s.values() if f < len(lates))
+        for f in range(max((len(x) for x in run.publisher_late_s.values()), default=0))
+    ]
     return {
         "latency_ms_median": float(np.median(lat)) if len(lat) else None,
         "latency_ms_p99": float(np.percentile(lat, 99)) if len(lat) else None,
         "latency_ms_max": float(lat.max()) if len(lat) else None,
-        # where the tail is: (frame index, ms) of the five slowest frames
+        # where the tail is, the five slowest frames: (frame index, latency ms, the association's
+        # hop ms (None: no clusters), the latest camera's publish ms after schedule): which
+        # node, or the publishers, a slow frame waited for
         "slowest_frames": [
-            (f, round(ms, 1)) for f, ms in sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]
+            (f, round(ms, 1), assoc_hop[f], round(late[f] * 1e3, 1) if f < len(late) else None)
+            for f, ms in sorted(lat_by_frame.items(), key=lambda e: -e[1])[:5]
         ],
         # every frame's latency in publish order (None: no poses): where a stall starts and
         # whether the node recovers from it
@@ -216,9 +248,7 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
         # each frame's association hop (publish -> /maem/clusters; None: no clusters): which
         # node a slow frame waited for
-        "association_hop_ms_by_frame": [
-            round((run.clusters[s] - sent[s]) * 1e3, 1) if s in run.clusters else None for s in stamps
-        ],
+        "association_hop_ms_by_frame": assoc_hop,
         # where the latency is: publish -> /maem/clusters (the association's hop) and
         # /maem/clusters -> /maem/poses (triangulation's), medians over frames with poses
         "association_hop_ms_median": _median_ms(
@@ -229,10 +259,11 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
         ),
         # how late the camera publishers sent (their publish returned after the schedule): a
         # machine too loaded for its publishers delays every frame before any node sees it
-        "publisher_late_ms_median": _median_ms(run.publisher_late_s),
+        "publisher_late_ms_median": _median_ms(every_late),
         "publisher_late_ms_p99": (
-            round(float(np.percentile(run.publisher_late_s, 99)) * 1e3, 1) if run.publisher_late_s else None
+            round(float(np.percentile(every_late, 99)) * 1e3, 1) if every_late else None
         ),
+        "cpu_steal_pct": run.cpu_steal_pct,
     }
 
 
