@@ -90,7 +90,8 @@ def test_node_that_fell_behind_skips_the_stale_sets_by_default(graph, scene, kee
 def test_frame_sets_that_waited_beyond_a_frame_period_run_the_light_step(graph, scene, light_when_late):
     """Tracks from four frames at 30 fps stamps; then two frame sets wait 0.1 s while the
     executor is blocked: late (more than a frame period) but within the backlog bound (2 s
-    here), so both are processed, with the track stage's light step (counted light_steps), and
+    here), so both are processed, with the track stage's light step (counted light_steps; new
+    people deferred, counted new_deferred, so q4 messages are decoded without their mesh), and
     nothing is skipped; with light_when_late false both run the full step."""
     g = start_pipeline(graph, association={"light_when_late": light_when_late, "keep_every_set": False,
                                            "max_backlog": 2.0})
@@ -122,6 +123,8 @@ def test_frame_sets_that_waited_beyond_a_frame_period_run_the_light_step(graph, 
     d.wait_value("/association", "frames_processed", lambda v: v == 6, graph=graph)
     assert d.value("/association", "dropped/behind") == 0
     assert d.value("/association", "count/light_steps") == (2 if light_when_late else 0)
+    # both within light_new_every (0.1 s) of the last full step: no association of new people
+    assert d.value("/association", "count/new_deferred") == (2 if light_when_late else 0)
     assert g["clusters"].has(stamp(4)) and len(g["clusters"].by_stamp[stamp(5)].cluster) > 0
 
 
@@ -236,6 +239,23 @@ def test_receive_check_prepares_f32_frames_in_the_pass_that_checks_them(scene, l
     assert gates.is_prepared(frame) and frame._is_validated()
     ref = wire.msg_to_detections(cloud, "/t")
     for name in ("bboxes", "scores", "kpts2d", "kpts3d", "verts2d"):
+        np.testing.assert_array_equal(getattr(frame, name), getattr(ref, name))
+
+
+def test_a_q4_message_decoded_without_its_mesh_keeps_every_other_field(scene) -> None:
+    """prepared_detections(..., vertices=False), for a light step that reads no vertex
+    (TemporalAssociator.associates_new): no vertex and no mesh subset, not prepared, validated,
+    every other field as the reader decodes it."""
+    from maem_ros.ros.association_node import checked_detections, prepared_detections
+
+    gates = PairGates(scene.rig, AssociationParams())
+    cloud = _received(scene.detections("camera_1", 2), "q4")
+    item = checked_detections(cloud, "/t", "camera_1", scene.rig, InputLimits(), gates)
+    frame = prepared_detections(item, gates, vertices=False)
+    ref = wire.msg_to_detections(cloud, "/t")
+    assert frame.verts2d.shape == (ref.n, 0, 2) and frame.mesh_subset is None and ref.verts2d.shape[1] > 0
+    assert not gates.is_prepared(frame) and frame._is_validated()
+    for name in ("bboxes", "scores", "kpts2d", "kpts3d"):
         np.testing.assert_array_equal(getattr(frame, name), getattr(ref, name))
 
 

@@ -502,3 +502,48 @@ def test_a_light_step_keeps_every_person_and_id_and_skips_the_refine_pass():
     full.step(fr, fr[rig.names[0]].stamp_ns)
     light.step(fr, fr[rig.names[0]].stamp_ns, light=True)
     assert calls.count(full) == 2 and calls.count(light) == 1
+
+
+def _without_vertices(frames: dict[str, FrameDetections]) -> dict[str, FrameDetections]:
+    """The frames as the association node decodes them for a step that reads no vertex."""
+    return {c: FrameDetections(camera=fd.camera, stamp_ns=fd.stamp_ns, bboxes=fd.bboxes, scores=fd.scores,
+                               kpts2d=fd.kpts2d, kpts3d=fd.kpts3d,
+                               verts2d=np.zeros((fd.n, 0, 2), np.float32))
+            for c, fd in frames.items()}
+
+
+def test_light_steps_associate_new_people_every_light_new_every_seconds_and_read_no_vertex_between():
+    """Two people tracked from frame 0, a third walks in at frame 4, every step from frame 3 on
+    light, light_new_every 0.1 s (3 frames at 30 fps, the last step 5 at frame 2): frames 3-4
+    defer step 5 (associates_new said so beforehand; frames without any vertex), so the new
+    person waits; frame 5 runs it and the new person is found; frames 6-7 defer again. The
+    tracked people keep their ids throughout. A full step always runs step 5."""
+    rig = ring_rig(4)
+    people = [Person((-3, 0), 1, v=(1.0, 0.2)), Person((2, 2), 2, v=(-0.5, -1.0)),
+              Person((1, -3), 3, v=(0.3, 0.8))]
+    stage = TemporalAssociator(rig, PARAMS, TemporalParams(light_new_every=0.1))
+    first = None
+    for f in range(8):
+        fr, who = walk_frame(rig, people, f, seen=lambda cam, k, f=f: k < 2 or f >= 4)
+        stamp, light = fr[rig.names[0]].stamp_ns, f >= 3
+        assert stage.associates_new(stamp, light=False)
+        due = stage.associates_new(stamp, light)
+        assert due == (f in (0, 1, 2, 5)), f"frame {f}"
+        res = stage.step(fr if due else _without_vertices(fr), stamp, light)
+        assert res.stats["new_deferred"] == float(not due)
+        ids = person_ids(res, rig, who)
+        if f >= 2:  # confirmed (confirm_hits 3): the ids stay
+            first = first or ids
+            assert {k: ids[k] for k in (0, 1)} == {k: first[k] for k in (0, 1)}, f"frame {f}"
+        assert (2 in ids) == (f >= 5), f"frame {f}: the new person {'found' if 2 in ids else 'waits'}"
+        if f == 4:  # the new person's detection in every camera is left for a later step 5
+            assert res.stats["detections_left"] == len(rig)
+
+
+def test_light_steps_without_tracks_always_associate() -> None:
+    """No tracks yet (a stream that starts while the node is behind): a light step runs step 5."""
+    rig = ring_rig(4)
+    stage = TemporalAssociator(rig, PARAMS, TemporalParams(light_new_every=10.0))
+    fr, who = walk_frame(rig, [Person((0, 0), 1)], 0)
+    assert stage.associates_new(fr[rig.names[0]].stamp_ns, light=True)
+    assert len(stage.step(fr, fr[rig.names[0]].stamp_ns, light=True).clusters) == 1

@@ -147,6 +147,7 @@ TRACK_COUNTS = (
     "track_resets",
     "verify_dropped",
     "light_steps",
+    "new_deferred",
 )
 
 
@@ -270,14 +271,21 @@ class AssociationNode(MaemNode):
 
     def _warm_frame_set(self, stage: Any, sent: dict[str, bytes], light: bool) -> None:
         """One serialized frame set (camera -> message) through the node's path with ``stage``."""
-        items = {}
-        for cam, data in sent.items():
-            if cam not in self.cameras:
-                continue
-            cloud = wire.cdr_to_cloud(data, f"/{cam}/detections")
-            item = checked_detections(cloud, "warm-up", cam, self.rig, self.limits, stage.gates)
-            items[cam] = prepared_detections(item, stage.gates)
-        stamp = next(iter(items.values())).stamp_ns
+        checked = {
+            cam: checked_detections(
+                wire.cdr_to_cloud(data, f"/{cam}/detections"),
+                "warm-up",
+                cam,
+                self.rig,
+                self.limits,
+                stage.gates,
+            )
+            for cam, data in sent.items()
+            if cam in self.cameras
+        }
+        stamp = next(iter(checked.values())).stamp_ns
+        vertices = stage.associates_new(stamp, light)
+        items = {cam: prepared_detections(item, stage.gates, vertices) for cam, item in checked.items()}
         res = stage.step(items, stamp, light)
         wire.clusters_to_msg(stamp, self.frame_id, self.rig, items, res.clusters, res.track_ids, res.flags)
 
@@ -305,10 +313,11 @@ class AssociationNode(MaemNode):
         if self.timer.is_canceled() and self.sync.pending():
             self.timer.reset()  # a set is waiting: poll it (max_wait) until it goes out
 
-    def _decoded(self, fs) -> dict[str, FrameDetections]:
-        """The frame set's checked messages decoded and prepared for the pair gates."""
+    def _decoded(self, fs, vertices: bool) -> dict[str, FrameDetections]:
+        """The frame set's checked messages decoded and prepared for the pair gates (without
+        the q4 mesh vertices when ``vertices`` is False: a step that reads none)."""
         with Stopwatch(self.diag, "decode"):
-            return {cam: prepared_detections(item, self.gates) for cam, item in fs.items.items()}
+            return {cam: prepared_detections(item, self.gates, vertices) for cam, item in fs.items.items()}
 
     def _decide(self) -> None:
         """Take every message already waiting in the DDS queues (the executor runs the poll
@@ -432,8 +441,8 @@ class AssociationNode(MaemNode):
         # how long the set waited for this node after it was complete (time_ms/waited)
         self.diag.time("waited", (self._now_ns() - fs.ready_ns) / 1e6)
         with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
-            items = self._decoded(fs)
             light = self._light_when_late and self.backlog.policy.is_late(fs.ready_ns, self._now_ns())
+            items = self._decoded(fs, self.temporal.associates_new(fs.stamp_ns, light))
             with Stopwatch(self.diag, "associate"):
                 result = self.temporal.step(items, fs.stamp_ns, light)
             tracked = self.temporal.tp.temporal
@@ -492,9 +501,15 @@ def checked_detections(
     return item
 
 
-def prepared_detections(item: FrameDetections | wire.DetectionsMessage, gates: PairGates) -> FrameDetections:
-    """A queued message (:func:`checked_detections`) decoded and prepared for the pair gates."""
-    return item if isinstance(item, FrameDetections) else gates.prepare(item.decode())
+def prepared_detections(
+    item: FrameDetections | wire.DetectionsMessage, gates: PairGates, vertices: bool = True
+) -> FrameDetections:
+    """A queued message (:func:`checked_detections`) decoded and prepared for the pair gates;
+    ``vertices`` False: a q4 message without its mesh (decoded for a step that reads no vertex:
+    TemporalAssociator.associates_new; f32 messages were prepared when they arrived)."""
+    if isinstance(item, FrameDetections):
+        return item
+    return gates.prepare(item.decode()) if vertices else item.decode(vertices=False)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -256,16 +256,18 @@ class DetectionsMessage:
             raise WireError(topic, "verts2d", f"inf in detection {first_inf}", "nonfinite")
         return replace(self, f32_range=(low, high))
 
-    def decode(self) -> FrameDetections:
+    def decode(self, vertices: bool = True) -> FrameDetections:
         """The FrameDetections (marked validated when everything was checked on reading: the
         f32 vertices unless they were not, see :attr:`vertices_checked`); q4 vertex codes are
-        decoded into one float32 array (NaN = missing), f32 ones stay a view."""
-        n, v = self.n, self.num_vertices
-        verts = (
-            decode_q4(self.vertices, origin=self.origin)
-            if self.vertices.dtype == np.uint16
-            else self.vertices
-        )
+        decoded into one float32 array (NaN = missing), f32 ones stay a view. ``vertices``
+        False: without the mesh (no vertex, no mesh subset), for a step that reads none."""
+        n, v = self.n, self.num_vertices if vertices else 0
+        if not vertices:
+            verts = np.zeros((n, 0, 2), np.float32)
+        elif self.vertices.dtype == np.uint16:
+            verts = decode_q4(self.vertices, origin=self.origin)
+        else:
+            verts = self.vertices
         frame = FrameDetections(
             camera=self.camera,
             stamp_ns=self.stamp_ns,
@@ -274,9 +276,9 @@ class DetectionsMessage:
             kpts2d=self.kpts2d,
             kpts3d=self.kpts3d,
             verts2d=verts.reshape(n, v, 2),
-            mesh_subset=self.mesh_subset,
+            mesh_subset=self.mesh_subset if vertices else None,
         )
-        return frame.mark_validated() if self.vertices_checked else frame
+        return frame.mark_validated() if self.vertices_checked or not vertices else frame
 
 
 def _q4_range_px(low: np.ndarray, high: np.ndarray, origin: np.ndarray | None) -> np.ndarray:

@@ -48,9 +48,10 @@ Per synchronised frame set (all 2D in rectified px, 3D in world metres):
 A *light* step (``step(..., light=True)``: the association node when a frame set waited for it
 longer than a frame period, i.e. it is falling behind the camera rate) verifies a track's members
 with the epipolar distance of their 2D body keypoints (``sparse``) instead of their mesh
-vertices and leaves out the second assignment pass (step 3's ``refine_px``); everything else is
-as above. It costs about a fifth less than the full step on the 60 fps demo scene
-(doc/performance_live.md), so a node short of CPU catches up instead of skipping frame sets.
+vertices, leaves out the second assignment pass (step 3's ``refine_px``) and runs step 5 (new
+people, tracks to re-acquire) only every ``light_new_every`` s (always without tracks); without
+step 5 it reads no mesh vertex (:meth:`TemporalAssociator.associates_new` says so beforehand). A
+node short of CPU catches up instead of skipping frame sets (costs: doc/performance_live.md).
 """
 
 from __future__ import annotations
@@ -155,6 +156,7 @@ TEMPORAL_STAT_KEYS = (
     "track_resets",
     "verify_dropped",
     "light_steps",
+    "new_deferred",
     "t_track_ms",
     "t_associate_ms",
 )
@@ -187,12 +189,32 @@ class TemporalAssociator:
         self._centers = np.stack([c.center for c in rig.cameras])
         self._focal = np.array([0.5 * (c.K_rect[0, 0] + c.K_rect[1, 1]) for c in rig.cameras])
         self._last_stamp: int | None = None
+        self._last_new: int | None = None  # stamp (ns) of the last frame set that ran step 5
         self.resets = 0
 
     def reset(self) -> None:
         """End every track; the next frame set starts from scratch."""
         self.tracker.reset()
         self._last_stamp = None
+        self._last_new = None
+
+    def associates_new(self, stamp_ns: int, light: bool) -> bool:
+        """Whether :meth:`step` at ``stamp_ns`` runs step 5 (the cross-view association of the
+        detections no track explains, which reads their mesh vertices): always in a full step,
+        with ``temporal`` off, without tracks (or when this stamp ends them), and in a light step
+        when the last set that ran it is ``light_new_every`` s old or more."""
+        if not light or not self.tp.temporal or self._last_new is None or self._last_stamp is None:
+            return True
+        if not self.tracker.tracks or self._ends_tracks(int(stamp_ns)):
+            return True
+        return int(stamp_ns) - self._last_new >= self.tp.light_new_every * 1e9
+
+    def _ends_tracks(self, stamp_ns: int) -> bool:
+        """Whether a frame set at ``stamp_ns`` ends every track (a stamp back, or a gap)."""
+        if self._last_stamp is None:
+            return False
+        dt = (stamp_ns - self._last_stamp) * 1e-9
+        return dt < 0 or dt > self.tp.max_gap_s
 
     def step(
         self, frames: Mapping[str, FrameDetections], stamp_ns: int, light: bool = False
@@ -207,6 +229,7 @@ class TemporalAssociator:
             )
         t0 = time.perf_counter()
         stats: dict[str, float] = dict.fromkeys(TEMPORAL_STAT_KEYS, 0.0)
+        new_now = self.associates_new(stamp_ns, light)
         self._advance(int(stamp_ns), stats)
         names = [n for n in self.rig.names if n in frames]
         by_cam = {self.rig.index(n): frames[n] for n in names}
@@ -218,14 +241,32 @@ class TemporalAssociator:
             out = self._explain(by_cam, body, used, stats, light)
             stats["light_steps"] = float(light)
         stats["t_track_ms"] = (time.perf_counter() - t0) * 1e3
-
-        t1 = time.perf_counter()
-        # a camera none of whose detections a track explained goes in as given (no copy of its
-        # vertex arrays); the others as the subset of what is left (few once tracks run)
         keep = {c: np.flatnonzero(~u) for c, u in used.items()}
         stats["detections_left"] = float(
             sum(int((by_cam[c].scores[k] >= self.params.tau_det).sum()) for c, k in keep.items())
         )
+        if new_now:
+            self._last_new = int(stamp_ns)
+            self._associate_rest(by_cam, keep, used, body, out, stats)
+        else:
+            stats["new_deferred"] = 1.0
+        self._age(out, stats)
+        return self._result(out, stats, t0)
+
+    def _associate_rest(
+        self,
+        by_cam: dict[int, FrameDetections],
+        keep: dict[int, np.ndarray],
+        used: dict[int, np.ndarray],
+        body: np.ndarray,
+        out: dict[int, list],
+        stats: dict[str, float],
+    ) -> None:
+        """Step 5: ``associate`` on the detections no track explained (``keep``, per camera),
+        its new clusters attached to tracks or started as tracks (module docstring)."""
+        t1 = time.perf_counter()
+        # a camera none of whose detections a track explained goes in as given (no copy of its
+        # vertex arrays); the others as the subset of what is left (few once tracks run)
         res = associate(
             self.rig,
             {
@@ -241,21 +282,17 @@ class TemporalAssociator:
         new = [
             (np.stack([c.members[:, 0], keep_idx(keep, c.members)], axis=1), c.costs) for c in res.clusters
         ]
-        if new and J:
+        if new and body.size:
             self._attach(new, by_cam, body, out, stats)
-        self._age(out, stats)
-        return self._result(out, stats, t0)
 
     # -- steps ---------------------------------------------------------------------------
     def _advance(self, stamp_ns: int, stats: dict[str, float]) -> None:
-        if self._last_stamp is not None:
-            dt = (stamp_ns - self._last_stamp) * 1e-9
-            if dt < 0 or dt > self.tp.max_gap_s:
-                self.tracker.reset()
-                self.resets += 1
-                stats["track_resets"] = 1.0
-            else:
-                self.tracker.predict(dt)
+        if self._ends_tracks(stamp_ns):
+            self.tracker.reset()
+            self.resets += 1
+            stats["track_resets"] = 1.0
+        elif self._last_stamp is not None:
+            self.tracker.predict((stamp_ns - self._last_stamp) * 1e-9)
         self._last_stamp = stamp_ns
 
     def _explain(

@@ -62,6 +62,13 @@ class TemporalParams(Params):
         "keypoints (sparse) or none",
         choices=VERIFY_EPIPOLAR,
     )
+    light_new_every: float = param(
+        0.1,
+        "s, a light step (a node falling behind) associates the "
+        "detections no track explains (new people) only when the last "
+        "frame set that did is this long ago or more; 0 = every light step",
+        minimum=0.0,
+    )
     reid_m: float = param(
         0.5,
         "m, a new cluster this close to a track re-acquires / merges it",
