@@ -159,6 +159,7 @@ def test_bench_live_runs_twice_with_a_hog(scene, tmp_path) -> None:
         assert "stress_recovery_s" in run
         assert run["association_cpu_ms_per_frame"] > 0 and run["triangulation_cpu_ms_per_frame"] > 0
         assert 0.0 <= run["cpu_steal_pct"] <= 100.0
+        assert run["association_new_deferred"] <= run["association_light_steps"] <= run["association_sets"] <= 50
         frame, ms, hop, late = run["slowest_frames"][0]  # where the tail waited
         assert 0 <= frame < 50 and ms == round(run["latency_ms_max"], 1) and hop <= ms and late < ms
     assert out["worst"]["latency_ms_p99"] == max(r["latency_ms_p99"] for r in out["per_run"])

@@ -289,6 +289,11 @@ def node_figures(assoc: dict[str, str], tri: dict[str, str], run: Observed, came
         "accounting": accounting(len(stamps), int(sum(s not in poses for s in stamps)), cameras, assoc, tri),
         # the longest time a node was behind (skipping, or working on stale frames), s
         "behind_longest_s": max(float(kv.get("behind/longest_s", 0)) for kv in (assoc, tri)),
+        # how the association worked: frame sets processed, of them light steps (late sets) and
+        # light steps that left new people for a later set (core/tracking/temporal.py)
+        "association_sets": int(float(assoc.get("frames_processed", 0))),
+        "association_light_steps": int(float(assoc.get("count/light_steps", 0))),
+        "association_new_deferred": int(float(assoc.get("count/new_deferred", 0))),
         "association_ms_median": float(assoc.get("time_ms/associate/median", "nan")),
         "association_stage_ms_median": _stage_medians(assoc),
         "triangulation_stage_ms_median": _stage_medians(tri),

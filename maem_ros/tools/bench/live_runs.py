@@ -40,7 +40,14 @@ TARGETS_60 = {
 }
 TARGETS_30 = {"latency_ms_p99": 33.0, "frames_without_poses_pct": 0.0}
 #: what a run's summary says about the machine and its tail, not figures to rank
-_CONTEXT = ("load_average_1min", "cpu_steal_pct", "slowest_frames")
+_CONTEXT = (
+    "load_average_1min",
+    "cpu_steal_pct",
+    "slowest_frames",
+    "association_sets",
+    "association_light_steps",
+    "association_new_deferred",
+)
 #: figures where a higher value is worse (the rest: lower is worse)
 _LOWER_IS_WORSE = ("recall_live",)
 
@@ -207,6 +214,8 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
     # which node is short of CPU: its CPU time per published frame (ms; rmw threads included)
     for node in ("association", "triangulation"):
         out[f"{node}_cpu_ms_per_frame"] = report["cpu_ms_per_frame"].get(node)
+    for k in ("association_sets", "association_light_steps", "association_new_deferred"):
+        out[k] = report[k]
     if "stress" in report:
         for k in ("recovery_s", "p50_1s_after_ms", "latency_ms_median_during"):
             out[f"stress_{k}"] = report["stress"][k]
