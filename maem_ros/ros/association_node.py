@@ -131,7 +131,8 @@ class AssociationNodeParams(NodeParams):
         True,
         "a frame set that waited more than a frame period for the node (it is falling behind) "
         "runs the track stage's light step (track members verified on 2D keypoints, no refine "
-        "pass; counted light_steps); false = every set the full step",
+        "pass, new people only every light_new_every s; counted light_steps, new_deferred); "
+        "false = every set the full step",
     )
 
 
