@@ -12,7 +12,8 @@ from maem_ros.core.geometry.camera import fundamental_matrix
 from maem_ros.core.geometry.multiview import reprojection_errors
 from maem_ros.core.geometry.procrustes import pa_mpjpe_finite
 from maem_ros.core.skeleton import joint_subset
-from maem_ros.core.tracking.temporal import _GATED, TemporalAssociator
+from maem_ros.core.association.pipeline import associate
+from maem_ros.core.tracking.temporal import _GATED, TemporalAssociator, keep_idx
 from maem_ros.core.tracking.track_geometry import median_depth as _depth
 from maem_ros.core.tracking.track_geometry import nanmedian as _nanmedian
 from maem_ros.core.tracking.track_geometry import project as _project
@@ -20,7 +21,19 @@ from maem_ros.core.tracking.track_geometry import verify_clusters as _verify
 
 
 class ReferenceTemporalAssociator(TemporalAssociator):
-    """TemporalAssociator with steps 2-4 computed camera by camera and pair gate by pair gate."""
+    """TemporalAssociator with steps 2-4 computed camera by camera and pair gate by pair gate,
+    and step 5 given every detection left, whatever its score (associate leaves out those under
+    tau_det itself)."""
+
+    def _associate_rest(self, by_cam, keep, scored, used, body, out, stats) -> None:
+        res = associate(self.rig, {self.rig.names[c]: by_cam[c].select(k) if used[c].any() else by_cam[c]
+                                   for c, k in keep.items()}, self.params)
+        for k, v in res.stats.items():
+            stats.setdefault(k, v)
+        new = [(np.stack([c.members[:, 0], keep_idx(keep, c.members)], axis=1), c.costs)
+               for c in res.clusters]
+        if new and body.size:
+            self._attach(new, by_cam, body, out, stats)
 
     def _explain(self, by_cam: dict[int, FrameDetections], body: np.ndarray,
                  used: dict[int, np.ndarray], stats: dict[str, float],

@@ -66,6 +66,21 @@ def test_batched_stage_equals_the_reference_on_the_bench_load_in_motion(seed, ve
     assert tracked >= 10  # the track stage ran on nearly every frame
 
 
+def test_new_people_are_associated_alike_whatever_scored_below_tau_det():
+    """A third of the detections scored under tau_det: step 5 (which copies only the leftovers
+    that scored tau_det or more) makes the reference's decisions and statistics, whose step 5
+    is given every leftover."""
+    rig = load_bench_rig("sportcenter6")
+    seq = make_sequence(rig, body_template(400, 70, 3), np.random.default_rng(3), players=8, extras=2,
+                        frames=10, px_noise=1.5, speed=3.0)
+    rng = np.random.default_rng(4)
+    low = [{c: dataclasses.replace(fd, scores=np.where(rng.random(fd.n) < 1 / 3, 0.5, fd.scores))
+            for c, fd in fr.frames.items()} for fr in seq]
+    params = AssociationParams()
+    assert sum(int((fd.scores < params.tau_det).sum()) for fr in low for fd in fr.values()) > 50
+    assert run_both(rig, low, params, TemporalParams()) >= 7
+
+
 @pytest.mark.parametrize("temporal", [TemporalParams(), TemporalParams(refine_px=0.0),
                                       TemporalParams(pose_weight=0.0, verify_epipolar="none")])
 def test_batched_stage_equals_the_reference_on_crossing_and_occlusion(temporal):

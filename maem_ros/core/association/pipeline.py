@@ -26,7 +26,7 @@ All 2D input is rectified pinhole px (FrameDetections), so only Camera.P and F a
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -255,12 +255,9 @@ def associate(
     by_index = _check_frames(rig, frames, params)
     kept = {c: np.flatnonzero(fd.scores >= params.tau_det) for c, fd in by_index.items()}
     table = DetectionTable.build(by_index, len(rig), kept)
-    n_all = np.array([by_index[c].n for c in sorted(by_index)])
-    n_kept = np.array([kept[c].size for c in sorted(by_index)])
-    stats["detections"] = float(n_all.sum())
-    stats["detections_kept"] = float(n_kept.sum())
-    stats["pairs_considered"] = float((n_all.sum() ** 2 - (n_all**2).sum()) / 2)
-    stats["rejected_score"] = stats["pairs_considered"] - float((n_kept.sum() ** 2 - (n_kept**2).sum()) / 2)
+    stats.update(
+        score_counts([by_index[c].n for c in sorted(by_index)], [kept[c].size for c in sorted(by_index)])
+    )
     joints = joint_subset(params.cost_joints, table.num_joints) if len(table) else None
     pair_cost = PoseCosts(table, joints, params.execution.backend) if joints is not None else None
     gates = PairGates(rig, params) if gates is None else gates
@@ -290,6 +287,20 @@ def associate(
         groups=found.groups,
         conflicts=found.conflicts,
     )
+
+
+def score_counts(detections: Sequence[int], kept: Sequence[int]) -> dict[str, float]:
+    """The stats of stage 1 from per-camera counts of detections and of those kept (score >=
+    tau_det): detections, detections_kept, pairs_considered (every pair of detections of two
+    cameras) and rejected_score (those with a detection below tau_det)."""
+    n_all, n_kept = np.asarray(detections, np.int64), np.asarray(kept, np.int64)
+    considered = float((n_all.sum() ** 2 - (n_all**2).sum()) / 2)
+    return {
+        "detections": float(n_all.sum()),
+        "detections_kept": float(n_kept.sum()),
+        "pairs_considered": considered,
+        "rejected_score": considered - float((n_kept.sum() ** 2 - (n_kept**2).sum()) / 2),
+    }
 
 
 def mean_costs(groups: list[np.ndarray], pair_cost: PoseCosts) -> list[np.ndarray]:

@@ -65,7 +65,7 @@ from scipy.optimize import linear_sum_assignment
 
 from maem_ros.core.association.gates import PairGates
 from maem_ros.core.association.params import AssociationParams
-from maem_ros.core.association.pipeline import associate
+from maem_ros.core.association.pipeline import associate, score_counts
 from maem_ros.core.detections import Cluster, FrameDetections
 from maem_ros.core.geometry.camera import Rig
 from maem_ros.core.skeleton import body_joints
@@ -242,12 +242,11 @@ class TemporalAssociator:
             stats["light_steps"] = float(light)
         stats["t_track_ms"] = (time.perf_counter() - t0) * 1e3
         keep = {c: np.flatnonzero(~u) for c, u in used.items()}
-        stats["detections_left"] = float(
-            sum(int((by_cam[c].scores[k] >= self.params.tau_det).sum()) for c, k in keep.items())
-        )
+        scored = {c: by_cam[c].scores[k] >= self.params.tau_det for c, k in keep.items()}
+        stats["detections_left"] = float(sum(int(s.sum()) for s in scored.values()))
         if new_now:
             self._last_new = int(stamp_ns)
-            self._associate_rest(by_cam, keep, used, body, out, stats)
+            self._associate_rest(by_cam, keep, scored, used, body, out, stats)
         else:
             stats["new_deferred"] = 1.0
         self._age(out, stats)
@@ -257,30 +256,31 @@ class TemporalAssociator:
         self,
         by_cam: dict[int, FrameDetections],
         keep: dict[int, np.ndarray],
+        scored: dict[int, np.ndarray],
         used: dict[int, np.ndarray],
         body: np.ndarray,
         out: dict[int, list],
         stats: dict[str, float],
     ) -> None:
-        """Step 5: ``associate`` on the detections no track explained (``keep``, per camera),
-        its new clusters attached to tracks or started as tracks (module docstring)."""
+        """Step 5: ``associate`` on the detections no track explained (``keep``, per camera;
+        ``scored``: which of them scored tau_det or more), its new clusters attached to tracks
+        or started as tracks (module docstring)."""
         t1 = time.perf_counter()
         # a camera none of whose detections a track explained goes in as given (no copy of its
-        # vertex arrays); the others as the subset of what is left (few once tracks run)
-        res = associate(
-            self.rig,
-            {
-                self.rig.names[c]: self.gates.select(by_cam[c], k) if used[c].any() else by_cam[c]
-                for c, k in keep.items()
-            },
-            self.params,
-            self.gates,
-        )
+        # vertex arrays); the others as the subset of what is left that scored tau_det or more
+        # (few once tracks run; below it a detection takes no part in associate)
+        given = {c: k[scored[c]] if used[c].any() else k for c, k in keep.items()}
+        subset = {
+            c: self.gates.select(by_cam[c], k) if used[c].any() else by_cam[c] for c, k in given.items()
+        }
+        res = associate(self.rig, {self.rig.names[c]: f for c, f in subset.items()}, self.params, self.gates)
+        left, kept = [k.size for k in keep.values()], [int(s.sum()) for s in scored.values()]
+        res.stats.update(score_counts(left, kept))  # as if every detection left had gone in
         stats["t_associate_ms"] = (time.perf_counter() - t1) * 1e3
         for k, v in res.stats.items():
             stats.setdefault(k, v)
         new = [
-            (np.stack([c.members[:, 0], keep_idx(keep, c.members)], axis=1), c.costs) for c in res.clusters
+            (np.stack([c.members[:, 0], keep_idx(given, c.members)], axis=1), c.costs) for c in res.clusters
         ]
         if new and body.size:
             self._attach(new, by_cam, body, out, stats)
