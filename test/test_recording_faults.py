@@ -68,8 +68,25 @@ def test_full_tmpfs_enospc(tmp_path, source, feed):
         if not fs.ok:
             pytest.skip(f"cannot mount a tmpfs here: {fs.why}")
         r = record_faults.disk_full_run(fs.path / "bag", source, "tmpfs", 16.0)
+    for log in r.stalls:  # a stalled attempt was started again: where it stood (-rA shows it)
+        print(f"stalled recorder attempt, log tail:\n{log}")
     assert r.rc == 1 and r.ok, r
     assert "No space left on device" in r.last_line
+
+
+def test_a_recording_that_stops_growing_is_killed_with_its_stacks(tmp_path):
+    """The full-disk runs' stall guard: a recorder whose files stop growing is asked for its
+    Python stacks (SIGUSR1, faulthandler) and killed; an exiting one gives its exit code."""
+    log = tmp_path / "stuck.log"
+    code = ("import faulthandler, signal, time; "
+            "faulthandler.register(signal.SIGUSR1, all_threads=True); time.sleep(120)")
+    with open(log, "w") as f:
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=f, stderr=subprocess.STDOUT)
+    assert record_faults.wait_exit_or_stall(proc, tmp_path / "bag", 60.0, 1.0) is None
+    assert proc.poll() is not None
+    assert "time.sleep" in log.read_text() or "<string>" in log.read_text(), log.read_text()
+    done = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    assert record_faults.wait_exit_or_stall(done, tmp_path / "bag", 60.0, 30.0) == 3
 
 
 def test_split_files_and_metadata_kept_current(tmp_path, source, feed):

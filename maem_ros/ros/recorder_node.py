@@ -324,13 +324,15 @@ def main(args: Sequence[str] | None = None) -> int:
             _drain(executor, rec)
     finally:
         writer.close()
+        # the bag is whole now: say so before the ROS teardown, which a stalled middleware
+        # could keep from ever returning (the line is what the user needs)
+        if rec.error is not None:
+            print(f"maem-record: {rec.error.strerror}", file=sys.stderr, flush=True)
+        else:
+            print(rec.summary(), flush=True)
         executor.shutdown(timeout_sec=1.0)
         shutdown_ros(node)
-    if rec.error is not None:
-        print(f"maem-record: {rec.error.strerror}", file=sys.stderr, flush=True)
-        return 1
-    print(rec.summary(), flush=True)
-    return 0
+    return 1 if rec.error is not None else 0
 
 
 if __name__ == "__main__":

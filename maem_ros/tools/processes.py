@@ -36,6 +36,20 @@ def node_command(kind: str, params_file: str | Path, namespace: str | None = Non
     return cmd
 
 
+def kill_with_stacks(p: subprocess.Popen) -> None:
+    """SIGUSR1 first (our commands dump their Python stacks into their log, see
+    ros/cli.stop_on_signals), then SIGKILL."""
+    if hasattr(signal, "SIGUSR1"):
+        p.send_signal(signal.SIGUSR1)
+        try:
+            p.wait(timeout=1.0)
+        except subprocess.TimeoutExpired:
+            pass
+    if p.poll() is None:
+        p.kill()
+        p.wait(timeout=5)
+
+
 @dataclass
 class Proc:
     name: str
@@ -97,23 +111,9 @@ class ProcessGroup:
             try:
                 codes[n] = p.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                codes[n] = self._kill_with_stacks(p)
+                kill_with_stacks(p)
+                codes[n] = None
         return codes
-
-    @staticmethod
-    def _kill_with_stacks(p: subprocess.Popen) -> None:
-        """SIGUSR1 first (the nodes dump their Python stacks into their log, see
-        ros/cli.stop_on_signals), then SIGKILL; None, the exit code of a killed process."""
-        if hasattr(signal, "SIGUSR1"):
-            p.send_signal(signal.SIGUSR1)
-            try:
-                p.wait(timeout=1.0)
-            except subprocess.TimeoutExpired:
-                pass
-        if p.poll() is None:
-            p.kill()
-            p.wait(timeout=5)
-        return None
 
     def forced_exits(self) -> list[str]:
         """Names of the processes whose shutdown watchdog ended them (see ros/cli.py: exit code

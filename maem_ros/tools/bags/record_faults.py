@@ -39,6 +39,7 @@ from mcap.records import Chunk, Message
 from mcap.stream_reader import breakup_chunk
 
 from maem_ros import bagio
+from maem_ros.tools.processes import kill_with_stacks
 
 BIN = Path(sys.executable).parent
 
@@ -339,6 +340,9 @@ class DiskResult:
     garbled: int
     holes: int
     damage: str
+    #: attempts before this one whose recording stopped growing with the recorder still
+    #: running: the end of each one's log, its Python stacks included (see _stalled)
+    stalls: tuple[str, ...] = ()
 
     @property
     def ok(self) -> bool:
@@ -368,19 +372,49 @@ def limit_file_size(nbytes: int) -> Callable[[], None]:
     return apply
 
 
+def _recorded_bytes(out: Path) -> int:
+    return sum(p.stat().st_size for p in out.glob("*.mcap")) if out.is_dir() else 0
+
+
+def wait_exit_or_stall(proc: subprocess.Popen, out: Path, timeout_s: float, stall_s: float) -> int | None:
+    """The recorder's exit code, or None when its files did not grow for ``stall_s`` (or in
+    ``timeout_s``) while it ran: then it is sent SIGUSR1 (its Python stacks go to its log,
+    ros/cli.stop_on_signals) and killed."""
+    deadline = time.monotonic() + timeout_s
+    size, grew = -1, time.monotonic()
+    while time.monotonic() < deadline and time.monotonic() - grew < stall_s:
+        try:
+            return proc.wait(0.2)
+        except subprocess.TimeoutExpired:
+            now = _recorded_bytes(out)
+            if now != size:
+                size, grew = now, time.monotonic()
+    kill_with_stacks(proc)
+    return None
+
+
 def disk_full_run(
-    out: Path, source: Source, mode: str, limit_mb: float, timeout_s: float = 90.0
+    out: Path, source: Source, mode: str, limit_mb: float, timeout_s: float = 90.0, stall_s: float = 15.0
 ) -> DiskResult:
     """Record from the running feed until the file size limit / the tmpfs at ``out.parent``
-    (already mounted by the caller for tmpfs) is full."""
+    (already mounted by the caller for tmpfs) is full.
+
+    A recording that stops growing for ``stall_s`` while the recorder runs (seen once in a CI
+    run: 59 messages, then nothing for 90 s, no line) is not a full-disk result: its log tail
+    with the recorder's stacks is kept in ``stalls`` and the run starts again, three times at
+    most (as kill_run does for a recorder that never gets a message)."""
     preexec = limit_file_size(int(limit_mb * bagio.writer.MB)) if mode == "fsize" else None
     log = out.parent.parent / f"{out.name}.{mode}.log"
-    proc = start_recorder(out, ["--all"], log, preexec)
-    try:
-        rc = proc.wait(timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        rc = proc.wait(5)
+    stalls: list[str] = []
+    for _attempt in range(3):
+        proc = start_recorder(out, ["--all"], log, preexec)
+        rc = wait_exit_or_stall(proc, out, timeout_s, stall_s)
+        if rc is not None:
+            break
+        stalls.append(log.read_text()[-4000:])
+        shutil.rmtree(out, ignore_errors=True)
+    else:
+        rc = -9
     lines = [ln for ln in log.read_text().splitlines() if ln.startswith("maem-record:")]
     last = lines[-1] if lines else ""
     try:
@@ -388,7 +422,7 @@ def disk_full_run(
         c, damage = source.check(bagio.read_messages(out, info=info)), info.damage
     except bagio.BagError as e:
         c, damage = Checked(), str(e)
-    return DiskResult(mode, rc, last, _said(last), c.count, c.garbled, c.holes, damage)
+    return DiskResult(mode, rc, last, _said(last), c.count, c.garbled, c.holes, damage, tuple(stalls))
 
 
 class Tmpfs:

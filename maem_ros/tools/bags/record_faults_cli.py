@@ -14,6 +14,7 @@ from pathlib import Path
 from maem_ros import bagio
 from maem_ros.tools.bags import record_faults
 from maem_ros.tools.bags.record_faults import (
+    DiskResult,
     Feed,
     Source,
     Tmpfs,
@@ -130,32 +131,27 @@ def run_all(a: argparse.Namespace, log=print) -> list[tuple[str, str, str]]:
     return rows
 
 
-def _disk_rows(work: Path, source: Source, log) -> list[tuple[str, str, str]]:
-    rows = []
-    (work / "fsize").mkdir(parents=True)
-    r = disk_full_run(work / "fsize" / "bag", source, "fsize", 24.0)
-    rows.append(
-        (
-            "file size limit 24 MB (EFBIG)",
-            f"{'ok' if r.ok else 'FAILED'}: exit {r.rc}, "
-            f"{r.readable:,} readable = said {r.said:,}, {r.holes} holes",
-            r.last_line,
-        )
+def _disk_row(name: str, r: DiskResult) -> tuple[str, str, str]:
+    stalled = f", {len(r.stalls)} stalled attempt(s) started again" if r.stalls else ""
+    return (
+        name,
+        f"{'ok' if r.ok else 'FAILED'}: exit {r.rc}, "
+        f"{r.readable:,} readable = said {r.said:,}, {r.holes} holes{stalled}",
+        r.last_line,
     )
+
+
+def _disk_rows(work: Path, source: Source, log) -> list[tuple[str, str, str]]:
+    (work / "fsize").mkdir(parents=True)
+    fsize = disk_full_run(work / "fsize" / "bag", source, "fsize", 24.0)
+    rows = [_disk_row("file size limit 24 MB (EFBIG)", fsize)]
     log(rows[-1])
     with Tmpfs(work / "tmpfs", 32) as fs:
         if not fs.ok:
             rows.append(("tmpfs 32 MB (ENOSPC)", "skipped", fs.why))
         else:
-            r = disk_full_run(fs.path / "bag", source, "tmpfs", 32.0)
-            rows.append(
-                (
-                    "tmpfs 32 MB (ENOSPC)",
-                    f"{'ok' if r.ok else 'FAILED'}: exit {r.rc}, "
-                    f"{r.readable:,} readable = said {r.said:,}, {r.holes} holes",
-                    r.last_line,
-                )
-            )
+            full = disk_full_run(fs.path / "bag", source, "tmpfs", 32.0)
+            rows.append(_disk_row("tmpfs 32 MB (ENOSPC)", full))
     log(rows[-1])
     return rows
 
