@@ -11,26 +11,16 @@ set (``light_new_every: 0``) and the default light step (new people every
 import sys
 import time
 
+from demo_sets import demo_sets
+
 from maem_ros.core.association import AssociationParams
 from maem_ros.core.limits import InputLimits
 from maem_ros.core.tracking.temporal import TemporalAssociator, TemporalParams
-from maem_ros.params import load_node_params
-from maem_ros.ros import wire
-from maem_ros.ros.association_node import PARAMS, checked_detections, prepared_detections
-from maem_ros.ros.params import load_rig_param
-from maem_ros.tools.bench.latency import make_scene
-from maem_ros.tools.bench.live import _encode
+from maem_ros.ros.association_node import checked_detections, prepared_detections
 
 WARM = 10  # full steps first: tracks confirmed
 layout = sys.argv[1] if len(sys.argv) > 1 else "q4"
-scene = make_scene("demo.yaml")
-p = {s.name: s.default for s in PARAMS}
-p.update(load_node_params("demo.yaml", "association"))
-rig = load_rig_param(p.get("rig", ""))
-msgs = [
-    [(c, wire.cdr_to_cloud(_encode(scene.detections(c, f), layout, 1), "/t")) for c in rig.names]
-    for f in range(scene.num_frames)
-]
+scene, p, rig, msgs = demo_sets(layout)
 limits = InputLimits()
 
 
