@@ -206,9 +206,6 @@ def publish_main(a: argparse.Namespace) -> int:
 # the run
 # ---------------------------------------------------------------------------------------------
 def _listener():
-    """The run's observer: arrival time (s) of every /maem/poses and /maem/clusters message
-    by stamp. Raw subscriptions, poses decoded after the run: during it the observer only
-    notes arrivals (its CPU is the measured nodes' CPU too)."""
     from sensor_msgs.msg import PointCloud2
 
     from maem_ros.ros import wire
@@ -216,22 +213,24 @@ def _listener():
     from maem_ros.ros.qos import DATA_QOS
 
     bg = BackgroundNode("maem_live_listener")
-    bg.poses = {}  # stamp -> (arrival s, serialized PointCloud2)
+    bg.poses = {}
     bg.clusters = {}  # stamp -> arrival (s): the association's hop, apart from triangulation's
 
-    def on_clusters(data: bytes) -> None:
+    def on_clusters(msg):
         t = time.time()
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
         with bg.lock:
-            bg.clusters.setdefault(wire.cdr_header_stamp_ns(data), t)
+            bg.clusters.setdefault(stamp, t)
 
-    def on_poses(data: bytes) -> None:
+    def on_poses(msg):
         t = time.time()
+        pf = wire.msg_to_poses(msg, "/maem/poses")
         with bg.lock:
-            bg.poses.setdefault(wire.cdr_header_stamp_ns(data), (t, data))
+            bg.poses.setdefault(pf.stamp_ns, (t, pf))
 
     bg.subs = [
-        bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS, raw=True),
-        bg.node.create_subscription(PointCloud2, "/maem/clusters", on_clusters, DATA_QOS, raw=True),
+        bg.node.create_subscription(PointCloud2, "/maem/poses", on_poses, DATA_QOS),
+        bg.node.create_subscription(PointCloud2, "/maem/clusters", on_clusters, DATA_QOS),
     ]
     bg.watch_diagnostics()
     return bg.start()
@@ -410,7 +409,6 @@ def _wait_ready(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> None:
 def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observed:
     """Give the publishers a common start time (with --stress, start the CPU hog), wait for
     the last poses (at most --drain s after the last frame), collect what the listener saw."""
-    from maem_ros.ros import wire
     from maem_ros.tools.bench.live_runs import hog_window, start_hog
 
     group, listener = graph.group, graph.listener
@@ -442,13 +440,9 @@ def _timed_run(a: argparse.Namespace, graph: _Graph, work: Path, rig) -> Observe
         if (work / f"{c}.late").exists()
     }
     with listener.lock:
-        received = dict(listener.poses)
+        poses = dict(listener.poses)
         clusters = dict(listener.clusters)
         diags = dict(listener.diagnostics)
-    poses = {
-        s: (t, wire.msg_to_poses(wire.cdr_to_cloud(m, "/maem/poses"), "/maem/poses"))
-        for s, (t, m) in received.items()
-    }
     return Observed(
         stamps=stamps,
         messages=messages,
