@@ -47,7 +47,7 @@ def test_stress_figures_on_a_known_latency_series() -> None:
 
 def test_latency_figures_say_where_each_slow_frame_waited() -> None:
     """Three frames at 10 fps: frame 1 waited 80 ms for the association and its camera 2 was
-    30 ms late; frame 2 has no poses."""
+    30 ms late; frame 2 has no poses (in the first second of the stream; at 2 fps it is not)."""
     stamps = [100, 200, 300]
     run = Observed(stamps=stamps, messages={}, t0=1000.0, wall=1.0, cpu0={}, cpu1={},
                    poses={100: (1000.02, None), 200: (1000.2, None)}, diags={}, hog_at=None,
@@ -57,6 +57,8 @@ def test_latency_figures_say_where_each_slow_frame_waited() -> None:
     assert fig["slowest_frames"] == [(1, 100.0, 80.0, 30.0), (0, 20.0, 10.0, 2.0)]
     assert fig["frames_without_poses"] == 1 and fig["latency_ms_by_frame"][2] is None
     assert fig["publisher_late_ms_median"] == 2.0  # every publish of every camera
+    assert fig["frames_without_poses_first_s"] == 1
+    assert latency_figures(run, 2.0)["frames_without_poses_first_s"] == 0
 
 
 def test_steal_share_between_two_readings() -> None:
@@ -155,6 +157,7 @@ def test_bench_live_runs_twice_with_a_hog(scene, tmp_path) -> None:
     assert out["runs"] == 2 and len(out["per_run"]) == 2 and out["stress_s"] == 1.0
     for run in out["per_run"]:
         assert run["unaccounted"] == 0, run
+        assert 0 <= run["frames_without_poses_first_s"] <= run["frames_without_poses"]
         assert run["latency_ms_p99"] >= run["latency_ms_median"] > 0
         assert "stress_recovery_s" in run
         assert run["association_cpu_ms_per_frame"] > 0 and run["triangulation_cpu_ms_per_frame"] > 0

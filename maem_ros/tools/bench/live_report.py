@@ -246,6 +246,9 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
             round(lat_by_frame[f], 1) if f in lat_by_frame else None for f in range(len(stamps))
         ],
         "frames_without_poses": int(sum(s not in poses for s in stamps)),
+        # of them, in the stream's first second: the nodes' start (tracks to build, the graph
+        # starting together) apart from the steady state
+        "frames_without_poses_first_s": int(sum(s not in poses for s in stamps[: max(int(rate), 1)])),
         # each frame's association hop (publish -> /maem/clusters; None: no clusters): which
         # node a slow frame waited for
         "association_hop_ms_by_frame": assoc_hop,

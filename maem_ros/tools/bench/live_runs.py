@@ -191,6 +191,7 @@ def summary(report: dict[str, Any]) -> dict[str, Any]:
             "latency_ms_p99",
             "latency_ms_max",
             "frames_without_poses",
+            "frames_without_poses_first_s",
             "partial_sets",
             "recall_live",
             "recall_offline",
