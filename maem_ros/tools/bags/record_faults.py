@@ -341,7 +341,7 @@ class DiskResult:
     holes: int
     damage: str
     #: attempts before this one whose recording stopped growing with the recorder still
-    #: running: the end of each one's log, its Python stacks included (see _stalled)
+    #: running: the end of each one's log, its Python stacks included (wait_exit_or_stall)
     stalls: tuple[str, ...] = ()
 
     @property
