@@ -6,6 +6,7 @@ back is byte-identical to one the player published; the longer randomised runs a
 from __future__ import annotations
 
 import random
+import signal
 import subprocess
 import sys
 import time
@@ -91,16 +92,21 @@ def test_a_recording_that_stops_growing_is_killed_with_its_stacks(tmp_path):
 
 def test_split_files_and_metadata_kept_current(tmp_path, source, feed):
     """--max-bag-duration 1: a new complete file every second of log time; metadata.yaml is
-    there and lists what is on disk while recording."""
+    there and lists what is on disk while recording; SIGINT (Ctrl-C) closes the last file.
+    (Stopped once three files are listed, not after a fixed time: how long the recorder
+    takes to discover the player depends on the machine's load.)"""
     out = tmp_path / "split"
     proc = subprocess.Popen([*record_faults.RECORD, str(out), "--all", "--max-bag-duration",
-                             "1", "--duration", "4"], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                             "1"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         assert record_faults.wait_data(out, proc, 1 << 20, 60.0), "nothing recorded"
         time.sleep(2.0)
         meta = bagio.metadata.load(out)  # mid-recording
         assert meta.message_count > 0 and len(meta.files) >= 1
+        deadline = time.monotonic() + 60.0
+        while len(bagio.metadata.load(out).files) < 3 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
         text, _ = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
@@ -114,6 +120,19 @@ def test_split_files_and_metadata_kept_current(tmp_path, source, feed):
         in text
     c = source.check(bagio.read_messages(out, info=info))
     assert c.count == info.message_count and c.garbled == 0
+
+
+def test_duration_stops_the_recorder(tmp_path):
+    """--duration S: the recorder stops by itself after S seconds and closes a sound bag (here
+    of a topic nobody publishes: nothing to wait for but the clock)."""
+    out = tmp_path / "timed"
+    t0 = time.monotonic()
+    proc = subprocess.run([*record_faults.RECORD, str(out), "--topics", "/nobody/publishes",
+                           "--duration", "2"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert time.monotonic() - t0 >= 2.0
+    assert f"wrote 0 messages to {out}" in proc.stdout, proc.stdout
+    assert bagio.bag_info(out).damage == ""
 
 
 def test_bad_split_option_is_one_line(tmp_path):

@@ -209,7 +209,9 @@ class AssociationNode(MaemNode):
         self._light_when_late = p["light_when_late"]
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
-        self._ready: list = []  # sets a stream reset replayed while receiving
+        self._ready: list = []  # complete sets not handled yet (in stamp order)
+        # keep_every_set: the next set's turn after the executor's other ready work
+        self._resume = self.create_guard_condition(self._decide)
         # inside _take_all: a message callback only receives (complete sets are handled
         # between rounds there, timeouts decided after it)
         self._taking = False
@@ -340,7 +342,13 @@ class AssociationNode(MaemNode):
 
     def _emit(self, ready: list) -> None:
         """Handle frame sets ready together, the ones that waited beyond the backlog bound
-        skipped (the newest never)."""
+        skipped (the newest never). With every set kept, one set per callback: the rest waits
+        in ``_ready`` for the guard condition's callback, which comes after the executor's
+        other ready work (a triangulation node in the same process takes its input between
+        sets instead of seeing its history overflow behind a long backlog)."""
+        if len(ready) > 1 and not self._skip_stale:
+            ready, self._ready = ready[:1], ready[1:] + self._ready
+            self._resume.trigger()
         if ready:
             ready = self.backlog.select(ready, [fs.ready_ns for fs in ready], [fs.stamp_ns for fs in ready])
         self._handle(ready)
@@ -353,14 +361,17 @@ class AssociationNode(MaemNode):
         (the default) the backlog is received first, which set is the newest is known only
         then, in at most ``queue_size`` rounds (what the DDS histories hold when this starts):
         messages that keep arriving faster than they are taken never keep the node from
-        deciding. Whether nothing was left waiting."""
+        deciding. With every set kept, taking stops at the first complete set (one set per
+        callback, see _emit; the rest waits in the DDS queues). Whether nothing was left
+        waiting."""
         self._taking = True
         try:
             rounds = 0
             while self._take_round():
                 if not self._skip_stale:
-                    ready, self._ready = self._ready, []
-                    self._emit(ready + self.sync.poll(self._now_ns(), complete_only=True))
+                    self._ready += self.sync.poll(self._now_ns(), complete_only=True)
+                    if self._ready:
+                        return False
                     continue
                 rounds += 1
                 if rounds >= self.sync.queue_size:
