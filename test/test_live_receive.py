@@ -465,3 +465,49 @@ def test_the_node_runs_its_path_warm_before_it_subscribes_and_keeps_no_trace_of_
     kv = g["diags"].get("/association")
     assert kv["frames_dropped"] == "0", kv
     assert len(g["clusters"].by_stamp[scene.stamp_ns(0)].cluster) > 0
+
+
+def _kernel_signatures() -> dict[str, int]:
+    """How many type signatures each loaded maem_ros numba kernel has compiled or loaded."""
+    import sys
+
+    from numba.core.registry import CPUDispatcher
+
+    return {f"{name}.{k}": len(v.signatures) for name, mod in list(sys.modules.items())
+            if name.startswith("maem_ros") for k, v in vars(mod).items()
+            if isinstance(v, CPUDispatcher)}
+
+
+@pytest.mark.parametrize("layout", wire.WIRE_VERTICES)
+def test_the_first_real_frame_set_loads_no_kernel(scene, layout):
+    """The warm pass ran every kernel with the argument types real messages bring, whether
+    the executor hands them over as writable arrays (ros.raw_take) or as bytes: the first
+    real frame sets load nothing from numba's cache (a q4 decoder compiled for read-only
+    fields once did, on the stream's first frame)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from maem_ros.ros.association_node import AssociationNode
+    from helpers_ros import pipeline_params
+
+    pytest.importorskip("numba")
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = AssociationNode(context=context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in pipeline_params()[0].items()])
+        published: list = []
+        node.pub.publish = published.append  # no executor here: what would go out
+        before = _kernel_signatures()
+        for f, as_array in ((0, True), (1, False), (2, True)):
+            for cam in node.rig.names:
+                data = serialize_message(wire.detections_to_msg(scene.detections(cam, f), layout, layout))
+                node._receive(cam, f"/{cam}/detections", np.frombuffer(data, np.uint8).copy()
+                              if as_array else data, None)
+            node._decide()
+        assert len(published) == 3  # each set processed, none dropped
+        after = _kernel_signatures()
+        assert {k: (before.get(k), n) for k, n in after.items() if n != before.get(k)} == {}
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
