@@ -276,7 +276,7 @@ class AssociationNode(MaemNode):
             return 0
         return runs
 
-    def _warm_frame_set(self, stage: Any, sent: dict[str, bytes], light: bool) -> None:
+    def _warm_frame_set(self, stage: Any, sent: dict[str, bytes | np.ndarray], light: bool) -> None:
         """One serialized frame set (camera -> message) through the node's path with ``stage``."""
         checked = {
             cam: checked_detections(
