@@ -57,6 +57,7 @@ def test_latency_figures_say_where_each_slow_frame_waited() -> None:
     assert fig["slowest_frames"] == [(1, 100.0, 80.0, 30.0), (0, 20.0, 10.0, 2.0)]
     assert fig["frames_without_poses"] == 1 and fig["latency_ms_by_frame"][2] is None
     assert fig["publisher_late_ms_median"] == 2.0  # every publish of every camera
+    assert fig["publisher_late_ms_by_frame"] == [2.0, 30.0, 1.0]  # the latest camera's
     assert fig["frames_without_poses_first_s"] == 1
     assert latency_figures(run, 2.0)["frames_without_poses_first_s"] == 0
 

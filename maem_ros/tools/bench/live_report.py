@@ -262,6 +262,9 @@ def latency_figures(run: Observed, rate: float) -> dict[str, Any]:
         ),
         # how late the camera publishers sent (their publish returned after the schedule): a
         # machine too loaded for its publishers delays every frame before any node sees it
+        # each frame's latest publish over the cameras, ms after its schedule, in publish
+        # order: whether a slow start (or a hiccup) began before any node saw the frame
+        "publisher_late_ms_by_frame": [round(x * 1e3, 1) for x in late],
         "publisher_late_ms_median": _median_ms(every_late),
         "publisher_late_ms_p99": (
             round(float(np.percentile(every_late, 99)) * 1e3, 1) if every_late else None
