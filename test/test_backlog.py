@@ -6,8 +6,8 @@ import math
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from maem_ros.core.backlog import (BACKLOG_PERIODS, LATE_PERIODS, MIN_BACKLOG_S, Backlog,
-                                   BacklogParams)
+from maem_ros.core.backlog import (BACKLOG_PERIODS, LATE_PERIODS, LOAD_WINDOW_S, MIN_BACKLOG_S,
+                                   Backlog, BacklogParams, LoadMeter)
 
 MS = 1_000_000
 T0 = 1_700_000_000_000_000_000
@@ -211,3 +211,43 @@ def test_a_frame_is_late_once_it_waited_more_than_a_frame_period() -> None:
     assert not b.is_stale(ready, ready + int(LATE_PERIODS * 18 * MS))
     assert not fed(60, keep_every_set=True).is_late(ready, ready + 10**9)
     assert not Backlog(BacklogParams()).is_late(ready, ready + 10**9)
+
+
+def test_the_load_is_the_callbacks_share_of_the_window() -> None:
+    """LoadMeter: busy time inside the last window / the window; a span crossing the window's
+    start counts its part inside, a running callback counts up to now, a nested begin is the
+    outer callback's."""
+    meter = LoadMeter(0.25)
+    assert meter.window_ns == 250 * MS and LoadMeter().window_ns == int(LOAD_WINDOW_S * 1e9)
+    assert meter.load(T0) == 0.0
+    for start, end in ((-60, 40), (100, 150)):  # ms from T0
+        meter.begin(T0 + start * MS)
+        meter.begin(T0 + (start + 5) * MS)  # nested: ignored
+        meter.end(T0 + end * MS)
+    meter.end(T0 + 160 * MS)  # nothing running: ignored
+    assert meter.load(T0 + 150 * MS) == pytest.approx((60 + 40 + 50) / 250)
+    # the window [-10, 240] ms: 50 ms of the first span, all of the second
+    assert meter.load(T0 + 240 * MS) == pytest.approx((50 + 50) / 250)
+    meter.begin(T0 + 200 * MS)  # running for 100 ms at 300 ms
+    assert meter.load(T0 + 300 * MS) == pytest.approx((50 + 100) / 250)
+    assert meter.load(T0 + 10**9) == pytest.approx(1.0)  # running the whole window
+    meter.end(T0 + 10**9)
+    assert meter.load(T0 + 2 * 10**9) == 0.0
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 40), st.integers(0, 40)), min_size=1, max_size=60))
+def test_the_load_lies_between_0_and_1(gaps_and_lengths: list[tuple[int, int]]) -> None:
+    """Whatever the callbacks (one after the other, ms apart, ms long), the load is a share of
+    the window, and equals the busy time counted directly."""
+    meter, t, spans = LoadMeter(0.1), T0, []
+    for gap, length in gaps_and_lengths:
+        t += gap * MS
+        meter.begin(t)
+        meter.end(t + length * MS)
+        spans.append((t, t + length * MS))
+        t += length * MS
+        start = t - 100 * MS
+        busy = sum(max(0, min(e, t) - max(s, start)) for s, e in spans)
+        assert 0.0 <= meter.load(t) <= 1.0
+        assert meter.load(t) == pytest.approx(busy / (100 * MS))

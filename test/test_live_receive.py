@@ -93,8 +93,9 @@ def test_frame_sets_that_waited_beyond_a_frame_period_run_the_light_step(graph, 
     here), so both are processed, with the track stage's light step (counted light_steps; new
     people deferred, counted new_deferred, so q4 messages are decoded without their mesh), and
     nothing is skipped; with light_when_late false both run the full step."""
+    # light_load 1: only the sets that waited run light (the test's own pace may load the node)
     g = start_pipeline(graph, association={"light_when_late": light_when_late, "keep_every_set": False,
-                                           "max_backlog": 2.0})
+                                           "max_backlog": 2.0, "light_load": 1.0})
     cams = g["assoc"].rig.names
     stamp = lambda f: scene.stamp_ns(0) + f * 33_333_333  # noqa: E731 - 30 fps stamps
 
@@ -126,6 +127,29 @@ def test_frame_sets_that_waited_beyond_a_frame_period_run_the_light_step(graph, 
     # both within light_new_every (0.1 s) of the last full step: no association of new people
     assert d.value("/association", "count/new_deferred") == (2 if light_when_late else 0)
     assert g["clusters"].has(stamp(4)) and len(g["clusters"].by_stamp[stamp(5)].cluster) > 0
+
+
+@pytest.mark.parametrize("light_load", [0.0, 1.0])
+def test_a_loaded_node_runs_the_light_step_before_any_set_waited(graph, scene, light_load):
+    """light_load: the light step also runs while the node's load (its callbacks' share of
+    the last 0.25 s, /diagnostics load) is above it. At 0 any load is above it: every set with
+    tracks (all but the first) runs light although none waited; at 1 (the load never exceeds
+    it) none does. /diagnostics shows the load."""
+    g = start_pipeline(graph, association={"keep_every_set": False, "light_load": light_load})
+    cams = g["assoc"].rig.names
+    stamp = lambda f: scene.stamp_ns(0) + f * 33_333_333  # noqa: E731 - 30 fps stamps
+    for f in range(4):
+        for cam in cams:
+            dets = scene.detections(cam, f)
+            dets.stamp_ns = stamp(f)
+            g["player"].publish(dets)
+        assert wait_for(lambda: g["clusters"].has(stamp(f)), 20.0, graph)
+    d = g["diags"]
+    d.wait_value("/association", "frames_processed", lambda v: v == 4, graph=graph)
+    assert d.value("/association", "count/light_steps") == (3 if light_load == 0.0 else 0)
+    assert d.value("/association", "dropped/behind") == 0
+    assert 0.0 < float(d.get("/association")["load"]) <= 1.0
+    assert all(len(g["clusters"].by_stamp[stamp(f)].cluster) > 0 for f in range(4))
 
 
 def test_raw_detections_garbage_is_dropped_as_bad_cdr_and_the_node_goes_on(graph, scene):

@@ -51,6 +51,10 @@ MIN_BACKLOG_S = 0.05
 #: frame periods a frame may wait for the node before it is *late*: the next frame is due and the
 #: node is falling behind (the association node then runs its light step: core/tracking/temporal.py)
 LATE_PERIODS = 1.0
+#: s of wall time a node's load (the share of it its callbacks took: :class:`LoadMeter`) is
+#: measured over: a quarter second, 15 frames at 60 fps, follows a change of the input within
+#: a few frames and averages a single slow frame out
+LOAD_WINDOW_S = 0.25
 #: stamp intervals the frame period is the median of
 PERIOD_SAMPLES = 31
 #: an episode with no decision for this many bounds (at least 1 s) ended with its last one
@@ -243,3 +247,39 @@ class Backlog(Generic[T]):
         )
         self._max_backlog_ns = 0
         return out
+
+
+class LoadMeter:
+    """A node's load: the share of the last ``window_s`` seconds of wall time its callbacks
+    took (0..1; a callback still running counts up to ``now``). Wall time, not CPU time: a
+    node that waits for a core is as busy for its input as one that computes. Times are ns
+    on one monotonic clock.
+
+    Why: a node near full load has no room for a slow frame, and the frame after it waits;
+    the load says so before any frame has waited (is_late says so after)."""
+
+    def __init__(self, window_s: float = LOAD_WINDOW_S):
+        self.window_ns = int(round(window_s * 1e9))
+        self._spans: deque[tuple[int, int]] = deque()  # closed callbacks (start, end), oldest first
+        self._open: int | None = None  # start of the callback running now
+
+    def begin(self, now_ns: int) -> None:
+        """A callback starts (a nested one inside a running callback changes nothing)."""
+        if self._open is None:
+            self._open = int(now_ns)
+
+    def end(self, now_ns: int) -> None:
+        """The running callback ends."""
+        if self._open is not None:
+            self._spans.append((self._open, int(now_ns)))
+            self._open = None
+
+    def load(self, now_ns: int) -> float:
+        """Busy share of the window ending at ``now_ns``."""
+        now_ns = int(now_ns)
+        start = now_ns - self.window_ns
+        while self._spans and self._spans[0][1] <= start:
+            self._spans.popleft()
+        spans = list(self._spans) + ([(self._open, now_ns)] if self._open is not None else [])
+        busy = sum(max(0, min(e, now_ns) - max(s, start)) for s, e in spans)
+        return busy / self.window_ns

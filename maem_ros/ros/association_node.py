@@ -33,6 +33,7 @@ A stamp going backwards or jumping forward by more than ``max_gap_s`` ends all t
 from __future__ import annotations
 
 import sys
+import time
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -45,7 +46,7 @@ from sensor_msgs.msg import PointCloud2
 from maem_ros.core.association import AssociationParams, ExecutionParams
 from maem_ros.core.association import warmup as warmup_association
 from maem_ros.core.association.gates import PairGates
-from maem_ros.core.backlog import BacklogParams
+from maem_ros.core.backlog import BacklogParams, LoadMeter
 from maem_ros.core.detections import FrameDetections
 from maem_ros.core.geometry import Rig
 from maem_ros.core.limits import InputLimits, check_detection_arrays
@@ -134,6 +135,14 @@ class AssociationNodeParams(NodeParams):
         "pass, new people only every light_new_every s; counted light_steps, new_deferred); "
         "false = every set the full step",
     )
+    light_load: float = param(
+        0.8,
+        "with light_when_late: the light step also runs while the node's load (the share of "
+        "the last 0.25 s its callbacks took, /diagnostics load) is above this, before any set "
+        "has waited; 1 = only sets that waited",
+        minimum=0.0,
+        maximum=1.0,
+    )
 
 
 PARAMS = param_specs(AssociationNodeParams, BacklogParams, AssociationParams, ExecutionParams, TemporalParams)
@@ -207,11 +216,13 @@ class AssociationNode(MaemNode):
         self.backlog = NodeBacklog(self, self.diag, BacklogParams.from_mapping(p), "frame set(s)")
         self._skip_stale = not p["keep_every_set"]
         self._light_when_late = p["light_when_late"]
+        self._light_load = p["light_load"]
+        self.load = LoadMeter()  # the callbacks' share of wall time (monotonic clock)
         self.pub = self.create_publisher(PointCloud2, p["clusters_topic"], DATA_QOS)
         self.subs = []
         self._ready: list = []  # complete sets not handled yet (in stamp order)
         # keep_every_set: the next set's turn after the executor's other ready work
-        self._resume = self.create_guard_condition(self._decide)
+        self._resume = self.create_guard_condition(self.on_timer)
         # inside _take_all: a message callback only receives (complete sets are handled
         # between rounds there, timeouts decided after it)
         self._taking = False
@@ -299,9 +310,15 @@ class AssociationNode(MaemNode):
     def on_detections(self, cam: str, topic: str, data: bytes | np.ndarray, info) -> None:
         """One serialized detections message: check and queue it; then (unless called from
         _decide) take every other pending message and let the synchroniser decide."""
-        self._receive(cam, topic, data, info)
-        if not self._taking:
+        if self._taking:  # inside _take_all: receive only
+            self._receive(cam, topic, data, info)
+            return
+        self.load.begin(time.monotonic_ns())
+        try:
+            self._receive(cam, topic, data, info)
             self._decide()
+        finally:
+            self.load.end(time.monotonic_ns())
 
     def _receive(self, cam: str, topic: str, data: bytes | np.ndarray, info) -> None:
         """Check one serialized message and queue it by its stamp: every field and limit is
@@ -398,7 +415,12 @@ class AssociationNode(MaemNode):
         return sum(take_pending(sub, limit=1) for sub in self.subs)
 
     def on_timer(self) -> None:
-        self._decide()
+        """The poll timer, and the guard condition of keep_every_set's next set."""
+        self.load.begin(time.monotonic_ns())
+        try:
+            self._decide()
+        finally:
+            self.load.end(time.monotonic_ns())
 
     def on_clock_jump(self, jump) -> None:
         """/clock went back (use_sim_time, bag replayed again): start over, counted once."""
@@ -447,6 +469,16 @@ class AssociationNode(MaemNode):
             "lagging_cameras", ",".join(f"{c}:{lag * 1e3:.0f}ms" for c, lag in self.sync.lagging().items())
         )
 
+    def _light_step(self, ready_ns: int) -> bool:
+        """Whether a set ready at ``ready_ns`` (node clock) runs the light step: with
+        light_when_late, when it waited more than a frame period (is_late) or the node's load
+        is above light_load; never with keep_every_set (every set its full step)."""
+        load = self.load.load(time.monotonic_ns())
+        self.diag.set("load", round(load, 3))
+        if not self._light_when_late or not self._skip_stale:
+            return False
+        return self.backlog.policy.is_late(ready_ns, self._now_ns()) or load > self._light_load
+
     def process(self, fs) -> None:
         """Associate one frame set and publish its clusters."""
         if fs.missing:
@@ -457,7 +489,7 @@ class AssociationNode(MaemNode):
         # how long the set waited for this node after it was complete (time_ms/waited)
         self.diag.time("waited", (self._now_ns() - fs.ready_ns) / 1e6)
         with RejectErrors(self.diag, f"frame set {fs.stamp_ns}", "association_error") as step:
-            light = self._light_when_late and self.backlog.policy.is_late(fs.ready_ns, self._now_ns())
+            light = self._light_step(fs.ready_ns)
             items = self._decoded(fs, self.temporal.associates_new(fs.stamp_ns, light))
             with Stopwatch(self.diag, "associate"):
                 result = self.temporal.step(items, fs.stamp_ns, light)
