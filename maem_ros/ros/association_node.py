@@ -34,6 +34,8 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
@@ -313,10 +315,16 @@ class AssociationNode(MaemNode):
         if self._taking:  # inside _take_all: receive only
             self._receive(cam, topic, data, info)
             return
-        self.load.begin(time.monotonic_ns())
-        try:
+        with self._in_callback():
             self._receive(cam, topic, data, info)
             self._decide()
+
+    @contextmanager
+    def _in_callback(self) -> Iterator[None]:
+        """Count the time inside in the node's load (the light step's trigger, /diagnostics)."""
+        self.load.begin(time.monotonic_ns())
+        try:
+            yield
         finally:
             self.load.end(time.monotonic_ns())
 
@@ -416,11 +424,8 @@ class AssociationNode(MaemNode):
 
     def on_timer(self) -> None:
         """The poll timer, and the guard condition of keep_every_set's next set."""
-        self.load.begin(time.monotonic_ns())
-        try:
+        with self._in_callback():
             self._decide()
-        finally:
-            self.load.end(time.monotonic_ns())
 
     def on_clock_jump(self, jump) -> None:
         """/clock went back (use_sim_time, bag replayed again): start over, counted once."""
