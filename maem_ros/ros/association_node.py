@@ -21,7 +21,9 @@ dropped message is counted as ``dropped/sync_<reason>``; more than ``max_detecti
 or pixels beyond ``pixel_margin`` are rejected; a node that fell behind skips the frame sets that
 waited for it longer than the backlog bound, counted ``dropped/behind``: ``max_backlog`` s, by
 default 4 frame periods (core.backlog; ``keep_every_set: true`` processes every set, for
-replays that want every frame; /diagnostics ``behind``, ``behind/for_s``, ``backlog/*``),
+replays that want every frame; /diagnostics ``behind``, ``behind/for_s``, ``backlog/*``;
+a set that waited a frame period, or any set while the node's ``load`` is above ``light_load``,
+runs the track stage's light step: ``light_when_late``),
 runs core.tracking.temporal.TemporalAssociator (``temporal: on``, default: detections explained by the
 tracks' predictions first, core.association.pipeline.associate on the rest; clusters carry track ids) or
 core.association.pipeline.associate alone (``temporal: off``, the per-frame paper pipeline) with the paper's
