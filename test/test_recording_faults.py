@@ -99,7 +99,11 @@ def test_split_files_and_metadata_kept_current(tmp_path, source, feed):
     proc = subprocess.Popen([*record_faults.RECORD, str(out), "--all", "--max-bag-duration",
                              "1"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        assert record_faults.wait_data(out, proc, 1 << 20, 60.0), "nothing recorded"
+        if not record_faults.wait_data(out, proc, 1 << 20, 60.0):
+            proc.kill()
+            said = proc.communicate(timeout=10)[0]
+            pytest.fail(f"nothing recorded in 60 s; feed exit code {feed.proc.poll()}, its log: "
+                        f"{feed.log.read_text()[-1500:]!r}; the recorder said: {said[-1500:]!r}")
         time.sleep(2.0)
         meta = bagio.metadata.load(out)  # mid-recording
         assert meta.message_count > 0 and len(meta.files) >= 1
